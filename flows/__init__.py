@@ -1,0 +1,16 @@
+"""Prefect flows and the ``aeromag`` command line (thin wrappers around ``pipeline``).
+
+Importing this package sets Prefect's environment defaults before Prefect itself is imported:
+a temporary local server needs more than the default 20 s to start on a new database here, and
+nothing may reach the network (see shared/docs/toolchain.md). Values already set win.
+"""
+
+import os
+
+for _key, _value in {
+    "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "90",
+    "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+    "DO_NOT_TRACK": "1",
+    "PREFECT_LOGGING_LEVEL": "WARNING",
+}.items():
+    os.environ.setdefault(_key, _value)

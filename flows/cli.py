@@ -1,0 +1,168 @@
+"""The ``aeromag`` command line.
+
+Every user error prints one line ``aeromag: error: FILE: CHANNEL: problem`` and exits with
+code 2; nothing prints a traceback (set ``AEROMAG_DEBUG=1`` to see one). Commands that run a
+flow import Prefect lazily so that ``inspect`` and ``simulate`` start instantly.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from pipeline.errors import AeromagError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="Post-flight processing of airborne and UAV magnetic surveys (MCAP).")
+console = Console(stderr=True)
+out = Console()
+
+
+def _fail(message: str, code: int = 2) -> None:
+    console.print(f"aeromag: error: {message}", markup=False, highlight=False, soft_wrap=True)
+    raise typer.Exit(code)
+
+
+@app.command()
+def simulate(
+    out_path: Annotated[Path, typer.Option("--out", help="Recording to write (.mcap).")],
+    truth: Annotated[Path | None, typer.Option(help="Truth document to write (.json).")] = None,
+    scenario: Annotated[str, typer.Option(help="Built-in scenario name or a TOML file.")] = "demo",
+    seed: Annotated[int, typer.Option(help="Random seed (same seed, same file).")] = 1,
+    set_: Annotated[list[str] | None, typer.Option(
+        "--set", help="Override a scenario value: key.sub=VALUE (repeatable), e.g. "
+                      "effects.sensor_lag.enabled=true")] = None,
+) -> None:
+    """Simulate a flight: what the recorder writes goes to --out, the truth to --truth."""
+    from pipeline.simulate import Scenario, write_simulation
+    from pipeline.simulate import simulate as run
+
+    sc = Scenario.load(scenario, set_ or [])
+    with console.status(f"simulating scenario {sc.name} (seed {seed})"):
+        sim = run(sc, seed)
+    with console.status(f"writing {out_path}"):
+        write_simulation(sim, out_path, truth)
+    n = sum(len(s["t"]) for s in sim.streams.values())
+    out.print(f"{out_path}: {sim.trajectory.duration_s / 60:.1f} min flight, {n} messages, "
+              f"effects: {', '.join(sc.enabled_effects()) or 'none'}")
+    if truth:
+        out.print(f"{truth}: truth")
+
+
+@app.command()
+def scenarios() -> None:
+    """List the built-in simulation scenarios."""
+    from pipeline.simulate import Scenario, builtin_scenarios
+
+    for name in builtin_scenarios():
+        out.print(f"{name:18s} {Scenario.load(name)['description']}")
+
+
+@app.command()
+def inspect(
+    file: Annotated[Path, typer.Argument(help="MCAP recording.")],
+    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the report as JSON.")
+                        ] = None,
+) -> None:
+    """Topics, counts, rates, span, gaps and contract violations (exit 1 on violations)."""
+    from pipeline.io.inspect import inspect_recording
+    from pipeline.io.writer import write_json_atomic
+
+    rep = inspect_recording(file)
+    d = rep.to_dict()
+    table = Table(title=f"{file}  ({d['duration_s']:.1f} s)", title_justify="left")
+    for col in ("topic", "schema", "messages", "rate Hz", "gaps"):
+        table.add_column(col, justify="right" if col in ("messages", "rate Hz", "gaps") else "left")
+    for t in d["topics"]:
+        rate = "" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
+        table.add_row(t["topic"], t["schema"], str(t["messages"]), rate, str(len(t["gaps"])))
+    out.print(table)
+    for w in rep.warnings:
+        out.print(f"warning: {w}", markup=False, highlight=False)
+    if json_out:
+        write_json_atomic(json_out, d)
+    if rep.violations:
+        for v in rep.violations:
+            console.print(f"violation: {file}: {v}", markup=False, highlight=False)
+        raise typer.Exit(1)
+    out.print("contract: ok")
+
+
+def _run_postflight(recording: Path, out_dir: Path) -> dict:
+    from flows.postflight import postflight
+
+    with console.status(f"processing {recording.name} (Prefect flow 'postflight')"):
+        return postflight(str(recording), str(out_dir))
+
+
+@app.command()
+def process(
+    recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
+    out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")],
+) -> None:
+    """Run the post-flight flow on one recording."""
+    if not recording.is_file():
+        _fail(f"{recording}: file not found")
+    result = _run_postflight(recording, out_dir)
+    out.print(f"output recording: {result['outputs']['mcap']}")
+    out.print(f"summary: {result['outputs']['summary']}")
+
+
+@app.command()
+def demo(
+    out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("demo-output"),
+    seed: Annotated[int, typer.Option(help="Random seed of the simulated flight.")] = 1,
+) -> None:
+    """Simulate the built-in demo flight, run the post-flight flow on it, print the outputs."""
+    from pipeline.simulate import Scenario, write_simulation
+    from pipeline.simulate import simulate as run
+
+    t0 = time.perf_counter()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    flight_path, truth_path = out_dir / "demo_flight.mcap", out_dir / "demo_truth.json"
+    sc = Scenario.load("demo")
+    with console.status("simulating the demo flight (002-style UAV survey)"):
+        sim = run(sc, seed)
+        write_simulation(sim, flight_path, truth_path)
+    out.print(f"simulated flight: {flight_path} ({sim.trajectory.duration_s / 60:.1f} min), "
+              f"truth: {truth_path}")
+    result = _run_postflight(flight_path, out_dir)
+    inp = result["input"]
+    out.print(f"ingested {inp['epochs']} epochs, {len(inp['topics'])} channels, "
+              f"{inp['duration_s']:.0f} s")
+    out.print(f"output recording: {result['outputs']['mcap']}")
+    out.print(f"summary: {result['outputs']['summary']}")
+    out.print(f"done in {time.perf_counter() - t0:.1f} s")
+
+
+def main() -> None:
+    """Console-script entry point: one-line errors, never a traceback."""
+    try:
+        app()
+    except AeromagError as exc:
+        if os.environ.get("AEROMAG_DEBUG"):
+            raise
+        console.print(f"aeromag: error: {exc}", markup=False, highlight=False, soft_wrap=True)
+        sys.exit(2)
+    except KeyboardInterrupt:
+        console.print("aeromag: interrupted")
+        sys.exit(130)
+    except Exception as exc:  # noqa: BLE001 - an internal bug still gets one line
+        if os.environ.get("AEROMAG_DEBUG"):
+            raise
+        text = " ".join(str(exc).split())
+        console.print(f"aeromag: internal error: {type(exc).__name__}: {text} "
+                      "(set AEROMAG_DEBUG=1 for the traceback)", markup=False, highlight=False,
+                      soft_wrap=True)
+        sys.exit(3)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,44 @@
+"""Local metric coordinates around a reference point.
+
+East/north metres come from an azimuthal equidistant projection centred on the reference
+(pyproj); "up" is the ellipsoidal height difference. Over survey areas of tens of km this is
+the flat-earth frame geophysicists grid in, with sub-metre distortion.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from pyproj import Transformer
+
+
+@dataclass
+class LocalFrame:
+    """East-north-up metres about (lat0_deg, lon0_deg, alt0_m)."""
+
+    lat0_deg: float
+    lon0_deg: float
+    alt0_m: float = 0.0
+    _fwd: Transformer = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self._fwd = Transformer.from_crs(
+            "EPSG:4326",
+            f"+proj=aeqd +lat_0={self.lat0_deg} +lon_0={self.lon0_deg} +datum=WGS84 +units=m",
+            always_xy=True)
+
+    @property
+    def crs(self) -> str:
+        return f"+proj=aeqd +lat_0={self.lat0_deg} +lon_0={self.lon0_deg} +datum=WGS84 +units=m"
+
+    def to_enu(self, lat_deg, lon_deg, alt_m=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        e, n = self._fwd.transform(np.asarray(lon_deg, float), np.asarray(lat_deg, float))
+        u = (np.asarray(alt_m, float) - self.alt0_m) if alt_m is not None else np.zeros_like(e)
+        return np.asarray(e), np.asarray(n), np.asarray(u)
+
+    def to_geodetic(self, east_m, north_m, up_m=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        lon, lat = self._fwd.transform(np.asarray(east_m, float), np.asarray(north_m, float),
+                                       direction="INVERSE")
+        alt = (np.asarray(up_m, float) + self.alt0_m) if up_m is not None else np.zeros_like(lat)
+        return np.asarray(lat), np.asarray(lon), np.asarray(alt)

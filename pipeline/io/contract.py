@@ -1,0 +1,72 @@
+"""The input channel contract (see ``schemas/README.md``).
+
+Every message is JSON (``message_encoding="json"``, schema encoding ``jsonschema``); its MCAP
+``log_time`` is the sample instant in ns since the Unix epoch (UTC) and the payload repeats it as
+``timestamp: {sec, nsec}``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+MESSAGE_ENCODING = "json"
+SCHEMA_ENCODING = "jsonschema"
+
+
+@dataclass(frozen=True)
+class TopicRule:
+    """One row of the contract: which topics, which schema, which role in the pipeline.
+
+    ``topic`` is matched exactly; when ``prefix`` is true, ``topic/<id>`` matches as well.
+    """
+
+    topic: str
+    schema_name: str
+    role: str
+    fields: tuple[str, ...]
+    prefix: bool = False
+    description: str = ""
+
+    def matches(self, topic: str) -> bool:
+        if topic == self.topic:
+            return True
+        sub = topic[len(self.topic) + 1:]
+        return self.prefix and topic.startswith(self.topic + "/") and bool(sub)
+
+
+INPUT_CONTRACT: tuple[TopicRule, ...] = (
+    TopicRule("/mag/scalar", "aeromag.ScalarField", "scalar", ("sensor_id", "total_nT"), True,
+              "scalar (total-field) magnetometer"),
+    TopicRule("/mag/vector", "aeromag.VectorField", "vector", ("sensor_id", "x_nT", "y_nT", "z_nT"),
+              True, "vector magnetometer, body frame x forward, y right, z down"),
+    TopicRule("/ins/attitude", "aeromag.Attitude", "attitude", ("roll_deg", "pitch_deg", "yaw_deg"),
+              description="attitude, Z-Y-X Euler angles, yaw = true heading"),
+    TopicRule("/gnss/fix", "foxglove.LocationFix", "position",
+              ("latitude", "longitude", "altitude"),
+              description="GNSS position, WGS-84, altitude above the ellipsoid"),
+    TopicRule("/base/scalar", "aeromag.ScalarField", "base", ("sensor_id", "total_nT"),
+              description="base-station magnetometer"),
+    TopicRule("/aux", "aeromag.Scalar", "aux", ("value", "unit"), True,
+              description="auxiliary channel (currents, voltages, temperatures)"),
+    TopicRule("/plan/line", "aeromag.LineMarker", "plan", ("line_id", "kind"),
+              description="start of a planned segment"),
+)
+
+# Channels aeromag writes. ``inspect`` validates them like input channels; the reader skips them
+# (they are results, not measurements) and the writer refuses to write one twice.
+OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
+    TopicRule("/aeromag/log", "foxglove.Log", "output", ("level", "message"),
+              description="human-readable processing log"),
+)
+
+# Roles each processing stage needs; a stage must not demand more than it uses.
+FULL_PIPELINE_ROLES = ("scalar", "vector", "attitude", "position")
+
+
+def rule_for_topic(topic: str) -> TopicRule | None:
+    """Contract rule for ``topic`` (input or output), or None for a topic outside the contract
+    (kept untouched)."""
+    for rule in (*INPUT_CONTRACT, *OUTPUT_CONTRACT):
+        if rule.matches(topic):
+            return rule
+    return None

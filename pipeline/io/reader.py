@@ -1,0 +1,461 @@
+"""Recording -> typed, aligned columns.
+
+Reading happens in three steps, each usable on its own:
+
+1. :func:`read_topics` — one pass over the MCAP file, raw payloads grouped by topic;
+2. :func:`decode_topic` — contract topics decoded to numpy arrays, with a list of problems;
+3. :func:`read_flight` — every decoded stream interpolated onto the scalar magnetometer's
+   epochs (the sensors run at their own rates and clocks), gaps detected and reported.
+
+Topics outside the contract are kept as raw records (the writer copies every input record
+unchanged anyway); they are listed, never dropped silently.
+"""
+
+from __future__ import annotations
+
+import struct
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import orjson
+import pandas as pd
+from mcap.exceptions import McapError
+from mcap.reader import make_reader
+
+from pipeline.errors import AeromagError
+from pipeline.io.contract import MESSAGE_ENCODING, TopicRule, rule_for_topic
+
+NS = 1_000_000_000
+
+
+# --------------------------------------------------------------------------------------------
+# 1. raw pass
+# --------------------------------------------------------------------------------------------
+@dataclass
+class RawTopic:
+    """All messages of one topic, in file order."""
+
+    topic: str
+    schema_name: str
+    schema_encoding: str
+    message_encoding: str
+    log_time_ns: list[int] = field(default_factory=list)
+    data: list[bytes] = field(default_factory=list)
+
+    @property
+    def count(self) -> int:
+        return len(self.data)
+
+
+@dataclass
+class RawRecording:
+    path: Path
+    topics: dict[str, RawTopic]
+    has_summary: bool
+
+
+def _open_error(path: Path, exc: BaseException) -> AeromagError:
+    name = type(exc).__name__
+    text = str(exc).strip().splitlines()[0] if str(exc).strip() else name
+    return AeromagError(f"not a readable MCAP recording ({name}: {text})", file=path)
+
+
+def read_topics(path: str | Path, topics: Iterable[str] | None = None) -> RawRecording:
+    """Read the raw payloads of a recording, grouped by topic.
+
+    Parameters
+    ----------
+    path
+        MCAP file; opened read-only.
+    topics
+        Only these topics (default: all).
+
+    Raises
+    ------
+    AeromagError
+        The file is missing, empty, not MCAP, corrupt (chunk CRCs are validated) or truncated.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise AeromagError("file not found", file=path)
+    if path.stat().st_size == 0:
+        raise AeromagError("empty file (0 bytes), not an MCAP recording", file=path)
+    wanted = set(topics) if topics is not None else None
+    out: dict[str, RawTopic] = {}
+    try:
+        with path.open("rb") as stream:
+            reader = make_reader(stream, validate_crcs=True)
+            summary = reader.get_summary()
+            if summary is not None:  # channels that carry no message are still listed
+                for ch in summary.channels.values():
+                    if wanted is None or ch.topic in wanted:
+                        sc = summary.schemas.get(ch.schema_id)
+                        out.setdefault(ch.topic, RawTopic(
+                            ch.topic, sc.name if sc else "", sc.encoding if sc else "",
+                            ch.message_encoding))
+            for schema, channel, message in reader.iter_messages(
+                    topics=list(wanted) if wanted is not None else None, log_time_order=False):
+                raw = out.get(channel.topic)
+                if raw is None:
+                    raw = out[channel.topic] = RawTopic(
+                        channel.topic, schema.name if schema else "",
+                        schema.encoding if schema else "", channel.message_encoding)
+                raw.log_time_ns.append(message.log_time)
+                raw.data.append(message.data)
+    except (McapError, ValueError, struct.error, EOFError, OSError, KeyError) as exc:
+        # CRCValidationError is a ValueError, not an McapError (toolchain.md).
+        raise _open_error(path, exc) from exc
+    return RawRecording(path=path, topics=out, has_summary=summary is not None)
+
+
+# --------------------------------------------------------------------------------------------
+# 2. decoding
+# --------------------------------------------------------------------------------------------
+@dataclass
+class TopicSeries:
+    """A decoded contract topic: sorted, de-duplicated sample times and numeric fields."""
+
+    topic: str
+    rule: TopicRule
+    time_ns: np.ndarray
+    values: dict[str, np.ndarray]
+    labels: dict[str, np.ndarray]  # string fields (sensor_id, unit, line_id, kind)
+    problems: list[str]
+    n_messages: int
+
+    @property
+    def median_period_s(self) -> float:
+        if self.time_ns.size < 2:
+            return float("nan")
+        return float(np.median(np.diff(self.time_ns))) / NS
+
+    @property
+    def rate_hz(self) -> float:
+        p = self.median_period_s
+        return 1.0 / p if p > 0 else float("nan")
+
+
+_STRING_FIELDS = {"sensor_id", "unit", "line_id", "kind"}
+
+
+def decode_topic(raw: RawTopic, rule: TopicRule) -> TopicSeries:
+    """Decode one topic's JSON payloads into arrays.
+
+    Messages that cannot be decoded, lack a field, have a wrong type, or carry a non-finite
+    value are dropped and counted in ``problems``; so are duplicate timestamps (first kept).
+    A payload ``timestamp`` that disagrees with ``log_time`` is reported, ``log_time`` is used.
+    """
+    problems: list[str] = []
+    if raw.schema_name != rule.schema_name:
+        problems.append(f"schema is {raw.schema_name!r}, the contract says {rule.schema_name!r}")
+    if raw.message_encoding != MESSAGE_ENCODING:
+        problems.append(f"message encoding is {raw.message_encoding!r}, expected 'json'")
+        return TopicSeries(raw.topic, rule, np.zeros(0, np.int64), {}, {}, problems, raw.count)
+    numeric = [f for f in rule.fields if f not in _STRING_FIELDS]
+    strings = [f for f in rule.fields if f in _STRING_FIELDS]
+    n = raw.count
+    t = np.zeros(n, np.int64)
+    vals = {f: np.full(n, np.nan) for f in numeric}
+    labs: dict[str, list[str]] = {f: [""] * n for f in strings}
+    ok = np.zeros(n, bool)
+    bad_decode = bad_field = bad_stamp = 0
+    first_bad: str | None = None
+    for i, (lt, data) in enumerate(zip(raw.log_time_ns, raw.data, strict=True)):
+        t[i] = lt
+        try:
+            msg = orjson.loads(data)
+        except orjson.JSONDecodeError:
+            bad_decode += 1
+            continue
+        try:
+            for f in numeric:
+                v = msg[f]
+                if isinstance(v, bool) or not isinstance(v, int | float):
+                    raise TypeError(f"field {f!r} is {type(v).__name__}, not a number")
+                vals[f][i] = v
+            for f in strings:
+                v = msg.get(f, "") if f == "sensor_id" else msg[f]
+                if not isinstance(v, str):
+                    raise TypeError(f"field {f!r} is {type(v).__name__}, not a string")
+                labs[f][i] = v
+        except (KeyError, TypeError) as exc:
+            bad_field += 1
+            if first_bad is None:
+                first_bad = (f"field {exc.args[0]!r} missing" if isinstance(exc, KeyError)
+                             else str(exc))
+            continue
+        except Exception:  # noqa: BLE001 - payload is not even an object
+            bad_field += 1
+            first_bad = first_bad or "payload is not a JSON object"
+            continue
+        ts = msg.get("timestamp") if isinstance(msg, dict) else None
+        if not (isinstance(ts, dict) and isinstance(ts.get("sec"), int)
+                and isinstance(ts.get("nsec"), int) and ts["sec"] * NS + ts["nsec"] == lt):
+            bad_stamp += 1
+        ok[i] = True
+    if bad_decode:
+        problems.append(f"{bad_decode} of {n} messages are not valid JSON (dropped)")
+    if bad_field:
+        problems.append(f"{bad_field} of {n} messages do not match the schema: {first_bad} "
+                        "(dropped)")
+    if bad_stamp:
+        problems.append(f"{bad_stamp} of {n} messages have a payload timestamp that differs "
+                        "from log_time (log_time used)")
+    finite = np.ones(n, bool)
+    for f in numeric:
+        finite &= np.isfinite(vals[f])
+    n_nonfinite = int((ok & ~finite).sum())
+    if n_nonfinite:
+        problems.append(f"{n_nonfinite} of {n} messages carry NaN or infinite values (dropped)")
+    keep = ok & finite
+    idx = np.flatnonzero(keep)
+    order = idx[np.argsort(t[idx], kind="stable")]
+    if order.size and np.any(np.diff(t[idx]) < 0):
+        problems.append("messages are not in time order (sorted)")
+    tt = t[order]
+    dup = np.zeros(tt.size, bool)
+    dup[1:] = tt[1:] == tt[:-1]
+    if dup.any():
+        problems.append(f"{int(dup.sum())} duplicated timestamps (first kept)")
+    order = order[~dup]
+    return TopicSeries(
+        topic=raw.topic, rule=rule, time_ns=t[order],
+        values={f: v[order] for f, v in vals.items()},
+        labels={f: np.asarray(v, dtype=object)[order] for f, v in labs.items()},
+        problems=problems, n_messages=n,
+    )
+
+
+# --------------------------------------------------------------------------------------------
+# 3. alignment
+# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Gap:
+    """An interval without samples on a topic, longer than the gap tolerance."""
+
+    topic: str
+    start_ns: int
+    end_ns: int
+
+    @property
+    def duration_s(self) -> float:
+        return (self.end_ns - self.start_ns) / NS
+
+
+def find_gaps(time_ns: np.ndarray, topic: str, gap_factor: float = 3.0) -> list[Gap]:
+    """Intervals between consecutive samples longer than ``gap_factor`` x the median period."""
+    if time_ns.size < 3:
+        return []
+    dt = np.diff(time_ns)
+    limit = gap_factor * float(np.median(dt))
+    return [Gap(topic, int(time_ns[i]), int(time_ns[i + 1])) for i in np.flatnonzero(dt > limit)]
+
+
+@dataclass
+class Flight:
+    """A recording's streams on one time base: the primary scalar magnetometer's epochs.
+
+    Columns of ``data`` (those whose topic is absent are missing, not NaN-filled):
+
+    - ``time_s``: seconds since the first epoch; ``time_ns`` holds absolute UTC ns.
+    - ``scalar_nT``: primary scalar magnetometer; ``scalar_<id>_nT`` for others.
+    - ``vector_x_nT``, ``vector_y_nT``, ``vector_z_nT``: primary vector magnetometer, body frame
+      (x forward, y right, z down); ``vector_<id>_x_nT`` ... for others.
+    - ``roll_deg``, ``pitch_deg``, ``yaw_deg``: attitude (yaw = true heading, 0-360).
+    - ``lat_deg``, ``lon_deg``, ``alt_m``: GNSS, WGS-84 (altitude above the ellipsoid).
+    - ``base_nT``: base-station magnetometer.
+    - ``aux_<name>``: auxiliary channels, unit in ``units``.
+    - ``plan_line_id``, ``plan_kind``: the planned segment in force (from ``/plan/line``).
+
+    Secondary streams are linearly interpolated (yaw unwrapped first); epochs outside a
+    stream's span or inside one of its gaps are NaN and listed in ``notes``.
+    """
+
+    source: Path
+    time_ns: np.ndarray
+    data: pd.DataFrame
+    units: dict[str, str]
+    series: dict[str, TopicSeries]
+    topic_of: dict[str, str]  # role or column group -> topic used
+    gaps: list[Gap]
+    notes: list[str]
+    unknown_topics: list[str]
+
+    def has(self, *columns: str) -> bool:
+        return all(c in self.data.columns for c in columns)
+
+    def require(self, *columns: str, purpose: str) -> None:
+        """Raise a one-line error when a needed column (hence channel) is missing."""
+        missing = [c for c in columns if c not in self.data.columns]
+        if missing:
+            raise AeromagError(f"{purpose} needs {', '.join(missing)} but the channel is absent",
+                               file=self.source, channel=_CHANNEL_OF_COLUMN.get(missing[0], ""))
+
+
+_CHANNEL_OF_COLUMN = {
+    "vector_x_nT": "/mag/vector", "vector_y_nT": "/mag/vector", "vector_z_nT": "/mag/vector",
+    "roll_deg": "/ins/attitude", "pitch_deg": "/ins/attitude", "yaw_deg": "/ins/attitude",
+    "lat_deg": "/gnss/fix", "lon_deg": "/gnss/fix", "alt_m": "/gnss/fix", "base_nT": "/base/scalar",
+}
+
+
+def _interp_onto(t_dst: np.ndarray, series: TopicSeries, values: np.ndarray,
+                 gaps: list[Gap], *, angle: bool = False) -> tuple[np.ndarray, int]:
+    """Linear interpolation of ``values`` (at ``series.time_ns``) onto ``t_dst``.
+
+    Returns the interpolated array (NaN outside the span and inside gaps) and the number of
+    destination epochs left without data.
+    """
+    t_src = series.time_ns
+    out = np.full(t_dst.size, np.nan)
+    if t_src.size == 0:
+        return out, t_dst.size
+    # Relative seconds keep float64 precision (absolute ns would lose it in np.interp).
+    base = t_src[0]
+    xs = (t_src - base) / NS
+    xd = (t_dst - base) / NS
+    v = np.unwrap(values, period=360.0) if angle else values
+    if t_src.size == 1:
+        inside = t_dst == t_src[0]
+        out[inside] = v[0]
+    else:
+        inside = (t_dst >= t_src[0]) & (t_dst <= t_src[-1])
+        out[inside] = np.interp(xd[inside], xs, v)
+    for g in gaps:
+        inside &= ~((t_dst > g.start_ns) & (t_dst < g.end_ns))
+    out[~inside] = np.nan
+    if angle:
+        out = np.mod(out, 360.0)
+    return out, int((~inside).sum())
+
+
+def _suffix(topic: str, rule: TopicRule) -> str:
+    return topic[len(rule.topic) + 1:].replace("/", "_") if topic != rule.topic else ""
+
+
+def read_flight(path: str | Path, *, scalar_topic: str | None = None,
+                vector_topic: str | None = None, gap_factor: float = 3.0) -> Flight:
+    """Read a recording and align every contract stream onto the primary scalar epochs.
+
+    Parameters
+    ----------
+    path
+        MCAP recording (read-only).
+    scalar_topic, vector_topic
+        Primary magnetometers (default ``/mag/scalar`` and ``/mag/vector``; when absent, the
+        first ``/mag/scalar/<id>`` resp. ``/mag/vector/<id>`` in name order).
+    gap_factor
+        A gap is an interval longer than ``gap_factor`` x the stream's median period.
+
+    Raises
+    ------
+    AeromagError
+        Unreadable file, or no usable scalar magnetometer stream.
+    """
+    raw = read_topics(path)
+    path = raw.path
+    series: dict[str, TopicSeries] = {}
+    unknown: list[str] = []
+    notes: list[str] = []
+    for topic, rt in sorted(raw.topics.items()):
+        rule = rule_for_topic(topic)
+        if rule is None:
+            unknown.append(topic)
+            continue
+        if rule.role == "output":  # an earlier run's result, not a measurement
+            continue
+        s = decode_topic(rt, rule)
+        series[topic] = s
+        notes.extend(f"{topic}: {p}" for p in s.problems)
+
+    def pick(role: str, wanted: str | None, default: str) -> str | None:
+        if wanted is not None:
+            if wanted not in series or series[wanted].rule.role != role:
+                raise AeromagError(f"no {role} magnetometer messages on this topic", file=path,
+                                   channel=wanted)
+            return wanted
+        if default in series:
+            return default
+        others = sorted(t for t, s in series.items() if s.rule.role == role)
+        if others:
+            notes.append(f"{default} absent: using {others[0]} as the primary {role} sensor")
+            return others[0]
+        return None
+
+    primary = pick("scalar", scalar_topic, "/mag/scalar")
+    if primary is None:
+        raise AeromagError("no scalar magnetometer channel (/mag/scalar or /mag/scalar/<id>)",
+                           file=path, channel="/mag/scalar")
+    ps = series[primary]
+    if ps.time_ns.size < 2:
+        detail = "; ".join(ps.problems) or f"{ps.n_messages} messages"
+        raise AeromagError(f"fewer than 2 usable samples ({detail})", file=path, channel=primary)
+    vprimary = pick("vector", vector_topic, "/mag/vector")
+
+    t = ps.time_ns
+    gaps_all: list[Gap] = []
+    cols: dict[str, np.ndarray] = {"time_s": (t - t[0]) / NS, "scalar_nT": ps.values["total_nT"]}
+    units: dict[str, str] = {"time_s": "s", "scalar_nT": "nT"}
+    topic_of = {"scalar": primary}
+    gaps_all.extend(find_gaps(t, primary, gap_factor))
+
+    for topic, s in series.items():
+        if topic == primary:
+            continue
+        role = s.rule.role
+        gaps = find_gaps(s.time_ns, topic, gap_factor)
+        gaps_all.extend(gaps)
+        if s.time_ns.size == 0:
+            notes.append(f"{topic}: no usable samples")
+            continue
+
+        def put(name: str, values: np.ndarray, unit: str, angle: bool = False,
+                _s: TopicSeries = s, _g: list[Gap] = gaps) -> None:
+            arr, missing = _interp_onto(t, _s, values, _g, angle=angle)
+            cols[name] = arr
+            units[name] = unit
+            if missing:
+                notes.append(f"{_s.topic}: {missing} of {t.size} epochs without data "
+                             "(outside its span or in a gap)")
+
+        if role == "scalar":
+            put(f"scalar_{_suffix(topic, s.rule)}_nT", s.values["total_nT"], "nT")
+        elif role == "vector":
+            stem = "vector" if topic == vprimary else f"vector_{_suffix(topic, s.rule)}"
+            if topic == vprimary:
+                topic_of["vector"] = topic
+            for ax in "xyz":
+                put(f"{stem}_{ax}_nT", s.values[f"{ax}_nT"], "nT")
+        elif role == "attitude":
+            topic_of["attitude"] = topic
+            put("roll_deg", s.values["roll_deg"], "deg")
+            put("pitch_deg", s.values["pitch_deg"], "deg")
+            put("yaw_deg", s.values["yaw_deg"], "deg", angle=True)
+        elif role == "position":
+            topic_of["position"] = topic
+            put("lat_deg", s.values["latitude"], "deg")
+            put("lon_deg", s.values["longitude"], "deg")
+            put("alt_m", s.values["altitude"], "m")
+        elif role == "base":
+            topic_of["base"] = topic
+            put("base_nT", s.values["total_nT"], "nT")
+        elif role == "aux":
+            name = f"aux_{_suffix(topic, s.rule)}"
+            unit = str(s.labels["unit"][0]) if s.labels["unit"].size else ""
+            put(name, s.values["value"], unit)
+        elif role == "plan":
+            # Markers hold until the next one: take the last marker at or before each epoch.
+            k = np.searchsorted(s.time_ns, t, side="right") - 1
+            valid = k >= 0
+            for f, col in (("line_id", "plan_line_id"), ("kind", "plan_kind")):
+                arr = np.full(t.size, "", dtype=object)
+                arr[valid] = s.labels[f][k[valid]]
+                cols[col] = arr
+                units[col] = ""
+    for g in gaps_all:
+        notes.append(f"{g.topic}: gap of {g.duration_s:.3f} s from "
+                     f"{(g.start_ns - t[0]) / NS:.3f} s to {(g.end_ns - t[0]) / NS:.3f} s")
+    return Flight(source=path, time_ns=t, data=pd.DataFrame(cols), units=units, series=series,
+                  topic_of=topic_of, gaps=gaps_all, notes=notes, unknown_topics=unknown)
