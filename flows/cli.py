@@ -21,8 +21,13 @@ from pipeline.errors import AeromagError
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="Post-flight processing of airborne and UAV magnetic surveys (MCAP).")
-console = Console(stderr=True)
-out = Console()
+console = Console(stderr=True, soft_wrap=True, highlight=False)
+# Never wrap or mark up results: paths must survive copy and paste, brackets and all.
+out = Console(soft_wrap=True, highlight=False)
+
+
+def say(text: str) -> None:
+    out.print(text, markup=False)
 
 
 def _fail(message: str, code: int = 2) -> None:
@@ -50,10 +55,10 @@ def simulate(
     with console.status(f"writing {out_path}"):
         write_simulation(sim, out_path, truth)
     n = sum(len(s["t"]) for s in sim.streams.values())
-    out.print(f"{out_path}: {sim.trajectory.duration_s / 60:.1f} min flight, {n} messages, "
+    say(f"{out_path}: {sim.trajectory.duration_s / 60:.1f} min flight, {n} messages, "
               f"effects: {', '.join(sc.enabled_effects()) or 'none'}")
     if truth:
-        out.print(f"{truth}: truth")
+        say(f"{truth}: truth")
 
 
 @app.command()
@@ -62,7 +67,7 @@ def scenarios() -> None:
     from pipeline.simulate import Scenario, builtin_scenarios
 
     for name in builtin_scenarios():
-        out.print(f"{name:18s} {Scenario.load(name)['description']}")
+        say(f"{name:18s} {Scenario.load(name)['description']}")
 
 
 @app.command()
@@ -83,16 +88,16 @@ def inspect(
     for t in d["topics"]:
         rate = "" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
         table.add_row(t["topic"], t["schema"], str(t["messages"]), rate, str(len(t["gaps"])))
-    out.print(table)
+    out.print(table)  # a rich table: the one thing rendered
     for w in rep.warnings:
-        out.print(f"warning: {w}", markup=False, highlight=False)
+        say(f"warning: {w}")
     if json_out:
         write_json_atomic(json_out, d)
     if rep.violations:
         for v in rep.violations:
             console.print(f"violation: {file}: {v}", markup=False, highlight=False)
         raise typer.Exit(1)
-    out.print("contract: ok")
+    say("contract: ok")
 
 
 def _run_postflight(recording: Path, out_dir: Path) -> dict:
@@ -111,8 +116,8 @@ def process(
     if not recording.is_file():
         _fail(f"{recording}: file not found")
     result = _run_postflight(recording, out_dir)
-    out.print(f"output recording: {result['outputs']['mcap']}")
-    out.print(f"summary: {result['outputs']['summary']}")
+    say(f"output recording: {result['outputs']['mcap']}")
+    say(f"summary: {result['outputs']['summary']}")
 
 
 @app.command()
@@ -131,15 +136,15 @@ def demo(
     with console.status("simulating the demo flight (002-style UAV survey)"):
         sim = run(sc, seed)
         write_simulation(sim, flight_path, truth_path)
-    out.print(f"simulated flight: {flight_path} ({sim.trajectory.duration_s / 60:.1f} min), "
+    say(f"simulated flight: {flight_path} ({sim.trajectory.duration_s / 60:.1f} min), "
               f"truth: {truth_path}")
     result = _run_postflight(flight_path, out_dir)
     inp = result["input"]
-    out.print(f"ingested {inp['epochs']} epochs, {len(inp['topics'])} channels, "
+    say(f"ingested {inp['epochs']} epochs, {len(inp['topics'])} channels, "
               f"{inp['duration_s']:.0f} s")
-    out.print(f"output recording: {result['outputs']['mcap']}")
-    out.print(f"summary: {result['outputs']['summary']}")
-    out.print(f"done in {time.perf_counter() - t0:.1f} s")
+    say(f"output recording: {result['outputs']['mcap']}")
+    say(f"summary: {result['outputs']['summary']}")
+    say(f"done in {time.perf_counter() - t0:.1f} s")
 
 
 def main() -> None:

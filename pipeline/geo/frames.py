@@ -17,6 +17,8 @@ def attitude_rotation(roll_deg, pitch_deg, yaw_deg) -> Rotation:
     r, p, y = np.broadcast_arrays(np.asarray(roll_deg, float), np.asarray(pitch_deg, float),
                                   np.asarray(yaw_deg, float))
     angles = np.stack([y.ravel(), p.ravel(), r.ravel()], axis=-1)
+    if y.ndim == 0:  # scalar angles: one rotation, so a single vector stays a single vector
+        angles = angles[0]
     # Upper-case "ZYX" = intrinsic rotations, i.e. the aerospace yaw-pitch-roll sequence.
     return Rotation.from_euler("ZYX", angles, degrees=True)
 

@@ -22,7 +22,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.integrate import cumulative_trapezoid
 from scipy.interpolate import CubicSpline
 from scipy.ndimage import gaussian_filter1d
 
@@ -279,19 +278,24 @@ class Trajectory:
         return np.interp(t_s, self.master_t, self.motor_load)
 
 
-def _window_displacement(a: np.ndarray, dt: float) -> np.ndarray:
-    """Double integral of an acceleration burst, zero at both ends of the window.
+def _envelope(t: np.ndarray, duration: float, ramp: float) -> np.ndarray:
+    """Raised-cosine ramps at both ends: angle *and* rate start and stop at zero, as a real
+    airframe must (a bare sinusoid would demand an infinite angular acceleration)."""
+    up = np.clip(t / ramp, 0.0, 1.0)
+    down = np.clip((duration - t) / ramp, 0.0, 1.0)
+    return 0.5 * (1 - np.cos(np.pi * np.minimum(up, down)))
 
-    The linear drift a pilot or autopilot removes (the sinusoid's mean velocity) is taken out,
-    leaving the oscillating excursion of the sensor.
+
+def _oscillation(x: np.ndarray, omega: float, dt: float, order: int) -> np.ndarray:
+    """Steady-state integral (order 1) or double integral (order 2) of a harmonic signal.
+
+    For x = X sin(w t): the integral is -x'/w^2 and the double integral -x/w^2. This is the
+    oscillating excursion about the held track (the autopilot or pilot removes the drift a bare
+    numerical integral would accumulate), exact for a pure manoeuvre harmonic.
     """
-    d = cumulative_trapezoid(cumulative_trapezoid(a, dx=dt, initial=0.0), dx=dt, initial=0.0)
-    return d - np.linspace(d[0], d[-1], d.size)
-
-
-def _window_integral(x: np.ndarray, dt: float) -> np.ndarray:
-    d = cumulative_trapezoid(x, dx=dt, initial=0.0)
-    return d - np.linspace(d[0], d[-1], d.size)
+    if order == 2:
+        return -x / omega**2
+    return -np.gradient(x, dt) / omega**2
 
 
 def build_trajectory(sc: Scenario) -> Trajectory:
@@ -351,19 +355,21 @@ def build_trajectory(sc: Scenario) -> Trajectory:
                 if w.size < 3:
                     continue
                 tt = tm[w] - tm[w[0]]
-                delta = m.amplitude_deg * np.sin(2 * np.pi * tt / m.period_s)
+                delta = (m.amplitude_deg * np.sin(2 * np.pi * tt / m.period_s)
+                         * _envelope(tt, m.duration_s, m.period_s / 2))
+                omega = 2 * np.pi / m.period_s
                 if m.kind == "roll":
                     d_roll[w] = delta
                     a_right = G * np.tan(np.radians(delta))
-                    disp_r[w] = _window_displacement(a_right, dt)
+                    disp_r[w] = _oscillation(a_right, omega, dt, 2)
                     if fixed_wing:
-                        turn_yaw[w] = np.degrees(_window_integral(a_right / v, dt))
+                        turn_yaw[w] = np.degrees(_oscillation(a_right / v, omega, dt, 1))
                 elif m.kind == "pitch":
                     d_pitch[w] = delta
                     if fixed_wing:
-                        disp_u[w] = _window_integral(v * np.sin(np.radians(delta)), dt)
+                        disp_u[w] = _oscillation(v * np.sin(np.radians(delta)), omega, dt, 1)
                     else:
-                        disp_f[w] = _window_displacement(-G * np.tan(np.radians(delta)), dt)
+                        disp_f[w] = _oscillation(-G * np.tan(np.radians(delta)), omega, dt, 2)
                 else:
                     d_yaw[w] = delta
         else:
@@ -379,7 +385,9 @@ def build_trajectory(sc: Scenario) -> Trajectory:
     roll = gaussian_filter1d(roll, sigma, mode="nearest")
     climb_pitch = gaussian_filter1d(climb_pitch, sigma, mode="nearest")
 
-    hd = np.unwrap(np.radians(heading))
+    # Heading rate follows the bank (coordinated turn), so it too ramps in over roll_in_s; the
+    # few-degree difference from the track at arc ends is a realistic crab angle.
+    hd = gaussian_filter1d(np.unwrap(np.radians(heading)), sigma, mode="nearest")
     along = np.stack([np.sin(hd), np.cos(hd)], axis=1)
     right = np.stack([np.cos(hd), -np.sin(hd)], axis=1)
     east += disp_f * along[:, 0] + disp_r * right[:, 0]

@@ -1,0 +1,64 @@
+"""Shared test set-up: hermetic Prefect settings, simulated recordings, helpers."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+
+# Prefect reads its settings at import: make them hermetic before anything imports it.
+os.environ["PREFECT_HOME"] = tempfile.mkdtemp(prefix="aeromag-test-prefect-")
+os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
+os.environ["DO_NOT_TRACK"] = "1"
+os.environ["PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS"] = "90"
+os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+
+import hashlib  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+from pipeline.simulate import Scenario, simulate, write_simulation  # noqa: E402
+
+REPO = Path(__file__).resolve().parent.parent
+FIXTURES = REPO / "fixtures"
+
+# No noise, every stream at 10 Hz on the same clock: physics checks compare samples 1:1.
+QUIET = [
+    "sensors.scalar_noise_nT=0.0", "sensors.scalar_drift_nT_per_sqrt_s=0.0",
+    "sensors.vector_noise_nT=0.0", "sensors.attitude_noise_deg=0.0", "sensors.gnss_noise_m=0.0",
+    "sensors.base_noise_nT=0.0", "sensors.vector_rate_hz=10.0", "sensors.attitude_rate_hz=10.0",
+    "sensors.gnss_rate_hz=10.0", "sensors.aux_rate_hz=10.0",
+    "sensors.clock_offset_s={scalar=0.0, vector=0.0, attitude=0.0, gnss=0.0, base=0.0, aux=0.0}",
+]
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def run_sim(name: str, seed: int, overrides: list[str] | None = None):
+    return simulate(Scenario.load(name, overrides or []), seed)
+
+
+@pytest.fixture(scope="session")
+def box_path() -> Path:
+    """The committed fixture: one calibration box with every contract channel."""
+    return FIXTURES / "box_uav.mcap"
+
+
+@pytest.fixture(scope="session")
+def box_sim_file(tmp_path_factory):
+    """A fresh calibration-only flight (one box) at the default rates and clock offsets."""
+    folder = tmp_path_factory.mktemp("box")
+    sim = run_sim("calibration-only", 11, ["calibration.passes=1"])
+    path = write_simulation(sim, folder / "box.mcap", folder / "box.truth.json")
+    return sim, path
+
+
+@pytest.fixture(scope="session")
+def prefect_harness():
+    """One Prefect test harness (temporary database and server) for the whole session."""
+    from prefect.testing.utilities import prefect_test_harness
+
+    with prefect_test_harness(server_startup_timeout=90):
+        yield

@@ -1,0 +1,110 @@
+"""Writer: every input record preserved byte for byte, new channels added, atomic output."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from pipeline.errors import AeromagError
+from pipeline.io.writer import OutputChannel, write_with_new_channels
+from tests.conftest import sha256
+from tests.mcap_builder import NS, T0, build, scalar, vector
+
+
+def records(path: Path) -> tuple[list, list, list, dict]:
+    """Messages with their channel and schema content, attachments, metadata, channel list."""
+    with path.open("rb") as f:
+        r = make_reader(f)
+        msgs = [(c.topic, c.message_encoding, dict(c.metadata),
+                 (s.name, s.encoding, s.data) if s else None,
+                 m.log_time, m.publish_time, m.sequence, m.data)
+                for s, c, m in r.iter_messages(log_time_order=False)]
+        atts = [(a.name, a.media_type, a.log_time, a.create_time, a.data)
+                for a in r.iter_attachments()]
+        meta = [(m.name, dict(m.metadata)) for m in r.iter_metadata()]
+        summ = r.get_summary()
+        chans = {c.topic: c.message_encoding for c in summ.channels.values()} if summ else {}
+    return msgs, atts, meta, chans
+
+
+def make_rich_input(path: Path) -> Path:
+    """Contract channels plus what a real logger adds: a protobuf channel, a channel without a
+    schema, an empty channel, attachments and metadata."""
+    msgs = []
+    for i in range(200):
+        t = T0 + i * NS // 10
+        msgs += [("/mag/scalar", t, scalar(t, 50000.0 + np.sin(i))),
+                 ("/mag/vector", t + 3_000_000, vector(t + 3_000_000, 1.0 * i, 2.0, 3.0)),
+                 ("/cam/pb", t + 1, bytes([i % 256, 0, 255, 17]) * 5),
+                 ("/raw/noschema", t + 2, b"raw-bytes-%d" % i)]
+
+    def extra(w):
+        w.add_attachment(create_time=T0, log_time=T0, name="calib.txt",
+                         media_type="text/plain", data=b"hello")
+        w.add_metadata(name="logger", data={"version": "1.2", "pilot": "X"})
+        sid = w.register_schema(name="aeromag.Scalar", encoding="jsonschema", data=b"{}")
+        w.register_channel(topic="/aux/unused", message_encoding="json", schema_id=sid)
+
+    def builder(path):
+        return build(path, msgs, schema_of={"/cam/pb": "foxglove.CompressedImage",
+                                            "/raw/noschema": ""},
+                     encoding={"/cam/pb": "protobuf", "/raw/noschema": "cbor"}, extra=extra)
+    return builder(path)
+
+
+def test_round_trip_preserves_every_record_byte_for_byte(tmp_path):
+    src = make_rich_input(tmp_path / "in.mcap")
+    before = sha256(src)
+    new = OutputChannel("/aeromag/log", "foxglove.Log")
+    for k in range(5):
+        new.add(T0 + k * NS, {"level": 2, "message": f"line {k}", "name": "t", "file": "",
+                              "line": 0})
+    dst = write_with_new_channels(src, tmp_path / "out" / "out.mcap", [new],
+                                  metadata={"aeromag.run": {"aeromag_version": "x"}})
+    assert sha256(src) == before  # the input is never modified
+    m_in, a_in, md_in, ch_in = records(src)
+    m_out, a_out, md_out, ch_out = records(dst)
+    kept = [m for m in m_out if m[0] != "/aeromag/log"]
+    assert sorted(kept, key=repr) == sorted(m_in, key=repr)  # content, times, sequence, bytes
+    assert a_out == a_in
+    assert md_out[: len(md_in)] == md_in and ("aeromag.run", {"aeromag_version": "x"}) in md_out
+    assert "/aux/unused" in ch_out and set(ch_in) <= set(ch_out)  # empty channel kept
+    added = [m for m in m_out if m[0] == "/aeromag/log"]
+    assert len(added) == 5 and added[0][3][0] == "foxglove.Log"
+    # the merged file is in log-time order, so viewers stream it without seeking back
+    times = [m[4] for m in m_out]
+    assert times == sorted(times)
+
+
+def test_output_refuses_to_overwrite_the_input(tmp_path):
+    src = make_rich_input(tmp_path / "in.mcap")
+    before = sha256(src)
+    with pytest.raises(AeromagError, match="the input is never overwritten"):
+        write_with_new_channels(src, src, [])
+    with pytest.raises(AeromagError, match="the input is never overwritten"):
+        write_with_new_channels(src, tmp_path / "." / "in.mcap", [])
+    assert sha256(src) == before
+
+
+def test_failed_write_leaves_no_partial_file(tmp_path):
+    src = make_rich_input(tmp_path / "in.mcap")
+    dst = tmp_path / "out.mcap"
+    dst.write_bytes(b"previous result")
+    bad = OutputChannel("/aeromag/log", "foxglove.Log")
+    bad.add(T0 + 10 * NS, {"level": 2, "message": object()})  # not serialisable
+    with pytest.raises(TypeError):
+        write_with_new_channels(src, dst, [bad])
+    assert dst.read_bytes() == b"previous result"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["in.mcap", "out.mcap"]
+
+
+def test_existing_output_channel_is_refused(tmp_path):
+    src = make_rich_input(tmp_path / "in.mcap")
+    ch = OutputChannel("/aeromag/log", "foxglove.Log")
+    ch.add(T0, {"level": 2, "message": "x", "name": "t", "file": "", "line": 0})
+    once = write_with_new_channels(src, tmp_path / "once.mcap", [ch])
+    with pytest.raises(AeromagError, match="/aeromag/log: the input already has this output"):
+        write_with_new_channels(once, tmp_path / "twice.mcap", [ch])
