@@ -56,7 +56,7 @@ def simulate(
         write_simulation(sim, out_path, truth)
     n = sum(len(s["t"]) for s in sim.streams.values())
     say(f"{out_path}: {sim.trajectory.duration_s / 60:.1f} min flight, {n} messages, "
-              f"effects: {', '.join(sc.enabled_effects()) or 'none'}")
+        f"effects: {', '.join(sc.enabled_effects()) or 'none'}")
     if truth:
         say(f"{truth}: truth")
 
@@ -100,6 +100,49 @@ def inspect(
     say("contract: ok")
 
 
+@app.command()
+def compensate(
+    recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
+    out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
+    json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write.")],
+    model: Annotated[str, typer.Option(help="tl16 | tl18 | agg-tl")] = "tl16",
+    agg_base: Annotated[str, typer.Option(help="AGG-TL's T-L terms: tl18 (|B|-scaled, "
+                                               "default) or tl16 (paper 002)")] = "tl18",
+    band: Annotated[tuple[float, float], typer.Option(help="Band-pass edges, Hz.")] = (0.1, 0.9),
+    poles: Annotated[int, typer.Option(help="Butterworth prototype order.")] = 4,
+    trim: Annotated[int, typer.Option(help="Samples dropped at each end of a block.")] = 20,
+    ridge: Annotated[str, typer.Option(help="auto (L-curve corner) or a lambda.")] = "auto",
+    calibration: Annotated[str, typer.Option(help="auto | all | T0:T1 (seconds from the "
+                                                  "first epoch, or Unix seconds)")] = "auto",
+    scalar: Annotated[str | None, typer.Option(help="Scalar magnetometer topic.")] = None,
+    vector: Annotated[str | None, typer.Option(help="Vector magnetometer topic.")] = None,
+) -> None:
+    """Fit a T-L / AGG-TL model, compensate the scalar field, write channels and a summary."""
+    from flows.stages import compensate_recording, require_readable
+    from pipeline.compensate import MODELS, FitSettings
+
+    require_readable(recording)
+    if model not in MODELS:
+        _fail(f"--model {model!r}: use one of {', '.join(MODELS)}")
+    try:
+        lam: float | str = "auto" if ridge == "auto" else float(ridge)
+        settings = FitSettings(model=model, band_hz=band, poles=poles, trim=trim, ridge=lam,
+                               base=agg_base)
+    except ValueError as exc:
+        _fail(f"--ridge {ridge!r}: use auto or a number >= 0" if "ridge" in str(exc)
+              or "could not convert" in str(exc) else str(exc))
+    with console.status(f"compensating {recording.name} ({model})"):
+        summary = compensate_recording(recording, out_path, json_out, settings, calibration,
+                                       scalar, vector)
+    fom = summary["fom_nT"]
+    say(f"{model}: lambda {summary['lambda']:.3g}, {summary['samples']} samples, "
+        f"fit residual {summary['fit_residual_nT']:.4f} nT")
+    if fom["uncompensated"] is not None:
+        say(f"FOM: {fom['uncompensated']:.2f} nT uncompensated -> {fom['compensated']:.2f} nT")
+    say(f"output recording: {out_path}")
+    say(f"summary: {json_out}")
+
+
 def _run_postflight(recording: Path, out_dir: Path) -> dict:
     from flows.postflight import postflight
 
@@ -137,14 +180,41 @@ def demo(
         sim = run(sc, seed)
         write_simulation(sim, flight_path, truth_path)
     say(f"simulated flight: {flight_path} ({sim.trajectory.duration_s / 60:.1f} min), "
-              f"truth: {truth_path}")
+        f"truth: {truth_path}")
     result = _run_postflight(flight_path, out_dir)
     inp = result["input"]
     say(f"ingested {inp['epochs']} epochs, {len(inp['topics'])} channels, "
-              f"{inp['duration_s']:.0f} s")
+        f"{inp['duration_s']:.0f} s")
+    _print_compensation(result)
     say(f"output recording: {result['outputs']['mcap']}")
     say(f"summary: {result['outputs']['summary']}")
     say(f"done in {time.perf_counter() - t0:.1f} s")
+
+
+def _print_compensation(result: dict) -> None:
+    comp = result.get("compensation")
+    if not comp:
+        return
+    table = Table(title="compensation (calibration FOM: sum of 12 box peak-to-peaks)",
+                  title_justify="left")
+    for col in ("model", "FOM raw nT", "FOM comp nT", "lambda", "fit resid nT",
+                "cal resid nT", "survey resid nT", "gradient E/N/U nT/m"):
+        table.add_column(col, justify="left" if col == "model" else "right")
+
+    def f(x, fmt=".3f"):
+        return "-" if x is None else format(x, fmt)
+
+    for m in ("tl16", "tl18", "agg-tl"):
+        if m not in comp:
+            continue
+        r = comp[m]
+        g = r.get("gradient_nT_per_m")
+        table.add_row(m, f(r["fom_nT"]["uncompensated"], ".2f"),
+                      f(r["fom_nT"]["compensated"], ".2f"), f(r["lambda"], ".3g"),
+                      f(r["fit_residual_nT"], ".4f"), f(r["residual_std_nT"]["calibration"]),
+                      f(r["residual_std_nT"]["survey"]),
+                      "-" if not g else f"{g['east']:.3f}/{g['north']:.3f}/{g['up']:.3f}")
+    out.print(table, width=max(out.width, 130))
 
 
 def main() -> None:

@@ -57,6 +57,13 @@ INPUT_CONTRACT: tuple[TopicRule, ...] = (
 OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
     TopicRule("/aeromag/log", "foxglove.Log", "output", ("level", "message"),
               description="human-readable processing log"),
+    TopicRule("/flight/segment", "aeromag.Segment", "output", ("label", "line_id"),
+              description="segment labels, at each change"),
+    TopicRule("/mag/compensated", "aeromag.CompensatedField", "output",
+              ("sensor_id", "total_nT", "interference_nT", "model"), True,
+              description="compensated scalar field (/mag/compensated/<model> for others)"),
+    TopicRule("/compensation/model", "aeromag.CompensationModel", "output",
+              ("model", "terms", "coefficients"), description="fitted compensation models"),
 )
 
 # Roles each processing stage needs; a stage must not demand more than it uses.

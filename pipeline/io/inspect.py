@@ -110,10 +110,9 @@ def inspect_recording(path: str | Path, gap_factor: float = 3.0) -> InspectRepor
                           if "do not match the schema" not in p and "not valid JSON" not in p)
         if series.time_ns.size:
             roles_present.add(rule.role)
-            if rule.role == "output":
-                continue
             rep.rate_hz = series.rate_hz
-            rep.gaps = find_gaps(series.time_ns, name, gap_factor)
+            if rule.role != "output":  # results come at change points, not at a rate
+                rep.gaps = find_gaps(series.time_ns, name, gap_factor)
         elif rt.count == 0:
             warnings.append(f"{name}: channel carries no messages")
     if "scalar" not in roles_present:

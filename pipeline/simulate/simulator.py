@@ -88,6 +88,8 @@ class SimulatedFlight:
     streams: dict[str, dict[str, Any]]  # topic -> {schema, time_ns, payload columns}
     truth: dict[str, Any]
     trajectory: Trajectory = field(repr=False)
+    # per-sample truth at the scalar epochs (in memory only: tests compare against it)
+    series: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
 
 def _draw_dipoles(sc: Scenario, rng: np.random.Generator, b_hat: np.ndarray) -> list[DipoleSource]:
@@ -232,8 +234,10 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
     streams["/mag/scalar"] = {"schema": "aeromag.ScalarField", "t": t_s[keep],
                               "sensor_id": sens["scalar_id"],
                               "cols": {"total_nT": (clean + noise + drift)[keep]}}
-    scalar_truth = {"earth_total_nT": np.linalg.norm(b, axis=1),
-                    "interference_nT": clean - np.linalg.norm(b, axis=1)}
+    scalar_truth = {"time_ns": start_ns + np.round(t_s * NS).astype(np.int64),
+                    "earth_total_nT": np.linalg.norm(b, axis=1),
+                    "interference_nT": clean - np.linalg.norm(b, axis=1),
+                    "noise_nT": noise + drift}
 
     # vector magnetometer
     t_v = _times(T, sens["vector_rate_hz"], offs.get("vector", 0.0), margin)
@@ -304,7 +308,7 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
 
     truth = _truth(sc, seed, start_ns, traj, field_model, b0, scalar_int, vector_int, flux_err,
                    lag_s, segments, scalar_truth)
-    return SimulatedFlight(sc, seed, start_ns, streams, truth, traj)
+    return SimulatedFlight(sc, seed, start_ns, streams, truth, traj, scalar_truth)
 
 
 def _truth(sc, seed, start_ns, traj, fm: EarthField, b0, scalar_int, vector_int, flux_err,

@@ -1,0 +1,262 @@
+"""Tolles-Lawson and AGG-TL compensation of a scalar magnetometer.
+
+Fit (paper 002): band-pass the regressors and the measured field (zero-phase Butterworth) over
+each contiguous calibration block, trim the filter's edge samples, and solve a ridge
+regression with a fixed lambda or the L-curve corner. Apply: interference = K theta with the
+*unfiltered* T-L columns over the whole flight; compensated = measured - interference. AGG-TL
+adds band-passed position columns to the fit only: they absorb the geomagnetic gradient that
+manoeuvres leak into the calibration band, and are not subtracted (they are geology).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
+from pipeline.compensate.ridge import LCurve, RidgeSVD
+from pipeline.compensate.terms import position_terms, tl16_terms, tl18_terms
+from pipeline.geo.local import LocalFrame
+from pipeline.io.reader import Flight
+
+MODELS = ("tl16", "tl18", "agg-tl")
+
+
+@dataclass
+class Measurements:
+    """What compensation needs, on one time base.
+
+    ``vector_nT`` is body-frame (x forward, y right, z down); positions are optional (AGG-TL):
+    latitude/longitude in degrees, altitude above the ellipsoid in metres.
+    """
+
+    time_s: np.ndarray
+    scalar_nT: np.ndarray
+    vector_nT: np.ndarray
+    lat_deg: np.ndarray | None = None
+    lon_deg: np.ndarray | None = None
+    alt_m: np.ndarray | None = None
+
+    @classmethod
+    def from_flight(cls, flight: Flight) -> Measurements:
+        flight.require("vector_x_nT", "vector_y_nT", "vector_z_nT", purpose="compensation")
+        d = flight.data
+        pos = flight.has("lat_deg", "lon_deg", "alt_m")
+        return cls(d["time_s"].to_numpy(float), d["scalar_nT"].to_numpy(float),
+                   d[["vector_x_nT", "vector_y_nT", "vector_z_nT"]].to_numpy(float),
+                   d["lat_deg"].to_numpy(float) if pos else None,
+                   d["lon_deg"].to_numpy(float) if pos else None,
+                   d["alt_m"].to_numpy(float) if pos else None)
+
+    @property
+    def has_position(self) -> bool:
+        return self.lat_deg is not None
+
+    @property
+    def rate_hz(self) -> float:
+        return 1.0 / float(np.median(np.diff(self.time_s)))
+
+
+@dataclass
+class FitSettings:
+    """How to fit: term set, band (None: no filtering), filter order, trim, ridge."""
+
+    model: str = "tl16"
+    band_hz: tuple[float, float] | None = (0.1, 0.9)
+    # AGG-TL's T-L term set. tl18 by default: its induced terms scale with |B|, which the
+    # regional gradient changes between the calibration site and the survey (hundreds of nT);
+    # tl16 (paper 002's choice) cannot follow that and leaves a heading error.
+    base: str = "tl18"
+    poles: int = 4
+    trim: int = 20
+    ridge: float | str = "auto"  # a lambda, or "auto" for the L-curve corner
+
+    def __post_init__(self) -> None:
+        if self.model not in MODELS:
+            raise ValueError(f"unknown model {self.model!r} (use {', '.join(MODELS)})")
+        if self.base not in ("tl16", "tl18"):
+            raise ValueError(f"unknown AGG-TL base {self.base!r} (use tl16 or tl18)")
+        if not (self.ridge == "auto" or (isinstance(self.ridge, int | float)
+                                         and self.ridge >= 0)):
+            raise ValueError(f"ridge must be 'auto' or a number >= 0, not {self.ridge!r}")
+
+
+def tl_terms(model: str, meas: Measurements, base: str = "tl18") -> tuple[np.ndarray, list[str]]:
+    """The T-L columns a model compensates with (AGG-TL: those of its ``base`` term set)."""
+    if model == "tl18" or (model == "agg-tl" and base == "tl18"):
+        return tl18_terms(meas.vector_nT, meas.time_s)
+    return tl16_terms(meas.vector_nT, meas.time_s)
+
+
+@dataclass
+class CompensationModel:
+    """A fitted model: coefficients of ``terms`` (T-L first, then any position terms)."""
+
+    settings: FitSettings
+    terms: list[str]
+    coefficients: np.ndarray
+    n_tl: int  # the first n_tl coefficients compensate; the rest (positions) do not
+    lambda_: float
+    n_fit: int
+    fit_residual_nT: float
+    calibration_blocks: list[tuple[float, float]]  # (start_s, end_s) of each fitted block
+    lcurve: LCurve | None = None
+    reference: dict[str, float] = field(default_factory=dict)  # AGG-TL position origin
+    coefficient_std: np.ndarray | None = None  # from the residual variance (no ridge)
+
+    @property
+    def model(self) -> str:
+        return self.settings.model
+
+    def interference_nT(self, meas: Measurements) -> np.ndarray:
+        """Carrier interference at every epoch (T-L part, unfiltered columns), nT."""
+        k, _ = tl_terms(self.model, meas, self.settings.base)
+        return k @ self.coefficients[: self.n_tl]
+
+    def compensate(self, meas: Measurements) -> tuple[np.ndarray, np.ndarray]:
+        """(compensated field, interference), nT."""
+        interference = self.interference_nT(meas)
+        return meas.scalar_nT - interference, interference
+
+    def gradient_nT_per_m(self) -> dict[str, float] | None:
+        """AGG-TL's estimate of the field gradient at the reference point (east, north, up)."""
+        if self.n_tl == len(self.terms):
+            return None
+        c = dict(zip(self.terms, self.coefficients, strict=True))
+        return {"east": float(c["pos_e"]), "north": float(c["pos_n"]), "up": float(c["pos_up"])}
+
+    def to_dict(self) -> dict[str, Any]:
+        s = self.settings
+        return {
+            "model": s.model, "base_terms": s.base if s.model == "agg-tl" else s.model,
+            "terms": list(self.terms),
+            "coefficients": [float(c) for c in self.coefficients],
+            "compensating_terms": self.n_tl, "lambda": float(self.lambda_),
+            "ridge": "auto" if s.ridge == "auto" else float(s.ridge),
+            "band_hz": None if s.band_hz is None else [float(b) for b in s.band_hz],
+            "poles": s.poles, "trim": s.trim, "samples": int(self.n_fit),
+            "fit_residual_nT": float(self.fit_residual_nT),
+            "calibration_windows_s": [[float(a), float(b)] for a, b in self.calibration_blocks],
+            "gradient_nT_per_m": self.gradient_nT_per_m(),
+            "reference": self.reference or None,
+        }
+
+
+def _design(settings: FitSettings, meas: Measurements, fit_mask: np.ndarray
+            ) -> tuple[np.ndarray, list[str], int, dict[str, float]]:
+    k, names = tl_terms(settings.model, meas, settings.base)
+    n_tl = k.shape[1]
+    reference: dict[str, float] = {}
+    if settings.model == "agg-tl":
+        if not meas.has_position:
+            raise ValueError("agg-tl needs positions (/gnss/fix)")
+        sel = fit_mask & np.isfinite(meas.lat_deg) & np.isfinite(meas.lon_deg)
+        lat0, lon0 = float(np.mean(meas.lat_deg[sel])), float(np.mean(meas.lon_deg[sel]))
+        alt0 = float(np.mean(meas.alt_m[sel]))
+        e, n, u = LocalFrame(lat0, lon0, alt0).to_enu(meas.lat_deg, meas.lon_deg, meas.alt_m)
+        kp, pnames = position_terms(e, n, u)
+        k, names = np.column_stack([k, kp]), names + pnames
+        reference = {"latitude_deg": lat0, "longitude_deg": lon0, "altitude_m": alt0}
+    if settings.band_hz is None:  # unfiltered fit: the constant level needs its own column
+        k, names = np.column_stack([k, np.ones(len(k))]), names + ["bias"]
+    return k, names, n_tl, reference
+
+
+def fit_compensation(meas: Measurements, calibration_mask: np.ndarray,
+                     settings: FitSettings | None = None) -> CompensationModel:
+    """Fit a compensation model on the epochs of ``calibration_mask``.
+
+    Raises
+    ------
+    ValueError
+        No usable calibration samples, a band that does not fit the sample rate, or AGG-TL
+        without positions.
+    """
+    s = settings or FitSettings()
+    mask = np.asarray(calibration_mask, bool)
+    k_full, names, n_tl, reference = _design(s, meas, mask)
+    valid = mask & np.isfinite(meas.scalar_nT) & np.all(np.isfinite(k_full), axis=1)
+    blocks = contiguous_blocks(valid, meas.time_s)
+    if s.band_hz is not None:
+        sos = bandpass_sos(s.band_hz, meas.rate_hz, s.poles)
+        kf, where = bandpass_blocks(k_full, blocks, sos, s.trim)
+        yf, _ = bandpass_blocks(meas.scalar_nT, blocks, sos, s.trim)
+    else:
+        where = np.concatenate(blocks) if blocks else np.zeros(0, int)
+        kf, yf = k_full[where], meas.scalar_nT[where]
+    if where.size < 2 * k_full.shape[1]:
+        raise ValueError(f"only {where.size} usable calibration samples for "
+                         f"{k_full.shape[1]} terms")
+    solver = RidgeSVD(kf, yf)
+    lcurve = None
+    if s.ridge == "auto":
+        lcurve = solver.lcurve()
+        lam = lcurve.lambda_corner
+    else:
+        lam = float(s.ridge)
+    theta = solver.solve(lam)
+    resid = yf - kf @ theta
+    dof = max(where.size - kf.shape[1], 1)
+    sigma2 = float(resid @ resid) / dof
+    s_pos = solver.s[solver.s > solver.s.max() * 1e-12]
+    v = solver.vt[: s_pos.size].T
+    std = np.sqrt(sigma2 * np.sum((v / s_pos) ** 2, axis=1))
+    spans = [(float(meas.time_s[b[0]]), float(meas.time_s[b[-1]])) for b in blocks]
+    return CompensationModel(s, names, theta, n_tl, lam, int(where.size),
+                             float(np.sqrt(np.mean(resid**2))), spans, lcurve, reference, std)
+
+
+# --------------------------------------------------------------------------------------------
+@dataclass
+class FigureOfMerit:
+    """Peak-to-peak of the band-passed signal in each calibration manoeuvre box, nT."""
+
+    boxes: list[dict[str, Any]]
+    passes: list[dict[str, Any]]
+
+    @property
+    def total(self) -> dict[str, float | None]:
+        """Sum over the 12 boxes of the first complete pass (else the first pass)."""
+        if not self.passes:
+            return {"uncompensated": None, "compensated": None}
+        best = next((p for p in self.passes if p["complete"]), self.passes[0])
+        return {"uncompensated": best["uncompensated_nT"], "compensated": best["compensated_nT"]}
+
+    def to_dict(self) -> dict[str, Any]:
+        return {**self.total, "passes": self.passes, "boxes": self.boxes}
+
+
+def bandpassed(meas_time_s: np.ndarray, x: np.ndarray, band_hz: tuple[float, float],
+               poles: int) -> np.ndarray:
+    """Band-pass ``x`` over each contiguous finite block of the whole flight (NaN elsewhere)."""
+    out = np.full(x.shape, np.nan)
+    rate = 1.0 / float(np.median(np.diff(meas_time_s)))
+    sos = bandpass_sos(band_hz, rate, poles)
+    blocks = contiguous_blocks(np.isfinite(x), meas_time_s)
+    y, where = bandpass_blocks(x, blocks, sos, 0)
+    out[where] = y
+    return out
+
+
+def figure_of_merit(time_s: np.ndarray, raw_nT: np.ndarray, compensated_nT: np.ndarray,
+                    boxes: list, band_hz: tuple[float, float] = (0.1, 0.9),
+                    poles: int = 4) -> FigureOfMerit:
+    """FOM of each box (see :class:`pipeline.segment.Box`) and per pass, raw vs compensated."""
+    raw_bp = bandpassed(time_s, raw_nT, band_hz, poles)
+    comp_bp = bandpassed(time_s, compensated_nT, band_hz, poles)
+    rows = []
+    for b in boxes:
+        r, c = raw_bp[b.index], comp_bp[b.index]
+        rows.append({"pass": b.calibration_pass, "cardinal": b.cardinal,
+                     "manoeuvre": b.manoeuvre, "samples": int(b.index.size),
+                     "uncompensated_nT": float(np.nanmax(r) - np.nanmin(r)),
+                     "compensated_nT": float(np.nanmax(c) - np.nanmin(c))})
+    passes = []
+    for p in sorted({r["pass"] for r in rows}):
+        mine = [r for r in rows if r["pass"] == p]
+        passes.append({"pass": p, "boxes": len(mine), "complete": len(mine) == 12,
+                       "uncompensated_nT": float(sum(r["uncompensated_nT"] for r in mine)),
+                       "compensated_nT": float(sum(r["compensated_nT"] for r in mine))})
+    return FigureOfMerit(rows, passes)
