@@ -30,6 +30,11 @@ def say(text: str) -> None:
     out.print(text, markup=False)
 
 
+def show(table: Table) -> None:
+    """Print a table at its natural width, even into a pipe (rich assumes 80 columns)."""
+    Console(width=max(out.width, 150), highlight=False).print(table)
+
+
 def _fail(message: str, code: int = 2) -> None:
     console.print(f"aeromag: error: {message}", markup=False, highlight=False, soft_wrap=True)
     raise typer.Exit(code)
@@ -88,7 +93,7 @@ def inspect(
     for t in d["topics"]:
         rate = "" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
         table.add_row(t["topic"], t["schema"], str(t["messages"]), rate, str(len(t["gaps"])))
-    out.print(table)  # a rich table: the one thing rendered
+    show(table)
     for w in rep.warnings:
         say(f"warning: {w}")
     if json_out:
@@ -214,7 +219,7 @@ def _print_compensation(result: dict) -> None:
                       f(r["fit_residual_nT"], ".4f"), f(r["residual_std_nT"]["calibration"]),
                       f(r["residual_std_nT"]["survey"]),
                       "-" if not g else f"{g['east']:.3f}/{g['north']:.3f}/{g['up']:.3f}")
-    out.print(table, width=max(out.width, 130))
+    show(table)
 
 
 def main() -> None:

@@ -8,12 +8,11 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 from prefect import flow, task
 
 from flows.stages import compensation_lines, save_figure, try_segment
 from pipeline import __version__
-from pipeline.compensate import FitSettings
+from pipeline.compensate import FitSettings, bandpassed
 from pipeline.compensate.stage import CompensationRun, run_compensation
 from pipeline.io.reader import Flight, read_flight
 from pipeline.io.writer import OutputChannel, write_json_atomic, write_with_new_channels
@@ -95,12 +94,11 @@ def postflight(recording: str, out_dir: str) -> dict[str, Any]:
         lc = runs[final].model.lcurve
         if lc is not None:
             figures["lcurve"] = lcurve_figure(lc, f"L-curve, {final}")
-        in_pass = np.zeros(len(flight.time_ns), bool)
-        for span in seg.passes():
-            in_pass[span] = True
+        t = flight.data["time_s"].to_numpy()
         figures["compensation"] = compensation_figure(
-            flight.data["time_s"].to_numpy(), flight.data["scalar_nT"].to_numpy(),
-            {m: r.compensated_nT for m, r in runs.items()}, in_pass, "calibration passes")
+            t, bandpassed(t, flight.data["scalar_nT"].to_numpy(), (0.1, 0.9), 4),
+            {m: bandpassed(t, r.compensated_nT, (0.1, 0.9), 4) for m, r in runs.items()},
+            seg.passes())
     channels.insert(0, log_channel(flight, lines, "postflight"))
     outputs = write_outputs(recording, out_dir, channels, summary, figures)
     return {**summary, "outputs": outputs}

@@ -33,19 +33,25 @@ def lcurve_figure(lc: LCurve, title: str = "L-curve") -> plt.Figure:
     return fig
 
 
-def compensation_figure(time_s: np.ndarray, raw_nT: np.ndarray, runs: dict[str, np.ndarray],
-                        calibration: np.ndarray, title: str = "") -> plt.Figure:
-    """Raw and compensated total field over the calibration epochs (means removed)."""
-    fig, ax = plt.subplots(figsize=(11, 4))
-    sel = calibration & np.isfinite(raw_nT)
-    ax.plot(time_s[sel], raw_nT[sel] - np.nanmean(raw_nT[sel]), ".", ms=1, color="0.6",
-            label="uncompensated")
-    for name, comp in runs.items():
-        ax.plot(time_s[sel], comp[sel] - np.nanmean(comp[sel]), ".", ms=1, label=name)
-    ax.set_xlabel("time since first epoch (s)")
-    ax.set_ylabel("total field - mean (nT)")
-    ax.set_title(title or "calibration passes")
-    ax.legend(markerscale=8)
-    ax.grid(alpha=0.3)
+def compensation_figure(time_s: np.ndarray, raw_bp_nT: np.ndarray,
+                        comp_bp_nT: dict[str, np.ndarray], passes: list[np.ndarray],
+                        band_hz: tuple[float, float] = (0.1, 0.9)) -> plt.Figure:
+    """Band-passed field over each calibration pass: uncompensated (top row) and each
+    model's compensated signal (bottom row, its own scale: what the FOM measures)."""
+    n = max(len(passes), 1)
+    fig, axes = plt.subplots(2, n, figsize=(6.5 * n, 6), squeeze=False, sharex="col")
+    for k, span in enumerate(passes):
+        t = time_s[span] - time_s[span[0]]
+        top, bottom = axes[0, k], axes[1, k]
+        top.plot(t, raw_bp_nT[span], color="0.45", lw=0.7)
+        top.set_title(f"calibration pass {k + 1}: uncompensated, {band_hz[0]}-{band_hz[1]} Hz")
+        for name, comp in comp_bp_nT.items():
+            bottom.plot(t, comp[span], lw=0.7, label=name)
+        bottom.set_title("compensated")
+        bottom.set_xlabel(f"time since pass start (s), pass starts at {time_s[span[0]]:.0f} s")
+        for ax in (top, bottom):
+            ax.set_ylabel("nT")
+            ax.grid(alpha=0.3)
+        bottom.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
     return fig

@@ -27,13 +27,22 @@ def test_postflight_flow_writes_input_plus_new_channels(prefect_harness, box_pat
     summary = json.loads((tmp_path / "out" / "flight.summary.json").read_text())
     assert result["outputs"]["mcap"] == str(out) and summary["outputs"]["mcap"] == str(out)
     assert summary["input"]["sha256"] == before
-    assert summary["channels_written"] == ["/aeromag/log"]
+    new = {"/aeromag/log", "/flight/segment", "/mag/compensated", "/mag/compensated/tl16",
+           "/mag/compensated/tl18", "/compensation/model"}
+    assert set(summary["channels_written"]) == new
+    comp = summary["compensation"]
+    assert comp["final"] == "agg-tl" and {"tl16", "tl18", "agg-tl"} <= set(comp)
+    for m in ("tl16", "tl18", "agg-tl"):
+        assert comp[m]["fom_nT"]["uncompensated"] > 5 * comp[m]["fom_nT"]["compensated"]
+    assert summary["segments"]["boxes"] == 12
+    for png in ("lcurve", "compensation"):
+        assert (tmp_path / "out" / f"flight.{png}.png").stat().st_size > 10000
     m_in, *_ = records(src)
     m_out, *_ = records(out)
-    assert sorted(m for m in m_out if m[0] != "/aeromag/log") == sorted(m_in)
+    assert sorted(m for m in m_out if m[0] not in new) == sorted(m_in)
     with out.open("rb") as f:
         topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
-    assert topics == {m[0] for m in m_in} | {"/aeromag/log"}
+    assert topics == {m[0] for m in m_in} | new
     assert validate_every_message(out) == len(m_out)  # Foxglove's official Log schema included
 
 
@@ -49,4 +58,4 @@ def test_process_command_runs_the_flow_without_a_server(box_path, tmp_path):
     assert f"output recording: {out}" in res.stdout
     insp = subprocess.run([sys.executable, "-m", "flows.cli", "inspect", str(out)],
                           capture_output=True, text=True, timeout=300)
-    assert insp.returncode == 0 and "/aeromag/log" in insp.stdout
+    assert insp.returncode == 0 and "/mag/compensated" in insp.stdout

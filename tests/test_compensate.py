@@ -1,0 +1,242 @@
+"""T-L / AGG-TL compensation: closed form, recovered interference, gradient bias, L-curve."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from scipy.signal import butter, sosfiltfilt
+
+from pipeline.compensate import FitSettings, Measurements, RidgeSVD, fit_compensation
+from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
+from pipeline.compensate.model import tl_terms
+from pipeline.compensate.stage import calibration_mask, run_compensation
+from pipeline.io.reader import read_flight
+from pipeline.segment import segment_flight
+from pipeline.simulate import write_simulation
+from tests.conftest import FIXTURES, run_sim
+from tests.test_schemas import validate_every_message
+
+
+def cli(*args):
+    return subprocess.run([sys.executable, "-m", "flows.cli", *args], capture_output=True,
+                          text=True, timeout=600)
+
+
+# ------------------------------------------------------------------------------------------
+def test_tl18_coefficients_equal_the_closed_form(tmp_path):
+    """`--model tl18 --band 0.1 0.9 --poles 4 --trim 20 --ridge 0.001` on a recording with
+    only the two magnetometers equals theta = (K'K + lambda I)^-1 K'y written out here."""
+    src = FIXTURES / "box_scalar_vector_only.mcap"
+    res = cli("compensate", str(src), "--out", str(tmp_path / "o.mcap"), "--json",
+              str(tmp_path / "s.json"), "--model", "tl18", "--band", "0.1", "0.9", "--poles",
+              "4", "--trim", "20", "--ridge", "0.001", "--calibration", "all")
+    assert res.returncode == 0, res.stderr
+    summary = json.loads((tmp_path / "s.json").read_text())
+
+    d = read_flight(src).data  # aligned inputs (the reader is tested on its own)
+    t = d["time_s"].to_numpy()
+    b = d[["vector_x_nT", "vector_y_nT", "vector_z_nT"]].to_numpy()
+    y = d["scalar_nT"].to_numpy()
+
+    def ddt(x):  # central differences, one-sided at the ends (uniform 10 Hz sampling)
+        out = np.empty_like(x)
+        out[1:-1] = (x[2:] - x[:-2]) / (t[2:, None] - t[:-2, None])
+        out[0] = (x[1] - x[0]) / (t[1] - t[0])
+        out[-1] = (x[-1] - x[-2]) / (t[-1] - t[-2])
+        return out
+
+    bt = np.sqrt((b**2).sum(axis=1))
+    u = b / bt[:, None]
+    db = ddt(b)
+    cols = [u[:, 0], u[:, 1], u[:, 2]]
+    cols += [u[:, i] * b[:, j] / 50000.0 for i, j in
+             ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
+    cols += [u[:, i] * db[:, j] / 50000.0 for i in range(3) for j in range(3)]
+    k = np.column_stack(cols)
+    ok = np.isfinite(k).all(axis=1) & np.isfinite(y)
+    first, last = np.flatnonzero(ok)[[0, -1]]
+    assert ok[first:last + 1].all()  # one contiguous block
+    sos = butter(4, [0.1 / 5.0, 0.9 / 5.0], btype="bandpass", output="sos")
+    kf = sosfiltfilt(sos, k[first:last + 1], axis=0)[20:-20]
+    yf = sosfiltfilt(sos, y[first:last + 1])[20:-20]
+    theta = np.linalg.solve(kf.T @ kf + 0.001 * np.eye(18), kf.T @ yf)
+    assert summary["model"] == "tl18" and summary["lambda"] == 0.001
+    assert len(summary["terms"]) == 18 and summary["samples"] == len(yf)
+    np.testing.assert_allclose(summary["coefficients"], theta, rtol=1e-6, atol=1e-9)
+    assert summary["fom_nT"] == {"uncompensated": None, "compensated": None}  # no boxes here
+    assert set(summary["residual_std_nT"]) == {"calibration", "survey"}
+    assert validate_every_message(tmp_path / "o.mcap") > 10000
+
+
+# ------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def clean_survey(tmp_path_factory):
+    """A short UAV survey without gradient, compensated with tl18 (calibration: auto)."""
+    sim = run_sim("uav-small", 3)
+    flight = read_flight(write_simulation(sim, tmp_path_factory.mktemp("c") / "s.mcap"))
+    seg = segment_flight(flight)
+    run = run_compensation(flight, seg, FitSettings(model="tl18"))
+    idx = np.searchsorted(sim.series["time_ns"], flight.time_ns)
+    return sim, flight, seg, run, idx
+
+
+def test_known_interference_is_recovered(clean_survey):
+    """The band-passed interference the model predicts on the calibration passes matches the
+    simulator's true interference better than the scalar sensor's noise (0.05 nT)."""
+    sim, flight, seg, run, idx = clean_survey
+    meas = Measurements.from_flight(flight)
+    cal = calibration_mask(flight, seg, "auto")
+    k, _ = tl_terms("tl18", meas)
+    sos = bandpass_sos((0.1, 0.9), meas.rate_hz, 4)
+    blocks = contiguous_blocks(cal & np.isfinite(k).all(axis=1), meas.time_s)
+    kb, _ = bandpass_blocks(k, blocks, sos, 20)
+    tb, _ = bandpass_blocks(sim.series["interference_nT"][idx], blocks, sos, 20)
+    err = np.sqrt(np.mean((kb @ run.model.coefficients - tb) ** 2))
+    noise = sim.truth["noise"]["scalar_nT"]
+    assert err < noise
+    assert np.std(tb) > 50 * err  # the interference itself is far larger
+
+
+def test_survey_residual_within_noise_and_fom_drop(clean_survey):
+    """Compensated survey = true field to within 1.5 x sensor noise, once the offset and the
+    scale that no calibration can observe are removed.
+
+    The isotropic part of the induced matrix, (tr A / 3) |B|, is constant during a
+    calibration (|B| hardly changes), so band-pass fitting cannot see it; on the survey it
+    scales the anomaly by tr A / 3 (0.14 % here). The fitted scale must be exactly that.
+    """
+    sim, flight, seg, run, idx = clean_survey
+    earth = sim.series["earth_total_nT"][idx]
+    s = seg.mask("survey") & np.isfinite(run.compensated_nT)
+    x = np.column_stack([np.ones(s.sum()), earth[s]])
+    coef, *_ = np.linalg.lstsq(x, run.compensated_nT[s], rcond=None)
+    resid = run.compensated_nT[s] - x @ coef
+    noise = sim.truth["noise"]["scalar_nT"]
+    assert np.std(resid) <= 1.5 * noise
+    trace_third = np.trace(np.array(sim.truth["interference"]["scalar"]["induced"])) / 3
+    # standard error of the scale from the residual over ~1000 independent 0.1 Hz samples
+    se = np.std(resid) / (np.std(earth[s]) * np.sqrt(s.sum() * 0.1 / 10.0))
+    assert abs((coef[1] - 1.0) - trace_third) < 3 * se + 0.05 * trace_third
+    fom = run.fom.total
+    assert fom["uncompensated"] >= 5 * fom["compensated"]
+    assert len(run.fom.boxes) == 12
+
+
+# ------------------------------------------------------------------------------------------
+def _box_pair(seed, extra=()):
+    """The same calibration box (same seed, same noise) without and with a 0.45 nT/m
+    gradient."""
+    out = []
+    for grad in (False, True):
+        switch = f"effects.geomagnetic_gradient.enabled={str(grad).lower()}"
+        sim = run_sim("calibration-only", seed, ["calibration.passes=1", *extra, switch])
+        import tempfile
+        from pathlib import Path
+
+        fl = read_flight(write_simulation(sim, Path(tempfile.mkdtemp()) / "b.mcap"))
+        seg = segment_flight(fl)
+        out.append((sim, fl, Measurements.from_flight(fl), calibration_mask(fl, seg, "auto")))
+    return out
+
+
+def _recovery_error(sim, fl, meas, cal, model):
+    """RMS of (predicted - true) band-passed interference on the fitted samples, and the
+    error noise alone would give a correct model: sigma_res sqrt(p / n_eff), with n_eff the
+    number of independent samples in the 0.1-0.9 Hz band."""
+    k, _ = tl_terms(model.model, meas, model.settings.base)
+    sos = bandpass_sos((0.1, 0.9), meas.rate_hz, 4)
+    blocks = contiguous_blocks(cal & np.isfinite(k).all(axis=1), meas.time_s)
+    kb, _ = bandpass_blocks(k, blocks, sos, 20)
+    idx = np.searchsorted(sim.series["time_ns"], fl.time_ns)
+    tb, _ = bandpass_blocks(sim.series["interference_nT"][idx], blocks, sos, 20)
+    err = float(np.sqrt(np.mean((kb @ model.coefficients[: k.shape[1]] - tb) ** 2)))
+    n_eff = model.n_fit * 2 * (0.9 - 0.1) / meas.rate_hz
+    return err, model.fit_residual_nT * np.sqrt(len(model.terms) / n_eff)
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_gradient_biases_tl_and_agg_tl_recovers(seed):
+    (s0, f0, m0, c0), (s1, f1, m1, c1) = _box_pair(seed)
+    base_err, base_noise = _recovery_error(s0, f0, m0, c0,
+                                           fit_compensation(m0, c0, FitSettings("tl18")))
+    tl_err, _ = _recovery_error(s1, f1, m1, c1, fit_compensation(m1, c1, FitSettings("tl18")))
+    agg = fit_compensation(m1, c1, FitSettings("agg-tl"))
+    agg_err, agg_noise = _recovery_error(s1, f1, m1, c1, agg)
+    # T-L over a gradient: biased far beyond anything the (identical) noise explains
+    assert tl_err > 5 * base_err and tl_err > base_err + 10 * base_noise
+    # AGG-TL: back to the gradient-free error, within 3x what noise alone would add
+    assert agg_err <= base_err + 3 * agg_noise
+
+
+def test_agg_tl_estimates_the_gradient():
+    """Over magnetically quiet ground the position terms give the regional gradient.
+
+    The coefficient standard errors assume white residuals; the band-passed residual is
+    correlated over ~1/(2 x 0.8 Hz), which inflates them by sqrt(fs / (2 B)) = 2.5.
+    """
+    (_s0, _f0, _m0, _c0), (sim, _fl, meas, cal) = _box_pair(4, ["anomaly.dipoles=0"])
+    agg = fit_compensation(meas, cal, FitSettings("agg-tl"))
+    g = agg.gradient_nT_per_m()
+    sd = dict(zip(agg.terms, agg.coefficient_std * np.sqrt(10.0 / 1.6), strict=True))
+    true = sim.truth["effective"]["gradient_nT_per_m"]
+    assert abs(g["east"] - true[0]) <= 3 * sd["pos_e"]
+    assert abs(g["north"] - true[1]) <= 3 * sd["pos_n"]
+
+
+# ------------------------------------------------------------------------------------------
+def test_lcurve_finds_a_known_corner():
+    """Ten well-determined components (s = 1) and ten noise-only ones (s = 1e-3, |u'y| = eps):
+    the L-curve's branches meet at residual eps sqrt(10) and solution norm sqrt(10)."""
+    rng = np.random.default_rng(0)
+    u, _ = np.linalg.qr(rng.normal(size=(400, 20)))
+    v, _ = np.linalg.qr(rng.normal(size=(20, 20)))
+    s = np.r_[np.ones(10), np.full(10, 1e-3)]
+    eps = 1e-2
+    y = u @ np.r_[np.ones(10), eps * rng.choice([-1.0, 1.0], 10)]
+    lc = RidgeSVD(u @ np.diag(s) @ v.T, y).lcurve()
+    c = lc.corner
+    assert abs(np.log10(lc.residual_norm[c] / (eps * np.sqrt(10)))) < 0.05
+    assert abs(np.log10(lc.solution_norm[c] / np.sqrt(10))) < 0.05
+    assert 1e-6 < lc.lambda_corner < 1e-2  # between the two singular-value clusters
+
+
+def test_compensate_cli_errors_and_window(tmp_path):
+    src = FIXTURES / "box_scalar_vector_only.mcap"
+    res = cli("compensate", str(src), "--out", str(tmp_path / "a.mcap"), "--json",
+              str(tmp_path / "a.json"))
+    assert res.returncode == 2 and "--calibration auto needs the segmentation" in res.stderr
+    assert not (tmp_path / "a.mcap").exists()
+    res = cli("compensate", str(src), "--out", str(tmp_path / "b.mcap"), "--json",
+              str(tmp_path / "b.json"), "--calibration", "100:400", "--model", "tl16")
+    assert res.returncode == 0, res.stderr
+    s = json.loads((tmp_path / "b.json").read_text())
+    w = s["calibration_windows_s"]
+    assert len(w) == 1 and 99.9 <= w[0][0] and w[0][1] <= 400.1
+    assert s["lcurve_png"].endswith(".lcurve.png")
+    res = cli("compensate", str(src), "--out", str(tmp_path / "c.mcap"), "--json",
+              str(tmp_path / "c.json"), "--calibration", "all", "--model", "agg-tl")
+    assert res.returncode == 2 and "agg-tl needs positions" in res.stderr
+    res = cli("compensate", str(src), "--out", str(tmp_path / "d.mcap"), "--json",
+              str(tmp_path / "d.json"), "--calibration", "all", "--band", "0.1", "6.0")
+    assert res.returncode == 2 and "Nyquist" in res.stderr
+
+
+def test_compensate_with_segmentation_writes_every_channel(tmp_path, box_path):
+    res = cli("compensate", str(box_path), "--out", str(tmp_path / "o.mcap"), "--json",
+              str(tmp_path / "s.json"), "--model", "agg-tl")
+    assert res.returncode == 0, res.stderr
+    s = json.loads((tmp_path / "s.json").read_text())
+    assert s["fom_nT"]["uncompensated"] > 5 * s["fom_nT"]["compensated"]
+    assert s["residual_std_nT"]["calibration"] is not None
+    assert s["gradient_nT_per_m"] is not None and s["base_terms"] == "tl18"
+    from mcap.reader import make_reader
+
+    with (tmp_path / "o.mcap").open("rb") as f:
+        topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
+    assert {"/flight/segment", "/mag/compensated", "/compensation/model",
+            "/aeromag/log"} <= topics
+    validate_every_message(tmp_path / "o.mcap")

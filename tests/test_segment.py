@@ -1,0 +1,102 @@
+"""Segmentation against the simulator's truth (never read by the segmenter)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.errors import AeromagError
+from pipeline.io.reader import read_flight
+from pipeline.outputs import segment_channel
+from pipeline.segment import segment_flight
+from pipeline.simulate import write_simulation
+from tests.conftest import FIXTURES, run_sim
+
+
+def truth_labels(sim, flight):
+    """Per-epoch truth label and manoeuvre from the truth document's segment intervals."""
+    t = (flight.time_ns - sim.start_ns) / 1e9
+    lab = np.full(t.size, "transit", dtype=object)
+    man = np.full(t.size, "", dtype=object)
+    for s in sim.truth["segments"]:
+        m = (t >= s["start_s"]) & (t < s["end_s"])
+        lab[m] = s["label"]
+        man[m] = s["manoeuvre"] if s["label"] == "calibration" else ""
+    return lab, man
+
+
+def three_class(lab):
+    return np.where(np.isin(lab, ["calibration", "survey"]), lab, "other")
+
+
+@pytest.fixture(scope="module", params=[("uav-small", 1), ("uav-small", 2), ("fixed-wing", 1),
+                                        ("calibration-only", 3)],
+                ids=lambda p: f"{p[0]}-{p[1]}")
+def segmented(request, tmp_path_factory):
+    name, seed = request.param
+    sim = run_sim(name, seed)
+    path = write_simulation(sim, tmp_path_factory.mktemp("seg") / f"{name}.mcap")
+    flight = read_flight(path)
+    return sim, flight, segment_flight(flight)
+
+
+def test_calibration_vs_survey_vs_other_at_least_98_percent(segmented):
+    sim, flight, seg = segmented
+    lab, _ = truth_labels(sim, flight)
+    assert seg.source == "inferred"
+    acc = np.mean(three_class(seg.label) == three_class(lab))
+    assert acc >= 0.98, acc
+    # the finer labels too, on this kind of flight
+    assert np.mean(seg.label == lab) >= 0.97
+
+
+def test_calibration_boxes_are_the_12_of_each_pass(segmented):
+    sim, flight, seg = segmented
+    passes = int(sim.scenario["calibration"]["passes"])
+    boxes = seg.boxes()
+    assert len(boxes) == 12 * passes
+    assert {(b.cardinal, b.manoeuvre) for b in boxes} == {
+        (c, m) for c in "NESW" for m in ("roll", "pitch", "yaw")}
+    lab, man = truth_labels(sim, flight)
+    both = (lab == "calibration") & (seg.label == "calibration")
+    # boundaries move by a second or two; the boxes' cores agree
+    assert np.mean(seg.manoeuvre[both] == man[both]) >= 0.8
+
+
+def test_survey_lines_are_numbered_across_the_block(segmented):
+    sim, flight, seg = segmented
+    n_lines = sum(1 for s in sim.truth["segments"] if s["label"] == "survey")
+    ids = {i for i in seg.line_id[seg.mask("survey")]}
+    assert len(ids) == n_lines
+    for lid in ids:
+        h = seg.heading_deg[seg.line_id == lid]
+        line_heading = sim.scenario["survey"]["line_heading_deg"]
+        assert min(abs(((h[0] - line_heading) + 180) % 360 - 180),
+                   abs(((h[0] - line_heading - 180) + 180) % 360 - 180)) < 2.0
+
+
+def test_plan_markers_are_used_when_present(tmp_path):
+    sim = run_sim("uav-small", 5, ["sensors.plan_markers=true"])
+    flight = read_flight(write_simulation(sim, tmp_path / "plan.mcap"))
+    seg = segment_flight(flight)
+    lab, _ = truth_labels(sim, flight)
+    assert seg.source == "plan"
+    assert np.mean(seg.label == lab) > 0.995  # only the sub-sample offset of marker times
+    assert len(seg.boxes()) == 12
+
+
+def test_segment_channel_marks_each_change(segmented):
+    _sim, flight, seg = segmented
+    ch = segment_channel(flight, seg)
+    keys = [(p["label"], p["line_id"], p["manoeuvre"]) for _t, p in ch.messages]
+    assert len(ch.messages) == len(seg.changes()) > 10
+    assert all(a != b for a, b in zip(keys[:-1], keys[1:], strict=True))
+    times = [t for t, _p in ch.messages]
+    assert times == sorted(times) and times[0] == int(flight.time_ns[0])
+    assert all(p["heading_deg"] is None or 0 <= p["heading_deg"] < 360 for _t, p in ch.messages)
+
+
+def test_without_gnss_or_plan_a_clear_error():
+    flight = read_flight(FIXTURES / "box_scalar_vector_only.mcap")
+    with pytest.raises(AeromagError, match="/gnss/fix: segmentation needs /gnss/fix"):
+        segment_flight(flight)
