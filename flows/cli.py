@@ -131,11 +131,13 @@ def compensate(
         _fail(f"--model {model!r}: use one of {', '.join(MODELS)}")
     try:
         lam: float | str = "auto" if ridge == "auto" else float(ridge)
+    except ValueError:
+        _fail(f"--ridge {ridge!r}: use auto or a number >= 0")
+    try:
         settings = FitSettings(model=model, band_hz=band, poles=poles, trim=trim, ridge=lam,
                                base=agg_base)
     except ValueError as exc:
-        _fail(f"--ridge {ridge!r}: use auto or a number >= 0" if "ridge" in str(exc)
-              or "could not convert" in str(exc) else str(exc))
+        _fail(str(exc))
     with console.status(f"compensating {recording.name} ({model})"):
         summary = compensate_recording(recording, out_path, json_out, settings, calibration,
                                        scalar, vector)
@@ -161,8 +163,9 @@ def process(
     out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")],
 ) -> None:
     """Run the post-flight flow on one recording."""
-    if not recording.is_file():
-        _fail(f"{recording}: file not found")
+    from flows.stages import require_readable
+
+    require_readable(recording)
     result = _run_postflight(recording, out_dir)
     say(f"output recording: {result['outputs']['mcap']}")
     say(f"summary: {result['outputs']['summary']}")

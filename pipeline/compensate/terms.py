@@ -27,14 +27,16 @@ def direction_cosines(b_nT: np.ndarray) -> np.ndarray:
     return b / np.linalg.norm(b, axis=1, keepdims=True)
 
 
+def _permanent(u: np.ndarray) -> tuple[list[np.ndarray], list[str]]:
+    """Permanent-field columns: the direction cosines themselves."""
+    return [u[:, i] for i in range(3)], [f"perm_u{a}" for a in AXES]
+
+
 def tl16_terms(b_nT: np.ndarray, time_s: np.ndarray) -> tuple[np.ndarray, list[str]]:
     """The 16 classic T-L columns from direction cosines, (n, 16)."""
     u = direction_cosines(b_nT)
     du = np.gradient(u, time_s, axis=0)
-    cols, names = [], []
-    for i in range(3):
-        cols.append(u[:, i])
-        names.append(f"perm_u{AXES[i]}")
+    cols, names = _permanent(u)
     for i, j in PAIRS_UPPER[:-1]:  # u_z^2 dropped
         cols.append(u[:, i] * u[:, j])
         names.append(f"ind_u{AXES[i]}u{AXES[j]}")
@@ -53,10 +55,7 @@ def tl18_terms(b_nT: np.ndarray, time_s: np.ndarray,
     b = np.asarray(b_nT, float)
     u = direction_cosines(b)
     db = np.gradient(b, time_s, axis=0)
-    cols, names = [], []
-    for i in range(3):
-        cols.append(u[:, i])
-        names.append(f"perm_u{AXES[i]}")
+    cols, names = _permanent(u)
     for i, j in PAIRS_UPPER:
         cols.append(u[:, i] * b[:, j] / bt_scale_nT)
         names.append(f"ind_u{AXES[i]}B{AXES[j]}")

@@ -212,8 +212,6 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
                 for name, data in (metadata or {}).items():
                     out.metadata(name, data)
     except (McapError, ValueError, struct.error, EOFError) as exc:
-        if isinstance(exc, AeromagError):
-            raise
         raise AeromagError(f"could not copy the input recording ({type(exc).__name__}: {exc})",
                            file=src) from exc
     return dst
