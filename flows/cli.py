@@ -150,6 +150,43 @@ def compensate(
     say(f"summary: {json_out}")
 
 
+@app.command("map")
+def map_(
+    recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
+    out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
+    json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write.")],
+    cell: Annotated[float | None, typer.Option(help="Cell size, m (default: line spacing / 4).")
+                    ] = None,
+    arima: Annotated[str, typer.Option(help="auto (BIC) or p,d,q")] = "auto",
+    noise: Annotated[float | None, typer.Option(help="Measurement noise for the Kalman filter, "
+                                                     "nT (default: estimated)")] = None,
+    level_trend: Annotated[bool, typer.Option(help="Linear-in-time line corrections.")] = False,
+) -> None:
+    """Reduce, level, grid and ARIMA-Kalman-filter the anomaly map (runs the stages it needs)."""
+    from flows.stages import map_recording, require_readable
+    from pipeline.maps.stage import MapSettings
+
+    require_readable(recording)
+    order: str | tuple[int, int, int] = "auto"
+    if arima != "auto":
+        try:
+            p, d, q = (int(v) for v in arima.split(","))
+            order = (p, d, q)
+        except ValueError:
+            _fail(f"--arima {arima!r}: use auto or p,d,q (e.g. 2,1,1)")
+    if cell is not None and cell <= 0:
+        _fail(f"--cell {cell}: must be > 0 m")
+    settings = MapSettings(cell_m=cell, arima=order, noise_nT=noise, level_trend=level_trend)
+    with console.status(f"mapping {recording.name}"):
+        summary = map_recording(recording, out_path, json_out, settings)
+    m = summary["map"]
+    say(f"grid {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.2f} m; "
+        f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
+        f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])}")
+    say(f"output recording: {out_path}")
+    say(f"summary: {json_out}")
+
+
 def _run_postflight(recording: Path, out_dir: Path) -> dict:
     from flows.postflight import postflight
 

@@ -10,12 +10,20 @@ from typing import Any
 
 from prefect import flow, task
 
-from flows.stages import compensation_lines, save_figure, try_segment
+from flows.stages import (
+    compensation_lines,
+    map_channels,
+    map_figures,
+    map_lines,
+    save_figure,
+    try_segment,
+)
 from pipeline import __version__
 from pipeline.compensate import FitSettings, bandpassed
 from pipeline.compensate.stage import CompensationRun, run_compensation
 from pipeline.io.reader import Flight, read_flight
 from pipeline.io.writer import OutputChannel, write_json_atomic, write_with_new_channels
+from pipeline.maps.stage import MapRun, build_map
 from pipeline.outputs import compensated_channel, model_message, segment_channel
 from pipeline.plots import compensation_figure, lcurve_figure
 from pipeline.report import LOG_INFO, flight_summary, ingest_lines, log_channel, run_metadata
@@ -43,6 +51,11 @@ def segment(flight: Flight) -> tuple[Segmentation | None, str]:
 @task(name="compensate")
 def compensate(flight: Flight, seg: Segmentation | None, model: str) -> CompensationRun:
     return run_compensation(flight, seg, FitSettings(model=model))
+
+
+@task(name="map")
+def make_map(flight: Flight, seg: Segmentation, compensated_nT) -> MapRun:
+    return build_map(flight, seg, compensated_nT)
 
 
 @task(name="write-outputs")
@@ -99,6 +112,12 @@ def postflight(recording: str, out_dir: str) -> dict[str, Any]:
             t, bandpassed(t, flight.data["scalar_nT"].to_numpy(), (0.1, 0.9), 4),
             {m: bandpassed(t, r.compensated_nT, (0.1, 0.9), 4) for m, r in runs.items()},
             seg.passes())
+        if seg.mask("survey").sum() > 100 and flight.has("lat_deg", "alt_m"):
+            mr = make_map(flight, seg, runs[final].compensated_nT)
+            lines += map_lines(mr)
+            channels += map_channels(flight, seg, mr)
+            summary["map"] = mr.summary()
+            figures.update(map_figures(mr))
     channels.insert(0, log_channel(flight, lines, "postflight"))
     outputs = write_outputs(recording, out_dir, channels, summary, figures)
     return {**summary, "outputs": outputs}

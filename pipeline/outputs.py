@@ -54,3 +54,58 @@ def model_message(flight: Flight, run: CompensationRun, ch: OutputChannel | None
 def _sensor_id(flight: Flight) -> str:
     s = flight.series[flight.topic_of["scalar"]]
     return str(s.labels["sensor_id"][0]) if s.labels["sensor_id"].size else ""
+
+
+# --------------------------------------------------------------------------------------------
+# maps
+MAP_FRAME = "local_enu"  # x east, y north (m) about the map origin in the summary
+
+
+def grid_channel(topic: str, time_ns: int, grid, field_name: str = "anomaly_nT"
+                 ) -> OutputChannel:
+    """A ``foxglove.Grid`` message: float32 cells, row-major from the south-west corner.
+
+    The pose puts the grid's corner (half a cell south-west of the first cell centre) in the
+    ``local_enu`` frame; masked cells are NaN.
+    """
+    import base64
+
+    ch = OutputChannel(topic, "foxglove.Grid")
+    ny, nx = grid.shape
+    data = np.ascontiguousarray(grid.values, dtype="<f4").tobytes()
+    ch.add(int(time_ns), {
+        "frame_id": MAP_FRAME,
+        "pose": {"position": {"x": grid.east0_m - grid.cell_m / 2,
+                              "y": grid.north0_m - grid.cell_m / 2, "z": 0.0},
+                 "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
+        "column_count": int(nx),
+        "cell_size": {"x": float(grid.cell_m), "y": float(grid.cell_m)},
+        "row_stride": int(nx * 4), "cell_stride": 4,
+        "fields": [{"name": field_name, "offset": 0, "type": 7}],  # 7 = FLOAT32
+        "data": base64.b64encode(data).decode("ascii")})
+    return ch
+
+
+def tracks_channel(flight: Flight, seg: Segmentation, time_ns: int,
+                   every_s: float = 1.0) -> OutputChannel:
+    """``/map/tracks``: flight lines as a GeoJSON FeatureCollection (lon/lat, ~1 point/s)."""
+    import json
+
+    d = flight.data
+    lat, lon = d["lat_deg"].to_numpy(float), d["lon_deg"].to_numpy(float)
+    rate = 1.0 / float(np.median(np.diff(d["time_s"].to_numpy())))
+    step = max(int(round(every_s * rate)), 1)
+    feats = []
+    for kind in ("survey", "tie", "validation", "calibration"):
+        for lid in sorted(set(seg.line_id[seg.mask(kind)])):
+            ix = np.flatnonzero((seg.line_id == lid) & seg.mask(kind) & np.isfinite(lat))
+            if ix.size < 2:
+                continue
+            ix = np.r_[ix[::step], ix[-1]]
+            feats.append({"type": "Feature", "properties": {"line_id": lid, "label": kind},
+                          "geometry": {"type": "LineString", "coordinates": [
+                              [round(float(lon[i]), 7), round(float(lat[i]), 7)] for i in ix]}})
+    ch = OutputChannel("/map/tracks", "foxglove.GeoJSON")
+    ch.add(int(time_ns), {"geojson": json.dumps({"type": "FeatureCollection",
+                                                 "features": feats})})
+    return ch

@@ -55,3 +55,26 @@ def compensation_figure(time_s: np.ndarray, raw_bp_nT: np.ndarray,
         bottom.legend(loc="upper right", fontsize=8)
     fig.tight_layout()
     return fig
+
+
+def map_figure(grid, lines, title: str, vmin: float | None = None,
+               vmax: float | None = None) -> plt.Figure:
+    """An anomaly grid with colour bar and the flight lines (local metres)."""
+    e, n = grid.coordinates()
+    half = grid.cell_m / 2
+    extent = (e[0] - half, e[-1] + half, n[0] - half, n[-1] + half)
+    aspect = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9)
+    fig, ax = plt.subplots(figsize=(6.5, min(max(4.0, 5.5 * aspect), 11)))
+    im = ax.imshow(grid.values, origin="lower", extent=extent, cmap="RdYlBu_r",
+                   vmin=vmin, vmax=vmax, interpolation="nearest")
+    for ln in lines:
+        ax.plot(ln.east_m[::20], ln.north_m[::20], "-", lw=0.4,
+                color="k" if ln.kind == "survey" else "0.35", alpha=0.6)
+    cb = fig.colorbar(im, ax=ax, shrink=0.85)
+    cb.set_label("total-field anomaly (nT)")
+    ax.set_xlabel("east (m)")
+    ax.set_ylabel("north (m)")
+    ax.set_title(title)
+    ax.set_aspect("equal")
+    fig.tight_layout()
+    return fig

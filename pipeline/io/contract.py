@@ -64,6 +64,12 @@ OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
               description="compensated scalar field (/mag/compensated/<model> for others)"),
     TopicRule("/compensation/model", "aeromag.CompensationModel", "output",
               ("model", "terms", "coefficients"), description="fitted compensation models"),
+    TopicRule("/map/anomaly", "foxglove.Grid", "output", ("column_count", "data"),
+              description="levelled total-field anomaly grid"),
+    TopicRule("/map/anomaly_filtered", "foxglove.Grid", "output", ("column_count", "data"),
+              description="anomaly grid after the ARIMA + Kalman filter"),
+    TopicRule("/map/tracks", "foxglove.GeoJSON", "output", ("geojson",),
+              description="flight lines as GeoJSON"),
 )
 
 # Roles each processing stage needs; a stage must not demand more than it uses.

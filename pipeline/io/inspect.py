@@ -105,9 +105,13 @@ def inspect_recording(path: str | Path, gap_factor: float = 3.0) -> InspectRepor
             violations.append(f"{name}: {invalid} of {rt.count} messages do not match "
                               f"{rule.schema_name}: {first}")
         series = decode_topic(rt, rule)
-        # schema/encoding problems were reported above; keep the data-level ones
+        # field problems were reported above against the full schema; keep the time-level ones
         violations.extend(f"{name}: {p}" for p in series.problems
-                          if "do not match the schema" not in p and "not valid JSON" not in p)
+                          if "do not match the schema" not in p and "not valid JSON" not in p
+                          and "NaN or infinite" not in p)
+        nonfinite = [p for p in series.problems if "NaN or infinite" in p]
+        if nonfinite and rule.role != "output":  # NaN cells are how a grid masks
+            violations.extend(f"{name}: {p}" for p in nonfinite)
         if series.time_ns.size:
             roles_present.add(rule.role)
             rep.rate_hz = series.rate_hz

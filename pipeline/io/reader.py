@@ -26,6 +26,7 @@ from mcap.reader import make_reader
 
 from pipeline.errors import AeromagError
 from pipeline.io.contract import MESSAGE_ENCODING, TopicRule, rule_for_topic
+from pipeline.io.schemas import schema
 
 NS = 1_000_000_000
 
@@ -137,7 +138,10 @@ class TopicSeries:
         return 1.0 / p if p > 0 else float("nan")
 
 
-_STRING_FIELDS = {"sensor_id", "unit", "line_id", "kind"}
+def _string_fields(schema_name: str) -> set[str]:
+    """Fields the schema declares as strings (the rest of a rule's fields are numbers)."""
+    props = schema(schema_name).get("properties", {})
+    return {k for k, v in props.items() if v.get("type") == "string"}
 
 
 def decode_topic(raw: RawTopic, rule: TopicRule) -> TopicSeries:
@@ -153,8 +157,9 @@ def decode_topic(raw: RawTopic, rule: TopicRule) -> TopicSeries:
     if raw.message_encoding != MESSAGE_ENCODING:
         problems.append(f"message encoding is {raw.message_encoding!r}, expected 'json'")
         return TopicSeries(raw.topic, rule, np.zeros(0, np.int64), {}, {}, problems, raw.count)
-    numeric = [f for f in rule.fields if f not in _STRING_FIELDS]
-    strings = [f for f in rule.fields if f in _STRING_FIELDS]
+    string_fields = _string_fields(rule.schema_name)
+    numeric = [f for f in rule.fields if f not in string_fields]
+    strings = [f for f in rule.fields if f in string_fields]
     n = raw.count
     t = np.zeros(n, np.int64)
     vals = {f: np.full(n, np.nan) for f in numeric}

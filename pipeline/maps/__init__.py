@@ -1,0 +1,1 @@
+"""Anomaly maps: reduction, leveling, gridding, ARIMA + Kalman filtering."""

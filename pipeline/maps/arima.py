@@ -1,0 +1,296 @@
+"""ARIMA model of a map profile and the Kalman filter built on it (paper 004).
+
+A gridded map, read in acquisition order (along the flight lines, serpentine), is a 1-D
+sequence. It is tested for stationarity (reverse arrangements) and normality (skewness,
+kurtosis), differenced until stationary, an ARMA(p, q) is fitted to the differences with the
+orders chosen by BIC (statsmodels), and the integrated model ARIMA(p, d, q) is written in
+companion state-space form **by multiplying out the fitted polynomials** (the paper prints a
+wrong sign for the last coefficient of its ARIMA(2,1,1); deriving it avoids copying that).
+The Kalman filter then runs on the sequence with process noise from the model's innovation
+variance and measurement noise from the sensor.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.polynomial import polynomial as P
+from scipy.signal import lfilter
+from scipy.stats import kurtosis, norm, skew
+
+
+# --------------------------------------------------------------------------------------------
+# tests
+@dataclass
+class ReverseArrangements:
+    """Reverse-arrangements (trend) test on the means of ``segments`` sub-series."""
+
+    arrangements: int
+    expected: float
+    variance: float
+    u: float
+    stationary: bool
+    segments: int
+
+    def to_dict(self) -> dict:
+        return {"A": self.arrangements, "E_A": self.expected, "Var_A": self.variance,
+                "u": self.u, "stationary": self.stationary, "segments": self.segments}
+
+
+def reverse_arrangements(x: np.ndarray, segments: int = 20,
+                         alpha: float = 0.05) -> ReverseArrangements:
+    """Stationary at level ``alpha`` when |u| <= z_(1-alpha/2) (1.96 for 5 %).
+
+    The series is split into ``segments`` sub-series; A counts pairs i < j with
+    mean_i > mean_j. For N means, E[A] = N(N-1)/4 and Var[A] = N(2N+5)(N-1)/72, and
+    u = (A - E[A] + 1/2) / sqrt(Var[A]) (continuity-corrected).
+    """
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    n = segments
+    means = np.array([c.mean() for c in np.array_split(x, n)])
+    a = int(sum(np.sum(means[i] > means[i + 1:]) for i in range(n - 1)))
+    e = n * (n - 1) / 4.0
+    var = n * (2 * n + 5) * (n - 1) / 72.0
+    u = (a - e + 0.5) / np.sqrt(var)
+    return ReverseArrangements(a, e, var, float(u), bool(abs(u) <= norm.ppf(1 - alpha / 2)), n)
+
+
+def normality(x: np.ndarray) -> dict[str, float]:
+    """Skewness (0 for a normal law) and kurtosis (3 for a normal law, Pearson's)."""
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    return {"skewness": float(skew(x)), "kurtosis": float(kurtosis(x, fisher=False))}
+
+
+
+
+# --------------------------------------------------------------------------------------------
+# model
+@dataclass
+class ArimaModel:
+    """ARIMA(p, d, q): (1 - sum phi_i B^i)(1 - B)^d x_k = (1 + sum theta_j B^j) e_k."""
+
+    p: int
+    d: int
+    q: int
+    ar: np.ndarray  # phi_1..phi_p
+    ma: np.ndarray  # theta_1..theta_q
+    sigma2: float  # innovation variance
+    bic: float = float("nan")
+    tests: dict = field(default_factory=dict)
+
+    @property
+    def order(self) -> tuple[int, int, int]:
+        return (self.p, self.d, self.q)
+
+    def integrated_ar(self) -> np.ndarray:
+        """Coefficients a_1..a_(p+d) of x_k = sum a_i x_(k-i) + ...: the product
+        (1 - sum phi_i B^i)(1 - B)^d, multiplied out."""
+        phi_poly = np.r_[1.0, -np.asarray(self.ar, float)]
+        diff_poly = np.array([1.0])
+        for _ in range(self.d):
+            diff_poly = P.polymul(diff_poly, [1.0, -1.0])
+        full = P.polymul(phi_poly, diff_poly)
+        return -full[1:]
+
+    def companion(self) -> np.ndarray:
+        """The paper's transition matrix for the lagged state [x_k, x_(k-1), ...]: first row
+        the integrated AR coefficients, identity below (exact for the AR part)."""
+        a = self.integrated_ar()
+        r = max(len(a), 1)
+        f = np.zeros((r, r))
+        f[0, : len(a)] = a
+        f[1:, :-1] = np.eye(r - 1)
+        return f
+
+    def harvey(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """State space (T, R, Z) in Harvey's form, exact for the MA part too.
+
+        alpha_k = T alpha_(k-1) + R e_k, x_k = Z alpha_k, with T's first column the integrated
+        AR coefficients and a shifted identity above the diagonal, R = (1, theta_1, ...),
+        Z = (1, 0, ...). This is also statsmodels' SARIMAX representation.
+        """
+        a = self.integrated_ar()
+        r = max(len(a), self.q + 1, 1)
+        t = np.zeros((r, r))
+        t[: len(a), 0] = a
+        t[:-1, 1:] = np.eye(r - 1)
+        rr = np.zeros(r)
+        rr[0] = 1.0
+        rr[1: 1 + self.q] = self.ma
+        z = np.zeros(r)
+        z[0] = 1.0
+        return t, rr, z
+
+    def to_dict(self) -> dict:
+        return {"order": list(self.order), "ar": [float(v) for v in self.ar],
+                "ma": [float(v) for v in self.ma], "sigma2": float(self.sigma2),
+                "integrated_ar": [float(v) for v in self.integrated_ar()],
+                "bic": float(self.bic), **self.tests}
+
+
+def choose_d(x: np.ndarray, max_d: int = 2, segments: int = 20) -> tuple[int, list[dict]]:
+    """Difference until the reverse-arrangements test accepts stationarity."""
+    y = np.asarray(x, float)
+    steps = []
+    for d in range(max_d + 1):
+        t = reverse_arrangements(y, segments)
+        steps.append({"d": d, **t.to_dict()})
+        if t.stationary or d == max_d:
+            return d, steps
+        y = np.diff(y)
+    return max_d, steps
+
+
+def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: int = 3,
+              max_q: int = 2, max_d: int = 2) -> ArimaModel:
+    """Fit ARIMA to a 1-D sequence (NaNs dropped): orders by BIC unless ``order`` is given.
+
+    The differenced series is fitted as a zero-mean ARMA(p, q) by statsmodels' exact
+    maximum likelihood; BIC = k ln(n) - 2 ln L over p <= max_p, q <= max_q.
+    """
+    from statsmodels.tsa.arima.model import ARIMA
+
+    x = np.asarray(x, float)
+    x = x[np.isfinite(x)]
+    if order is None:
+        d, steps = choose_d(x, max_d)
+    else:
+        d, steps = order[1], []
+    y = np.diff(x, n=d) if d else x
+    candidates = [(order[0], order[2])] if order else [
+        (p, q) for p in range(max_p + 1) for q in range(max_q + 1) if p + q > 0]
+    best = None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # convergence chatter on poor candidates
+        for p, q in candidates:
+            res = ARIMA(y, order=(p, 0, q), trend="n").fit()
+            if best is None or res.bic < best[0].bic:
+                best = (res, p, q)
+    res, p, q = best
+    params = dict(zip(res.model.param_names, res.params, strict=True))
+    ar = np.array([params[f"ar.L{i}"] for i in range(1, p + 1)])
+    ma = np.array([params[f"ma.L{i}"] for i in range(1, q + 1)])
+    tests = {"stationarity": steps, "normality_differenced": normality(y)}
+    return ArimaModel(p, d, q, ar, ma, float(params["sigma2"]), float(res.bic), tests)
+
+
+# --------------------------------------------------------------------------------------------
+# filter
+@dataclass
+class KalmanResult:
+    """Filtered sequence (NaN where the input is missing) and the steady-state gain."""
+
+    filtered: np.ndarray
+    gain_steady: np.ndarray
+    exact_steps: int  # samples run through the full Riccati recursion (the rest: modal IIR)
+
+
+def _advance(t: np.ndarray, q: np.ndarray, x: np.ndarray, pm: np.ndarray,
+             m: int) -> tuple[np.ndarray, np.ndarray]:
+    """m prediction steps at once: x <- T^m x, P <- T^m P T^m' + sum_j T^j Q T^j'.
+
+    Binary doubling of (T^n, S_n), S_n = sum_(j<n) T^j Q T^j', so a gap costs O(log m)."""
+    acc_t, acc_s = np.eye(len(x)), np.zeros_like(pm)
+    base_t, base_s = t, q
+    while m:
+        if m & 1:
+            acc_t, acc_s = base_t @ acc_t, base_t @ acc_s @ base_t.T + base_s
+        base_t, base_s = base_t @ base_t, base_t @ base_s @ base_t.T + base_s
+        m >>= 1
+    return acc_t @ x, acc_t @ pm @ acc_t.T + acc_s
+
+
+def _modal_run(a: np.ndarray, gain: np.ndarray, z: np.ndarray, x0: np.ndarray,
+               y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Outputs z x_k and the last state of x_k = A x_(k-1) + gain y_k over a gap-free run.
+
+    A is diagonalised, A = V diag(l) V^-1; each mode w_i = l_i w_i + c_i y is a first-order
+    IIR filter run by scipy.signal.lfilter (C speed), and x = V w."""
+    lam, v = np.linalg.eig(a)
+    vinv = np.linalg.inv(v)
+    c = vinv @ gain
+    w0 = vinv @ x0
+    out = np.zeros(y.size, complex)
+    last = np.zeros(len(lam), complex)
+    zv = z @ v
+    for i, li in enumerate(lam):
+        wi, _ = lfilter([c[i]], [1.0, -li], y.astype(complex), zi=[li * w0[i]])
+        out += zv[i] * wi
+        last[i] = wi[-1]
+    return out.real, (v @ last).real
+
+
+def kalman_filter(y: np.ndarray, model: ArimaModel, measurement_var: float,
+                  process_var: float | None = None, x0: np.ndarray | None = None,
+                  p0: np.ndarray | None = None, tol: float = 1e-13) -> KalmanResult:
+    """Kalman filter of ``y`` (NaN = missing) with the ARIMA model as the state equation.
+
+    Process noise: ``process_var`` (default: the model's innovation variance) through R;
+    measurement noise: ``measurement_var``. Each gap-free run starts with the exact Riccati
+    recursion; once the gain is constant to ``tol`` (relative) the identical steady-state
+    filter runs as modal IIR filters. Missing samples are predicted through (O(log gap)) and
+    returned as NaN.
+
+    The initial state defaults to the first value in every component (a level that the
+    integrated model keeps) with a covariance 1e6 x the sequence variance (near-diffuse).
+    """
+    y = np.asarray(y, float)
+    t, rr, z = model.harvey()
+    q = (model.sigma2 if process_var is None else process_var) * np.outer(rr, rr)
+    r = float(measurement_var)
+    dim = t.shape[0]
+    finite = np.isfinite(y)
+    out = np.full(y.size, np.nan)
+    if not finite.any():
+        return KalmanResult(out, np.zeros(dim), 0)
+    first = int(np.flatnonzero(finite)[0])
+    if x0 is None:
+        x = _level_state(t, y[first])
+    else:
+        x = np.asarray(x0, float)
+    pm = (np.eye(dim) * 1e6 * max(float(np.nanvar(y)), 1e-12) if p0 is None
+          else np.asarray(p0, float))
+    # runs of finite samples
+    edges = np.flatnonzero(np.diff(np.r_[0, finite.astype(int), 0]))
+    runs = list(zip(edges[::2], edges[1::2], strict=True))
+    pos = 0  # samples already accounted for (predicted through or filtered)
+    gain = np.zeros(dim)
+    exact = 0
+    for a, b in runs:
+        if a > pos:  # predict through the gap
+            x, pm = _advance(t, q, x, pm, a - pos)
+        k = a
+        prev = None
+        while k < b:
+            x = t @ x
+            pm = t @ pm @ t.T + q
+            s_ = z @ pm @ z + r
+            gain = pm @ z / s_
+            x = x + gain * (y[k] - z @ x)
+            pm = pm - np.outer(gain, z @ pm)
+            pm = 0.5 * (pm + pm.T)
+            out[k] = z @ x
+            k += 1
+            exact += 1
+            if prev is not None and np.max(np.abs(gain - prev)) <= tol * np.max(np.abs(gain)):
+                break
+            prev = gain
+        if k < b:  # steady state for the rest of the run: P is already at its fixed point
+            closed = (np.eye(dim) - np.outer(gain, z)) @ t
+            out[k:b], x = _modal_run(closed, gain, z, x, y[k:b])
+        pos = b
+    return KalmanResult(out, gain, exact)
+
+
+def _level_state(t: np.ndarray, value: float) -> np.ndarray:
+    """Harvey state of a series that has stayed at ``value``: x_k = value and, for the
+    integrated model, alpha solving alpha = T alpha with alpha_0 = value (least squares when
+    the model is not integrated)."""
+    dim = t.shape[0]
+    a = np.vstack([np.eye(dim) - t, np.eye(dim)[:1]])
+    b = np.r_[np.zeros(dim), value]
+    return np.linalg.lstsq(a, b, rcond=None)[0]

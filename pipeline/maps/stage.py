@@ -1,0 +1,166 @@
+"""The map stage: reduce -> lines -> level -> grid -> ARIMA + Kalman filter -> grids."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import AeromagError
+from pipeline.geo.local import LocalFrame
+from pipeline.io.reader import Flight
+from pipeline.maps.arima import (
+    ArimaModel,
+    KalmanResult,
+    fit_arima,
+    kalman_filter,
+    normality,
+    reverse_arrangements,
+)
+from pipeline.maps.grid import Grid, minimum_curvature
+from pipeline.maps.level import Leveling, Line, level_lines
+from pipeline.maps.reduce import Reduction, reduce_to_anomaly
+from pipeline.segment import Segmentation
+
+ARIMA_SAMPLE_LIMIT = 20_000  # samples used to identify the model (the filter uses them all)
+
+
+@dataclass
+class MapSettings:
+    cell_m: float | None = None  # default: a quarter of the line spacing
+    arima: str | tuple[int, int, int] = "auto"
+    level_trend: bool = False  # linear-in-time line corrections besides the DC
+    lag_s: float = 0.0
+    noise_nT: float | None = None  # measurement noise for the Kalman filter (default: estimated)
+    mask_spacings: float = 1.0  # mask cells farther than this many line spacings from data
+
+
+def noise_4th_difference_nT(x: np.ndarray) -> float:
+    """White-noise level from the 4th difference: Var(d4) = 70 sigma^2 for white noise;
+    smooth geology hardly contributes at along-line sampling. Robust (MAD) estimate."""
+    d4 = np.diff(np.asarray(x, float)[np.isfinite(x)], 4)
+    if d4.size < 10:
+        return float("nan")
+    mad = np.median(np.abs(d4 - np.median(d4)))
+    return float(1.4826 * mad / np.sqrt(70.0))
+
+
+def serialize(grid: Grid, along_north: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The grid in acquisition order: along the lines, serpentine (index into ravel order)."""
+    ny, nx = grid.shape
+    idx = np.arange(ny * nx).reshape(ny, nx)
+    lanes = idx.T if along_north else idx  # a lane follows one flight-line direction
+    order = np.concatenate([lane if k % 2 == 0 else lane[::-1] for k, lane in enumerate(lanes)])
+    return grid.values.ravel()[order], order
+
+
+@dataclass
+class MapRun:
+    frame: LocalFrame
+    reduction: Reduction
+    lines: list[Line]
+    leveling: Leveling
+    spacing_m: float
+    grid: Grid
+    filtered: Grid
+    model: ArimaModel
+    kalman: KalmanResult
+    noise_nT: float
+    noise_source: str
+    sequence_tests: dict[str, Any] = field(default_factory=dict)
+
+    def summary(self) -> dict[str, Any]:
+        ny, nx = self.grid.shape
+        return {
+            "grid_shape": [ny, nx], "cell_m": self.grid.cell_m,
+            "origin": {"east_m": self.grid.east0_m, "north_m": self.grid.north0_m,
+                       "latitude_deg": self.frame.lat0_deg, "longitude_deg": self.frame.lon0_deg,
+                       "crs": self.frame.crs},
+            "line_spacing_m": self.spacing_m,
+            "lines": {"survey": sum(ln.kind == "survey" for ln in self.lines),
+                      "tie": sum(ln.kind == "tie" for ln in self.lines)},
+            "crossover_rms_nT": {"before": self.leveling.rms_before_nT,
+                                 "after": self.leveling.rms_after_nT},
+            "leveling": self.leveling.to_dict(),
+            "arima_order": list(self.model.order),
+            "arima_coefficients": {"ar": [float(v) for v in self.model.ar],
+                                   "ma": [float(v) for v in self.model.ma],
+                                   "integrated_ar": [float(v) for v in
+                                                     self.model.integrated_ar()]},
+            "arima": self.model.to_dict(),
+            "kalman": {"measurement_noise_nT": self.noise_nT, "noise_source": self.noise_source,
+                       "process_noise_var_nT2": float(self.model.sigma2),
+                       "steady_gain": [float(g) for g in self.kalman.gain_steady],
+                       "exact_steps": self.kalman.exact_steps},
+            "sequence_tests": self.sequence_tests,
+            "anomaly_range_nT": [float(np.nanmin(self.grid.values)),
+                                 float(np.nanmax(self.grid.values))],
+        }
+
+
+def _lines(seg: Segmentation, e, n, t, v) -> list[Line]:
+    out = []
+    for kind in ("survey", "tie"):
+        for lid in sorted(set(seg.line_id[seg.mask(kind)])):
+            ix = np.flatnonzero((seg.line_id == lid) & seg.mask(kind) & np.isfinite(v)
+                                & np.isfinite(e))
+            if ix.size >= 10:
+                out.append(Line(lid, kind, e[ix], n[ix], t[ix], v[ix], ix))
+    return out
+
+
+def build_map(flight: Flight, seg: Segmentation, compensated_nT: np.ndarray,
+              settings: MapSettings | None = None) -> MapRun:
+    """Anomaly grid and its ARIMA-Kalman-filtered version from a compensated flight."""
+    s = settings or MapSettings()
+    flight.require("lat_deg", "lon_deg", "alt_m", purpose="mapping")
+    d = flight.data
+    lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
+    surv = seg.mask("survey") & np.isfinite(lat)
+    if surv.sum() < 100:
+        raise AeromagError("no survey lines found to map", file=flight.source,
+                           channel="/gnss/fix")
+    frame = LocalFrame(float(np.mean(lat[surv])), float(np.mean(lon[surv])),
+                       float(np.mean(alt[surv])))
+    e, n, _u = frame.to_enu(lat, lon, alt)
+    base = d["base_nT"].to_numpy(float) if flight.has("base_nT") else None
+    red = reduce_to_anomaly(flight.time_ns, compensated_nT, lat, lon, alt, base, s.lag_s)
+    t = d["time_s"].to_numpy(float)
+    lines = _lines(seg, e, n, t, red.anomaly_nT)
+    lev = level_lines(lines, trend=s.level_trend)
+    for ln in lines:
+        ln.value_nT = ln.value_nT - lev.correction(ln.line_id, ln.time_s)
+    # line spacing: cross-track offsets of the survey lines
+    heading = float(np.nanmedian(np.mod(seg.heading_deg[seg.mask("survey")], 180.0)))
+    along = np.array([np.sin(np.radians(heading)), np.cos(np.radians(heading))])
+    across = np.array([along[1], -along[0]])
+    offs = np.sort([np.median(ln.east_m * across[0] + ln.north_m * across[1])
+                    for ln in lines if ln.kind == "survey"])
+    spacing = float(np.median(np.diff(offs))) if offs.size > 1 else 50.0
+    cell = s.cell_m or spacing / 4.0
+    pts = [(ln.east_m, ln.north_m, ln.value_nT) for ln in lines]
+    ge, gn, gv = (np.concatenate([p[k] for p in pts]) for k in range(3))
+    grid = minimum_curvature(ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing,
+                             crs=frame.crs)
+    # ARIMA + Kalman along the flight lines
+    along_north = abs(along[1]) >= abs(along[0])
+    seq, order = serialize(grid, along_north)
+    finite = np.flatnonzero(np.isfinite(seq))
+    ident = seq[finite[:ARIMA_SAMPLE_LIMIT]]
+    tests = {"reverse_arrangements": reverse_arrangements(ident).to_dict(),
+             "normality": normality(ident), "samples_for_identification": int(ident.size)}
+    arima_order = None if s.arima == "auto" else tuple(s.arima)
+    model = fit_arima(ident, order=arima_order)
+    if s.noise_nT is not None:
+        noise, source = float(s.noise_nT), "given"
+    else:
+        noise = float(np.nanmedian([noise_4th_difference_nT(ln.value_nT) for ln in lines
+                                    if ln.kind == "survey"]))
+        source = "4th difference of the survey lines"
+    kf = kalman_filter(seq, model, noise**2)
+    filt = np.full(grid.values.size, np.nan)
+    filt[order] = kf.filtered
+    filtered = grid.with_values(filt.reshape(grid.shape))
+    return MapRun(frame, red, lines, lev, spacing, grid, filtered, model, kf, noise, source,
+                  tests)
