@@ -161,6 +161,8 @@ def map_(
     noise: Annotated[float | None, typer.Option(help="Measurement noise for the Kalman filter, "
                                                      "nT (default: estimated)")] = None,
     level_trend: Annotated[bool, typer.Option(help="Linear-in-time line corrections.")] = False,
+    lag: Annotated[float, typer.Option(help="Magnetometer lag to remove, s (the sensor reports "
+                                            "late by this much).")] = 0.0,
 ) -> None:
     """Reduce, level, grid and ARIMA-Kalman-filter the anomaly map (runs the stages it needs)."""
     from flows.stages import map_recording, require_readable
@@ -176,7 +178,8 @@ def map_(
             _fail(f"--arima {arima!r}: use auto or p,d,q (e.g. 2,1,1)")
     if cell is not None and cell <= 0:
         _fail(f"--cell {cell}: must be > 0 m")
-    settings = MapSettings(cell_m=cell, arima=order, noise_nT=noise, level_trend=level_trend)
+    settings = MapSettings(cell_m=cell, arima=order, noise_nT=noise, level_trend=level_trend,
+                           lag_s=lag)
     with console.status(f"mapping {recording.name}"):
         summary = map_recording(recording, out_path, json_out, settings)
     m = summary["map"]

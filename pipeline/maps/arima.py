@@ -146,13 +146,20 @@ def choose_d(x: np.ndarray, max_d: int = 2, segments: int = 20) -> tuple[int, li
 
 
 def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: int = 3,
-              max_q: int = 2, max_d: int = 2) -> ArimaModel:
+              max_q: int = 2, max_d: int = 2,
+              measurement_var: float | None = None) -> ArimaModel:
     """Fit ARIMA to a 1-D sequence (NaNs dropped): orders by BIC unless ``order`` is given.
 
-    The differenced series is fitted as a zero-mean ARMA(p, q) by statsmodels' exact
-    maximum likelihood; BIC = k ln(n) - 2 ln L over p <= max_p, q <= max_q.
+    ``d`` comes from the reverse-arrangements test (difference until stationary); (p, q) by
+    BIC = k ln(n) - 2 ln L over p <= max_p, q <= max_q, by statsmodels' exact likelihood.
+
+    With ``measurement_var`` the sequence is modelled as an ARIMA *signal plus white
+    measurement noise* of that (known) variance, so the innovation variance describes the
+    signal alone: fitting a plain ARIMA to noisy data would fold the noise into the process
+    noise and the Kalman filter would then count it twice.
     """
     from statsmodels.tsa.arima.model import ARIMA
+    from statsmodels.tsa.statespace.sarimax import SARIMAX
 
     x = np.asarray(x, float)
     x = x[np.isfinite(x)]
@@ -167,14 +174,20 @@ def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: i
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # convergence chatter on poor candidates
         for p, q in candidates:
-            res = ARIMA(y, order=(p, 0, q), trend="n").fit()
+            if measurement_var is None:
+                res = ARIMA(y, order=(p, 0, q), trend="n").fit()
+            else:
+                mod = SARIMAX(x, order=(p, d, q), measurement_error=True, trend="n")
+                res = mod.fit_constrained({"var.measurement_error": float(measurement_var)},
+                                          disp=False)
             if best is None or res.bic < best[0].bic:
                 best = (res, p, q)
     res, p, q = best
     params = dict(zip(res.model.param_names, res.params, strict=True))
     ar = np.array([params[f"ar.L{i}"] for i in range(1, p + 1)])
     ma = np.array([params[f"ma.L{i}"] for i in range(1, q + 1)])
-    tests = {"stationarity": steps, "normality_differenced": normality(y)}
+    tests = {"stationarity": steps, "normality_differenced": normality(y),
+             "measurement_var": measurement_var}
     return ArimaModel(p, d, q, ar, ma, float(params["sigma2"]), float(res.bic), tests)
 
 

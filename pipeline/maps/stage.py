@@ -23,7 +23,10 @@ from pipeline.maps.level import Leveling, Line, level_lines
 from pipeline.maps.reduce import Reduction, reduce_to_anomaly
 from pipeline.segment import Segmentation
 
-ARIMA_SAMPLE_LIMIT = 20_000  # samples used to identify the model (the filter uses them all)
+# Samples used to identify the ARIMA model (the filter runs on all of them). 20 000 cells span
+# many lines of a large map; fewer risk identifying the model on one quiet corner (5000 did,
+# in benchmarks/bench_maps.py). Exact likelihood with measurement noise: ~1.5 s per candidate.
+ARIMA_SAMPLE_LIMIT = 20_000
 
 
 @dataclass
@@ -34,6 +37,7 @@ class MapSettings:
     lag_s: float = 0.0
     noise_nT: float | None = None  # measurement noise for the Kalman filter (default: estimated)
     mask_spacings: float = 1.0  # mask cells farther than this many line spacings from data
+    direction: str = "both"  # both (zero phase, the map product) | forward (paper 004)
 
 
 def noise_4th_difference_nT(x: np.ndarray) -> float:
@@ -44,6 +48,20 @@ def noise_4th_difference_nT(x: np.ndarray) -> float:
         return float("nan")
     mad = np.median(np.abs(d4 - np.median(d4)))
     return float(1.4826 * mad / np.sqrt(70.0))
+
+
+def filter_sequence(seq: np.ndarray, model: ArimaModel, measurement_var: float,
+                    direction: str = "both") -> np.ndarray:
+    """Kalman-filter a serialised map. ``forward`` is paper 004's causal filter, which lags
+    along the lines; ``both`` averages it with the same filter run backwards, a zero-phase
+    result (as filtfilt is for FIR/IIR filters) that keeps anomalies in place."""
+    fwd = kalman_filter(seq, model, measurement_var).filtered
+    if direction == "forward":
+        return fwd
+    if direction != "both":
+        raise ValueError(f"unknown filter direction {direction!r} (both or forward)")
+    bwd = kalman_filter(seq[::-1], model, measurement_var).filtered[::-1]
+    return 0.5 * (fwd + bwd)
 
 
 def serialize(grid: Grid, along_north: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -68,6 +86,7 @@ class MapRun:
     kalman: KalmanResult
     noise_nT: float
     noise_source: str
+    direction: str = "both"
     sequence_tests: dict[str, Any] = field(default_factory=dict)
 
     def summary(self) -> dict[str, Any]:
@@ -91,6 +110,7 @@ class MapRun:
             "arima": self.model.to_dict(),
             "kalman": {"measurement_noise_nT": self.noise_nT, "noise_source": self.noise_source,
                        "process_noise_var_nT2": float(self.model.sigma2),
+                       "direction": self.direction,
                        "steady_gain": [float(g) for g in self.kalman.gain_steady],
                        "exact_steps": self.kalman.exact_steps},
             "sequence_tests": self.sequence_tests,
@@ -150,17 +170,17 @@ def build_map(flight: Flight, seg: Segmentation, compensated_nT: np.ndarray,
     ident = seq[finite[:ARIMA_SAMPLE_LIMIT]]
     tests = {"reverse_arrangements": reverse_arrangements(ident).to_dict(),
              "normality": normality(ident), "samples_for_identification": int(ident.size)}
-    arima_order = None if s.arima == "auto" else tuple(s.arima)
-    model = fit_arima(ident, order=arima_order)
     if s.noise_nT is not None:
         noise, source = float(s.noise_nT), "given"
     else:
         noise = float(np.nanmedian([noise_4th_difference_nT(ln.value_nT) for ln in lines
                                     if ln.kind == "survey"]))
         source = "4th difference of the survey lines"
-    kf = kalman_filter(seq, model, noise**2)
+    arima_order = None if s.arima == "auto" else tuple(s.arima)
+    model = fit_arima(ident, order=arima_order, measurement_var=noise**2)
+    kf = kalman_filter(seq, model, noise**2)  # for the reported steady-state gain
     filt = np.full(grid.values.size, np.nan)
-    filt[order] = kf.filtered
+    filt[order] = filter_sequence(seq, model, noise**2, s.direction)
     filtered = grid.with_values(filt.reshape(grid.shape))
     return MapRun(frame, red, lines, lev, spacing, grid, filtered, model, kf, noise, source,
-                  tests)
+                  s.direction, tests)
