@@ -234,6 +234,12 @@ def demo(
     say(f"ingested {inp['epochs']} epochs, {len(inp['topics'])} channels, "
         f"{inp['duration_s']:.0f} s")
     _print_compensation(result)
+    m = result.get("map")
+    if m:
+        say(f"map: {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.1f} m; "
+            f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
+            f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])} + "
+            f"Kalman; figures in {Path(result['outputs']['mcap']).parent}")
     say(f"output recording: {result['outputs']['mcap']}")
     say(f"summary: {result['outputs']['summary']}")
     say(f"done in {time.perf_counter() - t0:.1f} s")
