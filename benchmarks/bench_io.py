@@ -16,6 +16,7 @@ import time
 from pathlib import Path
 
 from mcap.reader import make_reader
+from report import finish
 
 from pipeline.io.inspect import inspect_recording
 from pipeline.io.reader import read_flight
@@ -74,12 +75,7 @@ def main() -> int:
         rows.append(("inspect (every message validated)", f"{t_insp:.2f} s"))
         if rep.violations:
             errors.append(f"inspect found violations: {rep.violations[:2]}")
-    print("| benchmark | result |\n|---|---|")
-    for k, v in rows:
-        print(f"| {k} | {v} |")
-    for e in errors:
-        print(f"WRONG: {e}", file=sys.stderr)
-    return 1 if errors else 0
+    return finish(rows, errors)
 
 
 if __name__ == "__main__":

@@ -18,6 +18,7 @@ import sys
 import time
 
 import numpy as np
+from report import finish
 
 from pipeline.maps.arima import ArimaModel, _level_state, fit_arima, kalman_filter
 from pipeline.maps.grid import minimum_curvature
@@ -96,12 +97,7 @@ def main() -> int:
                  f"(noise_reduction_pct {pct:.0f} %), {t_f:.1f} s"))
     if pct < 30:
         errors.append(f"noise reduction {pct:.0f} % < 30 %")
-    print("| benchmark | result |\n|---|---|")
-    for k, val in rows:
-        print(f"| {k} | {val} |")
-    for e in errors:
-        print(f"WRONG: {e}", file=sys.stderr)
-    return 1 if errors else 0
+    return finish(rows, errors)
 
 
 if __name__ == "__main__":
