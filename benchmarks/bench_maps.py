@@ -86,7 +86,7 @@ def main() -> int:
     t0 = time.perf_counter()
     model = fit_arima(seq[np.isfinite(seq)][:ARIMA_SAMPLE_LIMIT], measurement_var=1.0)
     filt = np.full(seq.size, np.nan)
-    filt[order] = filter_sequence(seq, model, 1.0)
+    filt[order] = filter_sequence(seq, model, 1.0)[0]
     t_f = time.perf_counter() - t0
     filt = filt.reshape(noisy.shape)
     before = float(np.std((noisy.values - truth)[ok]))

@@ -236,7 +236,7 @@ def test_arima_kalman_removes_map_noise_and_keeps_the_peak(mapped):
     seq, order = serialize(noisy, along_north=True)
     model = fit_arima(seq[np.isfinite(seq)], measurement_var=1.0)
     filt = np.full(seq.size, np.nan)
-    filt[order] = filter_sequence(seq, model, 1.0)
+    filt[order] = filter_sequence(seq, model, 1.0)[0]
     filt = filt.reshape(noisy.shape)
     ok = np.isfinite(truth) & np.isfinite(filt)
 

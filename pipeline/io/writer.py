@@ -17,7 +17,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import orjson
 from mcap.exceptions import McapError
 from mcap.reader import make_reader
@@ -230,10 +229,3 @@ def write_json_atomic(path: str | Path, obj: Any) -> Path:
         if tmp.exists():
             tmp.unlink()
     return path
-
-
-def as_float_list(a: np.ndarray, decimals: int | None = None) -> list[float]:
-    arr = np.asarray(a, dtype=float)
-    if decimals is not None:
-        arr = np.round(arr, decimals)
-    return arr.tolist()

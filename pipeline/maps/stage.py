@@ -51,17 +51,20 @@ def noise_4th_difference_nT(x: np.ndarray) -> float:
 
 
 def filter_sequence(seq: np.ndarray, model: ArimaModel, measurement_var: float,
-                    direction: str = "both") -> np.ndarray:
+                    direction: str = "both") -> tuple[np.ndarray, KalmanResult]:
     """Kalman-filter a serialised map. ``forward`` is paper 004's causal filter, which lags
     along the lines; ``both`` averages it with the same filter run backwards, a zero-phase
-    result (as filtfilt is for FIR/IIR filters) that keeps anomalies in place."""
-    fwd = kalman_filter(seq, model, measurement_var).filtered
-    if direction == "forward":
-        return fwd
-    if direction != "both":
+    result (as filtfilt is for FIR/IIR filters) that keeps anomalies in place.
+
+    Returns the filtered sequence and the forward filter's result (whose gain is reported).
+    """
+    if direction not in ("both", "forward"):
         raise ValueError(f"unknown filter direction {direction!r} (both or forward)")
+    fwd = kalman_filter(seq, model, measurement_var)
+    if direction == "forward":
+        return fwd.filtered, fwd
     bwd = kalman_filter(seq[::-1], model, measurement_var).filtered[::-1]
-    return 0.5 * (fwd + bwd)
+    return 0.5 * (fwd.filtered + bwd), fwd
 
 
 def serialize(grid: Grid, along_north: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -178,9 +181,8 @@ def build_map(flight: Flight, seg: Segmentation, compensated_nT: np.ndarray,
         source = "4th difference of the survey lines"
     arima_order = None if s.arima == "auto" else tuple(s.arima)
     model = fit_arima(ident, order=arima_order, measurement_var=noise**2)
-    kf = kalman_filter(seq, model, noise**2)  # for the reported steady-state gain
     filt = np.full(grid.values.size, np.nan)
-    filt[order] = filter_sequence(seq, model, noise**2, s.direction)
+    filt[order], kf = filter_sequence(seq, model, noise**2, s.direction)
     filtered = grid.with_values(filt.reshape(grid.shape))
     return MapRun(frame, red, lines, lev, spacing, grid, filtered, model, kf, noise, source,
                   s.direction, tests)
