@@ -190,6 +190,63 @@ def map_(
     say(f"summary: {json_out}")
 
 
+@app.command()
+def quality(
+    recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap), raw or processed.")],
+    json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write (plots are "
+                                                          "written next to it).")],
+    overlap_m: Annotated[float, typer.Option("--overlap-m", help="Largest horizontal distance "
+                                                                 "of an overlap pair, m.")] = 0.5,
+    out_path: Annotated[Path | None, typer.Option("--out", help="Also write an output recording "
+                                                               "with the quality channels.")
+                        ] = None,
+    noise_threshold: Annotated[float, typer.Option(help="4th-difference noise above which a "
+                                                        "line is flagged, nT.")] = 0.1,
+    height_tolerance: Annotated[float, typer.Option(help="Allowed flight-height deviation, m.")
+                                ] = 10.0,
+) -> None:
+    """Heading error at overlap points, interpolated-map comparison, crossovers and survey QC
+    (runs segmentation, each compensation model and gridding itself when needed)."""
+    from flows.stages import quality_recording, require_readable
+    from pipeline.quality import QualitySettings
+
+    require_readable(recording)
+    if overlap_m <= 0:
+        _fail(f"--overlap-m {overlap_m}: must be > 0 m")
+    settings = QualitySettings(overlap_m=overlap_m, noise_threshold_nT=noise_threshold,
+                               height_tolerance_m=height_tolerance)
+    with console.status(f"quality statistics of {recording.name}"):
+        summary = quality_recording(recording, json_out, settings, out_path)
+    _print_quality(summary["quality"])
+    if out_path:
+        say(f"output recording: {out_path}")
+    say(f"summary: {json_out}")
+
+
+def _print_quality(q: dict) -> None:
+    """The paper-002 table: heading error per processing state."""
+    floor = q["heading_error_noise_floor_nT"]
+    say(f"heading error, validation X lines vs map lines: {q['intersections']} intersections, "
+        f"{q['overlap_pairs']} pairs < {q['overlap_m']:g} m; white-noise floor at the "
+        f"intersections {'-' if floor is None else f'{floor:.3f} nT'}")
+    table = Table(title="RMS of B_validation - B_map", title_justify="left")
+    for col in ("state", "intersections RMS nT", "pairs RMS nT", "interpolated map RMS nT"):
+        table.add_column(col, justify="left" if col == "state" else "right")
+
+    def f(x):
+        return "-" if x is None else f"{x:.3f}"
+
+    for s in q["states"]:
+        name = s + (" (= tl)" if q.get("tl_alias") and s == q["tl_alias"].replace("-", "_")
+                    else "")
+        table.add_row(name, f(q["heading_error_rms_nT"][s]), f(q["overlap_pair_rms_nT"][s]),
+                      f(q["interpolated_rms_nT"][s]))
+    show(table)
+    xo, n = q["crossover_rms_nT"], q["noise_4th_diff_nT"]
+    say(f"crossovers: RMS {f(xo['before'])} -> {f(xo['after'])} nT after leveling; "
+        f"4th-difference noise {f(n)} nT")
+
+
 def _run_postflight(recording: Path, out_dir: Path) -> dict:
     from flows.postflight import postflight
 
@@ -240,6 +297,8 @@ def demo(
             f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
             f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])} + "
             f"Kalman; figures in {Path(result['outputs']['mcap']).parent}")
+    if result.get("quality"):
+        _print_quality(result["quality"])
     say(f"output recording: {result['outputs']['mcap']}")
     say(f"summary: {result['outputs']['summary']}")
     say(f"done in {time.perf_counter() - t0:.1f} s")

@@ -1,4 +1,5 @@
-"""The post-flight flow: ingest -> segment -> compensate (T-L baseline and AGG-TL) -> write.
+"""The post-flight flow: ingest -> segment -> compensate (T-L baselines and AGG-TL) -> map ->
+quality -> write.
 
 Tasks are thin wrappers of ``pipeline`` functions; all logic lives there.
 """
@@ -15,7 +16,12 @@ from flows.stages import (
     map_channels,
     map_figures,
     map_lines,
+    quality_channels,
+    quality_fields,
+    quality_figures,
+    quality_lines,
     save_figure,
+    tl_alias,
     try_segment,
 )
 from pipeline import __version__
@@ -26,6 +32,7 @@ from pipeline.io.writer import OutputChannel, write_json_atomic, write_with_new_
 from pipeline.maps.stage import MapRun, build_map
 from pipeline.outputs import compensated_channel, model_message, segment_channel
 from pipeline.plots import compensation_figure, lcurve_figure
+from pipeline.quality.stage import QualityRun, fom_table, run_quality
 from pipeline.report import LOG_INFO, flight_summary, ingest_lines, log_channel, run_metadata
 from pipeline.segment import Segmentation
 
@@ -56,6 +63,16 @@ def compensate(flight: Flight, seg: Segmentation | None, model: str) -> Compensa
 @task(name="map")
 def make_map(flight: Flight, seg: Segmentation, compensated_nT) -> MapRun:
     return build_map(flight, seg, compensated_nT)
+
+
+@task(name="quality")
+def assess_quality(flight: Flight, seg: Segmentation,
+                   runs: dict[str, CompensationRun]) -> QualityRun:
+    fields, _, _ = quality_fields(flight, seg, runs)
+    t = flight.data["time_s"].to_numpy(float)
+    fom = fom_table(t, fields["raw"], {m: r.compensated_nT for m, r in runs.items()},
+                    seg.boxes()) if seg.boxes() else None
+    return run_quality(flight, seg, fields, tl_alias(fields), fom)
 
 
 @task(name="write-outputs")
@@ -118,6 +135,11 @@ def postflight(recording: str, out_dir: str) -> dict[str, Any]:
             channels += map_channels(flight, seg, mr)
             summary["map"] = mr.summary()
             figures.update(map_figures(mr))
+            q = assess_quality(flight, seg, runs)
+            lines += quality_lines(q)
+            channels += quality_channels(flight, q)
+            summary["quality"] = q.summary()
+            figures.update(quality_figures(q))
     channels.insert(0, log_channel(flight, lines, "postflight"))
     outputs = write_outputs(recording, out_dir, channels, summary, figures)
     return {**summary, "outputs": outputs}

@@ -21,13 +21,29 @@ from pipeline.io.writer import OutputChannel, write_json_atomic, write_with_new_
 from pipeline.maps.stage import MapSettings, build_map
 from pipeline.outputs import (
     compensated_channel,
+    crossover_channel,
     grid_channel,
+    heading_error_channel,
     model_message,
     segment_channel,
     tracks_channel,
 )
-from pipeline.plots import lcurve_figure, map_figure
-from pipeline.report import LOG_INFO, flight_summary, ingest_lines, log_channel, run_metadata
+from pipeline.plots import (
+    crossover_figure,
+    heading_error_figure,
+    lcurve_figure,
+    map_figure,
+    profile_figure,
+)
+from pipeline.quality.stage import QualityRun, QualitySettings, fom_table, run_quality
+from pipeline.report import (
+    LOG_INFO,
+    LOG_WARNING,
+    flight_summary,
+    ingest_lines,
+    log_channel,
+    run_metadata,
+)
 from pipeline.segment import Segmentation, segment_flight
 
 
@@ -94,20 +110,32 @@ def require_readable(path: Path) -> None:
 
 
 # --------------------------------------------------------------------------------------------
-def existing_compensated(flight: Flight) -> np.ndarray | None:
-    """``/mag/compensated`` already in the recording (an earlier run), on the flight epochs."""
+def existing_compensated(flight: Flight) -> dict[str, np.ndarray]:
+    """Compensated fields already in the recording (an earlier run), on the flight epochs.
+
+    Returns model id -> nT per epoch, the final ``/mag/compensated`` model last.
+    """
     from pipeline.io.contract import rule_for_topic
     from pipeline.io.reader import decode_topic, read_topics
 
-    raw = read_topics(flight.source, ["/mag/compensated"]).topics.get("/mag/compensated")
-    if raw is None or not raw.count:
-        return None
-    s = decode_topic(raw, rule_for_topic("/mag/compensated"))
-    if s.time_ns.size < 2:
-        return None
+    names = [t for t in read_topics_names(flight.source)
+             if t == "/mag/compensated" or t.startswith("/mag/compensated/")]
+    raw = read_topics(flight.source, names).topics if names else {}
+    out: dict[str, np.ndarray] = {}
     t0 = flight.time_ns[0]
-    return np.interp((flight.time_ns - t0) / 1e9, (s.time_ns - t0) / 1e9,
-                     s.values["total_nT"], left=np.nan, right=np.nan)
+    for topic in sorted(raw, key=lambda t: (t == "/mag/compensated", t)):
+        if not raw[topic].count:
+            continue
+        s = decode_topic(raw[topic], rule_for_topic(topic))
+        if s.time_ns.size < 2:
+            continue
+        models = s.labels.get("model")
+        name = (str(models[0]) if models is not None and models.size
+                else topic.rsplit("/", 1)[-1])
+        out.pop(name, None)
+        out[name] = np.interp((flight.time_ns - t0) / 1e9, (s.time_ns - t0) / 1e9,
+                              s.values["total_nT"], left=np.nan, right=np.nan)
+    return out
 
 
 def map_channels(flight: Flight, seg: Segmentation, mr) -> list[OutputChannel]:
@@ -148,7 +176,8 @@ def map_recording(src: Path, dst: Path, summary_path: Path, settings: MapSetting
     present = set(read_topics_names(src))
     channels: list[OutputChannel] = []
     lines = ingest_lines(flight)
-    comp = existing_compensated(flight)
+    earlier = existing_compensated(flight)
+    comp = list(earlier.values())[-1] if earlier else None
     summary: dict[str, Any] = {"aeromag_version": __version__, "input": flight_summary(flight)}
     if comp is None:
         model = "agg-tl" if flight.has("lat_deg", "alt_m") else "tl16"
@@ -181,3 +210,135 @@ def read_topics_names(path: Path) -> list[str]:
     with path.open("rb") as f:
         summ = make_reader(f).get_summary()
     return [c.topic for c in summ.channels.values()] if summ else []
+
+
+# --------------------------------------------------------------------------------------------
+# quality
+COMPARED_MODELS = ("tl16", "tl18", "agg-tl")
+
+
+def quality_fields(flight: Flight, seg: Segmentation, runs: dict[str, CompensationRun] | None
+                   = None) -> tuple[dict[str, np.ndarray], list[tuple[int, str]],
+                                    dict[str, CompensationRun]]:
+    """Raw plus every compensated state: from ``runs``, else from the recording's own
+    ``/mag/compensated*`` channels, else fitted here (T-L 16, 18 and AGG-TL; returned too)."""
+    fields = {"raw": flight.data["scalar_nT"].to_numpy(float)}
+    lines: list[tuple[int, str]] = []
+    if runs:
+        fields.update({m: r.compensated_nT for m, r in runs.items()})
+        return fields, lines, {}
+    earlier = existing_compensated(flight)
+    if earlier:
+        lines.append((LOG_INFO, "quality: using the compensated fields in the recording: "
+                                + ", ".join(earlier)))
+        fields.update(earlier)
+        return fields, lines, {}
+    if not flight.has("vector_x_nT") or not seg.passes():
+        lines.append((LOG_WARNING, "quality: no vector magnetometer or no calibration pass: "
+                                   "only the raw field is assessed"))
+        return fields, lines, {}
+    fitted = {}
+    for m in COMPARED_MODELS:
+        if m == "agg-tl" and not flight.has("lat_deg", "alt_m"):
+            continue
+        fitted[m] = run = run_compensation(flight, seg, FitSettings(model=m))
+        lines += compensation_lines(run)
+        fields[m] = run.compensated_nT
+    return fields, lines, fitted
+
+
+def tl_alias(fields: dict[str, np.ndarray]) -> str | None:
+    """The T-L model reported as ``tl``: the one with AGG-TL's term set (18 terms)."""
+    base = FitSettings(model="agg-tl").base
+    return base if base in fields else next((m for m in ("tl18", "tl16") if m in fields), None)
+
+
+def quality_lines(q: QualityRun) -> list[tuple[int, str]]:
+    s = q.summary()
+
+    def row(d):
+        return ", ".join(f"{k} {v:.3f}" if v is not None else f"{k} -" for k, v in d.items())
+
+    out = [(LOG_INFO, f"quality: heading error RMS at {s['intersections']} track "
+                      f"intersections (nT): {row(s['heading_error_rms_nT'])}"),
+           (LOG_INFO, f"quality: heading error RMS at {s['overlap_pairs']} pairs closer than "
+                      f"{s['overlap_m']:g} m (nT): {row(s['overlap_pair_rms_nT'])}"),
+           (LOG_INFO, f"quality: validation vs interpolated map RMS (nT): "
+                      f"{row(s['interpolated_rms_nT'])}")]
+    xo = s["crossover_rms_nT"]
+    if xo["before"] is not None:
+        out.append((LOG_INFO, f"quality: crossover RMS {xo['before']:.3f} -> {xo['after']:.3f} "
+                              f"nT ({s['crossovers']['count']} crossovers)"))
+    qc = s["qc"]
+    noise = qc["noise"]
+    if noise.get("median_nT") is not None:
+        out.append((LOG_WARNING if noise["lines_over"] else LOG_INFO,
+                    f"quality: 4th-difference noise median {noise['median_nT']:.4f} nT, max "
+                    f"{noise['max_nT']:.4f} nT; lines over {noise['threshold_nT']:g} nT: "
+                    f"{', '.join(noise['lines_over']) or 'none'}"))
+    for key, what in (("flight_height", "lines_over"), ("line_spacing", "pairs_over"),
+                      ("speed", "spans"), ("diurnal", "spans_over")):
+        bad = qc.get(key, {}).get(what) or []
+        if bad:
+            shown = ", ".join(str(b if isinstance(b, str) else b.get("line_id", b))
+                              for b in bad[:6])
+            out.append((LOG_WARNING, f"quality: {key.replace('_', ' ')} out of tolerance: "
+                                     f"{shown}{' ...' if len(bad) > 6 else ''}"))
+    out += [(LOG_WARNING, f"quality: {n}") for n in q.notes]
+    return out
+
+
+def quality_figures(q: QualityRun) -> dict[str, object]:
+    s = q.summary()
+    states = [st for st in q.states if st != "raw"] or q.states
+    return {"heading_error": heading_error_figure(s),
+            "validation_profiles": profile_figure(q.profiles, states),
+            "crossovers": crossover_figure([t for t in q.tracks if t.kind != "validation"],
+                                           q.leveling, f"tie-line crossovers ({s['qc']['field']})")}
+
+
+def quality_channels(flight: Flight, q: QualityRun) -> list[OutputChannel]:
+    return [heading_error_channel(flight, q), crossover_channel(flight, q)]
+
+
+def quality_recording(src: Path, summary_path: Path, settings: QualitySettings,
+                      out: Path | None = None) -> dict[str, Any]:
+    """``aeromag quality``: every stage it needs, then the quality figures, plots, summary."""
+    flight = read_flight(src)
+    seg, why = try_segment(flight)
+    if seg is None:
+        raise AeromagError(f"quality statistics need the flight lines: {why}", file=src,
+                           channel="/gnss/fix")
+    fields, lines, fitted = quality_fields(flight, seg)
+    t = flight.data["time_s"].to_numpy(float)
+    fom = fom_table(t, fields["raw"], {k: v for k, v in fields.items() if k != "raw"},
+                    seg.boxes()) if len(fields) > 1 and seg.boxes() else None
+    q = run_quality(flight, seg, fields, tl_alias(fields), fom, settings)
+    lines = ingest_lines(flight) + lines + quality_lines(q)
+    figures = {name: str(save_figure(fig, summary_path.with_name(
+        f"{summary_path.stem}.{name}.png"))) for name, fig in quality_figures(q).items()}
+    summary: dict[str, Any] = {"aeromag_version": __version__, "input": flight_summary(flight),
+                               "quality": q.summary(), "figures": figures,
+                               "outputs": {"summary": str(summary_path)}}
+    if out is not None:
+        present = set(read_topics_names(src))
+        channels = [log_channel(flight, lines, "quality"), *quality_channels(flight, q)]
+        if "/flight/segment" not in present:
+            channels.append(segment_channel(flight, seg))
+        if fitted:  # keep what was fitted: a later run on the output reuses it
+            final = list(fitted)[-1]
+            model_ch = OutputChannel("/compensation/model", "aeromag.CompensationModel")
+            for m, run in fitted.items():
+                topic = "/mag/compensated" if m == final else f"/mag/compensated/{m}"
+                channels.append(compensated_channel(flight, run, topic))
+                model_message(flight, run, model_ch)
+            channels.append(model_ch)
+        clash = sorted({c.topic for c in channels} & present)
+        if clash:
+            raise AeromagError(f"the recording already holds {', '.join(clash)}; give an "
+                               "unprocessed recording or omit --out", file=src,
+                               channel=clash[0])
+        write_with_new_channels(src, out, channels, metadata={"aeromag.run": run_metadata()})
+        summary["outputs"]["mcap"] = str(out)
+    write_json_atomic(summary_path, summary)
+    return summary

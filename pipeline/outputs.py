@@ -109,3 +109,67 @@ def tracks_channel(flight: Flight, seg: Segmentation, time_ns: int,
     ch.add(int(time_ns), {"geojson": json.dumps({"type": "FeatureCollection",
                                                  "features": feats})})
     return ch
+
+
+# --------------------------------------------------------------------------------------------
+# quality
+def _epoch_time_ns(flight: Flight, epoch: np.ndarray) -> np.ndarray:
+    """Time (ns) at fractional epochs: exact integer arithmetic at whole epochs."""
+    i0 = np.floor(epoch).astype(int)
+    i1 = np.minimum(i0 + 1, flight.time_ns.size - 1)
+    frac = epoch - i0
+    return flight.time_ns[i0] + np.rint(frac * (flight.time_ns[i1] - flight.time_ns[i0])
+                                        ).astype(np.int64)
+
+
+def heading_error_channel(flight: Flight, q) -> OutputChannel:
+    """``/quality/heading_error``: every overlap point (intersections, then pairs)."""
+    from pipeline.quality.stage import state_key
+
+    ch = OutputChannel("/quality/heading_error", "aeromag.HeadingErrorPoint")
+    for kind, ov in (("intersection", q.intersections), ("pair", q.pairs)):
+        if ov.count == 0:
+            continue
+        lat, lon, _ = q.frame.to_geodetic(ov.east_m, ov.north_m)
+        ta = _epoch_time_ns(flight, ov.validation_epoch())
+        tb = _epoch_time_ns(flight, (1 - ov.wb) * ov.b0 + ov.wb * ov.b1)
+        diffs = {state_key(s): q.differences[kind][s] for s in q.states}
+        for k in range(ov.count):
+            ch.add(int(ta[k]), {
+                "kind": kind, "validation_line": str(ov.validation_line[k]),
+                "map_line": str(ov.map_line[k]), "east_m": round(float(ov.east_m[k]), 3),
+                "north_m": round(float(ov.north_m[k]), 3), "latitude": float(lat[k]),
+                "longitude": float(lon[k]), "distance_m": round(float(ov.distance_m[k]), 4),
+                "validation_heading_deg": round(float(ov.validation_heading_deg[k]), 3),
+                "map_heading_deg": round(float(ov.map_heading_deg[k]), 3),
+                "time_separation_s": round(float(tb[k] - ta[k]) / 1e9, 3),
+                "difference_nT": {s: (float(v[k]) if np.isfinite(v[k]) else None)
+                                  for s, v in diffs.items()}})
+    ch.messages.sort(key=lambda m: m[0])
+    return ch
+
+
+def crossover_channel(flight: Flight, q) -> OutputChannel:
+    """``/quality/crossovers``: survey-tie crossovers of the final field."""
+    from pipeline.quality.stage import state_key
+
+    ch = OutputChannel("/quality/crossovers", "aeromag.Crossover")
+    lev = q.leveling
+    if lev is None or not lev.crossovers:
+        return ch
+    t_first = flight.time_ns[0]
+    t_rel = flight.data["time_s"].to_numpy(float)
+    xs = lev.crossovers
+    lat, lon, _ = q.frame.to_geodetic([c.east_m for c in xs], [c.north_m for c in xs])
+    for k, c in enumerate(xs):
+        later = max(c.time_a_s, c.time_b_s)
+        t_ns = int(t_first + round((later - t_rel[0]) * 1e9))
+        ch.add(t_ns, {"survey_line": c.line_a, "tie_line": c.line_b,
+                      "east_m": round(float(c.east_m), 3), "north_m": round(float(c.north_m), 3),
+                      "latitude": float(lat[k]), "longitude": float(lon[k]),
+                      "difference_before_nT": float(c.difference_nT),
+                      "difference_after_nT": float(lev.residuals_nT[k]),
+                      "time_separation_s": round(float(c.time_b_s - c.time_a_s), 3),
+                      "field": state_key(q.states[-1])})
+    ch.messages.sort(key=lambda m: m[0])
+    return ch

@@ -78,3 +78,94 @@ def map_figure(grid, lines, title: str, vmin: float | None = None,
     ax.set_aspect("equal")
     fig.tight_layout()
     return fig
+
+
+# --------------------------------------------------------------------------------------------
+# quality (paper 002, Figs. 5 and 6)
+def heading_error_figure(summary: dict) -> plt.Figure:
+    """RMS of B_validation - B_map per processing state: at exact track intersections, at
+    sample pairs closer than the overlap distance, and against the interpolated map."""
+    states = summary["states"]
+    series = [("track intersections", summary["heading_error_rms_nT"]),
+              (f"pairs < {summary['overlap_m']:g} m", summary["overlap_pair_rms_nT"]),
+              ("interpolated map", summary["interpolated_rms_nT"])]
+    fig, ax = plt.subplots(figsize=(max(6.5, 1.6 * len(states) + 3), 4.4))
+    width = 0.8 / len(series)
+    x = np.arange(len(states))
+    for k, (label, vals) in enumerate(series):
+        v = np.array([np.nan if vals.get(s) is None else vals[s] for s in states], float)
+        bars = ax.bar(x + (k - (len(series) - 1) / 2) * width, v, width, label=label)
+        for b, val in zip(bars, v, strict=True):
+            if np.isfinite(val):
+                ax.annotate(f"{val:.3g}", (b.get_x() + b.get_width() / 2, val), ha="center",
+                            va="bottom", fontsize=7, xytext=(0, 1), textcoords="offset points")
+    ax.set_yscale("log")
+    ax.set_xticks(x, states)
+    ax.set_ylabel("RMS of B_validation - B_map (nT)")
+    ax.set_title(f"heading error at overlap points ({summary['intersections']} intersections, "
+                 f"{summary['overlap_pairs']} pairs)")
+    ax.grid(True, axis="y", which="both", alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def profile_figure(profiles, states: list[str]) -> plt.Figure:
+    """Each validation line (paper 002, Fig. 6): top, the measured profile and the map
+    interpolated along it for the last state; bottom, validation minus interpolated map for
+    every state. Gaps (NaN) where the track leaves the map."""
+    n = max(len(profiles), 1)
+    fig, axes = plt.subplots(2 * n, 1, figsize=(10, 5.2 * n), squeeze=False,
+                             gridspec_kw={"height_ratios": [1.4, 1] * n})
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    final = states[-1]
+    for k, p in enumerate(profiles):
+        top, bottom = axes[2 * k, 0], axes[2 * k + 1, 0]
+        top.plot(p.distance_m, p.validation_nT[final], "-", color="k", lw=1.0,
+                 label=f"validation line ({final})")
+        top.plot(p.distance_m, p.interpolated_nT[final], "--", color="tab:red", lw=1.0,
+                 label="map interpolated (bilinear)")
+        top.set_title(f"validation line {p.line_id}")
+        top.set_ylabel("reduced field (nT)")
+        top.legend(fontsize=8, loc="best")
+        for j, s in enumerate(states):
+            d = p.validation_nT[s] - p.interpolated_nT[s]
+            rms = np.sqrt(np.nanmean(d**2)) if np.isfinite(d).any() else np.nan
+            bottom.plot(p.distance_m, d, "-", color=colours[j % len(colours)], lw=0.7,
+                        label=f"{s}: RMS {rms:.3f} nT")
+        bottom.axhline(0.0, color="0.5", lw=0.5)
+        bottom.set_ylabel("validation - map (nT)")
+        bottom.set_xlabel("distance along the line (m)")
+        bottom.legend(fontsize=8, ncol=len(states), loc="best")
+        for ax in (top, bottom):
+            ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return fig
+
+
+def crossover_figure(tracks, leveling, title: str = "tie-line crossovers") -> plt.Figure:
+    """Crossover differences on the track map, before and after leveling (local metres)."""
+    fig, axes = plt.subplots(1, 2, figsize=(10, 6.5), sharey=True)
+    xs = leveling.crossovers if leveling is not None else []
+    before = np.array([c.difference_nT for c in xs])
+    after = np.asarray(leveling.residuals_nT) if xs else np.zeros(0)
+    lim = float(np.max(np.abs(before))) if before.size else 1.0
+    for ax, vals, name in ((axes[0], before, "before leveling"),
+                           (axes[1], after, "after leveling")):
+        for t in tracks:
+            ax.plot(t.east_m[::20], t.north_m[::20], "-", lw=0.7,
+                    color={"survey": "0.3", "tie": "0.55"}.get(t.kind, "tab:purple"),
+                    alpha=0.7)
+        if xs:
+            sc = ax.scatter([c.east_m for c in xs], [c.north_m for c in xs], c=vals,
+                            cmap="RdBu_r", vmin=-lim, vmax=lim, s=28, edgecolors="k",
+                            linewidths=0.3, zorder=3)
+            rms = float(np.sqrt(np.mean(vals**2)))
+            ax.set_title(f"{name}: RMS {rms:.3f} nT")
+        ax.set_xlabel("east (m)")
+        ax.set_aspect("equal")
+    axes[0].set_ylabel("north (m)")
+    if xs:
+        fig.colorbar(sc, ax=axes, shrink=0.8, label="survey - tie (nT)")
+    fig.suptitle(title)
+    return fig

@@ -70,6 +70,12 @@ OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
               description="anomaly grid after the ARIMA + Kalman filter"),
     TopicRule("/map/tracks", "foxglove.GeoJSON", "output", ("geojson",),
               description="flight lines as GeoJSON"),
+    TopicRule("/quality/heading_error", "aeromag.HeadingErrorPoint", "output",
+              ("kind", "validation_line", "map_line", "difference_nT"),
+              description="validation-vs-map differences at overlap points, per model"),
+    TopicRule("/quality/crossovers", "aeromag.Crossover", "output",
+              ("survey_line", "tie_line", "difference_before_nT", "difference_after_nT"),
+              description="survey-tie crossover differences before and after leveling"),
 )
 
 # Roles each processing stage needs; a stage must not demand more than it uses.

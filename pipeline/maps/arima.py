@@ -173,21 +173,33 @@ def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: i
     best = None
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # convergence chatter on poor candidates
+        failed = []
         for p, q in candidates:
-            if measurement_var is None:
-                res = ARIMA(y, order=(p, 0, q), trend="n").fit()
-            else:
-                mod = SARIMAX(x, order=(p, d, q), measurement_error=True, trend="n")
-                res = mod.fit_constrained({"var.measurement_error": float(measurement_var)},
-                                          disp=False)
+            try:
+                if measurement_var is None:
+                    res = ARIMA(y, order=(p, 0, q), trend="n").fit()
+                else:
+                    mod = SARIMAX(x, order=(p, d, q), measurement_error=True, trend="n")
+                    res = mod.fit_constrained({"var.measurement_error": float(measurement_var)},
+                                              disp=False)
+            except (np.linalg.LinAlgError, ValueError) as exc:
+                # the optimiser can step onto a (near) unit root where the stationary
+                # initialisation is singular: that candidate is out, the others compete
+                failed.append(f"ARIMA({p},{d},{q}): {type(exc).__name__}")
+                continue
+            if not np.isfinite(res.bic):
+                failed.append(f"ARIMA({p},{d},{q}): non-finite BIC")
+                continue
             if best is None or res.bic < best[0].bic:
                 best = (res, p, q)
+    if best is None:
+        raise ValueError("no ARIMA candidate could be fitted: " + "; ".join(failed))
     res, p, q = best
     params = dict(zip(res.model.param_names, res.params, strict=True))
     ar = np.array([params[f"ar.L{i}"] for i in range(1, p + 1)])
     ma = np.array([params[f"ma.L{i}"] for i in range(1, q + 1)])
     tests = {"stationarity": steps, "normality_differenced": normality(y),
-             "measurement_var": measurement_var}
+             "measurement_var": measurement_var, "failed_candidates": failed}
     return ArimaModel(p, d, q, ar, ma, float(params["sigma2"]), float(res.bic), tests)
 
 

@@ -180,7 +180,11 @@ def build_map(flight: Flight, seg: Segmentation, compensated_nT: np.ndarray,
                                     if ln.kind == "survey"]))
         source = "4th difference of the survey lines"
     arima_order = None if s.arima == "auto" else tuple(s.arima)
-    model = fit_arima(ident, order=arima_order, measurement_var=noise**2)
+    try:
+        model = fit_arima(ident, order=arima_order, measurement_var=noise**2)
+    except ValueError as exc:
+        raise AeromagError(f"map filter: {exc}", file=flight.source,
+                           channel="/mag/compensated") from None
     filt = np.full(grid.values.size, np.nan)
     filt[order], kf = filter_sequence(seq, model, noise**2, s.direction)
     filtered = grid.with_values(filt.reshape(grid.shape))

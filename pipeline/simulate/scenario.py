@@ -107,6 +107,7 @@ _COMMON: dict[str, Any] = {
         "moment_A_m2": [2.0e5, 2.0e7],  # log-uniform
         "remanent_fraction": 0.3,
         "margin_m": 300.0,  # sources also this far outside the survey area
+        "quiet_calibration_m": 0.0,  # > 0: no source this close (horizontally) to the box
         "grid_cell_m": 10.0,  # cell of the truth anomaly grid
     },
     "aux": {

@@ -92,16 +92,29 @@ class SimulatedFlight:
     series: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
 
-def _draw_dipoles(sc: Scenario, rng: np.random.Generator, b_hat: np.ndarray) -> list[DipoleSource]:
+def _draw_dipoles(sc: Scenario, rng: np.random.Generator, b_hat: np.ndarray,
+                  calibration_en: np.ndarray | None = None) -> list[DipoleSource]:
+    """Crustal sources under and around the survey block.
+
+    With ``anomaly.quiet_calibration_m`` > 0 no source lies closer than that (horizontally)
+    to the calibration legs (``calibration_en``, points east/north m): crews fly the box over
+    magnetically quiet ground, because T-L (and AGG-TL's second-order expansion) cannot
+    represent a local anomaly under the manoeuvres. Rejected draws are redrawn.
+    """
     a, s = sc["anomaly"], sc["survey"]
+    quiet = float(a.get("quiet_calibration_m", 0.0))
     along = np.array([np.sin(np.radians(s["line_heading_deg"])),
                       np.cos(np.radians(s["line_heading_deg"]))])
     across = np.array([along[1], -along[0]])
     out = []
     for _ in range(int(a["dipoles"])):
-        u = rng.uniform(-a["margin_m"], s["length_m"] + a["margin_m"])
-        w = rng.uniform(-a["margin_m"], s["width_m"] + a["margin_m"])
-        e, n = np.array([s["east_m"], s["north_m"]]) + u * along + w * across
+        for _attempt in range(1000):
+            u = rng.uniform(-a["margin_m"], s["length_m"] + a["margin_m"])
+            w = rng.uniform(-a["margin_m"], s["width_m"] + a["margin_m"])
+            e, n = np.array([s["east_m"], s["north_m"]]) + u * along + w * across
+            if quiet <= 0 or calibration_en is None or not calibration_en.size or np.min(
+                    np.hypot(calibration_en[:, 0] - e, calibration_en[:, 1] - n)) >= quiet:
+                break
         depth = rng.uniform(*a["depth_m"])
         m = np.exp(rng.uniform(np.log(a["moment_A_m2"][0]), np.log(a["moment_A_m2"][1])))
         direction = b_hat.copy()
@@ -164,7 +177,11 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
                      site["ground_altitude_m"] + survey_alt, when)[0]
     b_hat = b0 / np.linalg.norm(b0)
 
-    dipoles = _draw_dipoles(sc, rng, b_hat)
+    cal_t = np.concatenate([np.arange(p.t0_s, p.t1_s, 1.0) for p in traj.pieces
+                            if p.label == "calibration"] or [np.zeros(0)])
+    cal_st = traj.state(cal_t)
+    dipoles = _draw_dipoles(sc, rng, b_hat, np.column_stack([cal_st["east_m"],
+                                                             cal_st["north_m"]]))
     grad = sc.effect("geomagnetic_gradient")
     gvec = (np.array([grad["east_nT_per_m"], grad["north_nT_per_m"], grad["up_nT_per_m"]])
             if grad else np.zeros(3))

@@ -1,0 +1,205 @@
+"""Overlap points between the validation ("X") lines and the map lines.
+
+Two kinds, as in paper 002 §3.2 and survey practice:
+
+* **intersections**: the exact crossing of two flown tracks (shapely/GEOS polyline
+  intersection); each field is interpolated along either track to the crossing, so the two
+  values refer to the same point and only the heading-dependent error and noise remain;
+* **pairs**: a validation sample and a map sample closer than a distance threshold
+  (0.5 m in the paper), compared as measured.
+
+Positions are local east/north metres (:class:`pipeline.geo.local.LocalFrame`). The geometry
+is found once; :meth:`OverlapSet.differences` then evaluates any field (raw, each compensation
+model) on it, so every processing state is compared at exactly the same points.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+from scipy.spatial import cKDTree
+from shapely import LineString, MultiPoint, Point
+
+
+@dataclass
+class Track:
+    """A flown straight line: its epochs (indices into the flight) and local positions (m).
+
+    ``heading_deg`` is the leg's mean track direction, clockwise from north (NED).
+    """
+
+    line_id: str
+    kind: str  # survey | tie | validation
+    index: np.ndarray
+    east_m: np.ndarray
+    north_m: np.ndarray
+    heading_deg: float
+
+    def __post_init__(self) -> None:
+        self.along_m = np.r_[0.0, np.cumsum(np.hypot(np.diff(self.east_m),
+                                                     np.diff(self.north_m)))]
+
+    def geometry(self) -> LineString:
+        return LineString(np.column_stack([self.east_m, self.north_m]))
+
+    def bracket(self, distance_m: float) -> tuple[int, int, float]:
+        """The two epochs around ``distance_m`` along track and the weight of the second."""
+        k = int(np.clip(np.searchsorted(self.along_m, distance_m) - 1, 0,
+                        self.along_m.size - 2))
+        span = self.along_m[k + 1] - self.along_m[k]
+        w = float(np.clip((distance_m - self.along_m[k]) / span, 0.0, 1.0)) if span > 0 else 0.0
+        return int(self.index[k]), int(self.index[k + 1]), w
+
+
+@dataclass
+class OverlapSet:
+    """Overlap points of one kind; ``a`` = validation side, ``b`` = map side.
+
+    Each side is two epochs and a weight (equal epochs and weight 0 for a pair): a field's
+    value there is ``(1 - w) f[i0] + w f[i1]``.
+    """
+
+    kind: str  # intersection | pair
+    a0: np.ndarray
+    a1: np.ndarray
+    wa: np.ndarray
+    b0: np.ndarray
+    b1: np.ndarray
+    wb: np.ndarray
+    east_m: np.ndarray
+    north_m: np.ndarray
+    distance_m: np.ndarray
+    validation_line: np.ndarray
+    map_line: np.ndarray
+    validation_heading_deg: np.ndarray
+    map_heading_deg: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return int(self.a0.size)
+
+    def values(self, field: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(validation value, map value) of ``field`` (one value per flight epoch)."""
+        f = np.asarray(field, float)
+        va = (1 - self.wa) * f[self.a0] + self.wa * f[self.a1]
+        vb = (1 - self.wb) * f[self.b0] + self.wb * f[self.b1]
+        return va, vb
+
+    def differences(self, field: np.ndarray) -> np.ndarray:
+        """B_validation - B_map at every point (NaN where the field is missing)."""
+        va, vb = self.values(field)
+        return va - vb
+
+    def validation_epoch(self) -> np.ndarray:
+        """The (fractional) flight epoch of each point on the validation side."""
+        return (1 - self.wa) * self.a0 + self.wa * self.a1
+
+
+def _points(geom) -> list[Point]:
+    if geom.is_empty:
+        return []
+    if isinstance(geom, Point):
+        return [geom]
+    if isinstance(geom, MultiPoint):
+        return list(geom.geoms)
+    return [g for g in getattr(geom, "geoms", []) if isinstance(g, Point)]
+
+
+def _empty(kind: str) -> OverlapSet:
+    z, zf, zs = np.zeros(0, int), np.zeros(0), np.zeros(0, dtype=object)
+    return OverlapSet(kind, z, z, zf, z, z, zf, zf, zf, zf, zs, zs, zf, zf)
+
+
+def _build(kind: str, rows: list[tuple]) -> OverlapSet:
+    if not rows:
+        return _empty(kind)
+    cols = list(zip(*rows, strict=True))
+    ints = [np.asarray(c, int) for c in (cols[0], cols[1], cols[3], cols[4])]
+    return OverlapSet(kind, ints[0], ints[1], np.asarray(cols[2], float), ints[2], ints[3],
+                      np.asarray(cols[5], float), *(np.asarray(c, float) for c in cols[6:9]),
+                      np.asarray(cols[9], dtype=object), np.asarray(cols[10], dtype=object),
+                      np.asarray(cols[11], float), np.asarray(cols[12], float))
+
+
+def track_intersections(validation: list[Track], mapped: list[Track]) -> OverlapSet:
+    """Exact crossings of every validation track with every map track."""
+    rows = []
+    geoms = [(t, t.geometry()) for t in mapped]
+    for v in validation:
+        gv = v.geometry()
+        for m, gm in geoms:
+            if not gv.intersects(gm):
+                continue
+            for pt in _points(gv.intersection(gm)):
+                a0, a1, wa = v.bracket(gv.project(pt))
+                b0, b1, wb = m.bracket(gm.project(pt))
+                rows.append((a0, a1, wa, b0, b1, wb, pt.x, pt.y, 0.0, v.line_id, m.line_id,
+                             v.heading_deg, m.heading_deg))
+    rows.sort(key=lambda r: r[0] + r[2])
+    return _build("intersection", rows)
+
+
+def overlap_pairs(validation: list[Track], mapped: list[Track],
+                  max_distance_m: float = 0.5) -> OverlapSet:
+    """Every (validation sample, map sample) pair closer than ``max_distance_m``."""
+    if not validation or not mapped or max_distance_m <= 0:
+        return _empty("pair")
+
+    def stack(tracks):
+        xy = np.column_stack([np.concatenate([t.east_m for t in tracks]),
+                              np.concatenate([t.north_m for t in tracks])])
+        owner = np.concatenate([np.full(t.index.size, k) for k, t in enumerate(tracks)])
+        return xy, np.concatenate([t.index for t in tracks]), owner
+
+    vxy, vidx, vown = stack(validation)
+    mxy, midx, mown = stack(mapped)
+    d = cKDTree(vxy).sparse_distance_matrix(cKDTree(mxy), max_distance_m,
+                                            output_type="ndarray")
+    d = np.sort(d, order=["i", "j"])
+    rows = []
+    for i, j, dist in zip(d["i"], d["j"], d["v"], strict=True):
+        v, m = validation[vown[i]], mapped[mown[j]]
+        rows.append((vidx[i], vidx[i], 0.0, midx[j], midx[j], 0.0, vxy[i, 0], vxy[i, 1],
+                     float(dist), v.line_id, m.line_id, v.heading_deg, m.heading_deg))
+    return _build("pair", rows)
+
+
+def difference_stats(diff: np.ndarray) -> dict[str, float | int | None]:
+    """RMS, mean, standard deviation and count of the finite differences (nT)."""
+    d = np.asarray(diff, float)
+    d = d[np.isfinite(d)]
+    if d.size == 0:
+        return {"rms_nT": None, "mean_nT": None, "std_nT": None, "count": 0}
+    return {"rms_nT": float(np.sqrt(np.mean(d**2))), "mean_nT": float(d.mean()),
+            "std_nT": float(d.std(ddof=1)) if d.size > 1 else 0.0, "count": int(d.size)}
+
+
+def heading_sector(heading_deg: np.ndarray, step_deg: float = 45.0) -> np.ndarray:
+    """Heading rounded to the nearest ``step_deg`` sector, as '000', '045', ... ."""
+    h = np.mod(np.round(np.asarray(heading_deg, float) / step_deg) * step_deg, 360.0)
+    return np.array([f"{v:03.0f}" for v in h])
+
+
+def group_stats(diff: np.ndarray, ov: OverlapSet, confidence: float = 0.95) -> list[dict]:
+    """The difference's DC offset per (validation heading, map heading) combination.
+
+    A heading error shows as a mean that depends on the pair of headings; the interval is
+    Student's t on the group's scatter (``ci_nT`` is its half-width).
+    """
+    if ov.count == 0:
+        return []
+    va, vm = heading_sector(ov.validation_heading_deg), heading_sector(ov.map_heading_deg)
+    out = []
+    for key in sorted(set(zip(va, vm, strict=True))):
+        sel = (va == key[0]) & (vm == key[1]) & np.isfinite(diff)
+        d = diff[sel]
+        if d.size == 0:
+            continue
+        ci = (float(stats.t.ppf(0.5 + confidence / 2, d.size - 1) * d.std(ddof=1)
+                    / np.sqrt(d.size)) if d.size > 1 else None)
+        out.append({"validation_heading_deg": float(key[0]), "map_heading_deg": float(key[1]),
+                    "count": int(d.size), "mean_nT": float(d.mean()), "ci_nT": ci,
+                    "confidence": confidence})
+    return out

@@ -1,0 +1,283 @@
+"""The quality stage: how well each processing state agrees with itself where lines overlap.
+
+Every field (raw, each compensation model) is first reduced the same way as for the map
+(IGRF and, with a base station, the diurnal removed) so that differences between two passes
+over one point come from the processing, not from time. The statistics are those of paper
+002 §3.2 plus the checks a survey contract asks for:
+
+* heading error at overlap points between the validation ("X") lines and the map lines
+  (survey and tie): exact track intersections and sample pairs closer than ``overlap_m``;
+* the map gridded from each field's **unlevelled** lines, interpolated (bilinear) at every
+  validation sample inside the map: leveling would absorb part of the heading error that this
+  figure is meant to show;
+* tie-line crossovers before and after leveling (final field);
+* per-line 4th-difference noise, flight-height and line-spacing deviation, speed excursions,
+  the diurnal chord test, and the calibration FOM table.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import AeromagError
+from pipeline.geo.local import LocalFrame
+from pipeline.io.reader import Flight
+from pipeline.maps.grid import Grid, minimum_curvature
+from pipeline.maps.level import Leveling, Line, level_lines
+from pipeline.maps.reduce import reduce_to_anomaly
+from pipeline.quality import qc
+from pipeline.quality.overlap import (
+    OverlapSet,
+    Track,
+    difference_stats,
+    group_stats,
+    overlap_pairs,
+    track_intersections,
+)
+from pipeline.segment import Segmentation
+
+# summary keys of the processing states (model names are ids with "-"; JSON keys use "_")
+RAW = "raw"
+
+
+def state_key(name: str) -> str:
+    return name.replace("-", "_")
+
+
+@dataclass
+class QualitySettings:
+    overlap_m: float = 0.5  # pair threshold, horizontal (paper 002: 0.5 m)
+    noise_threshold_nT: float = 0.1  # 4th-difference noise above which a line is flagged
+    height_tolerance_m: float = 10.0
+    spacing_tolerance_fraction: float = 0.25
+    speed_tolerance_fraction: float = 0.2
+    diurnal_chord_s: float = 300.0
+    diurnal_tolerance_nT: float = 5.0
+    cell_fraction: float = 0.25  # grid cell as a fraction of the line spacing
+
+
+@dataclass
+class Profile:
+    """A validation line with the map interpolated along it (for the Fig. 6-style plot)."""
+
+    line_id: str
+    distance_m: np.ndarray
+    validation_nT: dict[str, np.ndarray]
+    interpolated_nT: dict[str, np.ndarray]
+
+
+@dataclass
+class QualityRun:
+    states: list[str]  # processing states compared, raw first
+    tl_alias: str | None  # the T-L model reported under "tl"
+    frame: LocalFrame
+    tracks: list[Track]
+    intersections: OverlapSet
+    pairs: OverlapSet
+    differences: dict[str, dict[str, np.ndarray]]  # kind -> state -> B_val - B_map
+    interpolated: dict[str, dict]  # state -> stats
+    profiles: list[Profile]
+    grids: dict[str, Grid]
+    leveling: Leveling | None
+    qc: dict[str, Any]
+    fom: list[dict] | None
+    settings: QualitySettings
+    notes: list[str] = field(default_factory=list)
+
+    def _keyed(self, per_state: dict[str, Any]) -> dict[str, Any]:
+        out = {state_key(s): per_state[s] for s in self.states}
+        if self.tl_alias:
+            out["tl"] = per_state[self.tl_alias]
+        return out
+
+    def heading_error_rms_nT(self, kind: str = "intersection") -> dict[str, float | None]:
+        return self._keyed({s: difference_stats(self.differences[kind][s])["rms_nT"]
+                            for s in self.states})
+
+    def noise_floor_nT(self) -> float | None:
+        """RMS the intersection differences would have from white sensor noise alone.
+
+        The per-sample noise is the lines' median 4th-difference estimate; interpolating at a
+        crossing weights two samples on either track, so the difference's variance is
+        sigma^2 [(1-wa)^2 + wa^2 + (1-wb)^2 + wb^2]. Slow drift is not included.
+        """
+        sigma = self.qc.get("noise", {}).get("median_nT")
+        ov = self.intersections
+        if sigma is None or ov.count == 0:
+            return None
+        w = (1 - ov.wa) ** 2 + ov.wa**2 + (1 - ov.wb) ** 2 + ov.wb**2
+        return float(sigma * np.sqrt(np.mean(w)))
+
+    def crossover_stats(self) -> dict[str, Any]:
+        lev = self.leveling
+        if lev is None or not lev.crossovers:
+            return {"count": 0, "before": None, "after": None}
+        before = np.array([c.difference_nT for c in lev.crossovers])
+        after = np.asarray(lev.residuals_nT)
+        return {"count": int(before.size),
+                "before": {"rms_nT": float(np.sqrt(np.mean(before**2))),
+                           "mean_nT": float(before.mean()), "std_nT": float(before.std())},
+                "after": {"rms_nT": float(np.sqrt(np.mean(after**2))),
+                          "mean_nT": float(after.mean()), "std_nT": float(after.std())}}
+
+    def summary(self) -> dict[str, Any]:
+        """The ``quality`` section of the summary JSON."""
+        kinds = {}
+        for kind, ov in (("intersections", self.intersections), ("pairs", self.pairs)):
+            k = "intersection" if kind == "intersections" else "pair"
+            kinds[kind] = {"count": ov.count, **({"max_distance_m": self.settings.overlap_m}
+                                                 if k == "pair" else {}),
+                           "by_state": self._keyed({s: {
+                               **difference_stats(self.differences[k][s]),
+                               "by_heading": group_stats(self.differences[k][s], ov)}
+                               for s in self.states})}
+        xo = self.crossover_stats()
+        noise = self.qc.get("noise", {})
+        return {
+            "states": [state_key(s) for s in self.states],
+            "tl_alias": self.tl_alias,
+            "heading_error_rms_nT": self.heading_error_rms_nT("intersection"),
+            "heading_error_method": "exact track intersections of the validation lines with "
+                                    "the survey and tie lines, both fields interpolated along "
+                                    "track to the crossing",
+            "overlap_pairs": self.pairs.count,
+            "overlap_pair_rms_nT": self.heading_error_rms_nT("pair"),
+            "overlap_m": self.settings.overlap_m,
+            "intersections": self.intersections.count,
+            "heading_error_noise_floor_nT": self.noise_floor_nT(),
+            "heading_error": kinds,
+            "interpolated_rms_nT": self._keyed({s: self.interpolated[s]["rms_nT"]
+                                                for s in self.states}),
+            "interpolated": self._keyed(self.interpolated),
+            "crossover_rms_nT": {"before": xo["before"]["rms_nT"] if xo["count"] else None,
+                                 "after": xo["after"]["rms_nT"] if xo["count"] else None},
+            "crossovers": xo,
+            "noise_4th_diff_nT": noise.get("median_nT"),
+            "qc": self.qc,
+            "fom_boxes": self.fom,
+            "notes": self.notes,
+        }
+
+
+def _circmean_deg(a: np.ndarray) -> float:
+    r = np.radians(a[np.isfinite(a)])
+    return float(np.degrees(np.arctan2(np.sin(r).mean(), np.cos(r).mean())) % 360.0)
+
+
+def flight_tracks(seg: Segmentation, east_m: np.ndarray, north_m: np.ndarray,
+                  kinds=("survey", "tie", "validation"), min_samples: int = 10) -> list[Track]:
+    """The straight lines of the given kinds, as tracks with finite positions."""
+    out = []
+    ok = np.isfinite(east_m) & np.isfinite(north_m)
+    for kind in kinds:
+        sel = seg.mask(kind) & ok
+        for lid in sorted(set(seg.line_id[sel])):
+            ix = np.flatnonzero(sel & (seg.line_id == lid))
+            if ix.size >= min_samples:
+                out.append(Track(str(lid), kind, ix, east_m[ix], north_m[ix],
+                                 _circmean_deg(seg.heading_deg[ix])))
+    return out
+
+
+def _interpolated(grid: Grid, tracks: list[Track], val: np.ndarray, east: np.ndarray,
+                  north: np.ndarray) -> tuple[np.ndarray, list[tuple[Track, np.ndarray]]]:
+    diffs, per_line = [], []
+    for t in tracks:
+        g = grid.interpolate(east[t.index], north[t.index])
+        per_line.append((t, g))
+        diffs.append(val[t.index] - g)
+    return (np.concatenate(diffs) if diffs else np.zeros(0)), per_line
+
+
+def run_quality(flight: Flight, seg: Segmentation, fields: dict[str, np.ndarray],
+                tl_alias: str | None = None, fom: list[dict] | None = None,
+                settings: QualitySettings | None = None) -> QualityRun:
+    """Quality figures of every processing state in ``fields`` (name -> nT per epoch).
+
+    ``fields`` should start with ``raw`` and end with the final model; ``tl_alias`` names the
+    T-L baseline reported under the key ``tl`` (the one with AGG-TL's own term set).
+    """
+    s = settings or QualitySettings()
+    flight.require("lat_deg", "lon_deg", "alt_m", purpose="quality statistics")
+    d = flight.data
+    lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
+    t = d["time_s"].to_numpy(float)
+    surv = seg.mask("survey") & np.isfinite(lat)
+    if surv.sum() < 100:
+        raise AeromagError("no survey lines found: quality statistics need a mapped block",
+                           file=flight.source, channel="/gnss/fix")
+    frame = LocalFrame(float(np.mean(lat[surv])), float(np.mean(lon[surv])),
+                       float(np.mean(alt[surv])))
+    east, north, up = frame.to_enu(lat, lon, alt)
+    base = d["base_nT"].to_numpy(float) if flight.has("base_nT") else None
+    # IGRF and diurnal are the same for every state: reduce a zero field once
+    offset = -reduce_to_anomaly(flight.time_ns, np.zeros(t.size), lat, lon, alt, base).anomaly_nT
+    reduced = {name: np.asarray(f, float) - offset for name, f in fields.items()}
+
+    tracks = flight_tracks(seg, east, north)
+    mapped = [tr for tr in tracks if tr.kind in ("survey", "tie")]
+    survey = [tr for tr in tracks if tr.kind == "survey"]
+    validation = [tr for tr in tracks if tr.kind == "validation"]
+    notes = []
+    if not validation:
+        notes.append("no validation lines: heading error at overlap points and the "
+                     "interpolated comparison need the diagonal X flight")
+    inter = track_intersections(validation, mapped)
+    pairs = overlap_pairs(validation, mapped, s.overlap_m)
+    diffs = {"intersection": {n: inter.differences(v) for n, v in reduced.items()},
+             "pair": {n: pairs.differences(v) for n, v in reduced.items()}}
+
+    heading = _circmean_deg(np.mod(np.array([tr.heading_deg for tr in survey]), 180.0) * 2) / 2
+    spacing = qc.line_spacing(survey, heading, s.spacing_tolerance_fraction)
+    spacing_m = spacing["nominal_m"] or 50.0
+    grids, interp, profiles = {}, {}, {}
+    for name, v in reduced.items():
+        pts = [(tr.east_m, tr.north_m, v[tr.index]) for tr in mapped]
+        ge, gn, gv = (np.concatenate([p[k] for p in pts]) for k in range(3))
+        grid = minimum_curvature(ge, gn, gv, s.cell_fraction * spacing_m,
+                                 mask_distance_m=spacing_m, crs=frame.crs)
+        grids[name] = grid
+        diff, per_line = _interpolated(grid, validation, v, east, north)
+        st = difference_stats(diff)
+        st["samples_outside_map"] = int(np.isnan(diff).sum())
+        interp[name] = st
+        profiles[name] = per_line
+    prof = [Profile(tr.line_id, tr.along_m,
+                    {n: reduced[n][tr.index] for n in reduced},
+                    {n: profiles[n][k][1] for n in reduced}) for k, tr in enumerate(validation)]
+
+    final = list(fields)[-1]
+    lines = [Line(tr.line_id, tr.kind, tr.east_m, tr.north_m, t[tr.index],
+                  reduced[final][tr.index], tr.index) for tr in mapped
+             if np.isfinite(reduced[final][tr.index]).all()]
+    lev = level_lines(lines) if lines else None
+    checks = {"field": state_key(final),
+              "noise": qc.line_noise(mapped, reduced[final], s.noise_threshold_nT),
+              "flight_height": qc.flight_height(mapped, up, s.height_tolerance_m),
+              "line_spacing": spacing,
+              "speed": qc.speed_excursions(mapped, t, s.speed_tolerance_fraction)}
+    if base is not None:
+        checks["diurnal"] = qc.diurnal_check(t, base, s.diurnal_chord_s, s.diurnal_tolerance_nT)
+    else:
+        checks["diurnal"] = {"available": False}
+    return QualityRun(list(fields), tl_alias if tl_alias in fields else None, frame, tracks,
+                      inter, pairs, diffs, interp, prof, grids, lev, checks, fom, s, notes)
+
+
+def fom_table(time_s: np.ndarray, raw_nT: np.ndarray, fields: dict[str, np.ndarray],
+              boxes: list) -> list[dict]:
+    """The calibration FOM per box (pass, heading, manoeuvre): uncompensated and each model."""
+    from pipeline.compensate.model import figure_of_merit
+
+    rows: list[dict] = []
+    for name, f in fields.items():
+        fom = figure_of_merit(time_s, raw_nT, f, boxes)
+        for k, r in enumerate(fom.boxes):
+            if len(rows) <= k:
+                rows.append({key: r[key] for key in ("pass", "cardinal", "manoeuvre",
+                                                     "samples", "uncompensated_nT")})
+            rows[k][f"{state_key(name)}_nT"] = r["compensated_nT"]
+    return rows

@@ -1,0 +1,230 @@
+"""Quality statistics: overlap geometry, heading error per model, noise, QC, outputs."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.compensate import FitSettings
+from pipeline.compensate.stage import run_compensation
+from pipeline.io.reader import read_flight
+from pipeline.quality import Track, group_stats, overlap_pairs, qc, run_quality, track_intersections
+from pipeline.segment import segment_flight
+from pipeline.simulate import write_simulation
+from tests.conftest import run_sim, sha256
+from tests.test_schemas import validate_every_message
+
+
+def _track(line_id, kind, e, n, first_epoch):
+    idx = first_epoch + np.arange(e.size)
+    h = float(np.degrees(np.arctan2(e[-1] - e[0], n[-1] - n[0])) % 360)
+    return Track(line_id, kind, idx, np.asarray(e, float), np.asarray(n, float), h)
+
+
+def _field_on(tracks, f, size):
+    out = np.full(size, np.nan)
+    for t in tracks:
+        out[t.index] = f(t.east_m, t.north_m)
+    return out
+
+
+# --------------------------------------------------------------------------------------------
+# geometry against analytic solutions
+def test_intersections_are_found_exactly_on_crossing_tracks():
+    """Diagonal y = 0.5 x + 3 crossing x = 30.3 and x = 71.9: crossings at analytic points,
+    a linear field interpolated along track to them has the analytic value on both sides."""
+    rng = np.random.default_rng(5)
+    xv = np.sort(rng.uniform(0, 100, 160))  # irregular along-track sampling
+    val = _track("V0010", "validation", xv, 0.5 * xv + 3.0, 0)
+    yk = np.sort(rng.uniform(-10, 110, 140))
+    m1 = _track("L0010", "survey", np.full(yk.size, 30.3), yk, 1000)
+    m2 = _track("L0020", "survey", np.full(yk.size, 71.9), yk[::-1], 2000)
+    far = _track("L0030", "survey", np.full(yk.size, 250.0), yk, 3000)  # never crossed
+    tracks = [val, m1, m2, far]
+    ov = track_intersections([val], [m1, m2, far])
+    assert ov.count == 2
+    order = np.argsort(ov.east_m)
+    np.testing.assert_allclose(ov.east_m[order], [30.3, 71.9], atol=1e-9)
+    np.testing.assert_allclose(ov.north_m[order], [0.5 * 30.3 + 3, 0.5 * 71.9 + 3], atol=1e-9)
+    assert list(ov.map_line[order]) == ["L0010", "L0020"]
+
+    def plane(e, n):
+        return 2.0 * e - 3.0 * n + 7.0
+
+    field = _field_on(tracks, plane, 4000)
+    va, vb = ov.values(field)
+    np.testing.assert_allclose(va, plane(ov.east_m, ov.north_m), atol=1e-9)
+    np.testing.assert_allclose(vb, plane(ov.east_m, ov.north_m), atol=1e-9)
+    # a DC on one survey line shows as that line's offset only
+    shifted = field.copy()
+    shifted[m1.index] += 1.5
+    d = ov.differences(shifted)
+    np.testing.assert_allclose(d[order], [-1.5, 0.0], atol=1e-9)
+
+
+def test_pairs_are_every_sample_pair_within_the_distance():
+    e = np.arange(0.0, 50.0, 0.7)
+    val = _track("V0010", "validation", e, e, 0)
+    mp = _track("L0010", "survey", np.full(80, 20.2), np.arange(80) * 0.7, 500)
+    ov = overlap_pairs([val], [mp], 0.5)
+    # brute force
+    d = np.hypot(val.east_m[:, None] - mp.east_m[None], val.north_m[:, None] - mp.north_m[None])
+    assert ov.count == int((d <= 0.5).sum()) > 0
+    assert np.all(ov.distance_m <= 0.5)
+    assert overlap_pairs([val], [mp], 0.01).count == int((d <= 0.01).sum())
+
+
+def test_heading_dc_offsets_have_confidence_intervals():
+    """A +0.4 nT offset on northbound lines appears in its heading group, not in the other."""
+    rng = np.random.default_rng(2)
+    xv = np.linspace(0, 400, 600)
+    vals = [_track("V0010", "validation", xv, 2.0 * xv, 0)]
+    mapped = [_track(f"L{k:04d}", "survey", np.full(300, 20.0 + 40 * k),
+                     np.linspace(0, 800, 300)[:: 1 if k % 2 == 0 else -1], 1000 + 300 * k)
+              for k in range(10)]
+    field = rng.normal(0, 0.05, 5000)
+    for t in mapped:
+        if t.heading_deg < 90 or t.heading_deg > 270:
+            field[t.index] += 0.4
+    ov = track_intersections(vals, mapped)
+    groups = {g["map_heading_deg"]: g for g in group_stats(ov.differences(field), ov)}
+    assert set(groups) == {0.0, 180.0}
+    north, south = groups[0.0], groups[180.0]
+    assert abs(north["mean_nT"] + 0.4) < north["ci_nT"] + 0.02
+    assert abs(south["mean_nT"]) < south["ci_nT"] + 0.02
+    assert north["ci_nT"] < 0.2
+
+
+def test_4th_difference_noise_within_10_percent_of_injected_white_noise():
+    rng = np.random.default_rng(9)
+    tracks, field = [], np.zeros(12 * 3000)
+    for k in range(12):
+        n = np.arange(3000) * 0.7  # 7 m/s at 10 Hz
+        t = _track(f"L{k:04d}", "survey", np.full(n.size, 50.0 * k), n, 3000 * k)
+        tracks.append(t)
+        geology = 80 * np.exp(-((n - 900) / 150) ** 2) + 0.3 * n + 25 * np.sin(n / 120)
+        field[t.index] = geology + rng.normal(0, 0.05, n.size)
+    res = qc.line_noise(tracks, field, threshold_nT=0.1)
+    assert res["median_nT"] == pytest.approx(0.05, rel=0.10)
+    for v in res["per_line_nT"].values():
+        assert v == pytest.approx(0.05, rel=0.10)
+    assert res["lines_over"] == []
+    field[tracks[3].index] += rng.normal(0, 0.2, 3000)
+    assert qc.line_noise(tracks, field, threshold_nT=0.1)["lines_over"] == ["L0003"]
+
+
+def test_qc_checks_flag_what_is_out_of_tolerance():
+    n = np.arange(0, 1000, 0.7)
+    tracks = [_track(f"L{k:04d}", "survey", np.full(n.size, 50.0 * k), n, k * n.size)
+              for k in range(5)]
+    # line 2 drifts 20 m towards line 3 over its second half
+    tracks[2] = _track("L0002", "survey", 100.0 + np.clip(n - 500, 0, None) * 0.04, n,
+                       2 * n.size)
+    sp = qc.line_spacing(tracks, 0.0, 0.25)
+    assert sp["nominal_m"] == pytest.approx(50.0, abs=0.5)
+    assert sp["pairs_over"] == ["L0001-L0002", "L0002-L0003"]
+    up = np.zeros(5 * n.size)
+    up[tracks[4].index] = np.where(n > 600, 14.0, 0.0)
+    h = qc.flight_height(tracks, up, 10.0)
+    assert h["lines_over"] == ["L0004"]
+    t = np.arange(5 * n.size) * 0.1
+    sp = qc.speed_excursions(tracks, t, 0.2)
+    assert sp["median_m_s"] == pytest.approx(7.0, rel=1e-6) and sp["spans"] == []
+    ts = np.arange(0, 7200.0, 1.0)
+    base = 48000 + 3 * np.sin(2 * np.pi * ts / 5400)
+    assert qc.diurnal_check(ts, base, 300.0, 5.0)["spans_over"] == []
+    storm = base + np.where((ts > 3000) & (ts < 3200), 12.0 * np.sin(np.pi * (ts - 3000) / 200),
+                            0.0)
+    assert qc.diurnal_check(ts, storm, 300.0, 5.0)["spans_over"]
+
+
+# --------------------------------------------------------------------------------------------
+# paper 002, section 3.2: heading error of T-L vs AGG-TL on the demo survey
+def _demo_quality(tmp_path_factory, gradient: bool):
+    folder = tmp_path_factory.mktemp("q002")
+    sim = run_sim("demo", 7, [f"effects.geomagnetic_gradient.enabled={str(gradient).lower()}"])
+    flight = read_flight(write_simulation(sim, folder / "f.mcap"))
+    seg = segment_flight(flight)
+    fields = {"raw": flight.data["scalar_nT"].to_numpy()}
+    for m in ("tl18", "agg-tl"):
+        fields[m] = run_compensation(flight, seg, FitSettings(model=m)).compensated_nT
+    q = run_quality(flight, seg, fields, tl_alias="tl18")
+    # the simulated sensor noise (white + drift) as it enters B_val - B_map at the same points
+    noise = sim.series["noise_nT"][np.searchsorted(sim.series["time_ns"], flight.time_ns)]
+    noise_rms = float(np.sqrt(np.nanmean(q.intersections.differences(noise) ** 2)))
+    return q.summary(), noise_rms, sim
+
+
+@pytest.fixture(scope="module")
+def demo_with_gradient(tmp_path_factory):
+    return _demo_quality(tmp_path_factory, True)
+
+
+@pytest.fixture(scope="module")
+def demo_without_gradient(tmp_path_factory):
+    return _demo_quality(tmp_path_factory, False)
+
+
+def test_agg_tl_removes_the_heading_error_tl_leaves_over_a_gradient(demo_with_gradient):
+    s, noise_rms, sim = demo_with_gradient
+    assert sim.truth["noise"]["scalar_nT"] == 0.05
+    he = s["heading_error_rms_nT"]
+    assert s["intersections"] >= 30 and s["overlap_pairs"] >= 30
+    assert he["tl"] >= 2.0 * he["agg_tl"], he
+    assert he["agg_tl"] <= 1.5 * noise_rms, (he, noise_rms)
+    assert he["raw"] > 10 * he["tl"]
+    # the same ordering holds on the other two statistics
+    assert s["overlap_pair_rms_nT"]["tl"] > s["overlap_pair_rms_nT"]["agg_tl"]
+    assert s["interpolated_rms_nT"]["tl"] > s["interpolated_rms_nT"]["agg_tl"]
+    # the white-noise floor estimated from the data is the simulated one
+    assert s["noise_4th_diff_nT"] == pytest.approx(0.05, rel=0.10)
+    assert s["crossover_rms_nT"]["after"] < s["crossover_rms_nT"]["before"]
+
+
+def test_without_gradient_tl_and_agg_tl_agree(demo_without_gradient):
+    s, noise_rms, _ = demo_without_gradient
+    he = s["heading_error_rms_nT"]
+    assert he["agg_tl"] == pytest.approx(he["tl"], rel=0.10), he
+    assert he["tl"] <= 1.5 * noise_rms
+
+
+# --------------------------------------------------------------------------------------------
+# the command
+def test_quality_command_writes_summary_plots_and_valid_channels(tmp_path):
+    sim = run_sim("uav-small", 3)
+    src = write_simulation(sim, tmp_path / "small.mcap")
+    before = sha256(src)
+    out, js = tmp_path / "q.mcap", tmp_path / "q.json"
+    res = subprocess.run([sys.executable, "-m", "flows.cli", "quality", str(src), "--json",
+                          str(js), "--out", str(out), "--overlap-m", "0.7"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert sha256(src) == before
+    s = json.loads(js.read_text())["quality"]
+    for key in ("heading_error_rms_nT", "interpolated_rms_nT", "overlap_pair_rms_nT"):
+        assert {"raw", "tl", "tl16", "tl18", "agg_tl"} <= set(s[key]), key
+    assert s["overlap_m"] == 0.7 and s["overlap_pairs"] > 0 and s["intersections"] > 0
+    assert s["heading_error_rms_nT"]["raw"] > s["heading_error_rms_nT"]["agg_tl"]
+    assert s["crossover_rms_nT"]["before"] is not None and s["noise_4th_diff_nT"] > 0
+    assert len(s["fom_boxes"]) == 12
+    assert "heading error" in res.stdout and "agg_tl" in res.stdout
+    for name in ("heading_error", "validation_profiles", "crossovers"):
+        assert (tmp_path / f"q.{name}.png").stat().st_size > 10000
+    assert validate_every_message(out) > 0
+    from tests.test_writer import records
+
+    topics = {m[0] for m in records(out)[0]}
+    assert {"/quality/heading_error", "/quality/crossovers", "/aeromag/log"} <= topics
+    # a processed recording is assessed with its own compensated channels
+    res = subprocess.run([sys.executable, "-m", "flows.cli", "quality", str(out), "--json",
+                          str(tmp_path / "again.json")], capture_output=True, text=True,
+                         timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    again = json.loads((tmp_path / "again.json").read_text())["quality"]
+    assert again["states"] == ["raw", "tl16", "tl18", "agg_tl"]
+    for k, v in s["heading_error_rms_nT"].items():
+        assert again["heading_error_rms_nT"][k] == pytest.approx(v, rel=1e-9)
