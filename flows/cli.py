@@ -247,6 +247,75 @@ def _print_quality(q: dict) -> None:
         f"4th-difference noise {f(n)} nT")
 
 
+@app.command()
+def audit(
+    recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
+    json_out: Annotated[Path, typer.Option("--json", help="AUDIT.json to write.")],
+    report: Annotated[Path, typer.Option("--report", help="Folder for report.md and the "
+                                                          "PNG figures.")],
+    out_path: Annotated[Path | None, typer.Option("--out", help="Also write an output "
+                                                               "recording: /audit/finding, "
+                                                               "/aeromag/log, compensated "
+                                                               "fields.")] = None,
+    baseline: Annotated[str, typer.Option(help="Baseline T-L term set: tl18 or tl16.")
+                        ] = "tl18",
+    alpha: Annotated[float, typer.Option(help="Significance level per round (Holm).")] = 0.01,
+    min_gain: Annotated[float, typer.Option(help="Smallest held-out RMS reduction an effect "
+                                                 "must bring (fraction).")] = 0.05,
+) -> None:
+    """Find what the baseline model gets wrong, name the cause, extend it, measure the gain."""
+    from flows.stages import audit_recording, require_readable
+    from pipeline.audit import AuditSettings
+
+    require_readable(recording)
+    if baseline not in ("tl16", "tl18"):
+        _fail(f"--baseline {baseline!r}: use tl18 or tl16")
+    if not 0 < alpha < 1:
+        _fail(f"--alpha {alpha}: must be between 0 and 1")
+    if not 0 <= min_gain < 1:
+        _fail(f"--min-gain {min_gain}: must be in [0, 1)")
+    settings = AuditSettings(baseline=baseline, alpha=alpha, min_gain=min_gain)
+    with console.status(f"auditing {recording.name}") as status:
+        j = audit_recording(recording, json_out, report, settings, out_path,
+                            progress=lambda m: status.update(f"auditing {recording.name}: {m}"))
+    _print_audit(j)
+    if out_path:
+        say(f"output recording: {out_path}")
+    say(f"report: {j['report']['markdown']}")
+    say(f"audit: {json_out}")
+
+
+def _print_audit(j: dict) -> None:
+    b = j["baseline"]
+    say(f"baseline {b['model']}: held-out calibration residual {b['residual_rms_nT']:.4f} nT; "
+        f"noise floor {j['noise_floor_nT']:.4f} nT")
+    table = Table(title="findings", title_justify="left")
+    for col in ("effect", "estimate", "delta BIC", "p (Holm)", "gain metric", "before nT",
+                "after nT"):
+        table.add_column(col, justify="right" if col in ("delta BIC", "p (Holm)", "before nT",
+                                                         "after nT") else "left")
+    for f in j["findings"]:
+        est = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                        for k, v in f["estimate"].items()
+                        if k not in ("at_acceptance", "lag_by_fold_s", "direction_body",
+                                     "mismatch_rms_before_nT", "mismatch_rms_after_nT"))
+        g = f["gain"] or {}
+        table.add_row(f["effect"], est, f"{f['delta_bic']:.1f}", f"{f['p_value_holm']:.2g}",
+                      g.get("metric", "-"), f"{g.get('before_nT', 0):.4f}",
+                      f"{g.get('after_nT', 0):.4f}")
+    if j["findings"]:
+        show(table)
+    else:
+        say("no finding: no candidate effect improves held-out data beyond noise")
+    say(f"extended model: {' + '.join(j['extended_model'])}; unexplained (held-out) "
+        f"{j['unexplained_rms_nT']:.4f} nT")
+    if j.get("unexplained"):
+        say(f"unexplained: {j['unexplained']['note']}")
+    for k, v in j["gain"].items():
+        if v["before"] is not None:
+            say(f"gain {k}: {v['before']:.4f} -> {v['after']:.4f}")
+
+
 def _run_postflight(recording: Path, out_dir: Path) -> dict:
     from flows.postflight import postflight
 

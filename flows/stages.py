@@ -342,3 +342,61 @@ def quality_recording(src: Path, summary_path: Path, settings: QualitySettings,
         summary["outputs"]["mcap"] = str(out)
     write_json_atomic(summary_path, summary)
     return summary
+
+
+# --------------------------------------------------------------------------------------------
+# audit
+def audit_recording(src: Path, json_path: Path, report_dir: Path, settings,
+                    out: Path | None = None, progress=None) -> dict[str, Any]:
+    """``aeromag audit``: baseline, candidate effects, extended model, gain, report."""
+    from pipeline.audit import run_audit
+    from pipeline.audit.report import figures, finding_channel, jsonable, log_lines, markdown
+
+    flight = read_flight(src)
+    seg, why = try_segment(flight)
+    if seg is None:
+        raise AeromagError(f"the audit needs the calibration passes: {why}", file=src,
+                           channel="/gnss/fix")
+    flight.require("vector_x_nT", purpose="the model audit")
+    res = run_audit(flight, seg, settings, progress)
+    report_dir.mkdir(parents=True, exist_ok=True)
+    images = {name: save_figure(fig, report_dir / f"audit_{name}.png").name
+              for name, fig in figures(res, flight).items()}
+    j = res.to_json()
+    j["input"] = flight_summary(flight)
+    j["aeromag_version"] = __version__
+    text = markdown(res, Path(src).name, images)
+    tmp = report_dir / ".report.md.partial"
+    tmp.write_text(text)
+    tmp.replace(report_dir / "report.md")
+    j["report"] = {"markdown": str(report_dir / "report.md"),
+                   "figures": {k: str(report_dir / v) for k, v in images.items()}}
+    if out is not None:
+        present = set(read_topics_names(src))
+        lines = ingest_lines(flight) + log_lines(res)
+        channels = [log_channel(flight, lines, "audit"), finding_channel(flight, res)]
+        comp_ch = [("/mag/compensated", res.compensated["extended"],
+                    "+".join(res.extended.spec.label())),
+                   (f"/mag/compensated/{res.baseline.spec.base}", res.compensated["baseline"],
+                    res.baseline.spec.base)]
+        sensor = str(flight.series[flight.topic_of["scalar"]].labels["sensor_id"][0])
+        for topic, comp, model in comp_ch:
+            if topic in present:
+                continue
+            ch = OutputChannel(topic, "aeromag.CompensatedField")
+            scalar = flight.data["scalar_nT"].to_numpy(float)
+            for i in np.flatnonzero(np.isfinite(comp)):
+                ch.add(int(flight.time_ns[i]), {"sensor_id": sensor, "total_nT": float(comp[i]),
+                                                "interference_nT": float(scalar[i] - comp[i]),
+                                                "model": model})
+            channels.append(ch)
+        clash = sorted({c.topic for c in channels} & present)
+        if clash:
+            raise AeromagError(f"the recording already holds {', '.join(clash)}; audit the "
+                               "unprocessed recording or omit --out", file=src,
+                               channel=clash[0])
+        write_with_new_channels(src, out, channels, metadata={"aeromag.run": run_metadata()})
+        j["outputs"] = {"mcap": str(out)}
+    j = jsonable(j)  # NaN (an untestable candidate's figures) becomes null
+    write_json_atomic(json_path, j)
+    return j

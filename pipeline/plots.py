@@ -169,3 +169,115 @@ def crossover_figure(tracks, leveling, title: str = "tie-line crossovers") -> pl
         fig.colorbar(sc, ax=axes, shrink=0.8, label="survey - tie (nT)")
     fig.suptitle(title)
     return fig
+
+
+# --------------------------------------------------------------------------------------------
+# model audit: measured vs simulated, before and after the extension
+def _cal_segments(time_s, where, gap_s=5.0):
+    t = time_s[where]
+    breaks = np.flatnonzero(np.diff(t) > gap_s) + 1
+    return np.split(np.arange(where.size), breaks)
+
+
+def audit_time_figure(time_s: np.ndarray, where: np.ndarray,
+                      residuals: dict[str, np.ndarray], labels: dict[str, str]) -> plt.Figure:
+    """Band-passed measured - simulated over the calibration passes, baseline vs extended."""
+    segs = [s for s in _cal_segments(time_s, where, 60.0) if s.size > 10]
+    n = max(len(segs), 1)
+    fig, axes = plt.subplots(n, 1, figsize=(11, 3.0 * n), squeeze=False)
+    colours = {"baseline": "0.55", "extended": "tab:blue"}
+    for ax, seg in zip(axes[:, 0], segs, strict=False):
+        t = time_s[where[seg]]
+        for name, r in residuals.items():
+            rms = float(np.sqrt(np.nanmean(r[seg] ** 2)))
+            ax.plot(t, r[seg], lw=0.6, color=colours.get(name),
+                    label=f"{labels.get(name, name)}: RMS {rms:.4f} nT")
+        ax.set_ylabel("measured - simulated (nT)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper right")
+    axes[-1, 0].set_xlabel("time since the first epoch (s)")
+    axes[0, 0].set_title("calibration passes: band-passed residual of the simulated flight")
+    fig.tight_layout()
+    return fig
+
+
+def audit_position_figure(east_m: np.ndarray, north_m: np.ndarray,
+                          residuals: dict[str, np.ndarray], labels: dict[str, str]
+                          ) -> plt.Figure:
+    """Where on the calibration box the residual is (RMS over 2 s, coloured track)."""
+    fig, axes = plt.subplots(1, len(residuals), figsize=(5.5 * len(residuals), 5.0),
+                             squeeze=False, sharey=True)
+    lim = max(float(np.nanpercentile(np.abs(r), 99)) for r in residuals.values())
+    for ax, (name, r) in zip(axes[0], residuals.items(), strict=True):
+        sc = ax.scatter(east_m, north_m, c=np.abs(r), s=2, cmap="viridis", vmin=0, vmax=lim)
+        ax.set_title(labels.get(name, name), fontsize=9)
+        ax.set_xlabel("east of the calibration site (m)")
+        ax.set_aspect("equal")
+    axes[0, 0].set_ylabel("north (m)")
+    fig.colorbar(sc, ax=axes[0].tolist(), shrink=0.8, label="|measured - simulated| (nT)")
+    return fig
+
+
+def audit_heading_figure(heading_deg: np.ndarray, residuals: dict[str, np.ndarray],
+                         labels: dict[str, str], by_heading: dict[str, list] | None = None
+                         ) -> plt.Figure:
+    """Residual RMS by heading on the calibration passes, and (when a survey exists) the
+    heading error (validation - map mean by map-line heading) before and after."""
+    ncol = 2 if by_heading else 1
+    fig, axes = plt.subplots(1, ncol, figsize=(6 * ncol, 4.2), squeeze=False)
+    ax = axes[0, 0]
+    edges = np.arange(0, 361, 30)
+    mid = edges[:-1] + 15
+    h = np.mod(heading_deg, 360)
+    for name, r in residuals.items():
+        rms = [np.sqrt(np.nanmean(r[(h >= a) & (h < b)] ** 2)) if np.any((h >= a) & (h < b))
+               else np.nan for a, b in zip(edges[:-1], edges[1:], strict=True)]
+        ax.plot(mid, rms, "o-", label=labels.get(name, name))
+    ax.set_xlabel("heading (deg)")
+    ax.set_ylabel("band-passed residual RMS (nT)")
+    ax.set_title("calibration residual by heading")
+    ax.set_xticks(range(0, 361, 90))
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    if by_heading:
+        ax2 = axes[0, 1]
+        width = 0.38
+        keys = sorted({(g["validation_heading_deg"], g["map_heading_deg"])
+                       for rows in by_heading.values() for g in rows})
+        x = np.arange(len(keys))
+        for k, (name, rows) in enumerate(by_heading.items()):
+            d = {(g["validation_heading_deg"], g["map_heading_deg"]): g for g in rows}
+            mean = [d[key]["mean_nT"] if key in d else np.nan for key in keys]
+            ci = [d[key]["ci_nT"] or 0.0 if key in d else 0.0 for key in keys]
+            ax2.bar(x + (k - 0.5) * width, mean, width, yerr=ci, capsize=2,
+                    label=labels.get(name, name))
+        ax2.set_xticks(x, [f"{a:.0f}/{b:.0f}" for a, b in keys], fontsize=7)
+        ax2.set_xlabel("validation / map line heading (deg)")
+        ax2.set_ylabel("mean B_validation - B_map (nT), 95 % CI")
+        ax2.set_title("heading error at validation intersections")
+        ax2.axhline(0, color="0.5", lw=0.5)
+        ax2.grid(alpha=0.3, axis="y")
+        ax2.legend(fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def audit_gain_figure(gain: dict[str, dict[str, float | None]]) -> plt.Figure:
+    """Before vs after for every gain metric (log scale)."""
+    rows = [(k, v["before"], v["after"]) for k, v in gain.items()
+            if v["before"] is not None and v["after"] is not None]
+    fig, ax = plt.subplots(figsize=(8, 4))
+    x = np.arange(len(rows))
+    ax.bar(x - 0.2, [r[1] for r in rows], 0.4, label="baseline", color="0.6")
+    ax.bar(x + 0.2, [r[2] for r in rows], 0.4, label="extended", color="tab:blue")
+    for i, r in enumerate(rows):
+        for dx, v in ((-0.2, r[1]), (0.2, r[2])):
+            ax.annotate(f"{v:.3g}", (i + dx, v), ha="center", va="bottom", fontsize=7)
+    ax.set_xticks(x, [r[0].replace("_nT", "").replace("_", " ") for r in rows], fontsize=8)
+    ax.set_yscale("log")
+    ax.set_ylabel("nT")
+    ax.set_title("gain of the extended model")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3, axis="y", which="both")
+    fig.tight_layout()
+    return fig

@@ -76,6 +76,9 @@ OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
     TopicRule("/quality/crossovers", "aeromag.Crossover", "output",
               ("survey_line", "tie_line", "difference_before_nT", "difference_after_nT"),
               description="survey-tie crossover differences before and after leveling"),
+    TopicRule("/audit/finding", "aeromag.AuditFinding", "output",
+              ("effect", "accepted", "estimate", "message"),
+              description="model-audit findings (effects the baseline misses)"),
 )
 
 # Roles each processing stage needs; a stage must not demand more than it uses.

@@ -57,6 +57,7 @@ class QualitySettings:
     diurnal_chord_s: float = 300.0
     diurnal_tolerance_nT: float = 5.0
     cell_fraction: float = 0.25  # grid cell as a fraction of the line spacing
+    subtract_base: bool = True  # remove the base-station diurnal in the reduction
 
 
 @dataclass
@@ -214,7 +215,8 @@ def run_quality(flight: Flight, seg: Segmentation, fields: dict[str, np.ndarray]
     east, north, up = frame.to_enu(lat, lon, alt)
     base = d["base_nT"].to_numpy(float) if flight.has("base_nT") else None
     # IGRF and diurnal are the same for every state: reduce a zero field once
-    offset = -reduce_to_anomaly(flight.time_ns, np.zeros(t.size), lat, lon, alt, base).anomaly_nT
+    offset = -reduce_to_anomaly(flight.time_ns, np.zeros(t.size), lat, lon, alt,
+                                base if s.subtract_base else None).anomaly_nT
     reduced = {name: np.asarray(f, float) - offset for name, f in fields.items()}
 
     tracks = flight_tracks(seg, east, north)

@@ -123,9 +123,10 @@ _COMMON: dict[str, Any] = {
                     "random_walk_nT_per_sqrt_s": 0.02},
         "electrical_current": {"enabled": False, "channel": "payload_current",
                                "coupling_nT_per_A": 3.0, "direction_body": [0.2, -0.3, 0.93]},
-        "vector_calibration": {"enabled": False, "scale_error": [0.004, -0.003, 0.002],
-                               "nonorthogonality_deg": [0.3, -0.2, 0.25],
-                               "offset_nT": [30.0, -20.0, 15.0]},
+        # an uncalibrated low-cost UAV fluxgate: percent-level scale, degree-level axes
+        "vector_calibration": {"enabled": False, "scale_error": [0.02, -0.015, 0.01],
+                               "nonorthogonality_deg": [1.0, -0.8, 0.9],
+                               "offset_nT": [150.0, -100.0, 80.0]},
     },
 }
 

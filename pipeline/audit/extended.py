@@ -1,0 +1,260 @@
+"""An extensible compensation model: T-L plus the physical effects the audit can add.
+
+The baseline is the post-flight T-L model (``tl18`` or ``tl16`` terms; constant Earth field
+during calibration, no lag, no auxiliary couplings, vector sensor as calibrated). A
+:class:`ModelSpec` switches extensions on:
+
+* ``gradient``: AGG-TL's band-passed position columns (fitted, not subtracted: geology);
+* ``lag_s``: the scalar stream is read ``lag_s`` later (a sensor that reports late);
+* ``aux``: auxiliary channels (currents) coupling into the scalar sensor along a fixed body
+  direction d: interference c I (u . d), i.e. the columns I u_x, I u_y, I u_z (subtracted);
+* ``vector_cal``: direction cosines from the recalibrated fluxgate.
+
+Body frame: x forward, y right, z down; positions are local east/north/up metres about the
+calibration site. The fit is the same as :func:`pipeline.compensate.fit_compensation`:
+band-pass per contiguous block, trim, ridge with the L-curve corner.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from pipeline.audit.vector_cal import VectorCalibration
+from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
+from pipeline.compensate.ridge import RidgeSVD
+from pipeline.compensate.terms import (
+    BT_SCALE_NT,
+    direction_cosines,
+    position_terms,
+    tl16_terms,
+    tl18_terms,
+)
+from pipeline.geo.local import LocalFrame
+from pipeline.io.reader import Flight
+from pipeline.physics.interference import CarrierInterference, scalar_reading_nT
+
+
+@dataclass
+class AuditData:
+    """Everything the audit's models may use, on the scalar epochs."""
+
+    time_s: np.ndarray
+    scalar_nT: np.ndarray
+    vector_nT: np.ndarray
+    enu_m: np.ndarray | None  # (n, 3) about the calibration site, or None without GNSS
+    aux: dict[str, np.ndarray] = field(default_factory=dict)
+    aux_units: dict[str, str] = field(default_factory=dict)
+
+    @classmethod
+    def from_flight(cls, flight: Flight, calibration_mask: np.ndarray) -> AuditData:
+        flight.require("vector_x_nT", "vector_y_nT", "vector_z_nT", purpose="the model audit")
+        d = flight.data
+        enu = None
+        if flight.has("lat_deg", "lon_deg", "alt_m"):
+            lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
+            sel = calibration_mask & np.isfinite(lat)
+            frame = LocalFrame(float(np.mean(lat[sel])), float(np.mean(lon[sel])),
+                               float(np.mean(alt[sel])))
+            enu = np.column_stack(frame.to_enu(lat, lon, alt))
+        aux = {c[4:]: d[c].to_numpy(float) for c in d.columns if c.startswith("aux_")}
+        units = {k: flight.units.get(f"aux_{k}", "") for k in aux}
+        return cls(d["time_s"].to_numpy(float), d["scalar_nT"].to_numpy(float),
+                   d[["vector_x_nT", "vector_y_nT", "vector_z_nT"]].to_numpy(float), enu, aux,
+                   units)
+
+    @property
+    def rate_hz(self) -> float:
+        return 1.0 / float(np.median(np.diff(self.time_s)))
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """Which extensions a model has (all off: the baseline)."""
+
+    base: str = "tl18"
+    gradient: bool = False
+    lag_s: float = 0.0
+    aux: tuple[str, ...] = ()
+    vector_cal: VectorCalibration | None = None
+    diurnal: bool = False  # subtract the base station in the reduction (maps, crossovers)
+
+    def with_(self, **kw) -> ModelSpec:
+        return replace(self, **kw)
+
+    def label(self) -> list[str]:
+        out = [self.base]
+        if self.gradient:
+            out.append("geomagnetic_gradient")
+        if self.lag_s:
+            out.append("sensor_lag")
+        if self.aux:
+            out.append("electrical_current")
+        if self.vector_cal is not None:
+            out.append("vector_calibration")
+        if self.diurnal:
+            out.append("diurnal")
+        return out
+
+
+@dataclass
+class Design:
+    columns: np.ndarray  # (n, p) unfiltered
+    names: list[str]
+    subtract: np.ndarray  # (p,) bool: compensating columns
+    y: np.ndarray  # the (lag-corrected) scalar field
+
+
+def scalar_series(data: AuditData, lag_s: float) -> np.ndarray:
+    """The scalar field re-timed for a sensor that reports ``lag_s`` late."""
+    if not lag_s:
+        return data.scalar_nT
+    ok = np.isfinite(data.scalar_nT)
+    return np.interp(data.time_s + lag_s, data.time_s[ok], data.scalar_nT[ok], left=np.nan,
+                     right=np.nan)
+
+
+def design(data: AuditData, spec: ModelSpec) -> Design:
+    v = data.vector_nT if spec.vector_cal is None else spec.vector_cal.apply(data.vector_nT)
+    k, names = (tl18_terms if spec.base == "tl18" else tl16_terms)(v, data.time_s)
+    sub = [True] * k.shape[1]
+    cols = [k]
+    if spec.aux:
+        u = direction_cosines(v)
+        for name in spec.aux:
+            cols.append(data.aux[name][:, None] * u)
+            names = names + [f"aux_{name}_u{a}" for a in "xyz"]
+            sub += [True] * 3
+    if spec.gradient:
+        if data.enu_m is None:
+            raise ValueError("the gradient terms need positions (/gnss/fix)")
+        kp, pn = position_terms(*data.enu_m.T)
+        cols.append(kp)
+        names = names + pn
+        sub += [False] * kp.shape[1]
+    return Design(np.column_stack(cols), names, np.array(sub), scalar_series(data, spec.lag_s))
+
+
+@dataclass
+class BandSettings:
+    band_hz: tuple[float, float] = (0.1, 0.9)
+    poles: int = 4
+    trim: int = 20
+
+
+def bandpassed_rows(data: AuditData, des: Design, mask: np.ndarray, bs: BandSettings
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(K_bp, y_bp, epoch indices) over the contiguous blocks of ``mask``."""
+    valid = mask & np.isfinite(des.y) & np.all(np.isfinite(des.columns), axis=1)
+    blocks = contiguous_blocks(valid, data.time_s)
+    sos = bandpass_sos(bs.band_hz, data.rate_hz, bs.poles)
+    kf, where = bandpass_blocks(des.columns, blocks, sos, bs.trim)
+    yf, _ = bandpass_blocks(des.y, blocks, sos, bs.trim)
+    return kf, yf, where
+
+
+@dataclass
+class FittedModel:
+    spec: ModelSpec
+    names: list[str]
+    subtract: np.ndarray
+    theta: np.ndarray
+    lambda_: float
+    n_fit: int
+    fit_residual_nT: float
+
+    def coefficient(self, prefix: str) -> np.ndarray:
+        return np.array([c for n, c in zip(self.names, self.theta, strict=True)
+                         if n.startswith(prefix)])
+
+    def compensate(self, data: AuditData) -> tuple[np.ndarray, np.ndarray]:
+        """(compensated field, interference) at every epoch, nT."""
+        des = design(data, self.spec)
+        interference = des.columns[:, self.subtract] @ self.theta[self.subtract]
+        return des.y - interference, interference
+
+    def residual_bp(self, data: AuditData, mask: np.ndarray, bs: BandSettings
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """Band-passed measured minus model (all columns) over ``mask``: (residual, epochs)."""
+        kf, yf, where = bandpassed_rows(data, design(data, self.spec), mask, bs)
+        return yf - kf @ self.theta, where
+
+
+def fit_model(data: AuditData, spec: ModelSpec, mask: np.ndarray,
+              bs: BandSettings | None = None, ridge: float | str = "auto") -> FittedModel:
+    """Fit ``spec`` on the epochs of ``mask`` (ridge at the L-curve corner by default)."""
+    bs = bs or BandSettings()
+    des = design(data, spec)
+    kf, yf, where = bandpassed_rows(data, des, mask, bs)
+    if where.size < 2 * kf.shape[1]:
+        raise ValueError(f"only {where.size} usable calibration samples for {kf.shape[1]} "
+                         "terms")
+    solver = RidgeSVD(kf, yf)
+    lam = solver.lcurve().lambda_corner if ridge == "auto" else float(ridge)
+    theta = solver.solve(lam)
+    resid = yf - kf @ theta
+    return FittedModel(spec, des.names, des.subtract, theta, float(lam), int(where.size),
+                       float(np.sqrt(np.mean(resid**2))))
+
+
+# --------------------------------------------------------------------------------------------
+def carrier_from_coefficients(fitted: FittedModel, mean_field_nT: float
+                              ) -> tuple[CarrierInterference, np.ndarray]:
+    """The physical interference (p, A, E) a fitted T-L model stands for, and the coupling
+    vectors (nT per unit, body frame) of its auxiliary channels.
+
+    tl18 columns are u_i, u_i B_j / s, u_i dB_j/dt / s (s = 50 000 nT), so the coefficients
+    map exactly: p_i; A_ii = c/s, A_ij = A_ji = c/(2s); E_ij = c/s. tl16's u_i u_j and
+    u_i u_j' stand for u_i B_j / |B| and u_i B_j' / |B|: they map with the mean field instead.
+    """
+    c = dict(zip(fitted.names, fitted.theta, strict=True))
+    scale = BT_SCALE_NT if fitted.spec.base == "tl18" else mean_field_nT
+    p = np.array([c.get(f"perm_u{a}", 0.0) for a in "xyz"])
+    a = np.zeros((3, 3))
+    e = np.zeros((3, 3))
+    sym = "B" if fitted.spec.base == "tl18" else "u"
+    for i, ai in enumerate("xyz"):
+        for j, aj in enumerate("xyz"):
+            v = c.get(f"ind_u{ai}{sym}{aj}")
+            if v is not None:
+                if i == j:
+                    a[i, i] = v / scale
+                else:
+                    a[i, j] = a[j, i] = v / (2 * scale)
+            ed = c.get(f"eddy_u{ai}d{sym}{aj}")
+            if ed is not None:
+                e[i, j] = ed / scale
+    aux = {name: np.array([c[f"aux_{name}_u{ax}"] for ax in "xyz"]) for name in fitted.spec.aux}
+    return CarrierInterference(p, a, e), aux
+
+
+def simulate_measurement(data: AuditData, fitted: FittedModel, earth_total_nT: np.ndarray
+                         ) -> np.ndarray:
+    """The scalar reading the project's simulator physics predicts for this flight.
+
+    Driven by the measured vector field (its direction; calibrated when the model says so),
+    the measured auxiliary channels, the fitted interference and an Earth field of magnitude
+    ``earth_total_nT`` (plus, with the gradient extension, the fitted position terms). With a
+    lag the prediction is for the re-timed stream. Exact |b + b_int|, not the linearised T-L.
+    """
+    v = data.vector_nT if fitted.spec.vector_cal is None else fitted.spec.vector_cal.apply(
+        data.vector_nT)
+    u = direction_cosines(v)
+    earth = np.asarray(earth_total_nT, float).copy()
+    if fitted.spec.gradient and data.enu_m is not None:
+        kp, pn = position_terms(*data.enu_m.T)
+        c = dict(zip(fitted.names, fitted.theta, strict=True))
+        earth = earth + kp @ np.array([c[n] for n in pn])
+    carrier, aux = carrier_from_coefficients(fitted, float(np.nanmean(np.linalg.norm(v,
+                                                                                     axis=1))))
+    b = u * earth[:, None]
+    if fitted.spec.base == "tl18":
+        b_in, db = v, np.gradient(v, data.time_s, axis=0)
+    else:  # tl16 columns are built from direction cosines alone
+        norm = np.nanmean(np.linalg.norm(v, axis=1))
+        b_in, db = u * norm, np.gradient(u, data.time_s, axis=0) * norm
+    b_int = carrier.vector_nT(b_in, db)
+    for name, coupling in aux.items():
+        b_int = b_int + data.aux[name][:, None] * coupling[None, :]
+    return scalar_reading_nT(b, b_int)

@@ -1,0 +1,175 @@
+"""The audit's human-readable products: figures, a Markdown report, log lines, channel."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from pipeline.audit.stage import AuditResult
+from pipeline.io.reader import Flight
+from pipeline.io.writer import OutputChannel
+
+
+def labels(res: AuditResult) -> dict[str, str]:
+    return {"baseline": f"baseline ({res.baseline.spec.base})",
+            "extended": "extended (" + " + ".join(res.extended.spec.label()) + ")"}
+
+
+def figures(res: AuditResult, flight: Flight) -> dict[str, Any]:
+    from pipeline.plots import (
+        audit_gain_figure,
+        audit_heading_figure,
+        audit_position_figure,
+        audit_time_figure,
+    )
+
+    lab = labels(res)
+    w = res.residual_epochs
+    out = {"residual_time": audit_time_figure(res.data.time_s, w, res.simulated, lab)}
+    if res.data.enu_m is not None:
+        out["residual_position"] = audit_position_figure(res.data.enu_m[w, 0],
+                                                         res.data.enu_m[w, 1],
+                                                         res.simulated, lab)
+    heading = flight.data["yaw_deg"].to_numpy(float)[w] if flight.has("yaw_deg") else None
+    if heading is not None:
+        by = ({k: v["by_heading"] for k, v in res.quality.items()} if res.quality else None)
+        out["residual_heading"] = audit_heading_figure(heading, res.simulated, lab, by)
+    out["gain"] = audit_gain_figure(res.gain)
+    return out
+
+
+def _fmt(v: Any) -> str:
+    if v is None:
+        return "-"
+    if isinstance(v, float):
+        return f"{v:.4g}"
+    if isinstance(v, list):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    return str(v)
+
+
+def _estimate(est: dict) -> str:
+    return ", ".join(f"{k} {_fmt(v)}" for k, v in est.items() if k != "at_acceptance"
+                     and not k.endswith("_by_fold_s"))
+
+
+def log_lines(res: AuditResult) -> list[tuple[int, str]]:
+    from pipeline.report import LOG_INFO, LOG_WARNING
+
+    j = res.to_json()
+    out = [(LOG_INFO, f"audit: baseline {j['baseline']['model']}: held-out calibration "
+                      f"residual {j['baseline']['residual_rms_nT']:.4f} nT, noise floor "
+                      f"{j['noise_floor_nT']:.4f} nT")]
+    for f in res.findings:
+        g = f.heldout
+        out.append((LOG_WARNING, f"audit: finding {f.effect}: {_estimate(f.estimate)}; "
+                                 f"delta BIC {f.test.delta_bic:.1f}, p {f.p_adjusted:.2g}; "
+                                 f"{f.metric.replace('_', ' ')} {g.rms_before_nT:.4f} -> "
+                                 f"{g.rms_after_nT:.4f} nT"))
+    if not res.findings:
+        out.append((LOG_INFO, "audit: no finding: no candidate effect improves held-out data "
+                              "beyond noise"))
+    out.append((LOG_INFO, f"audit: extended model {' + '.join(j['extended_model'])}: "
+                          f"held-out residual {j['unexplained_rms_nT']:.4f} nT"))
+    if res.unexplained:
+        out.append((LOG_WARNING, f"audit: unexplained: {res.unexplained['note']} (dominant "
+                                 f"{res.unexplained['dominant_frequency_hz']:.3f} Hz)"))
+    for k, v in res.gain.items():
+        if v["before"] is not None:
+            out.append((LOG_INFO, f"audit: gain {k}: {v['before']:.4f} -> {v['after']:.4f}"))
+    return out
+
+
+def finding_channel(flight: Flight, res: AuditResult) -> OutputChannel:
+    """``/audit/finding``: one message per accepted effect (and one for unexplained
+    structure), at the first epoch, 1 ns apart."""
+    ch = OutputChannel("/audit/finding", "aeromag.AuditFinding")
+    t0 = int(flight.time_ns[0])
+    for k, f in enumerate(res.findings):
+        ch.add(t0 + k, {
+            "effect": f.effect, "accepted": True,
+            "estimate": jsonable(f.estimate),
+            "delta_bic": f.test.delta_bic if f.test else None,
+            "p_value": f.test.p_value if f.test else None,
+            "p_value_holm": f.p_adjusted,
+            "heldout_p_value": f.heldout.p_value if f.heldout else None,
+            "gain_metric": f.metric,
+            "before_nT": f.heldout.rms_before_nT if f.heldout else None,
+            "after_nT": f.heldout.rms_after_nT if f.heldout else None,
+            "message": f"{f.effect}: {_estimate(f.estimate)}"})
+    if res.unexplained:
+        u = res.unexplained
+        ch.add(t0 + len(res.findings), {
+            "effect": "unexplained", "accepted": False,
+            "estimate": jsonable(u), "delta_bic": None, "p_value": None,
+            "p_value_holm": None, "heldout_p_value": None,
+            "gain_metric": "heldout_calibration_residual_rms",
+            "before_nT": u["noise_floor_nT"], "after_nT": u["rms_nT"], "message": u["note"]})
+    return ch
+
+
+def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
+    j = res.to_json()
+    lines = [f"# Model audit: {source}", "",
+             f"Baseline: **{j['baseline']['model']}** (T-L with eddy terms, constant Earth "
+             "field during calibration, no lag, no diurnal, no auxiliary couplings, vector "
+             "sensor taken as calibrated). Held-out calibration residual "
+             f"{j['baseline']['residual_rms_nT']:.4f} nT; noise floor in the same band "
+             f"{j['noise_floor_nT']:.4f} nT (white sensor noise "
+             f"{j['sensor_noise_nT']:.4f} nT).", "",
+             "## Findings", ""]
+    if res.findings:
+        lines += ["| effect | estimate | delta BIC | p (Holm) | held-out p | gain metric | "
+                  "before nT | after nT |", "|---|---|---|---|---|---|---|---|"]
+        for f in res.findings:
+            lines.append(f"| `{f.effect}` | {_estimate(f.estimate)} | {f.test.delta_bic:.1f} | "
+                         f"{f.p_adjusted:.2g} | {f.heldout.p_value:.2g} | {f.metric} | "
+                         f"{f.heldout.rms_before_nT:.4f} | {f.heldout.rms_after_nT:.4f} |")
+    else:
+        lines.append("No finding: no candidate effect improves held-out data beyond noise.")
+    lines += ["", f"Extended model: **{' + '.join(j['extended_model'])}**; held-out residual "
+                  f"{j['unexplained_rms_nT']:.4f} nT.", ""]
+    if res.unexplained:
+        lines += ["## Unexplained", "", res.unexplained["note"] + f"; the residual's "
+                  f"spectrum peaks at {res.unexplained['dominant_frequency_hz']:.3f} Hz.", ""]
+    lines += ["## Gain", "", "| metric | baseline | extended |", "|---|---|---|"]
+    for k, v in res.gain.items():
+        lines.append(f"| {k} | {_fmt(v['before'])} | {_fmt(v['after'])} |")
+    lines += ["", "## Candidates, round by round", "",
+              "| round | candidate | F p (Holm) | delta BIC | held-out before / after nT | "
+              "held-out p | decision |", "|---|---|---|---|---|---|---|"]
+    for r, rnd in enumerate(res.rounds, 1):
+        for e in rnd:
+            h = e.heldout
+            lines.append(
+                f"| {r} | `{e.key}` | {_fmt(e.p_adjusted) if e.test else '-'} | "
+                f"{_fmt(e.test.delta_bic) if e.test else '-'} | "
+                f"{'-' if h is None else f'{h.rms_before_nT:.4f} / {h.rms_after_nT:.4f}'} | "
+                f"{'-' if h is None else _fmt(h.p_value)} | "
+                f"{'accepted' if e.accepted else e.reason} |")
+    lines += ["", "## Measured vs simulated", ""]
+    captions = {"residual_time": "Residual vs time (calibration passes, band-passed)",
+                "residual_position": "Residual vs position",
+                "residual_heading": "Residual vs heading; heading error at validation "
+                                    "intersections",
+                "gain": "Gain"}
+    for name, path in images.items():
+        lines += [f"### {captions.get(name, name)}", "", f"![{name}]({path})", ""]
+    if res.notes:
+        lines += ["## Notes", ""] + [f"- {n}" for n in res.notes] + [""]
+    return "\n".join(lines)
+
+
+def jsonable(v: Any) -> Any:
+    """Plain JSON values (numpy scalars to float, NaN to null)."""
+    if isinstance(v, dict):
+        return {str(k): jsonable(x) for k, x in v.items()}
+    if isinstance(v, list | tuple):
+        return [jsonable(x) for x in v]
+    if isinstance(v, bool | str) or v is None:
+        return v
+    if isinstance(v, int | np.integer):
+        return int(v)
+    f = float(v)
+    return f if np.isfinite(f) else None

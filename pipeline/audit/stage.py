@@ -1,0 +1,614 @@
+"""The model audit: what the baseline simulation of a measured flight gets wrong, and why.
+
+1. Fit the baseline (T-L on the calibration passes) and simulate the measured flight with the
+   simulator's physics (:func:`pipeline.audit.extended.simulate_measurement`); the residual
+   measured - simulated on the calibration passes (band-passed) and the disagreement between
+   lines (crossovers, validation overlaps) are what the model gets wrong.
+2. Candidate effects, each a physical extension with its own regressors or test, are tried
+   forward-stepwise: in each round every remaining candidate gets a nested-model test
+   (F-test and BIC on the thinned band-passed calibration data; Holm correction over the
+   round's candidates) **and** a held-out test: fitted without the held-out samples (other
+   calibration pass, or alternate chunks of a single pass; validation overlaps for the
+   diurnal), it must lower the held-out residual significantly (one-sided paired test over
+   10 s blocks or points) and by at least ``min_gain``. The best passing candidate joins the
+   model; the round repeats until none passes.
+3. The extended model re-runs compensation, reduction and the quality figures, and the gain
+   is measured: held-out residual, FOM, heading error at validation intersections, crossovers.
+4. Structure left above the noise floor that no candidate explains is reported as such.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import curve_fit, minimize_scalar
+from scipy.signal import welch
+
+from pipeline.audit.evidence import (
+    HeldOut,
+    NestedTest,
+    band_noise_gain,
+    heldout_gain,
+    holm,
+    nested_test,
+    paired_point_gain,
+    thinning_step,
+)
+from pipeline.audit.extended import (
+    AuditData,
+    BandSettings,
+    FittedModel,
+    ModelSpec,
+    design,
+    fit_model,
+    simulate_measurement,
+)
+from pipeline.audit.vector_cal import fit_vector_calibration
+from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
+from pipeline.compensate.model import figure_of_merit
+from pipeline.compensate.stage import calibration_mask
+from pipeline.errors import AeromagError
+from pipeline.io.reader import Flight
+from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
+from pipeline.maps.stage import noise_4th_difference_nT
+from pipeline.segment import Segmentation
+
+EFFECTS = ("geomagnetic_gradient", "sensor_lag", "diurnal", "electrical_current",
+           "vector_calibration")
+
+
+@dataclass
+class AuditSettings:
+    baseline: str = "tl18"
+    alpha: float = 0.01  # family-wise, per round (Holm)
+    min_gain: float = 0.05  # smallest held-out RMS reduction worth a model term (fraction)
+    band: BandSettings = field(default_factory=BandSettings)
+    block_s: float = 10.0
+    unexplained_factor: float = 1.5  # held-out residual / noise floor that counts as structure
+    max_lag_s: float = 1.0
+    chunk_s: float = 30.0  # alternate chunks of a single calibration pass form the folds
+
+
+@dataclass
+class Evaluation:
+    """One candidate in one round."""
+
+    effect: str
+    key: str
+    estimate: dict[str, Any]
+    test: NestedTest | None
+    heldout: HeldOut | None
+    spec: ModelSpec | None
+    p_adjusted: float = 1.0
+    accepted: bool = False
+    reason: str = ""
+    metric: str = "heldout_calibration_residual_rms"
+
+    def passes(self, s: AuditSettings) -> bool:
+        return (self.test is not None and self.heldout is not None
+                and self.p_adjusted < s.alpha and self.test.delta_bic < 0
+                and self.heldout.p_value < s.alpha and self.heldout.reduction >= s.min_gain)
+
+    def why_not(self, s: AuditSettings) -> str:
+        if self.reason:
+            return self.reason
+        out = []
+        if self.test is None or self.p_adjusted >= s.alpha:
+            out.append(f"F-test p {self.p_adjusted:.3g} (Holm) >= {s.alpha}")
+        if self.test is not None and self.test.delta_bic >= 0:
+            out.append(f"delta BIC {self.test.delta_bic:+.1f}")
+        if self.heldout is not None and self.heldout.p_value >= s.alpha:
+            out.append(f"held-out p {self.heldout.p_value:.3g} >= {s.alpha}")
+        if self.heldout is not None and self.heldout.reduction < s.min_gain:
+            out.append(f"held-out gain {100 * self.heldout.reduction:.1f} % < "
+                       f"{100 * s.min_gain:.0f} %")
+        return "; ".join(out)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"effect": self.effect, "key": self.key, "estimate": self.estimate,
+                "delta_bic": None if self.test is None else self.test.delta_bic,
+                "p_value": None if self.test is None else self.test.p_value,
+                "p_value_holm": self.p_adjusted,
+                "f": None if self.test is None else self.test.f,
+                "heldout": None if self.heldout is None else self.heldout.to_dict(),
+                "gain": None if self.heldout is None else {
+                    "metric": self.metric, "before_nT": self.heldout.rms_before_nT,
+                    "after_nT": self.heldout.rms_after_nT},
+                "accepted": self.accepted, "reason": self.reason}
+
+
+@dataclass
+class AuditResult:
+    baseline: FittedModel
+    extended: FittedModel
+    findings: list[Evaluation]
+    rounds: list[list[Evaluation]]
+    heldout_baseline_nT: float
+    heldout_extended_nT: float
+    noise_floor_nT: float
+    sensor_noise_nT: float
+    unexplained: dict[str, Any] | None
+    gain: dict[str, dict[str, float | None]]
+    compensated: dict[str, np.ndarray]  # "baseline", "extended"
+    simulated: dict[str, np.ndarray]  # measured-vs-simulated residual, band-passed, cal epochs
+    residual_epochs: np.ndarray
+    quality: dict[str, Any]  # "baseline"/"extended" quality summaries (or empty)
+    data: AuditData
+    passes: list[np.ndarray]
+    notes: list[str]
+
+    def to_json(self) -> dict[str, Any]:
+        """AUDIT.json (issue 6 contract plus details)."""
+        return {
+            "baseline": {"model": self.baseline.spec.base,
+                         "residual_rms_nT": self.heldout_baseline_nT,
+                         "fit_residual_nT": self.baseline.fit_residual_nT,
+                         "lambda": self.baseline.lambda_},
+            "findings": [{"effect": f.effect, "estimate": f.estimate,
+                          "delta_bic": f.test.delta_bic if f.test else None,
+                          "p_value": f.test.p_value if f.test else None,
+                          "p_value_holm": f.p_adjusted,
+                          "heldout_p_value": f.heldout.p_value if f.heldout else None,
+                          "gain": {"metric": f.metric,
+                                   "before_nT": f.heldout.rms_before_nT,
+                                   "after_nT": f.heldout.rms_after_nT} if f.heldout else None}
+                         for f in self.findings],
+            "extended_model": self.extended.spec.label(),
+            "unexplained_rms_nT": self.heldout_extended_nT,
+            "noise_floor_nT": self.noise_floor_nT,
+            "unexplained": self.unexplained,
+            "sensor_noise_nT": self.sensor_noise_nT,
+            "gain": self.gain,
+            "extended": {"residual_rms_nT": self.heldout_extended_nT,
+                         "fit_residual_nT": self.extended.fit_residual_nT,
+                         "lambda": self.extended.lambda_,
+                         "terms": self.extended.names,
+                         "coefficients": [float(c) for c in self.extended.theta]},
+            "rounds": [[e.to_dict() for e in r] for r in self.rounds],
+            "notes": self.notes,
+        }
+
+
+# --------------------------------------------------------------------------------------------
+def _folds(mask: np.ndarray, passes: list[np.ndarray], time_s: np.ndarray, chunk_s: float
+           ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(train, test) masks: leave one calibration pass out, or alternate chunks of one."""
+    inside = [p[mask[p]] for p in passes if mask[p].any()]
+    if len(inside) >= 2:
+        out = []
+        for p in inside:
+            test = np.zeros(mask.size, bool)
+            test[p] = True
+            out.append((mask & ~test, test))
+        return out
+    idx = np.flatnonzero(mask)
+    chunk = np.floor((time_s[idx] - time_s[idx[0]]) / chunk_s).astype(int) % 2
+    a = np.zeros(mask.size, bool)
+    a[idx[chunk == 0]] = True
+    b = mask & ~a
+    return [(a, b), (b, a)]
+
+
+class Auditor:
+    """Runs the audit on one flight (see the module docstring)."""
+
+    def __init__(self, flight: Flight, seg: Segmentation, settings: AuditSettings):
+        self.flight, self.seg, self.s = flight, seg, settings
+        self.mask = calibration_mask(flight, seg, "auto")
+        self.data = AuditData.from_flight(flight, self.mask)
+        self.passes = seg.passes()
+        self.folds = _folds(self.mask, self.passes, self.data.time_s, settings.chunk_s)
+        self.step = thinning_step(self.data.rate_hz, settings.band.band_hz)
+        self.notes: list[str] = []
+        self._fit_cache: dict[tuple, FittedModel] = {}
+
+    # -- fitting helpers ------------------------------------------------------------------
+    def fit(self, spec: ModelSpec, mask: np.ndarray, key: str) -> FittedModel:
+        ck = (spec, key)
+        if ck not in self._fit_cache:
+            self._fit_cache[ck] = fit_model(self.data, spec, mask, self.s.band)
+        return self._fit_cache[ck]
+
+    def heldout(self, before: ModelSpec, after_for_fold) -> HeldOut:
+        """Held-out band-passed residuals of two models over the folds; ``after_for_fold``
+        builds the extended spec from the training mask (parameters estimated there)."""
+        rb, ra, tt = [], [], []
+        for k, (train, test) in enumerate(self.folds):
+            mb = self.fit(before, train, f"fold{k}")
+            spec_a = after_for_fold(train, k)
+            ma = self.fit(spec_a, train, f"fold{k}")
+            r0, w0 = mb.residual_bp(self.data, test, self.s.band)
+            r1, w1 = ma.residual_bp(self.data, test, self.s.band)
+            common, i0, i1 = np.intersect1d(w0, w1, return_indices=True)
+            rb.append(r0[i0])
+            ra.append(r1[i1])
+            tt.append(self.data.time_s[common])
+        return heldout_gain(np.concatenate(rb), np.concatenate(ra), np.concatenate(tt),
+                            self.s.block_s)
+
+    def _nested(self, spec: ModelSpec, extra: np.ndarray | None = None,
+                ext_spec: ModelSpec | None = None) -> NestedTest:
+        """Nested test on the whole calibration: ``spec``'s columns vs ``ext_spec``'s (or
+        plus the unfiltered ``extra`` columns), band-passed on the same blocks."""
+        des = design(self.data, spec)
+        if ext_spec is not None:
+            des_e = design(self.data, ext_spec)
+            cols_e = des_e.columns
+        else:
+            cols_e = np.column_stack([des.columns, extra])
+        valid = (self.mask & np.isfinite(des.y) & np.all(np.isfinite(cols_e), axis=1)
+                 & np.all(np.isfinite(des.columns), axis=1))
+        blocks = contiguous_blocks(valid, self.data.time_s)
+        sos = bandpass_sos(self.s.band.band_hz, self.data.rate_hz, self.s.band.poles)
+        kb, _ = bandpass_blocks(des.columns, blocks, sos, self.s.band.trim)
+        ke, _ = bandpass_blocks(cols_e, blocks, sos, self.s.band.trim)
+        yf, _ = bandpass_blocks(des.y, blocks, sos, self.s.band.trim)
+        return nested_test(yf, kb, ke, self.step)
+
+    # -- candidates -----------------------------------------------------------------------
+    def candidates(self, current: ModelSpec) -> list[tuple[str, str]]:
+        out = []
+        if not current.gradient and self.data.enu_m is not None:
+            out.append(("geomagnetic_gradient", "geomagnetic_gradient"))
+        if not current.lag_s:
+            out.append(("sensor_lag", "sensor_lag"))
+        if not current.diurnal and self.flight.has("base_nT") and self.seg.mask("tie").any():
+            out.append(("diurnal", "diurnal"))
+        for name, x in self.data.aux.items():
+            if name in current.aux:
+                continue
+            xc = x[self.mask]
+            if np.isfinite(xc).sum() > 100 and np.nanstd(xc) > 1e-9:
+                out.append(("electrical_current", f"electrical_current:{name}"))
+        if current.vector_cal is None:
+            out.append(("vector_calibration", "vector_calibration"))
+        return out
+
+    def evaluate(self, current: ModelSpec, effect: str, key: str) -> Evaluation:
+        try:
+            return getattr(self, f"_eval_{effect}")(current, key)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            return Evaluation(effect, key, {}, None, None, None,
+                              reason=f"could not be tested: {exc}")
+
+    def _eval_geomagnetic_gradient(self, current: ModelSpec, key: str) -> Evaluation:
+        ext = current.with_(gradient=True)
+        test = self._nested(current, ext_spec=ext)
+        held = self.heldout(current, lambda train, k: ext)
+        full = self.fit(ext, self.mask, "all")
+        c = dict(zip(full.names, full.theta, strict=True))
+        est = {"east_nT_per_m": float(c["pos_e"]), "north_nT_per_m": float(c["pos_n"]),
+               "up_nT_per_m": float(c["pos_up"])}
+        return Evaluation("geomagnetic_gradient", key, est, test, held, ext)
+
+    def _lag_estimate(self, current: ModelSpec, mask: np.ndarray) -> float:
+        """The lag minimising the refitted model's residual: a coarse grid over
+        +-``max_lag_s`` (the eddy terms absorb part of a lag, so a linearised estimate with
+        the baseline's coefficients is biased low), then a bounded 1-D refinement."""
+        lam = self.fit(current, mask, f"lag-{id(mask)}").lambda_
+
+        def cost(tau: float) -> float:
+            try:
+                return fit_model(self.data, current.with_(lag_s=float(tau)), mask, self.s.band,
+                                 ridge=lam).fit_residual_nT
+            except ValueError:
+                return np.inf
+
+        step = 0.05
+        grid = np.arange(-self.s.max_lag_s, self.s.max_lag_s + step / 2, step)
+        costs = [cost(float(t)) for t in grid]
+        best = float(grid[int(np.argmin(costs))])
+        res = minimize_scalar(cost, bounds=(best - step, best + step), method="bounded",
+                              options={"xatol": 1e-4})
+        return float(res.x)
+
+    def _eval_sensor_lag(self, current: ModelSpec, key: str) -> Evaluation:
+        des = design(self.data, current)
+        dy = np.gradient(des.y, self.data.time_s)
+        test = self._nested(current, extra=dy[:, None])
+        lags = {}
+
+        def ext_for(train, k):
+            lags[k] = self._lag_estimate(current, train)
+            return current.with_(lag_s=lags[k])
+
+        held = self.heldout(current, ext_for)
+        lag = self._lag_estimate(current, self.mask)
+        est = {"lag_s": lag, "lag_by_fold_s": [lags[k] for k in sorted(lags)]}
+        return Evaluation("sensor_lag", key, est, test, held, current.with_(lag_s=lag))
+
+    def _eval_electrical_current(self, current: ModelSpec, key: str) -> Evaluation:
+        name = key.split(":", 1)[1]
+        ext = current.with_(aux=current.aux + (name,))
+        test = self._nested(current, ext_spec=ext)
+        held = self.heldout(current, lambda train, k: ext)
+        full = self.fit(ext, self.mask, "all")
+        coupling = full.coefficient(f"aux_{name}_u")
+        mag = float(np.linalg.norm(coupling))
+        est = {"channel": f"/aux/{name}", "nT_per_unit": mag,
+               "unit": self.data.aux_units.get(name, ""),
+               "direction_body": [float(v) for v in coupling / mag] if mag > 0 else None}
+        return Evaluation("electrical_current", key, est, test, held, ext)
+
+    def _eval_vector_calibration(self, current: ModelSpec, key: str) -> Evaluation:
+        from pipeline.compensate.terms import direction_cosines
+
+        base = self.fit(current, self.mask, "all")
+        comp, _ = base.compensate(self.data)
+        ref = time_window_mean(self.data.time_s, comp, 2.0)  # the Earth field, noise smoothed
+        m = self.data.vector_nT
+        sel = self.mask & np.isfinite(ref) & np.all(np.isfinite(m), axis=1)
+        mismatch = np.linalg.norm(m, axis=1) - ref
+        u = direction_cosines(m)
+        quad = np.column_stack([u[:, i] * u[:, j] for i, j in
+                                ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2))])
+        ones = np.ones((m.shape[0], 1))
+        # attitude dependence of |m| - B: offsets (u) and scale/non-orthogonality (u u)
+        test = nested_test(mismatch[sel], ones[sel], np.column_stack([ones, u, quad])[sel],
+                           max(self.step, 5))
+
+        def ext_for(train, k):
+            fb = self.fit(current, train, f"fold{k}")
+            c, _ = fb.compensate(self.data)
+            r = time_window_mean(self.data.time_s, c, 2.0)
+            vc = fit_vector_calibration(m[train], r[train])
+            return current.with_(vector_cal=vc)
+
+        held = self.heldout(current, ext_for)
+        vc = fit_vector_calibration(m[sel], ref[sel])
+        est = {**vc.sensor_errors(), "mismatch_rms_before_nT": vc.residual_before_nT,
+               "mismatch_rms_after_nT": vc.residual_after_nT}
+        return Evaluation("vector_calibration", key, est, test, held,
+                          current.with_(vector_cal=vc))
+
+    def _crossover_data(self, spec: ModelSpec):
+        """Crossover and validation-overlap differences of ``spec``'s compensated field,
+        reduced by IGRF only, with the base-station difference at each."""
+        from pipeline.geo.local import LocalFrame
+        from pipeline.maps.level import Line, crossovers
+        from pipeline.maps.reduce import igrf_total_nT
+        from pipeline.quality.overlap import track_intersections
+        from pipeline.quality.stage import flight_tracks
+
+        d = self.flight.data
+        lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
+        comp, _ = self.fit(spec, self.mask, "all").compensate(self.data)
+        red = comp - igrf_total_nT(self.flight.time_ns, lat, lon, alt)
+        base = time_window_mean(self.data.time_s, d["base_nT"].to_numpy(float),
+                                BASE_SMOOTHING_S)
+        sel = self.seg.mask("survey")
+        frame = LocalFrame(float(np.nanmean(lat[sel])), float(np.nanmean(lon[sel])))
+        e, n, _ = frame.to_enu(lat, lon)
+        tracks = flight_tracks(self.seg, e, n)
+        t = self.data.time_s
+
+        def line(tr):
+            return Line(tr.line_id, tr.kind, tr.east_m, tr.north_m, t[tr.index],
+                        red[tr.index], tr.index)
+        survey = [line(tr) for tr in tracks if tr.kind == "survey"]
+        ties = [line(tr) for tr in tracks if tr.kind == "tie"]
+        xs = crossovers(survey, ties)
+        heading = {tr.line_id: int(round(tr.heading_deg / 90.0)) % 4 for tr in tracks}
+        dx = np.array([c.difference_nT for c in xs])
+        db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base)
+                       for c in xs])
+        groups = [f"{heading[c.line_a]}{heading[c.line_b]}" for c in xs]
+        tie_of = [c.line_b for c in xs]
+        val = [tr for tr in tracks if tr.kind == "validation"]
+        ov = track_intersections(val, [tr for tr in tracks if tr.kind in ("survey", "tie")])
+        return dx, db, groups, tie_of, ov, red, base
+
+    def _eval_diurnal(self, current: ModelSpec, key: str) -> Evaluation:
+        import statsmodels.api as sm
+
+        dx, db, groups, tie_of, ov, red, base = self._crossover_data(current)
+        if dx.size < 8:
+            return Evaluation("diurnal", key, {}, None, None, None,
+                              reason=f"only {dx.size} survey-tie crossovers")
+        labels = sorted(set(groups))
+        dummies = np.array([[g == lab for lab in labels] for g in groups], float)
+        test = nested_test(dx, dummies, np.column_stack([dummies, db]), 1)
+        beta = float(sm.OLS(dx, np.column_stack([dummies, db])).fit().params[-1])
+        if ov.count >= 8:
+            held = paired_point_gain(ov.differences(red), ov.differences(red - base))
+            metric = "heldout_validation_overlap_rms"
+        else:  # crossovers of every other tie line, with the others' coefficient
+            ties = sorted(set(tie_of))
+            odd = np.isin(tie_of, ties[1::2])
+            b_odd = float(sm.OLS(dx[~odd], np.column_stack([dummies, db])[~odd]).fit(
+            ).params[-1]) if (~odd).sum() > dummies.shape[1] + 2 else 1.0
+            held = paired_point_gain(dx[odd] - dx[odd].mean(),
+                                     (dx[odd] - b_odd * db[odd]) - (dx[odd] - b_odd
+                                                                    * db[odd]).mean())
+            metric = "heldout_crossover_rms"
+        est = {"base_coefficient": beta, **_diurnal_shape(self.data.time_s, base)}
+        ev = Evaluation("diurnal", key, est, test, held, current.with_(diurnal=True))
+        ev.metric = metric
+        return ev
+
+    # -- the whole audit ------------------------------------------------------------------
+    def cv_residual(self, spec: ModelSpec) -> tuple[float, np.ndarray, np.ndarray]:
+        r, tt = [], []
+        for k, (train, test) in enumerate(self.folds):
+            m = self.fit(spec, train, f"fold{k}")
+            rr, w = m.residual_bp(self.data, test, self.s.band)
+            r.append(rr)
+            tt.append(w)
+        rc, wc = np.concatenate(r), np.concatenate(tt)
+        return float(np.sqrt(np.mean(rc**2))), rc, wc
+
+    def run(self, progress=None) -> tuple[ModelSpec, list[Evaluation], list[list[Evaluation]]]:
+        current = ModelSpec(base=self.s.baseline)
+        findings: list[Evaluation] = []
+        rounds: list[list[Evaluation]] = []
+        while True:
+            cands = self.candidates(current)
+            if not cands:
+                break
+            evals = []
+            for effect, key in cands:
+                if progress:
+                    progress(f"round {len(rounds) + 1}: testing {key}")
+                evals.append(self.evaluate(current, effect, key))
+            tested = [e for e in evals if e.test is not None]
+            for e, p in zip(tested, holm([e.test.p_value for e in tested]), strict=True):
+                e.p_adjusted = p
+            rounds.append(evals)
+            passing = [e for e in evals if e.passes(self.s)]
+            for e in evals:
+                if not e.passes(self.s) and not e.reason:
+                    e.reason = e.why_not(self.s)
+            if not passing:
+                break
+            best = max(passing, key=lambda e: e.heldout.reduction)
+            best.accepted = True
+            findings.append(best)
+            for e in passing:
+                if e is not best:
+                    e.reason = "passed; re-tested in the next round with the better one in"
+            current = best.spec
+        return self.refine(current, findings), findings, rounds
+
+    @staticmethod
+    def without(spec: ModelSpec, f: Evaluation) -> ModelSpec:
+        """``spec`` with finding ``f``'s extension taken out."""
+        if f.effect == "geomagnetic_gradient":
+            return spec.with_(gradient=False)
+        if f.effect == "sensor_lag":
+            return spec.with_(lag_s=0.0)
+        if f.effect == "diurnal":
+            return spec.with_(diurnal=False)
+        if f.effect == "vector_calibration":
+            return spec.with_(vector_cal=None)
+        name = f.key.split(":", 1)[1]
+        return spec.with_(aux=tuple(a for a in spec.aux if a != name))
+
+    def refine(self, spec: ModelSpec, findings: list[Evaluation]) -> ModelSpec:
+        """Re-estimate every accepted effect with all the others in the model.
+
+        An effect accepted early was estimated while later ones were still unmodelled (a
+        lag estimated before a current coupling is biased by it); the estimates reported
+        are these, with the others present. The acceptance statistics stay those of the
+        round that accepted the effect.
+        """
+        order = sorted(findings, key=lambda f: f.effect != "sensor_lag")  # lag first
+        for f in order:
+            e = self.evaluate(self.without(spec, f), f.effect, f.key)
+            if not e.estimate:
+                continue
+            f.estimate = {**e.estimate, "at_acceptance": f.estimate}
+            if f.effect in ("sensor_lag", "vector_calibration") and e.spec is not None:
+                spec = e.spec
+        return spec
+
+
+def _diurnal_shape(time_s: np.ndarray, base: np.ndarray) -> dict[str, float | None]:
+    """Amplitude and period of the base-station variation (a sinusoid fitted to it)."""
+    ok = np.isfinite(base)
+    t, b = time_s[ok], base[ok] - np.nanmean(base)
+    span = float(t[-1] - t[0]) if t.size else 0.0
+    if t.size < 20 or span <= 0:
+        return {"amplitude_nT": None, "period_s": None}
+    best = None
+    for p0 in (span / 2, span, 2 * span):
+        try:
+            par, _ = curve_fit(lambda x, a, p, ph, c: a * np.sin(2 * np.pi * x / p + ph) + c,
+                               t, b, p0=[np.std(b) * 1.4, p0, 0.0, 0.0], maxfev=20_000)
+        except (RuntimeError, ValueError):
+            continue
+        r = np.mean((b - (par[0] * np.sin(2 * np.pi * t / par[1] + par[2]) + par[3])) ** 2)
+        if best is None or r < best[0]:
+            best = (r, par)
+    if best is None:
+        return {"amplitude_nT": float(np.ptp(b) / 2), "period_s": None}
+    a, p = abs(float(best[1][0])), abs(float(best[1][1]))
+    # a period much longer than the record is not determined: report the range instead
+    return {"amplitude_nT": a if p < 4 * span else float(np.ptp(b) / 2),
+            "period_s": p if p < 4 * span else None}
+
+
+def _quality_figures(flight: Flight, seg: Segmentation, comp: np.ndarray, subtract_base: bool
+                     ) -> dict[str, Any] | None:
+    from pipeline.quality.stage import QualitySettings, run_quality
+
+    if not (seg.mask("survey").sum() > 100 and flight.has("lat_deg", "alt_m")):
+        return None
+    q = run_quality(flight, seg, {"raw": flight.data["scalar_nT"].to_numpy(float),
+                                  "model": comp},
+                    settings=QualitySettings(subtract_base=subtract_base))
+    s = q.summary()
+    xo = q.crossover_stats()
+    return {"heading_error_rms_nT": s["heading_error_rms_nT"]["model"],
+            "crossover_rms_nT": xo["before"]["rms_nT"] if xo["count"] else None,
+            "intersections": s["intersections"],
+            "by_heading": s["heading_error"]["intersections"]["by_state"]["model"][
+                "by_heading"]}
+
+
+def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None = None,
+              progress=None) -> AuditResult:
+    """Audit ``flight`` (see the module docstring)."""
+    s = settings or AuditSettings()
+    if not seg.passes():
+        raise AeromagError("the audit needs a calibration pass (no manoeuvres found)",
+                           file=flight.source, channel="/ins/attitude")
+    aud = Auditor(flight, seg, s)
+    final_spec, findings, rounds = aud.run(progress)
+    data = aud.data
+    base_spec = ModelSpec(base=s.baseline)
+    baseline = aud.fit(base_spec, aud.mask, "all")
+    extended = aud.fit(final_spec, aud.mask, "all")
+    if progress:
+        progress("measuring the gain")
+    cv_b, _, _ = aud.cv_residual(base_spec)
+    cv_e, r_e, w_e = aud.cv_residual(final_spec)
+    # noise: white sensor noise from the 4th difference, through the same band-pass
+    sigma = float(np.nanmedian([noise_4th_difference_nT(data.scalar_nT[b])
+                                for b in contiguous_blocks(np.isfinite(data.scalar_nT),
+                                                           data.time_s) if b.size > 200]))
+    floor = sigma * band_noise_gain(data.rate_hz, s.band.band_hz, s.band.poles)
+    unexplained = None
+    if cv_e > s.unexplained_factor * floor:
+        f, pxx = welch(r_e, fs=data.rate_hz, nperseg=min(1024, r_e.size))
+        unexplained = {
+            "rms_nT": cv_e, "noise_floor_nT": floor, "ratio": cv_e / floor,
+            "dominant_frequency_hz": float(f[np.argmax(pxx)]),
+            "note": (f"held-out calibration residual {cv_e:.4f} nT is {cv_e / floor:.1f}x the "
+                     f"noise floor {floor:.4f} nT and no candidate effect explains it")}
+    comp_b, _ = baseline.compensate(data)
+    comp_e, _ = extended.compensate(data)
+    t = data.time_s
+    boxes = seg.boxes()
+    fom_b = figure_of_merit(t, data.scalar_nT, comp_b, boxes).total if boxes else None
+    fom_e = figure_of_merit(t, data.scalar_nT, comp_e, boxes).total if boxes else None
+    q_b = _quality_figures(flight, seg, comp_b, subtract_base=False)
+    q_e = _quality_figures(flight, seg, comp_e, subtract_base=final_spec.diurnal)
+    gain = {"heldout_calibration_residual_rms_nT": {"before": cv_b, "after": cv_e},
+            "fom_nT": {"before": fom_b["compensated"] if fom_b else None,
+                       "after": fom_e["compensated"] if fom_e else None},
+            "heading_error_rms_nT": {"before": q_b["heading_error_rms_nT"] if q_b else None,
+                                     "after": q_e["heading_error_rms_nT"] if q_e else None},
+            "crossover_rms_nT": {"before": q_b["crossover_rms_nT"] if q_b else None,
+                                 "after": q_e["crossover_rms_nT"] if q_e else None}}
+    # measured vs simulated (simulator physics), band-passed over the calibration passes
+    sim_res, where = {}, None
+    sos = bandpass_sos(s.band.band_hz, data.rate_hz, s.band.poles)
+    for name, fm, comp in (("baseline", baseline, comp_b), ("extended", extended, comp_e)):
+        earth = time_window_mean(t, comp, 20.0)
+        resid = design(data, fm.spec).y - simulate_measurement(data, fm, earth)
+        valid = aud.mask & np.isfinite(resid)
+        rr, ww = bandpass_blocks(resid, contiguous_blocks(valid, t), sos, s.band.trim)
+        if where is None:
+            where = ww
+        full = np.full(t.size, np.nan)
+        full[ww] = rr
+        sim_res[name] = full[where]
+    notes = list(aud.notes)
+    if len(aud.folds) == 2 and len([p for p in aud.passes if aud.mask[p].any()]) < 2:
+        notes.append("one calibration pass: held out by alternate 30 s chunks")
+    quality = {"baseline": q_b, "extended": q_e} if q_b else {}
+    return AuditResult(baseline, extended, findings, rounds, cv_b, cv_e, floor, sigma,
+                       unexplained, gain, {"baseline": comp_b, "extended": comp_e}, sim_res,
+                       where, quality, data, aud.passes, notes)

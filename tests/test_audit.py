@@ -1,0 +1,191 @@
+"""The model audit: hidden effects are found and named, clean data give no finding."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from pipeline.audit import AuditData, ModelSpec, fit_model, run_audit, simulate_measurement
+from pipeline.audit.extended import FittedModel
+from pipeline.compensate import FitSettings, tl18_truth_coefficients
+from pipeline.compensate.stage import calibration_mask, run_compensation
+from pipeline.compensate.terms import tl18_terms
+from pipeline.io.reader import read_flight
+from pipeline.segment import segment_flight
+from pipeline.simulate import write_simulation
+from tests.conftest import QUIET, run_sim, sha256
+from tests.test_schemas import validate_every_message
+
+# two calibration boxes (one is held out while the other fits) flown over quiet ground
+AUDIT = ["calibration.passes=2", "anomaly.quiet_calibration_m=400.0"]
+SEED = 3
+
+
+def audited(tmp_path, effects=(), extra=(), seed=SEED, mutate=None):
+    sim = run_sim("uav-small", seed, [*AUDIT, *[f"effects.{e}.enabled=true" for e in effects],
+                                      *extra])
+    if mutate:
+        mutate(sim)
+    flight = read_flight(write_simulation(sim, tmp_path / "f.mcap"))
+    seg = segment_flight(flight)
+    return sim, flight, seg, run_audit(flight, seg)
+
+
+def found(res) -> dict[str, dict]:
+    return {f.effect: f.estimate for f in res.findings}
+
+
+def test_clean_recording_gives_no_finding(tmp_path):
+    _, _, _, res = audited(tmp_path)
+    j = res.to_json()
+    assert j["findings"] == [] and j["extended_model"] == ["tl18"]
+    assert j["unexplained"] is None
+    assert j["unexplained_rms_nT"] <= 1.5 * j["noise_floor_nT"]
+    # every candidate was tested and rejected with a stated reason
+    keys = {e["key"] for e in j["rounds"][0]}
+    assert {"geomagnetic_gradient", "sensor_lag", "diurnal", "vector_calibration",
+            "electrical_current:payload_current"} <= keys
+    assert all(e["reason"] and not e["accepted"] for e in j["rounds"][0])
+
+
+@pytest.mark.parametrize("effect", ["geomagnetic_gradient", "sensor_lag", "diurnal",
+                                    "electrical_current", "vector_calibration"])
+def test_a_hidden_effect_is_found_named_and_estimated(tmp_path, effect):
+    sim, _, _, res = audited(tmp_path, [effect])
+    est = found(res)
+    assert set(est) == {effect}, res.to_json()["rounds"]
+    truth = sim.truth
+    if effect == "geomagnetic_gradient":
+        g = truth["effective"]["gradient_nT_per_m"]
+        assert est[effect]["east_nT_per_m"] == pytest.approx(g[0], rel=0.10)
+        assert est[effect]["north_nT_per_m"] == pytest.approx(g[1], rel=0.10)
+    elif effect == "sensor_lag":
+        assert est[effect]["lag_s"] == pytest.approx(truth["effective"]["sensor_lag_s"],
+                                                     abs=0.005)
+    elif effect == "diurnal":
+        p = truth["effects"]["diurnal"]
+        assert est[effect]["base_coefficient"] == pytest.approx(1.0, abs=0.1)
+        assert est[effect]["amplitude_nT"] == pytest.approx(p["amplitude_nT"], rel=0.2)
+    elif effect == "electrical_current":
+        p = truth["effects"]["electrical_current"]
+        assert est[effect]["channel"] == f"/aux/{p['channel']}" and est[effect]["unit"] == "A"
+        assert est[effect]["nT_per_unit"] == pytest.approx(p["coupling_nT_per_A"], rel=0.10)
+        d = np.asarray(p["direction_body"]) / np.linalg.norm(p["direction_body"])
+        assert np.dot(est[effect]["direction_body"], d) > 0.99
+    else:
+        # observable: the sensor errors combined with the carrier's soft iron at the fluxgate
+        fe = truth["fluxgate_errors"]
+        soft = np.diag(truth["interference"]["vector"]["induced"])
+        np.testing.assert_allclose(est[effect]["scale_error"][:2],
+                                   (np.asarray(fe["scale_error"]) + soft)[:2], atol=0.004)
+        np.testing.assert_allclose(est[effect]["nonorthogonality_deg"],
+                                   fe["nonorthogonality_deg"], atol=0.1)
+    f = res.findings[0]
+    assert f.heldout.rms_after_nT < 0.8 * f.heldout.rms_before_nT
+    assert f.test.delta_bic < 0 and f.p_adjusted < 0.01
+    assert res.unexplained is None
+    # the extension pays off on the survey, not only on the calibration passes
+    gain = res.gain
+    assert gain["heading_error_rms_nT"]["after"] < gain["heading_error_rms_nT"]["before"]
+
+
+def test_several_effects_at_once(tmp_path):
+    effects = ["geomagnetic_gradient", "sensor_lag", "electrical_current", "diurnal"]
+    sim, _, _, res = audited(tmp_path, effects)
+    est = found(res)
+    assert set(est) == set(effects)
+    assert est["sensor_lag"]["lag_s"] == pytest.approx(0.1, abs=0.005)
+    assert est["geomagnetic_gradient"]["east_nT_per_m"] == pytest.approx(0.318, rel=0.10)
+    assert est["electrical_current"]["nT_per_unit"] == pytest.approx(3.0, rel=0.10)
+    assert est["diurnal"]["base_coefficient"] == pytest.approx(1.0, abs=0.1)
+    g = res.gain
+    assert g["heading_error_rms_nT"]["after"] < 0.1 * g["heading_error_rms_nT"]["before"]
+    assert g["heldout_calibration_residual_rms_nT"]["after"] < 0.2 * g[
+        "heldout_calibration_residual_rms_nT"]["before"]
+
+
+def test_structure_outside_the_catalogue_is_reported_as_unexplained(tmp_path):
+    """A 0.25 Hz, 0.4 nT oscillation on the scalar sensor (a gimbal motor, say) that no
+    candidate effect produces: no finding, and the residual above the floor is reported."""
+    def gimbal(sim):
+        s = sim.streams["/mag/scalar"]
+        s["cols"]["total_nT"] = s["cols"]["total_nT"] + 0.4 * np.sin(2 * np.pi * 0.25 * s["t"])
+
+    _, _, _, res = audited(tmp_path, mutate=gimbal)
+    j = res.to_json()
+    assert j["findings"] == []
+    u = j["unexplained"]
+    assert u is not None and u["ratio"] > 3.0
+    assert u["dominant_frequency_hz"] == pytest.approx(0.25, abs=0.03)
+
+
+def test_baseline_is_the_production_tl18_model(tmp_path):
+    sim = run_sim("uav-small", SEED, AUDIT)
+    flight = read_flight(write_simulation(sim, tmp_path / "f.mcap"))
+    seg = segment_flight(flight)
+    mask = calibration_mask(flight, seg, "auto")
+    ours = fit_model(AuditData.from_flight(flight, mask), ModelSpec("tl18"), mask)
+    prod = run_compensation(flight, seg, FitSettings(model="tl18")).model
+    np.testing.assert_allclose(ours.theta, prod.coefficients, rtol=1e-9, atol=1e-9)
+
+
+def test_simulated_measurement_reproduces_the_simulator():
+    """With the true coefficients and Earth field, the audit's forward model (simulator
+    physics driven by the measured vector) reproduces the recorded scalar field."""
+    sim = run_sim("calibration-only", 4, ["calibration.passes=1", *QUIET,
+                                          "vector_interference.permanent_nT=[0.0,0.0,0.0]",
+                                          "vector_interference.induced=[[0.0,0.0,0.0],"
+                                          "[0.0,0.0,0.0],[0.0,0.0,0.0]]",
+                                          "vector_interference.eddy_s=[[0.0,0.0,0.0],"
+                                          "[0.0,0.0,0.0],[0.0,0.0,0.0]]"])
+    tr = sim.truth["interference"]["scalar"]
+    theta = tl18_truth_coefficients(tr["permanent_nT"], tr["induced"], tr["eddy_s"])
+    vec = np.stack([sim.streams["/mag/vector"]["cols"][k] for k in ("x_nT", "y_nT", "z_nT")],
+                   -1)
+    t = sim.streams["/mag/vector"]["t"]
+    scalar = sim.streams["/mag/scalar"]["cols"]["total_nT"]
+    data = AuditData(t, scalar, vec, None)
+    names = tl18_terms(vec[:3], t[:3])[1]
+    fm = FittedModel(ModelSpec("tl18"), names, np.ones(18, bool), theta, 0.0, 0, 0.0)
+    pred = simulate_measurement(data, fm, sim.series["earth_total_nT"])
+    inner = slice(10, -10)
+    err = (pred - scalar)[inner]
+    assert np.sqrt(np.mean(err**2)) < 0.02 * np.std(sim.series["interference_nT"])
+    assert np.sqrt(np.mean(err**2)) < 0.2
+
+
+def test_audit_command_writes_the_contract(tmp_path):
+    sim = run_sim("uav-small", SEED, [*AUDIT, "effects.sensor_lag.enabled=true"])
+    src = write_simulation(sim, tmp_path / "lag.mcap")
+    before = sha256(src)
+    res = subprocess.run([sys.executable, "-m", "flows.cli", "audit", str(src), "--json",
+                          str(tmp_path / "audit.json"), "--report", str(tmp_path / "rep"),
+                          "--out", str(tmp_path / "out.mcap")], capture_output=True,
+                         text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert sha256(src) == before
+    j = json.loads((tmp_path / "audit.json").read_text())
+    assert j["baseline"]["model"] == "tl18" and j["baseline"]["residual_rms_nT"] > 0
+    assert [f["effect"] for f in j["findings"]] == ["sensor_lag"]
+    f = j["findings"][0]
+    assert set(f) >= {"effect", "estimate", "delta_bic", "p_value", "gain"}
+    assert set(f["gain"]) == {"metric", "before_nT", "after_nT"}
+    assert f["gain"]["after_nT"] < f["gain"]["before_nT"]
+    assert j["extended_model"] == ["tl18", "sensor_lag"]
+    assert 0 < j["noise_floor_nT"] < j["unexplained_rms_nT"] < j["baseline"]["residual_rms_nT"]
+    text = (tmp_path / "rep" / "report.md").read_text()
+    assert "sensor_lag" in text
+    for name in ("residual_time", "residual_position", "residual_heading", "gain"):
+        png = tmp_path / "rep" / f"audit_{name}.png"
+        assert png.stat().st_size > 10000 and png.name in text
+    assert "sensor_lag" in res.stdout
+    out = tmp_path / "out.mcap"
+    assert validate_every_message(out) > 0
+    from tests.test_writer import records
+
+    msgs = [m for m in records(out)[0] if m[0] == "/audit/finding"]
+    assert len(msgs) == 1
