@@ -316,6 +316,34 @@ def _print_audit(j: dict) -> None:
             say(f"gain {k}: {v['before']:.4f} -> {v['after']:.4f}")
 
 
+@app.command()
+def vector(
+    recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
+    out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
+    json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write.")],
+    method: Annotated[str, typer.Option(help="ellipsoid-kf (online hard/soft-iron "
+                                             "calibration -> /mag/vector/calibrated), "
+                                             "component-kf or batch (21-parameter "
+                                             "compensation -> /mag/vector/compensated)")
+                      ] = "component-kf",
+) -> None:
+    """Calibrate or compensate the vector magnetometer (papers 003 and 000)."""
+    from flows.stages import require_readable, vector_recording
+    from pipeline.vector.stage import METHODS
+
+    require_readable(recording)
+    if method not in METHODS:
+        _fail(f"--method {method!r}: use one of {', '.join(METHODS)}")
+    with console.status(f"vector stage ({method}) on {recording.name}"):
+        summary = vector_recording(recording, out_path, json_out, method)
+    v = summary["vector"]
+    for k, val in v.items():
+        if isinstance(val, dict) and "before" in val and not isinstance(val["before"], list):
+            say(f"{k}: {val['before']:.2f} -> {val['after']:.2f} nT")
+    say(f"{v['output_topic']} written to {out_path}")
+    say(f"summary: {json_out}")
+
+
 def _run_postflight(recording: Path, out_dir: Path) -> dict:
     from flows.postflight import postflight
 

@@ -400,3 +400,43 @@ def audit_recording(src: Path, json_path: Path, report_dir: Path, settings,
     j = jsonable(j)  # NaN (an untestable candidate's figures) becomes null
     write_json_atomic(json_path, j)
     return j
+
+
+# --------------------------------------------------------------------------------------------
+# vector magnetometer
+def vector_recording(src: Path, dst: Path, summary_path: Path, method: str) -> dict[str, Any]:
+    """``aeromag vector``: calibrate (ellipsoid-kf) or compensate (component-kf, batch) the
+    vector magnetometer and write its new channel and a summary."""
+    from pipeline.vector.stage import run_vector
+
+    flight = read_flight(src)
+    flight.require("vector_x_nT", purpose="the vector stage")
+    seg, why = try_segment(flight)
+    try:
+        run = run_vector(flight, seg, method)
+    except ValueError as exc:
+        raise AeromagError(str(exc), file=src, channel=flight.topic_of.get("vector", "")
+                           ) from None
+    present = set(read_topics_names(src))
+    if run.output_topic in present:
+        raise AeromagError(f"the recording already holds {run.output_topic}", file=src,
+                           channel=run.output_topic)
+    sensor = str(flight.series[flight.topic_of["vector"]].labels["sensor_id"][0])
+    ch = OutputChannel(run.output_topic, "aeromag.VectorField")
+    v = run.vectors_nT
+    for i in np.flatnonzero(np.all(np.isfinite(v), axis=1)):
+        ch.add(int(flight.time_ns[i]), {"sensor_id": f"{sensor}-{method}",
+                                         "x_nT": float(v[i, 0]), "y_nT": float(v[i, 1]),
+                                         "z_nT": float(v[i, 2])})
+    s = run.summary()
+    text = f"vector: {method}: " + ", ".join(
+        f"{k} {val['before']:.2f} -> {val['after']:.2f} nT" for k, val in s.items()
+        if isinstance(val, dict) and "before" in val and not isinstance(val["before"], list))
+    lines = ingest_lines(flight) + ([(LOG_INFO, why)] if why else []) + [(LOG_INFO, text)]
+    channels = [log_channel(flight, lines, "vector"), ch]
+    channels = [c for c in channels if c.topic not in present]
+    write_with_new_channels(src, dst, channels, metadata={"aeromag.run": run_metadata()})
+    summary = {"aeromag_version": __version__, "input": flight_summary(flight),
+               "vector": s, "outputs": {"mcap": str(dst), "summary": str(summary_path)}}
+    write_json_atomic(summary_path, summary)
+    return summary

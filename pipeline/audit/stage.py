@@ -542,6 +542,7 @@ def _quality_figures(flight: Flight, seg: Segmentation, comp: np.ndarray, subtra
     xo = q.crossover_stats()
     return {"heading_error_rms_nT": s["heading_error_rms_nT"]["model"],
             "crossover_rms_nT": xo["before"]["rms_nT"] if xo["count"] else None,
+            "interpolated_rms_nT": s["interpolated_rms_nT"]["model"],
             "intersections": s["intersections"],
             "by_heading": s["heading_error"]["intersections"]["by_state"]["model"][
                 "by_heading"]}
@@ -591,7 +592,10 @@ def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None 
             "heading_error_rms_nT": {"before": q_b["heading_error_rms_nT"] if q_b else None,
                                      "after": q_e["heading_error_rms_nT"] if q_e else None},
             "crossover_rms_nT": {"before": q_b["crossover_rms_nT"] if q_b else None,
-                                 "after": q_e["crossover_rms_nT"] if q_e else None}}
+                                 "after": q_e["crossover_rms_nT"] if q_e else None},
+            # the map gridded from the other lines, interpolated along the validation lines
+            "interpolated_map_rms_nT": {"before": q_b["interpolated_rms_nT"] if q_b else None,
+                                        "after": q_e["interpolated_rms_nT"] if q_e else None}}
     # measured vs simulated (simulator physics), band-passed over the calibration passes
     sim_res, where = {}, None
     sos = bandpass_sos(s.band.band_hz, data.rate_hz, s.band.poles)

@@ -38,7 +38,8 @@ INPUT_CONTRACT: tuple[TopicRule, ...] = (
     TopicRule("/mag/scalar", "aeromag.ScalarField", "scalar", ("sensor_id", "total_nT"), True,
               "scalar (total-field) magnetometer"),
     TopicRule("/mag/vector", "aeromag.VectorField", "vector", ("sensor_id", "x_nT", "y_nT", "z_nT"),
-              True, "vector magnetometer, body frame x forward, y right, z down"),
+              True, "vector magnetometer, body frame x forward, y right, z down (also "
+                    "/mag/vector/calibrated and /compensated written by aeromag vector)"),
     TopicRule("/ins/attitude", "aeromag.Attitude", "attitude", ("roll_deg", "pitch_deg", "yaw_deg"),
               description="attitude, Z-Y-X Euler angles, yaw = true heading"),
     TopicRule("/gnss/fix", "foxglove.LocationFix", "position",

@@ -1,0 +1,2 @@
+"""Vector magnetometer: online ellipsoid calibration (paper 003) and 21-parameter component
+compensation (paper 000)."""

@@ -1,0 +1,184 @@
+"""Vector (component) compensation of a fluxgate: the 21-parameter model of paper 000.
+
+In the body frame (x forward, y right, z down), the measured field is
+
+    T_m = T + T_p + A T + B dT/dt
+
+with T the Earth field (a reference model rotated by the measured attitude), T_p the
+permanent field, A (3x3) the induced and B (3x3) the eddy-current matrix. y = T_m - T is
+linear in x = [T_p, A (row-major), B (row-major)]: y = H x with the 3 x 21 matrix
+H = [s I, I (x) T', I (x) dT/dt'] (s = 1, or 1000 in the *scaled* form where the permanent
+states are in uT: with s = 1 their columns are 5 orders smaller than the others and the
+filter hardly moves them).
+
+Estimators: :func:`batch_fit` (least squares over all samples, the honest baseline for
+constant parameters) and :class:`ComponentKF` (constant-state Kalman filter, optionally with
+the fuzzy-adaptive measurement noise of :mod:`pipeline.vector.fuzzy`). Units: nT, s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.vector.fuzzy import RorFuzzy
+
+N_STATES = 21
+UT_SCALE = 1000.0  # nT per uT: the scaled permanent columns
+
+
+@dataclass(frozen=True)
+class ComponentParameters:
+    """T_p (nT), A and B (3x3; B in s)."""
+
+    permanent_nT: np.ndarray
+    induced: np.ndarray
+    eddy_s: np.ndarray
+
+    @classmethod
+    def from_state(cls, x: np.ndarray, scaled: bool) -> ComponentParameters:
+        x = np.asarray(x, float)
+        s = UT_SCALE if scaled else 1.0
+        return cls(x[:3] * s, x[3:12].reshape(3, 3), x[12:21].reshape(3, 3))
+
+    def state(self, scaled: bool) -> np.ndarray:
+        s = UT_SCALE if scaled else 1.0
+        return np.r_[np.asarray(self.permanent_nT) / s, np.ravel(self.induced),
+                     np.ravel(self.eddy_s)]
+
+    def predict(self, t_nT: np.ndarray, dt_nT_s: np.ndarray) -> np.ndarray:
+        """The measured field this model predicts for Earth field T (n, 3)."""
+        return (t_nT + self.permanent_nT + t_nT @ np.asarray(self.induced).T
+                + dt_nT_s @ np.asarray(self.eddy_s).T)
+
+    def compensate(self, m_nT: np.ndarray, dt_nT_s: np.ndarray) -> np.ndarray:
+        """Invert the model: T = (I + A)^-1 (T_m - T_p - B dT/dt)."""
+        rhs = m_nT - self.permanent_nT - dt_nT_s @ np.asarray(self.eddy_s).T
+        return np.linalg.solve(np.eye(3) + np.asarray(self.induced), rhs.T).T
+
+    def to_dict(self) -> dict:
+        return {"permanent_nT": [float(v) for v in self.permanent_nT],
+                "induced": np.asarray(self.induced).tolist(),
+                "eddy_s": np.asarray(self.eddy_s).tolist()}
+
+
+def design(t_nT: np.ndarray, dt_nT_s: np.ndarray, scaled: bool) -> np.ndarray:
+    """H for every sample: (n, 3, 21)."""
+    t, dt = np.asarray(t_nT, float), np.asarray(dt_nT_s, float)
+    n = t.shape[0]
+    h = np.zeros((n, 3, N_STATES))
+    s = UT_SCALE if scaled else 1.0
+    for i in range(3):
+        h[:, i, i] = s
+        h[:, i, 3 + 3 * i:6 + 3 * i] = t
+        h[:, i, 12 + 3 * i:15 + 3 * i] = dt
+    return h
+
+
+def batch_fit(t_nT: np.ndarray, dt_nT_s: np.ndarray, m_nT: np.ndarray
+              ) -> tuple[ComponentParameters, float, ComponentParameters]:
+    """Least squares over all samples: the parameters, the residual RMS (nT) and the
+    parameters' standard errors (from the residual variance, white noise assumed)."""
+    h = design(t_nT, dt_nT_s, scaled=True).reshape(-1, N_STATES)
+    y = (np.asarray(m_nT, float) - t_nT).reshape(-1)
+    ok = np.isfinite(y) & np.all(np.isfinite(h), axis=1)
+    col = np.sqrt(np.mean(h[ok] ** 2, axis=0))  # equilibrate the columns
+    x, *_ = np.linalg.lstsq(h[ok] / col, y[ok], rcond=None)
+    x = x / col
+    r = y[ok] - h[ok] @ x
+    sigma2 = float(r @ r) / max(r.size - N_STATES, 1)
+    hs = h[ok] / col
+    cov = sigma2 * np.linalg.pinv(hs.T @ hs) / np.outer(col, col)
+    return (ComponentParameters.from_state(x, scaled=True), float(np.sqrt(np.mean(r**2))),
+            ComponentParameters.from_state(np.sqrt(np.diag(cov)), scaled=True))
+
+
+@dataclass
+class KFHistory:
+    states: np.ndarray  # (n, 21)
+    innovations: np.ndarray  # (n, 3)
+    r_scale: np.ndarray  # (n,) R_k / R_0
+    min_eig: np.ndarray  # (n,) smallest eigenvalue of P after the update
+    asym: np.ndarray  # (n,) max |P - P'|
+
+
+@dataclass
+class ComponentKF:
+    """Constant-state Kalman filter of the 21 parameters (paper 000).
+
+    ``fuzzy``: adapt R each step by R_k = s_k^b R_(k-1), s_k from the Mamdani system on the
+    ratio of actual to predicted innovation covariance (ROR) over the last ``window`` steps.
+    The covariance update uses Joseph's form (symmetric positive definite by construction).
+    """
+
+    x0: np.ndarray
+    p0: np.ndarray
+    q: np.ndarray
+    r: np.ndarray
+    scaled: bool = True
+    fuzzy: RorFuzzy | None = None
+    window: int = 30
+    b: float = 1.0
+    r_bounds: tuple[float, float] = (1e-3, 1e4)  # R_k stays within these multiples of R_0
+    history: KFHistory | None = field(default=None, repr=False)
+
+    @classmethod
+    def paper(cls, scaled: bool = True, fuzzy: bool = False) -> ComponentKF:
+        """Paper 000's Table 1 settings: X0, P0 = 100 I, Q = 1e-5 I, R = 1e-3 I."""
+        x0 = np.r_[np.zeros(3), np.full(9, 0.01), np.full(9, 0.02)]
+        return cls(x0, 100.0 * np.eye(N_STATES), 1e-5 * np.eye(N_STATES), 1e-3 * np.eye(3),
+                   scaled, RorFuzzy() if fuzzy else None)
+
+    def run(self, t_nT: np.ndarray, dt_nT_s: np.ndarray, m_nT: np.ndarray
+            ) -> ComponentParameters:
+        h_all = design(t_nT, dt_nT_s, self.scaled)
+        y_all = np.asarray(m_nT, float) - np.asarray(t_nT, float)
+        n = y_all.shape[0]
+        x, p, r = self.x0.astype(float).copy(), self.p0.astype(float).copy(), self.r.copy()
+        eye = np.eye(N_STATES)
+        states, innov = np.zeros((n, N_STATES)), np.zeros((n, 3))
+        rs, mins, asym = np.ones(n), np.zeros(n), np.zeros(n)
+        recent: list[np.ndarray] = []
+        r0 = np.trace(self.r)
+        for k in range(n):
+            h, y = h_all[k], y_all[k]
+            p = p + self.q
+            if not np.all(np.isfinite(y)):
+                states[k] = x
+                continue
+            nu = y - h @ x
+            if self.fuzzy is not None:
+                recent.append(np.outer(nu, nu))
+                if len(recent) > self.window:
+                    recent.pop(0)
+                c_r = np.mean(recent, axis=0)
+                p_r = h @ p @ h.T + r
+                ror = float(np.trace(c_r) / np.trace(p_r))
+                r = self.fuzzy.scale(ror) ** self.b * r
+                ratio = np.trace(r) / r0
+                if not self.r_bounds[0] <= ratio <= self.r_bounds[1]:
+                    r = r * (np.clip(ratio, *self.r_bounds) / ratio)
+            s = h @ p @ h.T + r
+            gain = np.linalg.solve(s, h @ p).T  # P H' S^-1 (S symmetric)
+            x = x + gain @ nu
+            ikh = eye - gain @ h
+            p = ikh @ p @ ikh.T + gain @ r @ gain.T
+            asym[k] = float(np.max(np.abs(p - p.T)))
+            p = 0.5 * (p + p.T)
+            states[k], innov[k], rs[k] = x, nu, np.trace(r) / r0
+            if k % 50 == 0 or k == n - 1:
+                mins[k] = float(np.linalg.eigvalsh(p)[0])
+            else:
+                mins[k] = np.nan
+        self.history = KFHistory(states, innov, rs, mins, asym)
+        return ComponentParameters.from_state(x, self.scaled)
+
+
+def convergence_sample(states: np.ndarray, reference: np.ndarray, rel_tol: float = 0.02
+                       ) -> int:
+    """First sample from which the RMS relative error of the states (against ``reference``:
+    the truth in a simulation, else the final estimate) stays within ``rel_tol``."""
+    rel = np.sqrt(np.mean(((states - reference) / np.abs(reference)) ** 2, axis=1))
+    idx = np.flatnonzero(rel > rel_tol)
+    return int(idx[-1] + 1) if idx.size else 0
