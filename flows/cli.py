@@ -344,25 +344,114 @@ def vector(
     say(f"summary: {json_out}")
 
 
-def _run_postflight(recording: Path, out_dir: Path) -> dict:
+ConfigOption = Annotated[Path | None, typer.Option(
+    "--config", help="Processing configuration (TOML; `aeromag config` prints the defaults).")]
+
+
+def _check_config(config: Path | None) -> None:
+    from pipeline.config import Config
+
+    Config.load(config).validate()
+
+
+def _run_postflight(recording: Path, out_dir: Path, config: Path | None = None) -> dict:
     from flows.postflight import postflight
 
+    _check_config(config)
     with console.status(f"processing {recording.name} (Prefect flow 'postflight')"):
-        return postflight(str(recording), str(out_dir))
+        return postflight(str(recording), str(out_dir), str(config) if config else None)
+
+
+@app.command()
+def config() -> None:
+    """Print the default processing configuration (every parameter, commented)."""
+    from pipeline.config import default_text
+
+    out.print(default_text(), markup=False, highlight=False, end="")
 
 
 @app.command()
 def process(
     recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
     out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")],
+    config: ConfigOption = None,
 ) -> None:
     """Run the post-flight flow on one recording."""
     from flows.stages import require_readable
 
     require_readable(recording)
-    result = _run_postflight(recording, out_dir)
+    result = _run_postflight(recording, out_dir, config)
     say(f"output recording: {result['outputs']['mcap']}")
     say(f"summary: {result['outputs']['summary']}")
+    say(f"report: {result['outputs']['report']}")
+
+
+@app.command()
+def reprocess(
+    archive: Annotated[Path, typer.Argument(help="Folder of recordings (searched recursively).")],
+    out_dir: Annotated[Path, typer.Option("--out", help="Output folder (job folders, index, "
+                                                        "quarantine).")],
+    workers: Annotated[int, typer.Option(help="Dask worker processes of the local cluster.")
+                       ] = 2,
+    dask_address: Annotated[str | None, typer.Option(help="Use an existing Dask cluster, "
+                                                          "e.g. tcp://HOST:8786.")] = None,
+    config: ConfigOption = None,
+) -> None:
+    """Reprocess an archive on Dask: only recordings without an output for this input and
+    configuration; bad files are quarantined, an index lists everything."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TimeElapsedColumn
+
+    from flows import archive as arch
+
+    if not archive.is_dir():
+        _fail(f"{archive}: not a folder")
+    if workers < 1:
+        _fail(f"--workers {workers}: must be >= 1")
+    _check_config(config)
+    with arch.prefect_api(), Progress("[progress.description]{task.description}", BarColumn(),
+                                      MofNCompleteColumn(), TimeElapsedColumn(),
+                                      console=console) as prog:
+        bar = prog.add_task("recordings", total=None)
+
+        def progress(done, total, row):
+            prog.update(bar, completed=done, total=total,
+                        description=f"{Path(row['input']).name}: {row['status']}")
+
+        arch.PROGRESS = progress
+        runner = arch.dask_runner(workers, dask_address)
+        result = arch.reprocess_archive.with_options(task_runner=runner)(
+            str(archive), str(out_dir), str(config) if config else None)
+        arch.PROGRESS = None
+    say(f"{result['recordings']} recordings: {result['processed']} processed, "
+        f"{result['done']} already done, {result['quarantined']} quarantined")
+    say(f"index: {result['index']['csv']}")
+
+
+@app.command()
+def serve(
+    watch: Annotated[Path, typer.Option("--watch", help="Folder new recordings appear in.")],
+    out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")],
+    cron: Annotated[str, typer.Option(help="When to look for new recordings (cron).")
+                    ] = "*/10 * * * *",
+    name: Annotated[str, typer.Option(help="Deployment name.")] = "aeromag-watch",
+    config: ConfigOption = None,
+) -> None:
+    """Register a scheduled deployment that processes recordings appearing in a folder
+    (incomplete ones wait); runs until stopped (SIGTERM)."""
+    from flows import archive as arch
+
+    if not watch.is_dir():
+        _fail(f"{watch}: not a folder")
+    _check_config(config)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with arch.prefect_api() as url:
+        say(f"serving deployment process-new-recordings/{name} ({cron}) on {url}: "
+            f"{watch} -> {out_dir}")
+        arch.process_new.serve(name=name, cron=cron, print_starting_message=False,
+                               parameters={"watch_dir": str(watch.resolve()),
+                                           "out_dir": str(out_dir.resolve()),
+                                           "config_path": str(config.resolve())
+                                           if config else None})
 
 
 @app.command()
@@ -394,6 +483,10 @@ def demo(
             f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
             f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])} + "
             f"Kalman; figures in {Path(result['outputs']['mcap']).parent}")
+    if result.get("audit"):
+        a = result["audit"]
+        say("audit: " + ("; ".join(f"{f['effect']} found" for f in a["findings"])
+                         or "no finding") + f"; extended model {' + '.join(a['extended_model'])}")
     if result.get("quality"):
         _print_quality(result["quality"])
     say(f"output recording: {result['outputs']['mcap']}")

@@ -1,145 +1,117 @@
-"""The post-flight flow: ingest -> segment -> compensate (T-L baselines and AGG-TL) -> map ->
-quality -> write.
+"""The post-flight flow.
 
-Tasks are thin wrappers of ``pipeline`` functions; all logic lives there.
+ingest -> segment -> compensate (each configured T-L model and AGG-TL) -> audit -> extended
+model -> vector stage (when a fluxgate exists) -> anomaly reduction, leveling, gridding,
+ARIMA-Kalman filter -> quality -> write (output MCAP, summary JSON, report, figures).
+
+The order lives in :func:`postflight_steps`, a plain function that calls each stage through a
+``call`` hook: the Prefect flow passes tasks (results persisted in Prefect's local result
+storage, keyed by the recording's hash, the configuration's hash and the stage, so a failed run
+resumes after the last finished task; the results are deleted once the run has written its
+outputs), archive workers pass plain calls. Tasks wrap
+``flows.stages`` functions, which wrap ``pipeline``.
 """
 
 from __future__ import annotations
 
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from prefect import flow, task
 
-from flows.stages import (
-    compensation_lines,
-    map_channels,
-    map_figures,
-    map_lines,
-    quality_channels,
-    quality_fields,
-    quality_figures,
-    quality_lines,
-    save_figure,
-    tl_alias,
-    try_segment,
-)
-from pipeline import __version__
-from pipeline.compensate import FitSettings, bandpassed
-from pipeline.compensate.stage import CompensationRun, run_compensation
-from pipeline.io.reader import Flight, read_flight
-from pipeline.io.writer import OutputChannel, write_json_atomic, write_with_new_channels
-from pipeline.maps.stage import MapRun, build_map
-from pipeline.outputs import compensated_channel, model_message, segment_channel
-from pipeline.plots import compensation_figure, lcurve_figure
-from pipeline.quality.stage import QualityRun, fom_table, run_quality
-from pipeline.report import LOG_INFO, flight_summary, ingest_lines, log_channel, run_metadata
-from pipeline.segment import Segmentation
-
-BASELINES, GRADIENT_AWARE = ("tl16", "tl18"), "agg-tl"
+from flows import stages
+from pipeline.config import Config
+from pipeline.report import sha256_file
 
 
 def output_paths(recording: str | Path, out_dir: str | Path) -> dict[str, Path]:
     stem = Path(recording).stem
     out = Path(out_dir)
-    return {"mcap": out / f"{stem}.processed.mcap", "summary": out / f"{stem}.summary.json"}
+    return {"mcap": out / f"{stem}.processed.mcap", "summary": out / f"{stem}.summary.json",
+            "report": out / f"{stem}.report.md"}
 
 
-@task(name="ingest")
-def ingest(recording: str) -> Flight:
-    return read_flight(recording)
+def postflight_steps(recording: str, out_dir: str, cfg: Config, call: Callable[..., Any]
+                     ) -> dict[str, Any]:
+    """Every stage in order; ``call(stage, *args)`` runs one (see the module docstring)."""
+    flight = call("ingest", recording)
+    seg, why = call("segment", flight)
+    runs: dict[str, Any] = {}
+    audit = vector = map_run = quality = None
+    if seg is not None and flight.has("vector_x_nT") and seg.passes():
+        for m in cfg["compensation"]["models"]:
+            if m == "agg-tl" and not flight.has("lat_deg", "alt_m"):
+                continue
+            runs[m] = call("compensate", flight, seg, m, cfg)
+        if cfg["audit"]["enabled"]:
+            audit = call("audit", flight, seg, cfg)
+    if cfg["vector"]["enabled"] and flight.has("vector_x_nT", "roll_deg"):
+        vector = call("vector", flight, seg, cfg)
+    final = stages.final_field(runs, audit)
+    if final is not None and seg is not None and seg.mask("survey").sum() > 100 \
+            and flight.has("lat_deg", "alt_m"):
+        map_run = call("map", flight, seg, final[1], cfg)
+        quality = call("quality", flight, seg, runs, audit, cfg)
+    return call("write", recording, out_dir, cfg, flight, seg, why, runs, audit, vector,
+                map_run, quality)
 
 
-@task(name="segment")
-def segment(flight: Flight) -> tuple[Segmentation | None, str]:
-    return try_segment(flight)
+# --------------------------------------------------------------------------------------------
+STAGE_FUNCTIONS: dict[str, Callable[..., Any]] = {
+    "ingest": stages.ingest_stage, "segment": stages.try_segment,
+    "compensate": stages.compensate_stage, "audit": stages.audit_stage,
+    "vector": stages.vector_stage, "map": stages.map_stage, "quality": stages.quality_stage,
+    "write": stages.write_stage,
+}
 
 
-@task(name="compensate")
-def compensate(flight: Flight, seg: Segmentation | None, model: str) -> CompensationRun:
-    return run_compensation(flight, seg, FitSettings(model=model))
+def _cache_key(context, parameters) -> str:
+    # a folder per (recording, configuration) under Prefect's local result storage
+    return f"aeromag/{parameters['key']}/{parameters['stage']}-{parameters['variant']}"
 
 
-@task(name="map")
-def make_map(flight: Flight, seg: Segmentation, compensated_nT) -> MapRun:
-    return build_map(flight, seg, compensated_nT)
+def cache_folder(key: str) -> Path:
+    from prefect.settings import PREFECT_LOCAL_STORAGE_PATH
+
+    return Path(PREFECT_LOCAL_STORAGE_PATH.value()) / "aeromag" / key
 
 
-@task(name="quality")
-def assess_quality(flight: Flight, seg: Segmentation,
-                   runs: dict[str, CompensationRun]) -> QualityRun:
-    fields, _, _ = quality_fields(flight, seg, runs)
-    t = flight.data["time_s"].to_numpy(float)
-    fom = fom_table(t, fields["raw"], {m: r.compensated_nT for m, r in runs.items()},
-                    seg.boxes()) if seg.boxes() else None
-    return run_quality(flight, seg, fields, tl_alias(fields), fom)
+@task(name="stage", cache_key_fn=_cache_key, persist_result=True)
+def _stage(stage: str, key: str, variant: str, args: tuple) -> Any:
+    return STAGE_FUNCTIONS[stage](*args)
 
 
 @task(name="write-outputs")
-def write_outputs(recording: str, out_dir: str, channels: list[OutputChannel],
-                  summary: dict[str, Any], figures: dict[str, Any]) -> dict[str, str]:
-    paths = output_paths(recording, out_dir)
-    for name, fig in figures.items():
-        paths[name] = save_figure(fig, Path(out_dir) / f"{Path(recording).stem}.{name}.png")
-    write_with_new_channels(recording, paths["mcap"], channels,
-                            metadata={"aeromag.run": run_metadata()})
-    summary = {**summary, "outputs": {k: str(v) for k, v in paths.items()},
-               "channels_written": sorted({c.topic for c in channels if c.messages})}
-    write_json_atomic(paths["summary"], summary)
-    return {k: str(v) for k, v in paths.items()}
+def _write(args: tuple) -> Any:
+    return stages.write_stage(*args)
 
 
 @flow(name="postflight", log_prints=False)
-def postflight(recording: str, out_dir: str) -> dict[str, Any]:
-    """Process one flight recording into an output MCAP and a summary JSON in ``out_dir``."""
+def postflight(recording: str, out_dir: str, config_path: str | None = None) -> dict[str, Any]:
+    """Process one flight recording into an output MCAP, summary JSON and report."""
     recording, out_dir = str(recording), str(out_dir)
-    flight = ingest(recording)
-    lines = ingest_lines(flight)
-    channels: list[OutputChannel] = []
-    summary: dict[str, Any] = {"aeromag_version": __version__, "input": flight_summary(flight)}
-    figures: dict[str, Any] = {}
-    seg, why = segment(flight)
-    if why:
-        lines.append((LOG_INFO, why))
-    if seg is not None:
-        channels.append(segment_channel(flight, seg))
-        summary["segments"] = {"source": seg.source,
-                               "epochs": {lab: int(seg.mask(lab).sum()) for lab in
-                                          ("calibration", "survey", "tie", "validation",
-                                           "turn", "transit")},
-                               "calibration_passes": len(seg.passes()),
-                               "boxes": len(seg.boxes())}
-    if flight.has("vector_x_nT") and seg is not None and seg.passes():
-        models = [*BASELINES] + ([GRADIENT_AWARE] if flight.has("lat_deg", "alt_m") else [])
-        runs = {m: compensate(flight, seg, m) for m in models}
-        final = models[-1]
-        model_ch = OutputChannel("/compensation/model", "aeromag.CompensationModel")
-        for m, run in runs.items():
-            lines += compensation_lines(run)
-            topic = "/mag/compensated" if m == final else f"/mag/compensated/{m}"
-            channels.append(compensated_channel(flight, run, topic))
-            model_message(flight, run, model_ch)
-        channels.append(model_ch)
-        summary["compensation"] = {"final": final, **{m: r.summary() for m, r in runs.items()}}
-        lc = runs[final].model.lcurve
-        if lc is not None:
-            figures["lcurve"] = lcurve_figure(lc, f"L-curve, {final}")
-        t = flight.data["time_s"].to_numpy()
-        figures["compensation"] = compensation_figure(
-            t, bandpassed(t, flight.data["scalar_nT"].to_numpy(), (0.1, 0.9), 4),
-            {m: bandpassed(t, r.compensated_nT, (0.1, 0.9), 4) for m, r in runs.items()},
-            seg.passes())
-        if seg.mask("survey").sum() > 100 and flight.has("lat_deg", "alt_m"):
-            mr = make_map(flight, seg, runs[final].compensated_nT)
-            lines += map_lines(mr)
-            channels += map_channels(flight, seg, mr)
-            summary["map"] = mr.summary()
-            figures.update(map_figures(mr))
-            q = assess_quality(flight, seg, runs)
-            lines += quality_lines(q)
-            channels += quality_channels(flight, q)
-            summary["quality"] = q.summary()
-            figures.update(quality_figures(q))
-    channels.insert(0, log_channel(flight, lines, "postflight"))
-    outputs = write_outputs(recording, out_dir, channels, summary, figures)
-    return {**summary, "outputs": outputs}
+    cfg = Config.load(config_path)
+    cfg.validate()
+    key = f"{sha256_file(recording)[:16]}-{cfg.hash[:16]}"
+
+    def call(stage: str, *args):
+        if stage == "write":
+            return _write(args)
+        variant = args[2] if stage == "compensate" else ""
+        t = _stage.with_options(name=stage,
+                                task_run_name=f"{stage}{'-' + variant if variant else ''}")
+        return t(stage, key, variant, args)
+
+    result = postflight_steps(recording, out_dir, cfg, call)
+    shutil.rmtree(cache_folder(key), ignore_errors=True)  # finished: nothing to resume
+    return result
+
+
+def run_plain(recording: str, out_dir: str, config_path: str | None = None) -> dict[str, Any]:
+    """The same steps without Prefect tasks (archive workers, benchmarks)."""
+    cfg = Config.load(config_path)
+    cfg.validate()
+    return postflight_steps(str(recording), str(out_dir), cfg,
+                            lambda stage, *args: STAGE_FUNCTIONS[stage](*args))

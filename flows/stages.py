@@ -224,7 +224,7 @@ def quality_fields(flight: Flight, seg: Segmentation, runs: dict[str, Compensati
     ``/mag/compensated*`` channels, else fitted here (T-L 16, 18 and AGG-TL; returned too)."""
     fields = {"raw": flight.data["scalar_nT"].to_numpy(float)}
     lines: list[tuple[int, str]] = []
-    if runs:
+    if runs is not None:  # the caller's runs (possibly none): never fitted here
         fields.update({m: r.compensated_nT for m, r in runs.items()})
         return fields, lines, {}
     earlier = existing_compensated(flight)
@@ -440,3 +440,260 @@ def vector_recording(src: Path, dst: Path, summary_path: Path, method: str) -> d
                "vector": s, "outputs": {"mcap": str(dst), "summary": str(summary_path)}}
     write_json_atomic(summary_path, summary)
     return summary
+
+
+# --------------------------------------------------------------------------------------------
+# the post-flight stages (called by flows.postflight, as Prefect tasks or plainly)
+def ingest_stage(recording: str) -> Flight:
+    return read_flight(recording)
+
+
+def compensate_stage(flight: Flight, seg: Segmentation, model: str, cfg) -> CompensationRun:
+    return run_compensation(flight, seg, cfg.fit_settings(model))
+
+
+def audit_stage(flight: Flight, seg: Segmentation, cfg):
+    from pipeline.audit import run_audit
+
+    return run_audit(flight, seg, cfg.audit_settings())
+
+
+def vector_stage(flight: Flight, seg: Segmentation | None, cfg):
+    from pipeline.vector.stage import run_vector
+
+    try:
+        return run_vector(flight, seg, cfg["vector"]["method"])
+    except (AeromagError, ValueError) as exc:
+        return str(exc)  # reported in the log; the other stages go on
+
+
+def final_field(runs: dict[str, CompensationRun], audit) -> tuple[str, np.ndarray] | None:
+    """The field the map is made from: the audit's extended model when it found anything,
+    else the last configured model."""
+    if audit is not None and audit.findings:
+        return "extended", audit.compensated["extended"]
+    if runs:
+        name = list(runs)[-1]
+        return name, runs[name].compensated_nT
+    return None
+
+
+def map_stage(flight: Flight, seg: Segmentation, comp: np.ndarray, cfg):
+    return build_map(flight, seg, comp, cfg.map_settings())
+
+
+def quality_stage(flight: Flight, seg: Segmentation, runs: dict, audit, cfg) -> QualityRun:
+    fields, _, _ = quality_fields(flight, seg, runs)
+    final = final_field(runs, audit)
+    if final is not None and final[0] == "extended":
+        fields["extended"] = final[1]
+    t = flight.data["time_s"].to_numpy(float)
+    fom = fom_table(t, fields["raw"], {k: v for k, v in fields.items() if k != "raw"},
+                    seg.boxes()) if seg.boxes() and len(fields) > 1 else None
+    return run_quality(flight, seg, fields, tl_alias(fields), fom, cfg.quality_settings())
+
+
+def _model_channels(flight: Flight, runs: dict, audit) -> tuple[list[OutputChannel], str]:
+    final = final_field(runs, audit)
+    channels: list[OutputChannel] = []
+    if final is None:
+        return channels, ""
+    model_ch = OutputChannel("/compensation/model", "aeromag.CompensationModel")
+    for m, run in runs.items():
+        topic = "/mag/compensated" if (final[0] == m) else f"/mag/compensated/{m}"
+        channels.append(compensated_channel(flight, run, topic))
+        model_message(flight, run, model_ch)
+    channels.append(model_ch)
+    if final[0] == "extended":
+        label = "+".join(audit.extended.spec.label())
+        ch = OutputChannel("/mag/compensated", "aeromag.CompensatedField")
+        sensor = str(flight.series[flight.topic_of["scalar"]].labels["sensor_id"][0])
+        scalar = flight.data["scalar_nT"].to_numpy(float)
+        comp = final[1]
+        for i in np.flatnonzero(np.isfinite(comp)):
+            ch.add(int(flight.time_ns[i]), {"sensor_id": sensor, "total_nT": float(comp[i]),
+                                            "interference_nT": float(scalar[i] - comp[i]),
+                                            "model": label})
+        channels.append(ch)
+        return channels, label
+    return channels, final[0]
+
+
+def _vector_channel(flight: Flight, run) -> OutputChannel:
+    sensor = str(flight.series[flight.topic_of["vector"]].labels["sensor_id"][0])
+    ch = OutputChannel(run.output_topic, "aeromag.VectorField")
+    v = run.vectors_nT
+    for i in np.flatnonzero(np.all(np.isfinite(v), axis=1)):
+        ch.add(int(flight.time_ns[i]), {"sensor_id": f"{sensor}-{run.method}",
+                                         "x_nT": float(v[i, 0]), "y_nT": float(v[i, 1]),
+                                         "z_nT": float(v[i, 2])})
+    return ch
+
+
+def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str, runs: dict,
+                audit, vector, map_run, quality) -> dict[str, Any]:
+    """Every output of the post-flight flow, each written atomically; the summary last (its
+    presence marks the recording as done)."""
+    from pipeline.audit.report import figures as audit_figures
+    from pipeline.audit.report import finding_channel, jsonable
+    from pipeline.audit.report import log_lines as audit_log_lines
+
+    stem = Path(recording).stem
+    out = Path(out_dir)
+    paths = {"mcap": out / f"{stem}.processed.mcap", "summary": out / f"{stem}.summary.json",
+             "report": out / f"{stem}.report.md"}
+    lines = ingest_lines(flight)
+    if why:
+        lines.append((LOG_INFO, why))
+    summary: dict[str, Any] = {"aeromag_version": __version__, "input": flight_summary(flight),
+                               "config": {"version": cfg["config_version"], "hash": cfg.hash,
+                                          "source": cfg.source}}
+    channels: list[OutputChannel] = []
+    figures: dict[str, Any] = {}
+    if seg is not None:
+        channels.append(segment_channel(flight, seg))
+        summary["segments"] = {"source": seg.source,
+                               "epochs": {lab: int(seg.mask(lab).sum()) for lab in
+                                          ("calibration", "survey", "tie", "validation",
+                                           "turn", "transit")},
+                               "calibration_passes": len(seg.passes()),
+                               "boxes": len(seg.boxes())}
+    if runs:
+        for run in runs.values():
+            lines += compensation_lines(run)
+        model_channels, final = _model_channels(flight, runs, audit)
+        channels += model_channels
+        summary["compensation"] = {"final": final, **{m: r.summary() for m, r in runs.items()}}
+        last = list(runs.values())[-1]
+        if last.model.lcurve is not None:
+            figures["lcurve"] = lcurve_figure(last.model.lcurve, f"L-curve, {last.model.model}")
+        t = flight.data["time_s"].to_numpy()
+        from pipeline.compensate import bandpassed
+        from pipeline.plots import compensation_figure
+
+        figures["compensation"] = compensation_figure(
+            t, bandpassed(t, flight.data["scalar_nT"].to_numpy(), (0.1, 0.9), 4),
+            {m: bandpassed(t, r.compensated_nT, (0.1, 0.9), 4) for m, r in runs.items()},
+            seg.passes())
+    if audit is not None:
+        lines += audit_log_lines(audit)
+        channels.append(finding_channel(flight, audit))
+        aj = audit.to_json()
+        summary["audit"] = jsonable({k: aj[k] for k in ("baseline", "findings",
+                                                        "extended_model", "unexplained_rms_nT",
+                                                        "noise_floor_nT", "unexplained",
+                                                        "gain")})
+        figures.update({f"audit_{k}": v for k, v in audit_figures(audit, flight).items()})
+    if isinstance(vector, str):
+        lines.append((LOG_WARNING, f"vector: skipped: {vector}"))
+    elif vector is not None:
+        channels.append(_vector_channel(flight, vector))
+        summary["vector"] = jsonable(vector.summary())
+        lines.append((LOG_INFO, f"vector: {vector.method} -> {vector.output_topic}"))
+    if map_run is not None:
+        lines += map_lines(map_run)
+        channels += map_channels(flight, seg, map_run)
+        summary["map"] = map_run.summary()
+        figures.update(map_figures(map_run))
+    if quality is not None:
+        lines += quality_lines(quality)
+        channels += quality_channels(flight, quality)
+        summary["quality"] = quality.summary()
+        figures.update(quality_figures(quality))
+    channels.insert(0, log_channel(flight, lines, "postflight"))
+    for name, fig in figures.items():
+        paths[name] = save_figure(fig, out / f"{stem}.{name}.png")
+    meta = {"aeromag.run": {**run_metadata(), "config_hash": cfg.hash,
+                            "config_version": str(cfg["config_version"])}}
+    write_with_new_channels(recording, paths["mcap"], channels, metadata=meta)
+    report = report_markdown(stem, summary, {k: v.name for k, v in paths.items()
+                                             if k not in ("mcap", "summary", "report")})
+    tmp = out / f".{stem}.report.md.partial"
+    tmp.write_text(report)
+    tmp.replace(paths["report"])
+    summary = {**summary, "outputs": {k: str(v) for k, v in paths.items()},
+               "channels_written": sorted({c.topic for c in channels if c.messages})}
+    summary = jsonable(summary)
+    write_json_atomic(paths["summary"], summary)
+    publish_artifact(stem, report)
+    return summary
+
+
+def publish_artifact(stem: str, markdown: str) -> None:
+    """The report as a Prefect markdown artifact, when running inside a flow or task."""
+    try:
+        from prefect.artifacts import create_markdown_artifact
+        from prefect.context import get_run_context
+
+        get_run_context()
+    except Exception:  # noqa: BLE001 - outside a run: no artifact
+        return
+    import re
+
+    key = re.sub(r"[^a-z0-9-]", "-", f"aeromag-{stem}".lower())[:100]
+    create_markdown_artifact(markdown=markdown, key=key, description="post-flight summary")
+
+
+def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
+    """The post-flight report: the tables people look at, and the figures."""
+    def f(x, fmt=".3f"):
+        return "-" if x is None else format(x, fmt)
+
+    out = [f"# Post-flight report: {stem}", "",
+           f"aeromag {s['aeromag_version']}, configuration {s['config']['hash'][:12]} "
+           f"(version {s['config']['version']}, {s['config']['source']})", "",
+           f"Input: {s['input'].get('epochs', '-')} epochs, "
+           f"{f(s['input'].get('duration_s'), '.0f')} s, sha256 "
+           f"{s['input'].get('sha256', '')[:16]}", ""]
+    comp = s.get("compensation")
+    if comp:
+        out += ["## Compensation", "", f"Final: **{comp['final']}**", "",
+                "| model | FOM raw nT | FOM compensated nT | lambda | survey residual nT |",
+                "|---|---|---|---|---|"]
+        for m, r in comp.items():
+            if m == "final":
+                continue
+            out.append(f"| {m} | {f(r['fom_nT']['uncompensated'], '.2f')} | "
+                       f"{f(r['fom_nT']['compensated'], '.2f')} | {f(r['lambda'], '.3g')} | "
+                       f"{f(r['residual_std_nT']['survey'])} |")
+        out.append("")
+    a = s.get("audit")
+    if a:
+        out += ["## Model audit", "",
+                f"Extended model: **{' + '.join(a['extended_model'])}**; held-out residual "
+                f"{f(a['baseline']['residual_rms_nT'], '.4f')} -> "
+                f"{f(a['unexplained_rms_nT'], '.4f')} nT (noise floor "
+                f"{f(a['noise_floor_nT'], '.4f')} nT)", ""]
+        for fd in a["findings"]:
+            out.append(f"- `{fd['effect']}`: " + ", ".join(
+                f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                for k, v in fd["estimate"].items() if k != "at_acceptance"
+                and not isinstance(v, list | dict)))
+        if a.get("unexplained"):
+            out.append(f"- unexplained: {a['unexplained']['note']}")
+        out.append("")
+    q = s.get("quality")
+    if q:
+        out += ["## Heading error and quality", "",
+                f"{q['intersections']} intersections, {q['overlap_pairs']} pairs < "
+                f"{q['overlap_m']} m", "",
+                "| state | intersections RMS nT | pairs RMS nT | interpolated map RMS nT |",
+                "|---|---|---|---|"]
+        for st in q["states"]:
+            out.append(f"| {st} | {f(q['heading_error_rms_nT'][st])} | "
+                       f"{f(q['overlap_pair_rms_nT'][st])} | "
+                       f"{f(q['interpolated_rms_nT'][st])} |")
+        xo = q["crossover_rms_nT"]
+        out += ["", f"Crossovers: RMS {f(xo['before'])} -> {f(xo['after'])} nT after "
+                    f"leveling; 4th-difference noise {f(q['noise_4th_diff_nT'], '.4f')} nT", ""]
+    m = s.get("map")
+    if m:
+        out += ["## Map", "", f"{m['grid_shape'][0]} x {m['grid_shape'][1]} cells of "
+                              f"{m['cell_m']:.2f} m; ARIMA{tuple(m['arima_order'])} + Kalman",
+                ""]
+    v = s.get("vector")
+    if v:
+        out += ["## Vector magnetometer", "", f"{v['method']} -> `{v['output_topic']}`", ""]
+    if images:
+        out += ["## Figures", ""] + [f"![{k}]({p})" for k, p in images.items()] + [""]
+    return "\n".join(out)

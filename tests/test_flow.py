@@ -28,14 +28,18 @@ def test_postflight_flow_writes_input_plus_new_channels(prefect_harness, box_pat
     assert result["outputs"]["mcap"] == str(out) and summary["outputs"]["mcap"] == str(out)
     assert summary["input"]["sha256"] == before
     new = {"/aeromag/log", "/flight/segment", "/mag/compensated", "/mag/compensated/tl16",
-           "/mag/compensated/tl18", "/compensation/model"}
+           "/mag/compensated/tl18", "/compensation/model", "/audit/finding",
+           "/mag/vector/compensated"}
     assert set(summary["channels_written"]) == new
     comp = summary["compensation"]
     assert comp["final"] == "agg-tl" and {"tl16", "tl18", "agg-tl"} <= set(comp)
     for m in ("tl16", "tl18", "agg-tl"):
         assert comp[m]["fom_nT"]["uncompensated"] > 5 * comp[m]["fom_nT"]["compensated"]
     assert summary["segments"]["boxes"] == 12
-    for png in ("lcurve", "compensation"):
+    assert summary["config"]["version"] == 1 and len(summary["config"]["hash"]) == 64
+    assert "audit" in summary and summary["vector"]["method"] == "component-kf"
+    assert (tmp_path / "out" / "flight.report.md").read_text().startswith("# Post-flight")
+    for png in ("lcurve", "compensation", "audit_residual_time"):
         assert (tmp_path / "out" / f"flight.{png}.png").stat().st_size > 10000
     m_in, *_ = records(src)
     m_out, *_ = records(out)

@@ -1,0 +1,134 @@
+"""The processing configuration: one TOML file with every parameter of the post-flight flow.
+
+Defaults live in ``pipeline/default_config.toml`` (shipped with the package); a user file
+overrides any of them. Unknown keys and wrong types are errors naming the file and key. The
+hash of the resolved values identifies a configuration in outputs and in the archive index.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+import tomllib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from pipeline.errors import AeromagError
+
+CONFIG_VERSION = 1
+
+
+def default_text() -> str:
+    return resources.files("pipeline").joinpath("default_config.toml").read_text()
+
+
+def _merge(base: dict, over: dict, source: str, prefix: str = "") -> dict:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        key = f"{prefix}{k}"
+        if k not in base:
+            raise AeromagError(f"unknown configuration key {key!r}", file=source)
+        if isinstance(base[k], dict):
+            if not isinstance(v, dict):
+                raise AeromagError(f"{key} must be a table", file=source)
+            out[k] = _merge(base[k], v, source, key + ".")
+            continue
+        b = base[k]
+        ok = (isinstance(v, bool) if isinstance(b, bool) else
+              isinstance(v, int | float) and not isinstance(v, bool) if isinstance(b, float)
+              else isinstance(v, type(b)))
+        if key == "compensation.ridge":
+            ok = v == "auto" or (isinstance(v, int | float) and not isinstance(v, bool)
+                                 and v >= 0)
+        if not ok:
+            raise AeromagError(f"{key} = {v!r}: expected {type(b).__name__}", file=source)
+        out[k] = float(v) if isinstance(b, float) and not isinstance(v, str) else v
+    return out
+
+
+@dataclass(frozen=True)
+class Config:
+    values: dict[str, Any]
+    source: str
+
+    @classmethod
+    def load(cls, path: str | Path | None = None) -> Config:
+        base = tomllib.loads(default_text())
+        if path is None:
+            return cls(base, "defaults")
+        p = Path(path)
+        if not p.is_file():
+            raise AeromagError("configuration file not found", file=p)
+        try:
+            user = tomllib.loads(p.read_text())
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+            raise AeromagError(f"not valid TOML ({exc})", file=p) from None
+        values = _merge(base, user, str(p))
+        if values["config_version"] != CONFIG_VERSION:
+            raise AeromagError(f"config_version {values['config_version']} is not supported "
+                               f"(this aeromag reads {CONFIG_VERSION})", file=p)
+        return cls(values, str(p))
+
+    @property
+    def hash(self) -> str:
+        canon = json.dumps(self.values, sort_keys=True, separators=(",", ":"))
+        return hashlib.sha256(canon.encode()).hexdigest()
+
+    def __getitem__(self, key: str) -> Any:
+        return self.values[key]
+
+    # -- stage settings -----------------------------------------------------------------------
+    def fit_settings(self, model: str):
+        from pipeline.compensate import FitSettings
+
+        c = self.values["compensation"]
+        return FitSettings(model=model, band_hz=tuple(c["band_hz"]), poles=c["poles"],
+                           trim=c["trim"], ridge=c["ridge"], base=c["agg_base"])
+
+    def map_settings(self):
+        from pipeline.maps.stage import MapSettings
+
+        m = self.values["map"]
+        arima: Any = "auto"
+        if m["arima"] != "auto":
+            arima = tuple(int(v) for v in str(m["arima"]).split(","))
+        return MapSettings(cell_m=m["cell_m"] or None, arima=arima,
+                           noise_nT=m["noise_nT"] or None, level_trend=m["level_trend"],
+                           direction=m["direction"])
+
+    def quality_settings(self):
+        from pipeline.quality import QualitySettings
+
+        return QualitySettings(**self.values["quality"])
+
+    def audit_settings(self):
+        from pipeline.audit import AuditSettings
+        from pipeline.audit.extended import BandSettings
+
+        a, c = self.values["audit"], self.values["compensation"]
+        return AuditSettings(baseline=a["baseline"], alpha=a["alpha"], min_gain=a["min_gain"],
+                             band=BandSettings(tuple(c["band_hz"]), c["poles"], c["trim"]))
+
+    def validate(self) -> None:
+        """Check values that types alone do not (raises AeromagError)."""
+        from pipeline.compensate import MODELS
+        from pipeline.vector.stage import METHODS
+
+        c = self.values["compensation"]
+        bad = [m for m in c["models"] if m not in MODELS]
+        if bad or not c["models"]:
+            raise AeromagError(f"compensation.models: use some of {', '.join(MODELS)}",
+                               file=self.source)
+        if self.values["vector"]["method"] not in METHODS:
+            raise AeromagError(f"vector.method: use one of {', '.join(METHODS)}",
+                               file=self.source)
+        if self.values["map"]["direction"] not in ("both", "forward"):
+            raise AeromagError("map.direction: use both or forward", file=self.source)
+        try:
+            self.fit_settings(c["models"][-1])
+            self.map_settings()
+        except ValueError as exc:
+            raise AeromagError(str(exc), file=self.source) from None
