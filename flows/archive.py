@@ -15,6 +15,7 @@ import contextlib
 import csv
 import io
 import json
+import logging
 import os
 import socket
 import subprocess
@@ -224,8 +225,10 @@ def dask_runner(workers: int, address: str | None):
 
     if address:
         return DaskTaskRunner(address=address)
+    # dashboard on a free port: two clusters at once must not fight over 8787
     return DaskTaskRunner(cluster_kwargs={"n_workers": workers, "threads_per_worker": 1,
-                                          "processes": True, "dashboard_address": None})
+                                          "processes": True, "dashboard_address": ":0",
+                                          "silence_logs": logging.WARNING})
 
 
 # --------------------------------------------------------------------------------------------

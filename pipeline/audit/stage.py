@@ -417,8 +417,9 @@ class Auditor:
         else:  # crossovers of every other tie line, with the others' coefficient
             ties = sorted(set(tie_of))
             odd = np.isin(tie_of, ties[1::2])
-            b_odd = float(sm.OLS(dx[~odd], np.column_stack([dummies, db])[~odd]).fit(
-            ).params[-1]) if (~odd).sum() > dummies.shape[1] + 2 else 1.0
+            x_even = np.column_stack([dummies, db])[~odd]
+            b_odd = float(np.linalg.lstsq(x_even, dx[~odd], rcond=None)[0][-1]) if (
+                ~odd).sum() > dummies.shape[1] + 2 else 1.0
             held = paired_point_gain(dx[odd] - dx[odd].mean(),
                                      (dx[odd] - b_odd * db[odd]) - (dx[odd] - b_odd
                                                                     * db[odd]).mean())
