@@ -26,6 +26,11 @@ console = Console(stderr=True, soft_wrap=True, highlight=False)
 out = Console(soft_wrap=True, highlight=False)
 
 
+import_app = typer.Typer(add_completion=False, no_args_is_help=True,
+                         help="Convert other recorders' flight data into the channel contract.")
+app.add_typer(import_app, name="import")
+
+
 def say(text: str) -> None:
     out.print(text, markup=False)
 
@@ -64,6 +69,28 @@ def simulate(
         f"effects: {', '.join(sc.enabled_effects()) or 'none'}")
     if truth:
         say(f"{truth}: truth")
+
+
+@import_app.command("sgl")
+def import_sgl(
+    file: Annotated[Path, typer.Argument(help="SGL / DAF-MIT MagNav flight file (.h5 or .xyz).")],
+    out_path: Annotated[Path, typer.Option("--out", help="Recording to write (.mcap).")],
+    lines: Annotated[str | None, typer.Option(help="Only these lines, e.g. 1002.02,1002.20.")
+                     ] = None,
+    calibration_lines: Annotated[str | None, typer.Option(
+        help="Lines flown as calibration boxes (named in the flight's readme); marked "
+             "kind=calibration in /plan/line.")] = None,
+) -> None:
+    """Import an SGL HDF5 or XYZ file (field mapping in schemas/README.md)."""
+    from pipeline.io.sgl import import_sgl as run
+
+    def split(v):
+        return [x.strip() for x in v.split(",") if x.strip()] if v else None
+
+    with console.status(f"importing {file.name}"):
+        res = run(file, out_path, split(lines), split(calibration_lines))
+    say(f"{out_path}: {res['samples']} samples over {res['span_s']:.1f} s, "
+        f"{len(res['channels'])} channels")
 
 
 @app.command()

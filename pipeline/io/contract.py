@@ -51,6 +51,9 @@ INPUT_CONTRACT: tuple[TopicRule, ...] = (
               description="auxiliary channel (currents, voltages, temperatures)"),
     TopicRule("/plan/line", "aeromag.LineMarker", "plan", ("line_id", "kind"),
               description="start of a planned segment"),
+    TopicRule("/reference", "aeromag.ScalarField", "reference", ("sensor_id", "total_nT"), True,
+              description="another processor's product for comparison (e.g. SGL's "
+                          "compensated mag_1_c, diurnal, igrf); read, never processed"),
 )
 
 # Channels aeromag writes. ``inspect`` validates them like input channels; the reader skips them

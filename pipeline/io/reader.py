@@ -273,6 +273,7 @@ class Flight:
     - ``base_nT``: base-station magnetometer.
     - ``aux_<name>``: auxiliary channels, unit in ``units``.
     - ``plan_line_id``, ``plan_kind``: the planned segment in force (from ``/plan/line``).
+    - ``reference_<name>_nT``: another processor's product (``/reference/<name>``).
 
     Secondary streams are linearly interpolated (yaw unwrapped first); epochs outside a
     stream's span or inside one of its gaps are NaN and listed in ``notes``.
@@ -446,6 +447,8 @@ def read_flight(path: str | Path, *, scalar_topic: str | None = None,
         elif role == "base":
             topic_of["base"] = topic
             put("base_nT", s.values["total_nT"], "nT")
+        elif role == "reference":
+            put(f"reference_{_suffix(topic, s.rule)}_nT", s.values["total_nT"], "nT")
         elif role == "aux":
             name = f"aux_{_suffix(topic, s.rule)}"
             unit = str(s.labels["unit"][0]) if s.labels["unit"].size else ""
