@@ -93,6 +93,28 @@ def import_sgl(
         f"{len(res['channels'])} channels")
 
 
+@import_app.command("mapped")
+def import_mapped(
+    file: Annotated[Path, typer.Argument(help="A recorder's MCAP (ROS 2, protobuf, JSON).")],
+    mapping: Annotated[Path, typer.Option("--mapping", help="Topic-mapping file (TOML); "
+                                                            "`aeromag inspect FILE "
+                                                            "--suggest-mapping` proposes one.")],
+    out_path: Annotated[Path, typer.Option("--out", help="Recording to write (.mcap).")],
+) -> None:
+    """Add contract channels (nT, body FRD, NED) for a recorder's mapped topics; every
+    aeromag command then reads the output."""
+    from flows.stages import require_readable
+    from pipeline.io.mapping import Mapping
+    from pipeline.io.mapping import import_mapped as run
+
+    require_readable(file)
+    with console.status(f"importing {file.name}"):
+        names = run(file, out_path, Mapping.load(mapping))
+    for a, b in names.items():
+        say(f"{a} -> {b}")
+    say(f"output recording: {out_path}")
+
+
 @app.command()
 def scenarios() -> None:
     """List the built-in simulation scenarios."""
@@ -107,10 +129,21 @@ def inspect(
     file: Annotated[Path, typer.Argument(help="MCAP recording.")],
     json_out: Annotated[Path | None, typer.Option("--json", help="Also write the report as JSON.")
                         ] = None,
+    suggest_mapping: Annotated[bool, typer.Option(
+        "--suggest-mapping", help="Print a topic-mapping file (TOML) for the recorder's "
+                                  "topics of known types (ROS 2, Foxglove protobuf).")] = False,
 ) -> None:
     """Topics, counts, rates, span, gaps and contract violations (exit 1 on violations)."""
     from pipeline.io.inspect import inspect_recording
     from pipeline.io.writer import write_json_atomic
+
+    if suggest_mapping:
+        from flows.stages import require_readable
+        from pipeline.io.mapping import suggest_mapping as suggest
+
+        require_readable(file)
+        out.print(suggest(file), markup=False, highlight=False, end="")
+        return
 
     rep = inspect_recording(file)
     d = rep.to_dict()

@@ -179,3 +179,214 @@ def test_attitude_in_radians_is_caught(tmp_path):
     write_h5(tmp_path / "r.h5", f)
     with pytest.raises(AeromagError, match="radians"):
         import_sgl(tmp_path / "r.h5", tmp_path / "r.mcap")
+
+
+# --------------------------------------------------------------------------------------------
+# ROS 2 recordings and topic mapping
+_SEP = "=" * 80
+_HEADER = ("MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
+           f"{_SEP}\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n")
+_VEC3 = f"{_SEP}\nMSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z\n"
+MSGDEFS = {
+    "sensor_msgs/msg/MagneticField": (
+        "std_msgs/Header header\ngeometry_msgs/Vector3 magnetic_field\n"
+        f"float64[9] magnetic_field_covariance\n{_SEP}\n{_HEADER}{_VEC3}"),
+    "sensor_msgs/msg/Imu": (
+        "std_msgs/Header header\ngeometry_msgs/Quaternion orientation\n"
+        "float64[9] orientation_covariance\ngeometry_msgs/Vector3 angular_velocity\n"
+        "float64[9] angular_velocity_covariance\ngeometry_msgs/Vector3 linear_acceleration\n"
+        f"float64[9] linear_acceleration_covariance\n{_SEP}\n{_HEADER}"
+        f"{_SEP}\nMSG: geometry_msgs/Quaternion\nfloat64 x 0\nfloat64 y 0\nfloat64 z 0\n"
+        f"float64 w 1\n{_VEC3}"),
+    "sensor_msgs/msg/NavSatFix": (
+        "std_msgs/Header header\nsensor_msgs/NavSatStatus status\nfloat64 latitude\n"
+        "float64 longitude\nfloat64 altitude\nfloat64[9] position_covariance\n"
+        f"uint8 position_covariance_type\n{_SEP}\n{_HEADER}{_SEP}\n"
+        "MSG: sensor_msgs/NavSatStatus\nint8 status\nuint16 service\n"),
+    "std_msgs/msg/Float64": "float64 data\n",
+}
+MAPPING = """
+[topics."/cesium/field"]
+role = "scalar"
+fields = ["data"]
+scale = 1e9
+name = "cs"
+
+[topics."/imu/mag"]
+role = "vector"
+fields = ["magnetic_field.x", "magnetic_field.y", "magnetic_field.z"]
+scale = 1e9
+frame = "flu"
+
+[topics."/imu/data"]
+role = "attitude"
+quaternion = "orientation"
+frame = "flu"
+
+[topics."/fix"]
+role = "position"
+fields = ["latitude", "longitude", "altitude"]
+"""
+
+
+def _stamp(t_ns):
+    return {"sec": int(t_ns // 1_000_000_000), "nanosec": int(t_ns % 1_000_000_000)}
+
+
+def write_ros2(sim, path):
+    """The simulated flight as a ROS 2 robot records it: SI units (tesla), REP-103 frames
+    (body FLU, world ENU), header stamps, a cesium magnetometer on std_msgs/Float64."""
+    from mcap_ros2.writer import Writer
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.io.mapping import _ENU_TO_NED, _FLU_TO_FRD
+
+    start = int(sim.truth["start_time_ns"]) if "start_time_ns" in sim.truth else None
+    with open(path, "wb") as f:
+        w = Writer(f)
+        sch = {k: w.register_msgdef(k, v) for k, v in MSGDEFS.items()}
+        s = sim.streams
+        t0 = start if start is not None else 1_781_485_200_000_000_000
+
+        def ns(t):
+            return t0 + int(round(t * 1e9))
+
+        for t, v in zip(s["/mag/scalar"]["t"], s["/mag/scalar"]["cols"]["total_nT"],
+                        strict=True):
+            # no header: the log time is the sample time
+            w.write_message("/cesium/field", sch["std_msgs/msg/Float64"], {"data": v * 1e-9},
+                            log_time=ns(t))
+        vec = s["/mag/vector"]
+        for t, x, y, z in zip(vec["t"], vec["cols"]["x_nT"], vec["cols"]["y_nT"],
+                              vec["cols"]["z_nT"], strict=True):
+            w.write_message("/imu/mag", sch["sensor_msgs/msg/MagneticField"], {
+                "header": {"stamp": _stamp(ns(t)), "frame_id": "imu"},
+                "magnetic_field": {"x": x * 1e-9, "y": -y * 1e-9, "z": -z * 1e-9},
+                "magnetic_field_covariance": [0.0] * 9}, log_time=ns(t) + 1_000_000)
+        att = s["/ins/attitude"]
+        r_frd_ned = Rotation.from_euler("ZYX", np.column_stack(
+            [att["cols"]["yaw_deg"], att["cols"]["pitch_deg"], att["cols"]["roll_deg"]]),
+            degrees=True).as_matrix()
+        q = Rotation.from_matrix(_ENU_TO_NED @ r_frd_ned @ _FLU_TO_FRD).as_quat()
+        for t, qq in zip(att["t"], q, strict=True):
+            w.write_message("/imu/data", sch["sensor_msgs/msg/Imu"], {
+                "header": {"stamp": _stamp(ns(t)), "frame_id": "imu"},
+                "orientation": {"x": qq[0], "y": qq[1], "z": qq[2], "w": qq[3]},
+                "orientation_covariance": [0.0] * 9,
+                "angular_velocity": {"x": 0.0, "y": 0.0, "z": 0.0},
+                "angular_velocity_covariance": [0.0] * 9,
+                "linear_acceleration": {"x": 0.0, "y": 0.0, "z": 0.0},
+                "linear_acceleration_covariance": [0.0] * 9}, log_time=ns(t))
+        g = s["/gnss/fix"]
+        for t, la, lo, h in zip(g["t"], g["cols"]["latitude"], g["cols"]["longitude"],
+                                g["cols"]["altitude"], strict=True):
+            w.write_message("/fix", sch["sensor_msgs/msg/NavSatFix"], {
+                "header": {"stamp": _stamp(ns(t)), "frame_id": "gnss"},
+                "status": {"status": 0, "service": 1}, "latitude": la, "longitude": lo,
+                "altitude": h, "position_covariance": [0.0] * 9,
+                "position_covariance_type": 0}, log_time=ns(t))
+        w.finish()
+    return t0
+
+
+def test_ros2_recording_compensates_like_the_json_one(tmp_path):
+    from pipeline.compensate import FitSettings
+    from pipeline.compensate.stage import run_compensation
+    from pipeline.io.mapping import Mapping
+    from pipeline.simulate import write_simulation
+    from tests.conftest import run_sim
+
+    sim = run_sim("calibration-only", 5, ["calibration.passes=1",
+                                          "sensors.clock_offset_s={scalar=0.0, vector=0.013, "
+                                          "attitude=0.007, gnss=0.031, base=0.25, aux=0.041}"])
+    json_path = write_simulation(sim, tmp_path / "json.mcap")
+    ros_path = tmp_path / "ros2.mcap"
+    write_ros2(sim, ros_path)
+    (tmp_path / "map.toml").write_text(MAPPING)
+    res = subprocess.run([sys.executable, "-m", "flows.cli", "inspect", str(ros_path),
+                          "--suggest-mapping"], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    assert '[topics."/imu/mag"]' in res.stdout and 'role = "attitude"' in res.stdout
+    suggested = tmp_path / "suggested.toml"
+    suggested.write_text(res.stdout)
+    Mapping.load(suggested)  # loadable as printed
+    mapping = Mapping.load(tmp_path / "map.toml")
+    a = read_flight(json_path)
+    b = read_flight(ros_path, mapping=mapping)
+    assert b.topic_of["scalar"] == "/cesium/field" and b.topic_of["vector"] == "/imu/mag"
+    # same epochs: the vector's header stamps are used, not its (1 ms late) log times
+    np.testing.assert_array_equal(b.time_ns, a.time_ns)
+    for col in ("scalar_nT", "vector_x_nT", "vector_y_nT", "vector_z_nT", "lat_deg",
+                "alt_m"):
+        np.testing.assert_allclose(b.data[col], a.data[col], rtol=1e-12, atol=1e-6)
+    for col in ("roll_deg", "pitch_deg"):
+        np.testing.assert_allclose(b.data[col], a.data[col], atol=1e-7)
+    dyaw = (b.data["yaw_deg"] - a.data["yaw_deg"] + 180) % 360 - 180
+    assert np.nanmax(np.abs(dyaw)) < 1e-7
+    from pipeline.segment import segment_flight
+
+    ca = run_compensation(a, segment_flight(a), FitSettings(model="tl18"))
+    cb = run_compensation(b, segment_flight(b), FitSettings(model="tl18"))
+    np.testing.assert_allclose(cb.model.coefficients, ca.model.coefficients, rtol=1e-6,
+                               atol=1e-6)
+    np.testing.assert_allclose(cb.compensated_nT, ca.compensated_nT, atol=1e-5)
+
+
+def test_a_mapping_without_the_tesla_scale_is_caught(tmp_path):
+    from pipeline.io.mapping import Mapping
+    from tests.conftest import run_sim
+
+    sim = run_sim("calibration-only", 5, ["calibration.passes=1"])
+    write_ros2(sim, tmp_path / "r.mcap")
+    (tmp_path / "m.toml").write_text(MAPPING.replace("scale = 1e9\nname", "name", 1))
+    with pytest.raises(AeromagError, match="tesla") as exc:
+        read_flight(tmp_path / "r.mcap", mapping=Mapping.load(tmp_path / "m.toml"))
+    assert "/cesium/field" in str(exc.value)
+
+
+def test_import_mapped_and_a_protobuf_location_fix(tmp_path):
+    """`aeromag import mapped` turns the ROS 2 recording into one every command reads; a
+    Foxglove protobuf LocationFix channel maps like the ROS one."""
+    from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
+    from mcap_protobuf.writer import Writer as PbWriter
+
+    from pipeline.io.mapping import Mapping
+    from tests.conftest import run_sim
+
+    sim = run_sim("calibration-only", 5, ["calibration.passes=1"])
+    ros = tmp_path / "ros2.mcap"
+    write_ros2(sim, ros)
+    (tmp_path / "map.toml").write_text(MAPPING)
+    res = subprocess.run([sys.executable, "-m", "flows.cli", "import", "mapped", str(ros),
+                          "--mapping", str(tmp_path / "map.toml"), "--out",
+                          str(tmp_path / "c.mcap")], capture_output=True, text=True,
+                         timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert "/imu/mag -> /mag/vector" in res.stdout
+    direct = read_flight(ros, mapping=Mapping.load(tmp_path / "map.toml"))
+    converted = read_flight(tmp_path / "c.mcap")
+    np.testing.assert_allclose(converted.data["vector_y_nT"], direct.data["vector_y_nT"])
+    np.testing.assert_allclose(converted.data["yaw_deg"], direct.data["yaw_deg"])
+    ins = subprocess.run([sys.executable, "-m", "flows.cli", "inspect",
+                          str(tmp_path / "c.mcap")], capture_output=True, text=True, timeout=120)
+    assert ins.returncode == 0 and "contract: ok" in ins.stdout
+    # protobuf: a LocationFix channel next to the JSON contract channels
+    pb = tmp_path / "pb.mcap"
+    g = sim.streams["/gnss/fix"]
+    t0 = int(sim.truth["start_time_ns"])
+    with open(pb, "wb") as f:
+        w = PbWriter(f)
+        for t, la, lo, h in zip(g["t"], g["cols"]["latitude"], g["cols"]["longitude"],
+                                g["cols"]["altitude"], strict=True):
+            msg = LocationFix(latitude=la, longitude=lo, altitude=h)
+            w.write_message("/gps/fix_pb", msg, log_time=t0 + int(round(t * 1e9)))
+        w.finish()
+    sug = subprocess.run([sys.executable, "-m", "flows.cli", "inspect", str(pb),
+                          "--suggest-mapping"], capture_output=True, text=True, timeout=120)
+    assert '[topics."/gps/fix_pb"]' in sug.stdout and 'role = "position"' in sug.stdout
+    (tmp_path / "pb.toml").write_text(sug.stdout)
+    series = __import__("pipeline.io.reader", fromlist=["_mapped_series"])._mapped_series(
+        pb, Mapping.load(tmp_path / "pb.toml"))
+    s = series["/gps/fix_pb"]
+    np.testing.assert_allclose(s.values["latitude"], g["cols"]["latitude"])
+    np.testing.assert_allclose(s.values["altitude"], g["cols"]["altitude"])

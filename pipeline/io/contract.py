@@ -26,6 +26,7 @@ class TopicRule:
     fields: tuple[str, ...]
     prefix: bool = False
     description: str = ""
+    alias: str = ""  # column-name suffix of a mapped topic (see pipeline.io.mapping)
 
     def matches(self, topic: str) -> bool:
         if topic == self.topic:

@@ -338,10 +338,42 @@ def _interp_onto(t_dst: np.ndarray, series: TopicSeries, values: np.ndarray,
 
 
 def _suffix(topic: str, rule: TopicRule) -> str:
+    if rule.alias:
+        return rule.alias
     return topic[len(rule.topic) + 1:].replace("/", "_") if topic != rule.topic else ""
 
 
-def read_flight(path: str | Path, *, scalar_topic: str | None = None,
+def _mapped_series(path: Path, mapping) -> dict[str, TopicSeries]:
+    """Series of the topics a mapping file names (any encoding; see pipeline.io.mapping)."""
+    from pipeline.io.mapping import decoded_messages, mapped_columns
+
+    decoded = decoded_messages(path, list(mapping.topics))
+    out = {}
+    for topic, tm in mapping.topics.items():
+        msgs = decoded.get(topic) or []
+        if not msgs:
+            raise AeromagError("the mapping names this topic but the recording has no "
+                               "message on it", file=path, channel=topic)
+        t, values, labels = mapped_columns(tm, msgs, path)
+        order = np.argsort(t, kind="stable")
+        t = t[order]
+        keep = np.r_[True, np.diff(t) > 0]
+        finite = np.all(np.column_stack([np.isfinite(v[order]) for v in values.values()]),
+                        axis=1)
+        keep &= finite
+        problems = []
+        if (~keep).any():
+            problems.append(f"{int((~keep).sum())} samples dropped (duplicate times or NaN)")
+        rule = TopicRule(topic, "", tm.role, tuple(values), alias=tm.name or
+                         topic.strip("/").replace("/", "_"))
+        out[topic] = TopicSeries(topic, rule, t[keep],
+                                 {k: v[order][keep] for k, v in values.items()},
+                                 {k: v[order][keep] for k, v in labels.items()}, problems,
+                                 len(msgs))
+    return out
+
+
+def read_flight(path: str | Path, *, mapping=None, scalar_topic: str | None = None,
                 vector_topic: str | None = None, gap_factor: float = 3.0) -> Flight:
     """Read a recording and align every contract stream onto the primary scalar epochs.
 
@@ -365,7 +397,13 @@ def read_flight(path: str | Path, *, scalar_topic: str | None = None,
     series: dict[str, TopicSeries] = {}
     unknown: list[str] = []
     notes: list[str] = []
+    if mapping is not None:
+        series.update(_mapped_series(path, mapping))
+        for s_ in series.values():
+            notes.extend(f"{s_.topic}: {p}" for p in s_.problems)
     for topic, rt in sorted(raw.topics.items()):
+        if topic in series:
+            continue
         rule = rule_for_topic(topic)
         if rule is None:
             unknown.append(topic)
