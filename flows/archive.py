@@ -120,6 +120,8 @@ def process_one(path: str, out_dir: str, config_path: str | None, cfg_hash: str,
                           f"{' '.join(str(exc).split())[:300]}")
     row["seconds"] = round(time.perf_counter() - t0, 2)
     if row["status"] == "quarantined":
+        with contextlib.suppress(OSError):
+            dest.rmdir()  # only if empty: nothing was produced
         q = out / "quarantine"
         q.mkdir(parents=True, exist_ok=True)
         tmp = q / f".{p.stem}-{sha[:8]}.txt.partial"
@@ -222,6 +224,10 @@ def process_new(watch_dir: str, out_dir: str, config_path: str | None = None,
 
 def dask_runner(workers: int, address: str | None):
     from prefect_dask import DaskTaskRunner
+
+    for name in ("distributed", "distributed.scheduler", "distributed.nanny",
+                 "distributed.core", "distributed.worker", "distributed.http.proxy"):
+        logging.getLogger(name).setLevel(logging.WARNING)  # the scheduler's chatter
 
     if address:
         return DaskTaskRunner(address=address)
