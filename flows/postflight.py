@@ -26,13 +26,6 @@ from pipeline.config import Config
 from pipeline.report import sha256_file
 
 
-def output_paths(recording: str | Path, out_dir: str | Path) -> dict[str, Path]:
-    stem = Path(recording).stem
-    out = Path(out_dir)
-    return {"mcap": out / f"{stem}.processed.mcap", "summary": out / f"{stem}.summary.json",
-            "report": out / f"{stem}.report.md"}
-
-
 def postflight_steps(recording: str, out_dir: str, cfg: Config, call: Callable[..., Any]
                      ) -> dict[str, Any]:
     """Every stage in order; ``call(stage, *args)`` runs one (see the module docstring)."""

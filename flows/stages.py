@@ -22,11 +22,13 @@ from pipeline.maps.stage import MapSettings, build_map
 from pipeline.outputs import (
     compensated_channel,
     crossover_channel,
+    field_channel,
     grid_channel,
     heading_error_channel,
     model_message,
     segment_channel,
     tracks_channel,
+    vector_channel,
 )
 from pipeline.plots import (
     crossover_figure,
@@ -326,13 +328,7 @@ def quality_recording(src: Path, summary_path: Path, settings: QualitySettings,
         if "/flight/segment" not in present:
             channels.append(segment_channel(flight, seg))
         if fitted:  # keep what was fitted: a later run on the output reuses it
-            final = list(fitted)[-1]
-            model_ch = OutputChannel("/compensation/model", "aeromag.CompensationModel")
-            for m, run in fitted.items():
-                topic = "/mag/compensated" if m == final else f"/mag/compensated/{m}"
-                channels.append(compensated_channel(flight, run, topic))
-                model_message(flight, run, model_ch)
-            channels.append(model_ch)
+            channels += _model_channels(flight, fitted, None)[0]
         clash = sorted({c.topic for c in channels} & present)
         if clash:
             raise AeromagError(f"the recording already holds {', '.join(clash)}; give an "
@@ -375,21 +371,13 @@ def audit_recording(src: Path, json_path: Path, report_dir: Path, settings,
         present = set(read_topics_names(src))
         lines = ingest_lines(flight) + log_lines(res)
         channels = [log_channel(flight, lines, "audit"), finding_channel(flight, res)]
-        comp_ch = [("/mag/compensated", res.compensated["extended"],
-                    "+".join(res.extended.spec.label())),
-                   (f"/mag/compensated/{res.baseline.spec.base}", res.compensated["baseline"],
-                    res.baseline.spec.base)]
-        sensor = str(flight.series[flight.topic_of["scalar"]].labels["sensor_id"][0])
-        for topic, comp, model in comp_ch:
-            if topic in present:
-                continue
-            ch = OutputChannel(topic, "aeromag.CompensatedField")
-            scalar = flight.data["scalar_nT"].to_numpy(float)
-            for i in np.flatnonzero(np.isfinite(comp)):
-                ch.add(int(flight.time_ns[i]), {"sensor_id": sensor, "total_nT": float(comp[i]),
-                                                "interference_nT": float(scalar[i] - comp[i]),
-                                                "model": model})
-            channels.append(ch)
+        for topic, comp, model in (
+                ("/mag/compensated", res.compensated["extended"],
+                 "+".join(res.extended.spec.label())),
+                (f"/mag/compensated/{res.baseline.spec.base}", res.compensated["baseline"],
+                 res.baseline.spec.base)):
+            if topic not in present:
+                channels.append(field_channel(flight, topic, comp, None, model))
         clash = sorted({c.topic for c in channels} & present)
         if clash:
             raise AeromagError(f"the recording already holds {', '.join(clash)}; audit the "
@@ -421,13 +409,7 @@ def vector_recording(src: Path, dst: Path, summary_path: Path, method: str) -> d
     if run.output_topic in present:
         raise AeromagError(f"the recording already holds {run.output_topic}", file=src,
                            channel=run.output_topic)
-    sensor = str(flight.series[flight.topic_of["vector"]].labels["sensor_id"][0])
-    ch = OutputChannel(run.output_topic, "aeromag.VectorField")
-    v = run.vectors_nT
-    for i in np.flatnonzero(np.all(np.isfinite(v), axis=1)):
-        ch.add(int(flight.time_ns[i]), {"sensor_id": f"{sensor}-{method}",
-                                         "x_nT": float(v[i, 0]), "y_nT": float(v[i, 1]),
-                                         "z_nT": float(v[i, 2])})
+    ch = vector_channel(flight, run.output_topic, run.vectors_nT, method)
     s = run.summary()
     text = f"vector: {method}: " + ", ".join(
         f"{k} {val['before']:.2f} -> {val['after']:.2f} nT" for k, val in s.items()
@@ -506,28 +488,17 @@ def _model_channels(flight: Flight, runs: dict, audit) -> tuple[list[OutputChann
     channels.append(model_ch)
     if final[0] == "extended":
         label = "+".join(audit.extended.spec.label())
-        ch = OutputChannel("/mag/compensated", "aeromag.CompensatedField")
-        sensor = str(flight.series[flight.topic_of["scalar"]].labels["sensor_id"][0])
-        scalar = flight.data["scalar_nT"].to_numpy(float)
-        comp = final[1]
-        for i in np.flatnonzero(np.isfinite(comp)):
-            ch.add(int(flight.time_ns[i]), {"sensor_id": sensor, "total_nT": float(comp[i]),
-                                            "interference_nT": float(scalar[i] - comp[i]),
-                                            "model": label})
-        channels.append(ch)
+        channels.append(field_channel(flight, "/mag/compensated", final[1], None, label))
         return channels, label
     return channels, final[0]
 
 
-def _vector_channel(flight: Flight, run) -> OutputChannel:
-    sensor = str(flight.series[flight.topic_of["vector"]].labels["sensor_id"][0])
-    ch = OutputChannel(run.output_topic, "aeromag.VectorField")
-    v = run.vectors_nT
-    for i in np.flatnonzero(np.all(np.isfinite(v), axis=1)):
-        ch.add(int(flight.time_ns[i]), {"sensor_id": f"{sensor}-{run.method}",
-                                         "x_nT": float(v[i, 0]), "y_nT": float(v[i, 1]),
-                                         "z_nT": float(v[i, 2])})
-    return ch
+def output_paths(recording: str | Path, out_dir: str | Path) -> dict[str, Path]:
+    """Where the post-flight outputs of ``recording`` go."""
+    stem = Path(recording).stem
+    out = Path(out_dir)
+    return {"mcap": out / f"{stem}.processed.mcap", "summary": out / f"{stem}.summary.json",
+            "report": out / f"{stem}.report.md"}
 
 
 def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str, runs: dict,
@@ -540,8 +511,7 @@ def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str
 
     stem = Path(recording).stem
     out = Path(out_dir)
-    paths = {"mcap": out / f"{stem}.processed.mcap", "summary": out / f"{stem}.summary.json",
-             "report": out / f"{stem}.report.md"}
+    paths = output_paths(recording, out_dir)
     lines = ingest_lines(flight)
     if why:
         lines.append((LOG_INFO, why))
@@ -587,7 +557,8 @@ def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str
     if isinstance(vector, str):
         lines.append((LOG_WARNING, f"vector: skipped: {vector}"))
     elif vector is not None:
-        channels.append(_vector_channel(flight, vector))
+        channels.append(vector_channel(flight, vector.output_topic, vector.vectors_nT,
+                                       vector.method))
         summary["vector"] = jsonable(vector.summary())
         lines.append((LOG_INFO, f"vector: {vector.method} -> {vector.output_topic}"))
     if map_run is not None:

@@ -26,12 +26,36 @@ def segment_channel(flight: Flight, seg: Segmentation) -> OutputChannel:
 def compensated_channel(flight: Flight, run: CompensationRun,
                         topic: str = "/mag/compensated") -> OutputChannel:
     """Compensated field at every epoch where it exists."""
+    return field_channel(flight, topic, run.compensated_nT, run.interference_nT,
+                         run.model.model)
+
+
+def field_channel(flight: Flight, topic: str, compensated_nT: np.ndarray,
+                  interference_nT: np.ndarray | None, model: str) -> OutputChannel:
+    """An ``aeromag.CompensatedField`` channel from per-epoch arrays; the interference
+    defaults to what was removed from the recorded scalar."""
     ch = OutputChannel(topic, "aeromag.CompensatedField")
     sensor = _sensor_id(flight)
-    comp, inter, model = run.compensated_nT, run.interference_nT, run.model.model
+    comp = np.asarray(compensated_nT, float)
+    inter = (flight.data["scalar_nT"].to_numpy(float) - comp if interference_nT is None
+             else interference_nT)
     for i in np.flatnonzero(np.isfinite(comp)):
         ch.add(int(flight.time_ns[i]), {"sensor_id": sensor, "total_nT": float(comp[i]),
                                          "interference_nT": float(inter[i]), "model": model})
+    return ch
+
+
+def vector_channel(flight: Flight, topic: str, vectors_nT: np.ndarray, method: str
+                   ) -> OutputChannel:
+    """An ``aeromag.VectorField`` channel (body frame) from per-epoch vectors; the sensor
+    id is the fluxgate's with the method that made them."""
+    sensor = str(flight.series[flight.topic_of["vector"]].labels["sensor_id"][0])
+    ch = OutputChannel(topic, "aeromag.VectorField")
+    v = np.asarray(vectors_nT, float)
+    for i in np.flatnonzero(np.all(np.isfinite(v), axis=1)):
+        ch.add(int(flight.time_ns[i]), {"sensor_id": f"{sensor}-{method}",
+                                         "x_nT": float(v[i, 0]), "y_nT": float(v[i, 1]),
+                                         "z_nT": float(v[i, 2])})
     return ch
 
 

@@ -283,11 +283,11 @@ class Auditor:
                "up_nT_per_m": float(c["pos_up"])}
         return Evaluation("geomagnetic_gradient", key, est, test, held, ext)
 
-    def _lag_estimate(self, current: ModelSpec, mask: np.ndarray) -> float:
+    def _lag_estimate(self, current: ModelSpec, mask: np.ndarray, key: str) -> float:
         """The lag minimising the refitted model's residual: a coarse grid over
         +-``max_lag_s`` (the eddy terms absorb part of a lag, so a linearised estimate with
         the baseline's coefficients is biased low), then a bounded 1-D refinement."""
-        lam = self.fit(current, mask, f"lag-{id(mask)}").lambda_
+        lam = self.fit(current, mask, key).lambda_
 
         def cost(tau: float) -> float:
             try:
@@ -311,11 +311,11 @@ class Auditor:
         lags = {}
 
         def ext_for(train, k):
-            lags[k] = self._lag_estimate(current, train)
+            lags[k] = self._lag_estimate(current, train, f"fold{k}")
             return current.with_(lag_s=lags[k])
 
         held = self.heldout(current, ext_for)
-        lag = self._lag_estimate(current, self.mask)
+        lag = self._lag_estimate(current, self.mask, "all")
         est = {"lag_s": lag, "lag_by_fold_s": [lags[k] for k in sorted(lags)]}
         return Evaluation("sensor_lag", key, est, test, held, current.with_(lag_s=lag))
 

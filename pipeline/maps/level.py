@@ -51,7 +51,8 @@ class Crossover:
         return self.value_a_nT - self.value_b_nT
 
 
-def _points(geom) -> list[Point]:
+def intersection_points(geom) -> list[Point]:
+    """The points of a shapely intersection result (point, multipoint or collection)."""
     if geom.is_empty:
         return []
     if isinstance(geom, Point):
@@ -70,7 +71,7 @@ def crossovers(lines_a: list[Line], lines_b: list[Line]) -> list[Crossover]:
         for lb, gb in geoms_b:
             if la is lb or not ga.intersects(gb):
                 continue
-            for pt in _points(ga.intersection(gb)):
+            for pt in intersection_points(ga.intersection(gb)):
                 va, ta = la.at(ga.project(pt))
                 vb, tb = lb.at(gb.project(pt))
                 if np.isfinite(va) and np.isfinite(vb):

@@ -20,7 +20,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 from scipy.spatial import cKDTree
-from shapely import LineString, MultiPoint, Point
+from shapely import LineString
+
+from pipeline.maps.level import intersection_points
 
 
 @dataclass
@@ -97,16 +99,6 @@ class OverlapSet:
         return (1 - self.wa) * self.a0 + self.wa * self.a1
 
 
-def _points(geom) -> list[Point]:
-    if geom.is_empty:
-        return []
-    if isinstance(geom, Point):
-        return [geom]
-    if isinstance(geom, MultiPoint):
-        return list(geom.geoms)
-    return [g for g in getattr(geom, "geoms", []) if isinstance(g, Point)]
-
-
 def _empty(kind: str) -> OverlapSet:
     z, zf, zs = np.zeros(0, int), np.zeros(0), np.zeros(0, dtype=object)
     return OverlapSet(kind, z, z, zf, z, z, zf, zf, zf, zf, zs, zs, zf, zf)
@@ -132,7 +124,7 @@ def track_intersections(validation: list[Track], mapped: list[Track]) -> Overlap
         for m, gm in geoms:
             if not gv.intersects(gm):
                 continue
-            for pt in _points(gv.intersection(gm)):
+            for pt in intersection_points(gv.intersection(gm)):
                 a0, a1, wa = v.bracket(gv.project(pt))
                 b0, b1, wb = m.bracket(gm.project(pt))
                 rows.append((a0, a1, wa, b0, b1, wb, pt.x, pt.y, 0.0, v.line_id, m.line_id,
