@@ -515,6 +515,25 @@ def serve(
 
 
 @app.command()
+def layout(
+    file: Annotated[Path, typer.Argument(help="Processed MCAP recording (aeromag process).")],
+    out_path: Annotated[Path, typer.Option("--out", help="Layout file to write (JSON).")],
+) -> None:
+    """Write a Foxglove layout for a processed recording: map with track and flight lines,
+    raw / T-L / AGG-TL field and interference plots, segment labels, anomaly grids, audit log.
+
+    Open the recording in Foxglove, then Layouts -> Import from file... -> this file.
+    """
+    from pipeline.io.writer import write_json_atomic
+    from pipeline.viewer_layout import layout_panels, recording_layout
+
+    doc = recording_layout(file)
+    write_json_atomic(out_path, doc)
+    say(f"layout: {out_path} ({len(layout_panels(doc['layout']))} panels: "
+        + ", ".join(k.split("!", 1)[0] for k in layout_panels(doc["layout"])) + ")")
+
+
+@app.command()
 def demo(
     out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("demo-output"),
     seed: Annotated[int, typer.Option(help="Random seed of the simulated flight.")] = 1,
@@ -551,6 +570,8 @@ def demo(
         _print_quality(result["quality"])
     say(f"output recording: {result['outputs']['mcap']}")
     say(f"summary: {result['outputs']['summary']}")
+    say(f"report: {result['outputs']['report_html']} (open in a browser); Foxglove layout: "
+        f"{result['outputs']['layout']}")
     say(f"done in {time.perf_counter() - t0:.1f} s")
 
 

@@ -16,6 +16,7 @@ from pipeline import __version__
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import CompensationRun, run_compensation
 from pipeline.errors import AeromagError
+from pipeline.html_report import render_html
 from pipeline.io.reader import Flight, read_flight
 from pipeline.io.writer import OutputChannel, write_json_atomic, write_with_new_channels
 from pipeline.maps.stage import MapSettings, build_map
@@ -47,6 +48,7 @@ from pipeline.report import (
     run_metadata,
 )
 from pipeline.segment import Segmentation, segment_flight
+from pipeline.viewer_layout import recording_layout
 
 
 def try_segment(flight: Flight) -> tuple[Segmentation | None, str]:
@@ -120,7 +122,7 @@ def existing_compensated(flight: Flight) -> dict[str, np.ndarray]:
     from pipeline.io.contract import rule_for_topic
     from pipeline.io.reader import decode_topic, read_topics
 
-    names = [t for t in read_topics_names(flight.source)
+    names = [t for t in flight.all_topics
              if t == "/mag/compensated" or t.startswith("/mag/compensated/")]
     raw = read_topics(flight.source, names).topics if names else {}
     out: dict[str, np.ndarray] = {}
@@ -175,7 +177,7 @@ def map_recording(src: Path, dst: Path, summary_path: Path, settings: MapSetting
     if seg is None:
         raise AeromagError(f"mapping needs the flight lines: {why}", file=src,
                            channel="/gnss/fix")
-    present = set(read_topics_names(src))
+    present = set(flight.all_topics)
     channels: list[OutputChannel] = []
     lines = ingest_lines(flight)
     earlier = existing_compensated(flight)
@@ -204,14 +206,6 @@ def map_recording(src: Path, dst: Path, summary_path: Path, settings: MapSetting
                     "outputs": {"mcap": str(dst), "summary": str(summary_path)}})
     write_json_atomic(summary_path, summary)
     return summary
-
-
-def read_topics_names(path: Path) -> list[str]:
-    from mcap.reader import make_reader
-
-    with path.open("rb") as f:
-        summ = make_reader(f).get_summary()
-    return [c.topic for c in summ.channels.values()] if summ else []
 
 
 # --------------------------------------------------------------------------------------------
@@ -323,7 +317,7 @@ def quality_recording(src: Path, summary_path: Path, settings: QualitySettings,
                                "quality": q.summary(), "figures": figures,
                                "outputs": {"summary": str(summary_path)}}
     if out is not None:
-        present = set(read_topics_names(src))
+        present = set(flight.all_topics)
         channels = [log_channel(flight, lines, "quality"), *quality_channels(flight, q)]
         if "/flight/segment" not in present:
             channels.append(segment_channel(flight, seg))
@@ -368,7 +362,7 @@ def audit_recording(src: Path, json_path: Path, report_dir: Path, settings,
     j["report"] = {"markdown": str(report_dir / "report.md"),
                    "figures": {k: str(report_dir / v) for k, v in images.items()}}
     if out is not None:
-        present = set(read_topics_names(src))
+        present = set(flight.all_topics)
         lines = ingest_lines(flight) + log_lines(res)
         channels = [log_channel(flight, lines, "audit"), finding_channel(flight, res)]
         for topic, comp, model in (
@@ -405,7 +399,7 @@ def vector_recording(src: Path, dst: Path, summary_path: Path, method: str) -> d
     except ValueError as exc:
         raise AeromagError(str(exc), file=src, channel=flight.topic_of.get("vector", "")
                            ) from None
-    present = set(read_topics_names(src))
+    present = set(flight.all_topics)
     if run.output_topic in present:
         raise AeromagError(f"the recording already holds {run.output_topic}", file=src,
                            channel=run.output_topic)
@@ -498,7 +492,12 @@ def output_paths(recording: str | Path, out_dir: str | Path) -> dict[str, Path]:
     stem = Path(recording).stem
     out = Path(out_dir)
     return {"mcap": out / f"{stem}.processed.mcap", "summary": out / f"{stem}.summary.json",
-            "report": out / f"{stem}.report.md"}
+            "report": out / f"{stem}.report.md", "report_html": out / f"{stem}.report.html",
+            "layout": out / f"{stem}.layout.json"}
+
+
+# output_paths keys that are not figures
+DOCUMENTS = ("mcap", "summary", "report", "report_html", "layout")
 
 
 def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str, runs: dict,
@@ -522,6 +521,8 @@ def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str
     figures: dict[str, Any] = {}
     if seg is not None:
         channels.append(segment_channel(flight, seg))
+        if flight.has("lat_deg", "lon_deg"):
+            figures["flight_map"] = _flight_map(flight, seg)
         summary["segments"] = {"source": seg.source,
                                "epochs": {lab: int(seg.mask(lab).sum()) for lab in
                                           ("calibration", "survey", "tie", "validation",
@@ -577,17 +578,35 @@ def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str
     meta = {"aeromag.run": {**run_metadata(), "config_hash": cfg.hash,
                             "config_version": str(cfg["config_version"])}}
     write_with_new_channels(recording, paths["mcap"], channels, metadata=meta)
-    report = report_markdown(stem, summary, {k: v.name for k, v in paths.items()
-                                             if k not in ("mcap", "summary", "report")})
-    tmp = out / f".{stem}.report.md.partial"
-    tmp.write_text(report)
-    tmp.replace(paths["report"])
+    images = {k: v for k, v in paths.items() if k not in DOCUMENTS}
+    report = report_markdown(stem, summary, {k: v.name for k, v in images.items()})
+    _write_text_atomic(paths["report"], report)
+    _write_text_atomic(paths["report_html"], render_html(stem, summary, images))
+    write_json_atomic(paths["layout"], recording_layout(paths["mcap"]))
     summary = {**summary, "outputs": {k: str(v) for k, v in paths.items()},
                "channels_written": sorted({c.topic for c in channels if c.messages})}
     summary = jsonable(summary)
     write_json_atomic(paths["summary"], summary)
     publish_artifact(stem, report)
     return summary
+
+
+def _write_text_atomic(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.partial")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def _flight_map(flight: Flight, seg):
+    from pipeline.geo.local import LocalFrame
+    from pipeline.plots import flight_map_figure
+
+    d = flight.data
+    lat, lon = d["lat_deg"].to_numpy(float), d["lon_deg"].to_numpy(float)
+    ok = np.isfinite(lat) & np.isfinite(lon)
+    frame = LocalFrame(float(np.median(lat[ok])), float(np.median(lon[ok])))
+    e, n, _ = frame.to_enu(lat, lon)
+    return flight_map_figure(e, n, seg.label)
 
 
 def publish_artifact(stem: str, markdown: str) -> None:

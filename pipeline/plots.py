@@ -281,3 +281,39 @@ def audit_gain_figure(gain: dict[str, dict[str, float | None]]) -> plt.Figure:
     ax.grid(alpha=0.3, axis="y", which="both")
     fig.tight_layout()
     return fig
+
+
+# --------------------------------------------------------------------------------------------
+# flight overview
+
+SEGMENT_COLOURS = {"calibration": "tab:red", "survey": "tab:blue", "tie": "tab:green",
+                   "validation": "tab:purple", "turn": "0.75", "transit": "0.55"}
+
+
+def flight_map_figure(east_m: np.ndarray, north_m: np.ndarray, labels: np.ndarray,
+                      title: str = "flight track by segment") -> plt.Figure:
+    """The GNSS track in local east/north metres, coloured by segment label.
+
+    Turns and transits are drawn thin and grey so the calibration box and the lines stand out.
+    """
+    fig, ax = plt.subplots(figsize=(7.5, 6.0))
+    labels = np.asarray(labels).astype(str)
+    for label, colour in SEGMENT_COLOURS.items():
+        sel = labels == label
+        if not sel.any():
+            continue
+        # NaN between runs of the label, so separate pieces are not joined by straight lines
+        e = np.where(sel, east_m, np.nan)
+        n = np.where(sel, north_m, np.nan)
+        minor = label in ("turn", "transit")
+        ax.plot(e, n, "-", color=colour, lw=0.6 if minor else 1.2,
+                label=f"{label} ({sel.sum()} epochs)", zorder=1 if minor else 2)
+    ax.plot(east_m[:1], north_m[:1], "k^", ms=7, label="start")
+    ax.set_xlabel("east (m)")
+    ax.set_ylabel("north (m)")
+    ax.set_aspect("equal", adjustable="datalim")
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    return fig

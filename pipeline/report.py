@@ -55,6 +55,17 @@ def ingest_lines(flight: Flight) -> list[tuple[int, str]]:
 def flight_summary(flight: Flight) -> dict[str, Any]:
     """The ``input`` section of a summary document."""
     t = flight.time_ns
+    t0 = int(t[0])
+
+    def rel(ns):
+        return None if ns is None else round((ns - t0) / NS, 3)
+
+    dropped = {}
+    for topic, s in sorted(flight.series.items()):
+        if s.dropped_ns.size:
+            dropped[topic] = {"samples": int(s.dropped_ns.size), "of": int(s.n_messages),
+                              "ranges_s": [[rel(a), rel(b)] for a, b in s.dropped_ranges_ns()],
+                              "problems": s.problems}
     return {
         "file": str(flight.source),
         "sha256": sha256_file(flight.source),
@@ -68,6 +79,10 @@ def flight_summary(flight: Flight) -> dict[str, Any]:
         "gaps": [{"topic": g.topic, "start_s": (g.start_ns - int(t[0])) / NS,
                   "duration_s": g.duration_s} for g in flight.gaps],
         "notes": flight.notes,
+        "dropped": dropped,
+        "losses": [{"offset": x.offset, "reason": x.reason, "start_s": rel(x.start_ns),
+                    "end_s": rel(x.end_ns), "bytes_lost": x.bytes_lost,
+                    "description": x.describe(t0)} for x in flight.losses],
     }
 
 

@@ -62,3 +62,18 @@ def prefect_harness():
 
     with prefect_test_harness(server_startup_timeout=90):
         yield
+
+
+@pytest.fixture(scope="session")
+def demo_output(tmp_path_factory, prefect_harness):
+    """The README's demo, run once through the CLI: folder and summary document."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from flows.cli import app
+
+    out = tmp_path_factory.mktemp("demo")
+    res = CliRunner().invoke(app, ["demo", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    return out, json.loads((out / "demo_flight.summary.json").read_text())

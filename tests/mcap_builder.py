@@ -21,7 +21,9 @@ def ts(ns: int) -> dict[str, int]:
 
 def build(path: Path, messages: list[tuple[str, int, Any]], *,
           schema_of: dict[str, str] | None = None, encoding: dict[str, str] | None = None,
-          summary: bool = True, extra: callable | None = None) -> Path:
+          summary: bool = True, extra: callable | None = None,
+          compression: CompressionType = CompressionType.ZSTD, chunk_size: int = 1 << 20
+          ) -> Path:
     """Write ``messages`` = [(topic, log_time_ns, payload dict | bytes)] in the given order.
 
     ``schema_of`` maps topic -> schema name (default: by the contract); ``encoding`` overrides
@@ -33,7 +35,7 @@ def build(path: Path, messages: list[tuple[str, int, Any]], *,
     schema_of = {**default, **(schema_of or {})}
     with open(path, "wb") as f:
         if summary:
-            w = Writer(f, compression=CompressionType.ZSTD)
+            w = Writer(f, compression=compression, chunk_size=chunk_size)
         else:  # like a logger that died before writing its summary: readable by linear scan
             w = Writer(f, compression=CompressionType.NONE, index_types=IndexType.NONE,
                        repeat_channels=False, repeat_schemas=False, use_statistics=False,

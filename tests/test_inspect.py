@@ -87,13 +87,17 @@ def test_bad_files_give_one_line_errors(tmp_path):
                                           for i in range(2000)])
     truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
     for path, needle in ((empty, "empty file"), (junk, "not a readable MCAP"),
-                         (truncated, "not a readable MCAP"),
                          (tmp_path / "missing.mcap", "file not found")):
         res = cli("inspect", str(path))
         assert res.returncode == 2, res.stderr
         err = res.stderr.strip().splitlines()
         assert len(err) == 1 and needle in err[0] and str(path) in err[0], res.stderr
         assert "Traceback" not in res.stderr
+    # a truncated file is salvaged: what it lost is a violation, the rest is reported
+    res = cli("inspect", str(truncated))
+    assert res.returncode == 1 and "Traceback" not in res.stderr
+    assert "violation:" in res.stderr and "file truncated" in res.stderr
+    assert "/mag/scalar" in res.stdout
 
 
 def test_simulate_cli_and_bad_scenario(tmp_path):

@@ -94,7 +94,7 @@ def test_secondary_sensors_and_unknown_topics(tmp_path):
         t = T0 + i * NS // 10
         msgs += [("/mag/scalar/left", t, scalar(t, 5e4 + i, "left")),
                  ("/mag/scalar/right", t, scalar(t, 6e4 + i, "right")),
-                 ("/mag/vector", t, vector(t, 1.0 * i, 2.0, 3.0)),
+                 ("/mag/vector", t, vector(t, 2e4 + i, 2e3, 4e4)),
                  ("/camera/raw", t, b"\x00\x01binary")]
     fl = read_flight(build(tmp_path / "multi.mcap", msgs, schema_of={"/camera/raw": "x.Image"}))
     assert fl.topic_of["scalar"] == "/mag/scalar/left"
@@ -111,14 +111,14 @@ def test_bad_payloads_are_dropped_and_reported(tmp_path):
         msgs.append(("/mag/scalar", t, scalar(t, 5e4 + i)))
     bad_t = T0 + 5 * NS // 10
     msgs += [
-        ("/mag/vector", T0, vector(T0, 1, 2, 3)),
+        ("/mag/vector", T0, vector(T0, 2e4, 2, 4e4)),
         ("/mag/vector", T0 + NS, {"timestamp": ts(T0 + NS), "x_nT": "12", "y_nT": 0, "z_nT": 0}),
         ("/mag/vector", T0 + 2 * NS, b"\xff\xfe not json"),
-        ("/mag/vector", T0 + 2 * NS, vector(T0 + 2 * NS, 1, 2, 3)),
-        ("/mag/vector", T0, vector(T0, 9, 9, 9)),  # duplicate time, out of order
+        ("/mag/vector", T0 + 2 * NS, vector(T0 + 2 * NS, 2e4, 2, 4e4)),
+        ("/mag/vector", T0, vector(T0, 9, 9, 4e4)),  # duplicate time, out of order
         ("/mag/vector", T0 + NS // 2, {"timestamp": ts(bad_t), "sensor_id": "v", "x_nT": None,
                                        "y_nT": 0, "z_nT": 0}),
-        ("/mag/vector", T0 + 3 * NS, vector(T0 + 3 * NS + 7, 1, 2, 3)),  # stamp mismatch
+        ("/mag/vector", T0 + 3 * NS, vector(T0 + 3 * NS + 7, 2e4, 2, 4e4)),  # stamp mismatch
     ]
     fl = read_flight(build(tmp_path / "bad.mcap", msgs))
     s = fl.series["/mag/vector"]
@@ -127,7 +127,7 @@ def test_bad_payloads_are_dropped_and_reported(tmp_path):
     assert "payload timestamp that differs" in text and "duplicated timestamps" in text
     assert "not in time order" in text
     assert s.time_ns.tolist() == [T0, T0 + 2 * NS, T0 + 3 * NS]
-    assert s.values["x_nT"][0] == 1.0  # the first of the duplicates is kept
+    assert s.values["x_nT"][0] == 2e4  # the first of the duplicates is kept
 
 
 @pytest.mark.parametrize("content,expected", [

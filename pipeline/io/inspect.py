@@ -131,6 +131,8 @@ def inspect_recording(path: str | Path, gap_factor: float = 3.0) -> InspectRepor
     if unknown:
         warnings.append(f"{len(unknown)} topic(s) outside the contract, kept untouched: "
                         + ", ".join(unknown))
+    # damage is a violation: the data it held is gone (the rest was salvaged and is reported)
+    violations.extend(raw.loss_notes())
     if not raw.has_summary:
         warnings.append("no summary section (file read by a linear scan)")
     t0 = min((t.start_ns for t in topics if t.start_ns is not None), default=0)

@@ -192,7 +192,7 @@ def mapped_columns(tm: TopicMap, msgs: list[tuple[int, Any]], path: Path
 
 
 def _check_nT(v: np.ndarray, path: Path, topic: str) -> None:
-    from pipeline.io.sgl import check_units
+    from pipeline.io.plausibility import check_units
 
     check_units("the field", v, path, topic)
 

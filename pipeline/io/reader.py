@@ -13,7 +13,6 @@ unchanged anyway); they are listed, never dropped silently.
 
 from __future__ import annotations
 
-import struct
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -21,11 +20,11 @@ from pathlib import Path
 import numpy as np
 import orjson
 import pandas as pd
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
 
 from pipeline.errors import AeromagError
 from pipeline.io.contract import MESSAGE_ENCODING, TopicRule, rule_for_topic
+from pipeline.io.plausibility import check_degrees, check_units
+from pipeline.io.scan import Loss, ScanError, scan_mcap
 from pipeline.io.schemas import schema
 
 NS = 1_000_000_000
@@ -55,16 +54,18 @@ class RawRecording:
     path: Path
     topics: dict[str, RawTopic]
     has_summary: bool
+    losses: list[Loss] = field(default_factory=list)  # damage salvaged around
 
-
-def _open_error(path: Path, exc: BaseException) -> AeromagError:
-    name = type(exc).__name__
-    text = str(exc).strip().splitlines()[0] if str(exc).strip() else name
-    return AeromagError(f"not a readable MCAP recording ({name}: {text})", file=path)
+    def loss_notes(self, t0_ns: int | None = None) -> list[str]:
+        return [f"salvaged: {x.describe(t0_ns)}" for x in self.losses]
 
 
 def read_topics(path: str | Path, topics: Iterable[str] | None = None) -> RawRecording:
     """Read the raw payloads of a recording, grouped by topic.
+
+    Damage is salvaged, not fatal: a truncated file, a chunk whose CRC does not match, a chunk
+    declaring an absurd size or a malformed record loses only itself; every intact chunk is
+    read and each loss is listed in ``losses`` (see :mod:`pipeline.io.scan`).
 
     Parameters
     ----------
@@ -76,39 +77,39 @@ def read_topics(path: str | Path, topics: Iterable[str] | None = None) -> RawRec
     Raises
     ------
     AeromagError
-        The file is missing, empty, not MCAP, corrupt (chunk CRCs are validated) or truncated.
+        The file is missing, empty, not MCAP, or nothing at all could be read from it.
     """
     path = Path(path)
     if not path.is_file():
         raise AeromagError("file not found", file=path)
-    if path.stat().st_size == 0:
-        raise AeromagError("empty file (0 bytes), not an MCAP recording", file=path)
     wanted = set(topics) if topics is not None else None
-    out: dict[str, RawTopic] = {}
     try:
-        with path.open("rb") as stream:
-            reader = make_reader(stream, validate_crcs=True)
-            summary = reader.get_summary()
-            if summary is not None:  # channels that carry no message are still listed
-                for ch in summary.channels.values():
-                    if wanted is None or ch.topic in wanted:
-                        sc = summary.schemas.get(ch.schema_id)
-                        out.setdefault(ch.topic, RawTopic(
-                            ch.topic, sc.name if sc else "", sc.encoding if sc else "",
-                            ch.message_encoding))
-            for schema, channel, message in reader.iter_messages(
-                    topics=list(wanted) if wanted is not None else None, log_time_order=False):
-                raw = out.get(channel.topic)
-                if raw is None:
-                    raw = out[channel.topic] = RawTopic(
-                        channel.topic, schema.name if schema else "",
-                        schema.encoding if schema else "", channel.message_encoding)
-                raw.log_time_ns.append(message.log_time)
-                raw.data.append(message.data)
-    except (McapError, ValueError, struct.error, EOFError, OSError, KeyError) as exc:
-        # CRCValidationError is a ValueError, not an McapError (toolchain.md).
-        raise _open_error(path, exc) from exc
-    return RawRecording(path=path, topics=out, has_summary=summary is not None)
+        sc = scan_mcap(path, wanted)
+    except ScanError as exc:
+        raise AeromagError(str(exc), file=path) from None
+    except OSError as exc:
+        raise AeromagError(f"cannot read the file ({type(exc).__name__}: {exc})",
+                           file=path) from None
+    if not sc.channels and sc.losses:
+        raise AeromagError("not a readable MCAP recording (no intact channel or message; "
+                           + "; ".join(x.describe() for x in sc.losses[:2]) + ")", file=path)
+    out: dict[str, RawTopic] = {}
+    for ch in sc.channels.values():
+        if wanted is not None and ch.topic not in wanted:
+            continue
+        name, enc = sc.schema_of(ch)
+        raw = out.get(ch.topic)
+        if raw is None:
+            out[ch.topic] = RawTopic(ch.topic, name, enc, ch.message_encoding,
+                                     ch.log_time_ns, ch.data)
+        else:  # two channels on one topic: merged, decode_topic sorts by time
+            raw.log_time_ns.extend(ch.log_time_ns)
+            raw.data.extend(ch.data)
+    losses = list(sc.losses)
+    if sc.orphan_messages:
+        losses.append(Loss(0, f"{sc.orphan_messages} messages on channels whose definition "
+                              "was lost"))
+    return RawRecording(path=path, topics=out, has_summary=sc.summary_seen, losses=losses)
 
 
 # --------------------------------------------------------------------------------------------
@@ -125,6 +126,18 @@ class TopicSeries:
     labels: dict[str, np.ndarray]  # string fields (sensor_id, unit, line_id, kind)
     problems: list[str]
     n_messages: int
+    dropped_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+    def dropped_ranges_ns(self, join_s: float = 5.0) -> list[tuple[int, int]]:
+        """Log times of the dropped messages as [first, last] ranges (drops closer than
+        ``join_s`` or 3 sample periods are one range)."""
+        d = np.sort(self.dropped_ns)
+        if d.size == 0:
+            return []
+        period = self.median_period_s
+        join = max(join_s, 3 * period if np.isfinite(period) else 0.0) * NS
+        cut = np.flatnonzero(np.diff(d) > join) + 1
+        return [(int(g[0]), int(g[-1])) for g in np.split(d, cut)]
 
     @property
     def median_period_s(self) -> float:
@@ -160,6 +173,51 @@ def decode_topic(raw: RawTopic, rule: TopicRule) -> TopicSeries:
     string_fields = _string_fields(rule.schema_name)
     numeric = [f for f in rule.fields if f not in string_fields]
     strings = [f for f in rule.fields if f in string_fields]
+    n = raw.count
+    fast = _decode_columns(raw, numeric, strings)
+    if fast is not None:
+        t, vals, labs, ok, bad_stamp = fast
+        bad_decode = bad_field = 0
+        first_bad = None
+    else:
+        t, vals, labs, ok, bad_decode, bad_field, bad_stamp, first_bad = _decode_each(
+            raw, numeric, strings)
+    if bad_decode:
+        problems.append(f"{bad_decode} of {n} messages are not valid JSON (dropped)")
+    if bad_field:
+        problems.append(f"{bad_field} of {n} messages do not match the schema: {first_bad} "
+                        "(dropped)")
+    if bad_stamp:
+        problems.append(f"{bad_stamp} of {n} messages have a payload timestamp that differs "
+                        "from log_time (log_time used)")
+    finite = np.ones(n, bool)
+    for f in numeric:
+        finite &= np.isfinite(vals[f])
+    n_nonfinite = int((ok & ~finite).sum())
+    if n_nonfinite:
+        problems.append(f"{n_nonfinite} of {n} messages carry NaN or infinite values (dropped)")
+    keep = ok & finite
+    idx = np.flatnonzero(keep)
+    order = idx[np.argsort(t[idx], kind="stable")]
+    if order.size and np.any(np.diff(t[idx]) < 0):
+        problems.append("messages are not in time order (sorted)")
+    tt = t[order]
+    dup = np.zeros(tt.size, bool)
+    dup[1:] = tt[1:] == tt[:-1]
+    if dup.any():
+        problems.append(f"{int(dup.sum())} duplicated timestamps (first kept)")
+    dropped = np.concatenate([t[~keep], tt[dup]])
+    order = order[~dup]
+    return TopicSeries(
+        topic=raw.topic, rule=rule, time_ns=t[order],
+        values={f: v[order] for f, v in vals.items()},
+        labels={f: np.asarray(v, dtype=object)[order] for f, v in labs.items()},
+        problems=problems, n_messages=n, dropped_ns=dropped,
+    )
+
+
+def _decode_each(raw: RawTopic, numeric: list[str], strings: list[str]):
+    """Message by message: slow, but tells exactly which messages are bad and why."""
     n = raw.count
     t = np.zeros(n, np.int64)
     vals = {f: np.full(n, np.nan) for f in numeric}
@@ -200,37 +258,50 @@ def decode_topic(raw: RawTopic, rule: TopicRule) -> TopicSeries:
                 and isinstance(ts.get("nsec"), int) and ts["sec"] * NS + ts["nsec"] == lt):
             bad_stamp += 1
         ok[i] = True
-    if bad_decode:
-        problems.append(f"{bad_decode} of {n} messages are not valid JSON (dropped)")
-    if bad_field:
-        problems.append(f"{bad_field} of {n} messages do not match the schema: {first_bad} "
-                        "(dropped)")
-    if bad_stamp:
-        problems.append(f"{bad_stamp} of {n} messages have a payload timestamp that differs "
-                        "from log_time (log_time used)")
-    finite = np.ones(n, bool)
-    for f in numeric:
-        finite &= np.isfinite(vals[f])
-    n_nonfinite = int((ok & ~finite).sum())
-    if n_nonfinite:
-        problems.append(f"{n_nonfinite} of {n} messages carry NaN or infinite values (dropped)")
-    keep = ok & finite
-    idx = np.flatnonzero(keep)
-    order = idx[np.argsort(t[idx], kind="stable")]
-    if order.size and np.any(np.diff(t[idx]) < 0):
-        problems.append("messages are not in time order (sorted)")
-    tt = t[order]
-    dup = np.zeros(tt.size, bool)
-    dup[1:] = tt[1:] == tt[:-1]
-    if dup.any():
-        problems.append(f"{int(dup.sum())} duplicated timestamps (first kept)")
-    order = order[~dup]
-    return TopicSeries(
-        topic=raw.topic, rule=rule, time_ns=t[order],
-        values={f: v[order] for f, v in vals.items()},
-        labels={f: np.asarray(v, dtype=object)[order] for f, v in labs.items()},
-        problems=problems, n_messages=n,
-    )
+    return t, vals, labs, ok, bad_decode, bad_field, bad_stamp, first_bad
+
+
+def _decode_columns(raw: RawTopic, numeric: list[str], strings: list[str]):
+    """Whole-topic decoding: one JSON parse for all payloads, one list per field.
+
+    About 4x faster than message by message. Returns None at the first irregularity (a payload
+    that is not a JSON object, a missing field, a wrong type), and the caller falls back to
+    :func:`_decode_each`, which finds and reports the bad messages.
+    """
+    n = raw.count
+    if n == 0:
+        return None
+    try:
+        msgs = orjson.loads(b"[" + b",".join(raw.data) + b"]")
+    except orjson.JSONDecodeError:
+        return None
+    if len(msgs) != n or set(map(type, msgs)) != {dict}:
+        return None
+    number = {int, float}
+    try:
+        vals = {}
+        for f in numeric:
+            col = [m[f] for m in msgs]
+            if not set(map(type, col)) <= number:
+                return None
+            vals[f] = np.array(col, dtype=float)
+        labs = {}
+        for f in strings:
+            col = [m.get(f, "") for m in msgs] if f == "sensor_id" else [m[f] for m in msgs]
+            if set(map(type, col)) != {str}:
+                return None
+            labs[f] = col
+    except (KeyError, TypeError, OverflowError):
+        return None
+    t = np.array(raw.log_time_ns, dtype=np.int64)
+    try:
+        stamps = [m["timestamp"] for m in msgs]
+        sec = np.array([st["sec"] for st in stamps], dtype=np.int64)
+        nsec = np.array([st["nsec"] for st in stamps], dtype=np.int64)
+        bad_stamp = int(np.count_nonzero(sec * NS + nsec != t))
+    except (KeyError, TypeError, ValueError, OverflowError):
+        bad_stamp = n
+    return t, vals, labs, np.ones(n, bool), bad_stamp
 
 
 # --------------------------------------------------------------------------------------------
@@ -288,6 +359,8 @@ class Flight:
     gaps: list[Gap]
     notes: list[str]
     unknown_topics: list[str]
+    losses: list[Loss] = field(default_factory=list)  # damaged parts of the file, salvaged
+    all_topics: list[str] = field(default_factory=list)  # every topic in the file
 
     def has(self, *columns: str) -> bool:
         return all(c in self.data.columns for c in columns)
@@ -373,6 +446,22 @@ def _mapped_series(path: Path, mapping) -> dict[str, TopicSeries]:
     return out
 
 
+def _check_plausible(series: dict[str, TopicSeries], path: Path) -> None:
+    """Fields in nT and attitude in degrees, or a one-line error naming the channel."""
+    for topic, s in series.items():
+        if s.time_ns.size == 0:
+            continue
+        role = s.rule.role
+        if role in ("scalar", "base"):  # /reference/* may be a diurnal or a residual
+            check_units("total_nT", s.values["total_nT"], path, topic)
+        elif role == "vector":
+            mag = np.sqrt(sum(s.values[f"{ax}_nT"] ** 2 for ax in "xyz"))
+            check_units("the vector magnitude", mag, path, topic)
+        elif role == "attitude":
+            check_degrees({f: s.values[f] for f in ("roll_deg", "pitch_deg", "yaw_deg")},
+                          ("roll_deg", "pitch_deg", "yaw_deg"), path)
+
+
 def read_flight(path: str | Path, *, mapping=None, scalar_topic: str | None = None,
                 vector_topic: str | None = None, gap_factor: float = 3.0) -> Flight:
     """Read a recording and align every contract stream onto the primary scalar epochs.
@@ -432,6 +521,7 @@ def read_flight(path: str | Path, *, mapping=None, scalar_topic: str | None = No
     if primary is None:
         raise AeromagError("no scalar magnetometer channel (/mag/scalar or /mag/scalar/<id>)",
                            file=path, channel="/mag/scalar")
+    _check_plausible(series, path)
     ps = series[primary]
     if ps.time_ns.size < 2:
         detail = "; ".join(ps.problems) or f"{ps.n_messages} messages"
@@ -439,6 +529,7 @@ def read_flight(path: str | Path, *, mapping=None, scalar_topic: str | None = No
     vprimary = pick("vector", vector_topic, "/mag/vector")
 
     t = ps.time_ns
+    notes[:0] = raw.loss_notes(int(t[0]))
     gaps_all: list[Gap] = []
     cols: dict[str, np.ndarray] = {"time_s": (t - t[0]) / NS, "scalar_nT": ps.values["total_nT"]}
     units: dict[str, str] = {"time_s": "s", "scalar_nT": "nT"}
@@ -504,4 +595,5 @@ def read_flight(path: str | Path, *, mapping=None, scalar_topic: str | None = No
         notes.append(f"{g.topic}: gap of {g.duration_s:.3f} s from "
                      f"{(g.start_ns - t[0]) / NS:.3f} s to {(g.end_ns - t[0]) / NS:.3f} s")
     return Flight(source=path, time_ns=t, data=pd.DataFrame(cols), units=units, series=series,
-                  topic_of=topic_of, gaps=gaps_all, notes=notes, unknown_topics=unknown)
+                  topic_of=topic_of, gaps=gaps_all, notes=notes, unknown_topics=unknown,
+                  losses=raw.losses, all_topics=sorted(raw.topics))

@@ -9,17 +9,15 @@ channels, merged in log-time order. The input is only ever opened for reading.
 
 from __future__ import annotations
 
-import heapq
+import io
 import os
-import struct
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import orjson
-from mcap.exceptions import McapError
-from mcap.reader import make_reader
 from mcap.writer import CompressionType, Writer
 
 from pipeline import __version__
@@ -147,72 +145,100 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
                             metadata: dict[str, dict[str, str]] | None = None) -> Path:
     """Copy every record of ``src`` unchanged into ``dst`` and add ``channels``.
 
+    Input schemas and channels keep their ids; input messages, metadata and attachments are
+    copied byte for byte (a damaged input contributes what :mod:`pipeline.io.scan` salvages).
     Messages of the input and of the new channels are merged in log-time order (ties: input
     first), so a viewer streams the file without seeking back. New topics must not already
-    exist in the input.
+    exist in the input. Written atomically.
     """
+    from mcap.data_stream import ReadDataStream
+    from mcap.records import Attachment, AttachmentIndex, Channel, Metadata, Schema
+
+    from pipeline.io.bulk import BulkWriter, message_record
+    from pipeline.io.scan import ScanError, scan_mcap
+
     src, dst = Path(src), Path(dst)
     if _same_file(src, dst) or src.resolve() == dst.resolve():
         raise AeromagError("output path is the input file; the input is never overwritten",
                            file=dst)
     channels = [c for c in channels if c.messages]
     try:
-        with src.open("rb") as stream:
-            reader = make_reader(stream, validate_crcs=True)
-            summary = reader.get_summary()
-            existing = ({c.topic for c in summary.channels.values()} if summary else set())
-            clash = sorted(existing & {c.topic for c in channels})
-            if clash:
-                raise AeromagError("the input already has this output channel; "
-                                   "process the original recording instead",
-                                   file=src, channel=clash[0])
-            with McapOutput(dst) as out:
-                id_map: dict[int, int] = {}
+        sc = scan_mcap(src, whole_records=True)
+    except (ScanError, OSError) as exc:
+        raise AeromagError(f"could not copy the input recording ({exc})", file=src) from None
+    clash = sorted({c.topic for c in sc.channels.values()} & {c.topic for c in channels})
+    if clash:
+        raise AeromagError("the input already has this output channel; process the original "
+                           "recording instead", file=src, channel=clash[0])
 
-                def in_channel(schema, channel) -> int:
-                    if channel.id not in id_map:
-                        sid = 0
-                        if schema is not None and schema.id != 0:
-                            sid = out.schema_id(schema.name, schema.encoding, schema.data)
-                        id_map[channel.id] = out.writer.register_channel(
-                            topic=channel.topic, message_encoding=channel.message_encoding,
-                            schema_id=sid, metadata=dict(channel.metadata))
-                    return id_map[channel.id]
+    def parse(record: bytes, cls):
+        return cls.read(ReadDataStream(io.BytesIO(record[9:])))
 
-                if summary is not None:  # keep channels that carry no message, in id order
-                    for cid in sorted(summary.channels):
-                        ch = summary.channels[cid]
-                        in_channel(summary.schemas.get(ch.schema_id), ch)
-
-                def input_records() -> Iterator[tuple[int, int, Any]]:
-                    for schema, channel, message in reader.iter_messages(log_time_order=True):
-                        yield message.log_time, 0, (schema, channel, message)
-
-                def new_records() -> Iterator[tuple[int, int, Any]]:
-                    flat = [(t, 1, (c, p)) for c in channels for t, p in c.messages]
-                    flat.sort(key=lambda r: r[0])
-                    yield from flat
-
-                for _t, kind, rec in heapq.merge(input_records(), new_records(),
-                                                 key=lambda r: (r[0], r[1])):
-                    if kind == 0:
-                        schema, channel, message = rec
-                        out.write(in_channel(schema, channel), message.log_time, message.data,
-                                  message.publish_time, message.sequence)
-                    else:
-                        c, payload = rec
-                        out.write(out.channel(c.topic, c.schema_name), _t, encode(payload))
-                for att in reader.iter_attachments():
-                    out.writer.add_attachment(create_time=att.create_time, log_time=att.log_time,
-                                              name=att.name, media_type=att.media_type,
-                                              data=att.data)
-                for md in reader.iter_metadata():
-                    out.metadata(md.name, dict(md.metadata))
-                for name, data in (metadata or {}).items():
-                    out.metadata(name, data)
-    except (McapError, ValueError, struct.error, EOFError) as exc:
-        raise AeromagError(f"could not copy the input recording ({type(exc).__name__}: {exc})",
-                           file=src) from exc
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.with_name(f".{dst.name}.partial-{os.getpid()}")
+    try:
+        with tmp.open("wb") as stream:
+            w = BulkWriter(stream)
+            w.start(profile=PROFILE, library=LIBRARY)
+            for sid, (name, enc, data) in sorted(sc.schemas.items()):
+                w.add_schema(Schema(id=sid, name=name, encoding=enc, data=data))
+            for cid, ch in sorted(sc.channels.items()):
+                if ch.schema_id and ch.schema_id not in sc.schemas:
+                    continue  # its schema was lost with a damaged chunk
+                w.add_channel(Channel(id=cid, topic=ch.topic, message_encoding=ch.message_encoding,
+                                      metadata=ch.metadata, schema_id=ch.schema_id))
+            schema_ids = {(n, e, d): sid for sid, (n, e, d) in sc.schemas.items()}
+            next_sid = max(sc.schemas, default=0) + 1
+            next_cid = max(sc.channels, default=-1) + 1
+            records: list[bytes] = []
+            cids: list[np.ndarray] = []
+            times: list[np.ndarray] = []
+            for cid, ch in sorted(sc.channels.items()):
+                if cid in w.channels and ch.data:
+                    records += ch.data
+                    cids.append(np.full(len(ch.data), cid, np.uint16))
+                    times.append(np.asarray(ch.log_time_ns, np.int64))
+            n_input = len(records)
+            for c in channels:
+                key = (c.schema_name, SCHEMA_ENCODING, schema_bytes(c.schema_name))
+                if key not in schema_ids:
+                    schema_ids[key] = next_sid
+                    w.add_schema(Schema(id=next_sid, name=key[0], encoding=key[1], data=key[2]))
+                    next_sid += 1
+                cid = next_cid
+                next_cid += 1
+                w.add_channel(Channel(id=cid, topic=c.topic, message_encoding=MESSAGE_ENCODING,
+                                      metadata={}, schema_id=schema_ids[key]))
+                msgs = sorted(c.messages, key=lambda m: m[0])
+                records += [message_record(cid, k, t, t, encode(p))
+                            for k, (t, p) in enumerate(msgs)]
+                cids.append(np.full(len(msgs), cid, np.uint16))
+                times.append(np.fromiter((t for t, _ in msgs), np.int64, len(msgs)))
+            if records:
+                t_all = np.concatenate(times)
+                kind = np.zeros(t_all.size, np.int8)
+                kind[n_input:] = 1
+                order = np.lexsort((np.arange(t_all.size), kind, t_all))
+                w.add_messages([records[i] for i in order], np.concatenate(cids)[order],
+                               t_all[order])
+            for rec in sc.metadata_records:
+                w.add_metadata_record(rec, parse(rec, Metadata).name)
+            for name, data in (metadata or {}).items():
+                rec = BulkWriter._record(Metadata(name=name, metadata={k: str(v) for k, v in
+                                                                        data.items()}))
+                w.add_metadata_record(rec, name)
+            for rec in sc.attachment_records:
+                att = parse(rec, Attachment)
+                w.add_attachment_record(rec, AttachmentIndex(
+                    offset=0, length=0, log_time=att.log_time, create_time=att.create_time,
+                    data_size=len(att.data), name=att.name, media_type=att.media_type))
+            w.finish()
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(tmp, dst)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
     return dst
 
 

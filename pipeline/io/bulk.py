@@ -1,0 +1,214 @@
+"""Writing many messages into an MCAP file in one pass: chunks packed from whole record lists.
+
+Why hand-written: ``mcap.writer.Writer.add_message`` builds and serialises Python objects for
+every message and its index entry (~18 µs per message here), which made copying a 5 h flight's
+two million records the slowest stage of the post-flight flow. Here message records arrive
+already serialised — input records are copied byte for byte, new ones packed by
+:func:`message_record` — and a chunk's message indexes are packed with numpy. Every other
+record (header, schemas, channels, chunk, indexes, statistics, summary offsets, footer) is
+serialised by the mcap package's own record classes, so the layout follows the specification
+(https://mcap.dev/spec) exactly as the official writer does it: chunked, zstd, CRCs, full
+summary with offsets.
+"""
+
+from __future__ import annotations
+
+import struct
+import zlib
+from collections.abc import Sequence
+from typing import BinaryIO
+
+import numpy as np
+import zstandard
+from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
+from mcap.records import (
+    AttachmentIndex,
+    Channel,
+    Chunk,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    MetadataIndex,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
+
+MAGIC = b"\x89MCAP0\r\n"
+_MSG = struct.Struct("<BQHIQQ")  # opcode, length, channel id, sequence, log time, publish time
+
+
+def message_record(channel_id: int, sequence: int, log_time_ns: int, publish_time_ns: int,
+                   data: bytes) -> bytes:
+    """One serialised Message record."""
+    return _MSG.pack(Opcode.MESSAGE, 22 + len(data), channel_id, sequence & 0xFFFFFFFF,
+                     log_time_ns, publish_time_ns) + data
+
+
+class BulkWriter:
+    """MCAP writer for pre-serialised message records in log-time order.
+
+    Parameters
+    ----------
+    stream
+        Binary output, positioned at 0.
+    chunk_size
+        Uncompressed bytes per chunk (the official writer's default, 1 MiB).
+    """
+
+    def __init__(self, stream: BinaryIO, chunk_size: int = 1 << 20, level: int = 3):
+        self.stream = stream
+        self.chunk_size = chunk_size
+        self._zstd = zstandard.ZstdCompressor(level=level)
+        self._crc = 0
+        self._pos = 0
+        self.schemas: dict[int, Schema] = {}
+        self.channels: dict[int, Channel] = {}
+        self.chunk_indexes: list[ChunkIndex] = []
+        self.metadata_indexes: list[MetadataIndex] = []
+        self.attachment_indexes: list[AttachmentIndex] = []
+        self.stats = Statistics(attachment_count=0, channel_count=0, channel_message_counts={},
+                                chunk_count=0, message_count=0, message_end_time=0,
+                                message_start_time=0, metadata_count=0, schema_count=0)
+
+    # -- low level ---------------------------------------------------------------------------
+    def _write(self, data: bytes) -> int:
+        """Append to the data section; returns the offset it was written at."""
+        at = self._pos
+        self.stream.write(data)
+        self._crc = zlib.crc32(data, self._crc)
+        self._pos += len(data)
+        return at
+
+    @staticmethod
+    def _record(rec) -> bytes:
+        b = RecordBuilder()
+        rec.write(b)
+        return b.end()
+
+    # -- records -----------------------------------------------------------------------------
+    def start(self, profile: str = "", library: str = "") -> None:
+        self._write(MAGIC)
+        self._write(self._record(Header(profile=profile, library=library)))
+
+    def add_schema(self, schema: Schema) -> None:
+        self.schemas[schema.id] = schema
+        self._write(self._record(schema))
+
+    def add_channel(self, channel: Channel) -> None:
+        self.channels[channel.id] = channel
+        self._write(self._record(channel))
+
+    def add_metadata_record(self, record: bytes, name: str) -> None:
+        """A serialised Metadata record (opcode + length + body)."""
+        at = self._write(record)
+        self.metadata_indexes.append(MetadataIndex(offset=at, length=len(record), name=name))
+
+    def add_attachment_record(self, record: bytes, index: AttachmentIndex) -> None:
+        index.offset = self._write(record)
+        index.length = len(record)
+        self.attachment_indexes.append(index)
+
+    def add_messages(self, records: Sequence[bytes], channel_id: np.ndarray,
+                     log_time_ns: np.ndarray) -> None:
+        """Message records in the order to write them (log time order), packed into chunks."""
+        n = len(records)
+        if n == 0:
+            return
+        sizes = np.fromiter(map(len, records), dtype=np.int64, count=n)
+        ends = np.cumsum(sizes)
+        start = 0
+        while start < n:
+            base = ends[start - 1] if start else 0
+            stop = int(np.searchsorted(ends, base + self.chunk_size, side="right"))
+            stop = max(stop, start + 1)  # a record larger than a chunk gets its own
+            self._chunk(records[start:stop], channel_id[start:stop], log_time_ns[start:stop],
+                        ends[start:stop] - sizes[start:stop] - base)
+            start = stop
+        counts = np.bincount(channel_id.astype(np.int64))
+        for cid in np.flatnonzero(counts):
+            self.stats.channel_message_counts[int(cid)] = (
+                self.stats.channel_message_counts.get(int(cid), 0) + int(counts[cid]))
+        first, last = int(log_time_ns.min()), int(log_time_ns.max())
+        if self.stats.message_count == 0:
+            self.stats.message_start_time, self.stats.message_end_time = first, last
+        else:
+            self.stats.message_start_time = min(self.stats.message_start_time, first)
+            self.stats.message_end_time = max(self.stats.message_end_time, last)
+        self.stats.message_count += n
+
+    def _chunk(self, records: Sequence[bytes], cids: np.ndarray, times: np.ndarray,
+               offsets: np.ndarray) -> None:
+        data = b"".join(records)
+        compressed = self._zstd.compress(data)
+        chunk = Chunk(compression="zstd", data=compressed,
+                      message_start_time=int(times.min()), message_end_time=int(times.max()),
+                      uncompressed_crc=zlib.crc32(data), uncompressed_size=len(data))
+        rec = self._record(chunk)
+        at = self._write(rec)
+        index = ChunkIndex(message_start_time=chunk.message_start_time,
+                           message_end_time=chunk.message_end_time, chunk_start_offset=at,
+                           chunk_length=len(rec), message_index_offsets={},
+                           message_index_length=0, compression="zstd",
+                           compressed_size=len(compressed), uncompressed_size=len(data))
+        parts = []
+        pos = self._pos
+        for cid in np.unique(cids):
+            sel = cids == cid
+            pairs = np.empty((int(sel.sum()), 2), dtype="<u8")
+            pairs[:, 0] = times[sel]
+            pairs[:, 1] = offsets[sel]
+            body = pairs.tobytes()
+            # MessageIndex: opcode, length, channel id u16, records as u32-prefixed byte array
+            part = struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 2 + 4 + len(body), int(cid),
+                               len(body)) + body
+            index.message_index_offsets[int(cid)] = pos
+            pos += len(part)
+            parts.append(part)
+        blob = b"".join(parts)
+        self._write(blob)
+        index.message_index_length = len(blob)
+        self.chunk_indexes.append(index)
+        self.stats.chunk_count += 1
+
+    def finish(self) -> None:
+        """Data End, the summary section (schemas, channels, statistics, indexes, offsets),
+        the footer and the closing magic."""
+        self._write(self._record(DataEnd(data_section_crc=self._crc)))
+        summary_start = self._pos
+        s = self.stats
+        s.schema_count, s.channel_count = len(self.schemas), len(self.channels)
+        s.metadata_count, s.attachment_count = (len(self.metadata_indexes),
+                                                len(self.attachment_indexes))
+        for cid in self.channels:
+            s.channel_message_counts.setdefault(cid, 0)
+        groups = [(Opcode.SCHEMA, list(self.schemas.values())),
+                  (Opcode.CHANNEL, list(self.channels.values())),
+                  (Opcode.STATISTICS, [s]),
+                  (Opcode.CHUNK_INDEX, self.chunk_indexes),
+                  (Opcode.ATTACHMENT_INDEX, self.attachment_indexes),
+                  (Opcode.METADATA_INDEX, self.metadata_indexes)]
+        body: list[bytes] = []
+        offsets: list[SummaryOffset] = []
+        pos = summary_start
+        for opcode, recs in groups:
+            if not recs:
+                continue
+            blob = b"".join(self._record(r) for r in recs)
+            offsets.append(SummaryOffset(group_opcode=opcode, group_start=pos,
+                                         group_length=len(blob)))
+            body.append(blob)
+            pos += len(blob)
+        summary_offset_start = pos
+        body += [self._record(o) for o in offsets]
+        summary = b"".join(body)
+        crc = zlib.crc32(summary)
+        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start,
+                                     summary_offset_start), crc)
+        self.stream.write(summary)
+        self.stream.write(self._record(Footer(summary_start=summary_start,
+                                              summary_offset_start=summary_offset_start,
+                                              summary_crc=crc)))
+        self.stream.write(MAGIC)

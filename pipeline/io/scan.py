@@ -1,0 +1,277 @@
+"""A salvaging, bounded, fast scan of an MCAP file's records.
+
+Why hand-written: the official reader (``mcap.reader``) stops at the first damaged record — a
+truncated file, a chunk whose CRC does not match, a chunk declaring an absurd size — and loses
+everything after it; it also builds one Python object per message. Post-flight processing needs
+the opposite on both counts: every intact chunk of a damaged recording, with the loss reported as
+time ranges, and the payloads of each channel as plain lists to decode column-wise. The format
+itself is simple (https://mcap.dev/spec): magic, then records ``opcode u8 | length u64 | body``;
+a Chunk's body holds compressed Schema/Channel/Message records. This module walks those records
+on a read-only memory map and never trusts a declared size beyond the file and a fixed limit.
+"""
+
+from __future__ import annotations
+
+import mmap
+import struct
+import zlib
+from dataclasses import dataclass, field
+from pathlib import Path
+
+MAGIC = b"\x89MCAP0\r\n"
+OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x02, 0x03, 0x04, 0x05, 0x06
+OP_ATTACHMENT, OP_METADATA, OP_DATA_END = 0x09, 0x0C, 0x0F
+
+# A chunk larger than this is refused rather than decompressed: recorders write chunks of a few
+# MB; a declared size beyond this is damage or hostility, and believing it could exhaust memory.
+MAX_CHUNK_BYTES = 256 * 1024 * 1024
+
+_U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
+_CHUNK_HEAD = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed crc
+_MSG_HEAD = struct.Struct("<H4xQ")  # channel id, (sequence), log time
+
+
+class ScanError(Exception):
+    """The file cannot be scanned at all (not MCAP, or nothing before the damage)."""
+
+
+@dataclass
+class Loss:
+    """Data a damaged recording lost: where, why, and the time span if the record told it."""
+
+    offset: int
+    reason: str
+    start_ns: int | None = None
+    end_ns: int | None = None
+    bytes_lost: int = 0
+
+    def describe(self, t0_ns: int | None = None) -> str:
+        """One line; times in seconds after ``t0_ns`` when given, else in ns since 1970."""
+        span = ""
+        if self.start_ns is not None and self.end_ns is not None:
+            if t0_ns is None:
+                span = f", messages logged {self.start_ns} to {self.end_ns} ns"
+            else:
+                span = (f", messages logged {(self.start_ns - t0_ns) / 1e9:.3f} s to "
+                        f"{(self.end_ns - t0_ns) / 1e9:.3f} s")
+        return f"{self.reason} at byte {self.offset} ({self.bytes_lost} bytes lost{span})"
+
+
+@dataclass
+class ChannelData:
+    topic: str
+    schema_id: int
+    message_encoding: str
+    metadata: dict[str, str] = field(default_factory=dict)
+    log_time_ns: list[int] = field(default_factory=list)
+    data: list[bytes] = field(default_factory=list)  # payloads, or whole records (see scan)
+
+
+@dataclass
+class Scan:
+    """What a scan found: schemas, channels with their messages, and what was lost."""
+
+    schemas: dict[int, tuple[str, str, bytes]] = field(default_factory=dict)  # name, enc, data
+    channels: dict[int, ChannelData] = field(default_factory=dict)
+    losses: list[Loss] = field(default_factory=list)
+    footer_seen: bool = False
+    summary_seen: bool = False  # records after Data End (the index section)
+    chunks: int = 0
+    orphan_messages: int = 0  # on a channel whose Channel record was lost
+    metadata_records: list[bytes] = field(default_factory=list)  # whole records, file order
+    attachment_records: list[bytes] = field(default_factory=list)
+
+    def schema_of(self, ch: ChannelData) -> tuple[str, str]:
+        name, enc, _ = self.schemas.get(ch.schema_id, ("", "", b""))
+        return name, enc
+
+
+def _string(buf, pos: int, end: int) -> tuple[str, int]:
+    n = _U32.unpack_from(buf, pos)[0]
+    pos += 4
+    if pos + n > end:
+        raise ValueError("string runs past its record")
+    return bytes(buf[pos:pos + n]).decode("utf-8"), pos + n
+
+
+def _string_map(buf, pos: int, end: int) -> dict[str, str]:
+    n = _U32.unpack_from(buf, pos)[0]
+    pos += 4
+    stop = pos + n
+    if stop > end:
+        raise ValueError("map runs past its record")
+    out = {}
+    while pos < stop:
+        k, pos = _string(buf, pos, stop)
+        v, pos = _string(buf, pos, stop)
+        out[k] = v
+    return out
+
+
+def _decompress(compression: str, data, usize: int) -> bytes:
+    if compression == "":
+        return bytes(data)
+    if compression == "zstd":
+        import zstandard
+
+        size = zstandard.frame_content_size(data)
+        if size > usize:  # the frame claims more than the chunk header: do not believe either
+            raise ValueError(f"zstd frame declares {size} bytes, chunk header {usize}")
+        return zstandard.ZstdDecompressor().decompress(data, max_output_size=usize)
+    if compression == "lz4":
+        import lz4.frame
+
+        out = lz4.frame.LZ4FrameDecompressor().decompress(bytes(data), max_length=usize)
+        return out
+    raise ValueError(f"unsupported compression {compression!r}")
+
+
+class _Scanner:
+    def __init__(self, buf, wanted: set[str] | None, whole_records: bool = False):
+        self.buf = buf
+        self.wanted = wanted
+        self.whole = whole_records
+        self.out = Scan()
+        self._keep: dict[int, bool] = {}
+        self._after_data_end = False
+
+    # -- records shared by the top level and chunks ------------------------------------------
+    def record(self, buf, op: int, pos: int, end: int) -> None:
+        if op == OP_MESSAGE:
+            cid, lt = _MSG_HEAD.unpack_from(buf, pos)
+            keep = self._keep.get(cid)
+            if keep is None:
+                self.out.orphan_messages += 1
+            elif keep:
+                ch = self.out.channels[cid]
+                ch.log_time_ns.append(lt)
+                ch.data.append(buf[pos - 9:end] if self.whole else buf[pos + 22:end])
+        elif op == OP_CHANNEL:
+            cid = _U16.unpack_from(buf, pos)[0]
+            sid = _U16.unpack_from(buf, pos + 2)[0]
+            topic, p = _string(buf, pos + 4, end)
+            enc, p = _string(buf, p, end)
+            meta = _string_map(buf, p, end)
+            if cid not in self.out.channels:
+                self.out.channels[cid] = ChannelData(topic, sid, enc, meta)
+                self._keep[cid] = self.wanted is None or topic in self.wanted
+        elif op == OP_SCHEMA:
+            sid = _U16.unpack_from(buf, pos)[0]
+            name, p = _string(buf, pos + 2, end)
+            enc, p = _string(buf, p, end)
+            n = _U32.unpack_from(buf, p)[0]
+            if p + 4 + n > end:
+                raise ValueError("schema data runs past its record")
+            self.out.schemas.setdefault(sid, (name, enc, bytes(buf[p + 4:p + 4 + n])))
+
+    def chunk(self, pos: int, end: int) -> None:
+        buf = self.buf
+        start, stop, usize, crc = _CHUNK_HEAD.unpack_from(buf, pos)
+        loss = Loss(pos - 9, "", start, stop, end - pos + 9)
+        try:
+            compression, p = _string(buf, pos + 28, end)
+            dlen = _U64.unpack_from(buf, p)[0]
+            if p + 8 + dlen > end:
+                raise ValueError("chunk data runs past its record")
+            if usize > MAX_CHUNK_BYTES:
+                loss.reason = (f"chunk declares {usize} uncompressed bytes (limit "
+                               f"{MAX_CHUNK_BYTES}): skipped")
+                self.out.losses.append(loss)
+                return
+            data = _decompress(compression, memoryview(buf)[p + 8:p + 8 + dlen], usize)
+        except Exception as exc:  # noqa: BLE001 - any damage to one chunk loses that chunk only
+            loss.reason = f"chunk unreadable ({type(exc).__name__}: {exc})"
+            self.out.losses.append(loss)
+            return
+        if len(data) != usize:
+            loss.reason = f"chunk decompresses to {len(data)} bytes, header says {usize}"
+            self.out.losses.append(loss)
+            return
+        if crc != 0 and zlib.crc32(data) != crc:
+            loss.reason = "chunk CRC mismatch (corrupt data)"
+            self.out.losses.append(loss)
+            return
+        self.out.chunks += 1
+        self.records(data, 0, len(data), inner=True, base=pos)
+
+    def records(self, buf, pos: int, size: int, *, inner: bool, base: int = 0) -> None:
+        u64 = _U64.unpack_from
+        while pos < size:
+            if pos + 9 > size:
+                self._truncated(pos, size, inner, base)
+                return
+            op = buf[pos]
+            ln = u64(buf, pos + 1)[0]
+            body = pos + 9
+            end = body + ln
+            if end > size:
+                self._truncated(pos, size, inner, base)
+                return
+            try:
+                if op == OP_CHUNK and not inner:
+                    self.chunk(body, end)
+                elif op in (OP_MESSAGE, OP_CHANNEL, OP_SCHEMA):
+                    self.record(buf, op, body, end)
+                elif op == OP_FOOTER and not inner:
+                    self.out.footer_seen = True
+                    return
+                elif op == OP_DATA_END and not inner:
+                    self._after_data_end = True
+                elif op == OP_METADATA and not inner and not self._after_data_end:
+                    self.out.metadata_records.append(bytes(buf[pos:end]))
+                elif op == OP_ATTACHMENT and not inner and not self._after_data_end:
+                    self.out.attachment_records.append(bytes(buf[pos:end]))
+                if self._after_data_end and op != OP_DATA_END and not inner:
+                    self.out.summary_seen = True
+            except (struct.error, ValueError, UnicodeDecodeError) as exc:
+                self.out.losses.append(Loss(base + pos, f"malformed record (opcode {op:#04x}: "
+                                            f"{exc})", bytes_lost=end - pos))
+            pos = end
+
+    def _truncated(self, pos: int, size: int, inner: bool, base: int) -> None:
+        if inner:
+            self.out.losses.append(Loss(base, "chunk content ends inside a record",
+                                        bytes_lost=size - pos))
+        else:
+            self.out.losses.append(Loss(pos, "file truncated: the last record is incomplete",
+                                        bytes_lost=size - pos))
+
+
+def scan_mcap(path: str | Path, topics: set[str] | None = None, *,
+              whole_records: bool = False) -> Scan:
+    """Read every intact record of an MCAP file, salvaging around damage.
+
+    Parameters
+    ----------
+    path
+        The file (opened read-only, memory-mapped).
+    topics
+        Keep the messages of these topics only (default: all).
+    whole_records
+        Keep each message as its whole serialised record (opcode, length, header, payload),
+        to copy it byte for byte, instead of its payload.
+
+    Raises
+    ------
+    ScanError
+        Empty file or no MCAP magic.
+    """
+    path = Path(path)
+    with path.open("rb") as f:
+        size = path.stat().st_size
+        if size == 0:
+            raise ScanError("empty file (0 bytes), not an MCAP recording")
+        head = f.read(len(MAGIC))
+        if head != MAGIC:
+            raise ScanError(f"not a readable MCAP recording (starts with {head[:8]!r}, not the "
+                            "MCAP magic)")
+        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        try:
+            sc = _Scanner(mm, topics, whole_records)
+            sc.records(mm, len(MAGIC), size, inner=False)
+            out = sc.out
+        finally:
+            mm.close()
+    if not out.footer_seen and not any("truncated" in x.reason for x in out.losses):
+        out.losses.append(Loss(size, "no footer: the recording was not closed (summary lost)"))
+    return out

@@ -1,0 +1,307 @@
+"""Bad input never loses data or crashes: a corpus of damaged recordings, each with its expected
+outcome — a one-line error naming file, channel and problem, or processing with the damage
+excluded and a loss report — and the input byte-identical afterwards."""
+
+from __future__ import annotations
+
+import json
+import math
+import struct
+import sys
+import tracemalloc
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.writer import CompressionType
+
+from flows.cli import main
+from pipeline.io.reader import read_flight
+from pipeline.io.scan import scan_mcap
+from tests.conftest import FIXTURES, sha256
+from tests.mcap_builder import NS, build
+
+BOX = FIXTURES / "box_uav.mcap"
+SMALL_CHUNK = 64 * 1024  # many chunks, so damage to one leaves most of the flight
+
+
+def box_messages() -> list[tuple[str, int, bytes]]:
+    """The fixture's messages (topic, log time, payload) in log-time order."""
+    sc = scan_mcap(BOX)
+    msgs = [(ch.topic, t, d) for ch in sc.channels.values()
+            for t, d in zip(ch.log_time_ns, ch.data, strict=True)]
+    return sorted(msgs, key=lambda m: m[1])
+
+
+def rewrite(path: Path, msgs, **kw) -> Path:
+    return build(path, msgs, chunk_size=SMALL_CHUNK, **kw)
+
+
+def scale(msgs, topic: str, fields: tuple[str, ...], factor: float):
+    out = []
+    for tp, t, d in msgs:
+        if tp == topic:
+            p = json.loads(d)
+            for f in fields:
+                p[f] *= factor
+            d = json.dumps(p).encode()
+        out.append((tp, t, d))
+    return out
+
+
+def t_at(msgs, fraction: float) -> int:
+    return msgs[0][1] + int(fraction * (msgs[-1][1] - msgs[0][1]))
+
+
+# ---- the corpus: each builder writes one damaged recording ----------------------------------
+def empty(p, msgs):
+    p.write_bytes(b"")
+
+
+def bad_magic(p, msgs):
+    data = bytearray(BOX.read_bytes())
+    data[:8] = b"PK\x03\x04zip!"
+    p.write_bytes(bytes(data))
+
+
+def truncated_mid_chunk(p, msgs):
+    full = rewrite(p.with_suffix(".full"), msgs)
+    with full.open("rb") as f:
+        ci = make_reader(f).get_summary().chunk_indexes
+    c = ci[int(len(ci) * 0.9)]
+    p.write_bytes(full.read_bytes()[:c.chunk_start_offset + c.chunk_length // 2])
+
+
+def flipped_byte_in_chunk(p, msgs):
+    """Uncompressed chunks, one digit of one payload changed: still valid JSON, so only the
+    chunk CRC can tell."""
+    full = rewrite(p.with_suffix(".full"), msgs, compression=CompressionType.NONE)
+    data = bytearray(full.read_bytes())
+    at = data.index(b'"total_nT":5', len(data) // 2) + len(b'"total_nT":5')
+    data[at] = ord("1") if data[at] != ord("1") else ord("2")
+    p.write_bytes(bytes(data))
+
+
+def no_summary_no_footer(p, msgs):
+    """A logger killed after its last chunk: no Data End, summary or footer."""
+    full = rewrite(p.with_suffix(".full"), msgs, summary=False)
+    p.write_bytes(full.read_bytes()[:-(13 + 29 + 8)])  # Data End, Footer, magic
+
+
+def required_channel_missing(p, msgs):
+    rewrite(p, [m for m in msgs if m[0] != "/mag/vector"])
+
+
+def wrong_field_types(p, msgs):
+    out = []
+    for tp, t, d in msgs:
+        if tp == "/mag/scalar":
+            q = json.loads(d)
+            q["total_nT"] = str(q["total_nT"])
+            d = json.dumps(q).encode()
+        out.append((tp, t, d))
+    rewrite(p, out)
+
+
+NAN_BURST = (0.40, 0.42)
+
+
+def nan_inf_burst(p, msgs):
+    """NaN and infinity as Python's json writes them (not JSON) and as overflowing numbers."""
+    lo, hi = t_at(msgs, NAN_BURST[0]), t_at(msgs, NAN_BURST[1])
+    out = []
+    for tp, t, d in msgs:
+        if tp == "/mag/scalar" and lo <= t <= hi:
+            q = json.loads(d)
+            q["total_nT"] = math.nan if t % 2 else math.inf
+            d = json.dumps(q).encode().replace(b"Infinity", b"1e999") if t % 3 == 0 \
+                else json.dumps(q).encode()
+        out.append((tp, t, d))
+    rewrite(p, out)
+
+
+def unsorted_and_duplicated(p, msgs):
+    scal = [i for i, m in enumerate(msgs) if m[0] == "/mag/scalar"]
+    a, b = scal[len(scal) // 3], scal[len(scal) // 3 + 40]
+    block = msgs[a:b]
+    out = msgs[:a] + block[::-1] + msgs[b:] + [msgs[i] for i in scal[100:110]]
+    rewrite(p, out)
+
+
+GAP = (0.55, 0.57)
+
+
+def time_gap(p, msgs):
+    lo, hi = t_at(msgs, GAP[0]), t_at(msgs, GAP[1])
+    rewrite(p, [m for m in msgs if not lo <= m[1] <= hi])
+
+
+def scalar_in_tesla(p, msgs):
+    rewrite(p, scale(msgs, "/mag/scalar", ("total_nT",), 1e-9))
+
+
+def vector_in_microtesla(p, msgs):
+    rewrite(p, scale(msgs, "/mag/vector", ("x_nT", "y_nT", "z_nT"), 1e-3))
+
+
+def absurd_chunk_size(p, msgs):
+    full = rewrite(p.with_suffix(".full"), msgs)
+    with full.open("rb") as f:
+        c = make_reader(f).get_summary().chunk_indexes[5]
+    data = bytearray(full.read_bytes())
+    # Chunk body: start u64, end u64, uncompressed size u64, ...
+    struct.pack_into("<Q", data, c.chunk_start_offset + 9 + 16, 1 << 62)
+    p.write_bytes(bytes(data))
+
+
+def non_utf8_json(p, msgs):
+    scal = [i for i, m in enumerate(msgs) if m[0] == "/mag/scalar"]
+    bad = set(scal[500:530])
+    rewrite(p, [(tp, t, (b'{"total_nT": "\xff\xfe"}' if i in bad else d))
+                for i, (tp, t, d) in enumerate(msgs)])
+
+
+def attitude_in_radians(p, msgs):
+    rewrite(p, scale(msgs, "/ins/attitude", ("roll_deg", "pitch_deg", "yaw_deg"),
+                     math.pi / 180))
+
+
+# class -> (builder, outcome): ("error", channel or None, words) | ("processed", check)
+CORPUS = {
+    "empty file": (empty, ("error", None, "empty file")),
+    "not MCAP (bad magic)": (bad_magic, ("error", None, "not a readable MCAP recording")),
+    "truncated mid-chunk": (truncated_mid_chunk, ("processed", "file truncated")),
+    "flipped byte in a chunk (CRC)": (flipped_byte_in_chunk, ("processed", "CRC mismatch")),
+    "no summary, no footer": (no_summary_no_footer, ("processed", "no footer")),
+    "required channel missing": (required_channel_missing,
+                                 ("error", "/mag/vector", "channel is absent")),
+    "wrong field types": (wrong_field_types, ("error", "/mag/scalar", "is str, not a number")),
+    "NaN/inf burst": (nan_inf_burst, ("processed", "dropped")),
+    "unsorted and duplicated timestamps": (unsorted_and_duplicated, ("processed", "order")),
+    "time gap": (time_gap, ("processed", "gap")),
+    "scalar in tesla": (scalar_in_tesla, ("error", "/mag/scalar", "look like tesla")),
+    "vector in µT": (vector_in_microtesla, ("error", "/mag/vector", "look like uT")),
+    "absurd uncompressed chunk size": (absurd_chunk_size, ("processed", "declares")),
+    "non-UTF-8 JSON": (non_utf8_json, ("processed", "dropped")),
+    "attitude in radians": (attitude_in_radians, ("error", "/ins/attitude", "radians")),
+}
+
+
+def run_cli(args: list[str], capsys) -> tuple[int, str, str]:
+    old = sys.argv
+    sys.argv = ["aeromag", *args]
+    try:
+        with pytest.raises(SystemExit) as ex:
+            main()
+    finally:
+        sys.argv = old
+    out = capsys.readouterr()
+    return int(ex.value.code or 0), out.out, out.err
+
+
+@pytest.fixture(scope="module")
+def messages():
+    return box_messages()
+
+
+@pytest.mark.parametrize("case", list(CORPUS))
+def test_bad_input_corpus(case, messages, tmp_path, capsys):
+    builder, outcome = CORPUS[case]
+    src = tmp_path / "flight.mcap"
+    builder(src, messages)
+    before = sha256(src)
+    out, js = tmp_path / "out" / "c.mcap", tmp_path / "out" / "c.json"
+    code, stdout, stderr = run_cli(["compensate", str(src), "--out", str(out), "--json",
+                                    str(js), "--model", "tl18"], capsys)
+    assert sha256(src) == before, "the input was modified"
+    assert "Traceback" not in stdout + stderr
+    leftovers = [p.name for p in (tmp_path / "out").glob(".*")] if out.parent.exists() else []
+    assert leftovers == [], "a partial output was left behind"
+    if outcome[0] == "error":
+        _, channel, words = outcome
+        lines = [ln for ln in (stdout + stderr).splitlines() if ln.strip()]
+        assert code == 2, stdout + stderr
+        assert len(lines) == 1 and lines[0].startswith("aeromag: error: ")
+        assert str(src) in lines[0] and words in lines[0], lines[0]
+        if channel:
+            assert f": {channel}: " in lines[0], lines[0]
+        assert not out.exists() and not js.exists()
+        return
+    assert code == 0, stdout + stderr
+    summary = json.loads(js.read_text())
+    inp = summary["input"]
+    text = json.dumps(inp)
+    assert outcome[1] in text, inp["notes"]
+    with out.open("rb") as f:  # the output is a complete, valid recording
+        reader = make_reader(f, validate_crcs=True)
+        assert reader.get_summary() is not None
+        n_out = sum(1 for _ in reader.iter_messages(topics=["/mag/compensated"]))
+    assert n_out > 0.5 * inp["epochs"]
+    fom = summary["fom_nT"]
+    if fom["uncompensated"] is not None:
+        assert fom["compensated"] < fom["uncompensated"] / 5  # still compensates well
+    if case in ("truncated mid-chunk", "flipped byte in a chunk (CRC)",
+                "absurd uncompressed chunk size"):
+        loss = inp["losses"][0]
+        assert loss["bytes_lost"] > 0 and loss["offset"] > 0
+        assert inp["epochs"] < 0.99 * sum(1 for m in messages if m[0] == "/mag/scalar")
+    if case == "NaN/inf burst":
+        d = inp["dropped"]["/mag/scalar"]
+        burst = [t for tp, t, _ in messages if tp == "/mag/scalar"
+                 and t_at(messages, NAN_BURST[0]) <= t <= t_at(messages, NAN_BURST[1])]
+        assert d["samples"] == len(burst)
+        t0 = inp["start_ns"]
+        assert d["ranges_s"] == [[pytest.approx((burst[0] - t0) / NS, abs=1e-3),
+                                  pytest.approx((burst[-1] - t0) / NS, abs=1e-3)]]
+    if case == "non-UTF-8 JSON":
+        assert inp["dropped"]["/mag/scalar"]["samples"] == 30
+    if case == "time gap":
+        gaps = [g for g in inp["gaps"] if g["topic"] == "/mag/scalar"]
+        span = (GAP[1] - GAP[0]) * (messages[-1][1] - messages[0][1]) / NS
+        assert len(gaps) == 1 and gaps[0]["duration_s"] == pytest.approx(span, rel=0.05)
+    if case == "unsorted and duplicated timestamps":
+        assert any("duplicated timestamps" in n for n in inp["notes"])
+
+
+def test_salvage_reads_every_intact_chunk(messages, tmp_path):
+    """A truncated file gives back exactly the messages of its complete chunks."""
+    full = rewrite(tmp_path / "full.mcap", messages)
+    with full.open("rb") as f:
+        ci = make_reader(f).get_summary().chunk_indexes
+    cut = ci[len(ci) // 2]
+    part = tmp_path / "cut.mcap"
+    part.write_bytes(full.read_bytes()[:cut.chunk_start_offset + 100])
+    sc = scan_mcap(part)
+    got = sum(len(c.data) for c in sc.channels.values())
+    with full.open("rb") as f:
+        expected = sum(1 for _, _, m in make_reader(f).iter_messages()
+                       if m.log_time <= ci[len(ci) // 2 - 1].message_end_time
+                       and any(c.message_start_time <= m.log_time <= c.message_end_time
+                               for c in ci[:len(ci) // 2]))
+    assert got == expected and got > 0
+    assert [x.reason for x in sc.losses] == ["file truncated: the last record is incomplete"]
+
+
+def test_hostile_declared_sizes_keep_memory_bounded(messages, tmp_path):
+    p = tmp_path / "hostile.mcap"
+    absurd_chunk_size(p, messages)
+    tracemalloc.start()
+    try:
+        fl = read_flight(p)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 200 * 2**20 and fl.losses and "declares" in fl.losses[0].reason
+    # a top-level record claiming more bytes than the file holds is a truncation, not a read
+    data = bytearray(BOX.read_bytes()[:4096])
+    struct.pack_into("<Q", data, 8 + 1, 1 << 60)  # the Header record's length
+    (tmp_path / "huge.mcap").write_bytes(bytes(data))
+    sc = scan_mcap(tmp_path / "huge.mcap")
+    assert sc.losses and "truncated" in sc.losses[0].reason
+
+
+def test_corpus_has_the_classes_the_issue_lists():
+    assert len(CORPUS) >= 12
+    np.testing.assert_array_less(0, len([c for c, (_, o) in CORPUS.items()
+                                         if o[0] == "processed"]))
