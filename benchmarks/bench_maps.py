@@ -39,9 +39,17 @@ def main() -> int:
     k = np.arange(10**6)
     y = (30 * np.sin(2 * np.pi * k / 700) * np.cos(2 * np.pi * k / 130_000)
          + rng.normal(0, 0.5, k.size))
-    t0 = time.perf_counter()
-    ours = kalman_filter(y, m, 0.25)
-    t_ours = time.perf_counter() - t0
+    def best_of(fn, n=3):
+        """Warm-up call, then the best of n: both filters timed the same way."""
+        out = fn()
+        times = []
+        for _ in range(n):
+            t0 = time.perf_counter()
+            fn()
+            times.append(time.perf_counter() - t0)
+        return out, min(times)
+
+    ours, t_ours = best_of(lambda: kalman_filter(y, m, 0.25))
     from statsmodels.tsa.statespace.kalman_filter import KalmanFilter
 
     t, r, z = m.harvey()
@@ -52,12 +60,12 @@ def main() -> int:
     kf["obs_cov"] = np.array([[0.25]])
     x0, p0 = _level_state(t, y[0]), np.eye(3) * 1e6 * np.var(y)
     kf.initialize_known(t @ x0, t @ p0 @ t.T + m.sigma2 * np.outer(r, r))
-    t0 = time.perf_counter()
-    ref = z @ kf.filter().filtered_state
-    t_sm = time.perf_counter() - t0
+    res, t_sm = best_of(kf.filter)
+    ref = z @ res.filtered_state
     diff = float(np.max(np.abs(ref - ours.filtered)))
     rows.append(("ARIMA-KF, 1000 x 1000 cells",
-                 f"ours {t_ours:.2f} s, statsmodels {t_sm:.2f} s ({t_sm / t_ours:.0f}x); "
+                 f"ours {t_ours:.3f} s, statsmodels {t_sm:.2f} s ({t_sm / t_ours:.0f}x, target "
+                 f">= 20x and <= 5 s; best of 3 after a warm-up); "
                  f"max difference {diff:.1e} nT"))
     if diff > 1e-6:
         errors.append(f"Kalman filter differs from statsmodels by {diff:.2e} nT")

@@ -201,6 +201,8 @@ def compensate(
     with console.status(f"compensating {recording.name} ({model})"):
         summary = compensate_recording(recording, out_path, json_out, settings, calibration,
                                        scalar, vector)
+    for w in (summary.get("calibration_guards") or {}).get("warnings", []):
+        console.print(f"warning: {w}", markup=False, highlight=False, soft_wrap=True)
     fom = summary["fom_nT"]
     say(f"{model}: lambda {summary['lambda']:.3g}, {summary['samples']} samples, "
         f"fit residual {summary['fit_residual_nT']:.4f} nT")
@@ -599,6 +601,9 @@ def _print_compensation(result: dict) -> None:
                       f(r["residual_std_nT"]["survey"]),
                       "-" if not g else f"{g['east']:.3f}/{g['north']:.3f}/{g['up']:.3f}")
     show(table)
+    for m in ("tl16", "tl18", "agg-tl"):
+        for w in ((comp.get(m) or {}).get("calibration_guards") or {}).get("warnings", []):
+            say(f"warning: {w}")
 
 
 def main() -> None:

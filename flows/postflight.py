@@ -14,8 +14,10 @@ outputs), archive workers pass plain calls. Tasks wrap
 
 from __future__ import annotations
 
+import hashlib
 import shutil
 from collections.abc import Callable
+from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +67,24 @@ def _cache_key(context, parameters) -> str:
     return f"aeromag/{parameters['key']}/{parameters['stage']}-{parameters['variant']}"
 
 
+@cache
+def code_fingerprint() -> str:
+    """Hash of the installed pipeline and flow code: resumable results of one version are
+    never unpickled into another (a stage's objects change shape between versions)."""
+    import pipeline
+
+    h = hashlib.sha256()
+    for root in (Path(pipeline.__file__).parent, Path(__file__).parent):
+        for p in sorted(root.rglob("*.py")):
+            h.update(p.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def run_key(recording: str, cfg: Config) -> str:
+    """Cache folder name of one recording, configuration and code version."""
+    return f"{sha256_file(recording)[:16]}-{cfg.hash[:16]}-{code_fingerprint()}"
+
+
 def cache_folder(key: str) -> Path:
     from prefect.settings import PREFECT_LOCAL_STORAGE_PATH
 
@@ -87,7 +107,7 @@ def postflight(recording: str, out_dir: str, config_path: str | None = None) -> 
     recording, out_dir = str(recording), str(out_dir)
     cfg = Config.load(config_path)
     cfg.validate()
-    key = f"{sha256_file(recording)[:16]}-{cfg.hash[:16]}"
+    key = run_key(recording, cfg)
 
     def call(stage: str, *args):
         if stage == "write":

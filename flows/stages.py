@@ -79,6 +79,9 @@ def compensation_lines(run: CompensationRun) -> list[tuple[int, str]]:
     if g:
         lines.append((LOG_INFO, f"compensate: {m.model}: gradient at the calibration site "
                                 f"{g['east']:.3f} E, {g['north']:.3f} N, {g['up']:.3f} U nT/m"))
+    if run.check is not None:
+        lines += [(LOG_WARNING, f"compensate: calibration warning: {w}")
+                  for w in run.check.warnings]
     return lines
 
 

@@ -166,8 +166,18 @@ def _compensation_section(s: dict, figs: _Figures) -> list[str]:
                 _table(["pass", "heading", "manoeuvre", "samples", *[c[:-3] for c in cols]],
                        [[b["pass"], b["cardinal"], b["manoeuvre"], b["samples"],
                          *[_f(b[c], ".3f") for c in cols]] for b in boxes])]
-    for w in (s.get("calibration_guards") or {}).get("warnings", []):
-        out.append(f'<p class="note">calibration warning: {html.escape(w)}</p>')
+    guards = [(m, comp[m].get("calibration_guards")) for m in models]
+    rows = [[m, _f(g.get("condition_number"), ".3g"), _f(g.get("condition_limit"), ".0e"),
+             " ".join(f"{c} {v:.0f} s" for c, v in g.get("headings_s", {}).items()),
+             "ok" if g["ok"] else f"{len(g['warnings'])} warning(s)"] for m, g in guards if g]
+    if rows:
+        out += ["<h3>Calibration quality guards</h3>",
+                _table(["model", "condition number", "limit", "time per heading", "verdict"],
+                       rows, {k: ("good" if r[-1] == "ok" else "bad")
+                              for k, r in enumerate(rows)})]
+    for _, g in guards:
+        for w in (g or {}).get("warnings", []):
+            out.append(f'<p class="note">calibration warning: {html.escape(w)}</p>')
     out.append(figs.take("compensation", "lcurve"))
     return out
 

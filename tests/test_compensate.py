@@ -240,3 +240,42 @@ def test_compensate_with_segmentation_writes_every_channel(tmp_path, box_path):
     assert {"/flight/segment", "/mag/compensated", "/compensation/model",
             "/aeromag/log"} <= topics
     validate_every_message(tmp_path / "o.mcap")
+
+
+def test_calibration_guards_pass_a_full_box_and_flag_a_poor_one(box_path):
+    """The full box passes all three guards for every model; one heading only, or boxes cut
+    to 4.5 s, are flagged (and recorded in the summary) rather than silently fitted."""
+    from pipeline.compensate import FitSettings
+    from pipeline.compensate.guards import check_calibration
+    from pipeline.compensate.model import Measurements, fit_compensation
+    from pipeline.compensate.stage import run_compensation
+    from pipeline.io.reader import read_flight
+    from pipeline.segment import segment_flight
+
+    fl = read_flight(box_path)
+    seg = segment_flight(fl)
+    for model in ("tl16", "tl18", "agg-tl"):
+        run = run_compensation(fl, seg, FitSettings(model=model), "auto")
+        g = run.summary()["calibration_guards"]
+        assert g["ok"] and g["warnings"] == [], g["warnings"]
+        assert all(v > 60 for v in g["headings_s"].values())
+        assert len(g["boxes"]) == 12 and min(b["seconds"] for b in g["boxes"]) > 10
+    # one leg of the box: a single heading, the fit ill-conditioned
+    west = seg.boxes()[-1].index
+    t = fl.data["time_s"].to_numpy()
+    run = run_compensation(fl, seg, FitSettings(model="tl18"), f"{t[west[0]]}:{t[west[-1]]}")
+    text = " | ".join(run.check.warnings)
+    assert "ill-conditioned" in text and "misses heading(s)" in text
+    assert run.check.condition_number > 100 * 2.6e4
+    # every manoeuvre flown, but for 4.5 s only
+    meas = Measurements.from_flight(fl)
+    mask = np.zeros(t.size, bool)
+    for b in seg.boxes():
+        mask[b.index[:45]] = True
+    model = fit_compensation(meas, mask, FitSettings(model="tl16"))
+    check = check_calibration("tl16", model.condition_number, model.weakest_terms, t,
+                              fl.data["yaw_deg"].to_numpy(), mask, seg.boxes(),
+                              min_heading_s=5.0)
+    text = " | ".join(check.warnings)
+    assert "12 manoeuvre(s) shorter than 5 s" in text
+    assert "ill-conditioned" in text and check.condition_number > 10 * 73  # full box: 73

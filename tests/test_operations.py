@@ -103,7 +103,7 @@ def test_a_failed_flow_resumes_from_its_last_finished_task(prefect_harness, tmp_
             "audit"} <= cached, states
     assert states.get("vector") == "Completed"
     # finished: the persisted results are gone
-    key = f"{sha256(src)[:16]}-{Config.load().hash[:16]}"
+    key = pf.run_key(str(src), Config.load())
     assert not pf.cache_folder(key).exists()
 
 

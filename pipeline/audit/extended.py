@@ -198,6 +198,36 @@ def fit_model(data: AuditData, spec: ModelSpec, mask: np.ndarray,
                        float(np.sqrt(np.mean(resid**2))))
 
 
+def lag_cost(data: AuditData, spec: ModelSpec, mask: np.ndarray, bs: BandSettings,
+             lam: float, max_lag_s: float):
+    """cost(tau): fit residual RMS (nT) of ``spec`` refitted with the scalar re-timed by tau.
+
+    Only the scalar moves with the lag, so the design matrix and its SVD are built once for
+    every candidate |tau| <= ``max_lag_s`` (the flight's first and last ``max_lag_s`` seconds
+    are left out, so that every candidate uses the same rows).
+    """
+    t = data.time_s
+    inner = mask & (t >= t[0] + max_lag_s) & (t <= t[-1] - max_lag_s)
+    des = design(data, spec.with_(lag_s=0.0))
+    valid = inner & np.isfinite(des.y) & np.all(np.isfinite(des.columns), axis=1)
+    blocks = contiguous_blocks(valid, t)
+    sos = bandpass_sos(bs.band_hz, data.rate_hz, bs.poles)
+    kf, where = bandpass_blocks(des.columns, blocks, sos, bs.trim)
+    if where.size < 2 * kf.shape[1]:
+        raise ValueError(f"only {where.size} usable calibration samples for {kf.shape[1]} "
+                         "terms")
+    solver = RidgeSVD(kf, np.zeros(where.size))
+
+    def cost(tau: float) -> float:
+        yf, _ = bandpass_blocks(scalar_series(data, float(tau)), blocks, sos, bs.trim)
+        if not np.all(np.isfinite(yf)):
+            return np.inf
+        r = yf - kf @ solver.solve_for(yf, lam)
+        return float(np.sqrt(np.mean(r**2)))
+
+    return cost
+
+
 # --------------------------------------------------------------------------------------------
 def carrier_from_coefficients(fitted: FittedModel, mean_field_nT: float
                               ) -> tuple[CarrierInterference, np.ndarray]:

@@ -43,6 +43,7 @@ from pipeline.audit.extended import (
     ModelSpec,
     design,
     fit_model,
+    lag_cost,
     simulate_measurement,
 )
 from pipeline.audit.vector_cal import fit_vector_calibration
@@ -288,14 +289,10 @@ class Auditor:
         +-``max_lag_s`` (the eddy terms absorb part of a lag, so a linearised estimate with
         the baseline's coefficients is biased low), then a bounded 1-D refinement."""
         lam = self.fit(current, mask, key).lambda_
-
-        def cost(tau: float) -> float:
-            try:
-                return fit_model(self.data, current.with_(lag_s=float(tau)), mask, self.s.band,
-                                 ridge=lam).fit_residual_nT
-            except ValueError:
-                return np.inf
-
+        try:
+            cost = lag_cost(self.data, current, mask, self.s.band, lam, self.s.max_lag_s)
+        except ValueError:
+            return 0.0
         step = 0.05
         grid = np.arange(-self.s.max_lag_s, self.s.max_lag_s + step / 2, step)
         costs = [cost(float(t)) for t in grid]

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
+from pipeline.compensate.guards import scaled_condition
 from pipeline.compensate.ridge import LCurve, RidgeSVD
 from pipeline.compensate.terms import position_terms, tl16_terms, tl18_terms
 from pipeline.geo.local import LocalFrame
@@ -105,6 +106,8 @@ class CompensationModel:
     lcurve: LCurve | None = None
     reference: dict[str, float] = field(default_factory=dict)  # AGG-TL position origin
     coefficient_std: np.ndarray | None = None  # from the residual variance (no ridge)
+    condition_number: float = float("nan")  # of the band-passed, column-scaled design
+    weakest_terms: list[str] = field(default_factory=list)
 
     @property
     def model(self) -> str:
@@ -189,6 +192,7 @@ def fit_compensation(meas: Measurements, calibration_mask: np.ndarray,
     if where.size < 2 * k_full.shape[1]:
         raise ValueError(f"only {where.size} usable calibration samples for "
                          f"{k_full.shape[1]} terms")
+    cond, weakest = scaled_condition(kf, names)
     solver = RidgeSVD(kf, yf)
     lcurve = None
     if s.ridge == "auto":
@@ -205,7 +209,8 @@ def fit_compensation(meas: Measurements, calibration_mask: np.ndarray,
     std = np.sqrt(sigma2 * np.sum((v / s_pos) ** 2, axis=1))
     spans = [(float(meas.time_s[b[0]]), float(meas.time_s[b[-1]])) for b in blocks]
     return CompensationModel(s, names, theta, n_tl, lam, int(where.size),
-                             float(np.sqrt(np.mean(resid**2))), spans, lcurve, reference, std)
+                             float(np.sqrt(np.mean(resid**2))), spans, lcurve, reference, std,
+                             cond, weakest)
 
 
 # --------------------------------------------------------------------------------------------

@@ -38,6 +38,10 @@ class RidgeSVD:
     def solve(self, lam: float) -> np.ndarray:
         return self.vt.T @ (self.s / (self.s**2 + lam) * self.beta)
 
+    def solve_for(self, y: np.ndarray, lam: float) -> np.ndarray:
+        """The ridge solution for another right-hand side with the same matrix."""
+        return self.vt.T @ (self.s / (self.s**2 + lam) * (self.u.T @ np.asarray(y, float)))
+
     def norms(self, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         lam = np.asarray(lam, float)[:, None]
         s2 = self.s**2

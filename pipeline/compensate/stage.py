@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.compensate.guards import CalibrationCheck, check_calibration
 from pipeline.compensate.model import (
     CompensationModel,
     FigureOfMerit,
@@ -65,6 +66,7 @@ class CompensationRun:
     interference_nT: np.ndarray
     fom: FigureOfMerit | None
     residual_std_nT: dict[str, float | None]
+    check: CalibrationCheck | None = None
 
     def summary(self) -> dict[str, Any]:
         """The keys of the compensate summary JSON (issue 3 contract) plus details."""
@@ -72,10 +74,10 @@ class CompensationRun:
         fom = self.fom.to_dict() if self.fom else {"uncompensated": None, "compensated": None}
         return {"model": m["model"], "lambda": m["lambda"], "terms": m["terms"],
                 "coefficients": m["coefficients"], "fom_nT": fom,
-                "residual_std_nT": self.residual_std_nT, **{k: v for k, v in m.items() if k
-                                                             not in ("model", "lambda",
-                                                                     "terms",
-                                                                     "coefficients")}}
+                "residual_std_nT": self.residual_std_nT,
+                "calibration_guards": self.check.to_dict() if self.check else None,
+                **{k: v for k, v in m.items() if k not in ("model", "lambda", "terms",
+                                                           "coefficients")}}
 
 
 def run_compensation(flight: Flight, segmentation: Segmentation | None, settings: FitSettings,
@@ -105,4 +107,8 @@ def run_compensation(flight: Flight, segmentation: Segmentation | None, settings
             fom = figure_of_merit(meas.time_s, meas.scalar_nT, comp, boxes, band, settings.poles)
         sv = comp_bp[segmentation.mask("survey") & np.isfinite(comp_bp)]
         resid["survey"] = float(np.std(sv)) if sv.size else None
-    return CompensationRun(model, comp, interference, fom, resid)
+    yaw = flight.data["yaw_deg"].to_numpy(float) if flight.has("yaw_deg") else None
+    check = check_calibration(settings.model, model.condition_number, model.weakest_terms,
+                              meas.time_s, yaw, mask,
+                              segmentation.boxes() if segmentation is not None else None)
+    return CompensationRun(model, comp, interference, fom, resid, check)

@@ -133,6 +133,7 @@ class _Scanner:
         self.whole = whole_records
         self.out = Scan()
         self._keep: dict[int, bool] = {}
+        self._sinks: dict[int, tuple] = {}  # channel id -> (append time, append payload)
         self._after_data_end = False
 
     # -- records shared by the top level and chunks ------------------------------------------
@@ -153,8 +154,10 @@ class _Scanner:
             enc, p = _string(buf, p, end)
             meta = _string_map(buf, p, end)
             if cid not in self.out.channels:
-                self.out.channels[cid] = ChannelData(topic, sid, enc, meta)
+                ch = self.out.channels[cid] = ChannelData(topic, sid, enc, meta)
                 self._keep[cid] = self.wanted is None or topic in self.wanted
+                if self._keep[cid]:
+                    self._sinks[cid] = (ch.log_time_ns.append, ch.data.append)
         elif op == OP_SCHEMA:
             sid = _U16.unpack_from(buf, pos)[0]
             name, p = _string(buf, pos + 2, end)
@@ -196,17 +199,30 @@ class _Scanner:
 
     def records(self, buf, pos: int, size: int, *, inner: bool, base: int = 0) -> None:
         u64 = _U64.unpack_from
+        head = _MSG_HEAD.unpack_from
+        sinks = self._sinks
+        whole = self.whole
         while pos < size:
             if pos + 9 > size:
                 self._truncated(pos, size, inner, base)
                 return
             op = buf[pos]
-            ln = u64(buf, pos + 1)[0]
-            body = pos + 9
-            end = body + ln
+            end = pos + 9 + u64(buf, pos + 1)[0]
             if end > size:
                 self._truncated(pos, size, inner, base)
                 return
+            if op == OP_MESSAGE and end >= pos + 31:
+                # the hot path, inlined: one message record of a kept channel
+                cid, lt = head(buf, pos + 9)
+                sink = sinks.get(cid)
+                if sink is not None:
+                    sink[0](lt)
+                    sink[1](buf[pos:end] if whole else buf[pos + 31:end])
+                elif cid not in self._keep:
+                    self.out.orphan_messages += 1
+                pos = end
+                continue
+            body = pos + 9
             try:
                 if op == OP_CHUNK and not inner:
                     self.chunk(body, end)

