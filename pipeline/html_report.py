@@ -118,6 +118,15 @@ def _input_section(s: dict) -> list[str]:
                    + "</ul>")
     for x in inp.get("losses", []):
         out.append(f'<p class="note">data lost: {html.escape(x["description"])}</p>')
+    dropped = inp.get("dropped") or {}
+    if dropped:
+        out += ["<h3>Messages dropped</h3>",
+                _table(["channel", "dropped", "of", "time ranges s", "why"],
+                       [[html.escape(t), d["samples"], d["of"],
+                         "; ".join(f"{a:.1f}-{b:.1f}" for a, b in d["ranges_s"][:8])
+                         + (" ..." if len(d["ranges_s"]) > 8 else ""),
+                         html.escape("; ".join(d["problems"]))] for t, d in dropped.items()],
+                       {k: "bad" for k in range(len(dropped))})]
     return out
 
 
