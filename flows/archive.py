@@ -29,7 +29,7 @@ from prefect import flow, task
 
 from pipeline.config import Config
 from pipeline.errors import AeromagError
-from pipeline.io.writer import write_json_atomic
+from pipeline.io.writer import write_json_atomic, write_text_atomic
 from pipeline.report import sha256_file
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -123,10 +123,7 @@ def process_one(path: str, out_dir: str, config_path: str | None, cfg_hash: str,
         with contextlib.suppress(OSError):
             dest.rmdir()  # only if empty: nothing was produced
         q = out / "quarantine"
-        q.mkdir(parents=True, exist_ok=True)
-        tmp = q / f".{p.stem}-{sha[:8]}.txt.partial"
-        tmp.write_text(row["reason"] + "\n")
-        tmp.replace(q / f"{p.stem}-{sha[:8]}.txt")
+        write_text_atomic(q / f"{p.stem}-{sha[:8]}.txt", row["reason"] + "\n")
     return row
 
 
@@ -161,9 +158,7 @@ def write_index(out: Path, rows: list[dict]) -> dict[str, str]:
     w.writeheader()
     for r in rows:
         w.writerow({k: r.get(k, "") for k in INDEX_FIELDS})
-    tmp = out / ".index.csv.partial"
-    tmp.write_text(buf.getvalue())
-    tmp.replace(out / "index.csv")
+    write_text_atomic(out / "index.csv", buf.getvalue())
     write_json_atomic(out / "index.json", {"recordings": rows})
     return {"csv": str(out / "index.csv"), "json": str(out / "index.json")}
 

@@ -442,10 +442,7 @@ def process(
     from flows.stages import require_readable
 
     require_readable(recording)
-    result = _run_postflight(recording, out_dir, config)
-    say(f"output recording: {result['outputs']['mcap']}")
-    say(f"summary: {result['outputs']['summary']}")
-    say(f"report: {result['outputs']['report']}")
+    _say_outputs(_run_postflight(recording, out_dir, config))
 
 
 @app.command()
@@ -570,11 +567,17 @@ def demo(
                          or "no finding") + f"; extended model {' + '.join(a['extended_model'])}")
     if result.get("quality"):
         _print_quality(result["quality"])
-    say(f"output recording: {result['outputs']['mcap']}")
-    say(f"summary: {result['outputs']['summary']}")
-    say(f"report: {result['outputs']['report_html']} (open in a browser); Foxglove layout: "
-        f"{result['outputs']['layout']}")
+    _say_outputs(result)
     say(f"done in {time.perf_counter() - t0:.1f} s")
+
+
+def _say_outputs(result: dict) -> None:
+    """Where the post-flight flow wrote its outputs."""
+    o = result["outputs"]
+    say(f"output recording: {o['mcap']}")
+    say(f"summary: {o['summary']}")
+    say(f"report: {o['report_html']} (open in a browser; Markdown: {o['report']}); "
+        f"Foxglove layout: {o['layout']}")
 
 
 def _print_compensation(result: dict) -> None:

@@ -18,7 +18,13 @@ from pipeline.compensate.stage import CompensationRun, run_compensation
 from pipeline.errors import AeromagError
 from pipeline.html_report import render_html
 from pipeline.io.reader import Flight, read_flight
-from pipeline.io.writer import OutputChannel, write_json_atomic, write_with_new_channels
+from pipeline.io.writer import (
+    OutputChannel,
+    atomic_output,
+    write_json_atomic,
+    write_text_atomic,
+    write_with_new_channels,
+)
 from pipeline.maps.stage import MapSettings, build_map
 from pipeline.outputs import (
     compensated_channel,
@@ -59,11 +65,9 @@ def try_segment(flight: Flight) -> tuple[Segmentation | None, str]:
 
 
 def save_figure(fig, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial.png")
-    fig.savefig(tmp, dpi=110)
+    with atomic_output(path) as f:
+        fig.savefig(f, dpi=110, format="png")
     plt.close(fig)
-    tmp.replace(path)
     return path
 
 
@@ -300,6 +304,16 @@ def quality_channels(flight: Flight, q: QualityRun) -> list[OutputChannel]:
     return [heading_error_channel(flight, q), crossover_channel(flight, q)]
 
 
+def _refuse_existing(src: Path, channels: list[OutputChannel], present: set[str],
+                     advice: str) -> None:
+    """One line naming every output channel the recording already holds (all of them, where
+    the writer's own check names the first)."""
+    clash = sorted({c.topic for c in channels} & present)
+    if clash:
+        raise AeromagError(f"the recording already holds {', '.join(clash)}; {advice} or "
+                           "omit --out", file=src, channel=clash[0])
+
+
 def quality_recording(src: Path, summary_path: Path, settings: QualitySettings,
                       out: Path | None = None) -> dict[str, Any]:
     """``aeromag quality``: every stage it needs, then the quality figures, plots, summary."""
@@ -326,11 +340,7 @@ def quality_recording(src: Path, summary_path: Path, settings: QualitySettings,
             channels.append(segment_channel(flight, seg))
         if fitted:  # keep what was fitted: a later run on the output reuses it
             channels += _model_channels(flight, fitted, None)[0]
-        clash = sorted({c.topic for c in channels} & present)
-        if clash:
-            raise AeromagError(f"the recording already holds {', '.join(clash)}; give an "
-                               "unprocessed recording or omit --out", file=src,
-                               channel=clash[0])
+        _refuse_existing(src, channels, present, "give an unprocessed recording")
         write_with_new_channels(src, out, channels, metadata={"aeromag.run": run_metadata()})
         summary["outputs"]["mcap"] = str(out)
     write_json_atomic(summary_path, summary)
@@ -359,9 +369,7 @@ def audit_recording(src: Path, json_path: Path, report_dir: Path, settings,
     j["input"] = flight_summary(flight)
     j["aeromag_version"] = __version__
     text = markdown(res, Path(src).name, images)
-    tmp = report_dir / ".report.md.partial"
-    tmp.write_text(text)
-    tmp.replace(report_dir / "report.md")
+    write_text_atomic(report_dir / "report.md", text)
     j["report"] = {"markdown": str(report_dir / "report.md"),
                    "figures": {k: str(report_dir / v) for k, v in images.items()}}
     if out is not None:
@@ -375,11 +383,7 @@ def audit_recording(src: Path, json_path: Path, report_dir: Path, settings,
                  res.baseline.spec.base)):
             if topic not in present:
                 channels.append(field_channel(flight, topic, comp, None, model))
-        clash = sorted({c.topic for c in channels} & present)
-        if clash:
-            raise AeromagError(f"the recording already holds {', '.join(clash)}; audit the "
-                               "unprocessed recording or omit --out", file=src,
-                               channel=clash[0])
+        _refuse_existing(src, channels, present, "audit the unprocessed recording")
         write_with_new_channels(src, out, channels, metadata={"aeromag.run": run_metadata()})
         j["outputs"] = {"mcap": str(out)}
     j = jsonable(j)  # NaN (an untestable candidate's figures) becomes null
@@ -524,7 +528,8 @@ def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str
     figures: dict[str, Any] = {}
     if seg is not None:
         channels.append(segment_channel(flight, seg))
-        if flight.has("lat_deg", "lon_deg"):
+        if flight.has("lat_deg", "lon_deg") and np.isfinite(
+                flight.data[["lat_deg", "lon_deg"]].to_numpy(float)).all(axis=1).any():
             figures["flight_map"] = _flight_map(flight, seg)
         summary["segments"] = {"source": seg.source,
                                "epochs": {lab: int(seg.mask(lab).sum()) for lab in
@@ -583,8 +588,8 @@ def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str
     write_with_new_channels(recording, paths["mcap"], channels, metadata=meta)
     images = {k: v for k, v in paths.items() if k not in DOCUMENTS}
     report = report_markdown(stem, summary, {k: v.name for k, v in images.items()})
-    _write_text_atomic(paths["report"], report)
-    _write_text_atomic(paths["report_html"], render_html(stem, summary, images))
+    write_text_atomic(paths["report"], report)
+    write_text_atomic(paths["report_html"], render_html(stem, summary, images))
     write_json_atomic(paths["layout"], recording_layout(paths["mcap"]))
     summary = {**summary, "outputs": {k: str(v) for k, v in paths.items()},
                "channels_written": sorted({c.topic for c in channels if c.messages})}
@@ -594,21 +599,11 @@ def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str
     return summary
 
 
-def _write_text_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.partial")
-    tmp.write_text(text)
-    tmp.replace(path)
-
-
 def _flight_map(flight: Flight, seg):
-    from pipeline.geo.local import LocalFrame
+    from pipeline.geo.local import local_east_north
     from pipeline.plots import flight_map_figure
 
-    d = flight.data
-    lat, lon = d["lat_deg"].to_numpy(float), d["lon_deg"].to_numpy(float)
-    ok = np.isfinite(lat) & np.isfinite(lon)
-    frame = LocalFrame(float(np.median(lat[ok])), float(np.median(lon[ok])))
-    e, n, _ = frame.to_enu(lat, lon)
+    e, n = local_east_north(flight.data["lat_deg"], flight.data["lon_deg"])
     return flight_map_figure(e, n, seg.label)
 
 

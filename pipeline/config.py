@@ -25,6 +25,18 @@ def default_text() -> str:
     return resources.files("pipeline").joinpath("default_config.toml").read_text()
 
 
+def read_toml(path: str | Path, what: str) -> dict[str, Any]:
+    """A user's TOML file (``what``: "configuration", "mapping"), or a one-line error naming
+    the file when it is missing or not valid TOML."""
+    p = Path(path)
+    if not p.is_file():
+        raise AeromagError(f"{what} file not found", file=p)
+    try:
+        return tomllib.loads(p.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise AeromagError(f"not valid TOML ({exc})", file=p) from None
+
+
 def _merge(base: dict, over: dict, source: str, prefix: str = "") -> dict:
     out = copy.deepcopy(base)
     for k, v in over.items():
@@ -60,12 +72,7 @@ class Config:
         if path is None:
             return cls(base, "defaults")
         p = Path(path)
-        if not p.is_file():
-            raise AeromagError("configuration file not found", file=p)
-        try:
-            user = tomllib.loads(p.read_text())
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise AeromagError(f"not valid TOML ({exc})", file=p) from None
+        user = read_toml(p, "configuration")
         values = _merge(base, user, str(p))
         if values["config_version"] != CONFIG_VERSION:
             raise AeromagError(f"config_version {values['config_version']} is not supported "

@@ -138,7 +138,7 @@ def foxglove_layout(channels: Mapping[str, str], *, grid_centre_m: tuple[float, 
         cfg[key] = _grid_view(t, "anomaly_nT", grid_centre_m, grid_span_m, grid_frame)
         grid_panels.append(key)
 
-    raw = [t for t in topics_of("aeromag.ScalarField", "/mag/scalar")]
+    raw = topics_of("aeromag.ScalarField", "/mag/scalar")
     compensated = topics_of("aeromag.CompensatedField", "/mag/compensated")
     per_model = {t.rsplit("/", 1)[-1]: t for t in compensated if t != "/mag/compensated"}
     ordered = [m for m in MODEL_LABELS if m in per_model] + sorted(set(per_model) -

@@ -42,3 +42,19 @@ class LocalFrame:
                                        direction="INVERSE")
         alt = (np.asarray(up_m, float) + self.alt0_m) if up_m is not None else np.zeros_like(lat)
         return np.asarray(lat), np.asarray(lon), np.asarray(alt)
+
+
+def local_east_north(lat_deg, lon_deg) -> tuple[np.ndarray, np.ndarray]:
+    """East/north metres of a track about the median of its finite positions (NaN stays NaN).
+
+    Raises
+    ------
+    ValueError
+        No finite position.
+    """
+    lat, lon = np.asarray(lat_deg, float), np.asarray(lon_deg, float)
+    ok = np.isfinite(lat) & np.isfinite(lon)
+    if not ok.any():
+        raise ValueError("no valid position")
+    e, n, _ = LocalFrame(float(np.median(lat[ok])), float(np.median(lon[ok]))).to_enu(lat, lon)
+    return np.asarray(e), np.asarray(n)

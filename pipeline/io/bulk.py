@@ -47,6 +47,13 @@ def message_record(channel_id: int, sequence: int, log_time_ns: int, publish_tim
                      log_time_ns, publish_time_ns) + data
 
 
+def serialise(record) -> bytes:
+    """Any mcap record object (Schema, Chunk, Footer, ...) as bytes, by its own writer."""
+    b = RecordBuilder()
+    record.write(b)
+    return b.end()
+
+
 class BulkWriter:
     """MCAP writer for pre-serialised message records in log-time order.
 
@@ -82,24 +89,18 @@ class BulkWriter:
         self._pos += len(data)
         return at
 
-    @staticmethod
-    def _record(rec) -> bytes:
-        b = RecordBuilder()
-        rec.write(b)
-        return b.end()
-
     # -- records -----------------------------------------------------------------------------
     def start(self, profile: str = "", library: str = "") -> None:
         self._write(MAGIC)
-        self._write(self._record(Header(profile=profile, library=library)))
+        self._write(serialise(Header(profile=profile, library=library)))
 
     def add_schema(self, schema: Schema) -> None:
         self.schemas[schema.id] = schema
-        self._write(self._record(schema))
+        self._write(serialise(schema))
 
     def add_channel(self, channel: Channel) -> None:
         self.channels[channel.id] = channel
-        self._write(self._record(channel))
+        self._write(serialise(channel))
 
     def add_metadata_record(self, record: bytes, name: str) -> None:
         """A serialised Metadata record (opcode + length + body)."""
@@ -146,7 +147,7 @@ class BulkWriter:
         chunk = Chunk(compression="zstd", data=compressed,
                       message_start_time=int(times.min()), message_end_time=int(times.max()),
                       uncompressed_crc=zlib.crc32(data), uncompressed_size=len(data))
-        rec = self._record(chunk)
+        rec = serialise(chunk)
         at = self._write(rec)
         index = ChunkIndex(message_start_time=chunk.message_start_time,
                            message_end_time=chunk.message_end_time, chunk_start_offset=at,
@@ -176,7 +177,7 @@ class BulkWriter:
     def finish(self) -> None:
         """Data End, the summary section (schemas, channels, statistics, indexes, offsets),
         the footer and the closing magic."""
-        self._write(self._record(DataEnd(data_section_crc=self._crc)))
+        self._write(serialise(DataEnd(data_section_crc=self._crc)))
         summary_start = self._pos
         s = self.stats
         s.schema_count, s.channel_count = len(self.schemas), len(self.channels)
@@ -196,19 +197,19 @@ class BulkWriter:
         for opcode, recs in groups:
             if not recs:
                 continue
-            blob = b"".join(self._record(r) for r in recs)
+            blob = b"".join(serialise(r) for r in recs)
             offsets.append(SummaryOffset(group_opcode=opcode, group_start=pos,
                                          group_length=len(blob)))
             body.append(blob)
             pos += len(blob)
         summary_offset_start = pos
-        body += [self._record(o) for o in offsets]
+        body += [serialise(o) for o in offsets]
         summary = b"".join(body)
         crc = zlib.crc32(summary)
         crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start,
                                      summary_offset_start), crc)
         self.stream.write(summary)
-        self.stream.write(self._record(Footer(summary_start=summary_start,
+        self.stream.write(serialise(Footer(summary_start=summary_start,
                                               summary_offset_start=summary_offset_start,
                                               summary_crc=crc)))
         self.stream.write(MAGIC)

@@ -26,7 +26,6 @@ nT after scaling (a missing ``scale = 1e9`` on tesla data is caught).
 from __future__ import annotations
 
 import json
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -34,6 +33,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from pipeline.config import read_toml
 from pipeline.errors import AeromagError
 
 ROLES = ("scalar", "vector", "attitude", "position", "base", "aux")
@@ -63,12 +63,7 @@ class Mapping:
     @classmethod
     def load(cls, path: str | Path) -> Mapping:
         p = Path(path)
-        if not p.is_file():
-            raise AeromagError("mapping file not found", file=p)
-        try:
-            doc = tomllib.loads(p.read_text())
-        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-            raise AeromagError(f"not valid TOML ({exc})", file=p) from None
+        doc = read_toml(p, "mapping")
         extra = set(doc) - {"topics"}
         if extra:
             raise AeromagError(f"unknown mapping key {sorted(extra)[0]!r}", file=p)

@@ -159,6 +159,20 @@ def _string_fields(schema_name: str) -> set[str]:
     return {k for k, v in props.items() if v.get("type") == "string"}
 
 
+@contextmanager
+def _gc_paused():
+    """Decoding builds millions of small dicts; each burst of allocations triggers Python's
+    cyclic garbage collector, which then walks every live object (4x the decoding time on a
+    2 h flight). None of these objects form cycles, so collection waits until we are done."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
 def decode_topic(raw: RawTopic, rule: TopicRule) -> TopicSeries:
     """Decode one topic's JSON payloads into arrays.
 
@@ -176,14 +190,15 @@ def decode_topic(raw: RawTopic, rule: TopicRule) -> TopicSeries:
     numeric = [f for f in rule.fields if f not in string_fields]
     strings = [f for f in rule.fields if f in string_fields]
     n = raw.count
-    fast = _decode_columns(raw, numeric, strings)
-    if fast is not None:
-        t, vals, labs, ok, bad_stamp = fast
-        bad_decode = bad_field = 0
-        first_bad = None
-    else:
-        t, vals, labs, ok, bad_decode, bad_field, bad_stamp, first_bad = _decode_each(
-            raw, numeric, strings)
+    with _gc_paused():
+        fast = _decode_columns(raw, numeric, strings)
+        if fast is not None:
+            t, vals, labs, ok, bad_stamp = fast
+            bad_decode = bad_field = 0
+            first_bad = None
+        else:
+            t, vals, labs, ok, bad_decode, bad_field, bad_stamp, first_bad = _decode_each(
+                raw, numeric, strings)
     if bad_decode:
         problems.append(f"{bad_decode} of {n} messages are not valid JSON (dropped)")
     if bad_field:
@@ -263,20 +278,6 @@ def _decode_each(raw: RawTopic, numeric: list[str], strings: list[str]):
     return t, vals, labs, ok, bad_decode, bad_field, bad_stamp, first_bad
 
 
-@contextmanager
-def _gc_paused():
-    """Decoding builds millions of small dicts; each burst of allocations triggers Python's
-    cyclic garbage collector, which then walks every live object (4x the decoding time on a
-    2 h flight). None of these objects form cycles, so collection waits until we are done."""
-    enabled = gc.isenabled()
-    gc.disable()
-    try:
-        yield
-    finally:
-        if enabled:
-            gc.enable()
-
-
 def _decode_columns(raw: RawTopic, numeric: list[str], strings: list[str]):
     """Whole-topic decoding: one JSON parse for all payloads, one list per field.
 
@@ -288,8 +289,7 @@ def _decode_columns(raw: RawTopic, numeric: list[str], strings: list[str]):
     if n == 0:
         return None
     try:
-        with _gc_paused():
-            msgs = orjson.loads(b"[" + b",".join(raw.data) + b"]")
+        msgs = orjson.loads(b"[" + b",".join(raw.data) + b"]")
     except orjson.JSONDecodeError:
         return None
     if len(msgs) != n or set(map(type, msgs)) != {dict}:
@@ -516,8 +516,7 @@ def read_flight(path: str | Path, *, mapping=None, scalar_topic: str | None = No
             continue
         if rule.role == "output":  # an earlier run's result, not a measurement
             continue
-        with _gc_paused():
-            s = decode_topic(rt, rule)
+        s = decode_topic(rt, rule)
         series[topic] = s
         notes.extend(f"{topic}: {p}" for p in s.problems)
 

@@ -121,8 +121,7 @@ def _decompress(compression: str, data, usize: int) -> bytes:
     if compression == "lz4":
         import lz4.frame
 
-        out = lz4.frame.LZ4FrameDecompressor().decompress(bytes(data), max_length=usize)
-        return out
+        return lz4.frame.LZ4FrameDecompressor().decompress(bytes(data), max_length=usize)
     raise ValueError(f"unsupported compression {compression!r}")
 
 
@@ -132,22 +131,13 @@ class _Scanner:
         self.wanted = wanted
         self.whole = whole_records
         self.out = Scan()
-        self._keep: dict[int, bool] = {}
         self._sinks: dict[int, tuple] = {}  # channel id -> (append time, append payload)
         self._after_data_end = False
 
     # -- records shared by the top level and chunks ------------------------------------------
     def record(self, buf, op: int, pos: int, end: int) -> None:
-        if op == OP_MESSAGE:
-            cid, lt = _MSG_HEAD.unpack_from(buf, pos)
-            keep = self._keep.get(cid)
-            if keep is None:
-                self.out.orphan_messages += 1
-            elif keep:
-                ch = self.out.channels[cid]
-                ch.log_time_ns.append(lt)
-                ch.data.append(buf[pos - 9:end] if self.whole else buf[pos + 22:end])
-        elif op == OP_CHANNEL:
+        """A Channel or Schema record (messages take the hot path in :meth:`records`)."""
+        if op == OP_CHANNEL:
             cid = _U16.unpack_from(buf, pos)[0]
             sid = _U16.unpack_from(buf, pos + 2)[0]
             topic, p = _string(buf, pos + 4, end)
@@ -155,8 +145,7 @@ class _Scanner:
             meta = _string_map(buf, p, end)
             if cid not in self.out.channels:
                 ch = self.out.channels[cid] = ChannelData(topic, sid, enc, meta)
-                self._keep[cid] = self.wanted is None or topic in self.wanted
-                if self._keep[cid]:
+                if self.wanted is None or topic in self.wanted:
                     self._sinks[cid] = (ch.log_time_ns.append, ch.data.append)
         elif op == OP_SCHEMA:
             sid = _U16.unpack_from(buf, pos)[0]
@@ -211,22 +200,28 @@ class _Scanner:
             if end > size:
                 self._truncated(pos, size, inner, base)
                 return
-            if op == OP_MESSAGE and end >= pos + 31:
-                # the hot path, inlined: one message record of a kept channel
-                cid, lt = head(buf, pos + 9)
-                sink = sinks.get(cid)
-                if sink is not None:
-                    sink[0](lt)
-                    sink[1](buf[pos:end] if whole else buf[pos + 31:end])
-                elif cid not in self._keep:
-                    self.out.orphan_messages += 1
+            if op == OP_MESSAGE:
+                # the hot path, inlined: one message record (header: channel id, sequence,
+                # log time, publish time = 22 bytes)
+                if end - pos < 31:
+                    self.out.losses.append(Loss(base + pos, "malformed record (message "
+                                                "shorter than its header)",
+                                                bytes_lost=end - pos))
+                else:
+                    cid, lt = head(buf, pos + 9)
+                    sink = sinks.get(cid)
+                    if sink is not None:
+                        sink[0](lt)
+                        sink[1](buf[pos:end] if whole else buf[pos + 31:end])
+                    elif cid not in self.out.channels:
+                        self.out.orphan_messages += 1
                 pos = end
                 continue
             body = pos + 9
             try:
                 if op == OP_CHUNK and not inner:
                     self.chunk(body, end)
-                elif op in (OP_MESSAGE, OP_CHANNEL, OP_SCHEMA):
+                elif op in (OP_CHANNEL, OP_SCHEMA):
                     self.record(buf, op, body, end)
                 elif op == OP_FOOTER and not inner:
                     self.out.footer_seen = True

@@ -11,10 +11,11 @@ from __future__ import annotations
 
 import io
 import os
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, BinaryIO
 
 import numpy as np
 import orjson
@@ -40,6 +41,25 @@ def encode(payload: dict[str, Any]) -> bytes:
     return orjson.dumps(payload, option=orjson.OPT_SERIALIZE_NUMPY)
 
 
+@contextmanager
+def atomic_output(path: str | Path) -> Iterator[BinaryIO]:
+    """A binary stream to a temporary file beside ``path`` (``.NAME.partial-PID``), flushed,
+    fsynced and renamed onto ``path`` when the block ends normally, deleted when it raises:
+    a reader never sees a half-written file and the destination is left as it was."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
+    try:
+        with tmp.open("wb") as stream:
+            yield stream
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
 class McapOutput:
     """Atomic MCAP writer with JSON channels registered by topic and schema name.
 
@@ -50,37 +70,29 @@ class McapOutput:
     def __init__(self, path: str | Path, *, compression: CompressionType = CompressionType.ZSTD,
                  chunk_size: int = 1 << 20):
         self.path = Path(path)
-        self._tmp = self.path.with_name(f".{self.path.name}.partial-{os.getpid()}")
         self._compression = compression
         self._chunk_size = chunk_size
         self._schemas: dict[tuple[str, str, bytes], int] = {}
         self._channels: dict[str, int] = {}
         self._sequence: dict[int, int] = {}
-        self._stream = None
         self.writer: Writer | None = None
 
     def __enter__(self) -> McapOutput:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._stream = self._tmp.open("wb")
-        self.writer = Writer(self._stream, compression=self._compression,
+        self._output = atomic_output(self.path)
+        self.writer = Writer(self._output.__enter__(), compression=self._compression,
                              chunk_size=self._chunk_size)
         self.writer.start(profile=PROFILE, library=LIBRARY)
         return self
 
     def __exit__(self, exc_type, exc, tb) -> None:
-        try:
-            if exc_type is None:
-                assert self.writer is not None and self._stream is not None
+        if exc_type is None:
+            assert self.writer is not None
+            try:
                 self.writer.finish()
-                self._stream.flush()
-                os.fsync(self._stream.fileno())
-                self._stream.close()
-                os.replace(self._tmp, self.path)
-        finally:
-            if self._stream is not None and not self._stream.closed:
-                self._stream.close()
-            if self._tmp.exists():
-                self._tmp.unlink()
+            except BaseException as err:  # noqa: BLE001 - the partial file goes too
+                self._output.__exit__(type(err), err, err.__traceback__)
+                raise
+        self._output.__exit__(exc_type, exc, tb)
 
     def schema_id(self, name: str, encoding: str = SCHEMA_ENCODING,
                   data: bytes | None = None) -> int:
@@ -154,7 +166,7 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
     from mcap.data_stream import ReadDataStream
     from mcap.records import Attachment, AttachmentIndex, Channel, Metadata, Schema
 
-    from pipeline.io.bulk import BulkWriter, message_record
+    from pipeline.io.bulk import BulkWriter, message_record, serialise
     from pipeline.io.scan import ScanError, scan_mcap
 
     src, dst = Path(src), Path(dst)
@@ -174,84 +186,72 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
     def parse(record: bytes, cls):
         return cls.read(ReadDataStream(io.BytesIO(record[9:])))
 
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    tmp = dst.with_name(f".{dst.name}.partial-{os.getpid()}")
-    try:
-        with tmp.open("wb") as stream:
-            w = BulkWriter(stream)
-            w.start(profile=PROFILE, library=LIBRARY)
-            for sid, (name, enc, data) in sorted(sc.schemas.items()):
-                w.add_schema(Schema(id=sid, name=name, encoding=enc, data=data))
-            for cid, ch in sorted(sc.channels.items()):
-                if ch.schema_id and ch.schema_id not in sc.schemas:
-                    continue  # its schema was lost with a damaged chunk
-                w.add_channel(Channel(id=cid, topic=ch.topic, message_encoding=ch.message_encoding,
-                                      metadata=ch.metadata, schema_id=ch.schema_id))
-            schema_ids = {(n, e, d): sid for sid, (n, e, d) in sc.schemas.items()}
-            next_sid = max(sc.schemas, default=0) + 1
-            next_cid = max(sc.channels, default=-1) + 1
-            records: list[bytes] = []
-            cids: list[np.ndarray] = []
-            times: list[np.ndarray] = []
-            for cid, ch in sorted(sc.channels.items()):
-                if cid in w.channels and ch.data:
-                    records += ch.data
-                    cids.append(np.full(len(ch.data), cid, np.uint16))
-                    times.append(np.asarray(ch.log_time_ns, np.int64))
-            n_input = len(records)
-            for c in channels:
-                key = (c.schema_name, SCHEMA_ENCODING, schema_bytes(c.schema_name))
-                if key not in schema_ids:
-                    schema_ids[key] = next_sid
-                    w.add_schema(Schema(id=next_sid, name=key[0], encoding=key[1], data=key[2]))
-                    next_sid += 1
-                cid = next_cid
-                next_cid += 1
-                w.add_channel(Channel(id=cid, topic=c.topic, message_encoding=MESSAGE_ENCODING,
-                                      metadata={}, schema_id=schema_ids[key]))
-                msgs = sorted(c.messages, key=lambda m: m[0])
-                records += [message_record(cid, k, t, t, encode(p))
-                            for k, (t, p) in enumerate(msgs)]
-                cids.append(np.full(len(msgs), cid, np.uint16))
-                times.append(np.fromiter((t for t, _ in msgs), np.int64, len(msgs)))
-            if records:
-                t_all = np.concatenate(times)
-                kind = np.zeros(t_all.size, np.int8)
-                kind[n_input:] = 1
-                order = np.lexsort((np.arange(t_all.size), kind, t_all))
-                w.add_messages([records[i] for i in order], np.concatenate(cids)[order],
-                               t_all[order])
-            for rec in sc.metadata_records:
-                w.add_metadata_record(rec, parse(rec, Metadata).name)
-            for name, data in (metadata or {}).items():
-                rec = BulkWriter._record(Metadata(name=name, metadata={k: str(v) for k, v in
-                                                                        data.items()}))
-                w.add_metadata_record(rec, name)
-            for rec in sc.attachment_records:
-                att = parse(rec, Attachment)
-                w.add_attachment_record(rec, AttachmentIndex(
-                    offset=0, length=0, log_time=att.log_time, create_time=att.create_time,
-                    data_size=len(att.data), name=att.name, media_type=att.media_type))
-            w.finish()
-            stream.flush()
-            os.fsync(stream.fileno())
-        os.replace(tmp, dst)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    with atomic_output(dst) as stream:
+        w = BulkWriter(stream)
+        w.start(profile=PROFILE, library=LIBRARY)
+        for sid, (name, enc, data) in sorted(sc.schemas.items()):
+            w.add_schema(Schema(id=sid, name=name, encoding=enc, data=data))
+        for cid, ch in sorted(sc.channels.items()):
+            if ch.schema_id and ch.schema_id not in sc.schemas:
+                continue  # its schema was lost with a damaged chunk
+            w.add_channel(Channel(id=cid, topic=ch.topic, message_encoding=ch.message_encoding,
+                                  metadata=ch.metadata, schema_id=ch.schema_id))
+        schema_ids = {(n, e, d): sid for sid, (n, e, d) in sc.schemas.items()}
+        next_sid = max(sc.schemas, default=0) + 1
+        next_cid = max(sc.channels, default=-1) + 1
+        records: list[bytes] = []
+        cids: list[np.ndarray] = []
+        times: list[np.ndarray] = []
+        for cid, ch in sorted(sc.channels.items()):
+            if cid in w.channels and ch.data:
+                records += ch.data
+                cids.append(np.full(len(ch.data), cid, np.uint16))
+                times.append(np.asarray(ch.log_time_ns, np.int64))
+        for c in channels:
+            key = (c.schema_name, SCHEMA_ENCODING, schema_bytes(c.schema_name))
+            if key not in schema_ids:
+                schema_ids[key] = next_sid
+                w.add_schema(Schema(id=next_sid, name=key[0], encoding=key[1], data=key[2]))
+                next_sid += 1
+            cid = next_cid
+            next_cid += 1
+            w.add_channel(Channel(id=cid, topic=c.topic, message_encoding=MESSAGE_ENCODING,
+                                  metadata={}, schema_id=schema_ids[key]))
+            msgs = sorted(c.messages, key=lambda m: m[0])
+            records += [message_record(cid, k, t, t, encode(p))
+                        for k, (t, p) in enumerate(msgs)]
+            cids.append(np.full(len(msgs), cid, np.uint16))
+            times.append(np.fromiter((t for t, _ in msgs), np.int64, len(msgs)))
+        if records:
+            # the input's records come first, so a stable sort puts them first at equal times
+            t_all = np.concatenate(times)
+            order = np.argsort(t_all, kind="stable")
+            w.add_messages([records[i] for i in order], np.concatenate(cids)[order],
+                           t_all[order])
+        for rec in sc.metadata_records:
+            w.add_metadata_record(rec, parse(rec, Metadata).name)
+        for name, data in (metadata or {}).items():
+            rec = serialise(Metadata(name=name, metadata={k: str(v) for k, v in data.items()}))
+            w.add_metadata_record(rec, name)
+        for rec in sc.attachment_records:
+            att = parse(rec, Attachment)
+            w.add_attachment_record(rec, AttachmentIndex(
+                offset=0, length=0, log_time=att.log_time, create_time=att.create_time,
+                data_size=len(att.data), name=att.name, media_type=att.media_type))
+        w.finish()
     return dst
 
 
 def write_json_atomic(path: str | Path, obj: Any) -> Path:
-    """Write a JSON document atomically (temporary file + rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
-    try:
-        tmp.write_bytes(orjson.dumps(obj, option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY
-                                     | orjson.OPT_NON_STR_KEYS))
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-    return path
+    """Write a JSON document atomically (see :func:`atomic_output`)."""
+    with atomic_output(path) as f:
+        f.write(orjson.dumps(obj, option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY
+                             | orjson.OPT_NON_STR_KEYS))
+    return Path(path)
+
+
+def write_text_atomic(path: str | Path, text: str) -> Path:
+    """Write a text file (UTF-8) atomically (see :func:`atomic_output`)."""
+    with atomic_output(path) as f:
+        f.write(text.encode("utf-8"))
+    return Path(path)

@@ -29,7 +29,7 @@ from scipy.signal import hilbert
 from shapely import LineString
 
 from pipeline.errors import AeromagError
-from pipeline.geo.local import LocalFrame
+from pipeline.geo.local import local_east_north
 from pipeline.io.reader import Flight
 
 LABELS = ("calibration", "survey", "tie", "validation", "turn", "transit")
@@ -362,13 +362,11 @@ def _runs(label: np.ndarray, line_id: np.ndarray):
 def _local_en(flight: Flight) -> tuple[np.ndarray, np.ndarray]:
     lat = _fill_nan(flight.data["lat_deg"].to_numpy().astype(float))
     lon = _fill_nan(flight.data["lon_deg"].to_numpy().astype(float))
-    ok = np.isfinite(lat) & np.isfinite(lon)
-    if not ok.any():
+    try:
+        return local_east_north(lat, lon)
+    except ValueError:
         raise AeromagError("no valid position in the recording", file=flight.source,
-                           channel="/gnss/fix")
-    frame = LocalFrame(float(np.median(lat[ok])), float(np.median(lon[ok])))
-    e, n, _ = frame.to_enu(lat, lon)
-    return np.asarray(e), np.asarray(n)
+                           channel="/gnss/fix") from None
 
 
 def _assign_passes(cal: list[_Leg], t: np.ndarray, p: SegmentParams) -> None:
