@@ -27,6 +27,7 @@ from typing import Any
 
 from prefect import flow, task
 
+from flows.errors import install_one_line_errors
 from pipeline.config import Config
 from pipeline.errors import AeromagError
 from pipeline.io.writer import write_json_atomic, write_text_atomic
@@ -36,6 +37,7 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 INDEX_FIELDS = ["input", "sha256", "config_hash", "status", "reason", "output_dir",
                 "seconds", "fom_nT", "heading_error_rms_nT", "crossover_rms_nT",
                 "findings"]
+install_one_line_errors()
 # called with (done, total, row) after each recording when set (the CLI's progress bar)
 PROGRESS: Callable[[int, int, dict], None] | None = None
 

@@ -417,11 +417,19 @@ def _check_config(config: Path | None) -> None:
 
 
 def _run_postflight(recording: Path, out_dir: Path, config: Path | None = None) -> dict:
-    from flows.postflight import postflight
+    from flows import stages
 
     _check_config(config)
-    with console.status(f"processing {recording.name} (Prefect flow 'postflight')"):
-        return postflight(str(recording), str(out_dir), str(config) if config else None)
+    # bad input fails here, in one line, before Prefect starts a run (or a server)
+    with console.status(f"checking {recording.name}"):
+        stages.validate_recording(recording)
+    from flows.postflight import postflight
+
+    try:
+        with console.status(f"processing {recording.name} (Prefect flow 'postflight')"):
+            return postflight(str(recording), str(out_dir), str(config) if config else None)
+    finally:
+        stages.forget_validated()
 
 
 @app.command()
@@ -439,9 +447,6 @@ def process(
     config: ConfigOption = None,
 ) -> None:
     """Run the post-flight flow on one recording."""
-    from flows.stages import require_readable
-
-    require_readable(recording)
     _say_outputs(_run_postflight(recording, out_dir, config))
 
 

@@ -24,6 +24,7 @@ from typing import Any
 from prefect import flow, task
 
 from flows import stages
+from flows.errors import install_one_line_errors
 from pipeline.config import Config
 from pipeline.report import sha256_file
 
@@ -54,6 +55,8 @@ def postflight_steps(recording: str, out_dir: str, cfg: Config, call: Callable[.
 
 
 # --------------------------------------------------------------------------------------------
+install_one_line_errors()
+
 STAGE_FUNCTIONS: dict[str, Callable[..., Any]] = {
     "ingest": stages.ingest_stage, "segment": stages.try_segment,
     "compensate": stages.compensate_stage, "audit": stages.audit_stage,

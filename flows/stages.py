@@ -427,8 +427,49 @@ def vector_recording(src: Path, dst: Path, summary_path: Path, method: str) -> d
 
 # --------------------------------------------------------------------------------------------
 # the post-flight stages (called by flows.postflight, as Prefect tasks or plainly)
+class _Validated:
+    """The flight read by :func:`validate_recording`, handed once to the ingest step of the
+    same process so that checking a recording before the flow does not read it twice."""
+
+    key: tuple[str, int, int] | None = None
+    flight: Flight | None = None
+
+    @staticmethod
+    def stat_key(recording: str | Path) -> tuple[str, int, int]:
+        st = Path(recording).stat()
+        return str(Path(recording).resolve()), st.st_size, st.st_mtime_ns
+
+    @classmethod
+    def take(cls, recording: str | Path) -> Flight | None:
+        flight, key = cls.flight, cls.key
+        cls.key = cls.flight = None  # handed out once: the memory goes with the flow
+        try:
+            return flight if key is not None and key == cls.stat_key(recording) else None
+        except OSError:
+            return None
+
+
+def validate_recording(recording: str | Path) -> Flight:
+    """Read and check a recording (scan, channel contract, units) before any flow starts,
+    so that bad input fails with one line and no Prefect run at all.
+
+    Raises
+    ------
+    AeromagError
+        Missing, empty or unreadable file, no scalar magnetometer, wrong units.
+    """
+    require_readable(Path(recording))
+    flight = read_flight(recording)
+    _Validated.key, _Validated.flight = _Validated.stat_key(recording), flight
+    return flight
+
+
+def forget_validated() -> None:
+    _Validated.key = _Validated.flight = None
+
+
 def ingest_stage(recording: str) -> Flight:
-    return read_flight(recording)
+    return _Validated.take(recording) or read_flight(recording)
 
 
 def compensate_stage(flight: Flight, seg: Segmentation, model: str, cfg) -> CompensationRun:

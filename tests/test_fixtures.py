@@ -21,3 +21,17 @@ def test_fixtures_are_small_and_current():
             path = FIXTURES / f"{name}{suffix}"
             assert path.is_file() and path.stat().st_size <= 2_000_000, path
     assert mod.stale() == [], "run: python fixtures/make_fixtures.py"
+
+
+def test_fixture_comparison_tolerates_rounding_but_not_change():
+    """Another numpy/scipy changes the last digits of some floats; a real change is caught."""
+    mod = _make_fixtures()
+    msg = [("/mag/scalar", 1, {"total_nT": 51234.123456789, "n": 3, "ok": True})]
+    rounded = [("/mag/scalar", 1, {"total_nT": 51234.123456789 + 1.5e-11, "n": 3, "ok": True})]
+    changed = [("/mag/scalar", 1, {"total_nT": 51234.123556789, "n": 3, "ok": True})]
+    assert mod.same(msg, rounded)
+    assert not mod.same(msg, changed)
+    assert not mod.same(msg, [("/mag/scalar", 2, msg[0][2])])
+    assert not mod.same(msg, [("/mag/scalar", 1, {"total_nT": 51234.123456789, "n": 4,
+                                                  "ok": True})])
+    assert not mod.same({"a": 1.0}, {"a": 1.0, "b": 2.0})

@@ -65,6 +65,22 @@ def bad_magic(p, msgs):
     p.write_bytes(bytes(data))
 
 
+def random_bytes(p, msgs):
+    p.write_bytes(np.random.default_rng(5).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+
+
+def only_the_magic(p, msgs):
+    p.write_bytes(b"\x89MCAP0\r\n")
+
+
+def text_file(p, msgs):
+    p.write_text("time,total_nT\n0.0,51234.5\n0.1,51234.6\n")
+
+
+def scalar_channel_missing(p, msgs):
+    rewrite(p, [m for m in msgs if m[0] != "/mag/scalar"])
+
+
 def truncated_mid_chunk(p, msgs):
     full = rewrite(p.with_suffix(".full"), msgs)
     with full.open("rb") as f:
@@ -171,6 +187,11 @@ def attitude_in_radians(p, msgs):
 CORPUS = {
     "empty file": (empty, ("error", None, "empty file")),
     "not MCAP (bad magic)": (bad_magic, ("error", None, "not a readable MCAP recording")),
+    "random bytes": (random_bytes, ("error", None, "not a readable MCAP recording")),
+    "only the MCAP magic": (only_the_magic, ("error", None, "not a readable MCAP recording")),
+    "a text file": (text_file, ("error", None, "not a readable MCAP recording")),
+    "no /mag/scalar": (scalar_channel_missing,
+                       ("error", "/mag/scalar", "no scalar magnetometer channel")),
     "truncated mid-chunk": (truncated_mid_chunk, ("processed", "file truncated")),
     "flipped byte in a chunk (CRC)": (flipped_byte_in_chunk, ("processed", "CRC mismatch")),
     "no summary, no footer": (no_summary_no_footer, ("processed", "no footer")),

@@ -6,6 +6,7 @@ import subprocess
 import sys
 
 import orjson
+import pytest
 
 from pipeline.io.inspect import inspect_recording
 from pipeline.simulate import write_simulation
@@ -25,7 +26,7 @@ def test_clean_recording_has_no_violations(box_path):
     assert {t["topic"] for t in d["topics"]} >= {"/mag/scalar", "/mag/vector", "/ins/attitude",
                                                    "/gnss/fix", "/base/scalar"}
     rates = {t["topic"]: t["rate_hz"] for t in d["topics"]}
-    assert rates["/mag/scalar"] == 10.0 and rates["/gnss/fix"] == 2.0
+    assert rates["/mag/scalar"] == pytest.approx(10.0) and rates["/gnss/fix"] == pytest.approx(2.0)
     res = cli("inspect", str(box_path))
     assert res.returncode == 0 and "contract: ok" in res.stdout
 

@@ -108,32 +108,6 @@ def test_a_failed_flow_resumes_from_its_last_finished_task(prefect_harness, tmp_
 
 
 # --------------------------------------------------------------------------------------------
-@pytest.fixture(scope="module")
-def prefect_server(tmp_path_factory):
-    """A real Prefect server on 127.0.0.1 (its own PREFECT_HOME), for the whole module."""
-    from flows.archive import _free_port, wait_healthy
-
-    home = tmp_path_factory.mktemp("prefect-home")
-    port = _free_port()
-    url = f"http://127.0.0.1:{port}/api"
-    env = {**os.environ, "PREFECT_HOME": str(home), "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
-           "DO_NOT_TRACK": "1"}
-    env.pop("PREFECT_API_URL", None)
-    proc = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host",
-                             "127.0.0.1", "--port", str(port)], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
-    try:
-        wait_healthy(url, 120, proc)
-        yield url
-    finally:
-        proc.terminate()
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-
-
 def _archive(tmp_path: Path) -> Path:
     arch = tmp_path / "archive"
     (arch / "day2").mkdir(parents=True)

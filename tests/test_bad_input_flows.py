@@ -1,0 +1,161 @@
+"""Bad input through the Prefect flows: ``process`` and ``reprocess`` give the same one line
+as the single-stage commands — no traceback (Prefect's included), at most two lines on stderr,
+the input untouched, no half-written output."""
+
+from __future__ import annotations
+
+import csv
+import logging
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from flows.errors import OneLineErrors
+from pipeline.errors import AeromagError
+from tests.conftest import sha256
+from tests.test_hardening import CORPUS, box_messages
+
+# The post-flight flow processes what a recording allows: without a fluxgate it skips
+# compensation and says so, where `aeromag compensate` must stop.
+FLOW_OUTCOME = {"required channel missing": ("processed", "no /mag/vector")}
+
+
+def outcome(case: str) -> tuple:
+    return (FLOW_OUTCOME.get(case, CORPUS[case][1]) + (None,))[:3]
+
+
+@pytest.fixture(scope="module")
+def corpus(tmp_path_factory) -> dict[str, Path]:
+    folder = tmp_path_factory.mktemp("corpus")
+    msgs = box_messages()
+    paths = {}
+    for i, (case, (builder, _)) in enumerate(CORPUS.items()):
+        p = folder / f"case{i:02d}.mcap"
+        builder(p, msgs)
+        for extra in folder.glob("*.full"):
+            extra.unlink()
+        paths[case] = p
+    return paths
+
+
+def _env(url: str) -> dict[str, str]:
+    env = {**os.environ, "PREFECT_API_URL": url, "COLUMNS": "200"}
+    env.pop("AEROMAG_DEBUG", None)
+    return env
+
+
+def _stderr_lines(text: str) -> list[str]:
+    return [ln for ln in text.splitlines() if ln.strip()]
+
+
+@pytest.mark.parametrize("case", list(CORPUS))
+def test_process_bad_input_is_one_line(case, corpus, prefect_server, tmp_path):
+    src = corpus[case]
+    before = sha256(src)
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, "-m", "flows.cli", "process", str(src), "--out",
+                          str(out)], env=_env(prefect_server), capture_output=True, text=True,
+                         timeout=600)
+    assert sha256(src) == before, "the input was modified"
+    err = _stderr_lines(res.stderr)
+    assert "Traceback" not in res.stdout + res.stderr
+    assert len(err) <= 2, res.stderr
+    partial = [p.name for p in out.glob(".*")] if out.exists() else []
+    assert partial == [], "a partial output was left behind"
+    kind, channel, words = outcome(case)
+    if kind == "error":
+        assert res.returncode == 2, res.stdout + res.stderr
+        assert len(err) == 1 and err[0].startswith("aeromag: error: "), res.stderr
+        assert str(src) in err[0] and words in err[0], err[0]
+        if channel:
+            assert f": {channel}: " in err[0], err[0]
+        assert not out.exists() or not any(out.iterdir())
+    else:
+        assert res.returncode == 0, res.stdout + res.stderr
+        assert (out / f"{src.stem}.summary.json").is_file()
+
+
+def test_reprocess_quarantines_with_the_same_line(corpus, prefect_server, tmp_path):
+    archive = tmp_path / "archive"
+    archive.mkdir()
+    for p in corpus.values():
+        (archive / p.name).write_bytes(p.read_bytes())
+    out = tmp_path / "out"
+    res = subprocess.run([sys.executable, "-m", "flows.cli", "reprocess", str(archive), "--out",
+                          str(out), "--workers", "2"], env=_env(prefect_server),
+                         capture_output=True, text=True, timeout=900)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "Traceback" not in res.stdout + res.stderr
+    assert len(_stderr_lines(res.stderr)) <= 2, res.stderr
+    with (out / "index.csv").open() as f:
+        rows = {Path(r["input"]).name: r for r in csv.DictReader(f)}
+    for case, path in corpus.items():
+        row = rows[path.name]
+        kind, channel, words = outcome(case)
+        if kind == "error":
+            assert row["status"] == "quarantined", (case, row)
+            reason = row["reason"]
+            assert "\n" not in reason and str(archive / path.name) in reason and words in reason
+            if channel:
+                assert f": {channel}: " in reason
+            q = out / "quarantine" / f"{path.stem}-{row['sha256'][:8]}.txt"
+            assert q.read_text().strip() == reason
+        else:
+            assert row["status"] == "processed", (case, row)
+
+
+def test_errors_inside_a_flow_are_logged_as_one_line():
+    """The filter on Prefect's run loggers: first record of an AeromagError becomes one line,
+    repetitions and 'Finished in state Failed' lines go, other exceptions keep tracebacks."""
+    filt = OneLineErrors()
+    err = AeromagError("no survey lines", file="f.mcap", channel="/mag/scalar")
+
+    def record(msg, exc=None, level=logging.ERROR):
+        exc_info = (type(exc), exc, None) if exc else None
+        return logging.LogRecord("prefect.task_runs", level, __file__, 1, msg, (), exc_info)
+
+    first = record("Task run failed with exception: %r", err)
+    assert filt.filter(first)
+    assert first.getMessage() == "aeromag: error: f.mcap: /mag/scalar: no survey lines"
+    assert first.exc_info is None
+    assert not filt.filter(record("Encountered exception during execution", err))
+    assert not filt.filter(record("Finished in state Failed('Task run encountered an exception "
+                                  "AeromagError: f.mcap: /mag/scalar: no survey lines')"))
+    bug = ValueError("a bug")
+    kept = record("Task run failed with exception", bug)
+    assert filt.filter(kept) and kept.exc_info[1] is bug
+    assert filt.filter(record("Finished in state Completed()", level=logging.INFO))
+
+
+FAILING_FLOW = """
+from prefect import flow, task
+import flows.postflight  # installs the one-line filter, as every aeromag flow does
+from pipeline.errors import AeromagError
+
+@task
+def stage():
+    raise AeromagError("no survey lines to grid", file="f.mcap", channel="/gnss/fix")
+
+@flow
+def job():
+    return stage()
+
+try:
+    job()
+except AeromagError as exc:
+    print(f"caught: {exc}")
+"""
+
+
+def test_an_error_raised_inside_a_flow_run_is_one_line(prefect_server):
+    res = subprocess.run([sys.executable, "-c", FAILING_FLOW], env=_env(prefect_server),
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr
+    assert "caught: f.mcap: /gnss/fix: no survey lines to grid" in res.stdout
+    assert "Traceback" not in res.stderr
+    err = _stderr_lines(res.stderr)
+    assert len(err) == 1 and err[0].endswith(
+        "aeromag: error: f.mcap: /gnss/fix: no survey lines to grid"), res.stderr
