@@ -371,7 +371,7 @@ def _print_audit(j: dict) -> None:
         say("no finding: no candidate effect improves held-out data beyond noise")
     say(f"extended model: {' + '.join(j['extended_model'])}; unexplained (held-out) "
         f"{j['unexplained_rms_nT']:.4f} nT")
-    if j.get("unexplained"):
+    if (j.get("unexplained") or {}).get("note"):
         say(f"unexplained: {j['unexplained']['note']}")
     for k, v in j["gain"].items():
         if v["before"] is not None:

@@ -698,7 +698,7 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
                 f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
                 for k, v in fd["estimate"].items() if k != "at_acceptance"
                 and not isinstance(v, list | dict)))
-        if a.get("unexplained"):
+        if (a.get("unexplained") or {}).get("note"):
             out.append(f"- unexplained: {a['unexplained']['note']}")
         out.append("")
     q = s.get("quality")

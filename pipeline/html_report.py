@@ -240,7 +240,7 @@ def _audit_section(s: dict, figs: _Figures) -> list[str]:
     out.append(_table(["effect found", "estimate", "ΔBIC", "p (Holm)", "held-out p",
                        "held-out residual nT"], rows) if rows
                else "<p>No effect beyond the baseline model was found.</p>")
-    if a.get("unexplained"):
+    if (a.get("unexplained") or {}).get("note"):
         out.append(f'<p class="note">unexplained: {html.escape(a["unexplained"]["note"])}</p>')
     gain = a.get("gain") or {}
     if gain:

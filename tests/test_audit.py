@@ -43,8 +43,10 @@ def test_clean_recording_gives_no_finding(tmp_path):
     _, _, _, res = audited(tmp_path)
     j = res.to_json()
     assert j["findings"] == [] and j["extended_model"] == ["tl18"]
-    assert j["unexplained"] is None
+    assert j["unexplained"]["note"] is None and j["unexplained"]["events"] == []
     assert j["unexplained_rms_nT"] <= 1.5 * j["noise_floor_nT"]
+    # held-out blocks from every heading x manoeuvre: the model does not extrapolate
+    assert j["baseline"]["generalization_gap"] < 1.5
     # every candidate was tested and rejected with a stated reason
     keys = {e["key"] for e in j["rounds"][0]}
     assert {"geomagnetic_gradient", "sensor_lag", "diurnal", "vector_calibration",
@@ -87,7 +89,16 @@ def test_a_hidden_effect_is_found_named_and_estimated(tmp_path, effect):
     f = res.findings[0]
     assert f.heldout.rms_after_nT < 0.8 * f.heldout.rms_before_nT
     assert f.test.delta_bic < 0 and f.p_adjusted < 0.01
-    assert res.unexplained is None
+    assert res.unexplained["note"] is None and res.unexplained["events"] == []
+    # the 95 % interval of each estimate covers the truth checked above
+    ci = f.ci95
+    if effect == "geomagnetic_gradient":
+        for key, g in zip(("east_nT_per_m", "north_nT_per_m"), (truth["effective"][
+                "gradient_nT_per_m"]), strict=False):
+            assert ci[key][0] - 0.01 <= g <= ci[key][1] + 0.01, (key, ci[key], g)
+    elif effect == "sensor_lag":
+        assert ci["lag_s"][0] - 0.005 <= truth["effective"]["sensor_lag_s"] <= \
+            ci["lag_s"][1] + 0.005
     # the extension pays off on the survey, not only on the calibration passes
     gain = res.gain
     assert gain["heading_error_rms_nT"]["after"] < gain["heading_error_rms_nT"]["before"]
@@ -119,8 +130,11 @@ def test_structure_outside_the_catalogue_is_reported_as_unexplained(tmp_path):
     j = res.to_json()
     assert j["findings"] == []
     u = j["unexplained"]
-    assert u is not None and u["ratio"] > 3.0
+    assert u["note"] is not None and u["ratio"] > 3.0
     assert u["dominant_frequency_hz"] == pytest.approx(0.25, abs=0.03)
+    # the spectrum names it: a line, and an oscillation event over the calibration
+    assert u["spectrum"]["kind"] == "line"
+    assert [e["kind"] for e in u["events"]] == ["oscillation"]
 
 
 def test_baseline_is_the_production_tl18_model(tmp_path):

@@ -4,7 +4,9 @@ Band-passed residuals are correlated over about 1/(2 B) seconds (B the bandwidth
 regressions behind the F-test and BIC use every k-th sample with k = rate / (2 B): the
 nominal p-values then hold approximately instead of being wildly optimistic. The held-out
 comparison averages squared residuals over blocks of ``block_s`` seconds, which are close
-to independent, and tests the paired block differences (one-sided t-test).
+to independent, and tests the paired block differences with the one-sided Wilcoxon
+signed-rank test: block differences are heavy-tailed (a sensor lag shows mostly in the
+fastest manoeuvres), and a t-test then misses a 90 % reduction (measured: p = 0.15).
 """
 
 from __future__ import annotations
@@ -81,8 +83,8 @@ def heldout_gain(r_before: np.ndarray, r_after: np.ndarray, time_s: np.ndarray,
     n = np.bincount(inv)
     d = (np.bincount(inv, a**2) - np.bincount(inv, b**2)) / n
     d = d[n >= 5]
-    p = float(stats.ttest_1samp(d, 0.0, alternative="greater").pvalue) if d.size > 2 and \
-        np.std(d) > 0 else (0.0 if d.size and np.all(d > 0) else 1.0)
+    p = float(stats.wilcoxon(d, alternative="greater").pvalue) if d.size > 5 and \
+        np.any(d != 0) else 1.0
     return HeldOut(float(np.sqrt(np.mean(a**2))), float(np.sqrt(np.mean(b**2))), p, int(d.size))
 
 

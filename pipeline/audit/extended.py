@@ -143,14 +143,20 @@ class BandSettings:
     trim: int = 20
 
 
-def bandpassed_rows(data: AuditData, des: Design, mask: np.ndarray, bs: BandSettings
+def bandpassed_rows(data: AuditData, des: Design, mask: np.ndarray, bs: BandSettings,
+                    keep: np.ndarray | None = None
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(K_bp, y_bp, epoch indices) over the contiguous blocks of ``mask``."""
+    """(K_bp, y_bp, epoch indices) over the contiguous blocks of ``mask``; with ``keep``
+    (epoch mask) only the rows of kept epochs, band-passed with all of ``mask`` (folds of
+    short blocks select rows of the once-filtered calibration)."""
     valid = mask & np.isfinite(des.y) & np.all(np.isfinite(des.columns), axis=1)
     blocks = contiguous_blocks(valid, data.time_s)
     sos = bandpass_sos(bs.band_hz, data.rate_hz, bs.poles)
     kf, where = bandpass_blocks(des.columns, blocks, sos, bs.trim)
     yf, _ = bandpass_blocks(des.y, blocks, sos, bs.trim)
+    if keep is not None:
+        rows = keep[where]
+        kf, yf, where = kf[rows], yf[rows], where[rows]
     return kf, yf, where
 
 
@@ -174,24 +180,37 @@ class FittedModel:
         interference = des.columns[:, self.subtract] @ self.theta[self.subtract]
         return des.y - interference, interference
 
-    def residual_bp(self, data: AuditData, mask: np.ndarray, bs: BandSettings
-                    ) -> tuple[np.ndarray, np.ndarray]:
-        """Band-passed measured minus model (all columns) over ``mask``: (residual, epochs)."""
-        kf, yf, where = bandpassed_rows(data, design(data, self.spec), mask, bs)
+    def residual_bp(self, data: AuditData, mask: np.ndarray, bs: BandSettings,
+                    keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Band-passed measured minus model (all columns) over ``mask`` (rows of ``keep``
+        only, when given): (residual, epochs)."""
+        kf, yf, where = bandpassed_rows(data, design(data, self.spec), mask, bs, keep)
         return yf - kf @ self.theta, where
 
 
 def fit_model(data: AuditData, spec: ModelSpec, mask: np.ndarray,
-              bs: BandSettings | None = None, ridge: float | str = "auto") -> FittedModel:
-    """Fit ``spec`` on the epochs of ``mask`` (ridge at the L-curve corner by default)."""
+              bs: BandSettings | None = None, ridge: float | str = "auto",
+              keep: np.ndarray | None = None, folds: np.ndarray | None = None) -> FittedModel:
+    """Fit ``spec`` on the epochs of ``mask`` (only the rows of ``keep`` when given).
+
+    ``ridge``: ``"auto"`` (L-curve corner), ``"cv"`` (inner cross-validation over the fold
+    numbers ``folds`` of the fitted rows, see :mod:`pipeline.audit.crossval`) or a value.
+    """
+    from pipeline.audit.crossval import choose_lambda
+
     bs = bs or BandSettings()
     des = design(data, spec)
-    kf, yf, where = bandpassed_rows(data, des, mask, bs)
+    kf, yf, where = bandpassed_rows(data, des, mask, bs, keep)
     if where.size < 2 * kf.shape[1]:
         raise ValueError(f"only {where.size} usable calibration samples for {kf.shape[1]} "
                          "terms")
     solver = RidgeSVD(kf, yf)
-    lam = solver.lcurve().lambda_corner if ridge == "auto" else float(ridge)
+    if ridge == "cv":
+        if folds is None:
+            raise ValueError("ridge 'cv' needs the fold numbers")
+        lam = choose_lambda(kf, yf, folds[where]).best
+    else:
+        lam = solver.lcurve().lambda_corner if ridge == "auto" else float(ridge)
     theta = solver.solve(lam)
     resid = yf - kf @ theta
     return FittedModel(spec, des.names, des.subtract, theta, float(lam), int(where.size),
@@ -199,12 +218,13 @@ def fit_model(data: AuditData, spec: ModelSpec, mask: np.ndarray,
 
 
 def lag_cost(data: AuditData, spec: ModelSpec, mask: np.ndarray, bs: BandSettings,
-             lam: float, max_lag_s: float):
+             lam: float, max_lag_s: float, keep: np.ndarray | None = None):
     """cost(tau): fit residual RMS (nT) of ``spec`` refitted with the scalar re-timed by tau.
 
     Only the scalar moves with the lag, so the design matrix and its SVD are built once for
     every candidate |tau| <= ``max_lag_s`` (the flight's first and last ``max_lag_s`` seconds
-    are left out, so that every candidate uses the same rows).
+    are left out, so that every candidate uses the same rows). With ``keep``, only the rows
+    of kept epochs count (band-passed with all of ``mask``).
     """
     t = data.time_s
     inner = mask & (t >= t[0] + max_lag_s) & (t <= t[-1] - max_lag_s)
@@ -213,13 +233,16 @@ def lag_cost(data: AuditData, spec: ModelSpec, mask: np.ndarray, bs: BandSetting
     blocks = contiguous_blocks(valid, t)
     sos = bandpass_sos(bs.band_hz, data.rate_hz, bs.poles)
     kf, where = bandpass_blocks(des.columns, blocks, sos, bs.trim)
-    if where.size < 2 * kf.shape[1]:
-        raise ValueError(f"only {where.size} usable calibration samples for {kf.shape[1]} "
+    rows = np.ones(where.size, bool) if keep is None else keep[where]
+    kf = kf[rows]
+    if kf.shape[0] < 2 * kf.shape[1]:
+        raise ValueError(f"only {kf.shape[0]} usable calibration samples for {kf.shape[1]} "
                          "terms")
-    solver = RidgeSVD(kf, np.zeros(where.size))
+    solver = RidgeSVD(kf, np.zeros(kf.shape[0]))
 
     def cost(tau: float) -> float:
         yf, _ = bandpass_blocks(scalar_series(data, float(tau)), blocks, sos, bs.trim)
+        yf = yf[rows]
         if not np.all(np.isfinite(yf)):
             return np.inf
         r = yf - kf @ solver.solve_for(yf, lam)

@@ -72,9 +72,8 @@ def log_lines(res: AuditResult) -> list[tuple[int, str]]:
                               "beyond noise"))
     out.append((LOG_INFO, f"audit: extended model {' + '.join(j['extended_model'])}: "
                           f"held-out residual {j['unexplained_rms_nT']:.4f} nT"))
-    if res.unexplained:
-        out.append((LOG_WARNING, f"audit: unexplained: {res.unexplained['note']} (dominant "
-                                 f"{res.unexplained['dominant_frequency_hz']:.3f} Hz)"))
+    if res.unexplained.get("note"):
+        out.append((LOG_WARNING, f"audit: unexplained: {res.unexplained['note']}"))
     for k, v in res.gain.items():
         if v["before"] is not None:
             out.append((LOG_INFO, f"audit: gain {k}: {v['before']:.4f} -> {v['after']:.4f}"))
@@ -98,14 +97,15 @@ def finding_channel(flight: Flight, res: AuditResult) -> OutputChannel:
             "before_nT": f.heldout.rms_before_nT if f.heldout else None,
             "after_nT": f.heldout.rms_after_nT if f.heldout else None,
             "message": f"{f.effect}: {_estimate(f.estimate)}"})
-    if res.unexplained:
+    if res.unexplained.get("note"):
         u = res.unexplained
         ch.add(t0 + len(res.findings), {
             "effect": "unexplained", "accepted": False,
             "estimate": jsonable(u), "delta_bic": None, "p_value": None,
             "p_value_holm": None, "heldout_p_value": None,
             "gain_metric": "heldout_calibration_residual_rms",
-            "before_nT": u["noise_floor_nT"], "after_nT": u["rms_nT"], "message": u["note"]})
+            "before_nT": u.get("noise_floor_nT", res.noise_floor_nT),
+            "after_nT": u.get("rms_nT", res.heldout_extended_nT), "message": u["note"]})
     return ch
 
 
@@ -130,9 +130,14 @@ def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
         lines.append("No finding: no candidate effect improves held-out data beyond noise.")
     lines += ["", f"Extended model: **{' + '.join(j['extended_model'])}**; held-out residual "
                   f"{j['unexplained_rms_nT']:.4f} nT.", ""]
-    if res.unexplained:
-        lines += ["## Unexplained", "", res.unexplained["note"] + f"; the residual's "
-                  f"spectrum peaks at {res.unexplained['dominant_frequency_hz']:.3f} Hz.", ""]
+    if res.unexplained.get("note"):
+        lines += ["## Unexplained", "", res.unexplained["note"] + ".", ""]
+        for e in res.unexplained["events"]:
+            lines.append(f"- {e['kind']}: {e['size_nT']:.2f} nT, from "
+                         f"{(e['start_ns'] - int(res.t0_ns)) / 1e9:.1f} s to "
+                         f"{(e['end_ns'] - int(res.t0_ns)) / 1e9:.1f} s "
+                         f"({e['evidence']})")
+        lines.append("")
     lines += ["## Gain", "", "| metric | baseline | extended |", "|---|---|---|"]
     for k, v in res.gain.items():
         lines.append(f"| {k} | {_fmt(v['before'])} | {_fmt(v['after'])} |")

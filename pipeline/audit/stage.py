@@ -26,6 +26,14 @@ import numpy as np
 from scipy.optimize import curve_fit, minimize_scalar
 from scipy.signal import welch
 
+from pipeline.audit.crossval import (
+    BLOCK_S,
+    N_FOLDS,
+    calibration_strata,
+    jackknife_ci95,
+    passwise_folds,
+    stratified_block_folds,
+)
 from pipeline.audit.evidence import (
     HeldOut,
     NestedTest,
@@ -46,10 +54,12 @@ from pipeline.audit.extended import (
     lag_cost,
     simulate_measurement,
 )
+from pipeline.audit.survey import CrossoverSet, SurveyLag, survey_events, survey_lag
 from pipeline.audit.vector_cal import fit_vector_calibration
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.model import figure_of_merit
 from pipeline.compensate.stage import calibration_mask
+from pipeline.compensate.terms import direction_cosines
 from pipeline.errors import AeromagError
 from pipeline.io.reader import Flight
 from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
@@ -69,7 +79,10 @@ class AuditSettings:
     block_s: float = 10.0
     unexplained_factor: float = 1.5  # held-out residual / noise floor that counts as structure
     max_lag_s: float = 1.0
-    chunk_s: float = 30.0  # alternate chunks of a single calibration pass form the folds
+    n_folds: int = N_FOLDS  # held-out folds, each with blocks of every heading x manoeuvre
+    block_s_cv: float = BLOCK_S
+    max_generalization_gap: float = 2.0  # held-out / fit residual above this: a warning
+    min_event_nT: float = 0.3  # smallest step or drift in the survey worth an event
 
 
 @dataclass
@@ -86,6 +99,7 @@ class Evaluation:
     accepted: bool = False
     reason: str = ""
     metric: str = "heldout_calibration_residual_rms"
+    ci95: dict[str, Any] = field(default_factory=dict)  # same keys as estimate: [lo, hi]
 
     def passes(self, s: AuditSettings) -> bool:
         return (self.test is not None and self.heldout is not None
@@ -109,6 +123,7 @@ class Evaluation:
 
     def to_dict(self) -> dict[str, Any]:
         return {"effect": self.effect, "key": self.key, "estimate": self.estimate,
+                "estimate_ci95": self.ci95,
                 "delta_bic": None if self.test is None else self.test.delta_bic,
                 "p_value": None if self.test is None else self.test.p_value,
                 "p_value_holm": self.p_adjusted,
@@ -139,6 +154,9 @@ class AuditResult:
     data: AuditData
     passes: list[np.ndarray]
     notes: list[str]
+    generalization_gap: float = float("nan")  # baseline held-out / fit residual
+    passwise_heldout_nT: float | None = None  # leave-one-pass-out, with two or more passes
+    t0_ns: int = 0  # the flight's first epoch (event times are absolute)
 
     def to_json(self) -> dict[str, Any]:
         """AUDIT.json (issue 6 contract plus details)."""
@@ -146,8 +164,11 @@ class AuditResult:
             "baseline": {"model": self.baseline.spec.base,
                          "residual_rms_nT": self.heldout_baseline_nT,
                          "fit_residual_nT": self.baseline.fit_residual_nT,
+                         "generalization_gap": self.generalization_gap,
+                         "passwise_residual_rms_nT": self.passwise_heldout_nT,
                          "lambda": self.baseline.lambda_},
             "findings": [{"effect": f.effect, "estimate": f.estimate,
+                          "estimate_ci95": f.ci95,
                           "delta_bic": f.test.delta_bic if f.test else None,
                           "p_value": f.test.p_value if f.test else None,
                           "p_value_holm": f.p_adjusted,
@@ -159,7 +180,7 @@ class AuditResult:
             "extended_model": self.extended.spec.label(),
             "unexplained_rms_nT": self.heldout_extended_nT,
             "noise_floor_nT": self.noise_floor_nT,
-            "unexplained": self.unexplained,
+            "unexplained": self.unexplained,  # {"events": [...], "note", "spectrum", ...}
             "sensor_noise_nT": self.sensor_noise_nT,
             "gain": self.gain,
             "extended": {"residual_rms_nT": self.heldout_extended_nT,
@@ -173,23 +194,10 @@ class AuditResult:
 
 
 # --------------------------------------------------------------------------------------------
-def _folds(mask: np.ndarray, passes: list[np.ndarray], time_s: np.ndarray, chunk_s: float
-           ) -> list[tuple[np.ndarray, np.ndarray]]:
-    """(train, test) masks: leave one calibration pass out, or alternate chunks of one."""
-    inside = [p[mask[p]] for p in passes if mask[p].any()]
-    if len(inside) >= 2:
-        out = []
-        for p in inside:
-            test = np.zeros(mask.size, bool)
-            test[p] = True
-            out.append((mask & ~test, test))
-        return out
-    idx = np.flatnonzero(mask)
-    chunk = np.floor((time_s[idx] - time_s[idx[0]]) / chunk_s).astype(int) % 2
-    a = np.zeros(mask.size, bool)
-    a[idx[chunk == 0]] = True
-    b = mask & ~a
-    return [(a, b), (b, a)]
+def _fold_masks(fold: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """(train, test) epoch masks of each fold number in ``fold`` (-1: not calibration)."""
+    inside = fold >= 0
+    return [(inside & (fold != k), fold == k) for k in np.unique(fold[inside])]
 
 
 class Auditor:
@@ -200,16 +208,31 @@ class Auditor:
         self.mask = calibration_mask(flight, seg, "auto")
         self.data = AuditData.from_flight(flight, self.mask)
         self.passes = seg.passes()
-        self.folds = _folds(self.mask, self.passes, self.data.time_s, settings.chunk_s)
+        strata = calibration_strata(seg.cardinal, seg.manoeuvre,
+                                    flight.data["yaw_deg"].to_numpy(float)
+                                    if flight.has("yaw_deg") else np.zeros(self.mask.size))
+        self.fold = stratified_block_folds(self.data.time_s, self.mask, strata,
+                                           settings.n_folds, settings.block_s_cv)
+        self.folds = _fold_masks(self.fold)
+        self.pass_fold = passwise_folds(self.mask, self.passes)
         self.step = thinning_step(self.data.rate_hz, settings.band.band_hz)
         self.notes: list[str] = []
         self._fit_cache: dict[tuple, FittedModel] = {}
 
     # -- fitting helpers ------------------------------------------------------------------
-    def fit(self, spec: ModelSpec, mask: np.ndarray, key: str) -> FittedModel:
-        ck = (spec, key)
+    def fit(self, spec: ModelSpec, keep: np.ndarray | None, key: str,
+            ridge: str | None = None) -> FittedModel:
+        """``spec`` fitted on the calibration rows of ``keep``, band-passed over the whole
+        calibration. Fold fits (``keep`` given) choose ridge lambda by inner
+        cross-validation over the training folds; the fit on all of the calibration (``keep``
+        None: estimates, compensated outputs) uses the L-curve corner as the compensation
+        stage does — cross-validation cannot see the directions the band-pass removes (the
+        compensated field's level), the L-curve keeps them small."""
+        ridge = ridge or ("auto" if keep is None else "cv")
+        ck = (spec, key, ridge)
         if ck not in self._fit_cache:
-            self._fit_cache[ck] = fit_model(self.data, spec, mask, self.s.band)
+            self._fit_cache[ck] = fit_model(self.data, spec, self.mask, self.s.band,
+                                            ridge=ridge, keep=keep, folds=self.fold)
         return self._fit_cache[ck]
 
     def heldout(self, before: ModelSpec, after_for_fold) -> HeldOut:
@@ -220,8 +243,8 @@ class Auditor:
             mb = self.fit(before, train, f"fold{k}")
             spec_a = after_for_fold(train, k)
             ma = self.fit(spec_a, train, f"fold{k}")
-            r0, w0 = mb.residual_bp(self.data, test, self.s.band)
-            r1, w1 = ma.residual_bp(self.data, test, self.s.band)
+            r0, w0 = mb.residual_bp(self.data, self.mask, self.s.band, keep=test)
+            r1, w1 = ma.residual_bp(self.data, self.mask, self.s.band, keep=test)
             common, i0, i1 = np.intersect1d(w0, w1, return_indices=True)
             rb.append(r0[i0])
             ra.append(r1[i1])
@@ -278,19 +301,27 @@ class Auditor:
         ext = current.with_(gradient=True)
         test = self._nested(current, ext_spec=ext)
         held = self.heldout(current, lambda train, k: ext)
-        full = self.fit(ext, self.mask, "all")
-        c = dict(zip(full.names, full.theta, strict=True))
-        est = {"east_nT_per_m": float(c["pos_e"]), "north_nT_per_m": float(c["pos_n"]),
-               "up_nT_per_m": float(c["pos_up"])}
-        return Evaluation("geomagnetic_gradient", key, est, test, held, ext)
+        def gradient(fm: FittedModel) -> dict[str, float]:
+            c = dict(zip(fm.names, fm.theta, strict=True))
+            return {"east_nT_per_m": float(c["pos_e"]), "north_nT_per_m": float(c["pos_n"]),
+                    "up_nT_per_m": float(c["pos_up"])}
 
-    def _lag_estimate(self, current: ModelSpec, mask: np.ndarray, key: str) -> float:
+        est = gradient(self.fit(ext, None, "all"))
+        folds = [gradient(self.fit(ext, tr, f"fold{k}")) for k, (tr, _) in
+                 enumerate(self.folds)]
+        return Evaluation("geomagnetic_gradient", key, est, test, held, ext,
+                          ci95=jackknife_ci95(est, folds))
+
+    def _lag_estimate(self, current: ModelSpec, keep: np.ndarray | None, key: str) -> float:
         """The lag minimising the refitted model's residual: a coarse grid over
         +-``max_lag_s`` (the eddy terms absorb part of a lag, so a linearised estimate with
         the baseline's coefficients is biased low), then a bounded 1-D refinement."""
-        lam = self.fit(current, mask, key).lambda_
+        # the L-curve's lambda even in a fold: with cross-validation's (often tiny) lambda
+        # the eddy terms absorb part of the lag (measured: 0.07 s found for 0.16 s)
+        lam = self.fit(current, keep, key, ridge="auto").lambda_
         try:
-            cost = lag_cost(self.data, current, mask, self.s.band, lam, self.s.max_lag_s)
+            cost = lag_cost(self.data, current, self.mask, self.s.band, lam, self.s.max_lag_s,
+                            keep=keep)
         except ValueError:
             return 0.0
         step = 0.05
@@ -312,27 +343,41 @@ class Auditor:
             return current.with_(lag_s=lags[k])
 
         held = self.heldout(current, ext_for)
-        lag = self._lag_estimate(current, self.mask, "all")
+        lag = self._lag_estimate(current, None, "all")
         est = {"lag_s": lag, "lag_by_fold_s": [lags[k] for k in sorted(lags)]}
-        return Evaluation("sensor_lag", key, est, test, held, current.with_(lag_s=lag))
+        sl = self.survey_lag(current)
+        if sl is not None:  # independent evidence: the survey's crossovers
+            est.update(survey_lag_s=sl.lag_s, survey_lag_ci95_s=list(sl.ci95_s),
+                       survey_lag_p_value=sl.p_value)
+        ci = jackknife_ci95({"lag_s": lag}, [{"lag_s": lags[k]} for k in sorted(lags)])
+        return Evaluation("sensor_lag", key, est, test, held, current.with_(lag_s=lag),
+                          ci95={**ci, **{k: None for k in est if k not in ci}})
 
     def _eval_electrical_current(self, current: ModelSpec, key: str) -> Evaluation:
         name = key.split(":", 1)[1]
         ext = current.with_(aux=current.aux + (name,))
         test = self._nested(current, ext_spec=ext)
         held = self.heldout(current, lambda train, k: ext)
-        full = self.fit(ext, self.mask, "all")
-        coupling = full.coefficient(f"aux_{name}_u")
-        mag = float(np.linalg.norm(coupling))
-        est = {"channel": f"/aux/{name}", "nT_per_unit": mag,
-               "unit": self.data.aux_units.get(name, ""),
-               "direction_body": [float(v) for v in coupling / mag] if mag > 0 else None}
-        return Evaluation("electrical_current", key, est, test, held, ext)
+        u = direction_cosines(self.data.vector_nT)
+        inside = np.all(np.isfinite(u), axis=1)
+
+        def coupling(fm: FittedModel) -> dict[str, Any]:
+            c = fm.coefficient(f"aux_{name}_u")
+            mag = float(np.linalg.norm(c))
+            # what the scalar sensor sees: the coupling projected on the field direction
+            return {"channel": f"/aux/{name}", "nT_per_unit": mag,
+                    "total_field_nT_per_unit": float(np.mean(u[inside] @ c)),
+                    "unit": self.data.aux_units.get(name, ""),
+                    "direction_body": [float(v) for v in c / mag] if mag > 0 else None}
+
+        est = coupling(self.fit(ext, None, "all"))
+        folds = [coupling(self.fit(ext, tr, f"fold{k}")) for k, (tr, _) in
+                 enumerate(self.folds)]
+        return Evaluation("electrical_current", key, est, test, held, ext,
+                          ci95=jackknife_ci95(est, folds))
 
     def _eval_vector_calibration(self, current: ModelSpec, key: str) -> Evaluation:
-        from pipeline.compensate.terms import direction_cosines
-
-        base = self.fit(current, self.mask, "all")
+        base = self.fit(current, None, "all")
         comp, _ = base.compensate(self.data)
         ref = time_window_mean(self.data.time_s, comp, 2.0)  # the Earth field, noise smoothed
         m = self.data.vector_nT
@@ -346,23 +391,30 @@ class Auditor:
         test = nested_test(mismatch[sel], ones[sel], np.column_stack([ones, u, quad])[sel],
                            max(self.step, 5))
 
+        fold_vc = {}
+
         def ext_for(train, k):
-            fb = self.fit(current, train, f"fold{k}")
-            c, _ = fb.compensate(self.data)
-            r = time_window_mean(self.data.time_s, c, 2.0)
-            vc = fit_vector_calibration(m[train], r[train])
-            return current.with_(vector_cal=vc)
+            # the reference level from the all-calibration fit (a fold's cross-validated
+            # lambda leaves the compensated field's level free, see Auditor.fit)
+            ok = train & sel
+            fold_vc[k] = fit_vector_calibration(m[ok], ref[ok])
+            return current.with_(vector_cal=fold_vc[k])
 
         held = self.heldout(current, ext_for)
         vc = fit_vector_calibration(m[sel], ref[sel])
         est = {**vc.sensor_errors(), "mismatch_rms_before_nT": vc.residual_before_nT,
                "mismatch_rms_after_nT": vc.residual_after_nT}
+        ci = jackknife_ci95(vc.sensor_errors(), [fold_vc[k].sensor_errors()
+                                                 for k in sorted(fold_vc)])
         return Evaluation("vector_calibration", key, est, test, held,
-                          current.with_(vector_cal=vc))
+                          current.with_(vector_cal=vc),
+                          ci95={**ci, "mismatch_rms_before_nT": None,
+                                "mismatch_rms_after_nT": None})
 
-    def _crossover_data(self, spec: ModelSpec):
+    def _crossover_data(self, spec: ModelSpec, smooth_s: float = 0.0):
         """Crossover and validation-overlap differences of ``spec``'s compensated field,
-        reduced by IGRF only, with the base-station difference at each."""
+        reduced by IGRF only (and smoothed along track over ``smooth_s``), with the
+        base-station difference at each."""
         from pipeline.geo.local import LocalFrame
         from pipeline.maps.level import Line, crossovers
         from pipeline.maps.reduce import igrf_total_nT
@@ -371,8 +423,10 @@ class Auditor:
 
         d = self.flight.data
         lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
-        comp, _ = self.fit(spec, self.mask, "all").compensate(self.data)
+        comp, _ = self.fit(spec, None, "all").compensate(self.data)
         red = comp - igrf_total_nT(self.flight.time_ns, lat, lon, alt)
+        if smooth_s > 0:
+            red = time_window_mean(self.data.time_s, red, smooth_s)
         base = time_window_mean(self.data.time_s, d["base_nT"].to_numpy(float),
                                 BASE_SMOOTHING_S)
         sel = self.seg.mask("survey")
@@ -388,6 +442,7 @@ class Auditor:
         ties = [line(tr) for tr in tracks if tr.kind == "tie"]
         xs = crossovers(survey, ties)
         heading = {tr.line_id: int(round(tr.heading_deg / 90.0)) % 4 for tr in tracks}
+        self._last_crossings = (xs, heading, red)
         dx = np.array([c.difference_nT for c in xs])
         db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base)
                        for c in xs])
@@ -426,16 +481,60 @@ class Auditor:
         ev.metric = metric
         return ev
 
+    def survey_evidence(self, spec: ModelSpec) -> list[dict[str, Any]]:
+        """Steps and drifts in ``spec``'s compensated field seen at survey/tie crossovers
+        (:mod:`pipeline.audit.survey`), as ``unexplained.events`` entries."""
+        if not (self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
+                and self.seg.mask("tie").any() and self.seg.mask("survey").any()):
+            return []
+        # a second along track (7-15 m at survey speeds, well inside the smoothest anomaly
+        # at survey height) averages the sensor noise out of each crossover reading
+        dx, db, *_ = self._crossover_data(spec, smooth_s=1.0)
+        xs, heading, _ = self._last_crossings
+        if dx.size < 8:
+            return []
+        d = dx - db  # the base station's variation is the day's, never the carrier's
+        cs = CrossoverSet(d, np.array([c.time_a_s for c in xs]),
+                          np.array([c.time_b_s for c in xs]),
+                          np.array([heading[c.line_a] for c in xs]),
+                          np.array([heading[c.line_b] for c in xs]))
+        events = survey_events(cs, self.s.alpha, self.s.min_event_nT)
+        t0 = int(self.flight.time_ns[0])
+        return [e.to_dict(t0) for e in events]
+
+    def survey_lag(self, spec: ModelSpec) -> SurveyLag | None:
+        """The lag seen at the survey's crossovers (:func:`pipeline.audit.survey.survey_lag`)."""
+        if not (self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
+                and self.seg.mask("tie").any() and self.seg.mask("survey").any()):
+            return None
+        dx, db, *_ = self._crossover_data(spec, smooth_s=1.0)
+        xs, heading, red = self._last_crossings
+        if dx.size < 8:
+            return None
+        t = self.data.time_s
+        ok = np.isfinite(red)
+        rate = np.full(t.size, np.nan)
+        rate[ok] = np.gradient(red[ok], t[ok])
+        ta, tb = np.array([c.time_a_s for c in xs]), np.array([c.time_b_s for c in xs])
+        cs = CrossoverSet(dx - db, ta, tb, np.array([heading[c.line_a] for c in xs]),
+                          np.array([heading[c.line_b] for c in xs]))
+        return survey_lag(cs, np.interp(ta, t, rate), np.interp(tb, t, rate))
+
     # -- the whole audit ------------------------------------------------------------------
-    def cv_residual(self, spec: ModelSpec) -> tuple[float, np.ndarray, np.ndarray]:
+    def cv_residual(self, spec: ModelSpec, fold: np.ndarray | None = None,
+                    tag: str = "fold") -> tuple[float, np.ndarray, np.ndarray]:
+        """Held-out band-passed residual RMS (nT) of ``spec`` over the folds (stratified
+        blocks by default; ``fold`` e.g. leave-one-pass-out), with its rows in epoch order."""
+        folds = self.folds if fold is None else _fold_masks(fold)
         r, tt = [], []
-        for k, (train, test) in enumerate(self.folds):
-            m = self.fit(spec, train, f"fold{k}")
-            rr, w = m.residual_bp(self.data, test, self.s.band)
+        for k, (train, test) in enumerate(folds):
+            m = self.fit(spec, train, f"{tag}{k}")
+            rr, w = m.residual_bp(self.data, self.mask, self.s.band, keep=test)
             r.append(rr)
             tt.append(w)
         rc, wc = np.concatenate(r), np.concatenate(tt)
-        return float(np.sqrt(np.mean(rc**2))), rc, wc
+        order = np.argsort(wc, kind="stable")
+        return float(np.sqrt(np.mean(rc**2))), rc[order], wc[order]
 
     def run(self, progress=None) -> tuple[ModelSpec, list[Evaluation], list[list[Evaluation]]]:
         current = ModelSpec(base=self.s.baseline)
@@ -502,6 +601,41 @@ class Auditor:
         return spec
 
 
+def residual_spectrum(residual: np.ndarray, rate_hz: float, band: BandSettings
+                      ) -> dict[str, Any]:
+    """Name the shape of the held-out residual's spectrum inside the fit band.
+
+    White noise through the band-pass has the filter's flat pass band; a line (an
+    oscillation the model lacks) stands far above the band's median level; coloured noise
+    has a slope in log power vs log frequency. Returns kind (white | line | coloured), the
+    dominant frequency (Hz), the peak-to-median power ratio, the log-log slope and a
+    sentence.
+    """
+    r = np.asarray(residual, float)
+    r = r[np.isfinite(r)]
+    if r.size < 64:
+        return {"kind": "unknown", "dominant_frequency_hz": None, "peak_ratio": None,
+                "slope": None, "description": "too few samples"}
+    f, pxx = welch(r, fs=rate_hz, nperseg=min(512, r.size))
+    lo, hi = band.band_hz
+    inside = (f >= lo * 1.5) & (f <= hi / 1.1)  # the flat part of the pass band
+    if inside.sum() < 4:
+        inside = (f >= lo) & (f <= hi)
+    fi, pi = f[inside], pxx[inside]
+    k = int(np.argmax(pi))
+    ratio = float(pi[k] / np.median(pi))
+    slope = float(np.polyfit(np.log(fi), np.log(pi), 1)[0])
+    if ratio > 8.0:
+        kind, text = "line", f"a line at {fi[k]:.3f} Hz ({ratio:.0f}x the band's median power)"
+    elif abs(slope) > 1.0:
+        kind, text = "coloured", (f"coloured noise (power ~ f^{slope:.1f} in the band; white "
+                                  "noise would be flat)")
+    else:
+        kind, text = "white", "flat in the band, like white noise"
+    return {"kind": kind, "dominant_frequency_hz": float(fi[k]), "peak_ratio": ratio,
+            "slope": slope, "description": text}
+
+
 def _diurnal_shape(time_s: np.ndarray, base: np.ndarray) -> dict[str, float | None]:
     """Amplitude and period of the base-station variation (a sinusoid fitted to it)."""
     ok = np.isfinite(base)
@@ -557,25 +691,47 @@ def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None 
     final_spec, findings, rounds = aud.run(progress)
     data = aud.data
     base_spec = ModelSpec(base=s.baseline)
-    baseline = aud.fit(base_spec, aud.mask, "all")
-    extended = aud.fit(final_spec, aud.mask, "all")
+    baseline = aud.fit(base_spec, None, "all")
+    extended = aud.fit(final_spec, None, "all")
     if progress:
         progress("measuring the gain")
     cv_b, _, _ = aud.cv_residual(base_spec)
     cv_e, r_e, w_e = aud.cv_residual(final_spec)
+    # like with like: the in-sample residual with lambda chosen as in the folds
+    fit_cv = aud.fit(base_spec, None, "all", ridge="cv").fit_residual_nT
+    gap = cv_b / fit_cv if fit_cv > 0 else float("nan")
+    passwise = (aud.cv_residual(base_spec, aud.pass_fold, "pass")[0]
+                if aud.pass_fold is not None else None)
     # noise: white sensor noise from the 4th difference, through the same band-pass
     sigma = float(np.nanmedian([noise_4th_difference_nT(data.scalar_nT[b])
                                 for b in contiguous_blocks(np.isfinite(data.scalar_nT),
                                                            data.time_s) if b.size > 200]))
     floor = sigma * band_noise_gain(data.rate_hz, s.band.band_hz, s.band.poles)
-    unexplained = None
+    if progress:
+        progress("survey-side evidence")
+    events = aud.survey_evidence(final_spec)
+    unexplained: dict[str, Any] = {"events": events, "note": None,
+                                   "spectrum": residual_spectrum(r_e, data.rate_hz, s.band)}
     if cv_e > s.unexplained_factor * floor:
-        f, pxx = welch(r_e, fs=data.rate_hz, nperseg=min(1024, r_e.size))
-        unexplained = {
+        spec_ = unexplained["spectrum"]
+        unexplained.update({
             "rms_nT": cv_e, "noise_floor_nT": floor, "ratio": cv_e / floor,
-            "dominant_frequency_hz": float(f[np.argmax(pxx)]),
+            "dominant_frequency_hz": spec_["dominant_frequency_hz"],
             "note": (f"held-out calibration residual {cv_e:.4f} nT is {cv_e / floor:.1f}x the "
-                     f"noise floor {floor:.4f} nT and no candidate effect explains it")}
+                     f"noise floor {floor:.4f} nT and no candidate effect explains it; "
+                     f"its spectrum: {spec_['description']}")})
+        if spec_["kind"] == "line":
+            t_cal = data.time_s[aud.mask]
+            t0 = int(flight.time_ns[0])
+            events.append({"kind": "oscillation", "start_ns": t0 + int(t_cal[0] * 1e9),
+                           "end_ns": t0 + int(t_cal[-1] * 1e9), "size_nT": cv_e,
+                           "frequency_hz": spec_["dominant_frequency_hz"],
+                           "evidence": "calibration residual spectrum"})
+    for e in events:
+        if e["kind"] in ("step", "drift") and not unexplained["note"]:
+            unexplained["note"] = (f"{e['kind']} of {e['size_nT']:.2f} nT in the survey "
+                                   f"(crossovers, p {e['p_value']:.2g}); not a catalogue "
+                                   "effect")
     comp_b, _ = baseline.compensate(data)
     comp_e, _ = extended.compensate(data)
     t = data.time_s
@@ -608,9 +764,14 @@ def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None 
         full[ww] = rr
         sim_res[name] = full[where]
     notes = list(aud.notes)
-    if len(aud.folds) == 2 and len([p for p in aud.passes if aud.mask[p].any()]) < 2:
-        notes.append("one calibration pass: held out by alternate 30 s chunks")
+    notes.append(f"held out: {len(aud.folds)} folds of {s.block_s_cv:g} s blocks, each "
+                 "holding every heading x manoeuvre; ridge lambda by inner cross-validation")
+    if gap > s.max_generalization_gap:
+        notes.append(f"warning: the baseline's held-out residual is {gap:.1f}x its fit "
+                     f"residual (> {s.max_generalization_gap:g}): the calibration does not "
+                     "determine the model well; findings are less certain")
     quality = {"baseline": q_b, "extended": q_e} if q_b else {}
     return AuditResult(baseline, extended, findings, rounds, cv_b, cv_e, floor, sigma,
                        unexplained, gain, {"baseline": comp_b, "extended": comp_e}, sim_res,
-                       where, quality, data, aud.passes, notes)
+                       where, quality, data, aud.passes, notes, gap, passwise,
+                       int(flight.time_ns[0]))

@@ -3,6 +3,12 @@
 A scenario names a carrier profile (``uav`` or ``fixed-wing``) and overrides any default below.
 Unknown keys are an error (a typo must not silently fall back to a default). Every quantity
 carries its unit in its name. Effects are switched on by name under ``[effects.<id>]``.
+
+Options added for flight variety (``_OPTIONAL`` below: calibration heading and manoeuvre
+order, randomised manoeuvre blocks, interference outside the Tolles-Lawson basis, a filtering
+scalar sensor, a temperature-dependent current coupling) are all off by default. They are
+written to the truth document only when they differ from their default, so a flight that does
+not use them has the same recording *and* the same truth document as before they existed.
 """
 
 from __future__ import annotations
@@ -130,6 +136,65 @@ _COMMON: dict[str, Any] = {
     },
 }
 
+# Variety options (issue 16): every one is off by default, and draws its random numbers from a
+# generator of its own (created only when the option is on), so a flight that leaves them
+# alone is unchanged. Omitted from the truth document while at their default.
+_OPTIONAL: dict[str, Any] = {
+    "calibration": {
+        # order of the legs of each box: "" = as listed in headings_deg; a permutation of the
+        # letters N, E, S, W (e.g. "WNES"); or "random" (a fresh permutation each pass)
+        "heading_order": "",
+        "manoeuvre_order": "",  # "" = roll, pitch, yaw on every leg; "random": shuffled per leg
+        # Randomised manoeuvre blocks, each drawn uniformly per block (every manoeuvre of every
+        # leg) from the flight's seed; [] = the fixed values above:
+        "block_duration_s": [],  # [lo, hi]: block length (cycles = length / period)
+        "period_range_s": [],  # [lo, hi]: oscillation period (instead of <kind>_period_s)
+        "amplitude_range_deg": [],  # [lo, hi]: amplitude (instead of <kind>_amplitude_deg)
+    },
+    "interference": {
+        # Interference at the scalar sensor that no Tolles-Lawson (tl18) model can represent.
+        # Each *_nT is the RMS, over the calibration legs, of the part of that term's scalar
+        # contribution left after a least-squares fit of the tl18 terms (plus a constant) on the
+        # true body-frame field: the share a perfect tl18 calibration cannot remove. 0 = off.
+        # With several terms on, all are scaled by one common factor so that the total's share
+        # is the root-sum-square of the requests (the terms' left-over parts may correlate).
+        # The truth document reports the RMS achieved on calibration and survey.
+        # Independent of interference_enabled.
+        "outside_basis": {
+            # second-order induced field: b_i = sum_jk Q_ijk b_j b_k / 50 000 nT (random Q)
+            "second_order_nT": 0.0,
+            # eddy currents that decay with an L/R time constant: E (lowpass_tau(db/dt) - db/dt)
+            # with E the airframe's eddy matrix (the part of a lagging eddy response that the
+            # instantaneous E db/dt of T-L misses)
+            "eddy_lag_nT": 0.0,
+            "eddy_tau_s": 0.5,
+            # a current with no /aux channel (heater, servo, radio), switching on and off at
+            # random dwell times (settling 1 s), along a random body direction
+            "unrecorded_current_nT": 0.0,
+            "unrecorded_switch_s": [5.0, 40.0],
+            # vibration of conductive parts (motor arms, rotors): angular jitter at vibration_hz
+            # (scaled by the square root of the motor load on a multicopter) whose eddy
+            # currents the 10 Hz scalar samples aliased
+            "vibration_nT": 0.0,
+            "vibration_hz": 23.3,
+        },
+    },
+    "aux": {
+        # /aux/temperature: start + rise * tanh(t / time)
+        "temperature_start_degC": 24.0,
+        "temperature_rise_K": 3.0,
+        "temperature_time_s": 900.0,
+    },
+    "effects": {
+        # "delay": the scalar reads the field lag_s late; "first_order": the scalar passes
+        # through a first-order low-pass with time constant lag_s (group delay lag_s at low
+        # frequency, and an amplitude loss 1/sqrt(1 + (w lag_s)^2))
+        "sensor_lag": {"response": "delay"},
+        # coupling x (1 + k (T - T0)): T the /aux/temperature truth, T0 its value at t = 0
+        "electrical_current": {"temperature_coefficient_per_K": 0.0},
+    },
+}
+
 _PROFILES: dict[str, dict[str, Any]] = {
     "uav": {},
     "fixed-wing": {
@@ -191,12 +256,19 @@ class Scenario:
     def enabled_effects(self) -> list[str]:
         return [n for n in EFFECTS if self.config["effects"][n].get("enabled")]
 
+    def recorded_config(self) -> dict[str, Any]:
+        """The configuration as written to the truth document: variety options at their
+        default are left out (truth documents of flights that do not use them stay as they
+        were before the options existed)."""
+        return _strip_defaults(self.config, _OPTIONAL)
+
     @classmethod
     def from_dict(cls, data: dict[str, Any], source: str = "<dict>") -> Scenario:
         profile = data.get("profile", "uav")
         if profile not in _PROFILES:
             raise AeromagError(f"unknown profile {profile!r} (use uav or fixed-wing)", file=source)
         base = _merge(_COMMON, _PROFILES[profile], "", strict=False)
+        base = _merge(base, _OPTIONAL, "", strict=False)
         try:
             cfg = _merge(base, data, "", strict=True)
         except KeyError as exc:
@@ -227,6 +299,23 @@ class Scenario:
         for item in overrides or []:
             data = _merge(data, parse_override(item), "", strict=False)
         return cls.from_dict(data, source)
+
+
+def _strip_defaults(cfg: dict[str, Any], optional: dict[str, Any]) -> dict[str, Any]:
+    out = copy.deepcopy(cfg)
+    for k, default in optional.items():
+        if k not in out:
+            continue
+        if isinstance(default, dict) and isinstance(out[k], dict):
+            inner = _strip_defaults(out[k], default)
+            if set(out[k]) - set(default):  # a section with older keys: strip the new ones
+                out[k] = inner
+            elif not inner:  # a new section (interference.outside_basis) left at its default
+                del out[k]
+            # else: a new section in use is recorded whole (its time constants too)
+        elif out[k] == default:
+            del out[k]
+    return out
 
 
 def parse_override(item: str) -> dict[str, Any]:

@@ -10,9 +10,17 @@ Physics (shared with the processing models through :mod:`pipeline.physics`):
 - Earth field (NED) = IGRF main field (ppigrf) + crustal dipoles + optional regional gradient
   and diurnal variation, both along the main-field direction;
 - body-frame field from the attitude (Z-Y-X), and its time derivative;
-- carrier interference p + A b + E db/dt at each sensor (plus an electrical-current term);
-- scalar sensor reads |b + b_int| (+ white noise and drift, optionally lagged);
+- carrier interference p + A b + E db/dt at each sensor (plus an electrical-current term,
+  optionally with a temperature-dependent coupling);
+- optional scalar interference outside the T-L basis (``interference.outside_basis``: second-
+  order induced, lagging eddy currents, an unrecorded current, vibration), see
+  :mod:`pipeline.physics.outside_basis`;
+- scalar sensor reads |b + b_int| (+ white noise and drift, optionally lagged: a pure delay or
+  a first-order sensor filter);
 - fluxgate reads its own interference through its scale/non-orthogonality/offset errors.
+
+Every optional feature draws its random numbers from a generator of its own, created only when
+the feature is on: a flight that does not use it is unchanged.
 """
 
 from __future__ import annotations
@@ -24,18 +32,36 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.errors import AeromagError
 from pipeline.geo.frames import ned_to_body
 from pipeline.geo.igrf import igrf_ned_nT
 from pipeline.geo.local import LocalFrame
 from pipeline.io.writer import McapOutput, encode, stamp, write_json_atomic
 from pipeline.physics.dipoles import DipoleSource, dipole_field_ned_nT, total_field_anomaly_nT
 from pipeline.physics.interference import CarrierInterference, scalar_reading_nT
+from pipeline.physics.outside_basis import (
+    first_order_lowpass,
+    lagging_eddy_vector,
+    outside_part,
+    second_order_vector,
+    tl18_basis,
+    vibration_vector,
+)
 from pipeline.physics.vector_sensor import FluxgateErrors
 from pipeline.simulate.scenario import Scenario
-from pipeline.simulate.trajectory import Trajectory, build_trajectory, segment_truth
+from pipeline.simulate.trajectory import (
+    Trajectory,
+    build_trajectory,
+    calibration_variety,
+    manoeuvre_truth,
+    segment_truth,
+)
 
 NS = 1_000_000_000
 DERIV_STEP_S = 0.005  # central-difference step for db/dt on the continuous trajectory
+OUTSIDE_TERMS = ("second_order", "eddy_lag", "unrecorded_current", "vibration")
+SURVEY_LABELS = ("survey", "tie", "validation")
+VIBRATION_MODES = (1.0, 1.13, 0.87)  # vibration frequency ratios about body x, y, z
 
 
 def parse_time(text: str) -> datetime:
@@ -137,24 +163,113 @@ def _drop(t: np.ndarray, topic: str, dropouts: list[dict]) -> np.ndarray:
     return keep
 
 
-def _payload_current(sc: Scenario, rng: np.random.Generator, duration: float):
-    """A payload current switching between two levels at random dwell times (A)."""
-    lo, hi = sc["aux"]["payload_levels_A"]
+def _switching(levels, switch_s, rng: np.random.Generator, duration: float,
+               settle_s: float = 2.0):
+    """A current switching between two levels at random dwell times (A)."""
+    lo, hi = levels
     t_sw, level, t = [0.0], [lo], 0.0
     while t < duration:
-        t += rng.uniform(*sc["aux"]["payload_switch_s"])
+        t += rng.uniform(*switch_s)
         t_sw.append(t)
         level.append(hi if level[-1] == lo else lo)
     t_sw, level = np.array(t_sw), np.array(level)
 
     def current(tt: np.ndarray) -> np.ndarray:
         k = np.searchsorted(t_sw, tt, side="right") - 1
-        # 2 s first-order settling after each switch: real supplies do not step instantly
+        # first-order settling after each switch: real supplies do not step instantly
         prev = np.where(k > 0, level[np.maximum(k - 1, 0)], level[0])
-        frac = 1 - np.exp(-(tt - t_sw[k]) / 2.0)
+        frac = 1 - np.exp(-(tt - t_sw[k]) / settle_s)
         return prev + (level[k] - prev) * frac
 
     return current
+
+
+def _payload_current(sc: Scenario, rng: np.random.Generator, duration: float):
+    """The payload current: two levels, random dwell, 2 s settling (A)."""
+    return _switching(sc["aux"]["payload_levels_A"], sc["aux"]["payload_switch_s"], rng,
+                      duration)
+
+
+def _piece_mask(traj: Trajectory, t: np.ndarray, labels: tuple[str, ...]) -> np.ndarray:
+    mask = np.zeros(t.size, bool)
+    for p in traj.pieces:
+        if p.label in labels:
+            mask |= (t >= p.t0_s) & (t < p.t1_s)
+    return mask
+
+
+def _outside_basis(sc: Scenario, seed: int, traj: Trajectory, t: np.ndarray, b: np.ndarray,
+                   db: np.ndarray, dt: float
+                   ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, float]]]:
+    """Body-frame interference vectors outside the T-L basis at the scalar epochs ``t``.
+
+    Each enabled term gets a generator of its own (its shape does not depend on which other
+    terms are on) and is scaled so that the RMS over the calibration legs of its scalar
+    contribution, after a least-squares tl18 fit on the true field, is the requested nT. The
+    left-over parts of different terms can be correlated (second-order induced and lagging
+    eddy fields both follow the manoeuvres), so with several terms all are then scaled by one
+    common factor that makes the total's left-over RMS the root-sum-square of the requests.
+    """
+    ob = sc["interference"]["outside_basis"]
+    wanted = {k: float(ob[f"{k}_nT"]) for k in OUTSIDE_TERMS if float(ob[f"{k}_nT"]) > 0}
+    if not wanted:
+        return {}, {}
+    eddy = np.asarray(sc["interference"]["eddy_s"], float)
+    if not np.any(eddy):
+        eddy = np.eye(3) * 0.002
+    u = b / np.linalg.norm(b, axis=1, keepdims=True)
+    basis = tl18_basis(b, db)
+    cal = _piece_mask(traj, t, ("calibration",))
+    if cal.sum() < 4 * basis.shape[1]:
+        cal = np.ones(t.size, bool)
+    vectors: dict[str, np.ndarray] = {}
+    info: dict[str, dict[str, float]] = {}
+    left: dict[str, np.ndarray] = {}
+    for k, name in enumerate(OUTSIDE_TERMS):
+        if name not in wanted:
+            continue
+        rng = np.random.default_rng([int(seed), 16, 2, k])
+        if name == "second_order":
+            q = rng.normal(size=(3, 3, 3))
+            shape = second_order_vector(b, (q + q.transpose(0, 2, 1)) / 2)
+        elif name == "eddy_lag":
+            shape = lagging_eddy_vector(db, dt, float(ob["eddy_tau_s"]), eddy)
+        elif name == "unrecorded_current":
+            current = _switching((0.0, 1.0), ob["unrecorded_switch_s"], rng,
+                                 float(t[-1]) + 10.0, settle_s=1.0)
+            d = rng.normal(size=3)
+            shape = current(t)[:, None] * (d / np.linalg.norm(d))
+        else:  # vibration
+            f = float(ob["vibration_hz"]) * np.ones(traj.master_t.size)
+            if sc["flight"]["kinematics"] != "fixed-wing":  # rotor speed follows the thrust
+                f = f * np.sqrt(1.0 + 0.25 * traj.motor_load)
+            phase = np.concatenate([[0.0], np.cumsum((f[1:] + f[:-1]) / 2
+                                                     * np.diff(traj.master_t))]) * 2 * np.pi
+            ph = np.interp(t, traj.master_t, phase)
+            fr = np.interp(t, traj.master_t, f)
+            ratio = np.asarray(VIBRATION_MODES)  # each axis its own mode
+            amp, phi = rng.uniform(0.5, 1.0, 3), rng.uniform(0, 2 * np.pi, 3)
+            w = amp * 2 * np.pi * ratio * fr[:, None] * np.cos(ratio * ph[:, None] + phi)
+            shape = vibration_vector(b, np.radians(0.05) * w, eddy)
+        proj = np.einsum("ij,ij->i", u, shape)
+        out = outside_part(proj, basis, cal)
+        rms = float(np.sqrt(np.mean(out[cal] ** 2)))
+        scale = wanted[name] / rms if rms > 0 else 0.0
+        vectors[name] = shape * scale
+        info[name] = {"requested_nT": wanted[name], "scale": scale}
+        left[name] = out * scale
+    if len(vectors) > 1:
+        rms = float(np.sqrt(np.mean(sum(left.values())[cal] ** 2)))
+        common = float(np.sqrt(sum(v**2 for v in wanted.values()))) / rms if rms > 0 else 1.0
+        for name in vectors:
+            vectors[name] = vectors[name] * common
+            info[name]["scale"] *= common
+            info[name]["common_factor"] = common
+    return vectors, info
+
+
+def _rms(x: np.ndarray, mask: np.ndarray) -> float | None:
+    return float(np.sqrt(np.mean(x[mask] ** 2))) if mask.any() else None
 
 
 def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
@@ -164,7 +279,7 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
     when = parse_time(sc["start_time"])
     start_ns = int(round(when.timestamp())) * NS
     frame = LocalFrame(site["latitude_deg"], site["longitude_deg"], site["ground_altitude_m"])
-    traj = build_trajectory(sc)
+    traj = build_trajectory(sc, seed)
     T = traj.duration_s
 
     # Main field once a second along the track; unit vector at the site for projections.
@@ -198,7 +313,8 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
     field_model = EarthField(frame, when, dipoles, t_main, main_ned, b_hat, gvec, ref, t_d, d_nT)
 
     on = bool(sc["interference_enabled"])
-    scalar_int = (CarrierInterference(**sc["interference"]) if on else CarrierInterference.none())
+    tl = {k: v for k, v in sc["interference"].items() if k != "outside_basis"}
+    scalar_int = CarrierInterference(**tl) if on else CarrierInterference.none()
     vector_int = (CarrierInterference(**sc["vector_interference"]) if on
                   else CarrierInterference.none())
     vcal = sc.effect("vector_calibration")
@@ -206,9 +322,16 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
                                vcal["offset_nT"]) if vcal else FluxgateErrors())
     lag = sc.effect("sensor_lag")
     lag_s = float(lag["lag_s"]) if lag else 0.0
+    response = str(lag["response"]) if lag else "delay"
+    if response not in ("delay", "first_order"):
+        raise AeromagError(f"effects.sensor_lag.response {response!r}: use delay or first_order",
+                           file=sc.source)
+    delay_s = lag_s if response == "delay" else 0.0  # physics read this much earlier
     cur = sc.effect("electrical_current")
     payload_current = _payload_current(sc, rng, T + 10.0)
     hover = float(sc["aux"]["motor_hover_A"])
+    temp0, temp_rise, temp_time = (float(sc["aux"][k]) for k in (
+        "temperature_start_degC", "temperature_rise_K", "temperature_time_s"))
 
     def motor_current(tt: np.ndarray) -> np.ndarray:
         return hover * (1.0 + 0.25 * traj.motor_load_at(tt))
@@ -217,7 +340,7 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
         "motor_current": (motor_current, "A", 0.15),
         "payload_current": (payload_current, "A", 0.01),
         "bus_voltage": (lambda tt: 25.2 - 0.012 * motor_current(tt) - 0.0002 * tt, "V", 0.01),
-        "temperature": (lambda tt: 24.0 + 3.0 * np.tanh(tt / 900.0), "degC", 0.05),
+        "temperature": (lambda tt: temp0 + temp_rise * np.tanh(tt / temp_time), "degC", 0.05),
     }
 
     def body_field(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict]:
@@ -235,15 +358,31 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
     drops = sens["dropouts"]
     streams: dict[str, dict[str, Any]] = {}
 
-    # scalar magnetometer: reads the physics lag_s earlier than its time stamp
+    # scalar magnetometer: reads the physics lag_s earlier than its time stamp ("delay"), or
+    # through a first-order filter of time constant lag_s ("first_order")
     t_s = _times(T, sens["scalar_rate_hz"], offs.get("scalar", 0.0), margin)
-    b, db, _x = body_field(t_s - lag_s)
+    t_phys = t_s - delay_s
+    b, db, _x = body_field(t_phys)
     b_int = scalar_int.vector_nT(b, db)
     if cur:
         d = np.asarray(cur["direction_body"], float)
-        b_int = b_int + (cur["coupling_nT_per_A"] * aux_funcs[cur["channel"]][0](t_s - lag_s)
+        coupling = cur["coupling_nT_per_A"]
+        k_temp = float(cur["temperature_coefficient_per_K"])
+        if k_temp:  # the coupling drifts with the (recorded) temperature
+            temp = aux_funcs["temperature"][0]
+            coupling = coupling * (1.0 + k_temp * (temp(t_phys) - temp(np.zeros(1))))
+        b_int = b_int + (coupling * aux_funcs[cur["channel"]][0](t_phys)
                          )[:, None] * (d / np.linalg.norm(d))
+    dt_s = 1.0 / float(sens["scalar_rate_hz"])
+    outside, outside_info = _outside_basis(sc, seed, traj, t_phys, b, db, dt_s)
+    earth_total = np.linalg.norm(b, axis=1)
+    if outside:
+        without = scalar_reading_nT(b, b_int)
+        b_int = b_int + sum(outside.values())
     clean = scalar_reading_nT(b, b_int)
+    if response == "first_order" and lag_s > 0:
+        clean = first_order_lowpass(clean, dt_s, lag_s)
+        earth_total = first_order_lowpass(earth_total, dt_s, lag_s)
     noise = rng.normal(0, sens["scalar_noise_nT"], t_s.size)
     drift = np.cumsum(rng.normal(0, sens["scalar_drift_nT_per_sqrt_s"]
                                  * np.sqrt(1 / sens["scalar_rate_hz"]), t_s.size))
@@ -252,9 +391,32 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
                               "sensor_id": sens["scalar_id"],
                               "cols": {"total_nT": (clean + noise + drift)[keep]}}
     scalar_truth = {"time_ns": start_ns + np.round(t_s * NS).astype(np.int64),
-                    "earth_total_nT": np.linalg.norm(b, axis=1),
-                    "interference_nT": clean - np.linalg.norm(b, axis=1),
+                    "earth_total_nT": earth_total,
+                    "interference_nT": clean - earth_total,
                     "noise_nT": noise + drift}
+    outside_truth = None
+    if outside:
+        u = b / np.linalg.norm(b, axis=1, keepdims=True)
+        total = scalar_reading_nT(b, b_int) - without
+        scalar_truth["outside_basis_nT"] = total
+        cal = _piece_mask(traj, t_phys, ("calibration",))
+        srv = _piece_mask(traj, t_phys, SURVEY_LABELS)
+        basis = tl18_basis(b, db)
+        terms = {}
+        for name, vec in outside.items():
+            proj = np.einsum("ij,ij->i", u, vec)
+            scalar_truth[f"outside_basis_{name}_nT"] = proj
+            terms[name] = {**outside_info[name], "calibration_rms_nT": _rms(proj, cal),
+                           "calibration_outside_tl18_rms_nT": _rms(
+                               outside_part(proj, basis, cal), cal),
+                           "survey_rms_nT": _rms(proj, srv)}
+        outside_truth = {
+            "calibration_rms_nT": _rms(total, cal),
+            "calibration_outside_tl18_rms_nT": _rms(outside_part(total, basis, cal), cal),
+            "survey_rms_nT": _rms(total, srv),
+            "survey_outside_tl18_rms_nT": (_rms(outside_part(total, basis, srv), srv)
+                                           if srv.sum() > 4 * basis.shape[1] else None),
+            "terms": terms}
 
     # vector magnetometer
     t_v = _times(T, sens["vector_rate_hz"], offs.get("vector", 0.0), margin)
@@ -325,6 +487,11 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
 
     truth = _truth(sc, seed, start_ns, traj, field_model, b0, scalar_int, vector_int, flux_err,
                    lag_s, segments, scalar_truth)
+    # variety options report only when on: older truth documents stay as they were
+    if calibration_variety(sc):
+        truth["calibration_manoeuvres"] = manoeuvre_truth(traj)
+    if outside_truth is not None:
+        truth["outside_basis_interference"] = outside_truth
     return SimulatedFlight(sc, seed, start_ns, streams, truth, traj, scalar_truth)
 
 
@@ -347,13 +514,14 @@ def _truth(sc, seed, start_ns, traj, fm: EarthField, b0, scalar_int, vector_int,
     crust = fm.crust(ge.ravel(), gn.ravel(), np.full(ge.size, float(s["altitude_m"])))
     anom = total_field_anomaly_nT(crust, np.broadcast_to(b0, crust.shape)).reshape(nn, ne)
     total_b0 = float(np.linalg.norm(b0))
+    recorded = sc.recorded_config()
     effects = {}
-    for name, params in sc["effects"].items():
+    for name, params in recorded["effects"].items():
         effects[name] = {k: v for k, v in params.items()}
     sens = sc["sensors"]
     return {
         "format": "aeromag.truth/1",
-        "scenario": sc.config,
+        "scenario": recorded,
         "seed": seed,
         "start_time_ns": start_ns,
         "duration_s": traj.duration_s,

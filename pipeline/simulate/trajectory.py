@@ -15,6 +15,13 @@ gradient leak into the calibration band:
 Positions are local east/north/up metres about the site; angles in degrees; time in seconds
 from the start of the recording. The trajectory is a cubic spline in time, so every sensor can
 be sampled at its own epochs.
+
+Calibration variety (all off by default): the legs of a box can be flown in any heading order
+(``calibration.heading_order``: letters such as "WNES", or "random"), the manoeuvres of a leg
+in any order (``manoeuvre_order = "random"``), and each manoeuvre block can draw its length,
+period and amplitude from ranges (``block_duration_s``, ``period_range_s``,
+``amplitude_range_deg``). The random draws use a generator seeded from the flight's seed and
+created only when one of these options is on.
 """
 
 from __future__ import annotations
@@ -25,10 +32,13 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 from scipy.ndimage import gaussian_filter1d
 
+from pipeline.errors import AeromagError
 from pipeline.simulate.scenario import Scenario
 
 G = 9.80665
 CARDINALS = {0: "N", 90: "E", 180: "S", 270: "W"}
+HEADING_OF = {"N": 0.0, "E": 90.0, "S": 180.0, "W": 270.0}
+KINDS = ("roll", "pitch", "yaw")
 
 
 @dataclass
@@ -37,7 +47,7 @@ class Manoeuvre:
     start_s: float  # from the start of its leg
     period_s: float
     amplitude_deg: float
-    cycles: int
+    cycles: float  # whole cycles by default; a randomised block may end mid-cycle
 
     @property
     def duration_s(self) -> float:
@@ -78,24 +88,91 @@ def _unit(heading_deg: float) -> tuple[np.ndarray, np.ndarray]:
     return np.array([np.sin(h), np.cos(h)]), np.array([np.cos(h), -np.sin(h)])
 
 
-def calibration_legs(sc: Scenario, pass_no: int) -> list[Leg]:
-    """The calibration box: one leg per heading, each with roll, pitch and yaw oscillations."""
-    cal, v = sc["calibration"], sc["flight"]["speed_m_s"]
+def calibration_variety(sc: Scenario) -> bool:
+    """True when a calibration variety option (order, randomised blocks) is on."""
+    cal = sc["calibration"]
+    return bool(cal["heading_order"] or cal["manoeuvre_order"] or cal["block_duration_s"]
+                or cal["period_range_s"] or cal["amplitude_range_deg"])
+
+
+def plan_rng(seed: int) -> np.random.Generator:
+    """The flight plan's own generator (independent of the simulator's main stream)."""
+    return np.random.default_rng([int(seed), 16, 1])
+
+
+def _range(cal: dict, key: str) -> tuple[float, float] | None:
+    r = cal[key]
+    if not r:
+        return None
+    if len(r) != 2 or not 0 < float(r[0]) <= float(r[1]):
+        raise AeromagError(f"calibration.{key} must be [lo, hi] with 0 < lo <= hi, not {r!r}")
+    return float(r[0]), float(r[1])
+
+
+def _headings(cal: dict, rng: np.random.Generator | None) -> list[float]:
+    order = str(cal["heading_order"])
+    listed = [float(h) for h in cal["headings_deg"]]
+    if not order:
+        return listed
+    if order.lower() == "random":
+        assert rng is not None
+        return [listed[i] for i in rng.permutation(len(listed))]
+    letters = order.upper()
+    if not letters or set(letters) - set(HEADING_OF):
+        raise AeromagError(f"calibration.heading_order {order!r}: use letters N, E, S, W "
+                           "(e.g. \"WNES\") or \"random\"")
+    return [HEADING_OF[c] for c in letters]
+
+
+def _leg_manoeuvres(cal: dict, rng: np.random.Generator | None) -> list[Manoeuvre]:
+    """Roll, pitch and yaw blocks of one leg, separated by steady flight."""
     steady = cal["steady_s"]
+    kinds = list(KINDS)
+    if cal["manoeuvre_order"]:
+        if str(cal["manoeuvre_order"]).lower() != "random":
+            raise AeromagError(f"calibration.manoeuvre_order {cal['manoeuvre_order']!r}: use "
+                               "\"random\" (or leave it empty)")
+        assert rng is not None
+        kinds = [kinds[i] for i in rng.permutation(3)]
+    blocks, periods, amps = (_range(cal, k) for k in ("block_duration_s", "period_range_s",
+                                                      "amplitude_range_deg"))
     man: list[Manoeuvre] = []
     t = steady
-    for kind in ("roll", "pitch", "yaw"):
-        m = Manoeuvre(kind, t, cal[f"{kind}_period_s"], cal[f"{kind}_amplitude_deg"],
-                      int(cal["cycles"]))
+    for kind in kinds:
+        period = float(rng.uniform(*periods)) if periods and rng else cal[f"{kind}_period_s"]
+        amp = float(rng.uniform(*amps)) if amps and rng else cal[f"{kind}_amplitude_deg"]
+        if blocks and rng:
+            cycles: float = float(rng.uniform(*blocks)) / period
+        else:
+            cycles = int(cal["cycles"])
+        m = Manoeuvre(kind, t, period, amp, cycles)
         man.append(m)
         t += m.duration_s + steady
-    length = v * t
+    return man
+
+
+def calibration_legs(sc: Scenario, pass_no: int,
+                     rng: np.random.Generator | None = None) -> list[Leg]:
+    """The calibration box: one leg per heading, each with roll, pitch and yaw oscillations.
+
+    ``rng`` (the plan's generator, see :func:`plan_rng`) draws the variety options; without
+    it, or with them off, every leg flies the same fixed manoeuvres.
+    """
+    cal, v = sc["calibration"], sc["flight"]["speed_m_s"]
     survey = sc["survey"]
     centre = np.array([survey["east_m"] + cal["centre_east_m"],
                        survey["north_m"] + cal["centre_north_m"]])
-    half = length / 2 + sc["flight"]["turn_radius_m"]
+    variety = calibration_variety(sc)
+    if variety and rng is None:
+        rng = plan_rng(0)
+    headings = _headings(cal, rng if variety else None)
+    fixed = None if variety else _leg_manoeuvres(cal, None)
     legs = []
-    for h in cal["headings_deg"]:
+    for h in headings:
+        man = _leg_manoeuvres(cal, rng) if variety else fixed
+        assert man is not None
+        length = v * (man[-1].start_s + man[-1].duration_s + cal["steady_s"])
+        half = length / 2 + sc["flight"]["turn_radius_m"]
         along, right = _unit(h)
         mid = centre - half * right
         card = CARDINALS.get(round(h) % 360, f"{h:g}")
@@ -155,11 +232,15 @@ def survey_legs(sc: Scenario, here: np.ndarray) -> list[Leg]:
     return legs
 
 
-def plan_legs(sc: Scenario) -> list[Leg]:
-    """The whole flight plan, in flying order (transit legs at both ends)."""
+def plan_legs(sc: Scenario, seed: int = 0) -> list[Leg]:
+    """The whole flight plan, in flying order (transit legs at both ends).
+
+    ``seed`` (the flight's) matters only when a calibration variety option is on.
+    """
     v, tr = sc["flight"]["speed_m_s"], sc["flight"]["transit_s"]
     home = np.zeros(2)
-    cal1 = calibration_legs(sc, 1)
+    rng = plan_rng(seed) if calibration_variety(sc) else None
+    cal1 = calibration_legs(sc, 1, rng)
     d0 = cal1[0].start_en - home
     d0 = d0 / (np.linalg.norm(d0) or 1.0)
     legs = [Leg("transit", "", "start", home, home + v * tr * d0, sc["calibration"]["altitude_m"])]
@@ -167,7 +248,7 @@ def plan_legs(sc: Scenario) -> list[Leg]:
     if sc["survey"]["enabled"]:
         legs += survey_legs(sc, cal1[-1].end_en)
     if int(sc["calibration"]["passes"]) >= 2:
-        legs += calibration_legs(sc, 2)
+        legs += calibration_legs(sc, 2, rng)
     last = legs[-1]
     back = home - last.end_en
     back = back / (np.linalg.norm(back) or 1.0)
@@ -298,12 +379,15 @@ def _oscillation(x: np.ndarray, omega: float, dt: float, order: int) -> np.ndarr
     return -np.gradient(x, dt) / omega**2
 
 
-def build_trajectory(sc: Scenario) -> Trajectory:
-    """Fly the scenario's plan: constant speed, smooth turns, calibration manoeuvres."""
+def build_trajectory(sc: Scenario, seed: int = 0) -> Trajectory:
+    """Fly the scenario's plan: constant speed, smooth turns, calibration manoeuvres.
+
+    ``seed`` (the flight's) matters only when a calibration variety option is on.
+    """
     fl = sc["flight"]
     v, radius = float(fl["speed_m_s"]), float(fl["turn_radius_m"])
     dt = 1.0 / float(fl["master_rate_hz"])
-    legs = plan_legs(sc)
+    legs = plan_legs(sc, seed)
 
     # Pieces in time order, each with a geometry evaluator.
     pieces: list[Piece] = []
@@ -400,6 +484,22 @@ def build_trajectory(sc: Scenario) -> Trajectory:
                          axis=0)
     load = np.abs(d_roll) / 10.0 + np.abs(d_pitch) / 5.0 + np.abs(d_yaw) / 5.0
     return Trajectory(duration, pieces, spline, tm, load)
+
+
+def manoeuvre_truth(traj: Trajectory) -> list[dict]:
+    """Every calibration manoeuvre block as flown: leg, kind, times, period and amplitude."""
+    out = []
+    for p in traj.pieces:
+        if p.leg is None:
+            continue
+        for m in p.leg.manoeuvres:
+            out.append({"line_id": p.line_id, "cardinal": p.cardinal,
+                        "heading_deg": round(float(p.heading_deg or 0.0), 3), "kind": m.kind,
+                        "start_s": float(p.t0_s + m.start_s),
+                        "end_s": float(p.t0_s + m.start_s + m.duration_s),
+                        "period_s": float(m.period_s), "amplitude_deg": float(m.amplitude_deg),
+                        "cycles": float(m.cycles)})
+    return out
 
 
 def segment_truth(traj: Trajectory) -> list[dict]:

@@ -1,0 +1,190 @@
+"""Survey-side evidence: what the lines themselves say, independent of the calibration fit.
+
+Where lines cross, the same ground is measured twice: the difference of the two compensated
+readings is the carrier's (and the day's) error at two times and two headings. Written as an
+error model of the compensated field along the flight,
+
+    e(t) = mu_h(t)                              heading error: a level per heading (N/E/S/W)
+         + gamma_h(t) [t > t_s]                 a step at t_s (e.g. the carrier's permanent
+                                                field changed: a switched load, a moved part)
+         + beta t                               a drift (unmodelled diurnal, sensor drift)
+
+each crossover gives d = e(t_a) - e(t_b). A step in the permanent field p changes the reading
+by u . dp, which depends on heading, hence a step size per heading. The change point t_s is
+scanned over the gaps between lines; its significance is an F-test against the model without
+it, Bonferroni-corrected over the scanned positions (the maximum of many F statistics is not
+F-distributed). Few points (tens of crossovers) and a heading-grouped model are outside what
+change-point libraries' cost functions express, hence the explicit scan.
+
+Times are seconds from the flight's first epoch; sizes nT.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+
+@dataclass
+class CrossoverSet:
+    """Crossover differences with the times and heading classes (0..3: N, E, S, W) of the
+    two readings."""
+
+    difference_nT: np.ndarray
+    time_a_s: np.ndarray
+    time_b_s: np.ndarray
+    heading_a: np.ndarray
+    heading_b: np.ndarray
+
+    @property
+    def size(self) -> int:
+        return int(self.difference_nT.size)
+
+
+@dataclass
+class SurveyEvent:
+    kind: str  # step | drift
+    start_s: float
+    end_s: float
+    size_nT: float  # step: largest step over headings; drift: change over the survey
+    p_value: float  # corrected for the scan
+    detail: dict
+
+    def to_dict(self, t0_ns: int) -> dict:
+        return {"kind": self.kind, "start_ns": int(t0_ns + round(self.start_s * 1e9)),
+                "end_ns": int(t0_ns + round(self.end_s * 1e9)), "size_nT": self.size_nT,
+                "p_value": self.p_value, "evidence": "survey crossovers", **self.detail}
+
+
+def _levels(x: CrossoverSet) -> np.ndarray:
+    """Design columns of mu_h: one per heading class present, the first dropped (only
+    differences are observed)."""
+    classes = sorted(set(x.heading_a.tolist()) | set(x.heading_b.tolist()))
+    cols = [(x.heading_a == h).astype(float) - (x.heading_b == h).astype(float)
+            for h in classes[1:]]
+    return np.column_stack(cols) if cols else np.zeros((x.size, 0))
+
+
+def _step_columns(x: CrossoverSet, t_s: float) -> np.ndarray:
+    cols = []
+    for h in range(4):
+        c = ((x.heading_a == h) & (x.time_a_s > t_s)).astype(float) \
+            - ((x.heading_b == h) & (x.time_b_s > t_s)).astype(float)
+        if np.any(c != 0):
+            cols.append(c)
+    return np.column_stack(cols) if cols else np.zeros((x.size, 0))
+
+
+def _rss(a: np.ndarray, y: np.ndarray) -> tuple[float, int, np.ndarray]:
+    if a.shape[1] == 0:
+        return float(y @ y), 0, np.zeros(0)
+    coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+    r = y - a @ coef
+    return float(r @ r), int(np.linalg.matrix_rank(a)), coef
+
+
+def _f_test(rss0: float, k0: int, rss1: float, k1: int, n: int) -> float:
+    df1, df2 = k1 - k0, n - k1
+    if df1 <= 0 or df2 <= 0 or rss1 <= 0:
+        return 1.0
+    f = ((rss0 - rss1) / df1) / (rss1 / df2)
+    return float(stats.f.sf(f, df1, df2))
+
+
+def survey_events(x: CrossoverSet, alpha: float = 0.01, min_size_nT: float = 0.0,
+                  min_each_side: int = 2) -> list[SurveyEvent]:
+    """Steps and drifts in the compensated field's error, from crossovers.
+
+    Parameters
+    ----------
+    x
+        Crossover differences (compensated field, reduced for the main field and, when
+        modelled, the diurnal), with times (s) and heading classes.
+    alpha
+        Significance after the scan correction.
+    min_size_nT
+        Smallest step or drift worth reporting.
+    min_each_side
+        Readings needed before and after a candidate change point.
+
+    A step is located between the two consecutive crossover readings around it: the
+    event's start and end are those readings' times.
+    """
+    y = np.asarray(x.difference_nT, float)
+    n = y.size
+    base = _levels(x)
+    if n < base.shape[1] + 6:
+        return []
+    rss0, k0, _ = _rss(base, y)
+    out: list[SurveyEvent] = []
+    # candidate change points: between consecutive crossover readings (in time)
+    times = np.unique(np.r_[x.time_a_s, x.time_b_s])
+    gaps = [(float(a), float(b)) for a, b in zip(times[min_each_side - 1:-min_each_side],
+                                                 times[min_each_side:], strict=False)]
+    best = None
+    for lo, hi in gaps:
+        t_s = 0.5 * (lo + hi)
+        a1 = np.column_stack([base, _step_columns(x, t_s)])
+        rss1, k1, coef = _rss(a1, y)
+        p = _f_test(rss0, k0, rss1, k1, n)
+        if best is None or p < best[0]:
+            best = (p, lo, hi, coef[base.shape[1]:], k1 - k0)
+    if best is not None and best[4] > 0:
+        p_adj = min(1.0, best[0] * len(gaps))
+        size = float(np.max(np.abs(best[3]))) if best[3].size else 0.0
+        if p_adj < alpha and size >= min_size_nT:
+            out.append(SurveyEvent("step", float(best[1]), float(best[2]), size, p_adj,
+                                   {"step_by_heading_nT": [float(v) for v in best[3]]}))
+    if not out:  # a drift only when no step explains the trend
+        drift = (x.time_a_s - x.time_b_s)[:, None]
+        rss1, k1, coef = _rss(np.column_stack([base, drift]), y)
+        p = _f_test(rss0, k0, rss1, k1, n)
+        t_all = np.r_[x.time_a_s, x.time_b_s]
+        span = float(t_all.max() - t_all.min())
+        size = abs(float(coef[-1])) * span
+        if p < alpha and size >= min_size_nT:
+            out.append(SurveyEvent("drift", float(t_all.min()), float(t_all.max()), size, p,
+                                   {"rate_nT_per_h": float(coef[-1]) * 3600.0}))
+    return out
+
+
+@dataclass
+class SurveyLag:
+    lag_s: float
+    ci95_s: tuple[float, float]
+    p_value: float  # against no lag
+    crossovers: int
+
+
+def survey_lag(x: CrossoverSet, rate_a_nT_per_s: np.ndarray, rate_b_nT_per_s: np.ndarray
+               ) -> SurveyLag | None:
+    """A sensor that reports ``tau`` late reads F(t - tau) ~ F(t) - tau dF/dt: at a crossing
+    the two lines disagree by -tau (dF_a/dt - dF_b/dt) besides their heading levels, the
+    along-track shift a lag makes, opposite on opposite headings. Regressing the crossover
+    differences on the difference of the along-track rates of change estimates tau from
+    the survey alone (no calibration fit involved).
+
+    Parameters
+    ----------
+    rate_a_nT_per_s, rate_b_nT_per_s
+        Time derivative of each line's (smoothed) field at its crossing reading.
+    """
+    y = np.asarray(x.difference_nT, float)
+    g = -(np.asarray(rate_a_nT_per_s, float) - np.asarray(rate_b_nT_per_s, float))
+    a = np.column_stack([_levels(x), g])
+    ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
+    a, y = a[ok], y[ok]
+    n, k = a.shape
+    if n < k + 4 or np.std(g[ok]) == 0:
+        return None
+    coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+    r = y - a @ coef
+    s2 = float(r @ r) / (n - k)
+    cov = s2 * np.linalg.pinv(a.T @ a)
+    se = float(np.sqrt(max(cov[-1, -1], 0.0)))
+    tau = float(coef[-1])
+    half = float(stats.t.ppf(0.975, n - k)) * se
+    p = float(2 * stats.t.sf(abs(tau) / se, n - k)) if se > 0 else 1.0
+    return SurveyLag(tau, (tau - half, tau + half), p, int(n))
