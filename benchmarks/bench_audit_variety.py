@@ -34,6 +34,14 @@ from pipeline.segment import segment_flight
 from pipeline.simulate import Scenario, random_flight_overrides, simulate, write_simulation
 
 CLASSES = ("none", *EFFECTS, "step")
+# a survey as crews fly it: tie lines inside the block (the short flights' only ties lie on
+# the line ends, where they are turns), so that crossovers exist for the survey-side tests
+# and the calibration box over quiet ground, as crews choose its site (a source within a
+# few hundred metres is a real gradient at the box, which the audit rightly reports)
+SURVEY = {"uav": ["survey.width_m=200.0", "survey.tie_spacing_m=150.0",
+                  "anomaly.quiet_calibration_m=400.0"],
+          "fixed-wing": ["survey.width_m=1600.0", "survey.tie_spacing_m=1000.0",
+                         "anomaly.quiet_calibration_m=1500.0"]}
 EVENT_WINDOW_S = 120.0
 
 
@@ -55,8 +63,8 @@ def add_permanent_step(sim, rng: np.random.Generator) -> dict:
     the middle of the survey: the scalar reading changes by u . dp afterwards."""
     s = sim.streams["/mag/scalar"]
     v = sim.streams["/mag/vector"]
-    survey = [g for g in sim.truth["segments"] if g["kind"] == "survey"]
-    t0, t1 = survey[0]["t_start_s"], survey[-1]["t_end_s"]
+    survey = [g for g in sim.truth["segments"] if g["label"] == "survey"]
+    t0, t1 = float(survey[0]["start_s"]), float(survey[-1]["end_s"])
     t_step = float(rng.uniform(t0 + 0.3 * (t1 - t0), t0 + 0.7 * (t1 - t0)))
     dp = rng.normal(size=3)
     dp *= rng.uniform(3.0, 8.0) / np.linalg.norm(dp)
@@ -88,9 +96,13 @@ def within_ci(effect: str, f: dict, truth: dict) -> list[bool]:
     return out
 
 
-def one_flight(kind: str, seed: int, folder: Path) -> dict:
+def one_flight(kind: str, seed: int, folder: Path, **ranges) -> dict:
+    """Simulate, audit and score one flight; ``ranges`` narrow
+    :func:`random_flight_overrides`' draws (the CI subset flies milder flights)."""
     rng = np.random.default_rng(seed)
-    overrides = random_flight_overrides(rng) + hidden_overrides(kind, rng)
+    overrides = random_flight_overrides(rng, **ranges) + hidden_overrides(kind, rng)
+    profile = next(o.split("=", 1)[1] for o in overrides if o.startswith("profile="))
+    overrides += SURVEY[profile]
     sim = simulate(Scenario.load("uav-small", overrides), int(rng.integers(2**31)))
     step = add_permanent_step(sim, rng) if kind == "step" else None
     path = write_simulation(sim, folder / f"{kind}-{seed}.mcap")
@@ -110,6 +122,8 @@ def one_flight(kind: str, seed: int, folder: Path) -> dict:
             cover += within_ci(kind, f, sim.truth)
     path.unlink()
     return {"kind": kind, "seed": seed, "named": named, "events": len(events), "hit": hit,
+            "event_kinds": [e["kind"] for e in events],
+            "estimates": {f["effect"]: f["estimate"] for f in res["findings"]},
             "covered": cover, "audit_s": time.perf_counter() - t,
             "gap": res["baseline"]["generalization_gap"], "overrides": overrides}
 
@@ -118,10 +132,10 @@ def correct(row: dict) -> bool:
     """Named exactly right: the hidden catalogue effect alone; nothing for clean and step
     flights (a step must show as an event instead)."""
     if row["kind"] == "none":
-        return row["named"] == [] and row["events"] == 0
+        return row["named"] == []
     if row["kind"] == "step":
         return row["named"] == [] and bool(row["hit"])
-    return row["named"] == [row["kind"]]
+    return set(row["named"]) == {row["kind"]}
 
 
 def run(classes, flights: int, seed: int, progress=print) -> list[dict]:
@@ -144,8 +158,8 @@ def summarise(rows: list[dict]) -> str:
              "|---" * (len(cols) + 3) + "|"]
     for c in classes:
         rr = [r for r in rows if r["kind"] == c]
-        cnt = Counter("nothing" if not r["named"] else r["named"][0] if len(r["named"]) == 1
-                      else "several" for r in rr)
+        cnt = Counter("nothing" if not r["named"] else r["named"][0]
+                      if len(set(r["named"])) == 1 else "several" for r in rr)
         ok = sum(correct(r) for r in rr)
         cov = [x for r in rr for x in r["covered"]]
         lines.append(f"| {c} | " + " | ".join(str(cnt.get(k, 0)) for k in cols)

@@ -8,6 +8,7 @@ hash of the resolved values identifies a configuration in outputs and in the arc
 from __future__ import annotations
 
 import copy
+import functools
 import hashlib
 import json
 import tomllib
@@ -23,6 +24,16 @@ CONFIG_VERSION = 1
 
 def default_text() -> str:
     return resources.files("pipeline").joinpath("default_config.toml").read_text()
+
+
+@functools.cache
+def _defaults() -> dict[str, Any]:
+    return tomllib.loads(default_text())
+
+
+def default_value(section: str, key: str) -> Any:
+    """A value of the shipped defaults: the one source of a code default that has a key."""
+    return copy.deepcopy(_defaults()[section][key])
 
 
 def read_toml(path: str | Path, what: str) -> dict[str, Any]:
@@ -104,12 +115,14 @@ class Config:
             arima = tuple(int(v) for v in str(m["arima"]).split(","))
         return MapSettings(cell_m=m["cell_m"] or None, arima=arima,
                            noise_nT=m["noise_nT"] or None, level_trend=m["level_trend"],
-                           direction=m["direction"])
+                           direction=m["direction"],
+                           min_crossing_angle_deg=m["min_crossing_angle_deg"])
 
     def quality_settings(self):
         from pipeline.quality import QualitySettings
 
-        return QualitySettings(**self.values["quality"])
+        return QualitySettings(**self.values["quality"], min_crossing_angle_deg=self.values[
+            "map"]["min_crossing_angle_deg"])
 
     def audit_settings(self):
         from pipeline.audit import AuditSettings
@@ -134,6 +147,9 @@ class Config:
                                file=self.source)
         if self.values["map"]["direction"] not in ("both", "forward"):
             raise AeromagError("map.direction: use both or forward", file=self.source)
+        if not 0.0 <= self.values["map"]["min_crossing_angle_deg"] <= 90.0:
+            raise AeromagError("map.min_crossing_angle_deg: use 0 to 90 degrees",
+                               file=self.source)
         try:
             self.fit_settings(c["models"][-1])
             self.map_settings()

@@ -101,7 +101,11 @@ def test_a_hidden_effect_is_found_named_and_estimated(tmp_path, effect):
             ci["lag_s"][1] + 0.005
     # the extension pays off on the survey, not only on the calibration passes
     gain = res.gain
-    assert gain["heading_error_rms_nT"]["after"] < gain["heading_error_rms_nT"]["before"]
+    # uav-small's X lines meet the survey lines at 26.5 deg, below the 30 deg that makes an
+    # intersection: the survey's own crossovers (survey x tie, 90 deg) measure the gain
+    metric = "heading_error_rms_nT" if gain["heading_error_rms_nT"]["before"] is not None \
+        else "crossover_rms_nT"
+    assert gain[metric]["after"] < gain[metric]["before"], gain
 
 
 def test_several_effects_at_once(tmp_path):
@@ -114,7 +118,8 @@ def test_several_effects_at_once(tmp_path):
     assert est["electrical_current"]["nT_per_unit"] == pytest.approx(3.0, rel=0.10)
     assert est["diurnal"]["base_coefficient"] == pytest.approx(1.0, abs=0.1)
     g = res.gain
-    assert g["heading_error_rms_nT"]["after"] < 0.1 * g["heading_error_rms_nT"]["before"]
+    # no X-line intersection at >= 30 deg on uav-small: the survey x tie crossovers instead
+    assert g["crossover_rms_nT"]["after"] < 0.1 * g["crossover_rms_nT"]["before"], g
     assert g["heldout_calibration_residual_rms_nT"]["after"] < 0.2 * g[
         "heldout_calibration_residual_rms_nT"]["before"]
 

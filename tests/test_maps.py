@@ -130,6 +130,45 @@ def test_crossovers_are_found_exactly():
     assert abs(c.value_b_nT - (200 - 50)) < 1e-9  # T1 passes x = 10 at t = 50
 
 
+def _noisy_line(line_id, kind, start, end, first_epoch, rng, noise_m=0.5, step_m=0.7):
+    """A straight line flown at 7 m/s, 10 Hz, with white position noise on both coordinates;
+    the field is 0.01 nT/m east + 0.02 nT/m north."""
+    (e0, n0), (e1, n1) = start, end
+    f = np.linspace(0.0, 1.0, int(np.hypot(e1 - e0, n1 - n0) / step_m) + 1)
+    e = e0 + f * (e1 - e0) + rng.normal(0, noise_m, f.size)
+    n = n0 + f * (n1 - n0) + rng.normal(0, noise_m, f.size)
+    idx = first_epoch + np.arange(f.size)
+    return Line(line_id, kind, e, n, idx * 0.1, 0.01 * e + 0.02 * n, idx)
+
+
+def test_noisy_grid_has_one_crossover_per_survey_and_tie_line():
+    """6 survey x 4 tie lines with 0.5 m position noise: exactly 6 x 4 crossovers, one per
+    pair, at the nominal crossing; a tie flown 0-10 deg along a survey line adds none."""
+    rng = np.random.default_rng(8)
+    xs_east, ys_north = (0.0, 60.0, 120.0, 180.0, 240.0, 300.0), (40.0, 140.0, 240.0, 340.0)
+    survey = [_noisy_line(f"L{k}", "survey", *(((x, -20.0), (x, 420.0))[::1 - 2 * (k % 2)]),
+                          10_000 * k, rng) for k, x in enumerate(xs_east)]
+    ties = [_noisy_line(f"T{k}", "tie", *(((-20.0, y), (320.0, y))[::1 - 2 * (k % 2)]),
+                        100_000 + 10_000 * k, rng) for k, y in enumerate(ys_north)]
+    xs = crossovers(survey, ties)
+    assert len(xs) == 6 * 4
+    assert len({(c.line_a, c.line_b) for c in xs}) == 6 * 4
+    for c in xs:
+        want = (xs_east[int(c.line_a[1:])], ys_north[int(c.line_b[1:])])
+        assert np.hypot(c.east_m - want[0], c.north_m - want[1]) < 3.0
+        assert c.angle_deg > 80.0
+    # transits flown along survey line L2 (x = 120), labelled tie: many raw hits, none
+    # of them a crossover
+    for deg in (0.0, 4.0, 10.0):
+        a = np.radians(deg)
+        along = _noisy_line("T9", "tie", (120.0 - 200 * np.sin(a), 200.0 - 200 * np.cos(a)),
+                            (120.0 + 200 * np.sin(a), 200.0 + 200 * np.cos(a)), 900_000, rng)
+        assert crossovers(survey, [along]) == []
+    assert len(crossovers(survey, ties + [along])) == 6 * 4
+    lev = level_lines(survey + ties + [along])
+    assert len(lev.crossovers) == 6 * 4 and lev.rms_after_nT < 0.1
+
+
 def test_leveling_removes_line_offsets():
     rng = np.random.default_rng(5)
     lines = []

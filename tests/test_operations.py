@@ -115,7 +115,9 @@ def _archive(tmp_path: Path) -> Path:
     shutil.copy(FIXTURES / "box_scalar_vector_only.mcap", arch / "day2" / "flight_b.mcap")
     (arch / "broken.mcap").write_bytes(b"this is not an MCAP file at all")
     data = BOX.read_bytes()
+    # salvaged: the intact chunks of the first third are processed, the loss reported
     (arch / "day2" / "truncated.mcap").write_bytes(data[: len(data) // 3])
+    (arch / "empty.mcap").write_bytes(b"")
     return arch
 
 
@@ -138,25 +140,29 @@ def test_archive_reprocessing_on_a_dask_cluster(prefect_server, tmp_path, monkey
     with temporary_settings(updates={PREFECT_API_URL: prefect_server}):
         res = reprocess_archive.with_options(task_runner=dask_runner(2, None))(
             str(arch), str(out))
-    assert res["recordings"] == 4 and res["processed"] == 2 and res["quarantined"] == 2
+    assert res["recordings"] == 5 and res["processed"] == 3 and res["quarantined"] == 2
     idx = _index(out)
-    assert idx["flight_a.mcap"]["status"] == "processed"
-    assert idx["flight_b.mcap"]["status"] == "processed"
-    for bad in ("broken.mcap", "truncated.mcap"):
+    for good in ("flight_a.mcap", "flight_b.mcap", "truncated.mcap"):
+        assert idx[good]["status"] == "processed", idx[good]
+    cut = json.loads((Path(idx["truncated.mcap"]["output_dir"]) / "truncated.summary.json")
+                     .read_text())
+    assert cut["input"]["losses"], "the truncation is reported"
+    for bad in ("broken.mcap", "empty.mcap"):
         assert idx[bad]["status"] == "quarantined"
         reason = idx[bad]["reason"]
         assert bad in reason and "\n" not in reason and "Traceback" not in reason
         q = list((out / "quarantine").glob(f"{Path(bad).stem}-*.txt"))
         assert len(q) == 1 and q[0].read_text().strip() == reason
     job = Path(idx["flight_a.mcap"]["output_dir"])
-    assert (job / "flight_a.summary.json").is_file() and (job / "flight_a.processed.mcap")
+    assert (job / "flight_a.summary.json").is_file()
+    assert (job / "flight_a.processed.mcap").is_file()
     assert float(idx["flight_a.mcap"]["fom_nT"]) > 0
     assert json.loads((out / "index.json").read_text())["recordings"]
     assert {p: sha256(p) for p in arch.rglob("*.mcap")} == hashes
     with temporary_settings(updates={PREFECT_API_URL: prefect_server}):
         again = reprocess_archive.with_options(task_runner=dask_runner(2, None))(
             str(arch), str(out))
-    assert again["processed"] == 0 and again["done"] == 2
+    assert again["processed"] == 0 and again["done"] == 3
 
 
 def test_reprocess_after_kill_9_does_only_the_missing_work(prefect_server, tmp_path):

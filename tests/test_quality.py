@@ -12,7 +12,15 @@ import pytest
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import run_compensation
 from pipeline.io.reader import read_flight
-from pipeline.quality import Track, group_stats, overlap_pairs, qc, run_quality, track_intersections
+from pipeline.quality import (
+    QualitySettings,
+    Track,
+    group_stats,
+    overlap_pairs,
+    qc,
+    run_quality,
+    track_intersections,
+)
 from pipeline.segment import segment_flight
 from pipeline.simulate import write_simulation
 from tests.conftest import run_sim, sha256
@@ -66,6 +74,86 @@ def test_intersections_are_found_exactly_on_crossing_tracks():
     np.testing.assert_allclose(d[order], [-1.5, 0.0], atol=1e-9)
 
 
+def _noisy(line_id, kind, start, end, first_epoch, rng, noise_m=0.5, step_m=0.7):
+    """A straight track from ``start`` to ``end`` (east, north m) sampled every ``step_m``
+    (7 m/s at 10 Hz) with white position noise of ``noise_m`` on both coordinates."""
+    (e0, n0), (e1, n1) = start, end
+    f = np.linspace(0.0, 1.0, int(np.hypot(e1 - e0, n1 - n0) / step_m) + 1)
+    e = e0 + f * (e1 - e0) + rng.normal(0, noise_m, f.size)
+    n = n0 + f * (n1 - n0) + rng.normal(0, noise_m, f.size)
+    return _track(line_id, kind, e, n, first_epoch)
+
+
+def _grid(rng, survey_east=(50, 150, 250, 350, 450), tie_north=(80, 180, 280, 380),
+          north=(-20.0, 520.0), east=(-20.0, 520.0)):
+    """Noisy serpentine north-south survey lines and east-west tie lines across them."""
+    tracks = []
+    for k, x in enumerate(survey_east):
+        a, b = (x, north[0]), (x, north[1])
+        tracks.append(_noisy(f"L{k:04d}", "survey", *((a, b) if k % 2 == 0 else (b, a)),
+                             100_000 * k, rng))
+    for k, y in enumerate(tie_north):
+        a, b = (east[0], y), (east[1], y)
+        tracks.append(_noisy(f"T{k:04d}", "tie", *((a, b) if k % 2 == 0 else (b, a)),
+                             10_000_000 + 100_000 * k, rng))
+    return tracks
+
+
+@pytest.mark.parametrize("angle_deg", [0.0, 3.0, 10.0])
+def test_track_flown_along_another_is_no_intersection(angle_deg):
+    """A transit flown along a tie line (0-10 deg, 0.5 m noise on both) wiggles across it
+    many times; tracks meeting below the minimum crossing angle do not intersect."""
+    rng = np.random.default_rng(int(10 * angle_deg) + 1)
+    tie = _noisy("T0010", "tie", (0.0, 0.0), (0.0, 1000.0), 0, rng)
+    a = np.radians(angle_deg)
+    along = _noisy("V0010", "validation", (-500 * np.sin(a), 500 - 500 * np.cos(a)),
+                   (500 * np.sin(a), 500 + 500 * np.cos(a)), 100_000, rng)
+    raw = tie.geometry().intersection(along.geometry())
+    assert len(getattr(raw, "geoms", [raw])) >= 3  # what counting raw hits would give
+    assert track_intersections([along], [tie]).count == 0
+
+
+def test_x_lines_over_a_noisy_grid_intersect_as_the_geometry_says():
+    """An X of two validation lines over 5 survey x 4 tie lines, all with 0.5 m noise: each
+    diagonal crosses every line once (45 deg), so 2 x (5 + 4) intersections, each one point
+    at the analytic crossing."""
+    rng = np.random.default_rng(21)
+    mapped = _grid(rng)
+    x_lines = [_noisy("V0010", "validation", (0.0, 0.0), (500.0, 500.0), 50_000_000, rng),
+               _noisy("V0020", "validation", (0.0, 500.0), (500.0, 0.0), 60_000_000, rng)]
+    ov = track_intersections(x_lines, mapped)
+    assert ov.count == 2 * (5 + 4)
+    pairs = list(zip(ov.validation_line, ov.map_line, strict=True))
+    assert len(set(pairs)) == ov.count  # one per pair of lines
+    for v, m, e, n in zip(ov.validation_line, ov.map_line, ov.east_m, ov.north_m, strict=True):
+        line = next(t for t in mapped if t.line_id == m)
+        along_x = float(np.mean(line.east_m)) if m.startswith("L") else float(
+            np.mean(line.north_m))
+        # the diagonal's analytic crossing with that line (45 deg: noise moves it ~1 m)
+        if m.startswith("L"):
+            want = (along_x, along_x if v == "V0010" else 500.0 - along_x)
+        else:
+            want = (along_x if v == "V0010" else 500.0 - along_x, along_x)
+        assert np.hypot(e - want[0], n - want[1]) < 3.0, (v, m, e, n, want)
+
+
+def test_x_lines_of_a_narrow_block_cross_only_the_tie_lines_at_30_degrees():
+    """The independent generator's block: 5 survey lines 1 km long at 50 m spacing, 3 tie
+    lines, an X corner to corner. The diagonals meet the survey lines at 11.3 deg, so at the
+    default 30 deg only the 2 x 3 tie-line crossings count; at 5 deg the 2 x 3 interior
+    survey-line crossings count too (the corners, where both tracks end, never do)."""
+    rng = np.random.default_rng(4)
+    mapped = _grid(rng, survey_east=(0, 50, 100, 150, 200), tie_north=(100, 500, 900),
+                   north=(0.0, 1000.0), east=(-50.0, 250.0))
+    x_lines = [_noisy("V0010", "validation", (0.0, 0.0), (200.0, 1000.0), 50_000_000, rng),
+               _noisy("V0020", "validation", (0.0, 1000.0), (200.0, 0.0), 60_000_000, rng)]
+    ov = track_intersections(x_lines, mapped)
+    assert ov.count == 6 and set(ov.map_line) == {"T0000", "T0001", "T0002"}
+    shallow = track_intersections(x_lines, mapped, min_angle_deg=5.0)
+    assert shallow.count == 12
+    assert sorted(set(shallow.map_line) - set(ov.map_line)) == ["L0001", "L0002", "L0003"]
+
+
 def test_pairs_are_every_sample_pair_within_the_distance():
     e = np.arange(0.0, 50.0, 0.7)
     val = _track("V0010", "validation", e, e, 0)
@@ -82,7 +170,7 @@ def test_heading_dc_offsets_have_confidence_intervals():
     """A +0.4 nT offset on northbound lines appears in its heading group, not in the other."""
     rng = np.random.default_rng(2)
     xv = np.linspace(0, 400, 600)
-    vals = [_track("V0010", "validation", xv, 2.0 * xv, 0)]
+    vals = [_track("V0010", "validation", xv, xv, 0)]  # 45 deg to the lines
     mapped = [_track(f"L{k:04d}", "survey", np.full(300, 20.0 + 40 * k),
                      np.linspace(0, 800, 300)[:: 1 if k % 2 == 0 else -1], 1000 + 300 * k)
               for k in range(10)]
@@ -152,7 +240,10 @@ def _demo_quality(tmp_path_factory, gradient: bool):
     fields = {"raw": flight.data["scalar_nT"].to_numpy()}
     for m in ("tl18", "agg-tl"):
         fields[m] = run_compensation(flight, seg, FitSettings(model=m)).compensated_nT
-    q = run_quality(flight, seg, fields, tl_alias="tl18")
+    # the demo's X (2000 m x 700 m block, corner to corner) meets the survey lines at 19.3 deg:
+    # below the default minimum crossing angle, which would leave only its 2 x 3 tie crossings
+    q = run_quality(flight, seg, fields, tl_alias="tl18",
+                    settings=QualitySettings(min_crossing_angle_deg=15.0))
     # the simulated sensor noise (white + drift) as it enters B_val - B_map at the same points
     noise = sim.series["noise_nT"][np.searchsorted(sim.series["time_ns"], flight.time_ns)]
     noise_rms = float(np.sqrt(np.nanmean(q.intersections.differences(noise) ** 2)))
@@ -207,8 +298,11 @@ def test_quality_command_writes_summary_plots_and_valid_channels(tmp_path):
     s = json.loads(js.read_text())["quality"]
     for key in ("heading_error_rms_nT", "interpolated_rms_nT", "overlap_pair_rms_nT"):
         assert {"raw", "tl", "tl16", "tl18", "agg_tl"} <= set(s[key]), key
-    assert s["overlap_m"] == 0.7 and s["overlap_pairs"] > 0 and s["intersections"] > 0
-    assert s["heading_error_rms_nT"]["raw"] > s["heading_error_rms_nT"]["agg_tl"]
+    assert s["overlap_m"] == 0.7 and s["overlap_pairs"] > 0
+    # the X (600 m x 300 m block, corner to corner) meets the survey lines at 26.6 deg, below
+    # the default 30, and the two tie lines only at its corners: no intersection
+    assert s["min_crossing_angle_deg"] == 30.0 and s["intersections"] == 0
+    assert s["overlap_pair_rms_nT"]["raw"] > s["overlap_pair_rms_nT"]["agg_tl"]
     assert s["crossover_rms_nT"]["before"] is not None and s["noise_4th_diff_nT"] > 0
     assert len(s["fom_boxes"]) == 12
     assert "heading error" in res.stdout and "agg_tl" in res.stdout
@@ -227,5 +321,5 @@ def test_quality_command_writes_summary_plots_and_valid_channels(tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     again = json.loads((tmp_path / "again.json").read_text())["quality"]
     assert again["states"] == ["raw", "tl16", "tl18", "agg_tl"]
-    for k, v in s["heading_error_rms_nT"].items():
-        assert again["heading_error_rms_nT"][k] == pytest.approx(v, rel=1e-9)
+    for k, v in s["interpolated_rms_nT"].items():  # (pairs: the first run used --overlap-m)
+        assert again["interpolated_rms_nT"][k] == pytest.approx(v, rel=1e-9)

@@ -79,6 +79,13 @@ class ModelSpec:
     aux: tuple[str, ...] = ()
     vector_cal: VectorCalibration | None = None
     diurnal: bool = False  # subtract the base station in the reduction (maps, crossovers)
+    # eddy currents that decay with a time constant: E (dB/dt - tau d2B/dt2) adds the
+    # columns u_i d2B_j/dt2; the competing explanation of a lag-like residual
+    eddy_rate: bool = False
+    # induced magnetisation that is not linear in the field: u_i B_j B_k / s^2; the
+    # competing explanation of a residual that follows the attitude (as a motor's current
+    # does during manoeuvres)
+    second_order: bool = False
 
     def with_(self, **kw) -> ModelSpec:
         return replace(self, **kw)
@@ -126,6 +133,21 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
             cols.append(data.aux[name][:, None] * u)
             names = names + [f"aux_{name}_u{a}" for a in "xyz"]
             sub += [True] * 3
+    if spec.eddy_rate:
+        u = direction_cosines(v)
+        d2b = np.gradient(np.gradient(v, data.time_s, axis=0), data.time_s, axis=0)
+        cols.append(np.column_stack([u[:, i] * d2b[:, j] / BT_SCALE_NT for i in range(3)
+                                     for j in range(3)]))
+        names = names + [f"eddy_rate_u{a}d2B{b}" for a in "xyz" for b in "xyz"]
+        sub += [True] * 9
+    if spec.second_order:
+        u = direction_cosines(v)
+        quad = [(j, k) for j in range(3) for k in range(j, 3)]
+        cols.append(np.column_stack([u[:, i] * v[:, j] * v[:, k] / BT_SCALE_NT**2
+                                     for i in range(3) for j, k in quad]))
+        names = names + [f"second_u{'xyz'[i]}B{'xyz'[j]}B{'xyz'[k]}" for i in range(3)
+                         for j, k in quad]
+        sub += [True] * 18
     if spec.gradient:
         if data.enu_m is None:
             raise ValueError("the gradient terms need positions (/gnss/fix)")

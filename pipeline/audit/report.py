@@ -88,7 +88,7 @@ def finding_channel(flight: Flight, res: AuditResult) -> OutputChannel:
     for k, f in enumerate(res.findings):
         ch.add(t0 + k, {
             "effect": f.effect, "accepted": True,
-            "estimate": jsonable(f.estimate),
+            "estimate": jsonable(f.estimate), "estimate_ci95": jsonable(f.ci95),
             "delta_bic": f.test.delta_bic if f.test else None,
             "p_value": f.test.p_value if f.test else None,
             "p_value_holm": f.p_adjusted,
@@ -106,6 +106,14 @@ def finding_channel(flight: Flight, res: AuditResult) -> OutputChannel:
             "gain_metric": "heldout_calibration_residual_rms",
             "before_nT": u.get("noise_floor_nT", res.noise_floor_nT),
             "after_nT": u.get("rms_nT", res.heldout_extended_nT), "message": u["note"]})
+    events = sorted(res.unexplained["events"], key=lambda e: e["start_ns"])
+    for k, e in enumerate(events):  # on the timeline where they happen
+        ch.add(int(e["start_ns"]) + len(res.findings) + 1 + k, {
+            "effect": "unexplained", "accepted": False, "estimate": jsonable(e),
+            "estimate_ci95": None, "delta_bic": None, "p_value": e.get("p_value"),
+            "p_value_holm": None, "heldout_p_value": None, "gain_metric": e["evidence"],
+            "before_nT": None, "after_nT": None,
+            "message": f"unexplained {e['kind']} of {e['size_nT']:.2f} nT ({e['evidence']})"})
     return ch
 
 

@@ -100,9 +100,10 @@ class Evaluation:
     reason: str = ""
     metric: str = "heldout_calibration_residual_rms"
     ci95: dict[str, Any] = field(default_factory=dict)  # same keys as estimate: [lo, hi]
+    held_back: bool = False  # a competing explanation fits as well: never accepted
 
     def passes(self, s: AuditSettings) -> bool:
-        return (self.test is not None and self.heldout is not None
+        return (not self.held_back and self.test is not None and self.heldout is not None
                 and self.p_adjusted < s.alpha and self.test.delta_bic < 0
                 and self.heldout.p_value < s.alpha and self.heldout.reduction >= s.min_gain)
 
@@ -281,7 +282,7 @@ class Auditor:
         if not current.diurnal and self.flight.has("base_nT") and self.seg.mask("tie").any():
             out.append(("diurnal", "diurnal"))
         for name, x in self.data.aux.items():
-            if name in current.aux:
+            if name in current.aux or not _electrical(self.data.aux_units.get(name, "")):
                 continue
             xc = x[self.mask]
             if np.isfinite(xc).sum() > 100 and np.nanstd(xc) > 1e-9:
@@ -343,6 +344,9 @@ class Auditor:
             return current.with_(lag_s=lags[k])
 
         held = self.heldout(current, ext_for)
+        # the competing cause of a lag-like residual: eddy currents with a time constant
+        # (the carrier's, not the sensor's); a late sensor delays its whole reading, which
+        # the extra eddy columns cannot mimic (checked in _beyond)
         lag = self._lag_estimate(current, None, "all")
         est = {"lag_s": lag, "lag_by_fold_s": [lags[k] for k in sorted(lags)]}
         sl = self.survey_lag(current)
@@ -350,8 +354,19 @@ class Auditor:
             est.update(survey_lag_s=sl.lag_s, survey_lag_ci95_s=list(sl.ci95_s),
                        survey_lag_p_value=sl.p_value)
         ci = jackknife_ci95({"lag_s": lag}, [{"lag_s": lags[k]} for k in sorted(lags)])
-        return Evaluation("sensor_lag", key, est, test, held, current.with_(lag_s=lag),
-                          ci95={**ci, **{k: None for k in est if k not in ci}})
+        ev = Evaluation("sensor_lag", key, est, test, held, current.with_(lag_s=lag),
+                        ci95={**ci, **{k: None for k in est if k not in ci}})
+        self._beyond(ev, current.with_(eddy_rate=True),
+                     current.with_(eddy_rate=True, lag_s=lag),
+                     "eddy currents with a time constant", "a late sensor")
+        if ev.held_back and sl is not None and sl.p_value < self.s.alpha \
+                and sl.ci95_s[0] <= lag <= sl.ci95_s[1]:
+            # the calibration cannot tell the two apart, the survey can: eddy currents do
+            # not move anomalies along track, a late sensor does
+            ev.held_back = False
+            ev.reason = ""
+            est["confirmed_by"] = "survey crossovers"
+        return ev
 
     def _eval_electrical_current(self, current: ModelSpec, key: str) -> Evaluation:
         name = key.split(":", 1)[1]
@@ -373,8 +388,28 @@ class Auditor:
         est = coupling(self.fit(ext, None, "all"))
         folds = [coupling(self.fit(ext, tr, f"fold{k}")) for k, (tr, _) in
                  enumerate(self.folds)]
-        return Evaluation("electrical_current", key, est, test, held, ext,
-                          ci95=jackknife_ci95(est, folds))
+        ev = Evaluation("electrical_current", key, est, test, held, ext,
+                        ci95=jackknife_ci95(est, folds))
+        # a current that follows the manoeuvres (a motor's) can stand in for interference
+        # that is not linear in the field: the coupling is named only when it explains
+        # held-out data better than second-order induced terms do
+        self._beyond(ev, current.with_(second_order=True), ext.with_(second_order=True),
+                     "second-order induced terms", "a current coupling")
+        return ev
+
+    def _beyond(self, ev: Evaluation, alt: ModelSpec, both: ModelSpec, alt_name: str,
+                what: str) -> None:
+        """Hold ``ev`` back unless its extension still lowers held-out data (p < alpha, by
+        ``min_gain``) in a model that already has the competing explanation ``alt``."""
+        beyond = self.heldout(alt, lambda train, k: both)
+        ev.estimate["beyond_alternative"] = {"alternative": alt_name,
+                                             **beyond.to_dict()}
+        ev.ci95["beyond_alternative"] = None
+        if not (beyond.p_value < self.s.alpha and beyond.reduction >= self.s.min_gain):
+            ev.reason = (f"{alt_name} explain the residual about as well: with them in the "
+                         f"model it lowers held-out data by {100 * beyond.reduction:.1f} % "
+                         f"(p {beyond.p_value:.2g}); not {what}")
+            ev.held_back = True
 
     def _eval_vector_calibration(self, current: ModelSpec, key: str) -> Evaluation:
         base = self.fit(current, None, "all")
@@ -466,20 +501,36 @@ class Auditor:
         if ov.count >= 8:
             held = paired_point_gain(ov.differences(red), ov.differences(red - base))
             metric = "heldout_validation_overlap_rms"
-        else:  # crossovers of every other tie line, with the others' coefficient
-            ties = sorted(set(tie_of))
-            odd = np.isin(tie_of, ties[1::2])
-            x_even = np.column_stack([dummies, db])[~odd]
-            b_odd = float(np.linalg.lstsq(x_even, dx[~odd], rcond=None)[0][-1]) if (
-                ~odd).sum() > dummies.shape[1] + 2 else 1.0
-            held = paired_point_gain(dx[odd] - dx[odd].mean(),
-                                     (dx[odd] - b_odd * db[odd]) - (dx[odd] - b_odd
-                                                                    * db[odd]).mean())
+        else:  # leave one tie line out: its crossovers predicted from the other ties'
+            held = self._leave_one_tie_out(dx, db, dummies, np.asarray(tie_of))
             metric = "heldout_crossover_rms"
         est = {"base_coefficient": beta, **_diurnal_shape(self.data.time_s, base)}
         ev = Evaluation("diurnal", key, est, test, held, current.with_(diurnal=True))
         ev.metric = metric
         return ev
+
+    @staticmethod
+    def _leave_one_tie_out(dx: np.ndarray, db: np.ndarray, dummies: np.ndarray,
+                           tie_of: np.ndarray) -> HeldOut:
+        """Crossover residuals of each tie line, the base coefficient fitted on the other
+        tie lines' crossovers; each heading pair's level is removed within the held-out tie
+        (a tie's own heading level cannot be learnt from ties flown the other way)."""
+        before, after = np.full(dx.size, np.nan), np.full(dx.size, np.nan)
+        x1 = np.column_stack([dummies, db])
+        for tie in sorted(set(tie_of.tolist())):
+            test = tie_of == tie
+            train = ~test
+            if train.sum() < dummies[train].any(axis=0).sum() + 3:
+                continue
+            beta = float(np.linalg.lstsq(x1[train], dx[train], rcond=None)[0][-1])
+            for g in np.flatnonzero(dummies[test].any(axis=0)):
+                sel = test & (dummies[:, g] > 0)
+                if sel.sum() < 2:
+                    continue
+                before[sel] = dx[sel] - dx[sel].mean()
+                corr = dx[sel] - beta * db[sel]
+                after[sel] = corr - corr.mean()
+        return paired_point_gain(before, after)
 
     def survey_evidence(self, spec: ModelSpec) -> list[dict[str, Any]]:
         """Steps and drifts in ``spec``'s compensated field seen at survey/tie crossovers
@@ -599,6 +650,14 @@ class Auditor:
             if f.effect in ("sensor_lag", "vector_calibration") and e.spec is not None:
                 spec = e.spec
         return spec
+
+
+def _electrical(unit: str) -> bool:
+    """A channel that can carry a current coupling: a current or a voltage (a load's
+    proxy), or one whose unit the recording does not say. A temperature, a pressure ...
+    changes the carrier's field too, but that is not an electrical current."""
+    u = unit.strip()
+    return u == "" or u in {"A", "mA", "uA", "kA", "V", "mV"}
 
 
 def residual_spectrum(residual: np.ndarray, rate_hz: float, band: BandSettings

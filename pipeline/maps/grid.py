@@ -75,6 +75,9 @@ def _laplacian(ny: int, nx: int) -> sp.csr_matrix:
     return sp.vstack([dxx, dyy, np.sqrt(2.0) * dxy]).tocsr()
 
 
+MAX_CELLS = 1_000_000  # 1000 x 1000 grids in ~6 s (benchmarks/bench_maps.py); more would need GBs
+
+
 def minimum_curvature(east_m: np.ndarray, north_m: np.ndarray, value: np.ndarray,
                       cell_m: float, mask_distance_m: float | None = None,
                       smoothness: float = 1e-3, margin_cells: int = 2,
@@ -86,7 +89,8 @@ def minimum_curvature(east_m: np.ndarray, north_m: np.ndarray, value: np.ndarray
     east_m, north_m, value
         Samples (NaN values dropped); local metres and nT.
     cell_m
-        Cell size (a quarter of the line spacing is customary).
+        Cell size (a quarter of the line spacing is customary); enlarged when the extent
+        would need more than ``MAX_CELLS`` cells.
     mask_distance_m
         Mask cells farther than this from the nearest data block (default 2 cells).
     smoothness
@@ -97,6 +101,11 @@ def minimum_curvature(east_m: np.ndarray, north_m: np.ndarray, value: np.ndarray
     e, n, v = (np.asarray(a, float) for a in (east_m, north_m, value))
     ok = np.isfinite(e) & np.isfinite(n) & np.isfinite(v)
     e, n, v = e[ok], n[ok], v[ok]
+    # a cell far below the extent (a mis-measured line spacing, a stray far-away line)
+    # would ask for terabytes: coarsen to at most MAX_CELLS (the grid reports its cell)
+    span_cells = ((np.ptp(e) + cell_m) / cell_m) * ((np.ptp(n) + cell_m) / cell_m)
+    if span_cells > MAX_CELLS:
+        cell_m = float(cell_m * np.sqrt(span_cells / MAX_CELLS) * 1.01)
     east0 = np.floor(e.min() / cell_m) * cell_m - margin_cells * cell_m
     north0 = np.floor(n.min() / cell_m) * cell_m - margin_cells * cell_m
     nx = int(np.ceil((e.max() - east0) / cell_m)) + margin_cells + 1

@@ -1,4 +1,10 @@
-"""Tie-line leveling: crossover differences and a least-squares per-line adjustment."""
+"""Tie-line leveling: crossover differences and a least-squares per-line adjustment.
+
+A crossing of two flown tracks is where their polylines intersect **and** the tracks meet at
+``min_crossing_angle_deg`` or more (:func:`crossing_points`). Two noisy, nearly parallel tracks
+(a transit flown along a tie line, two passes over one point) otherwise "cross" wherever the
+noise makes them wiggle across each other, hundreds of times.
+"""
 
 from __future__ import annotations
 
@@ -6,6 +12,22 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from shapely import LineString, MultiPoint, Point
+
+from pipeline.config import default_value
+
+# the shallowest angle at which two tracks count as crossing (map.min_crossing_angle_deg)
+MIN_CROSSING_ANGLE_DEG: float = default_value("map", "min_crossing_angle_deg")
+# a track's local direction at a crossing: the principal axis of its samples from the last
+# one at least this far (straight line, m) and CHORD_SAMPLES samples before the crossing to
+# the first one as far after it, so that position noise on one short segment (or a hover at a
+# line end) does not decide the angle
+CHORD_M = 10.0
+CHORD_SAMPLES = 3
+# hits of one pair of tracks this close (m, divided by the sine of the crossing angle: noise
+# spreads the hits of a shallow crossing along the tracks), or this few samples apart on both
+# tracks, are one crossing that noise made wiggle
+MERGE_M = 5.0
+MERGE_SAMPLES = 3
 
 
 @dataclass
@@ -45,6 +67,7 @@ class Crossover:
     value_b_nT: float
     time_a_s: float
     time_b_s: float
+    angle_deg: float = float("nan")  # between the local track directions, 0..90
 
     @property
     def difference_nT(self) -> float:
@@ -62,20 +85,130 @@ def intersection_points(geom) -> list[Point]:
     return [g for g in getattr(geom, "geoms", []) if isinstance(g, Point)]
 
 
-def crossovers(lines_a: list[Line], lines_b: list[Line]) -> list[Crossover]:
-    """Exact track intersections between every line of ``lines_a`` and of ``lines_b``."""
+@dataclass
+class Crossing:
+    """Where two tracks cross: the point, the distance along either track, the angle."""
+
+    east_m: float
+    north_m: float
+    along_a_m: float
+    along_b_m: float
+    angle_deg: float
+
+
+def _local_direction(east: np.ndarray, north: np.ndarray, along: np.ndarray, x: float,
+                     y: float, s: float) -> tuple[np.ndarray, float]:
+    """The track's direction at the point (x, y) that lies ``s`` m along it (principal axis
+    of the samples CHORD_M and CHORD_SAMPLES either side), and the point's distance (straight
+    line, m) to the nearer of the track's first and last sample."""
+    n = east.size
+    k = int(np.clip(np.searchsorted(along, s, side="right") - 1, 0, n - 2))  # segment k, k+1
+    d = np.hypot(east - x, north - y)
+    stop = k + 2 - CHORD_SAMPLES  # samples 0 .. stop-1 are CHORD_SAMPLES or more before
+    back = np.flatnonzero(d[:max(stop, 0)] >= CHORD_M)
+    i = int(back[-1]) if back.size else 0
+    start = k + CHORD_SAMPLES
+    ahead = np.flatnonzero(d[start:] >= CHORD_M) if start < n else np.zeros(0, int)
+    j = start + int(ahead[0]) if ahead.size else n - 1
+    to_end = float(min(d[0], d[-1]))
+    xy = np.column_stack([east[i:j + 1], north[i:j + 1]])
+    xy = xy - xy.mean(axis=0)
+    if not np.any(xy):
+        return np.zeros(2), to_end
+    return np.linalg.svd(xy, full_matrices=False)[2][0], to_end
+
+
+def _angle_deg(u: np.ndarray, v: np.ndarray) -> float:
+    """The angle between two undirected directions, 0..90 degrees (0 if either is zero)."""
+    nu, nv = float(np.hypot(*u)), float(np.hypot(*v))
+    if nu == 0.0 or nv == 0.0:
+        return 0.0
+    c = min(abs(float(u @ v)) / (nu * nv), 1.0)
+    return float(np.degrees(np.arccos(c)))
+
+
+def _reach_m(angle_deg):
+    """How far apart noise spreads the hits of one crossing at ``angle_deg``: MERGE_M at right
+    angles, more as the tracks get more parallel."""
+    return MERGE_M / np.sin(np.radians(np.clip(angle_deg, 1.0, 90.0)))
+
+
+def _merge(hits: list[Crossing], along_a: np.ndarray, along_b: np.ndarray) -> list[Crossing]:
+    """One crossing per group of hits closer than MERGE_M / sin(angle) or MERGE_SAMPLES
+    samples on both tracks (single linkage); the group's middle hit along track ``a``
+    represents it."""
+    if len(hits) < 2:
+        return hits
+    hits = sorted(hits, key=lambda h: h.along_a_m)
+    xy = np.array([[h.east_m, h.north_m] for h in hits])
+    reach = _reach_m(np.array([h.angle_deg for h in hits]))
+    ka = np.searchsorted(along_a, [h.along_a_m for h in hits])
+    kb = np.searchsorted(along_b, [h.along_b_m for h in hits])
+    dist = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
+    close = ((dist <= np.maximum(reach[:, None], reach[None]))
+             | ((np.abs(ka[:, None] - ka[None]) <= MERGE_SAMPLES)
+                & (np.abs(kb[:, None] - kb[None]) <= MERGE_SAMPLES)))
+    group = np.full(len(hits), -1)
+    for g in range(len(hits)):
+        if group[g] >= 0:
+            continue
+        todo, group[g] = [g], g
+        while todo:
+            m = todo.pop()
+            new = np.flatnonzero(close[m] & (group < 0))
+            group[new] = g
+            todo.extend(new.tolist())
+    out = []
+    for g in np.unique(group):
+        members = np.flatnonzero(group == g)
+        out.append(hits[members[members.size // 2]])
+    return out
+
+
+def crossing_points(a, b, min_angle_deg: float = MIN_CROSSING_ANGLE_DEG,
+                    geom_a: LineString | None = None,
+                    geom_b: LineString | None = None) -> list[Crossing]:
+    """The crossings of two tracks (anything with ``east_m``, ``north_m``, ``along_m``).
+
+    Exact polyline intersections, kept where the local track directions (over CHORD_M and
+    CHORD_SAMPLES either side) meet at ``min_angle_deg`` or more, and not where both
+    tracks end (one leg turning into the next, a hover between them: within CHORD_M, or the
+    merge reach of a shallow crossing, of an end of each); hits of the same crossing that
+    position noise made wiggle are merged into one.
+    """
+    ga = geom_a if geom_a is not None else LineString(np.column_stack([a.east_m, a.north_m]))
+    gb = geom_b if geom_b is not None else LineString(np.column_stack([b.east_m, b.north_m]))
+    if not ga.intersects(gb):
+        return []
+    hits = []
+    for pt in intersection_points(ga.intersection(gb)):
+        sa, sb = ga.project(pt), gb.project(pt)
+        da, end_a = _local_direction(a.east_m, a.north_m, a.along_m, pt.x, pt.y, sa)
+        db, end_b = _local_direction(b.east_m, b.north_m, b.along_m, pt.x, pt.y, sb)
+        angle = _angle_deg(da, db)
+        corner = max(end_a, end_b) < max(CHORD_M, float(_reach_m(angle)))
+        if angle >= min_angle_deg and not corner:
+            hits.append(Crossing(pt.x, pt.y, sa, sb, angle))
+    return _merge(hits, a.along_m, b.along_m)
+
+
+def crossovers(lines_a: list[Line], lines_b: list[Line],
+               min_angle_deg: float = MIN_CROSSING_ANGLE_DEG) -> list[Crossover]:
+    """Track crossings (:func:`crossing_points`) of every line of ``lines_a`` with every line
+    of ``lines_b``, both fields interpolated along track to the crossing."""
     out = []
     geoms_b = [(lb, lb.geometry()) for lb in lines_b]
     for la in lines_a:
         ga = la.geometry()
         for lb, gb in geoms_b:
-            if la is lb or not ga.intersects(gb):
+            if la is lb:
                 continue
-            for pt in intersection_points(ga.intersection(gb)):
-                va, ta = la.at(ga.project(pt))
-                vb, tb = lb.at(gb.project(pt))
+            for c in crossing_points(la, lb, min_angle_deg, ga, gb):
+                va, ta = la.at(c.along_a_m)
+                vb, tb = lb.at(c.along_b_m)
                 if np.isfinite(va) and np.isfinite(vb):
-                    out.append(Crossover(la.line_id, lb.line_id, pt.x, pt.y, va, vb, ta, tb))
+                    out.append(Crossover(la.line_id, lb.line_id, c.east_m, c.north_m, va, vb,
+                                         ta, tb, c.angle_deg))
     return out
 
 
@@ -103,17 +236,18 @@ class Leveling:
                 "slopes_nT_per_s": {k: v[1] for k, v in self.offsets.items()}}
 
 
-def level_lines(lines: list[Line], trend: bool = False) -> Leveling:
+def level_lines(lines: list[Line], trend: bool = False,
+                min_angle_deg: float = MIN_CROSSING_ANGLE_DEG) -> Leveling:
     """Least-squares line corrections from survey-tie crossovers.
 
     Every crossover says value_a - corr_a(t_a) = value_b - corr_b(t_b). The corrections are a
     DC per line (plus, with ``trend``, a slope in time about the line's mid-time); the system
     fixes them only up to a common constant, so the minimum-norm solution is taken (the mean
-    level is kept).
+    level is kept). Only tracks meeting at ``min_angle_deg`` or more cross.
     """
     survey = [ln for ln in lines if ln.kind == "survey"]
     ties = [ln for ln in lines if ln.kind == "tie"]
-    xs = crossovers(survey, ties)
+    xs = crossovers(survey, ties, min_angle_deg)
     ids = sorted({ln.line_id for ln in survey + ties})
     col = {lid: i for i, lid in enumerate(ids)}
     tref = {ln.line_id: float(np.median(ln.time_s)) for ln in survey + ties}

@@ -19,7 +19,7 @@ from pipeline.maps.arima import (
     reverse_arrangements,
 )
 from pipeline.maps.grid import Grid, minimum_curvature
-from pipeline.maps.level import Leveling, Line, level_lines
+from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, Leveling, Line, level_lines
 from pipeline.maps.reduce import Reduction, reduce_to_anomaly
 from pipeline.segment import Segmentation
 
@@ -38,6 +38,7 @@ class MapSettings:
     noise_nT: float | None = None  # measurement noise for the Kalman filter (default: estimated)
     mask_spacings: float = 1.0  # mask cells farther than this many line spacings from data
     direction: str = "both"  # both (zero phase, the map product) | forward (paper 004)
+    min_crossing_angle_deg: float = MIN_CROSSING_ANGLE_DEG  # shallower: no crossover
 
 
 def noise_4th_difference_nT(x: np.ndarray) -> float:
@@ -151,7 +152,7 @@ def build_map(flight: Flight, seg: Segmentation, compensated_nT: np.ndarray,
     red = reduce_to_anomaly(flight.time_ns, compensated_nT, lat, lon, alt, base, s.lag_s)
     t = d["time_s"].to_numpy(float)
     lines = _lines(seg, e, n, t, red.anomaly_nT)
-    lev = level_lines(lines, trend=s.level_trend)
+    lev = level_lines(lines, trend=s.level_trend, min_angle_deg=s.min_crossing_angle_deg)
     for ln in lines:
         ln.value_nT = ln.value_nT - lev.correction(ln.line_id, ln.time_s)
     # line spacing: cross-track offsets of the survey lines

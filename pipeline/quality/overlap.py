@@ -3,8 +3,11 @@
 Two kinds, as in paper 002 §3.2 and survey practice:
 
 * **intersections**: the exact crossing of two flown tracks (shapely/GEOS polyline
-  intersection); each field is interpolated along either track to the crossing, so the two
-  values refer to the same point and only the heading-dependent error and noise remain;
+  intersection) that meet at ``min_crossing_angle_deg`` or more
+  (:func:`pipeline.maps.level.crossing_points`: nearly parallel noisy tracks do not count, the
+  hits of one noisy crossing are one); each field is interpolated along either track to the
+  crossing, so the two values refer to the same point and only the heading-dependent error
+  and noise remain;
 * **pairs**: a validation sample and a map sample closer than a distance threshold
   (0.5 m in the paper), compared as measured.
 
@@ -22,7 +25,7 @@ from scipy import stats
 from scipy.spatial import cKDTree
 from shapely import LineString
 
-from pipeline.maps.level import intersection_points
+from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, crossing_points
 
 
 @dataclass
@@ -115,20 +118,20 @@ def _build(kind: str, rows: list[tuple]) -> OverlapSet:
                       np.asarray(cols[11], float), np.asarray(cols[12], float))
 
 
-def track_intersections(validation: list[Track], mapped: list[Track]) -> OverlapSet:
-    """Exact crossings of every validation track with every map track."""
+def track_intersections(validation: list[Track], mapped: list[Track],
+                        min_angle_deg: float = MIN_CROSSING_ANGLE_DEG) -> OverlapSet:
+    """Exact crossings of every validation track with every map track that meet at
+    ``min_angle_deg`` or more (one per crossing, however noise makes the tracks wiggle)."""
     rows = []
     geoms = [(t, t.geometry()) for t in mapped]
     for v in validation:
         gv = v.geometry()
         for m, gm in geoms:
-            if not gv.intersects(gm):
-                continue
-            for pt in intersection_points(gv.intersection(gm)):
-                a0, a1, wa = v.bracket(gv.project(pt))
-                b0, b1, wb = m.bracket(gm.project(pt))
-                rows.append((a0, a1, wa, b0, b1, wb, pt.x, pt.y, 0.0, v.line_id, m.line_id,
-                             v.heading_deg, m.heading_deg))
+            for c in crossing_points(v, m, min_angle_deg, gv, gm):
+                a0, a1, wa = v.bracket(c.along_a_m)
+                b0, b1, wb = m.bracket(c.along_b_m)
+                rows.append((a0, a1, wa, b0, b1, wb, c.east_m, c.north_m, 0.0, v.line_id,
+                             m.line_id, v.heading_deg, m.heading_deg))
     rows.sort(key=lambda r: r[0] + r[2])
     return _build("intersection", rows)
 

@@ -6,7 +6,8 @@ over one point come from the processing, not from time. The statistics are those
 002 §3.2 plus the checks a survey contract asks for:
 
 * heading error at overlap points between the validation ("X") lines and the map lines
-  (survey and tie): exact track intersections and sample pairs closer than ``overlap_m``;
+  (survey and tie): exact track intersections (tracks meeting at ``min_crossing_angle_deg``
+  or more) and sample pairs closer than ``overlap_m``;
 * the map gridded from each field's **unlevelled** lines, interpolated (bilinear) at every
   validation sample inside the map: leveling would absorb part of the heading error that this
   figure is meant to show;
@@ -26,7 +27,7 @@ from pipeline.errors import AeromagError
 from pipeline.geo.local import LocalFrame
 from pipeline.io.reader import Flight
 from pipeline.maps.grid import Grid, minimum_curvature
-from pipeline.maps.level import Leveling, Line, level_lines
+from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, Leveling, Line, level_lines
 from pipeline.maps.reduce import reduce_to_anomaly
 from pipeline.quality import qc
 from pipeline.quality.overlap import (
@@ -58,6 +59,8 @@ class QualitySettings:
     diurnal_tolerance_nT: float = 5.0
     cell_fraction: float = 0.25  # grid cell as a fraction of the line spacing
     subtract_base: bool = True  # remove the base-station diurnal in the reduction
+    # tracks meeting at a shallower angle are no intersection or crossover (config: map)
+    min_crossing_angle_deg: float = MIN_CROSSING_ANGLE_DEG
 
 
 @dataclass
@@ -148,6 +151,7 @@ class QualityRun:
             "overlap_pair_rms_nT": self.heading_error_rms_nT("pair"),
             "overlap_m": self.settings.overlap_m,
             "intersections": self.intersections.count,
+            "min_crossing_angle_deg": self.settings.min_crossing_angle_deg,
             "heading_error_noise_floor_nT": self.noise_floor_nT(),
             "heading_error": kinds,
             "interpolated_rms_nT": self._keyed({s: self.interpolated[s]["rms_nT"]
@@ -227,7 +231,7 @@ def run_quality(flight: Flight, seg: Segmentation, fields: dict[str, np.ndarray]
     if not validation:
         notes.append("no validation lines: heading error at overlap points and the "
                      "interpolated comparison need the diagonal X flight")
-    inter = track_intersections(validation, mapped)
+    inter = track_intersections(validation, mapped, s.min_crossing_angle_deg)
     pairs = overlap_pairs(validation, mapped, s.overlap_m)
     diffs = {"intersection": {n: inter.differences(v) for n, v in reduced.items()},
              "pair": {n: pairs.differences(v) for n, v in reduced.items()}}
@@ -255,7 +259,7 @@ def run_quality(flight: Flight, seg: Segmentation, fields: dict[str, np.ndarray]
     lines = [Line(tr.line_id, tr.kind, tr.east_m, tr.north_m, t[tr.index],
                   reduced[final][tr.index], tr.index) for tr in mapped
              if np.isfinite(reduced[final][tr.index]).all()]
-    lev = level_lines(lines) if lines else None
+    lev = level_lines(lines, min_angle_deg=s.min_crossing_angle_deg) if lines else None
     checks = {"field": state_key(final),
               "noise": qc.line_noise(mapped, reduced[final], s.noise_threshold_nT),
               "flight_height": qc.flight_height(mapped, up, s.height_tolerance_m),
