@@ -449,7 +449,8 @@ class Auditor:
     def _crossover_data(self, spec: ModelSpec, smooth_s: float = 0.0):
         """Crossover and validation-overlap differences of ``spec``'s compensated field,
         reduced by IGRF only (and smoothed along track over ``smooth_s``), with the
-        base-station difference at each."""
+        base-station difference at each; also the crossovers themselves and each line's
+        heading class (0..3: N, E, S, W)."""
         from pipeline.geo.local import LocalFrame
         from pipeline.maps.level import Line, crossovers
         from pipeline.maps.reduce import igrf_total_nT
@@ -477,7 +478,6 @@ class Auditor:
         ties = [line(tr) for tr in tracks if tr.kind == "tie"]
         xs = crossovers(survey, ties)
         heading = {tr.line_id: int(round(tr.heading_deg / 90.0)) % 4 for tr in tracks}
-        self._last_crossings = (xs, heading, red)
         dx = np.array([c.difference_nT for c in xs])
         db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base)
                        for c in xs])
@@ -485,12 +485,12 @@ class Auditor:
         tie_of = [c.line_b for c in xs]
         val = [tr for tr in tracks if tr.kind == "validation"]
         ov = track_intersections(val, [tr for tr in tracks if tr.kind in ("survey", "tie")])
-        return dx, db, groups, tie_of, ov, red, base
+        return dx, db, groups, tie_of, ov, red, base, xs, heading
 
     def _eval_diurnal(self, current: ModelSpec, key: str) -> Evaluation:
         import statsmodels.api as sm
 
-        dx, db, groups, tie_of, ov, red, base = self._crossover_data(current)
+        dx, db, groups, tie_of, ov, red, base, _, _ = self._crossover_data(current)
         if dx.size < 8:
             return Evaluation("diurnal", key, {}, None, None, None,
                               reason=f"only {dx.size} survey-tie crossovers")
@@ -540,8 +540,7 @@ class Auditor:
             return []
         # a second along track (7-15 m at survey speeds, well inside the smoothest anomaly
         # at survey height) averages the sensor noise out of each crossover reading
-        dx, db, *_ = self._crossover_data(spec, smooth_s=1.0)
-        xs, heading, _ = self._last_crossings
+        dx, db, _, _, _, _, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
         if dx.size < 8:
             return []
         d = dx - db  # the base station's variation is the day's, never the carrier's
@@ -558,8 +557,7 @@ class Auditor:
         if not (self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
                 and self.seg.mask("tie").any() and self.seg.mask("survey").any()):
             return None
-        dx, db, *_ = self._crossover_data(spec, smooth_s=1.0)
-        xs, heading, red = self._last_crossings
+        dx, db, _, _, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
         if dx.size < 8:
             return None
         t = self.data.time_s
