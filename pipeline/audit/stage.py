@@ -54,6 +54,7 @@ from pipeline.audit.extended import (
     lag_cost,
     simulate_measurement,
 )
+from pipeline.audit.noise import white_noise_nT
 from pipeline.audit.survey import CrossoverSet, SurveyLag, survey_events, survey_lag
 from pipeline.audit.vector_cal import fit_vector_calibration
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
@@ -63,7 +64,6 @@ from pipeline.compensate.terms import direction_cosines
 from pipeline.errors import AeromagError
 from pipeline.io.reader import Flight
 from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
-from pipeline.maps.stage import noise_4th_difference_nT
 from pipeline.segment import Segmentation
 
 EFFECTS = ("geomagnetic_gradient", "sensor_lag", "diurnal", "electrical_current",
@@ -759,10 +759,12 @@ def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None 
     gap = cv_b / fit_cv if fit_cv > 0 else float("nan")
     passwise = (aud.cv_residual(base_spec, aud.pass_fold, "pass")[0]
                 if aud.pass_fold is not None else None)
-    # noise: white sensor noise from the 4th difference, through the same band-pass
-    sigma = float(np.nanmedian([noise_4th_difference_nT(data.scalar_nT[b])
-                                for b in contiguous_blocks(np.isfinite(data.scalar_nT),
-                                                           data.time_s) if b.size > 200]))
+    # the sensor's white noise: both the raw and the compensated record bound it from above
+    # (compensation removes interference the sensor's jitter puts in, but adds the vector
+    # sensor's noise through the regressors), so the smaller is the better bound
+    comp_e, _ = extended.compensate(data)
+    sigma = float(np.nanmin([white_noise_nT(data.scalar_nT, data.time_s, data.rate_hz),
+                             white_noise_nT(comp_e, data.time_s, data.rate_hz)]))
     floor = sigma * band_noise_gain(data.rate_hz, s.band.band_hz, s.band.poles)
     if progress:
         progress("survey-side evidence")
@@ -790,7 +792,6 @@ def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None 
                                    f"(crossovers, p {e['p_value']:.2g}); not a catalogue "
                                    "effect")
     comp_b, _ = baseline.compensate(data)
-    comp_e, _ = extended.compensate(data)
     t = data.time_s
     boxes = seg.boxes()
     fom_b = figure_of_merit(t, data.scalar_nT, comp_b, boxes).total if boxes else None

@@ -1,0 +1,64 @@
+"""The sensor's white noise from the recording (issue 16, item 4).
+
+Judged against the simulator's truth (the noise level it drew) on flights whose records
+carry what the estimator does not model: geology, manoeuvre interference, interference
+outside the tl18 basis, current steps; and analytically on white noise plus a spectral line,
+a step and a strong smooth signal.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.audit.noise import white_noise_nT
+from pipeline.simulate import Scenario, random_flight_overrides, simulate
+
+RATE_HZ = 10.0
+
+
+def test_white_noise_under_a_line_a_step_and_a_smooth_signal():
+    rng = np.random.default_rng(7)
+    t = np.arange(30_000) / RATE_HZ
+    sigma = 0.08
+    x = (200.0 * np.sin(2 * np.pi * t / 300.0) + 30.0 * np.sin(2 * np.pi * t / 17.0)  # smooth
+         + 0.5 * np.sin(2 * np.pi * 3.3 * t)  # a line (vibration), 4x the noise in RMS
+         + 5.0 * (t > 1234.5)  # a step
+         + rng.normal(0.0, sigma, t.size))
+    x[5000:5100] = np.nan  # a gap
+    est = white_noise_nT(x, t, RATE_HZ)
+    assert est == pytest.approx(sigma, rel=0.10)
+
+
+def test_too_short_records_give_nan():
+    t = np.arange(100) / RATE_HZ
+    assert np.isnan(white_noise_nT(np.zeros(100), t, RATE_HZ))
+
+
+def _ratios(seeds) -> list[float]:
+    out = []
+    for seed in seeds:
+        rng = np.random.default_rng(seed)
+        # broadband vibration aliased into the band is noise-like by its spectrum and is
+        # excluded here (its effect is measured in benchmarks/bench_noise_floor.py)
+        ov = random_flight_overrides(
+            rng, outside_terms=("second_order", "eddy_lag", "unrecorded_current"))
+        true = float(next(o for o in ov if o.startswith("sensors.scalar_noise_nT=")
+                          ).split("=")[1])
+        sim = simulate(Scenario.load("uav-small", ov), int(rng.integers(2**31)))
+        s = sim.streams["/mag/scalar"]
+        out.append(white_noise_nT(s["cols"]["total_nT"], s["t"], RATE_HZ) / true)
+    return out
+
+
+def test_white_noise_within_20_percent_on_varied_flights():
+    """0.02-0.5 nT noise, one or two passes, multicopter and fixed-wing, 0-1 nT of
+    interference outside the tl18 basis: every flight within 20 % of the truth."""
+    r = np.array(_ratios(range(300, 306)))
+    assert np.all(np.abs(r - 1.0) < 0.20), r
+
+
+@pytest.mark.slow
+def test_white_noise_within_20_percent_on_30_flights():
+    r = np.array(_ratios(range(400, 430)))
+    assert np.mean(np.abs(r - 1.0) < 0.20) >= 0.95, r
