@@ -16,8 +16,9 @@ from pipeline import __version__
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import CompensationRun, run_compensation
 from pipeline.errors import AeromagError
+from pipeline.flight import Flight
 from pipeline.html_report import render_html
-from pipeline.io.reader import Flight, read_flight
+from pipeline.io.reader import read_flight
 from pipeline.io.writer import (
     OutputChannel,
     atomic_output,

@@ -29,8 +29,8 @@ from scipy.signal import hilbert
 from shapely import LineString
 
 from pipeline.errors import AeromagError
+from pipeline.flight import Flight
 from pipeline.geo.local import local_east_north
-from pipeline.io.reader import Flight
 
 LABELS = ("calibration", "survey", "tie", "validation", "turn", "transit")
 MANOEUVRES = ("roll", "pitch", "yaw")
