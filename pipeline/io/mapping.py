@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.config import read_toml
+from pipeline.defaults import read_toml
 from pipeline.errors import AeromagError
 
 ROLES = ("scalar", "vector", "attitude", "position", "base", "aux")
