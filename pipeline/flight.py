@@ -55,6 +55,17 @@ class Flight:
     all_topics: list[str] = field(default_factory=list)  # every topic in the file
 
     def has(self, *columns: str) -> bool:
+        """True when every named column is present (its channel was recorded).
+
+        Parameters
+        ----------
+        *columns : str
+            Column names of ``data``, e.g. ``"vector_x_nT"`` (body frame, nT) or ``"lat_deg"``.
+
+        Returns
+        -------
+        bool
+        """
         return all(c in self.data.columns for c in columns)
 
     def require(self, *columns: str, purpose: str) -> None:

@@ -49,6 +49,7 @@ class RawTopic:
 
     @property
     def count(self) -> int:
+        """Number of messages read on the topic."""
         return len(self.data)
 
 
@@ -60,6 +61,17 @@ class RawRecording:
     losses: list[Loss] = field(default_factory=list)  # damage salvaged around
 
     def loss_notes(self, t0_ns: int | None = None) -> list[str]:
+        """One ``"salvaged: ..."`` line per damaged part of the file.
+
+        Parameters
+        ----------
+        t0_ns : int, optional
+            Reference instant (ns, UTC) for times given relative to the start of the recording.
+
+        Returns
+        -------
+        list of str
+        """
         return [f"salvaged: {x.describe(t0_ns)}" for x in self.losses]
 
 
@@ -144,12 +156,14 @@ class TopicSeries:
 
     @property
     def median_period_s(self) -> float:
+        """Median interval between samples, s (NaN with fewer than 2 samples)."""
         if self.time_ns.size < 2:
             return float("nan")
         return float(np.median(np.diff(self.time_ns))) / NS
 
     @property
     def rate_hz(self) -> float:
+        """Sample rate from the median period, Hz (NaN when undefined)."""
         p = self.median_period_s
         return 1.0 / p if p > 0 else float("nan")
 
@@ -335,6 +349,7 @@ class Gap:
 
     @property
     def duration_s(self) -> float:
+        """Length of the gap, s."""
         return (self.end_ns - self.start_ns) / NS
 
 
