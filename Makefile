@@ -4,11 +4,13 @@ VENV ?= .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed-stamp
 DEMO_OUT ?= demo-output
+# what ruff checks (lint, test) and format-checks
+PY_PATHS := pipeline flows tests benchmarks fixtures
 
 # The report test renders the HTML report in Debian's headless chromium.
 SUDO := $(shell [ "$$(id -u)" -eq 0 ] || echo sudo)
 
-.PHONY: demo test lint fixtures clean browser
+.PHONY: demo test lint format-check fixtures clean browser
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -23,11 +25,16 @@ browser:
 	@command -v chromium >/dev/null || { $(SUDO) apt-get update -qq && \
 	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq chromium >/dev/null; }
 
-test: $(STAMP) browser
+# ruff check first: a lint error fails CI before the (long) test run
+test: $(STAMP) lint browser
 	$(BIN)/python -m pytest
 
 lint: $(STAMP)
-	$(BIN)/ruff check pipeline flows tests benchmarks fixtures
+	$(BIN)/ruff check $(PY_PATHS)
+
+# Not part of `test` yet: the tree is formatted once, after the open branches merge.
+format-check: $(STAMP)
+	$(BIN)/ruff format --check $(PY_PATHS)
 
 fixtures: $(STAMP)
 	$(BIN)/python fixtures/make_fixtures.py

@@ -74,6 +74,23 @@ def is_complete(path: Path, settle_s: float = 1.0) -> tuple[bool, str]:
 
 
 def job_dir(out_dir: Path, path: Path, sha: str, cfg_hash: str) -> Path:
+    """Output folder of one recording and configuration: ``<stem>-<sha8>-<cfg8>``.
+
+    Parameters
+    ----------
+    out_dir : Path
+        The archive's output folder.
+    path : Path
+        The recording.
+    sha : str
+        Its sha256 (hex).
+    cfg_hash : str
+        The configuration's hash (hex).
+
+    Returns
+    -------
+    Path
+    """
     return out_dir / f"{path.stem}-{sha[:8]}-{cfg_hash[:8]}"
 
 
@@ -132,6 +149,14 @@ def process_one(path: str, out_dir: str, config_path: str | None, cfg_hash: str,
 @task(name="process-recording")
 def process_recording(path: str, out_dir: str, config_path: str | None, cfg_hash: str,
                       sha: str) -> dict[str, Any]:
+    """Prefect task: :func:`process_one` on a Dask worker (never raises; failures are
+    quarantined).
+
+    Returns
+    -------
+    dict
+        The recording's index row.
+    """
     return process_one(path, out_dir, config_path, cfg_hash, sha)
 
 
@@ -154,6 +179,20 @@ def plan(recordings: list[Path], out: Path, cfg: Config) -> tuple[list[dict], li
 
 
 def write_index(out: Path, rows: list[dict]) -> dict[str, str]:
+    """Write ``index.csv`` and ``index.json`` (rows sorted by input path), atomically.
+
+    Parameters
+    ----------
+    out : Path
+        The archive's output folder.
+    rows : list of dict
+        One per recording (``INDEX_FIELDS`` go into the CSV; the JSON keeps every key).
+
+    Returns
+    -------
+    dict
+        ``{"csv": path, "json": path}``.
+    """
     rows = sorted(rows, key=lambda r: r["input"])
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=INDEX_FIELDS, extrasaction="ignore")
@@ -220,6 +259,19 @@ def process_new(watch_dir: str, out_dir: str, config_path: str | None = None,
 
 
 def dask_runner(workers: int, address: str | None):
+    """Prefect's Dask task runner: a cluster at ``address``, or a local one.
+
+    Parameters
+    ----------
+    workers : int
+        Worker processes of the local cluster (one thread each).
+    address : str or None
+        ``tcp://HOST:PORT`` of an existing scheduler.
+
+    Returns
+    -------
+    prefect_dask.DaskTaskRunner
+    """
     from prefect_dask import DaskTaskRunner
 
     for name in ("distributed", "distributed.scheduler", "distributed.nanny",
@@ -275,6 +327,22 @@ def prefect_api(timeout_s: float = 90.0) -> Iterator[str]:
 
 
 def wait_healthy(url: str, timeout_s: float, proc: subprocess.Popen | None = None) -> None:
+    """Wait until the Prefect API at ``url`` answers ``/health`` with 200.
+
+    Parameters
+    ----------
+    url : str
+        The API URL (``http://HOST:PORT/api``).
+    timeout_s : float
+        How long to wait, s.
+    proc : subprocess.Popen, optional
+        The server process; its exit ends the wait at once.
+
+    Raises
+    ------
+    AeromagError
+        The server exited or did not become healthy in time.
+    """
     import urllib.request
 
     t_end = time.monotonic() + timeout_s

@@ -32,6 +32,7 @@ app.add_typer(import_app, name="import")
 
 
 def say(text: str) -> None:
+    """Print a line to the console as is (no rich markup)."""
     out.print(text, markup=False)
 
 

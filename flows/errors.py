@@ -35,6 +35,14 @@ class OneLineErrors(logging.Filter):
         return True
 
     def filter(self, record: logging.LogRecord) -> bool:
+        """Turn a record carrying an AeromagError into its one line, once.
+
+        Returns
+        -------
+        bool
+            False for a repeat of a line already logged and for Prefect's "Finished in state
+            Failed(...AeromagError...)" record; True otherwise.
+        """
         exc = record.exc_info[1] if record.exc_info else None
         if isinstance(exc, AeromagError):
             if not self._first_time(str(exc)):

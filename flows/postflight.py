@@ -89,6 +89,7 @@ def run_key(recording: str, cfg: Config) -> str:
 
 
 def cache_folder(key: str) -> Path:
+    """Where the persisted stage results of run ``key`` live (under Prefect's local storage)."""
     from prefect.settings import PREFECT_LOCAL_STORAGE_PATH
 
     return Path(PREFECT_LOCAL_STORAGE_PATH.value()) / "aeromag" / key

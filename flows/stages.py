@@ -16,8 +16,9 @@ from pipeline import __version__
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import CompensationRun, run_compensation
 from pipeline.errors import AeromagError
+from pipeline.flight import Flight
 from pipeline.html_report import render_html
-from pipeline.io.reader import Flight, read_flight
+from pipeline.io.reader import read_flight
 from pipeline.io.writer import (
     OutputChannel,
     atomic_output,
@@ -65,6 +66,13 @@ def try_segment(flight: Flight) -> tuple[Segmentation | None, str]:
 
 
 def save_figure(fig, path: Path) -> Path:
+    """Save a matplotlib figure as PNG (110 dpi) atomically and close it.
+
+    Returns
+    -------
+    Path
+        ``path``.
+    """
     with atomic_output(path) as f:
         fig.savefig(f, dpi=110, format="png")
     plt.close(fig)
@@ -72,6 +80,14 @@ def save_figure(fig, path: Path) -> Path:
 
 
 def compensation_lines(run: CompensationRun) -> list[tuple[int, str]]:
+    """Log lines of a compensation run: terms, lambda, fit residual and FOM (nT), the
+    AGG-TL gradient (nT/m, east / north / up) and the calibration warnings.
+
+    Returns
+    -------
+    list of (int, str)
+        ``(level, text)`` pairs.
+    """
     m = run.model
     fom = run.fom.total if run.fom else None
     text = (f"compensate: {m.model}: {len(m.terms)} terms, lambda {m.lambda_:.3g}, "
@@ -116,6 +132,7 @@ def compensate_recording(src: Path, dst: Path, summary_path: Path, settings: Fit
 
 
 def require_readable(path: Path) -> None:
+    """Raise a one-line AeromagError when ``path`` is not a file."""
     if not path.is_file():
         raise AeromagError("file not found", file=path)
 
@@ -150,6 +167,9 @@ def existing_compensated(flight: Flight) -> dict[str, np.ndarray]:
 
 
 def map_channels(flight: Flight, seg: Segmentation, mr) -> list[OutputChannel]:
+    """Output channels of a map run: ``/map/anomaly``, ``/map/anomaly_filtered``
+    (``foxglove.Grid``) and ``/map/tracks`` (``foxglove.GeoJSON``).
+    """
     t0 = int(flight.time_ns[0])
     return [grid_channel("/map/anomaly", t0, mr.grid),
             grid_channel("/map/anomaly_filtered", t0, mr.filtered),
@@ -157,6 +177,14 @@ def map_channels(flight: Flight, seg: Segmentation, mr) -> list[OutputChannel]:
 
 
 def map_figures(mr) -> dict[str, object]:
+    """Figures of a map run (levelled anomaly and ARIMA-Kalman filtered, one colour scale
+    from the 1st-99th percentile, nT).
+
+    Returns
+    -------
+    dict of str to Figure
+        ``anomaly``, ``anomaly_filtered``.
+    """
     lo, hi = np.nanpercentile(mr.grid.values, [1, 99])
     return {"anomaly": map_figure(mr.grid, mr.lines, "levelled anomaly (nT)", lo, hi),
             "anomaly_filtered": map_figure(mr.filtered, mr.lines,
@@ -165,6 +193,14 @@ def map_figures(mr) -> dict[str, object]:
 
 
 def map_lines(mr) -> list[tuple[int, str]]:
+    """Log lines of a map run: grid size and cell (m), crossover RMS before and after
+    leveling (nT), ARIMA order and coefficients, Kalman measurement noise (nT).
+
+    Returns
+    -------
+    list of (int, str)
+        ``(level, text)`` pairs.
+    """
     s = mr.summary()
     return [(LOG_INFO, f"map: grid {s['grid_shape'][0]} x {s['grid_shape'][1]} cells of "
                        f"{s['cell_m']:.2f} m, line spacing {s['line_spacing_m']:.1f} m"),
@@ -257,6 +293,14 @@ def tl_alias(fields: dict[str, np.ndarray]) -> str | None:
 
 
 def quality_lines(q: QualityRun) -> list[tuple[int, str]]:
+    """Log lines of a quality run: heading-error RMS (nT) at intersections, overlap pairs
+    and against the interpolated map, crossover RMS, noise and QC checks out of tolerance.
+
+    Returns
+    -------
+    list of (int, str)
+        ``(level, text)`` pairs (warnings for failed checks).
+    """
     s = q.summary()
 
     def row(d):
@@ -292,6 +336,13 @@ def quality_lines(q: QualityRun) -> list[tuple[int, str]]:
 
 
 def quality_figures(q: QualityRun) -> dict[str, object]:
+    """Figures of a quality run.
+
+    Returns
+    -------
+    dict of str to Figure
+        ``heading_error``, ``validation_profiles``, ``crossovers``.
+    """
     s = q.summary()
     states = [st for st in q.states if st != "raw"] or q.states
     return {"heading_error": heading_error_figure(s),
@@ -301,6 +352,7 @@ def quality_figures(q: QualityRun) -> dict[str, object]:
 
 
 def quality_channels(flight: Flight, q: QualityRun) -> list[OutputChannel]:
+    """Output channels of a quality run: ``/quality/heading_error``, ``/quality/crossovers``."""
     return [heading_error_channel(flight, q), crossover_channel(flight, q)]
 
 
@@ -465,24 +517,56 @@ def validate_recording(recording: str | Path) -> Flight:
 
 
 def forget_validated() -> None:
+    """Drop the flight kept by :func:`validate_recording` (frees its memory)."""
     _Validated.key = _Validated.flight = None
 
 
 def ingest_stage(recording: str) -> Flight:
+    """Ingest: the flight :func:`validate_recording` read already, else read it now.
+
+    Parameters
+    ----------
+    recording : str
+        Path of the MCAP recording.
+
+    Returns
+    -------
+    Flight
+    """
     return _Validated.take(recording) or read_flight(recording)
 
 
 def compensate_stage(flight: Flight, seg: Segmentation, model: str, cfg) -> CompensationRun:
+    """Compensate: fit ``model`` (``tl16``, ``tl18`` or ``agg-tl``) with the configuration's
+    settings.
+
+    Returns
+    -------
+    CompensationRun
+    """
     return run_compensation(flight, seg, cfg.fit_settings(model))
 
 
 def audit_stage(flight: Flight, seg: Segmentation, cfg):
+    """Audit: :func:`pipeline.audit.run_audit` with the configuration's settings.
+
+    Returns
+    -------
+    AuditResult
+    """
     from pipeline.audit import run_audit
 
     return run_audit(flight, seg, cfg.audit_settings())
 
 
 def vector_stage(flight: Flight, seg: Segmentation | None, cfg):
+    """Vector magnetometer stage with the configured method.
+
+    Returns
+    -------
+    VectorRun or str
+        The run, or the one-line reason it could not run (logged; the other stages go on).
+    """
     from pipeline.vector.stage import run_vector
 
     try:
@@ -503,10 +587,23 @@ def final_field(runs: dict[str, CompensationRun], audit) -> tuple[str, np.ndarra
 
 
 def map_stage(flight: Flight, seg: Segmentation, comp: np.ndarray, cfg):
+    """Map: reduce, level, grid and filter ``comp`` (compensated field, nT, one per epoch).
+
+    Returns
+    -------
+    MapRun
+    """
     return build_map(flight, seg, comp, cfg.map_settings())
 
 
 def quality_stage(flight: Flight, seg: Segmentation, runs: dict, audit, cfg) -> QualityRun:
+    """Quality: every processing state (raw, each model, the extended model) compared at
+    the validation lines, with the 12-box FOM table when the calibration boxes were found.
+
+    Returns
+    -------
+    QualityRun
+    """
     fields, _, _ = quality_fields(flight, seg, runs)
     final = final_field(runs, audit)
     if final is not None and final[0] == "extended":

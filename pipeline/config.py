@@ -8,44 +8,20 @@ hash of the resolved values identifies a configuration in outputs and in the arc
 from __future__ import annotations
 
 import copy
-import functools
 import hashlib
 import json
 import tomllib
 from dataclasses import dataclass
-from importlib import resources
 from pathlib import Path
 from typing import Any
 
+# moved to pipeline.defaults (no config <-> io import cycle); re-exported here
+from pipeline.defaults import default_text as default_text
+from pipeline.defaults import default_value as default_value
+from pipeline.defaults import read_toml as read_toml
 from pipeline.errors import AeromagError
 
 CONFIG_VERSION = 1
-
-
-def default_text() -> str:
-    return resources.files("pipeline").joinpath("default_config.toml").read_text()
-
-
-@functools.cache
-def _defaults() -> dict[str, Any]:
-    return tomllib.loads(default_text())
-
-
-def default_value(section: str, key: str) -> Any:
-    """A value of the shipped defaults: the one source of a code default that has a key."""
-    return copy.deepcopy(_defaults()[section][key])
-
-
-def read_toml(path: str | Path, what: str) -> dict[str, Any]:
-    """A user's TOML file (``what``: "configuration", "mapping"), or a one-line error naming
-    the file when it is missing or not valid TOML."""
-    p = Path(path)
-    if not p.is_file():
-        raise AeromagError(f"{what} file not found", file=p)
-    try:
-        return tomllib.loads(p.read_text())
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise AeromagError(f"not valid TOML ({exc})", file=p) from None
 
 
 def _merge(base: dict, over: dict, source: str, prefix: str = "") -> dict:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.compensate.stage import CompensationRun
-from pipeline.io.reader import Flight
+from pipeline.flight import Flight
 from pipeline.io.writer import OutputChannel
 from pipeline.segment import Segmentation
 

@@ -9,7 +9,8 @@ from typing import Any
 import numpy as np
 
 from pipeline import __version__
-from pipeline.io.reader import NS, Flight
+from pipeline.flight import Flight
+from pipeline.io.reader import NS
 from pipeline.io.writer import OutputChannel
 
 LOG_TOPIC = "/aeromag/log"

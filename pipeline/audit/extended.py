@@ -31,8 +31,8 @@ from pipeline.compensate.terms import (
     tl16_terms,
     tl18_terms,
 )
+from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
-from pipeline.io.reader import Flight
 from pipeline.physics.interference import CarrierInterference, scalar_reading_nT
 
 

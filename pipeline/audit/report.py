@@ -7,7 +7,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.audit.stage import AuditResult
-from pipeline.io.reader import Flight
+from pipeline.flight import Flight
 from pipeline.io.writer import OutputChannel
 
 

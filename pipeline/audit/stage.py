@@ -62,7 +62,7 @@ from pipeline.compensate.model import figure_of_merit
 from pipeline.compensate.stage import calibration_mask
 from pipeline.compensate.terms import direction_cosines
 from pipeline.errors import AeromagError
-from pipeline.io.reader import Flight
+from pipeline.flight import Flight
 from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
 from pipeline.segment import Segmentation
 

@@ -19,8 +19,8 @@ from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguou
 from pipeline.compensate.guards import scaled_condition
 from pipeline.compensate.ridge import LCurve, RidgeSVD
 from pipeline.compensate.terms import position_terms, tl16_terms, tl18_terms
+from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
-from pipeline.io.reader import Flight
 
 MODELS = ("tl16", "tl18", "agg-tl")
 

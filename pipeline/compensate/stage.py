@@ -18,7 +18,7 @@ from pipeline.compensate.model import (
     fit_compensation,
 )
 from pipeline.errors import AeromagError
-from pipeline.io.reader import Flight
+from pipeline.flight import Flight
 from pipeline.segment import Segmentation
 
 CALIBRATION_HELP = ("auto (the segmentation's calibration passes, turns between headings "

@@ -1,7 +1,8 @@
 """Reading and writing MCAP recordings under the aeromag channel contract."""
 
+from pipeline.flight import Flight
 from pipeline.io.contract import INPUT_CONTRACT, TopicRule, rule_for_topic
-from pipeline.io.reader import Flight, read_flight, read_topics
+from pipeline.io.reader import read_flight, read_topics
 from pipeline.io.writer import McapOutput, OutputChannel, stamp, write_with_new_channels
 
 __all__ = [

@@ -91,14 +91,25 @@ class BulkWriter:
 
     # -- records -----------------------------------------------------------------------------
     def start(self, profile: str = "", library: str = "") -> None:
+        """Write the MCAP magic and the Header record.
+
+        Parameters
+        ----------
+        profile : str
+            MCAP profile (empty for aeromag's JSON channels).
+        library : str
+            Name and version of the writing library.
+        """
         self._write(MAGIC)
         self._write(serialise(Header(profile=profile, library=library)))
 
     def add_schema(self, schema: Schema) -> None:
+        """Register ``schema`` under its id and write its Schema record."""
         self.schemas[schema.id] = schema
         self._write(serialise(schema))
 
     def add_channel(self, channel: Channel) -> None:
+        """Register ``channel`` under its id and write its Channel record."""
         self.channels[channel.id] = channel
         self._write(serialise(channel))
 
@@ -108,6 +119,15 @@ class BulkWriter:
         self.metadata_indexes.append(MetadataIndex(offset=at, length=len(record), name=name))
 
     def add_attachment_record(self, record: bytes, index: AttachmentIndex) -> None:
+        """Write a serialised Attachment record and index it.
+
+        Parameters
+        ----------
+        record : bytes
+            The whole record (opcode + length + body).
+        index : AttachmentIndex
+            Its index entry; ``offset`` and ``length`` are filled in here.
+        """
         index.offset = self._write(record)
         index.length = len(record)
         self.attachment_indexes.append(index)

@@ -29,6 +29,17 @@ class TopicRule:
     alias: str = ""  # column-name suffix of a mapped topic (see pipeline.io.mapping)
 
     def matches(self, topic: str) -> bool:
+        """True when ``topic`` is this rule's topic, or ``<topic>/<id>`` for a prefix rule.
+
+        Parameters
+        ----------
+        topic : str
+            An MCAP topic name, e.g. ``"/mag/scalar/2"``.
+
+        Returns
+        -------
+        bool
+        """
         if topic == self.topic:
             return True
         sub = topic[len(self.topic) + 1:]

@@ -35,19 +35,31 @@ class InspectReport:
 
     @property
     def start_ns(self) -> int | None:
+        """Earliest log time over all topics, ns since the Unix epoch (UTC); None when empty."""
         s = [t.start_ns for t in self.topics if t.start_ns is not None]
         return min(s) if s else None
 
     @property
     def end_ns(self) -> int | None:
+        """Latest log time over all topics, ns since the Unix epoch (UTC); None when empty."""
         e = [t.end_ns for t in self.topics if t.end_ns is not None]
         return max(e) if e else None
 
     @property
     def gaps(self) -> list[Gap]:
+        """Gaps of every topic, topic by topic."""
         return [g for t in self.topics for g in t.gaps]
 
     def to_dict(self) -> dict:
+        """The report as a JSON-ready dict (``aeromag inspect --json``).
+
+        Returns
+        -------
+        dict
+            ``file``, ``start_ns`` / ``end_ns`` (ns, UTC), ``duration_s``, per-topic ``topics``
+            (schema, encoding, messages, role, rate in Hz, gaps in s from the start),
+            ``violations`` and ``warnings``.
+        """
         t0 = self.start_ns
         return {
             "file": str(self.path),

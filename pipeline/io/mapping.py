@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from pipeline.config import read_toml
+from pipeline.defaults import read_toml
 from pipeline.errors import AeromagError
 
 ROLES = ("scalar", "vector", "attitude", "position", "base", "aux")
@@ -62,6 +62,24 @@ class Mapping:
 
     @classmethod
     def load(cls, path: str | Path) -> Mapping:
+        """Read and check a topic-mapping file (TOML, ``[topics."<topic>"]`` tables).
+
+        Parameters
+        ----------
+        path : str or Path
+            The mapping file.
+
+        Returns
+        -------
+        Mapping
+
+        Raises
+        ------
+        AeromagError
+            Missing file, invalid TOML, unknown key, role or frame (``frd``: body x forward,
+            y right, z down in NED; ``flu``: body x forward, y left, z up in ENU, ROS REP-103),
+            wrong field count, or no topic at all.
+        """
         p = Path(path)
         doc = read_toml(p, "mapping")
         extra = set(doc) - {"topics"}
@@ -91,6 +109,25 @@ class Mapping:
 
 
 def get_path(obj: Any, path: str) -> Any:
+    """Follow a dotted path (``"header.stamp.sec"``) through dicts and attributes.
+
+    Parameters
+    ----------
+    obj : Any
+        A decoded message (dict for JSON, object for ROS 2 / protobuf).
+    path : str
+        Field names separated by dots.
+
+    Returns
+    -------
+    Any
+        The value at the end of the path.
+
+    Raises
+    ------
+    KeyError, AttributeError
+        When a part of the path is absent.
+    """
     for part in path.split("."):
         obj = obj[part] if isinstance(obj, dict) else getattr(obj, part)
     return obj

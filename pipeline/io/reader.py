@@ -24,6 +24,7 @@ import orjson
 import pandas as pd
 
 from pipeline.errors import AeromagError
+from pipeline.flight import Flight  # moved to pipeline.flight; re-exported here
 from pipeline.io.contract import MESSAGE_ENCODING, TopicRule, rule_for_topic
 from pipeline.io.plausibility import check_degrees, check_units
 from pipeline.io.scan import Loss, ScanError, scan_mcap
@@ -48,6 +49,7 @@ class RawTopic:
 
     @property
     def count(self) -> int:
+        """Number of messages read on the topic."""
         return len(self.data)
 
 
@@ -59,6 +61,17 @@ class RawRecording:
     losses: list[Loss] = field(default_factory=list)  # damage salvaged around
 
     def loss_notes(self, t0_ns: int | None = None) -> list[str]:
+        """One ``"salvaged: ..."`` line per damaged part of the file.
+
+        Parameters
+        ----------
+        t0_ns : int, optional
+            Reference instant (ns, UTC) for times given relative to the start of the recording.
+
+        Returns
+        -------
+        list of str
+        """
         return [f"salvaged: {x.describe(t0_ns)}" for x in self.losses]
 
 
@@ -143,12 +156,14 @@ class TopicSeries:
 
     @property
     def median_period_s(self) -> float:
+        """Median interval between samples, s (NaN with fewer than 2 samples)."""
         if self.time_ns.size < 2:
             return float("nan")
         return float(np.median(np.diff(self.time_ns))) / NS
 
     @property
     def rate_hz(self) -> float:
+        """Sample rate from the median period, Hz (NaN when undefined)."""
         p = self.median_period_s
         return 1.0 / p if p > 0 else float("nan")
 
@@ -334,6 +349,7 @@ class Gap:
 
     @property
     def duration_s(self) -> float:
+        """Length of the gap, s."""
         return (self.end_ns - self.start_ns) / NS
 
 
@@ -344,57 +360,6 @@ def find_gaps(time_ns: np.ndarray, topic: str, gap_factor: float = 3.0) -> list[
     dt = np.diff(time_ns)
     limit = gap_factor * float(np.median(dt))
     return [Gap(topic, int(time_ns[i]), int(time_ns[i + 1])) for i in np.flatnonzero(dt > limit)]
-
-
-@dataclass
-class Flight:
-    """A recording's streams on one time base: the primary scalar magnetometer's epochs.
-
-    Columns of ``data`` (those whose topic is absent are missing, not NaN-filled):
-
-    - ``time_s``: seconds since the first epoch; ``time_ns`` holds absolute UTC ns.
-    - ``scalar_nT``: primary scalar magnetometer; ``scalar_<id>_nT`` for others.
-    - ``vector_x_nT``, ``vector_y_nT``, ``vector_z_nT``: primary vector magnetometer, body frame
-      (x forward, y right, z down); ``vector_<id>_x_nT`` ... for others.
-    - ``roll_deg``, ``pitch_deg``, ``yaw_deg``: attitude (yaw = true heading, 0-360).
-    - ``lat_deg``, ``lon_deg``, ``alt_m``: GNSS, WGS-84 (altitude above the ellipsoid).
-    - ``base_nT``: base-station magnetometer.
-    - ``aux_<name>``: auxiliary channels, unit in ``units``.
-    - ``plan_line_id``, ``plan_kind``: the planned segment in force (from ``/plan/line``).
-    - ``reference_<name>_nT``: another processor's product (``/reference/<name>``).
-
-    Secondary streams are linearly interpolated (yaw unwrapped first); epochs outside a
-    stream's span or inside one of its gaps are NaN and listed in ``notes``.
-    """
-
-    source: Path
-    time_ns: np.ndarray
-    data: pd.DataFrame
-    units: dict[str, str]
-    series: dict[str, TopicSeries]
-    topic_of: dict[str, str]  # role or column group -> topic used
-    gaps: list[Gap]
-    notes: list[str]
-    unknown_topics: list[str]
-    losses: list[Loss] = field(default_factory=list)  # damaged parts of the file, salvaged
-    all_topics: list[str] = field(default_factory=list)  # every topic in the file
-
-    def has(self, *columns: str) -> bool:
-        return all(c in self.data.columns for c in columns)
-
-    def require(self, *columns: str, purpose: str) -> None:
-        """Raise a one-line error when a needed column (hence channel) is missing."""
-        missing = [c for c in columns if c not in self.data.columns]
-        if missing:
-            raise AeromagError(f"{purpose} needs {', '.join(missing)} but the channel is absent",
-                               file=self.source, channel=_CHANNEL_OF_COLUMN.get(missing[0], ""))
-
-
-_CHANNEL_OF_COLUMN = {
-    "vector_x_nT": "/mag/vector", "vector_y_nT": "/mag/vector", "vector_z_nT": "/mag/vector",
-    "roll_deg": "/ins/attitude", "pitch_deg": "/ins/attitude", "yaw_deg": "/ins/attitude",
-    "lat_deg": "/gnss/fix", "lon_deg": "/gnss/fix", "alt_m": "/gnss/fix", "base_nT": "/base/scalar",
-}
 
 
 def _interp_onto(t_dst: np.ndarray, series: TopicSeries, values: np.ndarray,

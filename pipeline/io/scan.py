@@ -82,6 +82,16 @@ class Scan:
     attachment_records: list[bytes] = field(default_factory=list)
 
     def schema_of(self, ch: ChannelData) -> tuple[str, str]:
+        """Schema name and encoding of a channel (empty strings when its Schema record was lost).
+
+        Parameters
+        ----------
+        ch : ChannelData
+
+        Returns
+        -------
+        tuple of (str, str)
+        """
         name, enc, _ = self.schemas.get(ch.schema_id, ("", "", b""))
         return name, enc
 

@@ -38,6 +38,22 @@ def schema_bytes(name: str) -> bytes:
 
 @cache
 def schema(name: str) -> dict[str, Any]:
+    """The JSON Schema named ``name``, parsed (cached).
+
+    Parameters
+    ----------
+    name : str
+        ``aeromag.<Name>`` for ours, ``foxglove.<Name>`` for Foxglove's.
+
+    Returns
+    -------
+    dict
+
+    Raises
+    ------
+    KeyError
+        No schema of that name.
+    """
     return orjson.loads(schema_bytes(name))
 
 

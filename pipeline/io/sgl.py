@@ -60,6 +60,24 @@ def _xyz_name(col: str) -> str:
 
 
 def read_xyz(path: Path) -> dict[str, np.ndarray]:
+    """Read an SGL XYZ text file into columns, by their HDF5 names.
+
+    The last header line (beginning with ``/``) names the columns; ``*`` is a missing value
+    (NaN). Values keep the file's units (nT, deg, m; ``tt`` in s past midnight UTC).
+
+    Parameters
+    ----------
+    path : Path
+
+    Returns
+    -------
+    dict of str to ndarray
+
+    Raises
+    ------
+    AeromagError
+        Not UTF-8 text, no header, ragged or non-numeric data lines, no data.
+    """
     header: list[str] = []
     rows: list[list[str]] = []
     try:
@@ -107,6 +125,22 @@ def _is_number(v: str) -> bool:
 
 
 def read_h5(path: Path) -> dict[str, np.ndarray]:
+    """Read the 1-D datasets of an SGL HDF5 file (those of the most common length).
+
+    Parameters
+    ----------
+    path : Path
+
+    Returns
+    -------
+    dict of str to ndarray
+        Dataset name -> float values in the file's units.
+
+    Raises
+    ------
+    AeromagError
+        Not a readable HDF5 file, or no 1-D dataset.
+    """
     import h5py
 
     try:

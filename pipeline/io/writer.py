@@ -38,6 +38,7 @@ def stamp(time_ns: int) -> dict[str, int]:
 
 
 def encode(payload: dict[str, Any]) -> bytes:
+    """Serialise one message payload as JSON bytes (numpy arrays and scalars allowed)."""
     return orjson.dumps(payload, option=orjson.OPT_SERIALIZE_NUMPY)
 
 
@@ -96,6 +97,21 @@ class McapOutput:
 
     def schema_id(self, name: str, encoding: str = SCHEMA_ENCODING,
                   data: bytes | None = None) -> int:
+        """Id of a schema, registered on first use.
+
+        Parameters
+        ----------
+        name : str
+            Schema name (``aeromag.*`` or ``foxglove.*``).
+        encoding : str
+            Schema encoding (``jsonschema``).
+        data : bytes, optional
+            Schema text; by default the one shipped in ``schemas/``.
+
+        Returns
+        -------
+        int
+        """
         data = schema_bytes(name) if data is None else data
         key = (name, encoding, data)
         if key not in self._schemas:
@@ -115,6 +131,21 @@ class McapOutput:
 
     def write(self, channel_id: int, log_time_ns: int, data: bytes,
               publish_time_ns: int | None = None, sequence: int | None = None) -> None:
+        """Write one message.
+
+        Parameters
+        ----------
+        channel_id : int
+            From :meth:`channel`.
+        log_time_ns : int
+            Sample time, ns since the Unix epoch (UTC).
+        data : bytes
+            The encoded payload.
+        publish_time_ns : int, optional
+            Defaults to ``log_time_ns``.
+        sequence : int, optional
+            Defaults to a per-channel counter.
+        """
         assert self.writer is not None
         if sequence is None:
             sequence = self._sequence.get(channel_id, 0)
@@ -125,6 +156,7 @@ class McapOutput:
                                 sequence=sequence)
 
     def metadata(self, name: str, data: dict[str, str]) -> None:
+        """Write a Metadata record; values are stored as strings."""
         assert self.writer is not None
         self.writer.add_metadata(name=name, data={k: str(v) for k, v in data.items()})
 
@@ -142,6 +174,15 @@ class OutputChannel:
     messages: list[tuple[int, dict[str, Any]]] = field(default_factory=list)
 
     def add(self, log_time_ns: int, payload: dict[str, Any]) -> None:
+        """Append one message; adds ``timestamp`` ``{sec, nsec}`` to the payload when absent.
+
+        Parameters
+        ----------
+        log_time_ns : int
+            Sample time, ns since the Unix epoch (UTC).
+        payload : dict
+            The message, in the channel's schema.
+        """
         payload.setdefault("timestamp", stamp(log_time_ns))
         self.messages.append((int(log_time_ns), payload))
 

@@ -34,9 +34,19 @@ class Grid:
 
     @property
     def shape(self) -> tuple[int, int]:
+        """``(rows, columns)``: rows go north, columns east."""
         return self.values.shape
 
     def coordinates(self) -> tuple[np.ndarray, np.ndarray]:
+        """Cell-centre coordinates in the grid's local metric frame.
+
+        Returns
+        -------
+        east_m : ndarray
+            One per column, m east of the frame's origin.
+        north_m : ndarray
+            One per row, m north of the frame's origin.
+        """
         ny, nx = self.shape
         return (self.east0_m + self.cell_m * np.arange(nx),
                 self.north0_m + self.cell_m * np.arange(ny))
@@ -57,6 +67,7 @@ class Grid:
         return out
 
     def with_values(self, values: np.ndarray) -> Grid:
+        """The same grid geometry and CRS with other values (same shape, e.g. a filtered map)."""
         return Grid(values, self.east0_m, self.north0_m, self.cell_m, self.crs)
 
 

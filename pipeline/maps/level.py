@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from shapely import LineString, MultiPoint, Point
 
-from pipeline.config import default_value
+from pipeline.defaults import default_value
 
 # the shallowest angle at which two tracks count as crossing (map.min_crossing_angle_deg)
 MIN_CROSSING_ANGLE_DEG: float = default_value("map", "min_crossing_angle_deg")

@@ -8,8 +8,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import AeromagError
+from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
-from pipeline.io.reader import Flight
 from pipeline.maps.arima import (
     ArimaModel,
     KalmanResult,

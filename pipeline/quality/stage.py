@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import AeromagError
+from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
-from pipeline.io.reader import Flight
 from pipeline.maps.grid import Grid, minimum_curvature
 from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, Leveling, Line, level_lines
 from pipeline.maps.reduce import reduce_to_anomaly

@@ -29,8 +29,8 @@ from scipy.signal import hilbert
 from shapely import LineString
 
 from pipeline.errors import AeromagError
+from pipeline.flight import Flight
 from pipeline.geo.local import local_east_north
-from pipeline.io.reader import Flight
 
 LABELS = ("calibration", "survey", "tie", "validation", "turn", "transit")
 MANOEUVRES = ("roll", "pitch", "yaw")
@@ -66,6 +66,7 @@ class Box:
 
     @property
     def name(self) -> str:
+        """Box name ``C<pass><cardinal>-<manoeuvre>``, e.g. ``C1N-roll``."""
         return f"C{self.calibration_pass}{self.cardinal}-{self.manoeuvre}"
 
 
@@ -83,6 +84,18 @@ class Segmentation:
     notes: list[str] = field(default_factory=list)
 
     def mask(self, *labels: str) -> np.ndarray:
+        """Epochs carrying any of the given labels.
+
+        Parameters
+        ----------
+        *labels : str
+            Some of ``LABELS`` (calibration, survey, tie, validation, turn, transit).
+
+        Returns
+        -------
+        ndarray of bool
+            One per flight epoch.
+        """
         return np.isin(self.label, labels)
 
     def boxes(self) -> list[Box]:

@@ -243,6 +243,7 @@ class Scenario:
 
     @property
     def name(self) -> str:
+        """The scenario's name (``config["name"]``)."""
         return str(self.config["name"])
 
     def __getitem__(self, key: str) -> Any:
@@ -254,6 +255,7 @@ class Scenario:
         return e if e.get("enabled") else None
 
     def enabled_effects(self) -> list[str]:
+        """Names of the effects switched on, in ``EFFECTS`` order."""
         return [n for n in EFFECTS if self.config["effects"][n].get("enabled")]
 
     def recorded_config(self) -> dict[str, Any]:
@@ -264,6 +266,25 @@ class Scenario:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], source: str = "<dict>") -> Scenario:
+        """Resolve a scenario from a dict of overrides on its profile's defaults.
+
+        Parameters
+        ----------
+        data : dict
+            Scenario keys (as in a scenario TOML); ``profile`` is ``uav`` (default) or
+            ``fixed-wing``.
+        source : str
+            Where ``data`` came from, for error messages.
+
+        Returns
+        -------
+        Scenario
+
+        Raises
+        ------
+        AeromagError
+            Unknown profile or key.
+        """
         profile = data.get("profile", "uav")
         if profile not in _PROFILES:
             raise AeromagError(f"unknown profile {profile!r} (use uav or fixed-wing)", file=source)
@@ -337,5 +358,6 @@ def parse_override(item: str) -> dict[str, Any]:
 
 
 def builtin_scenarios() -> list[str]:
+    """Names of the built-in scenarios (``aeromag scenarios``), sorted."""
     folder = resources.files("pipeline.simulate") / "scenarios"
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))

@@ -65,6 +65,7 @@ VIBRATION_MODES = (1.0, 1.13, 0.87)  # vibration frequency ratios about body x, 
 
 
 def parse_time(text: str) -> datetime:
+    """Parse an ISO 8601 instant (``Z`` allowed) into an aware UTC datetime."""
     return datetime.fromisoformat(text.replace("Z", "+00:00")).astimezone(UTC)
 
 
@@ -89,19 +90,77 @@ class EarthField:
     diurnal_nT: np.ndarray
 
     def main(self, t: np.ndarray) -> np.ndarray:
+        """Main (IGRF) field along the flown track, interpolated at times ``t``.
+
+        Parameters
+        ----------
+        t : ndarray
+            s since the start of the flight.
+
+        Returns
+        -------
+        ndarray, shape (n, 3)
+            NED, nT.
+        """
         return np.stack([np.interp(t, self.main_t, self.main_ned[:, k]) for k in range(3)], -1)
 
     def diurnal(self, t: np.ndarray) -> np.ndarray:
+        """Diurnal variation at times ``t`` (s since the start of the flight), nT."""
         return np.interp(t, self.diurnal_t, self.diurnal_nT)
 
     def crust(self, east, north, up) -> np.ndarray:
+        """Field of the crustal dipoles at local positions.
+
+        Parameters
+        ----------
+        east, north : ndarray
+            m in the local frame.
+        up : ndarray
+            m above ground.
+
+        Returns
+        -------
+        ndarray, shape (n, 3)
+            NED, nT.
+        """
         return dipole_field_ned_nT(self.dipoles, east, north, up)
 
     def regional(self, east, north, up) -> np.ndarray:
+        """Regional gradient field along the main-field direction (zero when the effect is off).
+
+        Parameters
+        ----------
+        east, north : ndarray
+            m in the local frame.
+        up : ndarray
+            m above ground.
+
+        Returns
+        -------
+        ndarray, shape (n, 3)
+            NED, nT: gradient (nT/m) times the offset from the survey's reference point, times
+            the main-field unit vector at the site.
+        """
         d = np.stack([east, north, up], -1) - self.gradient_ref_enu
         return (d @ self.gradient_nT_per_m)[:, None] * self.b_hat
 
     def ned(self, t, east, north, up) -> np.ndarray:
+        """The total Earth field: main + crustal + regional + diurnal.
+
+        Parameters
+        ----------
+        t : ndarray
+            s since the start of the flight.
+        east, north : ndarray
+            m in the local frame.
+        up : ndarray
+            m above ground.
+
+        Returns
+        -------
+        ndarray, shape (n, 3)
+            NED, nT.
+        """
         return (self.main(t) + self.crust(east, north, up) + self.regional(east, north, up)
                 + self.diurnal(t)[:, None] * self.b_hat)
 

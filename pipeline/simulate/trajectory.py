@@ -51,6 +51,7 @@ class Manoeuvre:
 
     @property
     def duration_s(self) -> float:
+        """Length of the manoeuvre, s (period x cycles)."""
         return self.period_s * self.cycles
 
 
@@ -69,15 +70,18 @@ class Leg:
 
     @property
     def length_m(self) -> float:
+        """Horizontal length of the leg, m."""
         return float(np.linalg.norm(self.end_en - self.start_en))
 
     @property
     def direction(self) -> np.ndarray:
+        """Unit vector of the leg, (east, north)."""
         d = self.end_en - self.start_en
         return d / np.linalg.norm(d)
 
     @property
     def heading_deg(self) -> float:
+        """Track direction, degrees clockwise from true north, 0-360."""
         d = self.direction
         return float(np.degrees(np.arctan2(d[0], d[1])) % 360.0)
 
@@ -356,6 +360,18 @@ class Trajectory:
                 "roll_deg": v[..., 3], "pitch_deg": v[..., 4], "yaw_deg": np.mod(v[..., 5], 360)}
 
     def motor_load_at(self, t_s) -> np.ndarray:
+        """Manoeuvre intensity (drives the simulated motor current) at times ``t_s``.
+
+        Parameters
+        ----------
+        t_s : float or ndarray
+            s since the start of the flight.
+
+        Returns
+        -------
+        ndarray
+            Dimensionless load, interpolated from the master time grid.
+        """
         return np.interp(t_s, self.master_t, self.motor_load)
 
 

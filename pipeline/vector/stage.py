@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 
 from pipeline.errors import AeromagError
+from pipeline.flight import Flight
 from pipeline.geo.frames import ned_to_body
 from pipeline.geo.igrf import igrf_ned_nT
-from pipeline.io.reader import Flight
 from pipeline.segment import Segmentation
 from pipeline.vector.component import ComponentKF, ComponentParameters, batch_fit
 from pipeline.vector.ellipsoid import Ellipsoid, EllipsoidKF, fit_ellipsoid

@@ -1,0 +1,44 @@
+"""The shipped defaults and reading a user's TOML file.
+
+A leaf module (it imports nothing else of aeromag but the error type), so the reader
+(``pipeline.io.mapping``) and the stages (``pipeline.maps.level``) can use it without importing
+:mod:`pipeline.config`, which itself imports the stages' settings: no ``config`` <-> ``io``
+import cycle. :mod:`pipeline.config` re-exports everything here.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import tomllib
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+from pipeline.errors import AeromagError
+
+
+def default_text() -> str:
+    return resources.files("pipeline").joinpath("default_config.toml").read_text()
+
+
+@functools.cache
+def _defaults() -> dict[str, Any]:
+    return tomllib.loads(default_text())
+
+
+def default_value(section: str, key: str) -> Any:
+    """A value of the shipped defaults: the one source of a code default that has a key."""
+    return copy.deepcopy(_defaults()[section][key])
+
+
+def read_toml(path: str | Path, what: str) -> dict[str, Any]:
+    """A user's TOML file (``what``: "configuration", "mapping"), or a one-line error naming
+    the file when it is missing or not valid TOML."""
+    p = Path(path)
+    if not p.is_file():
+        raise AeromagError(f"{what} file not found", file=p)
+    try:
+        return tomllib.loads(p.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise AeromagError(f"not valid TOML ({exc})", file=p) from None
