@@ -100,3 +100,24 @@ def test_without_gnss_or_plan_a_clear_error():
     flight = read_flight(FIXTURES / "box_scalar_vector_only.mcap")
     with pytest.raises(AeromagError, match="/gnss/fix: segmentation needs /gnss/fix"):
         segment_flight(flight)
+
+
+def test_survey_found_when_transits_and_ties_outlength_the_lines(tmp_path):
+    """A short UAV block (five 400 m N-S lines, three 200 m E-W ties) reached by long E-W
+    transits: E-W carries more length than N-S, yet the survey runs N-S (found by the most
+    lines on a grid, not the most length)."""
+    from pipeline.simulate import Scenario, simulate
+
+    sc = Scenario.load("uav-small", [
+        "calibration.passes=2", 'calibration.heading_order="ESWN"',
+        "survey.length_m=400.0", "survey.width_m=200.0", "survey.line_spacing_m=50.0",
+        "survey.tie_spacing_m=150.0", "survey.validation=false", "survey.enabled=true",
+        "calibration.centre_east_m=-250.0", "calibration.centre_north_m=-250.0",
+        "flight.transit_s=10.0"])
+    sim = simulate(sc, 3)
+    flight = read_flight(write_simulation(sim, tmp_path / "block.mcap"))
+    lab, _ = truth_labels(sim, flight)
+    seg = segment_flight(flight)
+    for kind in ("survey", "tie"):
+        truth = lab == kind
+        assert np.mean(seg.label[truth] == kind) > 0.9, kind

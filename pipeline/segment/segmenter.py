@@ -417,51 +417,30 @@ def _classify(flight: Flight, legs: list[_Leg], e, n, t, p: SegmentParams, rate:
         return
     length = np.array([np.hypot(e[lg.i1] - e[lg.i0], n[lg.i1] - n[lg.i0]) for lg in rest])
     orient = np.array([lg.heading_deg % 180.0 for lg in rest])
-    # dominant orientation: the 180-deg-periodic direction carrying the most line length
+    # Candidate line directions: the 180-deg-periodic directions carrying the most line
+    # length. The longest is not always the survey's: long transits and the tie lines can
+    # out-length short survey lines, so each distinct peak is tried and the direction
+    # giving the most lines on a regular grid inside one block wins (ties: more length).
     cand = np.arange(0.0, 180.0, 1.0)
-    score = [length[np.array([_angle_diff(o, c, 180.0) for o in orient]) <= p.parallel_tol_deg]
-             .sum() for c in cand]
-    best = cand[int(np.argmax(score))]
-    near = np.array([_angle_diff(o, best, 180.0) <= p.parallel_tol_deg for o in orient])
-    # refine about the length-weighted mean of the legs near the peak, then re-select
-    w = length[near]
-    main = _circmean_deg(np.repeat(orient[near], np.maximum(1, (w / w.max() * 20).astype(int))),
-                         180.0)
-    near = np.array([_angle_diff(o, main, 180.0) <= p.parallel_tol_deg for o in orient])
-    along = np.array([np.sin(np.radians(main)), np.cos(np.radians(main))])
-    across = np.array([along[1], -along[0]])
-    for lg in rest:
-        a0 = e[lg.i0] * along[0] + n[lg.i0] * along[1]
-        a1 = e[lg.i1] * along[0] + n[lg.i1] * along[1]
-        lg.along = (min(a0, a1), max(a0, a1))
-        mid = (lg.i0 + lg.i1) // 2
-        lg.offset = e[mid] * across[0] + n[mid] * across[1]
-    par = [lg for lg, ok in zip(rest, near, strict=True) if ok]
-    if not par:
+    score = np.array([length[np.array([_angle_diff(o, c, 180.0) for o in orient])
+                             <= p.parallel_tol_deg].sum() for c in cand])
+    peaks: list[float] = []
+    for c in cand[np.argsort(-score, kind="stable")]:
+        if score[int(c)] <= 0 or len(peaks) == 3:
+            break
+        if all(_angle_diff(c, q, 180.0) > 2 * p.parallel_tol_deg for q in peaks):
+            peaks.append(float(c))
+    best, best_peak = None, None
+    for peak in peaks:
+        found = _survey_block(rest, e, n, orient, length, peak, p)
+        if found is not None and (best is None or (len(found[0]), found[-1])
+                                  > (len(best[0]), best[-1])):
+            best, best_peak = found, peak
+    if best is None:
         return
-    # the survey block: the along-track extent shared by most parallel lines
-    lo = float(np.median([lg.along[0] for lg in par]))
-    hi = float(np.median([lg.along[1] for lg in par]))
-    survey = [lg for lg in par
-              if min(lg.along[1], hi) - max(lg.along[0], lo) >= 0.5 * (hi - lo)]
-    if len(survey) < p.min_survey_lines:
-        return
-    # Survey lines sit on the line-spacing grid; a straight flown along the block edge between
-    # two other lines (a turn) does not.
-    offs = np.array([lg.offset for lg in survey])
-    uniq = np.unique(np.round(offs / 5.0) * 5.0)
-    spacing = float(np.median(np.diff(uniq))) if uniq.size > 1 else 0.0
-    if spacing > 0:
-        def grid_miss(ref: float) -> np.ndarray:
-            frac = (offs - ref) / spacing
-            return np.abs(frac - np.round(frac)) * spacing
-
-        # the grid passes through the line offset that puts the most lines on it
-        ref = max(offs, key=lambda r: int((grid_miss(r) <= spacing / 4).sum()))
-        on_grid = grid_miss(ref) <= spacing / 4
-        survey = [lg for lg, ok in zip(survey, on_grid, strict=True) if ok]
-    if len(survey) < p.min_survey_lines:
-        return
+    if best_peak != peaks[-1]:  # each try re-projects the legs: project on the winner again
+        best = _survey_block(rest, e, n, orient, length, best_peak, p)
+    survey, spacing, main, along, across, _ = best
     for lg in survey:
         lg.kind = "survey"
     offs = np.array([lg.offset for lg in survey])
@@ -484,6 +463,59 @@ def _classify(flight: Flight, legs: list[_Leg], e, n, t, p: SegmentParams, rate:
                 lo <= a_mid <= hi):
             lg.kind = "validation"
     _name_lines(rest, spacing)
+
+
+def _survey_block(rest: list[_Leg], e: np.ndarray, n: np.ndarray, orient: np.ndarray,
+                  length: np.ndarray, peak_deg: float, p: SegmentParams):
+    """The survey lines if the lines run along ``peak_deg`` (mod 180): parallel legs that
+    share the block's along-track extent and sit on the line-spacing grid. Sets each leg's
+    ``along`` extent and cross-track ``offset`` for that direction. Returns ``(lines,
+    spacing_m, direction_deg, along, across, length_m)`` or None (too few lines)."""
+    near = np.array([_angle_diff(o, peak_deg, 180.0) <= p.parallel_tol_deg for o in orient])
+    # refine about the length-weighted mean of the legs near the peak, then re-select
+    w = length[near]
+    main = _circmean_deg(np.repeat(orient[near], np.maximum(1, (w / w.max() * 20).astype(int))),
+                         180.0)
+    near = np.array([_angle_diff(o, main, 180.0) <= p.parallel_tol_deg for o in orient])
+    along = np.array([np.sin(np.radians(main)), np.cos(np.radians(main))])
+    across = np.array([along[1], -along[0]])
+    for lg in rest:
+        a0 = e[lg.i0] * along[0] + n[lg.i0] * along[1]
+        a1 = e[lg.i1] * along[0] + n[lg.i1] * along[1]
+        lg.along = (min(a0, a1), max(a0, a1))
+        mid = (lg.i0 + lg.i1) // 2
+        lg.offset = e[mid] * across[0] + n[mid] * across[1]
+    par = [lg for lg, ok in zip(rest, near, strict=True) if ok]
+    if not par:
+        return None
+    # the survey block: the along-track extent shared by most parallel lines
+    lo = float(np.median([lg.along[0] for lg in par]))
+    hi = float(np.median([lg.along[1] for lg in par]))
+    survey = [lg for lg in par
+              if min(lg.along[1], hi) - max(lg.along[0], lo) >= 0.5 * (hi - lo)]
+    if len(survey) < p.min_survey_lines:
+        return None
+    # Survey lines sit on the line-spacing grid; a straight flown along the block edge between
+    # two other lines (a turn) does not.
+    offs = np.array([lg.offset for lg in survey])
+    uniq = np.unique(np.round(offs / 5.0) * 5.0)
+    spacing = float(np.median(np.diff(uniq))) if uniq.size > 1 else 0.0
+    if spacing > 0:
+        def grid_miss(ref: float) -> np.ndarray:
+            frac = (offs - ref) / spacing
+            return np.abs(frac - np.round(frac)) * spacing
+
+        # the grid passes through the line offset that puts the most lines on it
+        ref = max(offs, key=lambda r: int((grid_miss(r) <= spacing / 4).sum()))
+        on_grid = grid_miss(ref) <= spacing / 4
+        survey = [lg for lg, ok in zip(survey, on_grid, strict=True) if ok]
+    # lines flown twice at one offset (a repeat) count once
+    distinct = np.unique(np.round(np.array([lg.offset for lg in survey]) / max(spacing, 1.0)
+                                  * 2)) if survey else []
+    if len(distinct) < p.min_survey_lines:
+        return None
+    total = float(sum(np.hypot(e[lg.i1] - e[lg.i0], n[lg.i1] - n[lg.i0]) for lg in survey))
+    return survey, spacing, main, along, across, total
 
 
 def _name_lines(legs: list[_Leg], spacing: float) -> None:
