@@ -35,7 +35,8 @@ from pipeline.report import sha256_file
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 INDEX_FIELDS = ["input", "sha256", "config_hash", "status", "reason", "output_dir",
-                "seconds", "fom_nT", "heading_error_rms_nT", "crossover_rms_nT",
+                "seconds", "fom_nT", "heading_error_rms_nT", "heading_error_method",
+                "crossover_rms_nT",
                 "findings"]
 install_one_line_errors()
 # called with (done, total, row) after each recording when set (the CLI's progress bar)
@@ -112,6 +113,7 @@ def _figures(summary: dict) -> dict[str, Any]:
     audit = summary.get("audit") or {}
     return {"fom_nT": fom,
             "heading_error_rms_nT": he.get("extended", he.get("agg_tl")),
+            "heading_error_method": q.get("heading_error_method"),
             "crossover_rms_nT": (q.get("crossover_rms_nT") or {}).get("after"),
             "findings": " ".join(f["effect"] for f in audit.get("findings", []))}
 

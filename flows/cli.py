@@ -291,9 +291,12 @@ def _print_quality(q: dict) -> None:
     floor = q["heading_error_noise_floor_nT"]
     say(f"heading error, validation X lines vs map lines: {q['intersections']} intersections, "
         f"{q['overlap_pairs']} pairs < {q['overlap_m']:g} m; white-noise floor at the "
-        f"intersections {'-' if floor is None else f'{floor:.3f} nT'}")
-    table = Table(title="RMS of B_validation - B_map", title_justify="left")
-    for col in ("state", "intersections RMS nT", "pairs RMS nT", "interpolated map RMS nT"):
+        f"intersections {'-' if floor is None else f'{floor:.3f} nT'}; headline "
+        f"heading_error_rms_nT = {q.get('heading_error_method', 'intersections')}")
+    inter = q.get("intersection_rms_nT", q["heading_error_rms_nT"])
+    table = Table(title="RMS of B_validation - B_map (pairs, interpolated map: paper 002's "
+                        "statistics; intersections: ours)", title_justify="left")
+    for col in ("state", "pairs RMS nT", "intersections RMS nT", "interpolated map RMS nT"):
         table.add_column(col, justify="left" if col == "state" else "right")
 
     def f(x):
@@ -302,7 +305,7 @@ def _print_quality(q: dict) -> None:
     for s in q["states"]:
         name = s + (" (= tl)" if q.get("tl_alias") and s == q["tl_alias"].replace("-", "_")
                     else "")
-        table.add_row(name, f(q["heading_error_rms_nT"][s]), f(q["overlap_pair_rms_nT"][s]),
+        table.add_row(name, f(q["overlap_pair_rms_nT"][s]), f(inter[s]),
                       f(q["interpolated_rms_nT"][s]))
     show(table)
     xo, n = q["crossover_rms_nT"], q["noise_4th_diff_nT"]

@@ -121,8 +121,9 @@ class Config:
         if self.values["vector"]["method"] not in METHODS:
             raise AeromagError(f"vector.method: use one of {', '.join(METHODS)}",
                                file=self.source)
-        if self.values["map"]["direction"] not in ("both", "forward"):
-            raise AeromagError("map.direction: use both or forward", file=self.source)
+        if self.values["map"]["direction"] not in ("smooth", "both", "forward"):
+            raise AeromagError("map.direction: use smooth (both is its old name) or forward",
+                               file=self.source)
         if not 0.0 <= self.values["map"]["min_crossing_angle_deg"] <= 90.0:
             raise AeromagError("map.min_crossing_angle_deg: use 0 to 90 degrees",
                                file=self.source)

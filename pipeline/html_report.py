@@ -195,16 +195,21 @@ def _quality_section(s: dict, figs: _Figures) -> list[str]:
     q = s.get("quality")
     if not q:
         return []
-    rows = [[html.escape(st), _f(q["heading_error_rms_nT"].get(st)),
-             _f(q["overlap_pair_rms_nT"].get(st)), _f(q["interpolated_rms_nT"].get(st))]
+    inter = q.get("intersection_rms_nT", q["heading_error_rms_nT"])
+    rows = [[html.escape(st), _f(q["overlap_pair_rms_nT"].get(st)), _f(inter.get(st)),
+             _f(q["interpolated_rms_nT"].get(st))]
             for st in q["states"]]
     out = ["<h2>Heading error: T-L vs AGG-TL</h2>",
            f"<p>{q['intersections']} validation-line intersections, {q['overlap_pairs']} "
            f"sample pairs closer than {_f(q['overlap_m'], '.2f')} m; white-noise floor at the "
            f"intersections {_f(q.get('heading_error_noise_floor_nT'))} nT. "
-           f"T-L = {html.escape(str(q.get('tl_alias')))}.</p>",
-           _table(["state", "intersections RMS nT", "pairs RMS nT", "interpolated map RMS nT"],
-                  rows)]
+           f"T-L = {html.escape(str(q.get('tl_alias')))}. Pairs and the interpolated map are "
+           f"paper 002's statistics; the intersections are ours (both fields interpolated "
+           f"along track to the crossing, so the gradient x distance of a pair drops out). "
+           f"Headline heading error: "
+           f"{html.escape(str(q.get('heading_error_method', 'intersections')))}.</p>",
+           _table(["state", "pairs RMS nT (paper's)", "intersections RMS nT (ours)",
+                   "interpolated map RMS nT (paper's)"], rows)]
     inter = q.get("heading_error", {}).get("intersections", {}).get("by_state", {})
     if inter:
         heads = []

@@ -247,7 +247,7 @@ def _demo_quality(tmp_path_factory, gradient: bool):
     # the simulated sensor noise (white + drift) as it enters B_val - B_map at the same points
     noise = sim.series["noise_nT"][np.searchsorted(sim.series["time_ns"], flight.time_ns)]
     noise_rms = float(np.sqrt(np.nanmean(q.intersections.differences(noise) ** 2)))
-    return q.summary(), noise_rms, sim
+    return q.summary(), noise_rms, sim, q
 
 
 @pytest.fixture(scope="module")
@@ -261,9 +261,9 @@ def demo_without_gradient(tmp_path_factory):
 
 
 def test_agg_tl_removes_the_heading_error_tl_leaves_over_a_gradient(demo_with_gradient):
-    s, noise_rms, sim = demo_with_gradient
+    s, noise_rms, sim, _ = demo_with_gradient
     assert sim.truth["noise"]["scalar_nT"] == 0.05
-    he = s["heading_error_rms_nT"]
+    he = s["intersection_rms_nT"]  # noise_rms is the noise at the intersections
     assert s["intersections"] >= 30 and s["overlap_pairs"] >= 30
     assert he["tl"] >= 2.0 * he["agg_tl"], he
     assert he["agg_tl"] <= 1.5 * noise_rms, (he, noise_rms)
@@ -277,10 +277,39 @@ def test_agg_tl_removes_the_heading_error_tl_leaves_over_a_gradient(demo_with_gr
 
 
 def test_without_gradient_tl_and_agg_tl_agree(demo_without_gradient):
-    s, noise_rms, _ = demo_without_gradient
-    he = s["heading_error_rms_nT"]
+    s, noise_rms, _, _ = demo_without_gradient
+    he = s["intersection_rms_nT"]
     assert he["agg_tl"] == pytest.approx(he["tl"], rel=0.10), he
     assert he["tl"] <= 1.5 * noise_rms
+
+
+def test_headline_heading_error_is_the_papers_pair_statistic_and_says_so(demo_with_gradient):
+    """Paper 002 §3.2's overlap statistic is pairs closer than 0.5 m: the headline uses it
+    when there are pairs, names it, and keeps the intersections next to it."""
+    s, _, _, _ = demo_with_gradient
+    assert s["overlap_m"] == pytest.approx(0.5) and s["overlap_pairs"] >= 10
+    assert s["heading_error_method"] == "pairs"
+    assert "paper 002" in s["heading_error_methods"]["pairs"]
+    for st in s["states"]:
+        assert s["heading_error_rms_nT"][st] == pytest.approx(s["overlap_pair_rms_nT"][st],
+                                                              rel=1e-12)
+        inter = s["heading_error"]["intersections"]["by_state"][st]["rms_nT"]
+        assert s["intersection_rms_nT"][st] == pytest.approx(inter, rel=1e-12)
+    # over the 0.45 nT/m gradient the pairs carry gradient x distance: above the intersections
+    assert s["heading_error_rms_nT"]["agg_tl"] > s["intersection_rms_nT"]["agg_tl"]
+
+
+def test_headline_falls_back_to_intersections_without_enough_pairs(demo_with_gradient):
+    import dataclasses
+
+    assert QualitySettings().min_overlap_pairs == 10  # from default_config.toml
+    _, _, _, q = demo_with_gradient
+    few = dataclasses.replace(q, settings=dataclasses.replace(
+        q.settings, min_overlap_pairs=q.pairs.count + 1))
+    s = few.summary()
+    assert s["heading_error_method"] == "intersections"
+    assert s["heading_error_rms_nT"] == s["intersection_rms_nT"]
+    assert s["overlap_pair_rms_nT"] == q.summary()["overlap_pair_rms_nT"]
 
 
 # --------------------------------------------------------------------------------------------
@@ -303,6 +332,10 @@ def test_quality_command_writes_summary_plots_and_valid_channels(tmp_path):
     # the default 30, and the two tie lines only at its corners: no intersection
     assert s["min_crossing_angle_deg"] == 30.0 and s["intersections"] == 0
     assert s["overlap_pair_rms_nT"]["raw"] > s["overlap_pair_rms_nT"]["agg_tl"]
+    # no intersection, pairs: the headline is the paper's pair statistic
+    assert s["heading_error_method"] == "pairs"
+    assert s["heading_error_rms_nT"] == s["overlap_pair_rms_nT"]
+    assert all(v is None for v in s["intersection_rms_nT"].values())
     assert s["crossover_rms_nT"]["before"] is not None and s["noise_4th_diff_nT"] > 0
     assert len(s["fom_boxes"]) == 12
     assert "heading error" in res.stdout and "agg_tl" in res.stdout

@@ -133,7 +133,8 @@ class ArimaModel:
 
 
 def choose_d(x: np.ndarray, max_d: int = 2, segments: int = 20) -> tuple[int, list[dict]]:
-    """Difference until the reverse-arrangements test accepts stationarity."""
+    """Difference until the reverse-arrangements test accepts stationarity (NaN kept, so a
+    difference across a missing stretch is missing, not a jump between distant cells)."""
     y = np.asarray(x, float)
     steps = []
     for d in range(max_d + 1):
@@ -162,12 +163,17 @@ def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: i
     from statsmodels.tsa.statespace.sarimax import SARIMAX
 
     x = np.asarray(x, float)
-    x = x[np.isfinite(x)]
+    # masked cells stay in as missing values (NaN): the likelihood predicts through a gap of
+    # its true length instead of joining the cells on either side as neighbours
+    fin = np.flatnonzero(np.isfinite(x))
+    if fin.size == 0:
+        raise ValueError("no finite sample to fit")
+    x = x[fin[0]:fin[-1] + 1]
     if order is None:
         d, steps = choose_d(x, max_d)
     else:
         d, steps = order[1], []
-    y = np.diff(x, n=d) if d else x
+    y = np.diff(x, n=d) if d else x  # differences across a gap are NaN, not joined
     candidates = [(order[0], order[2])] if order else [
         (p, q) for p in range(max_p + 1) for q in range(max_q + 1) if p + q > 0]
     best = None
@@ -199,6 +205,7 @@ def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: i
     ar = np.array([params[f"ar.L{i}"] for i in range(1, p + 1)])
     ma = np.array([params[f"ma.L{i}"] for i in range(1, q + 1)])
     tests = {"stationarity": steps, "normality_differenced": normality(y),
+             "samples": int(np.isfinite(x).sum()), "missing_inside": int((~np.isfinite(x)).sum()),
              "measurement_var": measurement_var, "failed_candidates": failed}
     return ArimaModel(p, d, q, ar, ma, float(params["sigma2"]), float(res.bic), tests)
 
@@ -363,3 +370,52 @@ def _level_state(t: np.ndarray, value: float) -> np.ndarray:
     a = np.vstack([np.eye(dim) - t, np.eye(dim)[:1]])
     b = np.r_[np.zeros(dim), value]
     return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
+# --------------------------------------------------------------------------------------------
+# fixed-interval (Rauch-Tung-Striebel) smoother
+SMOOTH_CHUNK = 200_000  # samples per statsmodels smoother call (its memory: ~2 kB per sample)
+SMOOTH_OVERLAP = 2_000  # samples each side a chunk runs beyond the part it returns
+
+
+def rts_smooth(y: np.ndarray, model: ArimaModel, measurement_var: float | np.ndarray
+               ) -> np.ndarray:
+    """Fixed-interval smoothed signal E[x_k | all of y] of ``y`` = ARIMA signal + white noise.
+
+    statsmodels' state-space smoother (SARIMAX in Harvey form, the fitted AR/MA coefficients
+    and innovation variance held fixed, the default diffuse-like initialisation) does the
+    Rauch-Tung-Striebel recursions; missing samples (NaN) are predicted through, and their
+    smoothed values are returned as NaN. ``measurement_var`` may be one variance or one per
+    sample (nT^2): the noise of a gridded map differs between cells on a flight line and
+    cells interpolated between lines.
+
+    Long sequences are smoothed in chunks of ``SMOOTH_CHUNK`` samples that overlap by
+    ``SMOOTH_OVERLAP`` on each side (only each chunk's middle is kept): statsmodels keeps
+    every covariance, about 2 kB per sample, so 10^6 cells in one call would need ~2 GB.
+    The steady-state smoother forgets its far end within a few hundred samples for the
+    models BIC picks on maps, so the overlap changes nothing measurable.
+    """
+    from statsmodels.tsa.statespace.sarimax import SARIMAX
+
+    y = np.asarray(y, float)
+    n = y.size
+    r = np.broadcast_to(np.asarray(measurement_var, float), (n,))
+    params = np.r_[model.ar, model.ma, model.sigma2]
+    out = np.full(n, np.nan)
+    start = 0
+    while start < n:
+        stop = min(start + SMOOTH_CHUNK, n)
+        a, b = max(start - SMOOTH_OVERLAP, 0), min(stop + SMOOTH_OVERLAP, n)
+        seg = y[a:b]
+        if np.isfinite(seg).any():
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                mod = SARIMAX(seg, order=model.order, trend="n")
+                # after construction: SARIMAX's update() owns AR/MA/sigma2, not obs_cov
+                mod.ssm["obs_cov"] = r[a:b].reshape(1, 1, -1).copy()
+                res = mod.smooth(params)
+            sm = np.asarray(res.smoother_results.smoothed_forecasts)[0]
+            out[start:stop] = sm[start - a:stop - a]
+        start = stop
+    out[~np.isfinite(y)] = np.nan
+    return out

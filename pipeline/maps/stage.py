@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.config import default_value
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
@@ -17,6 +18,7 @@ from pipeline.maps.arima import (
     kalman_filter,
     normality,
     reverse_arrangements,
+    rts_smooth,
 )
 from pipeline.maps.grid import Grid, minimum_curvature
 from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, Leveling, Line, level_lines
@@ -37,35 +39,61 @@ class MapSettings:
     lag_s: float = 0.0
     noise_nT: float | None = None  # measurement noise for the Kalman filter (default: estimated)
     mask_spacings: float = 1.0  # mask cells farther than this many line spacings from data
-    direction: str = "both"  # both (zero phase, the map product) | forward (paper 004)
+    # smooth (Rauch-Tung-Striebel, zero phase: the map product) | forward (paper 004)
+    direction: str = field(default_factory=lambda: default_value("map", "direction"))
     min_crossing_angle_deg: float = MIN_CROSSING_ANGLE_DEG  # shallower: no crossover
 
 
 def noise_4th_difference_nT(x: np.ndarray) -> float:
     """White-noise level from the 4th difference: Var(d4) = 70 sigma^2 for white noise;
-    smooth geology hardly contributes at along-line sampling. Robust (MAD) estimate."""
-    d4 = np.diff(np.asarray(x, float)[np.isfinite(x)], 4)
+    smooth geology hardly contributes at along-line sampling. Robust (MAD) estimate.
+    Differences that span a missing sample are dropped (never joined across a gap)."""
+    d4 = np.diff(np.asarray(x, float), 4)
+    d4 = d4[np.isfinite(d4)]
     if d4.size < 10:
         return float("nan")
     mad = np.median(np.abs(d4 - np.median(d4)))
     return float(1.4826 * mad / np.sqrt(70.0))
 
 
-def filter_sequence(seq: np.ndarray, model: ArimaModel, measurement_var: float,
-                    direction: str = "both") -> tuple[np.ndarray, KalmanResult]:
+def grid_noise_nT(grid: Grid, along_north: bool) -> np.ndarray:
+    """The white-noise level of the grid itself, per lane (nT, grid-shaped).
+
+    A minimum-curvature grid is not the raw samples: a cell on a flight line is the block
+    mean of many samples (noise / sqrt(samples per cell)), and cells between lines are
+    interpolated from them (smaller, correlated noise). Each lane (a row of cells along the
+    flight-line direction) gets the 4th-difference estimate of its own cells; lanes with too
+    few cells take the median of the others.
+    """
+    vals = grid.values.T if along_north else grid.values
+    per = np.array([noise_4th_difference_nT(lane) for lane in vals])
+    ok = np.isfinite(per) & (per > 0)
+    fill = float(np.median(per[ok])) if ok.any() else float("nan")
+    per = np.where(ok, per, fill)
+    out = np.broadcast_to(per[:, None], vals.shape)
+    return np.ascontiguousarray(out.T if along_north else out)
+
+
+def filter_sequence(seq: np.ndarray, model: ArimaModel,
+                    measurement_var: float | np.ndarray,
+                    direction: str = "smooth") -> tuple[np.ndarray, KalmanResult]:
     """Kalman-filter a serialised map. ``forward`` is paper 004's causal filter, which lags
-    along the lines; ``both`` averages it with the same filter run backwards, a zero-phase
-    result (as filtfilt is for FIR/IIR filters) that keeps anomalies in place.
+    along the lines; ``smooth`` (``both``: its former name) is the fixed-interval
+    Rauch-Tung-Striebel smoother (statsmodels), the optimal zero-phase estimate under the
+    model: each cell uses the cells before and after it. ``measurement_var`` (nT^2): one value
+    or one per sample (the smoother takes the per-sample ones; the forward filter their
+    median).
 
     Returns the filtered sequence and the forward filter's result (whose gain is reported).
     """
-    if direction not in ("both", "forward"):
-        raise ValueError(f"unknown filter direction {direction!r} (both or forward)")
-    fwd = kalman_filter(seq, model, measurement_var)
+    if direction not in ("smooth", "both", "forward"):
+        raise ValueError(f"unknown filter direction {direction!r} (smooth or forward)")
+    var = np.asarray(measurement_var, float)
+    scalar = float(np.nanmedian(var[np.isfinite(seq)])) if var.ndim else float(var)
+    fwd = kalman_filter(seq, model, scalar)
     if direction == "forward":
         return fwd.filtered, fwd
-    bwd = kalman_filter(seq[::-1], model, measurement_var).filtered[::-1]
-    return 0.5 * (fwd.filtered + bwd), fwd
+    return rts_smooth(seq, model, var), fwd
 
 
 def serialize(grid: Grid, along_north: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -75,6 +103,51 @@ def serialize(grid: Grid, along_north: bool) -> tuple[np.ndarray, np.ndarray]:
     lanes = idx.T if along_north else idx  # a lane follows one flight-line direction
     order = np.concatenate([lane if k % 2 == 0 else lane[::-1] for k, lane in enumerate(lanes)])
     return grid.values.ravel()[order], order
+
+
+def filter_grid(grid: Grid, along_north: bool, arima: str | tuple[int, int, int] = "auto",
+                noise_nT: float | None = None, direction: str = "smooth",
+                sample_limit: int = ARIMA_SAMPLE_LIMIT, max_p: int = 3, max_q: int = 2
+                ) -> tuple[Grid, ArimaModel, KalmanResult, float, str, dict[str, Any]]:
+    """ARIMA identification and Kalman filtering/smoothing of a grid along its lines.
+
+    The grid is serialised in acquisition order; the model is identified (BIC) on a
+    contiguous stretch holding ``sample_limit`` cells with masked cells kept as missing (the
+    likelihood never joins the cells on either side of a gap) as an ARIMA signal plus white
+    noise of the grid's own level (per lane, :func:`grid_noise_nT`, unless ``noise_nT`` is
+    given); then ``direction`` = smooth runs the Rauch-Tung-Striebel smoother.
+
+    Returns the filtered grid, the model, the forward filter, the median measurement noise
+    (nT), where the noise came from, and the sequence tests.
+    """
+    seq, order = serialize(grid, along_north)
+    finite = np.flatnonzero(np.isfinite(seq))
+    if finite.size < 10:
+        raise ValueError("fewer than 10 finite cells to filter")
+    last = finite[min(sample_limit, finite.size) - 1]
+    ident = seq[finite[0]:last + 1]
+    ident_finite = ident[np.isfinite(ident)]
+    tests: dict[str, Any] = {"reverse_arrangements": reverse_arrangements(ident_finite).to_dict(),
+                             "normality": normality(ident_finite),
+                             "samples_for_identification": int(ident_finite.size)}
+    if noise_nT is not None:
+        noise_cells = np.full(seq.size, float(noise_nT))
+        source = "given"
+    else:
+        # the noise of the grid itself, per lane: not the raw samples' (block means and
+        # interpolation between lines make it several times smaller, and lane-dependent)
+        noise_cells = grid_noise_nT(grid, along_north).ravel()[order]
+        source = "4th difference of the grid, per lane"
+    var_cells = noise_cells**2
+    noise = float(np.sqrt(np.nanmedian(var_cells[finite])))
+    tests["grid_noise_nT_range"] = [float(np.nanmin(noise_cells[finite])),
+                                    float(np.nanmax(noise_cells[finite]))]
+    arima_order = None if arima == "auto" else tuple(arima)
+    model = fit_arima(ident, order=arima_order, measurement_var=noise**2, max_p=max_p,
+                      max_q=max_q)
+    filt = np.full(grid.values.size, np.nan)
+    filt[order], kf = filter_sequence(seq, model, var_cells, direction)
+    return grid.with_values(filt.reshape(grid.shape)), model, kf, noise, source, tests
 
 
 @dataclass
@@ -90,7 +163,7 @@ class MapRun:
     kalman: KalmanResult
     noise_nT: float
     noise_source: str
-    direction: str = "both"
+    direction: str = "smooth"
     sequence_tests: dict[str, Any] = field(default_factory=dict)
 
     def summary(self) -> dict[str, Any]:
@@ -115,6 +188,8 @@ class MapRun:
             "kalman": {"measurement_noise_nT": self.noise_nT, "noise_source": self.noise_source,
                        "process_noise_var_nT2": float(self.model.sigma2),
                        "direction": self.direction,
+                       "smoother": ("Rauch-Tung-Striebel (statsmodels)"
+                                    if self.direction != "forward" else None),
                        "steady_gain": [float(g) for g in self.kalman.gain_steady],
                        "exact_steps": self.kalman.exact_steps},
             "sequence_tests": self.sequence_tests,
@@ -169,25 +244,14 @@ def build_map(flight: Flight, seg: Segmentation, compensated_nT: np.ndarray,
                              crs=frame.crs)
     # ARIMA + Kalman along the flight lines
     along_north = abs(along[1]) >= abs(along[0])
-    seq, order = serialize(grid, along_north)
-    finite = np.flatnonzero(np.isfinite(seq))
-    ident = seq[finite[:ARIMA_SAMPLE_LIMIT]]
-    tests = {"reverse_arrangements": reverse_arrangements(ident).to_dict(),
-             "normality": normality(ident), "samples_for_identification": int(ident.size)}
-    if s.noise_nT is not None:
-        noise, source = float(s.noise_nT), "given"
-    else:
-        noise = float(np.nanmedian([noise_4th_difference_nT(ln.value_nT) for ln in lines
-                                    if ln.kind == "survey"]))
-        source = "4th difference of the survey lines"
-    arima_order = None if s.arima == "auto" else tuple(s.arima)
+    sensor = float(np.nanmedian([noise_4th_difference_nT(ln.value_nT) for ln in lines
+                                 if ln.kind == "survey"]))
     try:
-        model = fit_arima(ident, order=arima_order, measurement_var=noise**2)
+        filtered, model, kf, noise, source, tests = filter_grid(
+            grid, along_north, s.arima, s.noise_nT, s.direction)
     except ValueError as exc:
         raise AeromagError(f"map filter: {exc}", file=flight.source,
                            channel="/mag/compensated") from None
-    filt = np.full(grid.values.size, np.nan)
-    filt[order], kf = filter_sequence(seq, model, noise**2, s.direction)
-    filtered = grid.with_values(filt.reshape(grid.shape))
+    tests["sensor_noise_nT"] = sensor
     return MapRun(frame, red, lines, lev, spacing, grid, filtered, model, kf, noise, source,
                   s.direction, tests)

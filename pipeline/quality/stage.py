@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.config import default_value
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
@@ -61,6 +62,10 @@ class QualitySettings:
     subtract_base: bool = True  # remove the base-station diurnal in the reduction
     # tracks meeting at a shallower angle are no intersection or crossover (config: map)
     min_crossing_angle_deg: float = MIN_CROSSING_ANGLE_DEG
+    # the headline heading error is paper 002's pair statistic when at least this many pairs
+    # exist, else the track intersections (config: quality.min_overlap_pairs)
+    min_overlap_pairs: int = field(
+        default_factory=lambda: default_value("quality", "min_overlap_pairs"))
 
 
 @dataclass
@@ -100,6 +105,20 @@ class QualityRun:
     def heading_error_rms_nT(self, kind: str = "intersection") -> dict[str, float | None]:
         return self._keyed({s: difference_stats(self.differences[kind][s])["rms_nT"]
                             for s in self.states})
+
+    @property
+    def heading_error_method(self) -> str:
+        """Which statistic the headline ``heading_error_rms_nT`` is: ``"pairs"`` (paper 002
+        §3.2: validation and map samples closer than ``overlap_m``, compared as measured) when
+        there are at least ``min_overlap_pairs`` of them, else ``"intersections"`` (exact
+        track crossings, both fields interpolated along track)."""
+        return ("pairs" if self.pairs.count >= max(self.settings.min_overlap_pairs, 1)
+                else "intersections")
+
+    def headline_rms_nT(self) -> dict[str, float | None]:
+        """``heading_error_rms_nT``: the statistic :attr:`heading_error_method` names."""
+        return self.heading_error_rms_nT(
+            "pair" if self.heading_error_method == "pairs" else "intersection")
 
     def noise_floor_nT(self) -> float | None:
         """RMS the intersection differences would have from white sensor noise alone.
@@ -143,10 +162,12 @@ class QualityRun:
         return {
             "states": [state_key(s) for s in self.states],
             "tl_alias": self.tl_alias,
-            "heading_error_rms_nT": self.heading_error_rms_nT("intersection"),
-            "heading_error_method": "exact track intersections of the validation lines with "
-                                    "the survey and tie lines, both fields interpolated along "
-                                    "track to the crossing",
+            # headline: paper 002's statistic (pairs < overlap_m) when there are enough
+            # pairs; which one it is: heading_error_method; both are always given below
+            "heading_error_rms_nT": self.headline_rms_nT(),
+            "heading_error_method": self.heading_error_method,
+            "heading_error_methods": HEADING_ERROR_METHODS,
+            "intersection_rms_nT": self.heading_error_rms_nT("intersection"),
             "overlap_pairs": self.pairs.count,
             "overlap_pair_rms_nT": self.heading_error_rms_nT("pair"),
             "overlap_m": self.settings.overlap_m,
@@ -165,6 +186,14 @@ class QualityRun:
             "fom_boxes": self.fom,
             "notes": self.notes,
         }
+
+
+HEADING_ERROR_METHODS = {
+    "pairs": "paper 002 §3.2: RMS of B_validation - B_map over sample pairs closer than "
+             "overlap_m (paper: 0.5 m), compared as measured (adds gradient x distance)",
+    "intersections": "exact track intersections of the validation lines with the survey and "
+                     "tie lines, both fields interpolated along track to the crossing (only "
+                     "heading error and noise remain; not the paper's statistic)"}
 
 
 def _circmean_deg(a: np.ndarray) -> float:
