@@ -5,7 +5,9 @@ during calibration, no lag, no auxiliary couplings, vector sensor as calibrated)
 :class:`ModelSpec` switches extensions on:
 
 * ``gradient``: AGG-TL's band-passed position columns (fitted, not subtracted: geology);
-* ``lag_s``: the scalar stream is read ``lag_s`` later (a sensor that reports late);
+* ``lag_s``: the scalar sensor reports late, by a pure delay (``lag_response="delay"``:
+  the stream is read ``lag_s`` later) or through a first-order filter of time constant
+  ``lag_s`` (``"first_order"``: the stream is deconvolved, y + lag_s dy/dt);
 * ``aux``: auxiliary channels (currents) coupling into the scalar sensor along a fixed body
   direction d: interference c I (u . d), i.e. the columns I u_x, I u_y, I u_z (subtracted);
 * ``vector_cal``: direction cosines from the recalibrated fluxgate.
@@ -76,6 +78,7 @@ class ModelSpec:
     base: str = "tl18"
     gradient: bool = False
     lag_s: float = 0.0
+    lag_response: str = "delay"  # "delay" | "first_order" (a sensor filter's response)
     aux: tuple[str, ...] = ()
     vector_cal: VectorCalibration | None = None
     diurnal: bool = False  # subtract the base station in the reduction (maps, crossovers)
@@ -113,11 +116,29 @@ class Design:
     y: np.ndarray  # the (lag-corrected) scalar field
 
 
-def scalar_series(data: AuditData, lag_s: float) -> np.ndarray:
-    """The scalar field re-timed for a sensor that reports ``lag_s`` late."""
+LAG_RESPONSES = ("delay", "first_order")
+
+
+def scalar_series(data: AuditData, lag_s: float, response: str = "delay") -> np.ndarray:
+    """The scalar field (nT) as the sensor would have read it without its lag.
+
+    ``delay``: re-timed, read ``lag_s`` seconds later. ``first_order``: a sensor whose
+    reading follows the field through 1 / (1 + s lag_s) is inverted exactly by
+    y + lag_s dy/dt (per contiguous block; the derivative amplifies noise only above the
+    calibration band).
+    """
     if not lag_s:
         return data.scalar_nT
     ok = np.isfinite(data.scalar_nT)
+    if response == "first_order":
+        out = np.full(data.scalar_nT.shape, np.nan)
+        for b in contiguous_blocks(ok, data.time_s):
+            if b.size > 2:
+                y = data.scalar_nT[b]
+                out[b] = y + lag_s * np.gradient(y, data.time_s[b])
+        return out
+    if response != "delay":
+        raise ValueError(f"unknown lag response {response!r} ({', '.join(LAG_RESPONSES)})")
     return np.interp(data.time_s + lag_s, data.time_s[ok], data.scalar_nT[ok], left=np.nan,
                      right=np.nan)
 
@@ -155,7 +176,8 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
         cols.append(kp)
         names = names + pn
         sub += [False] * kp.shape[1]
-    return Design(np.column_stack(cols), names, np.array(sub), scalar_series(data, spec.lag_s))
+    return Design(np.column_stack(cols), names, np.array(sub),
+                  scalar_series(data, spec.lag_s, spec.lag_response))
 
 
 @dataclass
@@ -263,7 +285,8 @@ def lag_cost(data: AuditData, spec: ModelSpec, mask: np.ndarray, bs: BandSetting
     solver = RidgeSVD(kf, np.zeros(kf.shape[0]))
 
     def cost(tau: float) -> float:
-        yf, _ = bandpass_blocks(scalar_series(data, float(tau)), blocks, sos, bs.trim)
+        yf, _ = bandpass_blocks(scalar_series(data, float(tau), spec.lag_response), blocks,
+                                sos, bs.trim)
         yf = yf[rows]
         if not np.all(np.isfinite(yf)):
             return np.inf

@@ -45,6 +45,7 @@ from pipeline.audit.evidence import (
     thinning_step,
 )
 from pipeline.audit.extended import (
+    LAG_RESPONSES,
     AuditData,
     BandSettings,
     FittedModel,
@@ -333,7 +334,25 @@ class Auditor:
                               options={"xatol": 1e-4})
         return float(res.x)
 
+    def _lag_response(self, current: ModelSpec) -> str:
+        """A pure delay or a first-order sensor filter: the response whose best lag leaves
+        the smaller calibration residual (both have one parameter, so no penalty)."""
+        best, best_cost = "delay", np.inf
+        for response in LAG_RESPONSES:
+            spec = current.with_(lag_response=response)
+            lag = self._lag_estimate(spec, None, "all")
+            lam = self.fit(spec, None, "all", ridge="auto").lambda_
+            try:
+                c = lag_cost(self.data, spec, self.mask, self.s.band, lam, self.s.max_lag_s)(lag)
+            except ValueError:
+                continue
+            if c < best_cost:
+                best, best_cost = response, c
+        return best
+
     def _eval_sensor_lag(self, current: ModelSpec, key: str) -> Evaluation:
+        # the response form is the flight's, chosen once on all calibration data
+        current = current.with_(lag_response=self._lag_response(current))
         des = design(self.data, current)
         dy = np.gradient(des.y, self.data.time_s)
         test = self._nested(current, extra=dy[:, None])
@@ -348,7 +367,8 @@ class Auditor:
         # (the carrier's, not the sensor's); a late sensor delays its whole reading, which
         # the extra eddy columns cannot mimic (checked in _beyond)
         lag = self._lag_estimate(current, None, "all")
-        est = {"lag_s": lag, "lag_by_fold_s": [lags[k] for k in sorted(lags)]}
+        est = {"lag_s": lag, "response": current.lag_response,
+               "lag_by_fold_s": [lags[k] for k in sorted(lags)]}
         sl = self.survey_lag(current)
         if sl is not None:  # independent evidence: the survey's crossovers
             est.update(survey_lag_s=sl.lag_s, survey_lag_ci95_s=list(sl.ci95_s),
@@ -623,7 +643,7 @@ class Auditor:
         if f.effect == "geomagnetic_gradient":
             return spec.with_(gradient=False)
         if f.effect == "sensor_lag":
-            return spec.with_(lag_s=0.0)
+            return spec.with_(lag_s=0.0, lag_response="delay")
         if f.effect == "diurnal":
             return spec.with_(diurnal=False)
         if f.effect == "vector_calibration":
@@ -775,8 +795,9 @@ def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None 
     events = aud.survey_evidence(final_spec)
     unexplained: dict[str, Any] = {"events": events, "note": None,
                                    "spectrum": residual_spectrum(r_e, data.rate_hz, s.band)}
-    if cv_e > s.unexplained_factor * floor:
-        spec_ = unexplained["spectrum"]
+    spec_ = unexplained["spectrum"]
+    white_excess = cv_e > s.unexplained_factor * floor and spec_["kind"] == "white"
+    if cv_e > s.unexplained_factor * floor and not white_excess:
         unexplained.update({
             "rms_nT": cv_e, "noise_floor_nT": floor, "ratio": cv_e / floor,
             "dominant_frequency_hz": spec_["dominant_frequency_hz"],
@@ -829,6 +850,13 @@ def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None 
         full[ww] = rr
         sim_res[name] = full[where]
     notes = list(aud.notes)
+    if white_excess:
+        # flat in the band: no model term can follow it; broadband interference faster than
+        # the sample rate resolves (vibration, attitude jitter) looks exactly like this
+        notes.append(f"the held-out residual {cv_e:.4f} nT is {cv_e / floor:.1f}x the white-noise "
+                     f"floor {floor:.4f} nT but flat in the band, like white noise: broadband "
+                     "interference the sample rate cannot resolve, not structure a model term "
+                     "could follow")
     notes.append(f"held out: {len(aud.folds)} folds of {s.block_s_cv:g} s blocks, each "
                  "holding every heading x manoeuvre; ridge lambda by inner cross-validation")
     if gap > s.max_generalization_gap:
