@@ -51,7 +51,8 @@ def paper_003() -> tuple[list[tuple], list[str]]:
     for name, kf in (("naive", EllipsoidKF.naive(PAPER_003_FIELD_G, SIGMA_G)),
                      ("prior", EllipsoidKF.from_prior(prior, SIGMA_G))):
         st = kf.run(fl.measured_G)
-        err = magnitude_error(st, fl.measured_G, PAPER_003_FIELD_G)
+        # scored with the state before each sample's update (after it, the sample is fitted)
+        err = magnitude_error(kf.states_before, fl.measured_G, PAPER_003_FIELD_G)
         conv = convergence_time(fl.time_s, running_rms(err, 25), 2 * SIGMA_G, 0.5)
         final = kf.ellipsoid()
         tail = np.linalg.norm(final.calibrate(fl.measured_G[-500:]), axis=1) - PAPER_003_FIELD_G
@@ -66,11 +67,13 @@ def paper_003() -> tuple[list[tuple], list[str]]:
     cal = angle_error_deg(roll_from_radial(res["prior"][3].calibrate(fl.measured_G), unrolled),
                           fl.roll_deg)
     nv, pr = res["naive"], res["prior"]
-    ratio = (nv[0] / pr[0]) if (nv[0] and pr[0]) else float("inf")
-    rows = [("003", "convergence, naive start (s)", "~3", f"{nv[0]:.2f}", ""),
-            ("003", "convergence, prior-fit start (s)", "~1", f"{pr[0]:.2f}", ""),
-            ("003", "speed-up prior vs naive", "~2x",
-             "inf (converged at once)" if ratio == float("inf") else f"{ratio:.1f}x", ""),
+    ok = nv[0] is not None and pr[0] is not None and pr[0] > 0
+    ratio = nv[0] / pr[0] if ok else float("nan")
+    rows = [("003", "convergence, naive start (s; state before each update)", "~3",
+             f"{nv[0]}" if nv[0] is None else f"{nv[0]:.2f}", ""),
+            ("003", "convergence, prior-fit start (s; state before each update)", "~1",
+             f"{pr[0]}" if pr[0] is None else f"{pr[0]:.2f}", ""),
+            ("003", "speed-up prior vs naive", "~2x", f"{ratio:.1f}x", ""),
             ("003", "hard-iron error: first sample -> largest in the first 0.5 s, naive (G)",
              "naive diverges early", f"{nv[1][0]:.4f} -> {nv[1][1]:.3g}", ""),
             ("003", "hard-iron error: first sample -> largest in the first 0.5 s, prior (G)",
@@ -82,7 +85,7 @@ def paper_003() -> tuple[list[tuple], list[str]]:
              f"{cal.mean():.3f} / {cal.std():.3f} / {np.percentile(np.abs(cal), 99):.2f}",
              f"{cal.std() / 0.367:.2f}")]
     errors = []
-    if not (pr[0] is not None and nv[0] is not None and nv[0] >= 2 * pr[0]):
+    if not (ok and ratio >= 2):  # a prior start "converged" at 0 s is a scoring error
         errors.append(f"prior start not 2x faster ({pr[0]} vs {nv[0]} s)")
     if not nv[1][1] > 10 * nv[1][0] or pr[1][1] > 1.5 * pr[1][0]:
         errors.append("naive start did not diverge early, or the prior start did")

@@ -162,10 +162,11 @@ def test_simulated_measurement_reproduces_the_simulator():
                                           "vector_interference.eddy_s=[[0.0,0.0,0.0],"
                                           "[0.0,0.0,0.0],[0.0,0.0,0.0]]"])
     tr = sim.truth["interference"]["scalar"]
-    theta = tl18_truth_coefficients(tr["permanent_nT"], tr["induced"], tr["eddy_s"])
     vec = np.stack([sim.streams["/mag/vector"]["cols"][k] for k in ("x_nT", "y_nT", "z_nT")],
                    -1)
     t = sim.streams["/mag/vector"]["t"]
+    theta = tl18_truth_coefficients(tr["permanent_nT"], tr["induced"], tr["eddy_s"],
+                                    float(np.median(np.diff(t))))
     scalar = sim.streams["/mag/scalar"]["cols"]["total_nT"]
     data = AuditData(t, scalar, vec, None)
     names = tl18_terms(vec[:3], t[:3])[1]

@@ -322,7 +322,15 @@ def test_hostile_declared_sizes_keep_memory_bounded(messages, tmp_path):
     assert sc.losses and "truncated" in sc.losses[0].reason
 
 
-def test_corpus_has_the_classes_the_issue_lists():
-    assert len(CORPUS) >= 12
-    np.testing.assert_array_less(0, len([c for c, (_, o) in CORPUS.items()
-                                         if o[0] == "processed"]))
+def test_every_corpus_case_really_damages_the_recording(messages, tmp_path):
+    """Each bad-input builder writes something other than the intact recording (a builder
+    that silently wrote a clean file would make its corpus case pass vacuously), and the
+    corpus holds both outcomes: refused with one line, and processed with a note."""
+    clean = sha256(rewrite(tmp_path / "clean.mcap", messages))
+    assert sha256(rewrite(tmp_path / "clean2.mcap", messages)) == clean  # deterministic
+    for i, (case, (builder, _)) in enumerate(CORPUS.items()):
+        path = tmp_path / f"case{i}.mcap"
+        builder(path, messages)
+        assert sha256(path) != clean, case
+    outcomes = {o[0] for _, o in CORPUS.values()}
+    assert outcomes == {"error", "processed"} and len(CORPUS) >= 12

@@ -29,6 +29,7 @@ from pipeline.compensate.ridge import RidgeSVD
 from pipeline.compensate.terms import (
     BT_SCALE_NT,
     direction_cosines,
+    per_sample_difference,
     position_terms,
     tl16_terms,
     tl18_terms,
@@ -297,17 +298,21 @@ def lag_cost(data: AuditData, spec: ModelSpec, mask: np.ndarray, bs: BandSetting
 
 
 # --------------------------------------------------------------------------------------------
-def carrier_from_coefficients(fitted: FittedModel, mean_field_nT: float
+def carrier_from_coefficients(fitted: FittedModel, mean_field_nT: float,
+                              sample_interval_s: float
                               ) -> tuple[CarrierInterference, np.ndarray]:
     """The physical interference (p, A, E) a fitted T-L model stands for, and the coupling
     vectors (nT per unit, body frame) of its auxiliary channels.
 
-    tl18 columns are u_i, u_i B_j / s, u_i dB_j/dt / s (s = 50 000 nT), so the coefficients
-    map exactly: p_i; A_ii = c/s, A_ij = A_ji = c/(2s); E_ij = c/s. tl16's u_i u_j and
-    u_i u_j' stand for u_i B_j / |B| and u_i B_j' / |B|: they map with the mean field instead.
+    tl18 columns are u_i, u_i B_j / s, u_i dB_j / s (s = 50 000 nT; dB_j MagNav's per-sample
+    central difference, nT per sample), so the coefficients map exactly: p_i; A_ii = c/s,
+    A_ij = A_ji = c/(2s); E_ij = c dt / s (seconds, dt = ``sample_interval_s``). tl16's u_i u_j
+    and u_i u_j' (u' per second) stand for u_i B_j / |B| and u_i B_j' / |B|: they map with the
+    mean field instead.
     """
     c = dict(zip(fitted.names, fitted.theta, strict=True))
     scale = BT_SCALE_NT if fitted.spec.base == "tl18" else mean_field_nT
+    eddy_per_s = float(sample_interval_s) if fitted.spec.base == "tl18" else 1.0
     p = np.array([c.get(f"perm_u{a}", 0.0) for a in "xyz"])
     a = np.zeros((3, 3))
     e = np.zeros((3, 3))
@@ -322,7 +327,7 @@ def carrier_from_coefficients(fitted: FittedModel, mean_field_nT: float
                     a[i, j] = a[j, i] = v / (2 * scale)
             ed = c.get(f"eddy_u{ai}d{sym}{aj}")
             if ed is not None:
-                e[i, j] = ed / scale
+                e[i, j] = ed * eddy_per_s / scale
     aux = {name: np.array([c[f"aux_{name}_u{ax}"] for ax in "xyz"]) for name in fitted.spec.aux}
     return CarrierInterference(p, a, e), aux
 
@@ -344,11 +349,12 @@ def simulate_measurement(data: AuditData, fitted: FittedModel, earth_total_nT: n
         kp, pn = position_terms(*data.enu_m.T)
         c = dict(zip(fitted.names, fitted.theta, strict=True))
         earth = earth + kp @ np.array([c[n] for n in pn])
-    carrier, aux = carrier_from_coefficients(fitted, float(np.nanmean(np.linalg.norm(v,
-                                                                                     axis=1))))
+    dt = float(np.median(np.diff(data.time_s)))
+    carrier, aux = carrier_from_coefficients(
+        fitted, float(np.nanmean(np.linalg.norm(v, axis=1))), dt)
     b = u * earth[:, None]
-    if fitted.spec.base == "tl18":
-        b_in, db = v, np.gradient(v, data.time_s, axis=0)
+    if fitted.spec.base == "tl18":  # per-sample differences, as the tl18 columns, in nT/s
+        b_in, db = v, per_sample_difference(v) / dt
     else:  # tl16 columns are built from direction cosines alone
         norm = np.nanmean(np.linalg.norm(v, axis=1))
         b_in, db = u * norm, np.gradient(u, data.time_s, axis=0) * norm

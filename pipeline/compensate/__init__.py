@@ -11,8 +11,15 @@ from pipeline.compensate.model import (
     fit_compensation,
 )
 from pipeline.compensate.ridge import LCurve, RidgeSVD
-from pipeline.compensate.terms import tl16_terms, tl18_terms, tl18_truth_coefficients
+from pipeline.compensate.terms import (
+    MAGNAV_TERMS,
+    tl16_terms,
+    tl18_rate_terms,
+    tl18_terms,
+    tl18_truth_coefficients,
+)
 
-__all__ = ["MODELS", "CompensationModel", "FigureOfMerit", "FitSettings", "LCurve",
+__all__ = ["MAGNAV_TERMS", "MODELS", "CompensationModel", "FigureOfMerit", "FitSettings", "LCurve",
            "Measurements", "RidgeSVD", "bandpassed", "figure_of_merit", "fit_compensation",
-           "tl16_terms", "tl18_terms", "tl18_truth_coefficients"]
+           "tl16_terms", "tl18_rate_terms", "tl18_terms",
+           "tl18_truth_coefficients"]

@@ -1,15 +1,24 @@
 """Regressor (design-matrix) columns of the Tolles-Lawson models.
 
 All come from the vector magnetometer B (body frame: x forward, y right, z down, nT) and its
-direction cosines u = B/|B|; time derivatives are central differences (np.gradient, one-sided
-at the ends).
+direction cosines u = B/|B|. Differences are central (one-sided at the ends).
 
 - ``tl16`` (paper 002, eqs. 6-10): 3 permanent u_i; 5 induced u_i u_j (i <= j, u_z^2 dropped
-  because sum u_i^2 = 1); 8 eddy u_i u'_j (u_z u_z' dropped because sum u_i u_i' = 0).
-- ``tl18`` (MagNav.jl style): 3 permanent u_i; 6 induced u_i B_j / Bt_scale (i <= j); 9 eddy
-  u_i dB_j/dt / Bt_scale; Bt_scale = 50 000 nT. Coefficients are then nT-sized: a true
-  induced matrix A and eddy matrix E give (A_ij + A_ji) Bt_scale (i < j), A_ii Bt_scale and
-  E_ij Bt_scale.
+  because sum u_i^2 = 1); 8 eddy u_i u'_j (u_z u_z' dropped because sum u_i u_i' = 0), u' the
+  time derivative (1/s).
+- ``tl18``: MagNav.jl's ``create_TL_A`` column for column (same order, same scaling):
+  3 permanent u_i; 6 induced u_i B_j / Bt_scale (i <= j); 9 eddy u_i dB_j / Bt_scale with
+  dB_j MagNav's ``fdm``, the **per-sample** central difference (B[k+1] - B[k-1]) / 2
+  (one-sided at the ends), *not* divided by the sample interval; Bt_scale = 50 000 nT.
+  The eddy coefficients therefore depend on the sample rate: a true eddy matrix E (seconds)
+  gives E_ij Bt_scale / dt at sample interval dt, i.e. 10x larger at 10 Hz than the per-second
+  set. A true induced matrix A gives (A_ij + A_ji) Bt_scale (i < j) and A_ii Bt_scale.
+  MagNav's term options map to our column-name prefixes (:data:`MAGNAV_TERMS`):
+  ``:permanent`` -> ``perm_``, ``:induced`` -> ``ind_``, ``:eddy`` -> ``eddy_``,
+  ``:bias`` -> ``bias`` (a column of ones; our band-passed fits drop it, the unfiltered fit
+  adds it, as MagNav's ``create_TL_coef`` users do).
+- ``tl18-rate``: the same 18 columns with the eddy derivatives per second, dB_j/dt (nT/s), so
+  that coefficients are comparable between recordings of different rates: E_ij Bt_scale.
 - position (AGG-TL, paper 002 eqs. 11-21): e, n, e^2, e n, n^2, up in metres from a reference.
 """
 
@@ -20,6 +29,13 @@ import numpy as np
 BT_SCALE_NT = 50_000.0
 AXES = "xyz"
 PAIRS_UPPER = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
+# MagNav.jl's term-group names (create_TL_A's `terms`) -> our column-name prefixes
+MAGNAV_TERMS = {"permanent": "perm_", "induced": "ind_", "eddy": "eddy_", "bias": "bias"}
+MAGNAV_ALIASES = {"permanent": "permanent", "p": "permanent", "permanent3": "permanent",
+                  "p3": "permanent", "induced": "induced", "i": "induced",
+                  "induced6": "induced", "i6": "induced", "eddy": "eddy", "e": "eddy",
+                  "eddy9": "eddy", "e9": "eddy", "bias": "bias", "b": "bias"}
+TL18_TERMS = ("permanent", "induced", "eddy")  # MagNav's default
 
 
 def direction_cosines(b_nT: np.ndarray) -> np.ndarray:
@@ -49,21 +65,96 @@ def tl16_terms(b_nT: np.ndarray, time_s: np.ndarray) -> tuple[np.ndarray, list[s
     return np.column_stack(cols), names
 
 
-def tl18_terms(b_nT: np.ndarray, time_s: np.ndarray,
-               bt_scale_nT: float = BT_SCALE_NT) -> tuple[np.ndarray, list[str]]:
-    """The 18 MagNav-style columns, (n, 18)."""
-    b = np.asarray(b_nT, float)
+def per_sample_difference(x: np.ndarray) -> np.ndarray:
+    """MagNav.jl's ``fdm`` along axis 0: (x[k+1] - x[k-1]) / 2, one-sided at the ends.
+
+    Parameters
+    ----------
+    x : (n, ...) array, any unit; n >= 2.
+
+    Returns
+    -------
+    (n, ...) array in x's unit per sample (not per second).
+    """
+    return np.gradient(np.asarray(x, float), axis=0)
+
+
+def _tl18(b: np.ndarray, db: np.ndarray, terms: tuple[str, ...], bt_scale_nT: float,
+          eddy_suffix: str) -> tuple[np.ndarray, list[str]]:
+    wanted = set()
+    for t in terms:
+        key = MAGNAV_ALIASES.get(str(t).lstrip(":"))
+        if key is None:
+            raise ValueError(f"unknown T-L term group {t!r} (use "
+                             f"{', '.join(MAGNAV_TERMS)})")
+        wanted.add(key)
     u = direction_cosines(b)
-    db = np.gradient(b, time_s, axis=0)
-    cols, names = _permanent(u)
-    for i, j in PAIRS_UPPER:
-        cols.append(u[:, i] * b[:, j] / bt_scale_nT)
-        names.append(f"ind_u{AXES[i]}B{AXES[j]}")
-    for i in range(3):
-        for j in range(3):
-            cols.append(u[:, i] * db[:, j] / bt_scale_nT)
-            names.append(f"eddy_u{AXES[i]}dB{AXES[j]}")
+    cols: list[np.ndarray] = []
+    names: list[str] = []
+    # MagNav's create_TL_A adds the groups in this fixed order, whatever the order asked for
+    if "permanent" in wanted:
+        c, n = _permanent(u)
+        cols, names = cols + c, names + n
+    if "induced" in wanted:
+        for i, j in PAIRS_UPPER:
+            cols.append(u[:, i] * b[:, j] / bt_scale_nT)
+            names.append(f"ind_u{AXES[i]}B{AXES[j]}")
+    if "eddy" in wanted:
+        for i in range(3):
+            for j in range(3):
+                cols.append(u[:, i] * db[:, j] / bt_scale_nT)
+                names.append(f"eddy_u{AXES[i]}dB{AXES[j]}{eddy_suffix}")
+    if "bias" in wanted:
+        cols.append(np.ones(len(b)))
+        names.append("bias")
     return np.column_stack(cols), names
+
+
+def tl18_terms(b_nT: np.ndarray, time_s: np.ndarray | None = None,
+               bt_scale_nT: float = BT_SCALE_NT,
+               terms: tuple[str, ...] = TL18_TERMS) -> tuple[np.ndarray, list[str]]:
+    """MagNav.jl's Tolles-Lawson ``A`` matrix (``create_TL_A``), (n, 18) by default.
+
+    Parameters
+    ----------
+    b_nT : (n, 3) vector magnetometer, body frame (x forward, y right, z down), nT.
+    time_s : (n,) sample times, s. Not used: the eddy columns are per-sample differences
+        (MagNav's ``fdm``), so the eddy coefficients depend on the sample rate. Accepted so
+        that every term set has the signature ``(b_nT, time_s)``.
+    bt_scale_nT : MagNav's ``Bt_scale``, nT.
+    terms : MagNav's term groups, with or without the leading colon: ``permanent`` (``p``),
+        ``induced`` (``i``), ``eddy`` (``e``), ``bias`` (``b``). Columns come in MagNav's
+        fixed order permanent, induced, eddy, bias.
+
+    Returns
+    -------
+    columns : (n, p) array; permanent columns dimensionless, induced in nT / Bt_scale
+        (dimensionless), eddy in nT per sample / Bt_scale, bias 1.
+    names : the p column names (``perm_ux``, ``ind_uxBy``, ``eddy_uxdBy``, ``bias``).
+    """
+    del time_s  # per-sample differences, as MagNav
+    b = np.asarray(b_nT, float)
+    return _tl18(b, per_sample_difference(b), tuple(terms), bt_scale_nT, "")
+
+
+def tl18_rate_terms(b_nT: np.ndarray, time_s: np.ndarray,
+                    bt_scale_nT: float = BT_SCALE_NT) -> tuple[np.ndarray, list[str]]:
+    """``tl18`` with rate-independent eddy columns u_i (dB_j/dt) / Bt_scale, (n, 18).
+
+    Parameters
+    ----------
+    b_nT : (n, 3) vector magnetometer, body frame (x forward, y right, z down), nT.
+    time_s : (n,) sample times, s (central differences in time, one-sided at the ends).
+    bt_scale_nT : the induced/eddy column scale, nT.
+
+    Returns
+    -------
+    columns, names : as :func:`tl18_terms`; eddy columns in (nT/s) / Bt_scale, named
+        ``eddy_u{i}dB{j}dt``. Their coefficients are E_ij Bt_scale whatever the sample rate.
+    """
+    b = np.asarray(b_nT, float)
+    return _tl18(b, np.gradient(b, np.asarray(time_s, float), axis=0), TL18_TERMS,
+                 bt_scale_nT, "dt")
 
 
 def position_terms(east_m: np.ndarray, north_m: np.ndarray,
@@ -74,10 +165,26 @@ def position_terms(east_m: np.ndarray, north_m: np.ndarray,
             ["pos_e", "pos_n", "pos_ee", "pos_en", "pos_nn", "pos_up"])
 
 
-def tl18_truth_coefficients(permanent_nT, induced, eddy_s,
+def tl18_truth_coefficients(permanent_nT, induced, eddy_s, sample_interval_s: float,
                             bt_scale_nT: float = BT_SCALE_NT) -> np.ndarray:
-    """The tl18 coefficients that a carrier with interference (p, A, E) has, to first order."""
+    """The tl18 coefficients that a carrier with interference (p, A, E) has, to first order.
+
+    Parameters
+    ----------
+    permanent_nT : (3,) permanent field at the scalar sensor, body frame, nT.
+    induced : (3, 3) induced matrix, dimensionless (body frame).
+    eddy_s : (3, 3) eddy-current matrix, s (nT per nT/s).
+    sample_interval_s : the recording's sample interval, s: ``tl18``'s eddy columns are
+        per-sample differences, so its eddy coefficients are E_ij Bt_scale / dt. Pass 1.0
+        for :func:`tl18_rate_terms` (derivatives per second).
+    bt_scale_nT : the induced/eddy column scale, nT.
+
+    Returns
+    -------
+    (18,) coefficients in the column order of :func:`tl18_terms`, nT.
+    """
     a, e = np.asarray(induced, float), np.asarray(eddy_s, float)
     ind = [(a[i, j] + a[j, i]) * bt_scale_nT if i != j else a[i, i] * bt_scale_nT
            for i, j in PAIRS_UPPER]
-    return np.concatenate([np.asarray(permanent_nT, float), ind, (e * bt_scale_nT).ravel()])
+    return np.concatenate([np.asarray(permanent_nT, float), ind,
+                           (e * bt_scale_nT / float(sample_interval_s)).ravel()])

@@ -46,7 +46,9 @@ def first_order_lowpass(x: np.ndarray, dt_s: float, tau_s: float, axis: int = 0)
 def tl18_basis(b_nT: np.ndarray, db_dt_nT_s: np.ndarray) -> np.ndarray:
     """tl18 columns from the true body field and its derivative, plus a constant, (n, 19).
 
-    u_i (permanent), u_i b_j / B_scale for i <= j (induced), u_i db_j/dt / B_scale (eddy).
+    u_i (permanent), u_i b_j / B_scale for i <= j (induced), u_i db_j/dt / B_scale (eddy, per
+    second: the ``tl18-rate`` columns; on a regularly sampled series they span the same space
+    as ``tl18``'s per-sample eddy columns, so :func:`outside_part` is the same for both).
     """
     b = np.asarray(b_nT, float)
     db = np.asarray(db_dt_nT_s, float)
