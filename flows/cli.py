@@ -166,46 +166,90 @@ def inspect(
     say("contract: ok")
 
 
+ConfigOption = Annotated[Path | None, typer.Option(
+    "--config", help="Processing configuration (TOML; `aeromag config` prints the defaults); "
+                     "a command's options override its keys.")]
+
+
+def _check_config(config: Path | None) -> None:
+    from pipeline.config import Config
+
+    Config.load(config).validate()
+
+
+def _shown(value) -> str:
+    return repr(value) if isinstance(value, str) else (
+        " ".join(str(v) for v in value) if isinstance(value, list | tuple) else str(value))
+
+
+def _stage_config(config: Path | None, options: dict[str, tuple[str, object]]):
+    """The configuration of a single-stage command: ``--config FILE`` (else the shipped
+    defaults) with each option given (not None) overriding its key, ``{"--option": ("section.key",
+    value)}``; checked like a file, an error names the option."""
+    from pipeline.config import Config
+
+    cfg = Config.load(config)
+    cfg.validate()
+    for option, (key, value) in options.items():
+        if value is None:
+            continue
+        try:
+            cfg = cfg.with_values({key: list(value) if isinstance(value, tuple) else value})
+            cfg.validate()
+        except AeromagError as exc:
+            _fail(f"{option} {_shown(value)}: {exc.problem}")
+    return cfg
+
+
 @app.command()
 def compensate(
     recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
     out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
     json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write.")],
-    model: Annotated[str, typer.Option(help="tl16 | tl18 | agg-tl")] = "tl16",
-    agg_base: Annotated[str, typer.Option(help="AGG-TL's T-L terms: tl18 (|B|-scaled, "
-                                               "default) or tl16 (paper 002)")] = "tl18",
-    band: Annotated[tuple[float, float], typer.Option(help="Band-pass edges, Hz.")] = (0.1, 0.9),
-    poles: Annotated[int, typer.Option(help="Butterworth prototype order.")] = 4,
-    trim: Annotated[int, typer.Option(help="Samples dropped at each end of a block.")] = 20,
-    ridge: Annotated[str, typer.Option(help="auto (L-curve corner) or a lambda.")] = "auto",
+    model: Annotated[str | None, typer.Option(
+        help="tl16 | tl18 | agg-tl (default: the configuration's final model the recording "
+             "can fit, as `aeromag process`)")] = None,
+    agg_base: Annotated[str | None, typer.Option(
+        help="AGG-TL's T-L terms: tl18 (|B|-scaled) or tl16 (paper 002) "
+             "(config: compensation.agg_base)")] = None,
+    band: Annotated[tuple[float, float] | None, typer.Option(
+        help="Band-pass edges, Hz (config: compensation.band_hz).")] = None,
+    poles: Annotated[int | None, typer.Option(
+        help="Butterworth prototype order (config: compensation.poles).")] = None,
+    trim: Annotated[int | None, typer.Option(
+        help="Samples dropped at each end of a block (config: compensation.trim).")] = None,
+    ridge: Annotated[str | None, typer.Option(
+        help="auto (L-curve corner) or a lambda (config: compensation.ridge).")] = None,
     calibration: Annotated[str, typer.Option(help="auto | all | T0:T1 (seconds from the "
                                                   "first epoch, or Unix seconds)")] = "auto",
     scalar: Annotated[str | None, typer.Option(help="Scalar magnetometer topic.")] = None,
     vector: Annotated[str | None, typer.Option(help="Vector magnetometer topic.")] = None,
+    config: ConfigOption = None,
 ) -> None:
     """Fit a T-L / AGG-TL model, compensate the scalar field, write channels and a summary."""
     from flows.stages import compensate_recording, require_readable
-    from pipeline.compensate import MODELS, FitSettings
 
     require_readable(recording)
-    if model not in MODELS:
-        _fail(f"--model {model!r}: use one of {', '.join(MODELS)}")
-    try:
-        lam: float | str = "auto" if ridge == "auto" else float(ridge)
-    except ValueError:
-        _fail(f"--ridge {ridge!r}: use auto or a number >= 0")
-    try:
-        settings = FitSettings(model=model, band_hz=band, poles=poles, trim=trim, ridge=lam,
-                               base=agg_base)
-    except ValueError as exc:
-        _fail(str(exc))
-    with console.status(f"compensating {recording.name} ({model})"):
+    lam: object = ridge
+    if ridge is not None and ridge != "auto":
+        try:
+            lam = float(ridge)
+        except ValueError:
+            pass  # the configuration's check names it
+    cfg = _stage_config(config, {
+        "--model": ("compensation.models", [model] if model else None),
+        "--agg-base": ("compensation.agg_base", agg_base), "--band": ("compensation.band_hz", band),
+        "--poles": ("compensation.poles", poles), "--trim": ("compensation.trim", trim),
+        "--ridge": ("compensation.ridge", lam)})
+    settings = cfg.fit_settings(model) if model else None
+    with console.status(f"compensating {recording.name}"
+                        + (f" ({model})" if model else "")):
         summary = compensate_recording(recording, out_path, json_out, settings, calibration,
-                                       scalar, vector)
+                                       scalar, vector, cfg)
     for w in (summary.get("calibration_guards") or {}).get("warnings", []):
         console.print(f"warning: {w}", markup=False, highlight=False, soft_wrap=True)
     fom = summary["fom_nT"]
-    say(f"{model}: lambda {summary['lambda']:.3g}, {summary['samples']} samples, "
+    say(f"{summary['model']}: lambda {summary['lambda']:.3g}, {summary['samples']} samples, "
         f"fit residual {summary['fit_residual_nT']:.4f} nT")
     if fom["uncompensated"] is not None:
         say(f"FOM: {fom['uncompensated']:.2f} nT uncompensated -> {fom['compensated']:.2f} nT")
@@ -218,33 +262,33 @@ def map_(
     recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
     out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
     json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write.")],
-    cell: Annotated[float | None, typer.Option(help="Cell size, m (default: line spacing / 4).")
-                    ] = None,
-    arima: Annotated[str, typer.Option(help="auto (BIC) or p,d,q")] = "auto",
-    noise: Annotated[float | None, typer.Option(help="Measurement noise for the Kalman filter, "
-                                                     "nT (default: estimated)")] = None,
-    level_trend: Annotated[bool, typer.Option(help="Linear-in-time line corrections.")] = False,
+    cell: Annotated[float | None, typer.Option(
+        help="Cell size, m; 0: line spacing / 4 (config: map.cell_m).")] = None,
+    arima: Annotated[str | None, typer.Option(
+        help="auto (BIC) or p,d,q (config: map.arima)")] = None,
+    noise: Annotated[float | None, typer.Option(
+        help="Measurement noise for the Kalman filter, nT; 0: estimated "
+             "(config: map.noise_nT)")] = None,
+    level_trend: Annotated[bool | None, typer.Option(
+        "--level-trend/--no-level-trend",
+        help="Linear-in-time line corrections (config: map.level_trend).")] = None,
     lag: Annotated[float, typer.Option(help="Magnetometer lag to remove, s (the sensor reports "
                                             "late by this much).")] = 0.0,
+    config: ConfigOption = None,
 ) -> None:
-    """Reduce, level, grid and ARIMA-Kalman-filter the anomaly map (runs the stages it needs)."""
+    """Reduce, level, grid and ARIMA-Kalman-filter the anomaly map (runs the stages it needs,
+    with the configuration's settings)."""
+    from dataclasses import replace
+
     from flows.stages import map_recording, require_readable
-    from pipeline.maps.stage import MapSettings
 
     require_readable(recording)
-    order: str | tuple[int, int, int] = "auto"
-    if arima != "auto":
-        try:
-            p, d, q = (int(v) for v in arima.split(","))
-            order = (p, d, q)
-        except ValueError:
-            _fail(f"--arima {arima!r}: use auto or p,d,q (e.g. 2,1,1)")
-    if cell is not None and cell <= 0:
-        _fail(f"--cell {cell}: must be > 0 m")
-    settings = MapSettings(cell_m=cell, arima=order, noise_nT=noise, level_trend=level_trend,
-                           lag_s=lag)
+    cfg = _stage_config(config, {"--cell": ("map.cell_m", cell), "--arima": ("map.arima", arima),
+                                 "--noise": ("map.noise_nT", noise),
+                                 "--level-trend": ("map.level_trend", level_trend)})
+    settings = replace(cfg.map_settings(), lag_s=lag)
     with console.status(f"mapping {recording.name}"):
-        summary = map_recording(recording, out_path, json_out, settings)
+        summary = map_recording(recording, out_path, json_out, settings, cfg)
     m = summary["map"]
     say(f"grid {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.2f} m; "
         f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
@@ -258,28 +302,32 @@ def quality(
     recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap), raw or processed.")],
     json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write (plots are "
                                                           "written next to it).")],
-    overlap_m: Annotated[float, typer.Option("--overlap-m", help="Largest horizontal distance "
-                                                                 "of an overlap pair, m.")] = 0.5,
+    overlap_m: Annotated[float | None, typer.Option(
+        "--overlap-m", help="Largest horizontal distance of an overlap pair, m "
+                            "(config: quality.overlap_m).")] = None,
     out_path: Annotated[Path | None, typer.Option("--out", help="Also write an output recording "
                                                                "with the quality channels.")
                         ] = None,
-    noise_threshold: Annotated[float, typer.Option(help="4th-difference noise above which a "
-                                                        "line is flagged, nT.")] = 0.1,
-    height_tolerance: Annotated[float, typer.Option(help="Allowed flight-height deviation, m.")
-                                ] = 10.0,
+    noise_threshold: Annotated[float | None, typer.Option(
+        help="4th-difference noise above which a line is flagged, nT "
+             "(config: quality.noise_threshold_nT).")] = None,
+    height_tolerance: Annotated[float | None, typer.Option(
+        help="Allowed flight-height deviation, m (config: quality.height_tolerance_m).")] = None,
+    config: ConfigOption = None,
 ) -> None:
     """Heading error at overlap points, interpolated-map comparison, crossovers and survey QC
-    (runs segmentation, each compensation model and gridding itself when needed)."""
+    (runs segmentation, the configured compensation models and gridding itself when needed)."""
     from flows.stages import quality_recording, require_readable
-    from pipeline.quality import QualitySettings
 
     require_readable(recording)
-    if overlap_m <= 0:
-        _fail(f"--overlap-m {overlap_m}: must be > 0 m")
-    settings = QualitySettings(overlap_m=overlap_m, noise_threshold_nT=noise_threshold,
-                               height_tolerance_m=height_tolerance)
+    cfg = _stage_config(config, {"--overlap-m": ("quality.overlap_m", overlap_m),
+                                 "--noise-threshold": ("quality.noise_threshold_nT",
+                                                       noise_threshold),
+                                 "--height-tolerance": ("quality.height_tolerance_m",
+                                                        height_tolerance)})
+    settings = cfg.quality_settings()
     with console.status(f"quality statistics of {recording.name}"):
-        summary = quality_recording(recording, json_out, settings, out_path)
+        summary = quality_recording(recording, json_out, settings, out_path, cfg)
     _print_quality(summary["quality"])
     if out_path:
         say(f"output recording: {out_path}")
@@ -323,24 +371,24 @@ def audit(
                                                                "recording: /audit/finding, "
                                                                "/aeromag/log, compensated "
                                                                "fields.")] = None,
-    baseline: Annotated[str, typer.Option(help="Baseline T-L term set: tl18 or tl16.")
-                        ] = "tl18",
-    alpha: Annotated[float, typer.Option(help="Significance level per round (Holm).")] = 0.01,
-    min_gain: Annotated[float, typer.Option(help="Smallest held-out RMS reduction an effect "
-                                                 "must bring (fraction).")] = 0.05,
+    baseline: Annotated[str | None, typer.Option(
+        help="Baseline T-L term set: tl18 or tl16 (config: audit.baseline).")] = None,
+    alpha: Annotated[float | None, typer.Option(
+        help="Significance level per round (Holm) (config: audit.alpha).")] = None,
+    min_gain: Annotated[float | None, typer.Option(
+        help="Smallest held-out RMS reduction an effect must bring (fraction) "
+             "(config: audit.min_gain).")] = None,
+    config: ConfigOption = None,
 ) -> None:
-    """Find what the baseline model gets wrong, name the cause, extend it, measure the gain."""
+    """Find what the baseline model gets wrong, name the cause, extend it, measure the gain
+    (in the configured fit band)."""
     from flows.stages import audit_recording, require_readable
-    from pipeline.audit import AuditSettings
 
     require_readable(recording)
-    if baseline not in ("tl16", "tl18"):
-        _fail(f"--baseline {baseline!r}: use tl18 or tl16")
-    if not 0 < alpha < 1:
-        _fail(f"--alpha {alpha}: must be between 0 and 1")
-    if not 0 <= min_gain < 1:
-        _fail(f"--min-gain {min_gain}: must be in [0, 1)")
-    settings = AuditSettings(baseline=baseline, alpha=alpha, min_gain=min_gain)
+    cfg = _stage_config(config, {"--baseline": ("audit.baseline", baseline),
+                                 "--alpha": ("audit.alpha", alpha),
+                                 "--min-gain": ("audit.min_gain", min_gain)})
+    settings = cfg.audit_settings()
     with console.status(f"auditing {recording.name}") as status:
         j = audit_recording(recording, json_out, report, settings, out_path,
                             progress=lambda m: status.update(f"auditing {recording.name}: {m}"))
@@ -387,19 +435,19 @@ def vector(
     recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
     out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
     json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write.")],
-    method: Annotated[str, typer.Option(help="ellipsoid-kf (online hard/soft-iron "
-                                             "calibration -> /mag/vector/calibrated), "
-                                             "component-kf or batch (21-parameter "
-                                             "compensation -> /mag/vector/compensated)")
-                      ] = "component-kf",
+    method: Annotated[str | None, typer.Option(help="ellipsoid-kf (online hard/soft-iron "
+                                                    "calibration -> /mag/vector/calibrated), "
+                                                    "component-kf or batch (21-parameter "
+                                                    "compensation -> /mag/vector/compensated) "
+                                                    "(config: vector.method)")] = None,
+    config: ConfigOption = None,
 ) -> None:
     """Calibrate or compensate the vector magnetometer (papers 003 and 000)."""
     from flows.stages import require_readable, vector_recording
-    from pipeline.vector.stage import METHODS
 
     require_readable(recording)
-    if method not in METHODS:
-        _fail(f"--method {method!r}: use one of {', '.join(METHODS)}")
+    cfg = _stage_config(config, {"--method": ("vector.method", method)})
+    method = cfg["vector"]["method"]
     with console.status(f"vector stage ({method}) on {recording.name}"):
         summary = vector_recording(recording, out_path, json_out, method)
     v = summary["vector"]
@@ -410,14 +458,6 @@ def vector(
     say(f"summary: {json_out}")
 
 
-ConfigOption = Annotated[Path | None, typer.Option(
-    "--config", help="Processing configuration (TOML; `aeromag config` prints the defaults).")]
-
-
-def _check_config(config: Path | None) -> None:
-    from pipeline.config import Config
-
-    Config.load(config).validate()
 
 
 def _run_postflight(recording: Path, out_dir: Path, config: Path | None = None) -> dict:

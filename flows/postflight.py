@@ -37,9 +37,7 @@ def postflight_steps(recording: str, out_dir: str, cfg: Config, call: Callable[.
     runs: dict[str, Any] = {}
     audit = vector = map_run = quality = None
     if seg is not None and flight.has("vector_x_nT") and seg.passes():
-        for m in cfg["compensation"]["models"]:
-            if m == "agg-tl" and not flight.has("lat_deg", "alt_m"):
-                continue
+        for m in stages.configured_models(flight, cfg):
             runs[m] = call("compensate", flight, seg, m, cfg)
         if cfg["audit"]["enabled"]:
             audit = call("audit", flight, seg, cfg)

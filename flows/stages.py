@@ -15,6 +15,7 @@ import numpy as np
 from pipeline import __version__
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import CompensationRun, run_compensation
+from pipeline.config import Config
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.html_report import render_html
@@ -105,12 +106,19 @@ def compensation_lines(run: CompensationRun) -> list[tuple[int, str]]:
     return lines
 
 
-def compensate_recording(src: Path, dst: Path, summary_path: Path, settings: FitSettings,
-                         calibration: str = "auto", scalar_topic: str | None = None,
-                         vector_topic: str | None = None) -> dict[str, Any]:
-    """``aeromag compensate``: fit one model and write the output recording and summary."""
+def compensate_recording(src: Path, dst: Path, summary_path: Path,
+                         settings: FitSettings | None, calibration: str = "auto",
+                         scalar_topic: str | None = None, vector_topic: str | None = None,
+                         cfg: Config | None = None) -> dict[str, Any]:
+    """``aeromag compensate``: fit one model and write the output recording and summary.
+    ``settings`` None: the configuration's final model this flight can fit (as ``aeromag
+    process``), with its settings."""
     flight = read_flight(src, scalar_topic=scalar_topic, vector_topic=vector_topic)
     flight.require("vector_x_nT", purpose="compensation")
+    if settings is None:
+        cfg = cfg or Config.load()
+        models = configured_models(flight, cfg) or cfg["compensation"]["models"]
+        settings = cfg.fit_settings(models[-1])
     seg, why = try_segment(flight)
     run = run_compensation(flight, seg, settings, calibration)
     lines = ingest_lines(flight) + ([(LOG_INFO, why)] if why else []) + compensation_lines(run)
@@ -213,8 +221,18 @@ def map_lines(mr) -> list[tuple[int, str]]:
                        f"Kalman measurement noise {s['kalman']['measurement_noise_nT']:.3f} nT")]
 
 
-def map_recording(src: Path, dst: Path, summary_path: Path, settings: MapSettings) -> dict:
-    """``aeromag map``: segment and compensate when needed, then grid, level and filter."""
+def configured_models(flight: Flight, cfg: Config) -> list[str]:
+    """The configuration's compensation models this flight can fit, in order (the last is
+    the final one): AGG-TL needs positions."""
+    return [m for m in cfg["compensation"]["models"]
+            if m != "agg-tl" or flight.has("lat_deg", "alt_m")]
+
+
+def map_recording(src: Path, dst: Path, summary_path: Path, settings: MapSettings,
+                  cfg: Config | None = None) -> dict:
+    """``aeromag map``: segment and compensate when needed (the configuration's final model,
+    with its settings, as ``aeromag process``), then grid, level and filter."""
+    cfg = cfg or Config.load()
     flight = read_flight(src)
     seg, why = try_segment(flight)
     if seg is None:
@@ -227,8 +245,11 @@ def map_recording(src: Path, dst: Path, summary_path: Path, settings: MapSetting
     comp = list(earlier.values())[-1] if earlier else None
     summary: dict[str, Any] = {"aeromag_version": __version__, "input": flight_summary(flight)}
     if comp is None:
-        model = "agg-tl" if flight.has("lat_deg", "alt_m") else "tl16"
-        run = run_compensation(flight, seg, FitSettings(model=model))
+        models = configured_models(flight, cfg)
+        if not models:
+            raise AeromagError("no configured compensation model fits this flight "
+                               "(agg-tl needs positions)", file=src, channel="/gnss/fix")
+        run = run_compensation(flight, seg, cfg.fit_settings(models[-1]))
         comp = run.compensated_nT
         lines += compensation_lines(run)
         channels += [compensated_channel(flight, run), model_message(flight, run)]
@@ -253,14 +274,13 @@ def map_recording(src: Path, dst: Path, summary_path: Path, settings: MapSetting
 
 # --------------------------------------------------------------------------------------------
 # quality
-COMPARED_MODELS = ("tl16", "tl18", "agg-tl")
-
-
 def quality_fields(flight: Flight, seg: Segmentation, runs: dict[str, CompensationRun] | None
-                   = None) -> tuple[dict[str, np.ndarray], list[tuple[int, str]],
-                                    dict[str, CompensationRun]]:
+                   = None, cfg: Config | None = None
+                   ) -> tuple[dict[str, np.ndarray], list[tuple[int, str]],
+                              dict[str, CompensationRun]]:
     """Raw plus every compensated state: from ``runs``, else from the recording's own
-    ``/mag/compensated*`` channels, else fitted here (T-L 16, 18 and AGG-TL; returned too)."""
+    ``/mag/compensated*`` channels, else fitted here (the configuration's models with its
+    settings, as ``aeromag process``; returned too)."""
     fields = {"raw": flight.data["scalar_nT"].to_numpy(float)}
     lines: list[tuple[int, str]] = []
     if runs is not None:  # the caller's runs (possibly none): never fitted here
@@ -277,18 +297,18 @@ def quality_fields(flight: Flight, seg: Segmentation, runs: dict[str, Compensati
                                    "only the raw field is assessed"))
         return fields, lines, {}
     fitted = {}
-    for m in COMPARED_MODELS:
-        if m == "agg-tl" and not flight.has("lat_deg", "alt_m"):
-            continue
-        fitted[m] = run = run_compensation(flight, seg, FitSettings(model=m))
+    cfg = cfg or Config.load()
+    for m in configured_models(flight, cfg):
+        fitted[m] = run = run_compensation(flight, seg, cfg.fit_settings(m))
         lines += compensation_lines(run)
         fields[m] = run.compensated_nT
     return fields, lines, fitted
 
 
-def tl_alias(fields: dict[str, np.ndarray]) -> str | None:
-    """The T-L model reported as ``tl``: the one with AGG-TL's term set (18 terms)."""
-    base = FitSettings(model="agg-tl").base
+def tl_alias(fields: dict[str, np.ndarray], base: str | None = None) -> str | None:
+    """The T-L model reported as ``tl``: the one with AGG-TL's term set ``base`` (None: the
+    shipped ``compensation.agg_base``)."""
+    base = base or FitSettings(model="agg-tl").base
     return base if base in fields else next((m for m in ("tl18", "tl16") if m in fields), None)
 
 
@@ -368,19 +388,29 @@ def _refuse_existing(src: Path, channels: list[OutputChannel], present: set[str]
                            "omit --out", file=src, channel=clash[0])
 
 
+def fom_settings(cfg: Config) -> tuple[tuple[float, float], int]:
+    """The band and filter order every FOM table of a run is measured in: the configured
+    fit band (``compensation.band_hz``, ``poles``), as the compensation stage's own FOM."""
+    c = cfg["compensation"]
+    return tuple(c["band_hz"]), c["poles"]
+
+
 def quality_recording(src: Path, summary_path: Path, settings: QualitySettings,
-                      out: Path | None = None) -> dict[str, Any]:
-    """``aeromag quality``: every stage it needs, then the quality figures, plots, summary."""
+                      out: Path | None = None, cfg: Config | None = None) -> dict[str, Any]:
+    """``aeromag quality``: every stage it needs (with the configuration's settings), then
+    the quality figures, plots, summary."""
+    cfg = cfg or Config.load()
     flight = read_flight(src)
     seg, why = try_segment(flight)
     if seg is None:
         raise AeromagError(f"quality statistics need the flight lines: {why}", file=src,
                            channel="/gnss/fix")
-    fields, lines, fitted = quality_fields(flight, seg)
+    fields, lines, fitted = quality_fields(flight, seg, cfg=cfg)
     t = flight.data["time_s"].to_numpy(float)
     fom = fom_table(t, fields["raw"], {k: v for k, v in fields.items() if k != "raw"},
-                    seg.boxes()) if len(fields) > 1 and seg.boxes() else None
-    q = run_quality(flight, seg, fields, tl_alias(fields), fom, settings)
+                    seg.boxes(), *fom_settings(cfg)) if len(fields) > 1 and seg.boxes() else None
+    q = run_quality(flight, seg, fields, tl_alias(fields, cfg["compensation"]["agg_base"]),
+                    fom, settings)
     lines = ingest_lines(flight) + lines + quality_lines(q)
     figures = {name: str(save_figure(fig, summary_path.with_name(
         f"{summary_path.stem}.{name}.png"))) for name, fig in quality_figures(q).items()}
@@ -606,14 +636,15 @@ def quality_stage(flight: Flight, seg: Segmentation, runs: dict, audit, cfg) -> 
     -------
     QualityRun
     """
-    fields, _, _ = quality_fields(flight, seg, runs)
+    fields, _, _ = quality_fields(flight, seg, runs, cfg)
     final = final_field(runs, audit)
     if final is not None and final[0] == "extended":
         fields["extended"] = final[1]
     t = flight.data["time_s"].to_numpy(float)
     fom = fom_table(t, fields["raw"], {k: v for k, v in fields.items() if k != "raw"},
-                    seg.boxes()) if seg.boxes() and len(fields) > 1 else None
-    return run_quality(flight, seg, fields, tl_alias(fields), fom, cfg.quality_settings())
+                    seg.boxes(), *fom_settings(cfg)) if seg.boxes() and len(fields) > 1 else None
+    return run_quality(flight, seg, fields, tl_alias(fields, cfg["compensation"]["agg_base"]),
+                       fom, cfg.quality_settings())
 
 
 def _model_channels(flight: Flight, runs: dict, audit) -> tuple[list[OutputChannel], str]:
@@ -690,10 +721,11 @@ def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str
         from pipeline.compensate import bandpassed
         from pipeline.plots import compensation_figure
 
+        band, poles = fom_settings(cfg)  # the configured band, as every FOM
         figures["compensation"] = compensation_figure(
-            t, bandpassed(t, flight.data["scalar_nT"].to_numpy(), (0.1, 0.9), 4),
-            {m: bandpassed(t, r.compensated_nT, (0.1, 0.9), 4) for m, r in runs.items()},
-            seg.passes())
+            t, bandpassed(t, flight.data["scalar_nT"].to_numpy(), band, poles),
+            {m: bandpassed(t, r.compensated_nT, band, poles) for m, r in runs.items()},
+            seg.passes(), band)
     if audit is not None:
         lines += audit_log_lines(audit)
         channels.append(finding_channel(flight, audit))

@@ -19,6 +19,7 @@ from typing import Any
 from pipeline.defaults import default_text as default_text
 from pipeline.defaults import default_value as default_value
 from pipeline.defaults import read_toml as read_toml
+from pipeline.defaults import ridge_problem
 from pipeline.errors import AeromagError
 
 CONFIG_VERSION = 1
@@ -39,9 +40,11 @@ def _merge(base: dict, over: dict, source: str, prefix: str = "") -> dict:
         ok = (isinstance(v, bool) if isinstance(b, bool) else
               isinstance(v, int | float) and not isinstance(v, bool) if isinstance(b, float)
               else isinstance(v, type(b)))
-        if key == "compensation.ridge":
-            ok = v == "auto" or (isinstance(v, int | float) and not isinstance(v, bool)
-                                 and v >= 0)
+        if key == "compensation.ridge":  # the one place a ridge value is checked
+            if ridge_problem(v):
+                raise AeromagError(f"{key} = {v!r}: use \"auto\" or a number >= 0",
+                                   file=source)
+            ok = True
         if not ok:
             raise AeromagError(f"{key} = {v!r}: expected {type(b).__name__}", file=source)
         out[k] = float(v) if isinstance(b, float) and not isinstance(v, str) else v
@@ -66,6 +69,19 @@ class Config:
                                f"(this aeromag reads {CONFIG_VERSION})", file=p)
         return cls(values, str(p))
 
+    def with_values(self, changes: dict[str, Any], source: str = "command line") -> Config:
+        """A copy with ``changes`` (``{"section.key": value}``) applied, checked like a file's
+        values (unknown keys and wrong types are errors naming ``source``); the single-stage
+        commands' options override configuration keys this way."""
+        nested: dict[str, Any] = {}
+        for dotted, v in changes.items():
+            section, _, key = dotted.rpartition(".")
+            (nested.setdefault(section, {}) if section else nested)[key] = v
+        values = _merge(self.values, nested, source)
+        label = self.source if not changes else (
+            f"{self.source} + {source}" if self.source != "defaults" else source)
+        return Config(values, label)
+
     @property
     def hash(self) -> str:
         canon = json.dumps(self.values, sort_keys=True, separators=(",", ":"))
@@ -83,13 +99,10 @@ class Config:
                            trim=c["trim"], ridge=c["ridge"], base=c["agg_base"])
 
     def map_settings(self):
-        from pipeline.maps.stage import MapSettings
+        from pipeline.maps.stage import MapSettings, parse_arima
 
         m = self.values["map"]
-        arima: Any = "auto"
-        if m["arima"] != "auto":
-            arima = tuple(int(v) for v in str(m["arima"]).split(","))
-        return MapSettings(cell_m=m["cell_m"] or None, arima=arima,
+        return MapSettings(cell_m=m["cell_m"] or None, arima=parse_arima(m["arima"]),
                            noise_nT=m["noise_nT"] or None, level_trend=m["level_trend"],
                            direction=m["direction"],
                            min_crossing_angle_deg=m["min_crossing_angle_deg"])
@@ -127,6 +140,28 @@ class Config:
         if not 0.0 <= self.values["map"]["min_crossing_angle_deg"] <= 90.0:
             raise AeromagError("map.min_crossing_angle_deg: use 0 to 90 degrees",
                                file=self.source)
+        band = c["band_hz"]
+        if (len(band) != 2 or not all(isinstance(b, int | float) and not isinstance(b, bool)
+                                      for b in band) or not 0 < band[0] < band[1]):
+            raise AeromagError(f"compensation.band_hz = {band!r}: use [LOW, HIGH] Hz, "
+                               "0 < LOW < HIGH", file=self.source)
+        if c["poles"] < 1 or c["trim"] < 0:
+            raise AeromagError("compensation.poles must be >= 1 and compensation.trim >= 0",
+                               file=self.source)
+        a = self.values["audit"]
+        if a["baseline"] not in ("tl16", "tl18"):
+            raise AeromagError("audit.baseline: use tl18 or tl16", file=self.source)
+        if not 0 < a["alpha"] < 1:
+            raise AeromagError(f"audit.alpha = {a['alpha']}: must be between 0 and 1",
+                               file=self.source)
+        if not 0 <= a["min_gain"] < 1:
+            raise AeromagError(f"audit.min_gain = {a['min_gain']}: must be in [0, 1)",
+                               file=self.source)
+        if self.values["map"]["cell_m"] < 0:
+            raise AeromagError("map.cell_m: must be > 0 m (0: a quarter of the line spacing)",
+                               file=self.source)
+        if self.values["quality"]["overlap_m"] <= 0:
+            raise AeromagError("quality.overlap_m: must be > 0 m", file=self.source)
         try:
             self.fit_settings(c["models"][-1])
             self.map_settings()

@@ -11,6 +11,8 @@ from __future__ import annotations
 import copy
 import functools
 import tomllib
+from collections.abc import Callable
+from dataclasses import field
 from importlib import resources
 from pathlib import Path
 from typing import Any
@@ -30,6 +32,24 @@ def _defaults() -> dict[str, Any]:
 def default_value(section: str, key: str) -> Any:
     """A value of the shipped defaults: the one source of a code default that has a key."""
     return copy.deepcopy(_defaults()[section][key])
+
+
+def default_field(section: str, key: str, convert: Callable[[Any], Any] | None = None) -> Any:
+    """A dataclass field defaulting to a shipped value (``convert`` maps the TOML value to the
+    field's type, e.g. ``tuple`` for a band): settings classes never re-type a literal."""
+    def make() -> Any:
+        v = default_value(section, key)
+        return convert(v) if convert else v
+
+    return field(default_factory=make)
+
+
+def ridge_problem(value: Any) -> str | None:
+    """The one rule for ``compensation.ridge``: ``"auto"`` or a number >= 0 (None: fine)."""
+    if value == "auto" or (isinstance(value, int | float) and not isinstance(value, bool)
+                           and value >= 0):
+        return None
+    return f"ridge must be 'auto' or a number >= 0, not {value!r}"
 
 
 def read_toml(path: str | Path, what: str) -> dict[str, Any]:

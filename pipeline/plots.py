@@ -35,9 +35,13 @@ def lcurve_figure(lc: LCurve, title: str = "L-curve") -> plt.Figure:
 
 def compensation_figure(time_s: np.ndarray, raw_bp_nT: np.ndarray,
                         comp_bp_nT: dict[str, np.ndarray], passes: list[np.ndarray],
-                        band_hz: tuple[float, float] = (0.1, 0.9)) -> plt.Figure:
+                        band_hz: tuple[float, float] | None = None) -> plt.Figure:
     """Band-passed field over each calibration pass: uncompensated (top row) and each
-    model's compensated signal (bottom row, its own scale: what the FOM measures)."""
+    model's compensated signal (bottom row, its own scale: what the FOM measures);
+    ``band_hz`` names the band in the titles (None: the shipped configuration's)."""
+    from pipeline.compensate.model import fom_band
+
+    band_hz, _ = fom_band(band_hz)
     n = max(len(passes), 1)
     fig, axes = plt.subplots(2, n, figsize=(6.5 * n, 6), squeeze=False, sharex="col")
     for k, span in enumerate(passes):

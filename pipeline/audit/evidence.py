@@ -102,7 +102,7 @@ def paired_point_gain(d_before: np.ndarray, d_after: np.ndarray) -> HeldOut:
                    int(a.size))
 
 
-def band_noise_gain(rate_hz: float, band_hz: tuple[float, float], poles: int = 4) -> float:
+def band_noise_gain(rate_hz: float, band_hz: tuple[float, float], poles: int) -> float:
     """RMS of unit white noise after the zero-phase band-pass (deterministic, seeded)."""
     x = np.random.default_rng(0).normal(size=200_000)
     return float(np.std(sosfiltfilt(bandpass_sos(band_hz, rate_hz, poles), x)))

@@ -34,6 +34,7 @@ from pipeline.compensate.terms import (
     tl16_terms,
     tl18_terms,
 )
+from pipeline.defaults import default_field
 from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
 from pipeline.physics.interference import CarrierInterference, scalar_reading_nT
@@ -183,9 +184,11 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
 
 @dataclass
 class BandSettings:
-    band_hz: tuple[float, float] = (0.1, 0.9)
-    poles: int = 4
-    trim: int = 20
+    """The fit band (defaults: the shipped configuration's [compensation] values)."""
+
+    band_hz: tuple[float, float] = default_field("compensation", "band_hz", tuple)
+    poles: int = default_field("compensation", "poles")
+    trim: int = default_field("compensation", "trim")
 
 
 def bandpassed_rows(data: AuditData, des: Design, mask: np.ndarray, bs: BandSettings,

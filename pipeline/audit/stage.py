@@ -62,6 +62,7 @@ from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguou
 from pipeline.compensate.model import figure_of_merit
 from pipeline.compensate.stage import calibration_mask
 from pipeline.compensate.terms import direction_cosines
+from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
@@ -73,9 +74,11 @@ EFFECTS = ("geomagnetic_gradient", "sensor_lag", "diurnal", "electrical_current"
 
 @dataclass
 class AuditSettings:
-    baseline: str = "tl18"
-    alpha: float = 0.01  # family-wise, per round (Holm)
-    min_gain: float = 0.05  # smallest held-out RMS reduction worth a model term (fraction)
+    # baseline, alpha, min_gain: the shipped configuration's [audit] values
+    baseline: str = default_field("audit", "baseline")
+    alpha: float = default_field("audit", "alpha")  # family-wise, per round (Holm)
+    # smallest held-out RMS reduction worth a model term (fraction)
+    min_gain: float = default_field("audit", "min_gain")
     band: BandSettings = field(default_factory=BandSettings)
     block_s: float = 10.0
     unexplained_factor: float = 1.5  # held-out residual / noise floor that counts as structure
@@ -819,8 +822,10 @@ def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None 
     comp_b, _ = baseline.compensate(data)
     t = data.time_s
     boxes = seg.boxes()
-    fom_b = figure_of_merit(t, data.scalar_nT, comp_b, boxes).total if boxes else None
-    fom_e = figure_of_merit(t, data.scalar_nT, comp_e, boxes).total if boxes else None
+    fom_b = figure_of_merit(t, data.scalar_nT, comp_b, boxes, s.band.band_hz,
+                            s.band.poles).total if boxes else None
+    fom_e = figure_of_merit(t, data.scalar_nT, comp_e, boxes, s.band.band_hz,
+                            s.band.poles).total if boxes else None
     q_b = _quality_figures(flight, seg, comp_b, subtract_base=False)
     q_e = _quality_figures(flight, seg, comp_e, subtract_base=final_spec.diurnal)
     gain = {"heldout_calibration_residual_rms_nT": {"before": cv_b, "after": cv_e},

@@ -6,7 +6,7 @@ import numpy as np
 from scipy.signal import butter, sosfiltfilt
 
 
-def bandpass_sos(band_hz: tuple[float, float], fs_hz: float, poles: int = 4) -> np.ndarray:
+def bandpass_sos(band_hz: tuple[float, float], fs_hz: float, poles: int) -> np.ndarray:
     """Second-order sections of a Butterworth band-pass.
 
     ``poles`` is the order of the low-pass prototype (as in MagNav.jl's ``pole``): the

@@ -19,6 +19,7 @@ from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguou
 from pipeline.compensate.guards import scaled_condition
 from pipeline.compensate.ridge import LCurve, RidgeSVD
 from pipeline.compensate.terms import position_terms, tl16_terms, tl18_terms
+from pipeline.defaults import default_field, default_value, ridge_problem
 from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
 
@@ -64,24 +65,26 @@ class Measurements:
 class FitSettings:
     """How to fit: term set, band (None: no filtering), filter order, trim, ridge."""
 
+    # every default but the model is the shipped configuration's [compensation] value
     model: str = "tl16"
-    band_hz: tuple[float, float] | None = (0.1, 0.9)
+    band_hz: tuple[float, float] | None = default_field("compensation", "band_hz", tuple)
     # AGG-TL's T-L term set. tl18 by default: its induced terms scale with |B|, which the
     # regional gradient changes between the calibration site and the survey (hundreds of nT);
     # tl16 (paper 002's choice) cannot follow that and leaves a heading error.
-    base: str = "tl18"
-    poles: int = 4
-    trim: int = 20
-    ridge: float | str = "auto"  # a lambda, or "auto" for the L-curve corner
+    base: str = default_field("compensation", "agg_base")
+    poles: int = default_field("compensation", "poles")
+    trim: int = default_field("compensation", "trim")
+    # a lambda, or "auto" for the L-curve corner
+    ridge: float | str = default_field("compensation", "ridge")
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
             raise ValueError(f"unknown model {self.model!r} (use {', '.join(MODELS)})")
         if self.base not in ("tl16", "tl18"):
             raise ValueError(f"unknown AGG-TL base {self.base!r} (use tl16 or tl18)")
-        if not (self.ridge == "auto" or (isinstance(self.ridge, int | float)
-                                         and self.ridge >= 0)):
-            raise ValueError(f"ridge must be 'auto' or a number >= 0, not {self.ridge!r}")
+        problem = ridge_problem(self.ridge)  # the rule Config loading applies
+        if problem:
+            raise ValueError(problem)
 
 
 def tl_terms(model: str, meas: Measurements, base: str = "tl18") -> tuple[np.ndarray, list[str]]:
@@ -233,6 +236,15 @@ class FigureOfMerit:
         return {**self.total, "passes": self.passes, "boxes": self.boxes}
 
 
+def fom_band(band_hz: tuple[float, float] | None = None, poles: int | None = None
+             ) -> tuple[tuple[float, float], int]:
+    """The band and order a FOM is measured in: the given ones, else the shipped defaults
+    (``[compensation] band_hz``, ``poles``)."""
+    band = tuple(band_hz) if band_hz is not None else tuple(
+        default_value("compensation", "band_hz"))
+    return band, int(poles if poles is not None else default_value("compensation", "poles"))
+
+
 def bandpassed(meas_time_s: np.ndarray, x: np.ndarray, band_hz: tuple[float, float],
                poles: int) -> np.ndarray:
     """Band-pass ``x`` over each contiguous finite block of the whole flight (NaN elsewhere)."""
@@ -246,9 +258,12 @@ def bandpassed(meas_time_s: np.ndarray, x: np.ndarray, band_hz: tuple[float, flo
 
 
 def figure_of_merit(time_s: np.ndarray, raw_nT: np.ndarray, compensated_nT: np.ndarray,
-                    boxes: list, band_hz: tuple[float, float] = (0.1, 0.9),
-                    poles: int = 4) -> FigureOfMerit:
-    """FOM of each box (see :class:`pipeline.segment.Box`) and per pass, raw vs compensated."""
+                    boxes: list, band_hz: tuple[float, float] | None = None,
+                    poles: int | None = None) -> FigureOfMerit:
+    """FOM of each box (see :class:`pipeline.segment.Box`) and per pass, raw vs compensated,
+    band-passed with ``band_hz`` / ``poles`` (None: the shipped configuration's): pass the
+    configured band so every FOM table of a run agrees."""
+    band_hz, poles = fom_band(band_hz, poles)
     raw_bp = bandpassed(time_s, raw_nT, band_hz, poles)
     comp_bp = bandpassed(time_s, compensated_nT, band_hz, poles)
     rows = []

@@ -16,6 +16,7 @@ from pipeline.compensate.model import (
     bandpassed,
     figure_of_merit,
     fit_compensation,
+    fom_band,
 )
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
@@ -95,7 +96,7 @@ def run_compensation(flight: Flight, segmentation: Segmentation | None, settings
         raise AeromagError(str(exc), file=flight.source,
                            channel=flight.topic_of.get("vector", "/mag/vector")) from None
     comp, interference = model.compensate(meas)
-    band = settings.band_hz or (0.1, 0.9)
+    band, _ = fom_band(settings.band_hz)  # unfiltered fit: the FOM in the shipped band
     fom = None
     resid: dict[str, float | None] = {"calibration": None, "survey": None}
     comp_bp = bandpassed(meas.time_s, comp, band, settings.poles)

@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.config import default_value
+from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
@@ -31,16 +31,30 @@ from pipeline.segment import Segmentation
 ARIMA_SAMPLE_LIMIT = 20_000
 
 
+def parse_arima(value: str | tuple[int, int, int]) -> str | tuple[int, int, int]:
+    """``map.arima``: ``"auto"`` or ``"p,d,q"`` (or a tuple) -> ``"auto"`` or ``(p, d, q)``."""
+    if value == "auto" or isinstance(value, tuple):
+        return value
+    try:
+        p, d, q = (int(v) for v in str(value).split(","))
+    except ValueError:
+        raise ValueError(f"map.arima {value!r}: use auto or p,d,q (e.g. 2,1,1)") from None
+    return (p, d, q)
+
+
 @dataclass
 class MapSettings:
-    cell_m: float | None = None  # default: a quarter of the line spacing
-    arima: str | tuple[int, int, int] = "auto"
-    level_trend: bool = False  # linear-in-time line corrections besides the DC
+    # the keys of [map] default to the shipped configuration's values (0 there: None here)
+    cell_m: float | None = default_field("map", "cell_m", lambda v: v or None)  # None: spacing/4
+    arima: str | tuple[int, int, int] = default_field("map", "arima", parse_arima)
+    # linear-in-time line corrections besides the DC
+    level_trend: bool = default_field("map", "level_trend")
     lag_s: float = 0.0
-    noise_nT: float | None = None  # measurement noise for the Kalman filter (default: estimated)
+    # measurement noise for the Kalman filter (None: estimated)
+    noise_nT: float | None = default_field("map", "noise_nT", lambda v: v or None)
     mask_spacings: float = 1.0  # mask cells farther than this many line spacings from data
     # smooth (Rauch-Tung-Striebel, zero phase: the map product) | forward (paper 004)
-    direction: str = field(default_factory=lambda: default_value("map", "direction"))
+    direction: str = default_field("map", "direction")
     min_crossing_angle_deg: float = MIN_CROSSING_ANGLE_DEG  # shallower: no crossover
 
 

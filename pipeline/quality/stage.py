@@ -23,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.config import default_value
+from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
@@ -51,21 +51,22 @@ def state_key(name: str) -> str:
 
 @dataclass
 class QualitySettings:
-    overlap_m: float = 0.5  # pair threshold, horizontal (paper 002: 0.5 m)
-    noise_threshold_nT: float = 0.1  # 4th-difference noise above which a line is flagged
-    height_tolerance_m: float = 10.0
-    spacing_tolerance_fraction: float = 0.25
-    speed_tolerance_fraction: float = 0.2
-    diurnal_chord_s: float = 300.0
-    diurnal_tolerance_nT: float = 5.0
+    # the keys of [quality] default to the shipped configuration's values
+    overlap_m: float = default_field("quality", "overlap_m")  # pair threshold (paper 002: 0.5 m)
+    # 4th-difference noise above which a line is flagged
+    noise_threshold_nT: float = default_field("quality", "noise_threshold_nT")
+    height_tolerance_m: float = default_field("quality", "height_tolerance_m")
+    spacing_tolerance_fraction: float = default_field("quality", "spacing_tolerance_fraction")
+    speed_tolerance_fraction: float = default_field("quality", "speed_tolerance_fraction")
+    diurnal_chord_s: float = default_field("quality", "diurnal_chord_s")
+    diurnal_tolerance_nT: float = default_field("quality", "diurnal_tolerance_nT")
     cell_fraction: float = 0.25  # grid cell as a fraction of the line spacing
     subtract_base: bool = True  # remove the base-station diurnal in the reduction
     # tracks meeting at a shallower angle are no intersection or crossover (config: map)
     min_crossing_angle_deg: float = MIN_CROSSING_ANGLE_DEG
     # the headline heading error is paper 002's pair statistic when at least this many pairs
     # exist, else the track intersections (config: quality.min_overlap_pairs)
-    min_overlap_pairs: int = field(
-        default_factory=lambda: default_value("quality", "min_overlap_pairs"))
+    min_overlap_pairs: int = default_field("quality", "min_overlap_pairs")
 
 
 @dataclass
@@ -303,13 +304,16 @@ def run_quality(flight: Flight, seg: Segmentation, fields: dict[str, np.ndarray]
 
 
 def fom_table(time_s: np.ndarray, raw_nT: np.ndarray, fields: dict[str, np.ndarray],
-              boxes: list) -> list[dict]:
-    """The calibration FOM per box (pass, heading, manoeuvre): uncompensated and each model."""
+              boxes: list, band_hz: tuple[float, float] | None = None,
+              poles: int | None = None) -> list[dict]:
+    """The calibration FOM per box (pass, heading, manoeuvre): uncompensated and each model,
+    in the fit band ``band_hz`` / ``poles`` (None: the shipped configuration's; pass the
+    configured band so the table agrees with the compensation stage's FOM)."""
     from pipeline.compensate.model import figure_of_merit
 
     rows: list[dict] = []
     for name, f in fields.items():
-        fom = figure_of_merit(time_s, raw_nT, f, boxes)
+        fom = figure_of_merit(time_s, raw_nT, f, boxes, band_hz, poles)
         for k, r in enumerate(fom.boxes):
             if len(rows) <= k:
                 rows.append({key: r[key] for key in ("pass", "cardinal", "manoeuvre",
