@@ -26,6 +26,7 @@ import numpy as np
 from scipy.optimize import curve_fit, minimize_scalar
 from scipy.signal import welch
 
+from pipeline.audit.calibration_events import calibration_steps
 from pipeline.audit.crossval import (
     BLOCK_S,
     N_FOLDS,
@@ -575,6 +576,25 @@ class Auditor:
         t0 = int(self.flight.time_ns[0])
         return [e.to_dict(t0) for e in events]
 
+    def calibration_events(self, spec: ModelSpec) -> list[dict[str, Any]]:
+        """A step in ``spec``'s compensated field inside a calibration leg
+        (:mod:`pipeline.audit.calibration_events`), as ``unexplained.events`` entries."""
+        comp, _ = self.fit(spec, None, "all").compensate(self.data)
+        leg = np.full(self.mask.size, -1)
+        card = np.asarray(self.seg.cardinal, dtype=object)
+        cpass = np.asarray(self.seg.calibration_pass)
+        on = self.mask & (card != "")
+        for k, b in enumerate(contiguous_blocks(on, self.data.time_s)):
+            # a leg is a run of one heading of one pass (a block may span a turn's gap)
+            key = card[b] + ":" + cpass[b].astype(str)
+            edges = np.flatnonzero(key[1:] != key[:-1]) + 1
+            for j, part in enumerate(np.split(b, edges)):
+                leg[part] = 1000 * k + j
+        steps = calibration_steps(self.data.time_s, comp, leg, self.s.alpha,
+                                  self.s.min_event_nT)
+        t0 = int(self.flight.time_ns[0])
+        return [e.to_dict(t0) for e in steps]
+
     def survey_lag(self, spec: ModelSpec) -> SurveyLag | None:
         """The lag seen at the survey's crossovers (:func:`pipeline.audit.survey.survey_lag`)."""
         if not (self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
@@ -795,7 +815,7 @@ def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None 
     floor = sigma * band_noise_gain(data.rate_hz, s.band.band_hz, s.band.poles)
     if progress:
         progress("survey-side evidence")
-    events = aud.survey_evidence(final_spec)
+    events = aud.survey_evidence(final_spec) + aud.calibration_events(final_spec)
     unexplained: dict[str, Any] = {"events": events, "note": None,
                                    "spectrum": residual_spectrum(r_e, data.rate_hz, s.band)}
     spec_ = unexplained["spectrum"]
@@ -816,9 +836,10 @@ def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None 
                            "evidence": "calibration residual spectrum"})
     for e in events:
         if e["kind"] in ("step", "drift") and not unexplained["note"]:
-            unexplained["note"] = (f"{e['kind']} of {e['size_nT']:.2f} nT in the survey "
-                                   f"(crossovers, p {e['p_value']:.2g}); not a catalogue "
-                                   "effect")
+            where = ("in the survey (crossovers" if e["evidence"] == "survey crossovers"
+                     else "during calibration (calibration residual")
+            unexplained["note"] = (f"{e['kind']} of {e['size_nT']:.2f} nT {where}, "
+                                   f"p {e['p_value']:.2g}); not a catalogue effect")
     comp_b, _ = baseline.compensate(data)
     t = data.time_s
     boxes = seg.boxes()

@@ -244,13 +244,19 @@ def _activity(flight: Flight, leg: _Leg, p: SegmentParams, rate: float) -> dict[
 
 def _swings(flight: Flight, leg: _Leg, act: dict[str, np.ndarray],
             thr: dict[str, float]) -> dict[str, int]:
-    """Sign changes of each axis' deviation (beyond half its threshold) where it is active."""
+    """Swings of each axis' deviation where it is active: passages from beyond
+    +0.75 x its threshold to beyond -0.75 x (or back), counted with that hysteresis.
+
+    Without hysteresis the small wobble of a cruise leg around its level counted as swings
+    wherever the envelope of a one-sided excursion (a multicopter's pitch as it stops and
+    turns at a line's end) spread over the leg: tie lines were taken for calibration."""
     out = {}
     for axis in MANOEUVRES:
         a = _deviation(flight, leg, axis)
-        big = (np.abs(a) > 0.5 * thr[axis]) & (act[axis] >= thr[axis])
-        signs = np.sign(a[big])
-        out[axis] = int(np.count_nonzero(signs[1:] != signs[:-1]))
+        level = 0.75 * thr[axis]
+        side = np.where(a > level, 1, np.where(a < -level, -1, 0))
+        side = side[(side != 0) & (act[axis] >= thr[axis])]
+        out[axis] = int(np.count_nonzero(side[1:] != side[:-1]))
     return out
 
 
