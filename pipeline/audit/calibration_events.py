@@ -9,11 +9,14 @@ leave transients) is tested against it:
 
     y_k = a_leg + b_leg t_k + c [t_k > t_s] (leg holding t_s only) + e_k
 
-The errors are autocorrelated (manoeuvre-frequency residuals last several seconds), so the
-step's t statistic uses a heteroscedasticity-and-autocorrelation-consistent covariance
-(statsmodels OLS, Newey-West) and is Bonferroni-corrected over the scanned positions. The
-model (one step inside one of several independent legs) is not a change-point library's cost,
-hence the explicit scan.
+The errors are autocorrelated (manoeuvre-frequency residuals last several seconds: lag-one
+correlations of 0.7-0.8 between 1 s means), which a plain or Newey-West t ignores or
+under-corrects (measured: 26 of 40 clean synthetic calibrations gave a "step"). So the model
+is prewhitened first: an AR(2) fitted to the no-step residuals (least squares on its lags)
+filters y and every column within each leg (Cochrane-Orcutt), and the step's t statistic on
+the whitened data is Bonferroni-corrected over the scanned positions. The model (one step
+inside one of several independent legs) is not a change-point library's cost, hence the
+explicit scan.
 
 Times are seconds from the flight's first epoch; sizes nT.
 """
@@ -72,7 +75,7 @@ def calibration_steps(time_s: np.ndarray, compensated_nT: np.ndarray, leg: np.nd
     list of CalibrationStep
         At most one (the best scanned position).
     """
-    import statsmodels.api as sm
+    from scipy import stats
 
     legs = []
     for g in np.unique(leg[leg >= 0]):
@@ -93,29 +96,54 @@ def calibration_steps(time_s: np.ndarray, compensated_nT: np.ndarray, leg: np.nd
         m = (which == i).astype(float)
         base += [m, m * (t_all - t.mean())]
     base = np.column_stack(base)
+    coef0, *_ = np.linalg.lstsq(base, y_all, rcond=None)
+    resid = y_all - base @ coef0
+    order = 2
+    # AR(2) of the residual by least squares on its own lags, within legs
+    lagged, target = [], []
+    for i in range(len(legs)):
+        ri = resid[which == i]
+        target.append(ri[order:])
+        lagged.append(np.column_stack([ri[order - 1 - j:ri.size - 1 - j] for j in range(order)]))
+    phi, *_ = np.linalg.lstsq(np.vstack(lagged), np.concatenate(target), rcond=None)
+
+    def whiten(x: np.ndarray) -> np.ndarray:
+        """Cochrane-Orcutt within each leg; each leg's first ``order`` bins are dropped."""
+        out = []
+        for i in range(len(legs)):
+            xi = x[which == i]
+            w = xi[order:].copy()
+            for j in range(order):
+                w = w - phi[j] * xi[order - 1 - j:xi.shape[0] - 1 - j]
+            out.append(w)
+        return np.concatenate(out)
+
+    yw, bw = whiten(y_all), whiten(base)
+    n, k = bw.shape
     candidates = []
     for i, (t, _) in enumerate(legs):
         inner = (t > t[0] + guard_s) & (t < t[-1] - guard_s)
         idx = np.flatnonzero(inner)
         for a, b in zip(idx[:-1], idx[1:], strict=True):
             candidates.append((i, float(t[a]), float(t[b])))
-    if not candidates:
+    if not candidates or n <= k + 2:
         return []
-    coef0, *_ = np.linalg.lstsq(base, y_all, rcond=None)
-    rss0 = float(np.sum((y_all - base @ coef0) ** 2))
     best = None
     for i, lo, hi in candidates:
         step = ((which == i) & (t_all > 0.5 * (lo + hi))).astype(float)
-        a = np.column_stack([base, step])
-        coef, *_ = np.linalg.lstsq(a, y_all, rcond=None)
-        gain = rss0 - float(np.sum((y_all - a @ coef) ** 2))
-        if best is None or gain > best[0]:
-            best = (gain, i, lo, hi, step)
-    _, i, lo, hi, step = best
-    fit = sm.OLS(y_all, np.column_stack([base, step])).fit(
-        cov_type="HAC", cov_kwds={"maxlags": int(np.ceil(10.0 / bin_s))})
-    size = float(fit.params[-1])
-    p = min(1.0, float(fit.pvalues[-1]) * len(candidates))
+        a = np.column_stack([bw, whiten(step)])
+        coef, *_ = np.linalg.lstsq(a, yw, rcond=None)
+        r = yw - a @ coef
+        s2 = float(r @ r) / (n - k - 1)
+        cov = s2 * np.linalg.pinv(a.T @ a)
+        tval = coef[-1] / np.sqrt(cov[-1, -1])
+        if best is None or abs(tval) > abs(best[0]):
+            best = (tval, lo, hi, step)
+    tval, lo, hi, step = best
+    # the size from the unwhitened data at the located step (whitening trades a step's
+    # level for its edge and biases the coefficient when phi is near the unit circle)
+    size = float(np.linalg.lstsq(np.column_stack([base, step]), y_all, rcond=None)[0][-1])
+    p = min(1.0, 2 * float(stats.t.sf(abs(tval), n - k - 1)) * len(candidates))
     if p < alpha and abs(size) >= min_size_nT:
         return [CalibrationStep(lo, hi, abs(size), p)]
     return []

@@ -1,0 +1,53 @@
+"""Steps inside calibration legs (issue 16, item 3): located, and not invented from the
+autocorrelated residual that manoeuvres leave."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.signal import lfilter
+
+from pipeline.audit.calibration_events import calibration_steps
+
+RATE_HZ = 10.0
+
+
+def legs_with_residual(seed: int, step_nT: float = 0.0, step_s: float = 0.0):
+    """Four 80 s legs separated by 10 s turns: each leg a different level and along-track
+    trend (the Earth field), plus white noise and an AR(1) residual with a 3 s correlation
+    time (what manoeuvres leave after compensation)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 4 * 90.0, 1 / RATE_HZ)
+    leg = np.full(t.size, -1)
+    y = np.full(t.size, np.nan)
+    a = np.exp(-1 / (3.0 * RATE_HZ))
+    ar = lfilter([np.sqrt(1 - a**2)], [1, -a], rng.normal(0, 0.15, t.size))
+    for k in range(4):
+        m = (t >= 90 * k) & (t < 90 * k + 80)
+        leg[m] = k
+        y[m] = (50_000 + rng.normal(0, 20) + rng.normal(0, 0.01) * (t[m] - 90 * k)
+                + ar[m] + rng.normal(0, 0.05, m.sum()))
+    y = y + step_nT * (t > step_s)
+    return t, y, leg
+
+
+def test_a_step_inside_a_leg_is_found_where_it_is():
+    t, y, leg = legs_with_residual(3, step_nT=1.0, step_s=137.3)
+    ev = calibration_steps(t, y, leg, alpha=0.01, min_size_nT=0.3)
+    assert len(ev) == 1
+    assert ev[0].start_s - 2.0 <= 137.3 <= ev[0].end_s + 2.0
+    assert ev[0].size_nT == pytest.approx(1.0, abs=0.3)
+
+
+def test_a_step_between_legs_is_not_one():
+    """Between legs the level changes anyway (heading): no event."""
+    t, y, leg = legs_with_residual(4, step_nT=3.0, step_s=85.0)
+    assert calibration_steps(t, y, leg, alpha=0.01, min_size_nT=0.3) == []
+
+
+def test_no_events_from_autocorrelated_residual():
+    false = sum(bool(calibration_steps(*legs_with_residual(100 + s), alpha=0.01,
+                                       min_size_nT=0.0)) for s in range(40))
+    # alpha 0.01 after the scan correction: 0.4 expected; 3 or more would mean the
+    # autocorrelation is not accounted for (p < 0.01 under a binomial(40, 0.01))
+    assert false <= 2
