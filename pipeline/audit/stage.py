@@ -57,7 +57,14 @@ from pipeline.audit.extended import (
     simulate_measurement,
 )
 from pipeline.audit.noise import white_noise_nT
-from pipeline.audit.survey import CrossoverSet, SurveyLag, survey_events, survey_lag
+from pipeline.audit.survey import (
+    CrossoverSet,
+    SurveyCoupling,
+    SurveyLag,
+    survey_coupling,
+    survey_events,
+    survey_lag,
+)
 from pipeline.audit.vector_cal import fit_vector_calibration
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.model import figure_of_merit
@@ -412,8 +419,14 @@ class Auditor:
         est = coupling(self.fit(ext, None, "all"))
         folds = [coupling(self.fit(ext, tr, f"fold{k}")) for k, (tr, _) in
                  enumerate(self.folds)]
-        ev = Evaluation("electrical_current", key, est, test, held, ext,
-                        ci95=jackknife_ci95(est, folds))
+        ci = jackknife_ci95(est, folds)
+        sc = self.survey_coupling(current, name)
+        if sc is not None:  # independent evidence: the survey's crossovers
+            est.update(survey_total_field_nT_per_unit=sc.nT_per_unit,
+                       survey_ci95=list(sc.ci95), survey_p_value=sc.p_value)
+            ci.update({k: None for k in ("survey_total_field_nT_per_unit", "survey_ci95",
+                                         "survey_p_value")})
+        ev = Evaluation("electrical_current", key, est, test, held, ext, ci95=ci)
         # a current that follows the manoeuvres (a motor's) can stand in for interference
         # that is not linear in the field: the coupling is named only when it explains
         # held-out data better than second-order induced terms do
@@ -611,6 +624,22 @@ class Auditor:
         cs = CrossoverSet(dx - db, ta, tb, np.array([heading[c.line_a] for c in xs]),
                           np.array([heading[c.line_b] for c in xs]))
         return survey_lag(cs, np.interp(ta, t, rate), np.interp(tb, t, rate))
+
+    def survey_coupling(self, spec: ModelSpec, name: str) -> SurveyCoupling | None:
+        """Channel ``name``'s coupling seen at the survey's crossovers
+        (:func:`pipeline.audit.survey.survey_coupling`)."""
+        if not (self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
+                and self.seg.mask("tie").any() and self.seg.mask("survey").any()):
+            return None
+        dx, db, _, _, _, _, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
+        if dx.size < 8:
+            return None
+        t = self.data.time_s
+        aux = time_window_mean(t, self.data.aux[name], 1.0)  # as the crossovers are smoothed
+        ta, tb = np.array([c.time_a_s for c in xs]), np.array([c.time_b_s for c in xs])
+        cs = CrossoverSet(dx - db, ta, tb, np.array([heading[c.line_a] for c in xs]),
+                          np.array([heading[c.line_b] for c in xs]))
+        return survey_coupling(cs, np.interp(ta, t, aux), np.interp(tb, t, aux))
 
     # -- the whole audit ------------------------------------------------------------------
     def cv_residual(self, spec: ModelSpec, fold: np.ndarray | None = None,

@@ -171,20 +171,46 @@ def survey_lag(x: CrossoverSet, rate_a_nT_per_s: np.ndarray, rate_b_nT_per_s: np
     rate_a_nT_per_s, rate_b_nT_per_s
         Time derivative of each line's (smoothed) field at its crossing reading.
     """
-    y = np.asarray(x.difference_nT, float)
     g = -(np.asarray(rate_a_nT_per_s, float) - np.asarray(rate_b_nT_per_s, float))
+    fit = _regress_on(x, g)
+    return None if fit is None else SurveyLag(*fit)
+
+
+@dataclass
+class SurveyCoupling:
+    nT_per_unit: float
+    ci95: tuple[float, float]
+    p_value: float  # against no coupling
+    crossovers: int
+
+
+def survey_coupling(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray
+                    ) -> SurveyCoupling | None:
+    """A channel (a current) that couples into the scalar reading by k nT per unit makes two
+    crossing lines disagree by k (I_a - I_b) besides their heading levels: regressing the
+    crossover differences on the channel's difference estimates k from the survey alone (k
+    as the total field sees it, averaged over the headings)."""
+    fit = _regress_on(x, np.asarray(aux_a, float) - np.asarray(aux_b, float))
+    return None if fit is None else SurveyCoupling(*fit)
+
+
+def _regress_on(x: CrossoverSet, g: np.ndarray
+                ) -> tuple[float, tuple[float, float], float, int] | None:
+    """Coefficient of ``g`` in crossover differences ~ heading levels + c g: estimate,
+    95 % interval, two-sided p against 0, crossovers used."""
+    y = np.asarray(x.difference_nT, float)
     a = np.column_stack([_levels(x), g])
     ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
     a, y = a[ok], y[ok]
     n, k = a.shape
-    if n < k + 4 or np.std(g[ok]) == 0:
+    if n < k + 4 or np.std(a[:, -1]) == 0:
         return None
     coef, *_ = np.linalg.lstsq(a, y, rcond=None)
     r = y - a @ coef
     s2 = float(r @ r) / (n - k)
     cov = s2 * np.linalg.pinv(a.T @ a)
     se = float(np.sqrt(max(cov[-1, -1], 0.0)))
-    tau = float(coef[-1])
+    c = float(coef[-1])
     half = float(stats.t.ppf(0.975, n - k)) * se
-    p = float(2 * stats.t.sf(abs(tau) / se, n - k)) if se > 0 else 1.0
-    return SurveyLag(tau, (tau - half, tau + half), p, int(n))
+    p = float(2 * stats.t.sf(abs(c) / se, n - k)) if se > 0 else 1.0
+    return c, (c - half, c + half), p, int(n)
