@@ -1,6 +1,7 @@
 """Paper 004's map filter judged against the truth grid (item 5 of the fidelity issue).
 
     .venv/bin/python benchmarks/bench_map_filter.py [--seeds 20] [--order auto|p,d,q]
+                                                    [--conditions 1,2,3,4]
 
 Each seed simulates a line survey over point-dipole geology (``pipeline.simulate.map_survey``:
 physics the ARIMA model does not assume), grids it by minimum curvature as the map stage does
@@ -72,6 +73,8 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--order", default="2,1,1")
     ap.add_argument("--old", action="store_true", help="also run the filter before this change")
+    ap.add_argument("--conditions", default="",
+                    help="comma-separated indices into CONDITIONS (0-4; default all)")
     args = ap.parse_args()
     order = None if args.order == "auto" else tuple(int(v) for v in args.order.split(","))
     errors, rows = [], []
@@ -79,7 +82,9 @@ def main() -> int:
           "| old / grid (95 % CI) | grid noise nT (median lane) |")
     print("|---|---|---|---|---|---|---|")
     t0 = time.perf_counter()
-    for label, sensor, line, spacing in CONDITIONS:
+    pick = ([CONDITIONS[int(i)] for i in args.conditions.split(",")] if args.conditions
+            else CONDITIONS)
+    for label, sensor, line, spacing in pick:
         e0, eo, en, gn = [], [], [], []
         for seed in range(args.seeds):
             sv = line_survey(seed, sensor_nT=sensor, line_nT=line, spacing_m=spacing)

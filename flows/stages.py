@@ -602,7 +602,7 @@ def vector_stage(flight: Flight, seg: Segmentation | None, cfg):
     from pipeline.vector.stage import run_vector
 
     try:
-        return run_vector(flight, seg, cfg["vector"]["method"])
+        return run_vector(flight, seg, cfg["vector"]["method"], settings=cfg["vector"])
     except (AeromagError, ValueError) as exc:
         return str(exc)  # reported in the log; the other stages go on
 

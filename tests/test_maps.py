@@ -273,8 +273,9 @@ def test_levelled_grid_matches_the_truth_within_noise(mapped):
 def test_arima_kalman_removes_map_noise_and_keeps_the_peak(mapped):
     """1 nT of white noise added to the map: the ARIMA-Kalman filter (ARIMA signal plus
     known 1 nT measurement noise, identified on the noisy map) lowers the RMSE vs truth by
-    >= 30 % and keeps the largest anomaly's peak within 5 %. The filter runs along the lines
-    in both directions and averages (zero phase, like filtfilt)."""
+    >= 30 % and keeps the largest anomaly's peak within 5 %. The product is the zero-phase
+    Rauch-Tung-Striebel smoother along the lines. (Fails if identification accepts a
+    degenerate fit: see docs/science-paper004.md.)"""
     sim, _p, flight, seg, run, mr = mapped
     truth = truth_on(sim, mr.grid, mr.frame)
     rng = np.random.default_rng(11)
@@ -311,7 +312,8 @@ def test_forward_filter_lags_and_removes_less_noise(mapped):
     """Paper 004's causal (forward-only) filter against the map product's zero-phase one, on
     the same 1 nT noisy map, both scored against the true anomaly: the forward filter removes
     less of the added noise (it has only the past) and shifts the anomaly along the lines
-    (its error on the noise-free map is larger). The README quotes the two fractions."""
+    (its error on the noise-free map is larger). docs/science-paper004.md quotes the two
+    fractions."""
     sim, _p, _f, _s, _r, mr = mapped
     truth = truth_on(sim, mr.grid, mr.frame)
     rng = np.random.default_rng(11)

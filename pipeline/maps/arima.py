@@ -146,18 +146,70 @@ def choose_d(x: np.ndarray, max_d: int = 2, segments: int = 20) -> tuple[int, li
     return max_d, steps
 
 
+ROOT_MARGIN = 0.01  # AR or MA roots closer than this to the unit circle: a degenerate fit
+
+
+def _min_root_modulus(coefs: np.ndarray, sign: float) -> float:
+    """Smallest |root| of 1 + sign * sum c_i B^i (inf for no coefficient)."""
+    c = np.asarray(coefs, float)
+    if c.size == 0 or not np.any(c):
+        return float("inf")
+    return float(np.min(np.abs(np.roots(np.r_[1.0, sign * c][::-1]))))
+
+
+def degenerate(res, measurement_var: float | None) -> str | None:
+    """Why a fitted statsmodels ARIMA/SARIMAX result is not a usable model, or None.
+
+    * **impossible likelihood**: with a known white measurement variance R every one-step
+      prediction variance is >= R, so ln L <= -n/2 ln(2 pi R) over the n scored samples; a
+      larger value is a numerical failure of the likelihood (the stationary initialisation
+      of a unit-root candidate is singular), not a good fit (seen: ln L = 0.0 on 1 701 cells
+      with R = 1 nT^2, BIC 30 against ~6 300 for every sane candidate);
+    * **AR root on the unit circle** (|root| < 1 + ``ROOT_MARGIN``): the differences are
+      not stationary, the series needs one more difference (a serpentine map makes the
+      reverse-arrangements test accept a random walk: its segment means do not trend);
+    * **MA root on the unit circle**: non-invertible, the innovations cannot be recovered and
+      the filter built on it does not remove noise (AR ~ [0, 1] with MA ~ 1, i.e.
+      x_k = x_(k-2) + e_k + e_(k-1), made the filter worsen the map 14-fold).
+    """
+    llf = float(res.llf)
+    if not np.isfinite(llf) or not np.isfinite(res.bic):
+        return "non-finite likelihood"
+    if measurement_var is not None and measurement_var > 0:
+        n = int(res.nobs) - int(getattr(res, "loglikelihood_burn", 0))
+        bound = -0.5 * n * np.log(2 * np.pi * measurement_var)
+        if llf > bound + 1e-6 * abs(bound):
+            return f"ln L {llf:.1f} above its bound {bound:.1f} (numerical failure)"
+    ar = np.asarray(getattr(res, "arparams", []), float)
+    ma = np.asarray(getattr(res, "maparams", []), float)
+    if _min_root_modulus(ar, -1.0) < 1.0 + ROOT_MARGIN:
+        return "AR root on the unit circle (under-differenced)"
+    if _min_root_modulus(ma, 1.0) < 1.0 + ROOT_MARGIN:
+        return "MA root on the unit circle (non-invertible)"
+    return None
+
+
 def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: int = 3,
               max_q: int = 2, max_d: int = 2,
               measurement_var: float | None = None) -> ArimaModel:
-    """Fit ARIMA to a 1-D sequence (NaNs dropped): orders by BIC unless ``order`` is given.
+    """Fit ARIMA to a 1-D sequence: orders by BIC unless ``order`` is given.
 
-    ``d`` comes from the reverse-arrangements test (difference until stationary); (p, q) by
+    ``d`` starts from the reverse-arrangements test (difference until stationary); (p, q) by
     BIC = k ln(n) - 2 ln L over p <= max_p, q <= max_q, by statsmodels' exact likelihood.
+    Candidates that are :func:`degenerate` (impossible likelihood, AR or MA root on the unit
+    circle) are rejected; when every candidate at d is, d goes up by one (up to ``max_d``),
+    and when none is left at any d the model is the local level ARIMA(0, 1, 0) (a random
+    walk signal), which is always well posed. NaNs inside the sequence stay as missing
+    values; leading and trailing ones are dropped.
 
-    With ``measurement_var`` the sequence is modelled as an ARIMA *signal plus white
-    measurement noise* of that (known) variance, so the innovation variance describes the
-    signal alone: fitting a plain ARIMA to noisy data would fold the noise into the process
-    noise and the Kalman filter would then count it twice.
+    With ``measurement_var`` (the sequence's white-noise variance, same units squared) the
+    sequence is modelled as an ARIMA *signal plus white measurement noise* of that (known)
+    variance, so the innovation variance describes the signal alone: fitting a plain ARIMA
+    to noisy data would fold the noise into the process noise and the Kalman filter would
+    then count it twice.
+
+    An explicit ``order`` is fitted as given; if it is degenerate the reason is kept in the
+    model's ``tests["degenerate"]``.
     """
     from statsmodels.tsa.arima.model import ARIMA
     from statsmodels.tsa.statespace.sarimax import SARIMAX
@@ -170,43 +222,64 @@ def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: i
         raise ValueError("no finite sample to fit")
     x = x[fin[0]:fin[-1] + 1]
     if order is None:
-        d, steps = choose_d(x, max_d)
+        d0, steps = choose_d(x, max_d)
     else:
-        d, steps = order[1], []
-    y = np.diff(x, n=d) if d else x  # differences across a gap are NaN, not joined
-    candidates = [(order[0], order[2])] if order else [
-        (p, q) for p in range(max_p + 1) for q in range(max_q + 1) if p + q > 0]
+        d0, steps = order[1], []
+
+    def fit_one(p: int, d: int, q: int):
+        if measurement_var is None:
+            y = np.diff(x, n=d) if d else x  # differences across a gap are NaN, not joined
+            return ARIMA(y, order=(p, 0, q), trend="n").fit()
+        mod = SARIMAX(x, order=(p, d, q), measurement_error=True, trend="n")
+        return mod.fit_constrained({"var.measurement_error": float(measurement_var)},
+                                   disp=False)
+
+    failed: list[str] = []
     best = None
+    bad_explicit = None
+    d_range = [d0] if order else list(range(d0, max(max_d, d0) + 1))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # convergence chatter on poor candidates
-        failed = []
-        for p, q in candidates:
-            try:
-                if measurement_var is None:
-                    res = ARIMA(y, order=(p, 0, q), trend="n").fit()
-                else:
-                    mod = SARIMAX(x, order=(p, d, q), measurement_error=True, trend="n")
-                    res = mod.fit_constrained({"var.measurement_error": float(measurement_var)},
-                                              disp=False)
-            except (np.linalg.LinAlgError, ValueError) as exc:
-                # the optimiser can step onto a (near) unit root where the stationary
-                # initialisation is singular: that candidate is out, the others compete
-                failed.append(f"ARIMA({p},{d},{q}): {type(exc).__name__}")
-                continue
-            if not np.isfinite(res.bic):
-                failed.append(f"ARIMA({p},{d},{q}): non-finite BIC")
-                continue
-            if best is None or res.bic < best[0].bic:
-                best = (res, p, q)
+        for d in d_range:
+            candidates = [(order[0], order[2])] if order else [
+                (p, q) for p in range(max_p + 1) for q in range(max_q + 1) if p + q > 0]
+            for p, q in candidates:
+                try:
+                    res = fit_one(p, d, q)
+                except (np.linalg.LinAlgError, ValueError) as exc:
+                    # the optimiser can step onto a (near) unit root where the stationary
+                    # initialisation is singular: that candidate is out, the others compete
+                    failed.append(f"ARIMA({p},{d},{q}): {type(exc).__name__}")
+                    continue
+                why = degenerate(res, measurement_var)
+                if why is not None and order is None:
+                    failed.append(f"ARIMA({p},{d},{q}): {why}")
+                    continue
+                if why is not None:
+                    bad_explicit = why
+                if best is None or res.bic < best[0].bic:
+                    best = (res, p, d, q)
+            if best is not None:
+                break
+        if best is None and order is None and measurement_var is not None:
+            # every candidate degenerate: the local level model (random walk + noise)
+            res = fit_one(0, max(d0, 1), 0)
+            if np.isfinite(res.llf):
+                best = (res, 0, max(d0, 1), 0)
+                failed.append("fell back to ARIMA(0,1,0): local level")
     if best is None:
         raise ValueError("no ARIMA candidate could be fitted: " + "; ".join(failed))
-    res, p, q = best
+    res, p, d, q = best
+    y = np.diff(x, n=d) if d else x
     params = dict(zip(res.model.param_names, res.params, strict=True))
     ar = np.array([params[f"ar.L{i}"] for i in range(1, p + 1)])
     ma = np.array([params[f"ma.L{i}"] for i in range(1, q + 1)])
     tests = {"stationarity": steps, "normality_differenced": normality(y),
              "samples": int(np.isfinite(x).sum()), "missing_inside": int((~np.isfinite(x)).sum()),
-             "measurement_var": measurement_var, "failed_candidates": failed}
+             "measurement_var": measurement_var, "failed_candidates": failed,
+             "d_from_test": d0}
+    if bad_explicit is not None:
+        tests["degenerate"] = bad_explicit
     return ArimaModel(p, d, q, ar, ma, float(params["sigma2"]), float(res.bic), tests)
 
 

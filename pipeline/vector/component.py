@@ -19,9 +19,11 @@ the fuzzy-adaptive measurement noise of :mod:`pipeline.vector.fuzzy`). Units: nT
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
+from pipeline.defaults import default_value
 from pipeline.vector.fuzzy import RorFuzzy
 
 N_STATES = 21
@@ -96,11 +98,36 @@ def batch_fit(t_nT: np.ndarray, dt_nT_s: np.ndarray, m_nT: np.ndarray
 
 @dataclass
 class KFHistory:
-    states: np.ndarray  # (n, 21)
-    innovations: np.ndarray  # (n, 3)
-    r_scale: np.ndarray  # (n,) R_k / R_0
-    min_eig: np.ndarray  # (n,) smallest eigenvalue of P after the update
-    asym: np.ndarray  # (n,) max |P - P'|
+    """What :meth:`ComponentKF.run` did at every sample (n samples).
+
+    Attributes
+    ----------
+    states : ndarray, shape (n, 21)
+        State after the sample's update (permanent block in uT when scaled).
+    innovations : ndarray, shape (n, 3)
+        y - H x before the update (nT).
+    r_scale : ndarray, shape (n,)
+        tr(R_k) / tr(R_0) used in the update.
+    r_nT2 : ndarray, shape (n,)
+        tr(R_k) / 3: the per-axis measurement variance used in the update (nT^2).
+    ror : ndarray, shape (n,)
+        tr(C_r) / tr(P_r), actual over predicted innovation covariance on the last
+        ``window`` innovations (dimensionless); NaN without fuzzy R or where the sample is
+        missing.
+    min_eig : ndarray, shape (n,)
+        Smallest eigenvalue of P after the update (every 50th sample and the last; NaN
+        elsewhere).
+    asym : ndarray, shape (n,)
+        max |P - P'| before symmetrising.
+    """
+
+    states: np.ndarray
+    innovations: np.ndarray
+    r_scale: np.ndarray
+    r_nT2: np.ndarray
+    ror: np.ndarray
+    min_eig: np.ndarray
+    asym: np.ndarray
 
 
 @dataclass
@@ -108,8 +135,14 @@ class ComponentKF:
     """Constant-state Kalman filter of the 21 parameters (paper 000).
 
     ``fuzzy``: adapt R each step by R_k = s_k^b R_(k-1), s_k from the Mamdani system on the
-    ratio of actual to predicted innovation covariance (ROR) over the last ``window`` steps.
-    The covariance update uses Joseph's form (symmetric positive definite by construction).
+    ratio of actual to predicted innovation covariance (ROR) over the last ``window`` steps,
+    R_k / R_0 clamped to ``r_bounds``. ``window``, ``b`` and ``r_bounds`` default to
+    ``[vector] fuzzy_window``, ``fuzzy_exponent`` and ``fuzzy_r_bounds`` of the shipped
+    configuration. The covariance update uses Joseph's form (symmetric positive definite by
+    construction). ROR and R of every step are kept in ``history`` (:class:`KFHistory`).
+
+    Units: x0 and the state in the model's units (permanent in uT when ``scaled``, else nT;
+    A dimensionless; B in s), P0 and Q in the state's units squared, R in nT^2.
     """
 
     x0: np.ndarray
@@ -118,9 +151,11 @@ class ComponentKF:
     r: np.ndarray
     scaled: bool = True
     fuzzy: RorFuzzy | None = None
-    window: int = 30
-    b: float = 1.0
-    r_bounds: tuple[float, float] = (1e-3, 1e4)  # R_k stays within these multiples of R_0
+    window: int = field(default_factory=lambda: int(default_value("vector", "fuzzy_window")))
+    b: float = field(default_factory=lambda: float(default_value("vector", "fuzzy_exponent")))
+    r_bounds: tuple[float, float] = field(  # R_k stays within these multiples of R_0
+        default_factory=lambda: tuple(float(v) for v in default_value("vector",
+                                                                      "fuzzy_r_bounds")))
     history: KFHistory | None = field(default=None, repr=False)
 
     @classmethod
@@ -129,6 +164,23 @@ class ComponentKF:
         x0 = np.r_[np.zeros(3), np.full(9, 0.01), np.full(9, 0.02)]
         return cls(x0, 100.0 * np.eye(N_STATES), 1e-5 * np.eye(N_STATES), 1e-3 * np.eye(3),
                    scaled, RorFuzzy() if fuzzy else None)
+
+    def configure(self, vector: dict[str, Any]) -> ComponentKF:
+        """Take the fuzzy-R settings of a ``[vector]`` configuration table (``fuzzy_window``,
+        ``fuzzy_exponent``, ``fuzzy_r_bounds``, ``fuzzy_ror_*``, ``fuzzy_s_*``; missing keys
+        keep their current values). Fuzzy R is switched on. Returns self."""
+        if "fuzzy_window" in vector:
+            self.window = int(vector["fuzzy_window"])
+        if "fuzzy_exponent" in vector:
+            self.b = float(vector["fuzzy_exponent"])
+        if "fuzzy_r_bounds" in vector:
+            lo, hi = (float(v) for v in vector["fuzzy_r_bounds"])
+            self.r_bounds = (lo, hi)
+        if self.window < 1 or not 0.0 < self.r_bounds[0] <= 1.0 <= self.r_bounds[1]:
+            raise ValueError("vector.fuzzy_window >= 1 and fuzzy_r_bounds = [lo <= 1, hi >= 1] "
+                             "with lo > 0")
+        self.fuzzy = RorFuzzy.from_values(vector)
+        return self
 
     def run(self, t_nT: np.ndarray, dt_nT_s: np.ndarray, m_nT: np.ndarray
             ) -> ComponentParameters:
@@ -139,13 +191,15 @@ class ComponentKF:
         eye = np.eye(N_STATES)
         states, innov = np.zeros((n, N_STATES)), np.zeros((n, 3))
         rs, mins, asym = np.ones(n), np.zeros(n), np.zeros(n)
+        r_nt2, rors = np.full(n, np.trace(self.r) / 3.0), np.full(n, np.nan)
         recent: list[np.ndarray] = []
         r0 = np.trace(self.r)
         for k in range(n):
             h, y = h_all[k], y_all[k]
             p = p + self.q
             if not np.all(np.isfinite(y)):
-                states[k] = x
+                states[k], rs[k], r_nt2[k] = x, np.trace(r) / r0, np.trace(r) / 3.0
+                mins[k] = np.nan
                 continue
             nu = y - h @ x
             if self.fuzzy is not None:
@@ -155,6 +209,7 @@ class ComponentKF:
                 c_r = np.mean(recent, axis=0)
                 p_r = h @ p @ h.T + r
                 ror = float(np.trace(c_r) / np.trace(p_r))
+                rors[k] = ror
                 r = self.fuzzy.scale(ror) ** self.b * r
                 ratio = np.trace(r) / r0
                 if not self.r_bounds[0] <= ratio <= self.r_bounds[1]:
@@ -167,11 +222,12 @@ class ComponentKF:
             asym[k] = float(np.max(np.abs(p - p.T)))
             p = 0.5 * (p + p.T)
             states[k], innov[k], rs[k] = x, nu, np.trace(r) / r0
+            r_nt2[k] = np.trace(r) / 3.0
             if k % 50 == 0 or k == n - 1:
                 mins[k] = float(np.linalg.eigvalsh(p)[0])
             else:
                 mins[k] = np.nan
-        self.history = KFHistory(states, innov, rs, mins, asym)
+        self.history = KFHistory(states, innov, rs, r_nt2, rors, mins, asym)
         return ComponentParameters.from_state(x, self.scaled)
 
 

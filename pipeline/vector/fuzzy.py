@@ -10,13 +10,27 @@ predicted innovations match the actual ones.
 Hand-written (about 30 lines) rather than scikit-fuzzy: three fixed rules on one input do
 not justify a dependency with its own numpy pinning, and the whole system is evaluated once
 per filter step.
+
+The membership functions' breakpoints, the window, the exponent b and the clamp on R are
+``[vector] fuzzy_*`` in ``pipeline/default_config.toml`` (reasons: docs/science-paper000.md).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
+
+from pipeline.defaults import default_value
+
+Sets = tuple[float, float, float, float]
+SET_KEYS = ("ror_small", "ror_equal", "ror_large", "s_small", "s_medium", "s_large")
+
+
+def _default_set(name: str):
+    """default_factory reading ``[vector] fuzzy_<name>`` of the shipped defaults."""
+    return lambda: tuple(float(v) for v in default_value("vector", f"fuzzy_{name}"))
 
 
 def _trap(x: np.ndarray | float, a: float, b: float, c: float, d: float) -> np.ndarray:
@@ -29,22 +43,50 @@ def _trap(x: np.ndarray | float, a: float, b: float, c: float, d: float) -> np.n
 
 @dataclass(frozen=True)
 class RorFuzzy:
-    """ROR -> s. Input sets on ROR, output sets on s (defaults: s in [0.8, 1.2])."""
+    """ROR -> s, the factor of R_k = s^b R_(k-1).
 
-    small_in: tuple[float, float, float, float] = (0.0, 0.0, 0.4, 1.0)
-    equal_in: tuple[float, float, float, float] = (0.4, 1.0, 1.0, 1.6)
-    large_in: tuple[float, float, float, float] = (1.0, 1.6, 1e9, 1e9)
-    small_out: tuple[float, float, float, float] = (0.8, 0.85, 0.85, 1.0)
-    medium_out: tuple[float, float, float, float] = (0.95, 1.0, 1.0, 1.05)
-    large_out: tuple[float, float, float, float] = (1.0, 1.15, 1.15, 1.2)
+    Parameters
+    ----------
+    ror_small, ror_equal, ror_large : tuple of 4 float
+        Trapezoids (a, b, c, d) on ROR (dimensionless), a <= b <= c <= d; a triangle has
+        b = c. Defaults: ``[vector] fuzzy_ror_*`` of ``pipeline/default_config.toml``.
+    s_small, s_medium, s_large : tuple of 4 float
+        Output trapezoids on s (dimensionless, > 0); defaults ``[vector] fuzzy_s_*``.
+    grid : int
+        Points of the centroid defuzzification over [s_small[0], s_large[3]].
+    """
+
+    ror_small: Sets = field(default_factory=_default_set("ror_small"))
+    ror_equal: Sets = field(default_factory=_default_set("ror_equal"))
+    ror_large: Sets = field(default_factory=_default_set("ror_large"))
+    s_small: Sets = field(default_factory=_default_set("s_small"))
+    s_medium: Sets = field(default_factory=_default_set("s_medium"))
+    s_large: Sets = field(default_factory=_default_set("s_large"))
     grid: int = 201
 
+    def __post_init__(self) -> None:
+        for name in SET_KEYS:
+            v = getattr(self, name)
+            if len(v) != 4 or any(b < a for a, b in zip(v[:-1], v[1:], strict=True)):
+                raise ValueError(f"fuzzy_{name}: four non-decreasing numbers (a, b, c, d), "
+                                 f"got {list(v)}")
+        if self.s_small[0] <= 0.0:
+            raise ValueError("fuzzy_s_small: the factor s must stay positive")
+
+    @classmethod
+    def from_values(cls, vector: dict[str, Any]) -> RorFuzzy:
+        """From a ``[vector]`` table of the configuration (keys ``fuzzy_ror_*``,
+        ``fuzzy_s_*``; missing ones take the shipped defaults)."""
+        return cls(**{k: tuple(float(x) for x in vector[f"fuzzy_{k}"])
+                      for k in SET_KEYS if f"fuzzy_{k}" in vector})
+
     def scale(self, ror: float) -> float:
-        w = [float(_trap(ror, *self.small_in)), float(_trap(ror, *self.equal_in)),
-             float(_trap(ror, *self.large_in))]
-        s = np.linspace(self.small_out[0], self.large_out[3], self.grid)
+        """s for one ROR (min implication, max aggregation, centroid)."""
+        w = [float(_trap(ror, *self.ror_small)), float(_trap(ror, *self.ror_equal)),
+             float(_trap(ror, *self.ror_large))]
+        s = np.linspace(self.s_small[0], self.s_large[3], self.grid)
         agg = np.max([np.minimum(wk, _trap(s, *mf)) for wk, mf in
-                      zip(w, (self.small_out, self.medium_out, self.large_out), strict=True)],
+                      zip(w, (self.s_small, self.s_medium, self.s_large), strict=True)],
                      axis=0)
         total = agg.sum()
         return float((s * agg).sum() / total) if total > 0 else 1.0

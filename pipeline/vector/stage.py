@@ -77,7 +77,8 @@ def _fit_mask(flight: Flight, seg: Segmentation | None) -> np.ndarray:
     return mask
 
 
-def run_vector(flight: Flight, seg: Segmentation | None, method: str) -> VectorRun:
+def run_vector(flight: Flight, seg: Segmentation | None, method: str,
+               settings: dict[str, Any] | None = None) -> VectorRun:
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (use {', '.join(METHODS)})")
     flight.require("vector_x_nT", "vector_y_nT", "vector_z_nT", purpose="the vector stage")
@@ -97,6 +98,8 @@ def run_vector(flight: Flight, seg: Segmentation | None, method: str) -> VectorR
         extra: dict[str, Any] = {"fit_residual_nT": resid, "standard_errors": se.to_dict()}
     else:
         kf = ComponentKF.paper(scaled=True, fuzzy=True)
+        if settings is not None:  # the [vector] table: fuzzy-R window, b, clamp, sets
+            kf.configure(settings)
         # the paper's R = 1e-3 nT^2 is far below a real fluxgate's noise: start from the
         # noise the batch residual shows and let the fuzzy rule adapt it
         _, resid, _ = batch_fit(ref[fit], rate[fit], m[fit])
@@ -106,6 +109,9 @@ def run_vector(flight: Flight, seg: Segmentation | None, method: str) -> VectorR
         h = kf.history
         extra = {"kalman_steps": int(fit.sum()),
                  "r_scale_final": float(h.r_scale[-1]),
+                 "r_final_nT2": float(h.r_nT2[-1]),
+                 "ror_median": (float(np.nanmedian(h.ror)) if np.isfinite(h.ror).any()
+                                else None),
                  "covariance_min_eigenvalue": float(np.nanmin(h.min_eig)),
                  "covariance_max_asymmetry": float(h.asym.max())}
     comp = params.compensate(m, rate)
