@@ -121,17 +121,36 @@ def choose_lambda(k: np.ndarray, y: np.ndarray, groups: np.ndarray,
     thousands of nT in the compensated field's level without changing the held-out fit.
     With a single group the L-curve corner is used instead.
     """
-    full = RidgeSVD(k, y)
-    lams = lambda_grid(full) if lambdas is None else np.asarray(lambdas, float)
+    k = np.asarray(k, float)
+    y = np.asarray(y, float)
     labels = np.unique(groups)
     if labels.size < 2:
+        full = RidgeSVD(k, y)
+        lams = lambda_grid(full) if lambdas is None else np.asarray(lambdas, float)
         return CVLambda(lams, np.full(lams.size, np.nan), np.full(lams.size, np.nan),
                         full.lcurve().lambda_corner)
+    # Each training set's normal equations are the total minus the held-out group's, so one
+    # pass over the rows and a p x p eigendecomposition per group replace an SVD of every
+    # training matrix (the audit chooses lambda ~100 times a flight; measured 74 % of its
+    # time in those SVDs). Squared singular values = eigenvalues of K'K.
+    gram = {g: (k[groups == g].T @ k[groups == g], k[groups == g].T @ y[groups == g])
+            for g in labels}
+    g_all = sum(v[0] for v in gram.values())
+    b_all = sum(v[1] for v in gram.values())
+    if lambdas is None:
+        s2 = np.linalg.eigvalsh(g_all)
+        s2 = s2[s2 > s2.max() * 1e-15]
+        lams = np.logspace(np.log10(s2.min()) - 4, np.log10(s2.max()), 25)
+    else:
+        lams = np.asarray(lambdas, float)
     per = np.zeros((labels.size, lams.size))
     for j, g in enumerate(labels):
         test = groups == g
-        sv = RidgeSVD(k[~test], y[~test])
-        r = y[test][:, None] - k[test] @ np.column_stack([sv.solve(lam) for lam in lams])
+        w, v = np.linalg.eigh(g_all - gram[g][0])
+        w = np.clip(w, 0.0, None)
+        vb = v.T @ (b_all - gram[g][1])
+        theta = v @ (vb[:, None] / (w[:, None] + lams[None, :]))  # (p, n_lambda)
+        r = y[test][:, None] - k[test] @ theta
         per[j] = np.mean(r**2, axis=0)
     mse = per.mean(axis=0)
     se = per.std(axis=0, ddof=1) / np.sqrt(labels.size)

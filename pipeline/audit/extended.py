@@ -252,14 +252,18 @@ def fit_model(data: AuditData, spec: ModelSpec, mask: np.ndarray,
     if where.size < 2 * kf.shape[1]:
         raise ValueError(f"only {where.size} usable calibration samples for {kf.shape[1]} "
                          "terms")
-    solver = RidgeSVD(kf, yf)
     if ridge == "cv":
         if folds is None:
             raise ValueError("ridge 'cv' needs the fold numbers")
         lam = choose_lambda(kf, yf, folds[where]).best
+        # the normal equations' eigendecomposition (p x p) instead of an SVD of the rows:
+        # fold fits are most of the audit's fits, and lambda is the cross-validated one
+        w, v = np.linalg.eigh(kf.T @ kf)
+        theta = v @ ((v.T @ (kf.T @ yf)) / (np.clip(w, 0.0, None) + lam))
     else:
+        solver = RidgeSVD(kf, yf)
         lam = solver.lcurve().lambda_corner if ridge == "auto" else float(ridge)
-    theta = solver.solve(lam)
+        theta = solver.solve(lam)
     resid = yf - kf @ theta
     return FittedModel(spec, des.names, des.subtract, theta, float(lam), int(where.size),
                        float(np.sqrt(np.mean(resid**2))))
