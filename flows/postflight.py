@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import hashlib
 import shutil
+import time
 from collections.abc import Callable
 from functools import cache
 from pathlib import Path
@@ -31,8 +32,22 @@ from pipeline.report import sha256_file
 
 def postflight_steps(recording: str, out_dir: str, cfg: Config, call: Callable[..., Any]
                      ) -> dict[str, Any]:
-    """Every stage in order; ``call(stage, *args)`` runs one (see the module docstring)."""
+    """Every stage in order; ``call(stage, *args)`` runs one (see the module docstring).
+
+    The seconds of each stage (summed over calls: ``compensate`` covers every model) go to
+    the write stage, which puts them in the summary (``timings_s``)."""
+    timings: dict[str, float] = {}
+    plain_call = call
+
+    def call(stage: str, *args):
+        t0 = time.perf_counter()
+        try:
+            return plain_call(stage, *args)
+        finally:
+            timings[stage] = timings.get(stage, 0.0) + time.perf_counter() - t0
+
     flight = call("ingest", recording)
+    timings["ingest"] += stages.validated_read_s()  # read before the flow started
     seg, why = call("segment", flight)
     runs: dict[str, Any] = {}
     audit = vector = map_run = quality = None
@@ -49,7 +64,7 @@ def postflight_steps(recording: str, out_dir: str, cfg: Config, call: Callable[.
         map_run = call("map", flight, seg, final[1], cfg)
         quality = call("quality", flight, seg, runs, audit, cfg)
     return call("write", recording, out_dir, cfg, flight, seg, why, runs, audit, vector,
-                map_run, quality)
+                map_run, quality, timings)
 
 
 # --------------------------------------------------------------------------------------------

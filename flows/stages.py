@@ -6,6 +6,7 @@ hold no processing logic of their own.
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -517,6 +518,8 @@ class _Validated:
 
     key: tuple[str, int, int] | None = None
     flight: Flight | None = None
+    read_s: float = 0.0  # seconds validate_recording spent reading it
+    handed_read_s: float = 0.0  # read_s of the flight last handed out by take()
 
     @staticmethod
     def stat_key(recording: str | Path) -> tuple[str, int, int]:
@@ -527,10 +530,14 @@ class _Validated:
     def take(cls, recording: str | Path) -> Flight | None:
         flight, key = cls.flight, cls.key
         cls.key = cls.flight = None  # handed out once: the memory goes with the flow
+        cls.handed_read_s = 0.0
         try:
-            return flight if key is not None and key == cls.stat_key(recording) else None
+            same = key is not None and key == cls.stat_key(recording)
         except OSError:
             return None
+        if same:
+            cls.handed_read_s = cls.read_s
+        return flight if same else None
 
 
 def validate_recording(recording: str | Path) -> Flight:
@@ -543,7 +550,9 @@ def validate_recording(recording: str | Path) -> Flight:
         Missing, empty or unreadable file, no scalar magnetometer, wrong units.
     """
     require_readable(Path(recording))
+    t0 = time.perf_counter()
     flight = read_flight(recording)
+    _Validated.read_s = time.perf_counter() - t0
     _Validated.key, _Validated.flight = _Validated.stat_key(recording), flight
     return flight
 
@@ -566,6 +575,13 @@ def ingest_stage(recording: str) -> Flight:
     Flight
     """
     return _Validated.take(recording) or read_flight(recording)
+
+
+def validated_read_s() -> float:
+    """Seconds :func:`validate_recording` spent reading the flight that the last
+    :func:`ingest_stage` call took over (0 when it read the recording itself): the ingest
+    time of a run checked before its flow started."""
+    return _Validated.handed_read_s
 
 
 def compensate_stage(flight: Flight, seg: Segmentation, model: str, cfg) -> CompensationRun:
@@ -679,9 +695,15 @@ DOCUMENTS = ("mcap", "summary", "report", "report_html", "layout")
 
 
 def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str, runs: dict,
-                audit, vector, map_run, quality) -> dict[str, Any]:
+                audit, vector, map_run, quality,
+                timings: dict[str, float] | None = None) -> dict[str, Any]:
     """Every output of the post-flight flow, each written atomically; the summary last (its
-    presence marks the recording as done)."""
+    presence marks the recording as done).
+
+    ``timings`` (stage -> seconds of the stages before) goes into the summary as
+    ``timings_s`` with this stage's own time (``write``, up to the summary itself), with the
+    process's peak resident memory so far (``peak_memory_mb``)."""
+    t_start = time.perf_counter()
     from pipeline.audit.report import figures as audit_figures
     from pipeline.audit.report import finding_channel, jsonable
     from pipeline.audit.report import log_lines as audit_log_lines
@@ -766,9 +788,19 @@ def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str
     summary = {**summary, "outputs": {k: str(v) for k, v in paths.items()},
                "channels_written": sorted({c.topic for c in channels if c.messages})}
     summary = jsonable(summary)
+    summary["timings_s"] = {k: round(v, 3) for k, v in
+                            {**(timings or {}), "write": time.perf_counter() - t_start}.items()}
+    summary["peak_memory_mb"] = peak_memory_mb()
     write_json_atomic(paths["summary"], summary)
     publish_artifact(stem, report)
     return summary
+
+
+def peak_memory_mb() -> float:
+    """Peak resident memory of this process so far, MB (Linux reports KiB)."""
+    import resource
+
+    return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
 
 
 def _flight_map(flight: Flight, seg):

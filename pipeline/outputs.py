@@ -34,15 +34,18 @@ def field_channel(flight: Flight, topic: str, compensated_nT: np.ndarray,
                   interference_nT: np.ndarray | None, model: str) -> OutputChannel:
     """An ``aeromag.CompensatedField`` channel from per-epoch arrays; the interference
     defaults to what was removed from the recorded scalar."""
-    ch = OutputChannel(topic, "aeromag.CompensatedField")
     sensor = _sensor_id(flight)
     comp = np.asarray(compensated_nT, float)
     inter = (flight.data["scalar_nT"].to_numpy(float) - comp if interference_nT is None
-             else interference_nT)
-    for i in np.flatnonzero(np.isfinite(comp)):
-        ch.add(int(flight.time_ns[i]), {"sensor_id": sensor, "total_nT": float(comp[i]),
-                                         "interference_nT": float(inter[i]), "model": model})
-    return ch
+             else np.asarray(interference_nT, float))
+    ix = np.flatnonzero(np.isfinite(comp))
+    total, removed = comp[ix], inter[ix]
+
+    def payload(k: int) -> dict:  # made when written (one message per epoch)
+        return {"sensor_id": sensor, "total_nT": float(total[k]),
+                "interference_nT": float(removed[k]), "model": model}
+
+    return OutputChannel.rows(topic, "aeromag.CompensatedField", flight.time_ns[ix], payload)
 
 
 def vector_channel(flight: Flight, topic: str, vectors_nT: np.ndarray, method: str
@@ -50,13 +53,16 @@ def vector_channel(flight: Flight, topic: str, vectors_nT: np.ndarray, method: s
     """An ``aeromag.VectorField`` channel (body frame) from per-epoch vectors; the sensor
     id is the fluxgate's with the method that made them."""
     sensor = str(flight.series[flight.topic_of["vector"]].labels["sensor_id"][0])
-    ch = OutputChannel(topic, "aeromag.VectorField")
     v = np.asarray(vectors_nT, float)
-    for i in np.flatnonzero(np.all(np.isfinite(v), axis=1)):
-        ch.add(int(flight.time_ns[i]), {"sensor_id": f"{sensor}-{method}",
-                                         "x_nT": float(v[i, 0]), "y_nT": float(v[i, 1]),
-                                         "z_nT": float(v[i, 2])})
-    return ch
+    ix = np.flatnonzero(np.all(np.isfinite(v), axis=1))
+    xyz = v[ix]
+    sensor_id = f"{sensor}-{method}"
+
+    def payload(k: int) -> dict:  # made when written (one message per epoch)
+        x, y, z = xyz[k]
+        return {"sensor_id": sensor_id, "x_nT": float(x), "y_nT": float(y), "z_nT": float(z)}
+
+    return OutputChannel.rows(topic, "aeromag.VectorField", flight.time_ns[ix], payload)
 
 
 def model_message(flight: Flight, run: CompensationRun, ch: OutputChannel | None = None

@@ -46,6 +46,18 @@ def test_postflight_flow_writes_input_plus_new_channels(demo_output):
     assert {m[0] for m in m_out} == {m[0] for m in m_in} | new
 
 
+def test_summary_records_stage_timings_and_peak_memory(demo_output):
+    """`timings_s`: seconds of every stage that ran (compensate summed over the models), the
+    write up to the summary itself; `peak_memory_mb`: the process's peak resident memory."""
+    _, summary = demo_output
+    t = summary["timings_s"]
+    assert list(t) == ["ingest", "segment", "compensate", "audit", "vector", "map", "quality",
+                       "write"]
+    assert all(isinstance(v, float) and 0 <= v < 600 for v in t.values())
+    assert t["ingest"] > 0.05 and t["audit"] > t["segment"]  # the flight was really read
+    assert 100 < summary["peak_memory_mb"] < 4000
+
+
 def test_process_command_runs_the_flow_without_a_server(box_path, tmp_path):
     """`aeromag process` with no Prefect server configured: a temporary one is started."""
     env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect")}

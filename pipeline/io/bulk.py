@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import struct
 import zlib
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import BinaryIO
 
 import numpy as np
@@ -132,22 +132,32 @@ class BulkWriter:
         index.length = len(record)
         self.attachment_indexes.append(index)
 
-    def add_messages(self, records: Sequence[bytes], channel_id: np.ndarray,
+    def add_messages(self, records: Iterable[bytes], channel_id: np.ndarray,
                      log_time_ns: np.ndarray) -> None:
-        """Message records in the order to write them (log time order), packed into chunks."""
-        n = len(records)
+        """Message records in the order to write them (log time order), packed into chunks.
+
+        ``records`` may be any iterable (a generator encoding them on the fly): they are
+        consumed one chunk at a time, so only a chunk's worth is held here. ``channel_id`` and
+        ``log_time_ns`` give each record's channel and log time, in the same order.
+        """
+        n = len(channel_id)
         if n == 0:
             return
-        sizes = np.fromiter(map(len, records), dtype=np.int64, count=n)
-        ends = np.cumsum(sizes)
-        start = 0
-        while start < n:
-            base = ends[start - 1] if start else 0
-            stop = int(np.searchsorted(ends, base + self.chunk_size, side="right"))
-            stop = max(stop, start + 1)  # a record larger than a chunk gets its own
-            self._chunk(records[start:stop], channel_id[start:stop], log_time_ns[start:stop],
-                        ends[start:stop] - sizes[start:stop] - base)
-            start = stop
+        limit = self.chunk_size
+        batch: list[bytes] = []
+        offsets: list[int] = []
+        size = start = 0
+        for k, rec in enumerate(records):
+            if batch and size + len(rec) > limit:  # a record larger than a chunk gets its own
+                self._chunk(batch, channel_id[start:k], log_time_ns[start:k],
+                            np.array(offsets, np.int64))
+                batch, offsets, size, start = [], [], 0, k
+            batch.append(rec)
+            offsets.append(size)
+            size += len(rec)
+        if start + len(batch) != n:
+            raise ValueError(f"{start + len(batch)} records for {n} channel ids and times")
+        self._chunk(batch, channel_id[start:], log_time_ns[start:], np.array(offsets, np.int64))
         counts = np.bincount(channel_id.astype(np.int64))
         for cid in np.flatnonzero(counts):
             self.stats.channel_message_counts[int(cid)] = (

@@ -293,46 +293,61 @@ def _decode_each(raw: RawTopic, numeric: list[str], strings: list[str]):
     return t, vals, labs, ok, bad_decode, bad_field, bad_stamp, first_bad
 
 
-def _decode_columns(raw: RawTopic, numeric: list[str], strings: list[str]):
-    """Whole-topic decoding: one JSON parse for all payloads, one list per field.
+def _decode_columns(raw: RawTopic, numeric: list[str], strings: list[str],
+                    batch: int = 1 << 15):
+    """Whole-topic decoding: one JSON parse per ``batch`` payloads, straight into one array
+    (numbers) or list (strings, equal ones shared) per field.
 
-    About 4x faster than message by message. Returns None at the first irregularity (a payload
-    that is not a JSON object, a missing field, a wrong type), and the caller falls back to
-    :func:`_decode_each`, which finds and reports the bad messages.
+    About 4x faster than message by message; parsing a batch at a time keeps the decoded
+    dicts (~400 bytes a message) to one batch instead of the whole topic. Returns None at the
+    first irregularity (a payload that is not a JSON object, a missing field, a wrong type),
+    and the caller falls back to :func:`_decode_each`, which finds and reports the bad
+    messages.
     """
     n = raw.count
     if n == 0:
         return None
-    try:
-        msgs = orjson.loads(b"[" + b",".join(raw.data) + b"]")
-    except orjson.JSONDecodeError:
-        return None
-    if len(msgs) != n or set(map(type, msgs)) != {dict}:
-        return None
     number = {int, float}
-    try:
-        vals = {}
-        for f in numeric:
-            col = [m[f] for m in msgs]
-            if not set(map(type, col)) <= number:
-                return None
-            vals[f] = np.array(col, dtype=float)
-        labs = {}
-        for f in strings:
-            col = [m.get(f, "") for m in msgs] if f == "sensor_id" else [m[f] for m in msgs]
-            if set(map(type, col)) != {str}:
-                return None
-            labs[f] = col
-    except (KeyError, TypeError, OverflowError):
-        return None
+    vals = {f: np.empty(n) for f in numeric}
+    labs: dict[str, list[str]] = {f: [] for f in strings}
+    shared: dict[str, str] = {}  # one object per distinct label (sensor ids repeat)
+    sec = np.empty(n, np.int64)
+    nsec = np.empty(n, np.int64)
+    stamps_ok = True
+    for b in range(0, n, batch):
+        part = raw.data[b:b + batch]
+        stop = b + len(part)
+        try:
+            msgs = orjson.loads(b"[" + b",".join(part) + b"]")
+        except orjson.JSONDecodeError:
+            return None
+        del part
+        if len(msgs) != stop - b or set(map(type, msgs)) != {dict}:
+            return None
+        try:
+            for f in numeric:
+                col = [m[f] for m in msgs]
+                if not set(map(type, col)) <= number:
+                    return None
+                vals[f][b:stop] = np.array(col, dtype=float)
+            for f in strings:
+                col = ([m.get(f, "") for m in msgs] if f == "sensor_id"
+                       else [m[f] for m in msgs])
+                if set(map(type, col)) != {str}:
+                    return None
+                labs[f] += [shared.setdefault(v, v) for v in col]
+        except (KeyError, TypeError, OverflowError):
+            return None
+        if stamps_ok:
+            try:
+                stamps = [m["timestamp"] for m in msgs]
+                sec[b:stop] = np.array([st["sec"] for st in stamps], dtype=np.int64)
+                nsec[b:stop] = np.array([st["nsec"] for st in stamps], dtype=np.int64)
+            except (KeyError, TypeError, ValueError, OverflowError):
+                stamps_ok = False
+        del msgs
     t = np.array(raw.log_time_ns, dtype=np.int64)
-    try:
-        stamps = [m["timestamp"] for m in msgs]
-        sec = np.array([st["sec"] for st in stamps], dtype=np.int64)
-        nsec = np.array([st["nsec"] for st in stamps], dtype=np.int64)
-        bad_stamp = int(np.count_nonzero(sec * NS + nsec != t))
-    except (KeyError, TypeError, ValueError, OverflowError):
-        bad_stamp = n
+    bad_stamp = int(np.count_nonzero(sec * NS + nsec != t)) if stamps_ok else n
     return t, vals, labs, np.ones(n, bool), bad_stamp
 
 
@@ -482,6 +497,7 @@ def read_flight(path: str | Path, *, mapping=None, scalar_topic: str | None = No
         if rule.role == "output":  # an earlier run's result, not a measurement
             continue
         s = decode_topic(rt, rule)
+        rt.data = []  # the payloads are decoded: free them before the next topic's
         series[topic] = s
         notes.extend(f"{topic}: {p}" for p in s.problems)
 

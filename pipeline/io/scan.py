@@ -15,6 +15,7 @@ from __future__ import annotations
 import mmap
 import struct
 import zlib
+from array import array
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -63,7 +64,8 @@ class ChannelData:
     schema_id: int
     message_encoding: str
     metadata: dict[str, str] = field(default_factory=dict)
-    log_time_ns: list[int] = field(default_factory=list)
+    # log times (u64): an array of 8 bytes a message, not a list of 40-byte Python ints
+    log_time_ns: array = field(default_factory=lambda: array("Q"))
     data: list[bytes] = field(default_factory=list)  # payloads, or whole records (see scan)
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import io
 import os
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -161,17 +161,55 @@ class McapOutput:
         self.writer.add_metadata(name=name, data={k: str(v) for k, v in data.items()})
 
 
+class RowMessages(Sequence):
+    """The messages of a large channel, made when read: ``(time_ns[i], payload(i))`` with
+    ``timestamp`` ``{sec, nsec}`` added last, as :meth:`OutputChannel.add` does.
+
+    A channel with a message per epoch (a compensated field over a 5 h flight: 180 000) held
+    as a list of payload dicts took ~600 bytes a message; the writer encodes these one by one
+    instead, each dict gone once its bytes are in the chunk.
+    """
+
+    def __init__(self, time_ns: np.ndarray, payload: Callable[[int], dict[str, Any]]):
+        self.time_ns = np.asarray(time_ns, np.int64)
+        self.payload = payload
+
+    def __len__(self) -> int:
+        return int(self.time_ns.size)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        t = int(self.time_ns[i])
+        p = self.payload(i if i >= 0 else i + len(self))
+        p.setdefault("timestamp", stamp(t))
+        return t, p
+
+
 @dataclass
 class OutputChannel:
     """A new channel for the output recording.
 
-    ``messages`` are ``(log_time_ns, payload)`` pairs; each payload carries the same instant
-    as ``timestamp`` (added here when absent).
+    ``messages`` are ``(log_time_ns, payload)`` pairs (a list, or :class:`RowMessages` made
+    on demand); each payload carries the same instant as ``timestamp`` (added when absent).
     """
 
     topic: str
     schema_name: str
-    messages: list[tuple[int, dict[str, Any]]] = field(default_factory=list)
+    messages: list[tuple[int, dict[str, Any]]] | RowMessages = field(default_factory=list)
+
+    @classmethod
+    def rows(cls, topic: str, schema_name: str, time_ns: np.ndarray,
+             payload: Callable[[int], dict[str, Any]]) -> OutputChannel:
+        """A channel whose message ``i`` is ``payload(i)`` at ``time_ns[i]`` (ns), built when
+        written (see :class:`RowMessages`)."""
+        return cls(topic, schema_name, RowMessages(time_ns, payload))
+
+    def log_times_ns(self) -> np.ndarray:
+        """Log time of every message, ns (int64, in ``messages`` order)."""
+        if isinstance(self.messages, RowMessages):
+            return self.messages.time_ns
+        return np.fromiter((t for t, _ in self.messages), np.int64, len(self.messages))
 
     def add(self, log_time_ns: int, payload: dict[str, Any]) -> None:
         """Append one message; adds ``timestamp`` ``{sec, nsec}`` to the payload when absent.
@@ -184,6 +222,7 @@ class OutputChannel:
             The message, in the channel's schema.
         """
         payload.setdefault("timestamp", stamp(log_time_ns))
+        assert isinstance(self.messages, list), "a RowMessages channel takes no add()"
         self.messages.append((int(log_time_ns), payload))
 
 
@@ -207,7 +246,7 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
     from mcap.data_stream import ReadDataStream
     from mcap.records import Attachment, AttachmentIndex, Channel, Metadata, Schema
 
-    from pipeline.io.bulk import BulkWriter, message_record, serialise
+    from pipeline.io.bulk import BulkWriter, serialise
     from pipeline.io.scan import ScanError, scan_mcap
 
     src, dst = Path(src), Path(dst)
@@ -240,6 +279,9 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
         schema_ids = {(n, e, d): sid for sid, (n, e, d) in sc.schemas.items()}
         next_sid = max(sc.schemas, default=0) + 1
         next_cid = max(sc.channels, default=-1) + 1
+        # every message, input first, then each new channel: (record source, channel, time);
+        # a stable sort by time merges them (input first at equal times) and records are
+        # produced in that order, new ones encoded as they go into a chunk
         records: list[bytes] = []
         cids: list[np.ndarray] = []
         times: list[np.ndarray] = []
@@ -248,6 +290,9 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
                 records += ch.data
                 cids.append(np.full(len(ch.data), cid, np.uint16))
                 times.append(np.asarray(ch.log_time_ns, np.int64))
+        n_input = len(records)
+        sc.channels.clear()  # the record lists live on in ``records`` only
+        sources = []
         for c in channels:
             key = (c.schema_name, SCHEMA_ENCODING, schema_bytes(c.schema_name))
             if key not in schema_ids:
@@ -258,17 +303,21 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
             next_cid += 1
             w.add_channel(Channel(id=cid, topic=c.topic, message_encoding=MESSAGE_ENCODING,
                                   metadata={}, schema_id=schema_ids[key]))
-            msgs = sorted(c.messages, key=lambda m: m[0])
-            records += [message_record(cid, k, t, t, encode(p))
-                        for k, (t, p) in enumerate(msgs)]
-            cids.append(np.full(len(msgs), cid, np.uint16))
-            times.append(np.fromiter((t for t, _ in msgs), np.int64, len(msgs)))
-        if records:
-            # the input's records come first, so a stable sort puts them first at equal times
+            t_c = c.log_times_ns()
+            rank = np.argsort(t_c, kind="stable")  # as sorted(messages, key=time)
+            sources.append(_encoded(c.messages, rank, cid))
+            cids.append(np.full(t_c.size, cid, np.uint16))
+            times.append(t_c[rank])
+        if cids:
             t_all = np.concatenate(times)
+            c_all = np.concatenate(cids)
             order = np.argsort(t_all, kind="stable")
-            w.add_messages([records[i] for i in order], np.concatenate(cids)[order],
-                           t_all[order])
+            # which new channel each position belongs to (-1: an input record)
+            owner = np.repeat(np.arange(-1, len(sources)),
+                              [n_input] + [len(t) for t in times[len(times) - len(sources):]])
+            w.add_messages(_merged(records, sources, order, owner[order]),
+                           c_all[order], t_all[order])
+            del records
         for rec in sc.metadata_records:
             w.add_metadata_record(rec, parse(rec, Metadata).name)
         for name, data in (metadata or {}).items():
@@ -281,6 +330,26 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
                 data_size=len(att.data), name=att.name, media_type=att.media_type))
         w.finish()
     return dst
+
+
+def _encoded(messages, rank: np.ndarray, cid: int) -> Iterator[bytes]:
+    """Message records of a new channel in time order (``rank``), sequence numbers 0, 1, ..."""
+    from pipeline.io.bulk import message_record
+
+    for k, i in enumerate(rank.tolist()):
+        t, p = messages[i]
+        yield message_record(cid, k, t, t, encode(p))
+
+
+def _merged(records: list[bytes], sources: list[Iterator[bytes]], order: np.ndarray,
+            owner: np.ndarray, block: int = 1 << 16) -> Iterator[bytes]:
+    """Input records (``records[order[j]]``) and new ones (the next of ``sources[owner[j]]``)
+    in merged order: a stable time sort keeps each new channel's own order."""
+    nexts = [s.__next__ for s in sources]
+    for b in range(0, order.size, block):
+        for j, src in zip(order[b:b + block].tolist(), owner[b:b + block].tolist(),
+                          strict=True):
+            yield records[j] if src < 0 else nexts[src]()
 
 
 def write_json_atomic(path: str | Path, obj: Any) -> Path:
