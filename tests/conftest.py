@@ -11,6 +11,10 @@ os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
 os.environ["DO_NOT_TRACK"] = "1"
 os.environ["PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS"] = "90"
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+# BLAS on one thread, as the flows run it (flows/__init__.py): tests call pipeline directly,
+# and on a busy 2-core machine OpenBLAS's second thread slows small SVDs ~100x
+for _key in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_key, "1")
 
 import hashlib  # noqa: E402
 import subprocess  # noqa: E402
