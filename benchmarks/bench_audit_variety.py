@@ -39,11 +39,20 @@ CLASSES = ("none", *EFFECTS, "step")
 # and the calibration box over quiet ground, as crews choose its site: 2-3 km from the block's
 # sources (with the box 300 m from the block, as the short flights have it, the sources give
 # a real 0.02-0.04 nT/m gradient over the box, which the audit rightly reports)
-SURVEY = {"uav": ["survey.width_m=200.0", "survey.tie_spacing_m=150.0",
-                  "calibration.centre_east_m=-2000.0", "calibration.centre_north_m=-2000.0",
-                  "anomaly.quiet_calibration_m=1000.0"],
-          "fixed-wing": ["survey.width_m=1600.0", "survey.tie_spacing_m=1000.0",
-                         "anomaly.quiet_calibration_m=1500.0"]}
+SURVEY = {
+    "uav": [
+        "survey.width_m=200.0",
+        "survey.tie_spacing_m=150.0",
+        "calibration.centre_east_m=-2000.0",
+        "calibration.centre_north_m=-2000.0",
+        "anomaly.quiet_calibration_m=1000.0",
+    ],
+    "fixed-wing": [
+        "survey.width_m=1600.0",
+        "survey.tie_spacing_m=1000.0",
+        "anomaly.quiet_calibration_m=1500.0",
+    ],
+}
 EVENT_WINDOW_S = 120.0
 
 
@@ -55,8 +64,9 @@ def hidden_overrides(kind: str, rng: np.random.Generator) -> list[str]:
     if kind == "sensor_lag":
         out.append(f'effects.sensor_lag.response="{rng.choice(["delay", "first_order"])}"')
     if kind == "electrical_current" and rng.random() < 0.5:
-        out.append("effects.electrical_current.temperature_coefficient_per_K="
-                   f"{rng.uniform(0.005, 0.03)!r}")
+        out.append(
+            f"effects.electrical_current.temperature_coefficient_per_K={rng.uniform(0.005, 0.03)!r}"
+        )
     return out
 
 
@@ -70,8 +80,7 @@ def add_permanent_step(sim, rng: np.random.Generator) -> dict:
     t_step = float(rng.uniform(t0 + 0.3 * (t1 - t0), t0 + 0.7 * (t1 - t0)))
     dp = rng.normal(size=3)
     dp *= rng.uniform(3.0, 8.0) / np.linalg.norm(dp)
-    vec = np.stack([np.interp(s["t"], v["t"], v["cols"][k]) for k in ("x_nT", "y_nT", "z_nT")],
-                   -1)
+    vec = np.stack([np.interp(s["t"], v["t"], v["cols"][k]) for k in ("x_nT", "y_nT", "z_nT")], -1)
     u = vec / np.linalg.norm(vec, axis=1, keepdims=True)
     after = s["t"] > t_step
     s["cols"]["total_nT"] = s["cols"]["total_nT"] + after * (u @ dp)
@@ -123,11 +132,19 @@ def one_flight(kind: str, seed: int, folder: Path, **ranges) -> dict:
         if f["effect"] == kind:
             cover += within_ci(kind, f, sim.truth)
     path.unlink()
-    return {"kind": kind, "seed": seed, "named": named, "events": len(events), "hit": hit,
-            "event_kinds": [e["kind"] for e in events],
-            "estimates": {f["effect"]: f["estimate"] for f in res["findings"]},
-            "covered": cover, "audit_s": time.perf_counter() - t,
-            "gap": res["baseline"]["generalization_gap"], "overrides": overrides}
+    return {
+        "kind": kind,
+        "seed": seed,
+        "named": named,
+        "events": len(events),
+        "hit": hit,
+        "event_kinds": [e["kind"] for e in events],
+        "estimates": {f["effect"]: f["estimate"] for f in res["findings"]},
+        "covered": cover,
+        "audit_s": time.perf_counter() - t,
+        "gap": res["baseline"]["generalization_gap"],
+        "overrides": overrides,
+    }
 
 
 def correct(row: dict) -> bool:
@@ -147,30 +164,46 @@ def run(classes, flights: int, seed: int, progress=print) -> list[dict]:
             for i in range(flights):
                 row = one_flight(kind, seed * 1000 + CLASSES.index(kind) * 100 + i, Path(tmp))
                 rows.append(row)
-                progress(f"{kind} #{i}: named {row['named'] or '-'}, events {row['events']}"
-                         f"{'' if row['hit'] is None else ', step hit ' + str(row['hit'])}, "
-                         f"audit {row['audit_s']:.1f} s")
+                progress(
+                    f"{kind} #{i}: named {row['named'] or '-'}, events {row['events']}"
+                    f"{'' if row['hit'] is None else ', step hit ' + str(row['hit'])}, "
+                    f"audit {row['audit_s']:.1f} s"
+                )
     return rows
 
 
 def summarise(rows: list[dict]) -> str:
     classes = [c for c in CLASSES if any(r["kind"] == c for r in rows)]
     cols = ["nothing", *EFFECTS, "several"]
-    lines = ["| hidden \\ named | " + " | ".join(cols) + " | right | 95 % CI covers |",
-             "|---" * (len(cols) + 3) + "|"]
+    lines = [
+        "| hidden \\ named | " + " | ".join(cols) + " | right | 95 % CI covers |",
+        "|---" * (len(cols) + 3) + "|",
+    ]
     for c in classes:
         rr = [r for r in rows if r["kind"] == c]
-        cnt = Counter("nothing" if not r["named"] else r["named"][0]
-                      if len(set(r["named"])) == 1 else "several" for r in rr)
+        cnt = Counter(
+            "nothing"
+            if not r["named"]
+            else r["named"][0]
+            if len(set(r["named"])) == 1
+            else "several"
+            for r in rr
+        )
         ok = sum(correct(r) for r in rr)
         cov = [x for r in rr for x in r["covered"]]
-        lines.append(f"| {c} | " + " | ".join(str(cnt.get(k, 0)) for k in cols)
-                     + f" | {ok}/{len(rr)} ({100 * ok / len(rr):.0f} %) | "
-                     + (f"{sum(cov)}/{len(cov)}" if cov else "-") + " |")
+        lines.append(
+            f"| {c} | "
+            + " | ".join(str(cnt.get(k, 0)) for k in cols)
+            + f" | {ok}/{len(rr)} ({100 * ok / len(rr):.0f} %) | "
+            + (f"{sum(cov)}/{len(cov)}" if cov else "-")
+            + " |"
+        )
     steps = [r for r in rows if r["kind"] == "step"]
     if steps:
-        lines.append(f"\nstep flights with an event within +-{EVENT_WINDOW_S:.0f} s: "
-                     f"{sum(bool(r['hit']) for r in steps)}/{len(steps)}")
+        lines.append(
+            f"\nstep flights with an event within +-{EVENT_WINDOW_S:.0f} s: "
+            f"{sum(bool(r['hit']) for r in steps)}/{len(steps)}"
+        )
     return "\n".join(lines)
 
 
@@ -182,8 +215,12 @@ def main() -> int:
     ap.add_argument("--json", type=Path)
     a = ap.parse_args()
     t0 = time.perf_counter()
-    rows = run(a.classes.split(","), a.flights, a.seed,
-               progress=lambda m: print(m, file=sys.stderr, flush=True))
+    rows = run(
+        a.classes.split(","),
+        a.flights,
+        a.seed,
+        progress=lambda m: print(m, file=sys.stderr, flush=True),
+    )
     print(summarise(rows))
     print(f"\n{len(rows)} flights in {time.perf_counter() - t0:.0f} s")
     if a.json:

@@ -28,8 +28,12 @@ MODELS = (("tl16", "tl16"), ("tl18", "tl18"), ("agg-tl", "tl18"), ("agg-tl", "tl
 
 def heading_spread(seg, err) -> float:
     card = np.array(list("NESW"))[np.round(np.nan_to_num(seg.heading_deg) / 90).astype(int) % 4]
-    means = [np.nanmean(err[seg.mask(lab) & (card == c)]) for lab in ("survey", "tie")
-             for c in "NESW" if (seg.mask(lab) & (card == c)).any()]
+    means = [
+        np.nanmean(err[seg.mask(lab) & (card == c)])
+        for lab in ("survey", "tie")
+        for c in "NESW"
+        if (seg.mask(lab) & (card == c)).any()
+    ]
     return float(max(means) - min(means))
 
 
@@ -45,8 +49,9 @@ def main() -> int:
             sim = simulate(sc, args.seed)
             flight = read_flight(write_simulation(sim, Path(tmp) / f"g{grad}.mcap"))
             seg = segment_flight(flight)
-            earth = sim.series["earth_total_nT"][np.searchsorted(sim.series["time_ns"],
-                                                                 flight.time_ns)]
+            earth = sim.series["earth_total_nT"][
+                np.searchsorted(sim.series["time_ns"], flight.time_ns)
+            ]
             for model, base in MODELS:
                 run = run_compensation(flight, seg, FitSettings(model=model, base=base))
                 name = model if model != "agg-tl" else f"agg-tl ({base} terms)"
@@ -54,10 +59,15 @@ def main() -> int:
                 g = run.model.gradient_nT_per_m()
                 results[(grad, name)] = (spread, g)
                 fom = run.fom.total
-                rows.append((f"{'0.45 nT/m' if grad else 'none'}", name,
-                             f"{fom['uncompensated']:.1f} -> {fom['compensated']:.2f}",
-                             f"{spread:.3f}",
-                             "-" if not g else f"{g['east']:.3f} / {g['north']:.3f}"))
+                rows.append(
+                    (
+                        f"{'0.45 nT/m' if grad else 'none'}",
+                        name,
+                        f"{fom['uncompensated']:.1f} -> {fom['compensated']:.2f}",
+                        f"{spread:.3f}",
+                        "-" if not g else f"{g['east']:.3f} / {g['north']:.3f}",
+                    )
+                )
             if grad:
                 true_g = sim.truth["effective"]["gradient_nT_per_m"]
     print("| gradient | model | FOM nT | heading-error spread nT | gradient E / N nT/m |")

@@ -44,13 +44,13 @@ def noise_profile(case: str, n: int) -> np.ndarray:
     """Per-sample noise sigma (nT) of a case."""
     sig = np.full(n, 5.0)
     if case == "step":
-        sig[n // 2:] = 20.0
+        sig[n // 2 :] = 20.0
     elif case == "ramp":
         a, b = int(0.3 * n), int(0.7 * n)
         sig[a:b] = np.linspace(5.0, 40.0, b - a)
         sig[b:] = 40.0
     elif case == "burst":
-        sig[int(0.3 * n):int(0.6 * n)] = 60.0
+        sig[int(0.3 * n) : int(0.6 * n)] = 60.0
     return sig
 
 
@@ -68,8 +68,10 @@ def one(case: str, seed: int, n: int) -> dict:
     def score(p):
         comp = p.compensate(fl.measured_nT, fl.earth_rate_nT_s)
         tot = np.linalg.norm(comp, axis=1) - np.linalg.norm(fl.earth_nT, axis=1)
-        return (float(np.sqrt(np.mean(((p.state(True) - truth) / truth) ** 2))),
-                float(np.sqrt(np.mean(tot**2))))
+        return (
+            float(np.sqrt(np.mean(((p.state(True) - truth) / truth) ** 2))),
+            float(np.sqrt(np.mean(tot**2))),
+        )
 
     for name in ("fixed R", "fuzzy R"):
         kf = ComponentKF.paper(scaled=True, fuzzy=name == "fuzzy R")
@@ -108,17 +110,23 @@ def main() -> int:
             print(f"| {case} | {est} | {ci95(pe)} | {ci95(te)} |", flush=True)
         ror = np.median([r["ror_30_100"] for r in res])
         floors = [r["floor_at"] for r in res]
-        notes.append((case, f"ROR median (samples 30-100) {ror:.3g}; R on its floor from sample "
-                            f"{min(floors)}-{max(floors)} (-1: never); R / true noise "
-                            f"variance over the last fifth "
-                            f"{ci95([r['r_over_true'] for r in res])}"))
+        notes.append(
+            (
+                case,
+                f"ROR median (samples 30-100) {ror:.3g}; R on its floor from sample "
+                f"{min(floors)}-{max(floors)} (-1: never); R / true noise "
+                f"variance over the last fifth "
+                f"{ci95([r['r_over_true'] for r in res])}",
+            )
+        )
         if case == "paper":
             d = max(abs(r["fuzzy R"][0] / r["fixed R"][0] - 1) for r in res)
             if d > 0.01:
                 errors.append(f"paper case: fuzzy and fixed R differ by {100 * d:.1f} %")
             b = np.mean([r["batch LS"][0] for r in res])
-            f = min(np.mean([r["fixed R"][0] for r in res]),
-                    np.mean([r["fuzzy R"][0] for r in res]))
+            f = min(
+                np.mean([r["fixed R"][0] for r in res]), np.mean([r["fuzzy R"][0] for r in res])
+            )
             if b > 1.1 * f:
                 errors.append(f"paper case: batch LS {b:.4f} worse than the filters {f:.4f}")
     print()

@@ -47,10 +47,15 @@ def main() -> int:
         _, t_write = timed(lambda: write_simulation(sim, path))
         n_msgs = sum(len(s["t"]) for s in sim.streams.values())
         minutes = sim.trajectory.duration_s / 60
-        rows += [("flight", f"{args.scenario}: {minutes:.1f} min, {n_msgs} messages, "
-                            f"{path.stat().st_size / 1e6:.1f} MB"),
-                 ("simulate (physics)", f"{t_sim:.2f} s"),
-                 ("write recording", f"{t_write:.2f} s ({n_msgs / t_write / 1e3:.0f} k msg/s)")]
+        rows += [
+            (
+                "flight",
+                f"{args.scenario}: {minutes:.1f} min, {n_msgs} messages, "
+                f"{path.stat().st_size / 1e6:.1f} MB",
+            ),
+            ("simulate (physics)", f"{t_sim:.2f} s"),
+            ("write recording", f"{t_write:.2f} s ({n_msgs / t_write / 1e3:.0f} k msg/s)"),
+        ]
 
         def bare(order: bool):
             n = 0
@@ -63,16 +68,26 @@ def main() -> int:
         _, t_bare_u = timed(lambda: bare(False))
         flight, t_read = timed(lambda: read_flight(path))
         peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # KiB on Linux
-        rows += [("official reader, bare iteration (log-time order, the default)",
-                  f"{t_bare:.2f} s ({n_bare / t_bare / 1e3:.0f} k msg/s)"),
-                 ("official reader, bare iteration (file order)",
-                  f"{t_bare_u:.2f} s ({n_bare / t_bare_u / 1e3:.0f} k msg/s)"),
-                 ("ours: decoded and aligned columns",
-                  f"{t_read:.2f} s ({n_bare / t_read / 1e3:.0f} k msg/s; process peak "
-                  f"{peak_mb:.0f} MB)"),
-                 ("ratio (target >= 3x, then 5x)",
-                  f"{t_bare / t_read:.1f}x the default iteration, {t_bare_u / t_read:.1f}x the "
-                  "file-order iteration")]
+        rows += [
+            (
+                "official reader, bare iteration (log-time order, the default)",
+                f"{t_bare:.2f} s ({n_bare / t_bare / 1e3:.0f} k msg/s)",
+            ),
+            (
+                "official reader, bare iteration (file order)",
+                f"{t_bare_u:.2f} s ({n_bare / t_bare_u / 1e3:.0f} k msg/s)",
+            ),
+            (
+                "ours: decoded and aligned columns",
+                f"{t_read:.2f} s ({n_bare / t_read / 1e3:.0f} k msg/s; process peak "
+                f"{peak_mb:.0f} MB)",
+            ),
+            (
+                "ratio (target >= 3x, then 5x)",
+                f"{t_bare / t_read:.1f}x the default iteration, {t_bare_u / t_read:.1f}x the "
+                "file-order iteration",
+            ),
+        ]
         if n_bare != n_msgs:
             errors.append(f"bare iteration read {n_bare} messages, wrote {n_msgs}")
         if len(flight.data) != len(sim.streams["/mag/scalar"]["t"]):
@@ -90,8 +105,13 @@ def main() -> int:
                 same &= np.array_equal(vals, np.array([r[1][fld] for r in got], float))
             if not same:
                 errors.append(f"{topic}: decoded values differ from the official reader's")
-        rows.append(("identical values", f"{len(flight.series)} streams, every field, equal to "
-                                          "the official reader + json.loads"))
+        rows.append(
+            (
+                "identical values",
+                f"{len(flight.series)} streams, every field, equal to "
+                "the official reader + json.loads",
+            )
+        )
         ch = log_channel(flight, ingest_lines(flight), "ingest")
         _, t_copy = timed(lambda: write_with_new_channels(path, Path(tmp) / "out.mcap", [ch]))
         rows.append(("copy input + new channel", f"{t_copy:.2f} s"))

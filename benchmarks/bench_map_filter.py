@@ -73,34 +73,43 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=20)
     ap.add_argument("--order", default="2,1,1")
     ap.add_argument("--old", action="store_true", help="also run the filter before this change")
-    ap.add_argument("--conditions", default="",
-                    help="comma-separated indices into CONDITIONS (0-4; default all)")
+    ap.add_argument(
+        "--conditions",
+        default="",
+        help="comma-separated indices into CONDITIONS (0-4; default all)",
+    )
     args = ap.parse_args()
     order = None if args.order == "auto" else tuple(int(v) for v in args.order.split(","))
     errors, rows = [], []
-    print("| condition | RMS error nT: grid | old filter | new (RTS) | new / grid (95 % CI) "
-          "| old / grid (95 % CI) | grid noise nT (median lane) |")
+    print(
+        "| condition | RMS error nT: grid | old filter | new (RTS) | new / grid (95 % CI) "
+        "| old / grid (95 % CI) | grid noise nT (median lane) |"
+    )
     print("|---|---|---|---|---|---|---|")
     t0 = time.perf_counter()
-    pick = ([CONDITIONS[int(i)] for i in args.conditions.split(",")] if args.conditions
-            else CONDITIONS)
+    pick = (
+        [CONDITIONS[int(i)] for i in args.conditions.split(",")] if args.conditions else CONDITIONS
+    )
     for label, sensor, line, spacing in pick:
         e0, eo, en, gn = [], [], [], []
         for seed in range(args.seeds):
             sv = line_survey(seed, sensor_nT=sensor, line_nT=line, spacing_m=spacing)
             e0.append(_rms(sv.grid.values, sv.truth_nT))
-            eo.append(_rms(old_filter(sv.grid, sensor, order), sv.truth_nT) if args.old
-                      else np.nan)
+            eo.append(_rms(old_filter(sv.grid, sensor, order), sv.truth_nT) if args.old else np.nan)
             filt, model, _kf, noise, _src, _t = filter_grid(
-                sv.grid, True, args.order if order is None else order, max_p=2, max_q=1)
+                sv.grid, True, args.order if order is None else order, max_p=2, max_q=1
+            )
             en.append(_rms(filt.values, sv.truth_nT))
             gn.append(noise)
         e0, eo, en = map(np.asarray, (e0, eo, en))
         rn = ci95(en / e0)
         ro = ci95(eo / e0) if args.old else (np.nan, np.nan)
-        print(f"| {label} | {e0.mean():.4f} | {eo.mean():.4f} | {en.mean():.4f} | "
-              f"{rn[0]:.3f} ± {rn[1]:.3f} | {ro[0]:.3f} ± {ro[1]:.3f} | "
-              f"{np.median(gn):.4f} |", flush=True)
+        print(
+            f"| {label} | {e0.mean():.4f} | {eo.mean():.4f} | {en.mean():.4f} | "
+            f"{rn[0]:.3f} ± {rn[1]:.3f} | {ro[0]:.3f} ± {ro[1]:.3f} | "
+            f"{np.median(gn):.4f} |",
+            flush=True,
+        )
         rows.append((label, f"new/grid {rn[0]:.3f} ± {rn[1]:.3f}"))
         if rn[0] - rn[1] > 1.02:
             errors.append(f"{label}: the filter makes the map worse ({rn[0]:.3f})")

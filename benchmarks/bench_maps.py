@@ -26,8 +26,11 @@ from pipeline.maps.stage import ARIMA_SAMPLE_LIMIT, filter_sequence, serialize
 
 
 def field(x, y):
-    return (40 * np.exp(-((x - 1200) ** 2 + (y - 5000) ** 2) / (2 * 400**2))
-            - 25 * np.exp(-((x - 600) ** 2 + (y - 8000) ** 2) / (2 * 300**2)) + 0.002 * y)
+    return (
+        40 * np.exp(-((x - 1200) ** 2 + (y - 5000) ** 2) / (2 * 400**2))
+        - 25 * np.exp(-((x - 600) ** 2 + (y - 8000) ** 2) / (2 * 300**2))
+        + 0.002 * y
+    )
 
 
 def main() -> int:
@@ -37,8 +40,10 @@ def main() -> int:
     m = ArimaModel(2, 1, 1, np.array([-0.4178, -0.3517]), np.array([0.3]), 0.01)
     # a map-like sequence: anomalies of tens of nT along 1000 lines of 1000 cells, plus noise
     k = np.arange(10**6)
-    y = (30 * np.sin(2 * np.pi * k / 700) * np.cos(2 * np.pi * k / 130_000)
-         + rng.normal(0, 0.5, k.size))
+    y = 30 * np.sin(2 * np.pi * k / 700) * np.cos(2 * np.pi * k / 130_000) + rng.normal(
+        0, 0.5, k.size
+    )
+
     def best_of(fn, n=3):
         """Warm-up call, then the best of n: both filters timed the same way."""
         out = fn()
@@ -63,10 +68,14 @@ def main() -> int:
     res, t_sm = best_of(kf.filter)
     ref = z @ res.filtered_state
     diff = float(np.max(np.abs(ref - ours.filtered)))
-    rows.append(("ARIMA-KF, 1000 x 1000 cells",
-                 f"ours {t_ours:.3f} s, statsmodels {t_sm:.2f} s ({t_sm / t_ours:.0f}x, target "
-                 f">= 20x and <= 5 s; best of 3 after a warm-up); "
-                 f"max difference {diff:.1e} nT"))
+    rows.append(
+        (
+            "ARIMA-KF, 1000 x 1000 cells",
+            f"ours {t_ours:.3f} s, statsmodels {t_sm:.2f} s ({t_sm / t_ours:.0f}x, target "
+            f">= 20x and <= 5 s; best of 3 after a warm-up); "
+            f"max difference {diff:.1e} nT",
+        )
+    )
     if diff > 1e-6:
         errors.append(f"Kalman filter differs from statsmodels by {diff:.2e} nT")
     # 2. gridding 10^6 samples
@@ -83,8 +92,13 @@ def main() -> int:
     gx, gy = np.meshgrid(*g.coordinates())
     ok = np.isfinite(g.values)
     rmse = float(np.sqrt(np.mean((g.values[ok] - field(gx, gy)[ok]) ** 2)))
-    rows.append((f"gridding {x.size:,} samples", f"{t_grid:.1f} s, {g.shape[0]} x {g.shape[1]} "
-                 f"cells of 12.5 m, RMSE vs analytic field {rmse:.3f} nT"))
+    rows.append(
+        (
+            f"gridding {x.size:,} samples",
+            f"{t_grid:.1f} s, {g.shape[0]} x {g.shape[1]} "
+            f"cells of 12.5 m, RMSE vs analytic field {rmse:.3f} nT",
+        )
+    )
     if rmse > 0.1:
         errors.append(f"gridding RMSE {rmse:.3f} nT")
     # 3. noise reduction of the ARIMA-Kalman filter on that map
@@ -100,9 +114,13 @@ def main() -> int:
     before = float(np.std((noisy.values - truth)[ok]))
     after = float(np.std((filt - truth)[ok]))
     pct = 100 * (1 - after / before)
-    rows.append(("ARIMA-KF on a noisy map (1 nT)",
-                 f"ARIMA{model.order}, RMSE {before:.3f} -> {after:.3f} nT "
-                 f"(noise_reduction_pct {pct:.0f} %), {t_f:.1f} s"))
+    rows.append(
+        (
+            "ARIMA-KF on a noisy map (1 nT)",
+            f"ARIMA{model.order}, RMSE {before:.3f} -> {after:.3f} nT "
+            f"(noise_reduction_pct {pct:.0f} %), {t_f:.1f} s",
+        )
+    )
     if pct < 30:
         errors.append(f"noise reduction {pct:.0f} % < 30 %")
     return finish(rows, errors)

@@ -30,16 +30,26 @@ def simulated(flights: int, seed: int) -> list[dict]:
     for i in range(flights):
         rng = np.random.default_rng(seed * 1000 + i)
         ov = random_flight_overrides(rng)
-        true = float(next(o for o in ov if o.startswith("sensors.scalar_noise_nT="))
-                     .split("=")[1])
+        true = float(next(o for o in ov if o.startswith("sensors.scalar_noise_nT=")).split("=")[1])
         sim = simulate(Scenario.load("uav-small", ov), int(rng.integers(2**31)))
         s = sim.streams["/mag/scalar"]
         est = white_noise_nT(s["cols"]["total_nT"], s["t"], 10.0)
         vib = any(o.startswith("interference.outside_basis.vibration_nT=") for o in ov)
-        rows.append({"source": f"simulated #{i}", "vibration": vib, "true_nT": true,
-                     "estimate_nT": est, "ratio": est / true})
-        print(f"{rows[-1]['source']}: true {true:.4f} nT, estimate {est:.4f} nT"
-              f"{' (vibration)' if vib else ''}", file=sys.stderr, flush=True)
+        rows.append(
+            {
+                "source": f"simulated #{i}",
+                "vibration": vib,
+                "true_nT": true,
+                "estimate_nT": est,
+                "ratio": est / true,
+            }
+        )
+        print(
+            f"{rows[-1]['source']}: true {true:.4f} nT, estimate {est:.4f} nT"
+            f"{' (vibration)' if vib else ''}",
+            file=sys.stderr,
+            flush=True,
+        )
     return rows
 
 
@@ -49,24 +59,34 @@ def recordings(folder: Path) -> list[dict]:
         true = float(json.loads(truth.read_text())["sensors"]["scalar"]["noise_std_nT"])
         fl = read_flight(truth.with_name(truth.name.replace(".truth.json", ".mcap")))
         t = fl.data["time_s"].to_numpy()
-        est = white_noise_nT(fl.data["scalar_nT"].to_numpy(), t,
-                             1.0 / float(np.median(np.diff(t))))
-        rows.append({"source": truth.name.removesuffix(".truth.json"), "vibration": None,
-                     "true_nT": true, "estimate_nT": est, "ratio": est / true})
+        est = white_noise_nT(fl.data["scalar_nT"].to_numpy(), t, 1.0 / float(np.median(np.diff(t))))
+        rows.append(
+            {
+                "source": truth.name.removesuffix(".truth.json"),
+                "vibration": None,
+                "true_nT": true,
+                "estimate_nT": est,
+                "ratio": est / true,
+            }
+        )
     return rows
 
 
 def summarise(rows: list[dict]) -> str:
     out = ["| flights | n | ratio median | ratio range | within 20 % |", "|---|---|---|---|---|"]
-    groups = {"simulated, no vibration": [r for r in rows if r["vibration"] is False],
-              "simulated, vibration": [r for r in rows if r["vibration"] is True],
-              "recordings": [r for r in rows if r["vibration"] is None]}
+    groups = {
+        "simulated, no vibration": [r for r in rows if r["vibration"] is False],
+        "simulated, vibration": [r for r in rows if r["vibration"] is True],
+        "recordings": [r for r in rows if r["vibration"] is None],
+    }
     for name, rr in groups.items():
         if not rr:
             continue
         q = np.array([r["ratio"] for r in rr])
-        out.append(f"| {name} | {q.size} | {np.median(q):.3f} | {q.min():.3f}-{q.max():.3f} | "
-                   f"{np.mean(np.abs(q - 1) < 0.2) * 100:.0f} % |")
+        out.append(
+            f"| {name} | {q.size} | {np.median(q):.3f} | {q.min():.3f}-{q.max():.3f} | "
+            f"{np.mean(np.abs(q - 1) < 0.2) * 100:.0f} % |"
+        )
     return "\n".join(out)
 
 
@@ -82,8 +102,7 @@ def main() -> int:
     print(summarise(rows))
     for r in rows:
         if r["vibration"] is None:
-            print(f"{r['source']}: true {r['true_nT']:.4f} nT, estimate "
-                  f"{r['estimate_nT']:.4f} nT")
+            print(f"{r['source']}: true {r['true_nT']:.4f} nT, estimate {r['estimate_nT']:.4f} nT")
     return 0
 
 

@@ -37,17 +37,21 @@ def archive(n: int, tmp: Path, rows: list, errors: list) -> None:
         for workers in (1, 2):
             t0 = time.perf_counter()
             res = reprocess_archive.with_options(task_runner=dask_runner(workers, None))(
-                str(arch), str(tmp / f"out{workers}"))
+                str(arch), str(tmp / f"out{workers}")
+            )
             times[workers] = time.perf_counter() - t0
             if res["processed"] != n:
                 errors.append(f"{workers} workers: {res}")
-    rows += [(f"archive of {n} flights, 1 worker", f"{times[1]:.1f} s"),
-             (f"archive of {n} flights, 2 workers", f"{times[2]:.1f} s"),
-             ("speed-up (target >= 1.7x)", f"{times[1] / times[2]:.2f}x")]
+    rows += [
+        (f"archive of {n} flights, 1 worker", f"{times[1]:.1f} s"),
+        (f"archive of {n} flights, 2 workers", f"{times[2]:.1f} s"),
+        ("speed-up (target >= 1.7x)", f"{times[1] / times[2]:.2f}x"),
+    ]
 
 
-def long_flight(hours: float, tmp: Path, rows: list, errors: list,
-                label: str = "long flight") -> tuple[int, float]:
+def long_flight(
+    hours: float, tmp: Path, rows: list, errors: list, label: str = "long flight"
+) -> tuple[int, float]:
     """Simulate a flight of about ``hours`` and run the post-flight steps; returns (epochs,
     wall seconds)."""
     from flows import postflight as pf
@@ -77,12 +81,15 @@ def long_flight(hours: float, tmp: Path, rows: list, errors: list,
     if "quality" not in summary:
         errors.append("the long flight has no quality section")
     epochs = summary["input"]["epochs"]
-    rows += [(f"{label}: {sim.trajectory.duration_s / 3600:.2f} h, {epochs} epochs",
-              f"simulated and written in {t_sim:.1f} s"),
-             (f"{label}: post-flight steps (target <= 60 s for 5 h)", f"{total:.1f} s"),
-             (f"{label}: per stage", ", ".join(f"{k} {v:.1f} s" for k, v in
-                                                stage_s.items())),
-             (f"{label}: peak memory (process so far)", f"{peak_mb:.0f} MB")]
+    rows += [
+        (
+            f"{label}: {sim.trajectory.duration_s / 3600:.2f} h, {epochs} epochs",
+            f"simulated and written in {t_sim:.1f} s",
+        ),
+        (f"{label}: post-flight steps (target <= 60 s for 5 h)", f"{total:.1f} s"),
+        (f"{label}: per stage", ", ".join(f"{k} {v:.1f} s" for k, v in stage_s.items())),
+        (f"{label}: peak memory (process so far)", f"{peak_mb:.0f} MB"),
+    ]
     return epochs, total
 
 

@@ -68,9 +68,13 @@ def run_process(path: Path, out: Path, env: dict[str, str]) -> tuple[float, floa
     log = out / "stderr.txt"
     with log.open("wb") as f:
         t = time.perf_counter()
-        proc = subprocess.Popen([sys.executable, "-m", "flows.cli", "process", str(path),
-                                 "--out", str(out)], env=env, cwd=REPO,
-                                stdout=subprocess.DEVNULL, stderr=f)
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "flows.cli", "process", str(path), "--out", str(out)],
+            env=env,
+            cwd=REPO,
+            stdout=subprocess.DEVNULL,
+            stderr=f,
+        )
         _, status, usage = os.wait4(proc.pid, 0)
         wall = time.perf_counter() - t
     proc.returncode = os.waitstatus_to_exitcode(status)
@@ -93,13 +97,18 @@ def main() -> int:
         folder.mkdir(parents=True, exist_ok=True)
         t = time.perf_counter()
         files = [flight_file(h, folder) for h in hours]
-        rows.append(("flights simulated and written (or reused)",
-                     f"{time.perf_counter() - t:.1f} s"))
-        env = {**os.environ, "PREFECT_HOME": str(Path(tmp) / "prefect"),
-               "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1",
-               "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "90",
-               "PREFECT_LOGGING_LEVEL": "WARNING",
-               "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+        rows.append(
+            ("flights simulated and written (or reused)", f"{time.perf_counter() - t:.1f} s")
+        )
+        env = {
+            **os.environ,
+            "PREFECT_HOME": str(Path(tmp) / "prefect"),
+            "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+            "DO_NOT_TRACK": "1",
+            "PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS": "90",
+            "PREFECT_LOGGING_LEVEL": "WARNING",
+            "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")]),
+        }
         env.pop("PREFECT_API_URL", None)
         # warm-up: the first run creates the Prefect database (slower than any later start)
         warm, _, _ = run_process(REPO / "fixtures" / "box_uav.mcap", Path(tmp) / "warm", env)
@@ -112,8 +121,9 @@ def main() -> int:
             except RuntimeError as exc:
                 errors.append(str(exc))
                 continue
-            summary = json.loads((Path(tmp) / f"out-{h:g}" /
-                                  f"{path.stem}.summary.json").read_text())
+            summary = json.loads(
+                (Path(tmp) / f"out-{h:g}" / f"{path.stem}.summary.json").read_text()
+            )
             stages = summary.get("timings_s", {})
             own_mb = summary.get("peak_memory_mb", float("nan"))
             epochs = summary["input"]["epochs"]
@@ -122,16 +132,24 @@ def main() -> int:
                 errors.append(f"{path.name}: the summary has no map or quality section")
             res.append((epochs, bare, wall, sum(stages.values()) or np.nan, rss))
             rows += [
-                (f"{dur_h:.2f} h flight: file",
-                 f"{n} messages, {path.stat().st_size / 1e6:.1f} MB, {epochs} epochs"),
+                (
+                    f"{dur_h:.2f} h flight: file",
+                    f"{n} messages, {path.stat().st_size / 1e6:.1f} MB, {epochs} epochs",
+                ),
                 (f"{dur_h:.2f} h: official reader, bare iteration", f"{bare:.2f} s"),
-                (f"{dur_h:.2f} h: aeromag process (wall; ratio to bare, target <= 5x)",
-                 f"{wall:.1f} s ({wall / bare:.1f}x)"),
-                (f"{dur_h:.2f} h: stages (summary timings_s, sum)",
-                 ", ".join(f"{k} {v:.1f}" for k, v in stages.items())
-                 + f"; sum {sum(stages.values()):.1f} s"),
-                (f"{dur_h:.2f} h: peak memory (target <= 1 GB at 5 h)",
-                 f"{rss:.0f} MB child process; flow process {own_mb:.0f} MB (summary)"),
+                (
+                    f"{dur_h:.2f} h: aeromag process (wall; ratio to bare, target <= 5x)",
+                    f"{wall:.1f} s ({wall / bare:.1f}x)",
+                ),
+                (
+                    f"{dur_h:.2f} h: stages (summary timings_s, sum)",
+                    ", ".join(f"{k} {v:.1f}" for k, v in stages.items())
+                    + f"; sum {sum(stages.values()):.1f} s",
+                ),
+                (
+                    f"{dur_h:.2f} h: peak memory (target <= 1 GB at 5 h)",
+                    f"{rss:.0f} MB child process; flow process {own_mb:.0f} MB (summary)",
+                ),
             ]
     if len(res) >= 2:
         e, bare, wall, stage_sum, _ = np.array(res, float).T
@@ -141,9 +159,12 @@ def main() -> int:
         if np.isfinite(stage_sum).all():
             line += f", stages' sum {np.polyfit(np.log(e), np.log(stage_sum), 1)[0]:.2f}"
         rows.append(("fitted exponent k in seconds ~ epochs^k (linear: k ~ 1)", line))
-        rows.append(("process seconds per hour of flight",
-                     ", ".join(f"{w / (n_ / 36000):.1f}" for n_, w in zip(e, wall,
-                                                                            strict=True))))
+        rows.append(
+            (
+                "process seconds per hour of flight",
+                ", ".join(f"{w / (n_ / 36000):.1f}" for n_, w in zip(e, wall, strict=True)),
+            )
+        )
     return finish(rows, errors)
 
 

@@ -30,8 +30,10 @@ from pipeline.quality import run_quality
 from pipeline.segment import segment_flight
 from pipeline.simulate import Scenario, simulate, write_simulation
 
-PAPER = {"overlap": {"raw": 8.9814, "tl": 3.7865, "agg_tl": 0.9153},
-         "interpolated": {"raw": None, "tl": 3.5426, "agg_tl": 0.9358}}
+PAPER = {
+    "overlap": {"raw": 8.9814, "tl": 3.7865, "agg_tl": 0.9153},
+    "interpolated": {"raw": None, "tl": 3.5426, "agg_tl": 0.9358},
+}
 
 
 def run(seed: int, folder: Path) -> tuple[dict, float, float]:
@@ -65,39 +67,73 @@ def main() -> int:
         for seed in args.seeds:
             s, noise_rms, dt = run(seed, Path(tmp))
             # pairs and the interpolated map are paper 002's statistics; intersections ours
-            pr, he, ip = (s["overlap_pair_rms_nT"], s["intersection_rms_nT"],
-                          s["interpolated_rms_nT"])
+            pr, he, ip = (
+                s["overlap_pair_rms_nT"],
+                s["intersection_rms_nT"],
+                s["interpolated_rms_nT"],
+            )
             for k in ("raw", "tl", "agg_tl"):
-                rows.append((str(seed), k, f(PAPER["overlap"][k]), f(pr[k]), f(he[k]),
-                             f(PAPER["interpolated"][k]), f(ip[k])))
-            rows.append((str(seed), "noise at the points", "-", f"{s['overlap_pairs']} pairs",
-                         f(noise_rms), "-", f"{s['intersections']} crossings, {dt:.1f} s"))
+                rows.append(
+                    (
+                        str(seed),
+                        k,
+                        f(PAPER["overlap"][k]),
+                        f(pr[k]),
+                        f(he[k]),
+                        f(PAPER["interpolated"][k]),
+                        f(ip[k]),
+                    )
+                )
+            rows.append(
+                (
+                    str(seed),
+                    "noise at the points",
+                    "-",
+                    f"{s['overlap_pairs']} pairs",
+                    f(noise_rms),
+                    "-",
+                    f"{s['intersections']} crossings, {dt:.1f} s",
+                )
+            )
             ratios.append((seed, ratio(pr), ratio(he), ratio(ip), s["heading_error_method"]))
             if he["tl"] is None:
                 errors.append(f"seed {seed}: no intersection")
                 continue
             if not he["tl"] >= 2 * he["agg_tl"]:
-                errors.append(f"seed {seed}: T-L {he['tl']:.3f} nT is not 2x AGG-TL "
-                              f"{he['agg_tl']:.3f} nT at the intersections")
+                errors.append(
+                    f"seed {seed}: T-L {he['tl']:.3f} nT is not 2x AGG-TL "
+                    f"{he['agg_tl']:.3f} nT at the intersections"
+                )
             if not he["agg_tl"] <= 1.5 * noise_rms:
-                errors.append(f"seed {seed}: AGG-TL {he['agg_tl']:.3f} nT > 1.5 x noise "
-                              f"{noise_rms:.3f} nT at the intersections")
-    print("| seed | state | paper overlap nT | pairs <= 0.5 m nT (paper's statistic) "
-          "| intersections nT (ours) | paper interpolated nT | interpolated nT |")
+                errors.append(
+                    f"seed {seed}: AGG-TL {he['agg_tl']:.3f} nT > 1.5 x noise "
+                    f"{noise_rms:.3f} nT at the intersections"
+                )
+    print(
+        "| seed | state | paper overlap nT | pairs <= 0.5 m nT (paper's statistic) "
+        "| intersections nT (ours) | paper interpolated nT | interpolated nT |"
+    )
     print("|---|---|---|---|---|---|---|")
     for r in rows:
         print("| " + " | ".join(r) + " |")
     print()
     po = PAPER["overlap"]["tl"] / PAPER["overlap"]["agg_tl"]
     pi = PAPER["interpolated"]["tl"] / PAPER["interpolated"]["agg_tl"]
-    print(f"T-L / AGG-TL, per metric (paper: pairs {po:.1f}x, interpolated {pi:.1f}x; "
-          "the paper has no intersection statistic):\n")
-    print("| seed | pairs <= 0.5 m (paper 4.1x) | intersections (ours) "
-          "| interpolated map (paper 3.8x) | headline heading_error_method |")
+    print(
+        f"T-L / AGG-TL, per metric (paper: pairs {po:.1f}x, interpolated {pi:.1f}x; "
+        "the paper has no intersection statistic):\n"
+    )
+    print(
+        "| seed | pairs <= 0.5 m (paper 4.1x) | intersections (ours) "
+        "| interpolated map (paper 3.8x) | headline heading_error_method |"
+    )
     print("|---|---|---|---|---|")
     for seed, a, b, c, m in ratios:
-        print(f"| {seed} | " + " | ".join("-" if v is None else f"{v:.1f}x" for v in (a, b, c))
-              + f" | {m} |")
+        print(
+            f"| {seed} | "
+            + " | ".join("-" if v is None else f"{v:.1f}x" for v in (a, b, c))
+            + f" | {m} |"
+        )
     print()
     return finish([("seeds", " ".join(map(str, args.seeds)))], errors)
 

@@ -32,8 +32,7 @@ def main() -> int:
     epochs, secs = np.array(runs, float).T
     k, _ = np.polyfit(np.log(epochs), np.log(secs), 1)
     rows.append(("fitted exponent k in time ~ epochs^k (target <= 1.1)", f"{k:.2f}"))
-    rows.append(("time per hour of flight", ", ".join(f"{s / (e / 36000):.1f} s"
-                                                       for e, s in runs)))
+    rows.append(("time per hour of flight", ", ".join(f"{s / (e / 36000):.1f} s" for e, s in runs)))
     return finish(rows, errors)
 
 

@@ -34,10 +34,20 @@ from pipeline.io.writer import write_json_atomic, write_text_atomic
 from pipeline.report import sha256_file
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
-INDEX_FIELDS = ["input", "sha256", "config_hash", "status", "reason", "output_dir",
-                "seconds", "fom_nT", "heading_error_rms_nT", "heading_error_method",
-                "crossover_rms_nT",
-                "findings"]
+INDEX_FIELDS = [
+    "input",
+    "sha256",
+    "config_hash",
+    "status",
+    "reason",
+    "output_dir",
+    "seconds",
+    "fom_nT",
+    "heading_error_rms_nT",
+    "heading_error_method",
+    "crossover_rms_nT",
+    "findings",
+]
 install_one_line_errors()
 # called with (done, total, row) after each recording when set (the CLI's progress bar)
 PROGRESS: Callable[[int, int, dict], None] | None = None
@@ -109,24 +119,33 @@ def _figures(summary: dict) -> dict[str, Any]:
         last = [k for k in comp if k != "final"][-1]
         fom = comp[last]["fom_nT"]["compensated"]
     q = summary.get("quality") or {}
-    he = (q.get("heading_error_rms_nT") or {})
+    he = q.get("heading_error_rms_nT") or {}
     audit = summary.get("audit") or {}
-    return {"fom_nT": fom,
-            "heading_error_rms_nT": he.get("extended", he.get("agg_tl")),
-            "heading_error_method": q.get("heading_error_method"),
-            "crossover_rms_nT": (q.get("crossover_rms_nT") or {}).get("after"),
-            "findings": " ".join(f["effect"] for f in audit.get("findings", []))}
+    return {
+        "fom_nT": fom,
+        "heading_error_rms_nT": he.get("extended", he.get("agg_tl")),
+        "heading_error_method": q.get("heading_error_method"),
+        "crossover_rms_nT": (q.get("crossover_rms_nT") or {}).get("after"),
+        "findings": " ".join(f["effect"] for f in audit.get("findings", [])),
+    }
 
 
-def process_one(path: str, out_dir: str, config_path: str | None, cfg_hash: str,
-                sha: str) -> dict[str, Any]:
+def process_one(
+    path: str, out_dir: str, config_path: str | None, cfg_hash: str, sha: str
+) -> dict[str, Any]:
     """Process one recording into its job folder; never raises (failures are quarantined)."""
     from flows.postflight import run_plain
 
     p, out = Path(path), Path(out_dir)
     dest = job_dir(out, p, sha, cfg_hash)
-    row = {"input": str(p), "sha256": sha, "config_hash": cfg_hash, "output_dir": str(dest),
-           "reason": "", "seconds": 0.0}
+    row = {
+        "input": str(p),
+        "sha256": sha,
+        "config_hash": cfg_hash,
+        "output_dir": str(dest),
+        "reason": "",
+        "seconds": 0.0,
+    }
     t0 = time.perf_counter()
     try:
         dest.mkdir(parents=True, exist_ok=True)
@@ -136,9 +155,10 @@ def process_one(path: str, out_dir: str, config_path: str | None, cfg_hash: str,
     except AeromagError as exc:
         row.update(status="quarantined", reason=str(exc))
     except Exception as exc:  # noqa: BLE001 - one bad file must not stop an archive
-        row.update(status="quarantined",
-                   reason=f"{p}: internal error: {type(exc).__name__}: "
-                          f"{' '.join(str(exc).split())[:300]}")
+        row.update(
+            status="quarantined",
+            reason=f"{p}: internal error: {type(exc).__name__}: {' '.join(str(exc).split())[:300]}",
+        )
     row["seconds"] = round(time.perf_counter() - t0, 2)
     if row["status"] == "quarantined":
         with contextlib.suppress(OSError):
@@ -149,8 +169,9 @@ def process_one(path: str, out_dir: str, config_path: str | None, cfg_hash: str,
 
 
 @task(name="process-recording")
-def process_recording(path: str, out_dir: str, config_path: str | None, cfg_hash: str,
-                      sha: str) -> dict[str, Any]:
+def process_recording(
+    path: str, out_dir: str, config_path: str | None, cfg_hash: str, sha: str
+) -> dict[str, Any]:
     """Prefect task: :func:`process_one` on a Dask worker (never raises; failures are
     quarantined).
 
@@ -170,8 +191,15 @@ def plan(recordings: list[Path], out: Path, cfg: Config) -> tuple[list[dict], li
         dest = job_dir(out, p, sha, cfg.hash)
         summary = dest / f"{p.stem}.summary.json"
         if summary.is_file():
-            row = {"input": str(p), "sha256": sha, "config_hash": cfg.hash, "status": "done",
-                   "reason": "", "output_dir": str(dest), "seconds": 0.0}
+            row = {
+                "input": str(p),
+                "sha256": sha,
+                "config_hash": cfg.hash,
+                "status": "done",
+                "reason": "",
+                "output_dir": str(dest),
+                "seconds": 0.0,
+            }
             with contextlib.suppress(OSError, ValueError):
                 row.update(_figures(json.loads(summary.read_text())))
             done.append(row)
@@ -211,8 +239,9 @@ def _run_rows(recordings: list[Path], out: Path, config_path: str | None) -> lis
     cfg.validate()
     out.mkdir(parents=True, exist_ok=True)
     rows, todo = plan(recordings, out, cfg)
-    futures = [process_recording.submit(str(p), str(out), config_path, cfg.hash, sha)
-               for p, sha in todo]
+    futures = [
+        process_recording.submit(str(p), str(out), config_path, cfg.hash, sha) for p, sha in todo
+    ]
     from prefect.futures import as_completed
 
     total = len(recordings)
@@ -222,28 +251,35 @@ def _run_rows(recordings: list[Path], out: Path, config_path: str | None) -> lis
         if PROGRESS:
             PROGRESS(len(rows), total, row)
         if k % 4 == 0:  # the index survives a crash with most of its rows
-            write_index(out, rows + [{"input": str(p), "sha256": s, "status": "pending"}
-                                     for p, s in todo if str(p) not in
-                                     {r["input"] for r in rows}])
+            write_index(
+                out,
+                rows
+                + [
+                    {"input": str(p), "sha256": s, "status": "pending"}
+                    for p, s in todo
+                    if str(p) not in {r["input"] for r in rows}
+                ],
+            )
     return rows
 
 
 @flow(name="reprocess-archive", log_prints=False)
-def reprocess_archive(archive_dir: str, out_dir: str, config_path: str | None = None
-                      ) -> dict[str, Any]:
+def reprocess_archive(
+    archive_dir: str, out_dir: str, config_path: str | None = None
+) -> dict[str, Any]:
     """Every recording of an archive, in parallel on the flow's task runner."""
     out = Path(out_dir)
     recordings = discover(Path(archive_dir), exclude=out)
     rows = _run_rows(recordings, out, config_path)
     index = write_index(out, rows)
-    counts = {s: sum(r["status"] == s for r in rows) for s in ("processed", "done",
-                                                               "quarantined")}
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("processed", "done", "quarantined")}
     return {"recordings": len(rows), **counts, "index": index}
 
 
 @flow(name="process-new-recordings", log_prints=False)
-def process_new(watch_dir: str, out_dir: str, config_path: str | None = None,
-                settle_s: float = 1.0) -> dict[str, Any]:
+def process_new(
+    watch_dir: str, out_dir: str, config_path: str | None = None, settle_s: float = 1.0
+) -> dict[str, Any]:
     """The scheduled job: recordings that appeared in ``watch_dir`` since the last run
     (those without a finished output for this configuration), skipping incomplete files."""
     out = Path(out_dir)
@@ -255,9 +291,13 @@ def process_new(watch_dir: str, out_dir: str, config_path: str | None = None,
     rows = _run_rows([p for p, _ in ready], out, config_path) if ready else []
     rows += [{"input": str(p), "status": "waiting", "reason": why} for p, why in waiting]
     index = write_index(out, rows) if rows else {}
-    return {"recordings": len(found), "waiting": len(waiting),
-            "processed": sum(r["status"] == "processed" for r in rows),
-            "quarantined": sum(r["status"] == "quarantined" for r in rows), "index": index}
+    return {
+        "recordings": len(found),
+        "waiting": len(waiting),
+        "processed": sum(r["status"] == "processed" for r in rows),
+        "quarantined": sum(r["status"] == "quarantined" for r in rows),
+        "index": index,
+    }
 
 
 def dask_runner(workers: int, address: str | None):
@@ -276,16 +316,28 @@ def dask_runner(workers: int, address: str | None):
     """
     from prefect_dask import DaskTaskRunner
 
-    for name in ("distributed", "distributed.scheduler", "distributed.nanny",
-                 "distributed.core", "distributed.worker", "distributed.http.proxy"):
+    for name in (
+        "distributed",
+        "distributed.scheduler",
+        "distributed.nanny",
+        "distributed.core",
+        "distributed.worker",
+        "distributed.http.proxy",
+    ):
         logging.getLogger(name).setLevel(logging.WARNING)  # the scheduler's chatter
 
     if address:
         return DaskTaskRunner(address=address)
     # dashboard on a free port: two clusters at once must not fight over 8787
-    return DaskTaskRunner(cluster_kwargs={"n_workers": workers, "threads_per_worker": 1,
-                                          "processes": True, "dashboard_address": ":0",
-                                          "silence_logs": logging.WARNING})
+    return DaskTaskRunner(
+        cluster_kwargs={
+            "n_workers": workers,
+            "threads_per_worker": 1,
+            "processes": True,
+            "dashboard_address": ":0",
+            "silence_logs": logging.WARNING,
+        }
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -308,10 +360,23 @@ def prefect_api(timeout_s: float = 90.0) -> Iterator[str]:
     port = _free_port()
     url = f"http://127.0.0.1:{port}/api"
     env = {**os.environ, "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1"}
-    proc = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host",
-                             "127.0.0.1", "--port", str(port)], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "prefect",
+            "server",
+            "start",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+        ],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     try:
         wait_healthy(url, timeout_s, proc)
         os.environ["PREFECT_API_URL"] = url

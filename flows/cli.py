@@ -19,15 +19,22 @@ from rich.table import Table
 
 from pipeline.errors import AeromagError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
-                  help="Post-flight processing of airborne and UAV magnetic surveys (MCAP).")
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    pretty_exceptions_enable=False,
+    help="Post-flight processing of airborne and UAV magnetic surveys (MCAP).",
+)
 console = Console(stderr=True, soft_wrap=True, highlight=False)
 # Never wrap or mark up results: paths must survive copy and paste, brackets and all.
 out = Console(soft_wrap=True, highlight=False)
 
 
-import_app = typer.Typer(add_completion=False, no_args_is_help=True,
-                         help="Convert other recorders' flight data into the channel contract.")
+import_app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="Convert other recorders' flight data into the channel contract.",
+)
 app.add_typer(import_app, name="import")
 
 
@@ -52,9 +59,14 @@ def simulate(
     truth: Annotated[Path | None, typer.Option(help="Truth document to write (.json).")] = None,
     scenario: Annotated[str, typer.Option(help="Built-in scenario name or a TOML file.")] = "demo",
     seed: Annotated[int, typer.Option(help="Random seed (same seed, same file).")] = 1,
-    set_: Annotated[list[str] | None, typer.Option(
-        "--set", help="Override a scenario value: key.sub=VALUE (repeatable), e.g. "
-                      "effects.sensor_lag.enabled=true")] = None,
+    set_: Annotated[
+        list[str] | None,
+        typer.Option(
+            "--set",
+            help="Override a scenario value: key.sub=VALUE (repeatable), e.g. "
+            "effects.sensor_lag.enabled=true",
+        ),
+    ] = None,
 ) -> None:
     """Simulate a flight: what the recorder writes goes to --out, the truth to --truth."""
     from pipeline.simulate import Scenario, write_simulation
@@ -66,8 +78,10 @@ def simulate(
     with console.status(f"writing {out_path}"):
         write_simulation(sim, out_path, truth)
     n = sum(len(s["t"]) for s in sim.streams.values())
-    say(f"{out_path}: {sim.trajectory.duration_s / 60:.1f} min flight, {n} messages, "
-        f"effects: {', '.join(sc.enabled_effects()) or 'none'}")
+    say(
+        f"{out_path}: {sim.trajectory.duration_s / 60:.1f} min flight, {n} messages, "
+        f"effects: {', '.join(sc.enabled_effects()) or 'none'}"
+    )
     if truth:
         say(f"{truth}: truth")
 
@@ -76,11 +90,16 @@ def simulate(
 def import_sgl(
     file: Annotated[Path, typer.Argument(help="SGL / DAF-MIT MagNav flight file (.h5 or .xyz).")],
     out_path: Annotated[Path, typer.Option("--out", help="Recording to write (.mcap).")],
-    lines: Annotated[str | None, typer.Option(help="Only these lines, e.g. 1002.02,1002.20.")
-                     ] = None,
-    calibration_lines: Annotated[str | None, typer.Option(
-        help="Lines flown as calibration boxes (named in the flight's readme); marked "
-             "kind=calibration in /plan/line.")] = None,
+    lines: Annotated[
+        str | None, typer.Option(help="Only these lines, e.g. 1002.02,1002.20.")
+    ] = None,
+    calibration_lines: Annotated[
+        str | None,
+        typer.Option(
+            help="Lines flown as calibration boxes (named in the flight's readme); marked "
+            "kind=calibration in /plan/line."
+        ),
+    ] = None,
 ) -> None:
     """Import an SGL HDF5 or XYZ file (field mapping in schemas/README.md)."""
     from pipeline.io.sgl import import_sgl as run
@@ -90,16 +109,24 @@ def import_sgl(
 
     with console.status(f"importing {file.name}"):
         res = run(file, out_path, split(lines), split(calibration_lines))
-    say(f"{out_path}: {res['samples']} samples over {res['span_s']:.1f} s, "
-        f"{len(res['channels'])} channels")
+    say(
+        f"{out_path}: {res['samples']} samples over {res['span_s']:.1f} s, "
+        f"{len(res['channels'])} channels"
+    )
 
 
 @import_app.command("mapped")
 def import_mapped(
     file: Annotated[Path, typer.Argument(help="A recorder's MCAP (ROS 2, protobuf, JSON).")],
-    mapping: Annotated[Path, typer.Option("--mapping", help="Topic-mapping file (TOML); "
-                                                            "`aeromag inspect FILE "
-                                                            "--suggest-mapping` proposes one.")],
+    mapping: Annotated[
+        Path,
+        typer.Option(
+            "--mapping",
+            help="Topic-mapping file (TOML); "
+            "`aeromag inspect FILE "
+            "--suggest-mapping` proposes one.",
+        ),
+    ],
     out_path: Annotated[Path, typer.Option("--out", help="Recording to write (.mcap).")],
 ) -> None:
     """Add contract channels (nT, body FRD, NED) for a recorder's mapped topics; every
@@ -128,11 +155,17 @@ def scenarios() -> None:
 @app.command()
 def inspect(
     file: Annotated[Path, typer.Argument(help="MCAP recording.")],
-    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the report as JSON.")
-                        ] = None,
-    suggest_mapping: Annotated[bool, typer.Option(
-        "--suggest-mapping", help="Print a topic-mapping file (TOML) for the recorder's "
-                                  "topics of known types (ROS 2, Foxglove protobuf).")] = False,
+    json_out: Annotated[
+        Path | None, typer.Option("--json", help="Also write the report as JSON.")
+    ] = None,
+    suggest_mapping: Annotated[
+        bool,
+        typer.Option(
+            "--suggest-mapping",
+            help="Print a topic-mapping file (TOML) for the recorder's "
+            "topics of known types (ROS 2, Foxglove protobuf).",
+        ),
+    ] = False,
 ) -> None:
     """Topics, counts, rates, span, gaps and contract violations (exit 1 on violations)."""
     from pipeline.io.inspect import inspect_recording
@@ -166,9 +199,14 @@ def inspect(
     say("contract: ok")
 
 
-ConfigOption = Annotated[Path | None, typer.Option(
-    "--config", help="Processing configuration (TOML; `aeromag config` prints the defaults); "
-                     "a command's options override its keys.")]
+ConfigOption = Annotated[
+    Path | None,
+    typer.Option(
+        "--config",
+        help="Processing configuration (TOML; `aeromag config` prints the defaults); "
+        "a command's options override its keys.",
+    ),
+]
 
 
 def _check_config(config: Path | None) -> None:
@@ -178,8 +216,11 @@ def _check_config(config: Path | None) -> None:
 
 
 def _shown(value) -> str:
-    return repr(value) if isinstance(value, str) else (
-        " ".join(str(v) for v in value) if isinstance(value, list | tuple) else str(value))
+    return (
+        repr(value)
+        if isinstance(value, str)
+        else (" ".join(str(v) for v in value) if isinstance(value, list | tuple) else str(value))
+    )
 
 
 def _stage_config(config: Path | None, options: dict[str, tuple[str, object]]):
@@ -206,22 +247,38 @@ def compensate(
     recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
     out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
     json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write.")],
-    model: Annotated[str | None, typer.Option(
-        help="tl16 | tl18 | agg-tl (default: the configuration's final model the recording "
-             "can fit, as `aeromag process`)")] = None,
-    agg_base: Annotated[str | None, typer.Option(
-        help="AGG-TL's T-L terms: tl18 (|B|-scaled) or tl16 (paper 002) "
-             "(config: compensation.agg_base)")] = None,
-    band: Annotated[tuple[float, float] | None, typer.Option(
-        help="Band-pass edges, Hz (config: compensation.band_hz).")] = None,
-    poles: Annotated[int | None, typer.Option(
-        help="Butterworth prototype order (config: compensation.poles).")] = None,
-    trim: Annotated[int | None, typer.Option(
-        help="Samples dropped at each end of a block (config: compensation.trim).")] = None,
-    ridge: Annotated[str | None, typer.Option(
-        help="auto (L-curve corner) or a lambda (config: compensation.ridge).")] = None,
-    calibration: Annotated[str, typer.Option(help="auto | all | T0:T1 (seconds from the "
-                                                  "first epoch, or Unix seconds)")] = "auto",
+    model: Annotated[
+        str | None,
+        typer.Option(
+            help="tl16 | tl18 | agg-tl (default: the configuration's final model the recording "
+            "can fit, as `aeromag process`)"
+        ),
+    ] = None,
+    agg_base: Annotated[
+        str | None,
+        typer.Option(
+            help="AGG-TL's T-L terms: tl18 (|B|-scaled) or tl16 (paper 002) "
+            "(config: compensation.agg_base)"
+        ),
+    ] = None,
+    band: Annotated[
+        tuple[float, float] | None,
+        typer.Option(help="Band-pass edges, Hz (config: compensation.band_hz)."),
+    ] = None,
+    poles: Annotated[
+        int | None, typer.Option(help="Butterworth prototype order (config: compensation.poles).")
+    ] = None,
+    trim: Annotated[
+        int | None,
+        typer.Option(help="Samples dropped at each end of a block (config: compensation.trim)."),
+    ] = None,
+    ridge: Annotated[
+        str | None,
+        typer.Option(help="auto (L-curve corner) or a lambda (config: compensation.ridge)."),
+    ] = None,
+    calibration: Annotated[
+        str, typer.Option(help="auto | all | T0:T1 (seconds from the first epoch, or Unix seconds)")
+    ] = "auto",
     scalar: Annotated[str | None, typer.Option(help="Scalar magnetometer topic.")] = None,
     vector: Annotated[str | None, typer.Option(help="Vector magnetometer topic.")] = None,
     config: ConfigOption = None,
@@ -236,21 +293,29 @@ def compensate(
             lam = float(ridge)
         except ValueError:
             pass  # the configuration's check names it
-    cfg = _stage_config(config, {
-        "--model": ("compensation.models", [model] if model else None),
-        "--agg-base": ("compensation.agg_base", agg_base), "--band": ("compensation.band_hz", band),
-        "--poles": ("compensation.poles", poles), "--trim": ("compensation.trim", trim),
-        "--ridge": ("compensation.ridge", lam)})
+    cfg = _stage_config(
+        config,
+        {
+            "--model": ("compensation.models", [model] if model else None),
+            "--agg-base": ("compensation.agg_base", agg_base),
+            "--band": ("compensation.band_hz", band),
+            "--poles": ("compensation.poles", poles),
+            "--trim": ("compensation.trim", trim),
+            "--ridge": ("compensation.ridge", lam),
+        },
+    )
     settings = cfg.fit_settings(model) if model else None
-    with console.status(f"compensating {recording.name}"
-                        + (f" ({model})" if model else "")):
-        summary = compensate_recording(recording, out_path, json_out, settings, calibration,
-                                       scalar, vector, cfg)
+    with console.status(f"compensating {recording.name}" + (f" ({model})" if model else "")):
+        summary = compensate_recording(
+            recording, out_path, json_out, settings, calibration, scalar, vector, cfg
+        )
     for w in (summary.get("calibration_guards") or {}).get("warnings", []):
         console.print(f"warning: {w}", markup=False, highlight=False, soft_wrap=True)
     fom = summary["fom_nT"]
-    say(f"{summary['model']}: lambda {summary['lambda']:.3g}, {summary['samples']} samples, "
-        f"fit residual {summary['fit_residual_nT']:.4f} nT")
+    say(
+        f"{summary['model']}: lambda {summary['lambda']:.3g}, {summary['samples']} samples, "
+        f"fit residual {summary['fit_residual_nT']:.4f} nT"
+    )
     if fom["uncompensated"] is not None:
         say(f"FOM: {fom['uncompensated']:.2f} nT uncompensated -> {fom['compensated']:.2f} nT")
     say(f"output recording: {out_path}")
@@ -262,18 +327,29 @@ def map_(
     recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
     out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
     json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write.")],
-    cell: Annotated[float | None, typer.Option(
-        help="Cell size, m; 0: line spacing / 4 (config: map.cell_m).")] = None,
-    arima: Annotated[str | None, typer.Option(
-        help="auto (BIC) or p,d,q (config: map.arima)")] = None,
-    noise: Annotated[float | None, typer.Option(
-        help="Measurement noise for the Kalman filter, nT; 0: estimated "
-             "(config: map.noise_nT)")] = None,
-    level_trend: Annotated[bool | None, typer.Option(
-        "--level-trend/--no-level-trend",
-        help="Linear-in-time line corrections (config: map.level_trend).")] = None,
-    lag: Annotated[float, typer.Option(help="Magnetometer lag to remove, s (the sensor reports "
-                                            "late by this much).")] = 0.0,
+    cell: Annotated[
+        float | None, typer.Option(help="Cell size, m; 0: line spacing / 4 (config: map.cell_m).")
+    ] = None,
+    arima: Annotated[
+        str | None, typer.Option(help="auto (BIC) or p,d,q (config: map.arima)")
+    ] = None,
+    noise: Annotated[
+        float | None,
+        typer.Option(
+            help="Measurement noise for the Kalman filter, nT; 0: estimated (config: map.noise_nT)"
+        ),
+    ] = None,
+    level_trend: Annotated[
+        bool | None,
+        typer.Option(
+            "--level-trend/--no-level-trend",
+            help="Linear-in-time line corrections (config: map.level_trend).",
+        ),
+    ] = None,
+    lag: Annotated[
+        float,
+        typer.Option(help="Magnetometer lag to remove, s (the sensor reports late by this much)."),
+    ] = 0.0,
     config: ConfigOption = None,
 ) -> None:
     """Reduce, level, grid and ARIMA-Kalman-filter the anomaly map (runs the stages it needs,
@@ -283,16 +359,24 @@ def map_(
     from flows.stages import map_recording, require_readable
 
     require_readable(recording)
-    cfg = _stage_config(config, {"--cell": ("map.cell_m", cell), "--arima": ("map.arima", arima),
-                                 "--noise": ("map.noise_nT", noise),
-                                 "--level-trend": ("map.level_trend", level_trend)})
+    cfg = _stage_config(
+        config,
+        {
+            "--cell": ("map.cell_m", cell),
+            "--arima": ("map.arima", arima),
+            "--noise": ("map.noise_nT", noise),
+            "--level-trend": ("map.level_trend", level_trend),
+        },
+    )
     settings = replace(cfg.map_settings(), lag_s=lag)
     with console.status(f"mapping {recording.name}"):
         summary = map_recording(recording, out_path, json_out, settings, cfg)
     m = summary["map"]
-    say(f"grid {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.2f} m; "
+    say(
+        f"grid {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.2f} m; "
         f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
-        f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])}")
+        f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])}"
+    )
     say(f"output recording: {out_path}")
     say(f"summary: {json_out}")
 
@@ -300,19 +384,33 @@ def map_(
 @app.command()
 def quality(
     recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap), raw or processed.")],
-    json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write (plots are "
-                                                          "written next to it).")],
-    overlap_m: Annotated[float | None, typer.Option(
-        "--overlap-m", help="Largest horizontal distance of an overlap pair, m "
-                            "(config: quality.overlap_m).")] = None,
-    out_path: Annotated[Path | None, typer.Option("--out", help="Also write an output recording "
-                                                               "with the quality channels.")
-                        ] = None,
-    noise_threshold: Annotated[float | None, typer.Option(
-        help="4th-difference noise above which a line is flagged, nT "
-             "(config: quality.noise_threshold_nT).")] = None,
-    height_tolerance: Annotated[float | None, typer.Option(
-        help="Allowed flight-height deviation, m (config: quality.height_tolerance_m).")] = None,
+    json_out: Annotated[
+        Path, typer.Option("--json", help="Summary JSON to write (plots are written next to it).")
+    ],
+    overlap_m: Annotated[
+        float | None,
+        typer.Option(
+            "--overlap-m",
+            help="Largest horizontal distance of an overlap pair, m (config: quality.overlap_m).",
+        ),
+    ] = None,
+    out_path: Annotated[
+        Path | None,
+        typer.Option("--out", help="Also write an output recording with the quality channels."),
+    ] = None,
+    noise_threshold: Annotated[
+        float | None,
+        typer.Option(
+            help="4th-difference noise above which a line is flagged, nT "
+            "(config: quality.noise_threshold_nT)."
+        ),
+    ] = None,
+    height_tolerance: Annotated[
+        float | None,
+        typer.Option(
+            help="Allowed flight-height deviation, m (config: quality.height_tolerance_m)."
+        ),
+    ] = None,
     config: ConfigOption = None,
 ) -> None:
     """Heading error at overlap points, interpolated-map comparison, crossovers and survey QC
@@ -320,11 +418,14 @@ def quality(
     from flows.stages import quality_recording, require_readable
 
     require_readable(recording)
-    cfg = _stage_config(config, {"--overlap-m": ("quality.overlap_m", overlap_m),
-                                 "--noise-threshold": ("quality.noise_threshold_nT",
-                                                       noise_threshold),
-                                 "--height-tolerance": ("quality.height_tolerance_m",
-                                                        height_tolerance)})
+    cfg = _stage_config(
+        config,
+        {
+            "--overlap-m": ("quality.overlap_m", overlap_m),
+            "--noise-threshold": ("quality.noise_threshold_nT", noise_threshold),
+            "--height-tolerance": ("quality.height_tolerance_m", height_tolerance),
+        },
+    )
     settings = cfg.quality_settings()
     with console.status(f"quality statistics of {recording.name}"):
         summary = quality_recording(recording, json_out, settings, out_path, cfg)
@@ -337,13 +438,18 @@ def quality(
 def _print_quality(q: dict) -> None:
     """The paper-002 table: heading error per processing state."""
     floor = q["heading_error_noise_floor_nT"]
-    say(f"heading error, validation X lines vs map lines: {q['intersections']} intersections, "
+    say(
+        f"heading error, validation X lines vs map lines: {q['intersections']} intersections, "
         f"{q['overlap_pairs']} pairs < {q['overlap_m']:g} m; white-noise floor at the "
         f"intersections {'-' if floor is None else f'{floor:.3f} nT'}; headline "
-        f"heading_error_rms_nT = {q.get('heading_error_method', 'intersections')}")
+        f"heading_error_rms_nT = {q.get('heading_error_method', 'intersections')}"
+    )
     inter = q.get("intersection_rms_nT", q["heading_error_rms_nT"])
-    table = Table(title="RMS of B_validation - B_map (pairs, interpolated map: paper 002's "
-                        "statistics; intersections: ours)", title_justify="left")
+    table = Table(
+        title="RMS of B_validation - B_map (pairs, interpolated map: paper 002's "
+        "statistics; intersections: ours)",
+        title_justify="left",
+    )
     for col in ("state", "pairs RMS nT", "intersections RMS nT", "interpolated map RMS nT"):
         table.add_column(col, justify="left" if col == "state" else "right")
 
@@ -351,33 +457,50 @@ def _print_quality(q: dict) -> None:
         return "-" if x is None else f"{x:.3f}"
 
     for s in q["states"]:
-        name = s + (" (= tl)" if q.get("tl_alias") and s == q["tl_alias"].replace("-", "_")
-                    else "")
-        table.add_row(name, f(q["overlap_pair_rms_nT"][s]), f(inter[s]),
-                      f(q["interpolated_rms_nT"][s]))
+        name = s + (" (= tl)" if q.get("tl_alias") and s == q["tl_alias"].replace("-", "_") else "")
+        table.add_row(
+            name, f(q["overlap_pair_rms_nT"][s]), f(inter[s]), f(q["interpolated_rms_nT"][s])
+        )
     show(table)
     xo, n = q["crossover_rms_nT"], q["noise_4th_diff_nT"]
-    say(f"crossovers: RMS {f(xo['before'])} -> {f(xo['after'])} nT after leveling; "
-        f"4th-difference noise {f(n)} nT")
+    say(
+        f"crossovers: RMS {f(xo['before'])} -> {f(xo['after'])} nT after leveling; "
+        f"4th-difference noise {f(n)} nT"
+    )
 
 
 @app.command()
 def audit(
     recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
     json_out: Annotated[Path, typer.Option("--json", help="AUDIT.json to write.")],
-    report: Annotated[Path, typer.Option("--report", help="Folder for report.md and the "
-                                                          "PNG figures.")],
-    out_path: Annotated[Path | None, typer.Option("--out", help="Also write an output "
-                                                               "recording: /audit/finding, "
-                                                               "/aeromag/log, compensated "
-                                                               "fields.")] = None,
-    baseline: Annotated[str | None, typer.Option(
-        help="Baseline T-L term set: tl18 or tl16 (config: audit.baseline).")] = None,
-    alpha: Annotated[float | None, typer.Option(
-        help="Significance level per round (Holm) (config: audit.alpha).")] = None,
-    min_gain: Annotated[float | None, typer.Option(
-        help="Smallest held-out RMS reduction an effect must bring (fraction) "
-             "(config: audit.min_gain).")] = None,
+    report: Annotated[
+        Path, typer.Option("--report", help="Folder for report.md and the PNG figures.")
+    ],
+    out_path: Annotated[
+        Path | None,
+        typer.Option(
+            "--out",
+            help="Also write an output "
+            "recording: /audit/finding, "
+            "/aeromag/log, compensated "
+            "fields.",
+        ),
+    ] = None,
+    baseline: Annotated[
+        str | None,
+        typer.Option(help="Baseline T-L term set: tl18 or tl16 (config: audit.baseline)."),
+    ] = None,
+    alpha: Annotated[
+        float | None,
+        typer.Option(help="Significance level per round (Holm) (config: audit.alpha)."),
+    ] = None,
+    min_gain: Annotated[
+        float | None,
+        typer.Option(
+            help="Smallest held-out RMS reduction an effect must bring (fraction) "
+            "(config: audit.min_gain)."
+        ),
+    ] = None,
     config: ConfigOption = None,
 ) -> None:
     """Find what the baseline model gets wrong, name the cause, extend it, measure the gain
@@ -385,13 +508,24 @@ def audit(
     from flows.stages import audit_recording, require_readable
 
     require_readable(recording)
-    cfg = _stage_config(config, {"--baseline": ("audit.baseline", baseline),
-                                 "--alpha": ("audit.alpha", alpha),
-                                 "--min-gain": ("audit.min_gain", min_gain)})
+    cfg = _stage_config(
+        config,
+        {
+            "--baseline": ("audit.baseline", baseline),
+            "--alpha": ("audit.alpha", alpha),
+            "--min-gain": ("audit.min_gain", min_gain),
+        },
+    )
     settings = cfg.audit_settings()
     with console.status(f"auditing {recording.name}") as status:
-        j = audit_recording(recording, json_out, report, settings, out_path,
-                            progress=lambda m: status.update(f"auditing {recording.name}: {m}"))
+        j = audit_recording(
+            recording,
+            json_out,
+            report,
+            settings,
+            out_path,
+            progress=lambda m: status.update(f"auditing {recording.name}: {m}"),
+        )
     _print_audit(j)
     if out_path:
         say(f"output recording: {out_path}")
@@ -401,28 +535,57 @@ def audit(
 
 def _print_audit(j: dict) -> None:
     b = j["baseline"]
-    say(f"baseline {b['model']}: held-out calibration residual {b['residual_rms_nT']:.4f} nT; "
-        f"noise floor {j['noise_floor_nT']:.4f} nT")
+    say(
+        f"baseline {b['model']}: held-out calibration residual {b['residual_rms_nT']:.4f} nT; "
+        f"noise floor {j['noise_floor_nT']:.4f} nT"
+    )
     table = Table(title="findings", title_justify="left")
-    for col in ("effect", "estimate", "delta BIC", "p (Holm)", "gain metric", "before nT",
-                "after nT"):
-        table.add_column(col, justify="right" if col in ("delta BIC", "p (Holm)", "before nT",
-                                                         "after nT") else "left")
+    for col in (
+        "effect",
+        "estimate",
+        "delta BIC",
+        "p (Holm)",
+        "gain metric",
+        "before nT",
+        "after nT",
+    ):
+        table.add_column(
+            col,
+            justify="right"
+            if col in ("delta BIC", "p (Holm)", "before nT", "after nT")
+            else "left",
+        )
     for f in j["findings"]:
-        est = ", ".join(f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-                        for k, v in f["estimate"].items()
-                        if k not in ("at_acceptance", "lag_by_fold_s", "direction_body",
-                                     "mismatch_rms_before_nT", "mismatch_rms_after_nT"))
+        est = ", ".join(
+            f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+            for k, v in f["estimate"].items()
+            if k
+            not in (
+                "at_acceptance",
+                "lag_by_fold_s",
+                "direction_body",
+                "mismatch_rms_before_nT",
+                "mismatch_rms_after_nT",
+            )
+        )
         g = f["gain"] or {}
-        table.add_row(f["effect"], est, f"{f['delta_bic']:.1f}", f"{f['p_value_holm']:.2g}",
-                      g.get("metric", "-"), f"{g.get('before_nT', 0):.4f}",
-                      f"{g.get('after_nT', 0):.4f}")
+        table.add_row(
+            f["effect"],
+            est,
+            f"{f['delta_bic']:.1f}",
+            f"{f['p_value_holm']:.2g}",
+            g.get("metric", "-"),
+            f"{g.get('before_nT', 0):.4f}",
+            f"{g.get('after_nT', 0):.4f}",
+        )
     if j["findings"]:
         show(table)
     else:
         say("no finding: no candidate effect improves held-out data beyond noise")
-    say(f"extended model: {' + '.join(j['extended_model'])}; unexplained (held-out) "
-        f"{j['unexplained_rms_nT']:.4f} nT")
+    say(
+        f"extended model: {' + '.join(j['extended_model'])}; unexplained (held-out) "
+        f"{j['unexplained_rms_nT']:.4f} nT"
+    )
     if (j.get("unexplained") or {}).get("note"):
         say(f"unexplained: {j['unexplained']['note']}")
     for k, v in j["gain"].items():
@@ -435,11 +598,16 @@ def vector(
     recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
     out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
     json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write.")],
-    method: Annotated[str | None, typer.Option(help="ellipsoid-kf (online hard/soft-iron "
-                                                    "calibration -> /mag/vector/calibrated), "
-                                                    "component-kf or batch (21-parameter "
-                                                    "compensation -> /mag/vector/compensated) "
-                                                    "(config: vector.method)")] = None,
+    method: Annotated[
+        str | None,
+        typer.Option(
+            help="ellipsoid-kf (online hard/soft-iron "
+            "calibration -> /mag/vector/calibrated), "
+            "component-kf or batch (21-parameter "
+            "compensation -> /mag/vector/compensated) "
+            "(config: vector.method)"
+        ),
+    ] = None,
     config: ConfigOption = None,
 ) -> None:
     """Calibrate or compensate the vector magnetometer (papers 003 and 000)."""
@@ -456,8 +624,6 @@ def vector(
             say(f"{k}: {val['before']:.2f} -> {val['after']:.2f} nT")
     say(f"{v['output_topic']} written to {out_path}")
     say(f"summary: {json_out}")
-
-
 
 
 def _run_postflight(recording: Path, out_dir: Path, config: Path | None = None) -> dict:
@@ -497,12 +663,13 @@ def process(
 @app.command()
 def reprocess(
     archive: Annotated[Path, typer.Argument(help="Folder of recordings (searched recursively).")],
-    out_dir: Annotated[Path, typer.Option("--out", help="Output folder (job folders, index, "
-                                                        "quarantine).")],
-    workers: Annotated[int, typer.Option(help="Dask worker processes of the local cluster.")
-                       ] = 2,
-    dask_address: Annotated[str | None, typer.Option(help="Use an existing Dask cluster, "
-                                                          "e.g. tcp://HOST:8786.")] = None,
+    out_dir: Annotated[
+        Path, typer.Option("--out", help="Output folder (job folders, index, quarantine).")
+    ],
+    workers: Annotated[int, typer.Option(help="Dask worker processes of the local cluster.")] = 2,
+    dask_address: Annotated[
+        str | None, typer.Option(help="Use an existing Dask cluster, e.g. tcp://HOST:8786.")
+    ] = None,
     config: ConfigOption = None,
 ) -> None:
     """Reprocess an archive on Dask: only recordings without an output for this input and
@@ -516,22 +683,36 @@ def reprocess(
     if workers < 1:
         _fail(f"--workers {workers}: must be >= 1")
     _check_config(config)
-    with arch.prefect_api(), Progress("[progress.description]{task.description}", BarColumn(),
-                                      MofNCompleteColumn(), TimeElapsedColumn(),
-                                      console=console) as prog:
+    with (
+        arch.prefect_api(),
+        Progress(
+            "[progress.description]{task.description}",
+            BarColumn(),
+            MofNCompleteColumn(),
+            TimeElapsedColumn(),
+            console=console,
+        ) as prog,
+    ):
         bar = prog.add_task("recordings", total=None)
 
         def progress(done, total, row):
-            prog.update(bar, completed=done, total=total,
-                        description=f"{Path(row['input']).name}: {row['status']}")
+            prog.update(
+                bar,
+                completed=done,
+                total=total,
+                description=f"{Path(row['input']).name}: {row['status']}",
+            )
 
         arch.PROGRESS = progress
         runner = arch.dask_runner(workers, dask_address)
         result = arch.reprocess_archive.with_options(task_runner=runner)(
-            str(archive), str(out_dir), str(config) if config else None)
+            str(archive), str(out_dir), str(config) if config else None
+        )
         arch.PROGRESS = None
-    say(f"{result['recordings']} recordings: {result['processed']} processed, "
-        f"{result['done']} already done, {result['quarantined']} quarantined")
+    say(
+        f"{result['recordings']} recordings: {result['processed']} processed, "
+        f"{result['done']} already done, {result['quarantined']} quarantined"
+    )
     say(f"index: {result['index']['csv']}")
 
 
@@ -539,8 +720,9 @@ def reprocess(
 def serve(
     watch: Annotated[Path, typer.Option("--watch", help="Folder new recordings appear in.")],
     out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")],
-    cron: Annotated[str, typer.Option(help="When to look for new recordings (cron).")
-                    ] = "*/10 * * * *",
+    cron: Annotated[
+        str, typer.Option(help="When to look for new recordings (cron).")
+    ] = "*/10 * * * *",
     name: Annotated[str, typer.Option(help="Deployment name.")] = "aeromag-watch",
     config: ConfigOption = None,
 ) -> None:
@@ -553,13 +735,20 @@ def serve(
     _check_config(config)
     out_dir.mkdir(parents=True, exist_ok=True)
     with arch.prefect_api() as url:
-        say(f"serving deployment process-new-recordings/{name} ({cron}) on {url}: "
-            f"{watch} -> {out_dir}")
-        arch.process_new.serve(name=name, cron=cron, print_starting_message=False,
-                               parameters={"watch_dir": str(watch.resolve()),
-                                           "out_dir": str(out_dir.resolve()),
-                                           "config_path": str(config.resolve())
-                                           if config else None})
+        say(
+            f"serving deployment process-new-recordings/{name} ({cron}) on {url}: "
+            f"{watch} -> {out_dir}"
+        )
+        arch.process_new.serve(
+            name=name,
+            cron=cron,
+            print_starting_message=False,
+            parameters={
+                "watch_dir": str(watch.resolve()),
+                "out_dir": str(out_dir.resolve()),
+                "config_path": str(config.resolve()) if config else None,
+            },
+        )
 
 
 @app.command()
@@ -577,8 +766,11 @@ def layout(
 
     doc = recording_layout(file)
     write_json_atomic(out_path, doc)
-    say(f"layout: {out_path} ({len(layout_panels(doc['layout']))} panels: "
-        + ", ".join(k.split("!", 1)[0] for k in layout_panels(doc["layout"])) + ")")
+    say(
+        f"layout: {out_path} ({len(layout_panels(doc['layout']))} panels: "
+        + ", ".join(k.split("!", 1)[0] for k in layout_panels(doc["layout"]))
+        + ")"
+    )
 
 
 @app.command()
@@ -597,23 +789,31 @@ def demo(
     with console.status("simulating the demo flight (002-style UAV survey)"):
         sim = run(sc, seed)
         write_simulation(sim, flight_path, truth_path)
-    say(f"simulated flight: {flight_path} ({sim.trajectory.duration_s / 60:.1f} min), "
-        f"truth: {truth_path}")
+    say(
+        f"simulated flight: {flight_path} ({sim.trajectory.duration_s / 60:.1f} min), "
+        f"truth: {truth_path}"
+    )
     result = _run_postflight(flight_path, out_dir)
     inp = result["input"]
-    say(f"ingested {inp['epochs']} epochs, {len(inp['topics'])} channels, "
-        f"{inp['duration_s']:.0f} s")
+    say(
+        f"ingested {inp['epochs']} epochs, {len(inp['topics'])} channels, {inp['duration_s']:.0f} s"
+    )
     _print_compensation(result)
     m = result.get("map")
     if m:
-        say(f"map: {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.1f} m; "
+        say(
+            f"map: {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.1f} m; "
             f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
             f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])} + "
-            f"Kalman; figures in {Path(result['outputs']['mcap']).parent}")
+            f"Kalman; figures in {Path(result['outputs']['mcap']).parent}"
+        )
     if result.get("audit"):
         a = result["audit"]
-        say("audit: " + ("; ".join(f"{f['effect']} found" for f in a["findings"])
-                         or "no finding") + f"; extended model {' + '.join(a['extended_model'])}")
+        say(
+            "audit: "
+            + ("; ".join(f"{f['effect']} found" for f in a["findings"]) or "no finding")
+            + f"; extended model {' + '.join(a['extended_model'])}"
+        )
     if result.get("quality"):
         _print_quality(result["quality"])
     _say_outputs(result)
@@ -625,18 +825,29 @@ def _say_outputs(result: dict) -> None:
     o = result["outputs"]
     say(f"output recording: {o['mcap']}")
     say(f"summary: {o['summary']}")
-    say(f"report: {o['report_html']} (open in a browser; Markdown: {o['report']}); "
-        f"Foxglove layout: {o['layout']}")
+    say(
+        f"report: {o['report_html']} (open in a browser; Markdown: {o['report']}); "
+        f"Foxglove layout: {o['layout']}"
+    )
 
 
 def _print_compensation(result: dict) -> None:
     comp = result.get("compensation")
     if not comp:
         return
-    table = Table(title="compensation (calibration FOM: sum of 12 box peak-to-peaks)",
-                  title_justify="left")
-    for col in ("model", "FOM raw nT", "FOM comp nT", "lambda", "fit resid nT",
-                "cal resid nT", "survey resid nT", "gradient E/N/U nT/m"):
+    table = Table(
+        title="compensation (calibration FOM: sum of 12 box peak-to-peaks)", title_justify="left"
+    )
+    for col in (
+        "model",
+        "FOM raw nT",
+        "FOM comp nT",
+        "lambda",
+        "fit resid nT",
+        "cal resid nT",
+        "survey resid nT",
+        "gradient E/N/U nT/m",
+    ):
         table.add_column(col, justify="left" if col == "model" else "right")
 
     def f(x, fmt=".3f"):
@@ -647,11 +858,16 @@ def _print_compensation(result: dict) -> None:
             continue
         r = comp[m]
         g = r.get("gradient_nT_per_m")
-        table.add_row(m, f(r["fom_nT"]["uncompensated"], ".2f"),
-                      f(r["fom_nT"]["compensated"], ".2f"), f(r["lambda"], ".3g"),
-                      f(r["fit_residual_nT"], ".4f"), f(r["residual_std_nT"]["calibration"]),
-                      f(r["residual_std_nT"]["survey"]),
-                      "-" if not g else f"{g['east']:.3f}/{g['north']:.3f}/{g['up']:.3f}")
+        table.add_row(
+            m,
+            f(r["fom_nT"]["uncompensated"], ".2f"),
+            f(r["fom_nT"]["compensated"], ".2f"),
+            f(r["lambda"], ".3g"),
+            f(r["fit_residual_nT"], ".4f"),
+            f(r["residual_std_nT"]["calibration"]),
+            f(r["residual_std_nT"]["survey"]),
+            "-" if not g else f"{g['east']:.3f}/{g['north']:.3f}/{g['up']:.3f}",
+        )
     show(table)
     for m in ("tl16", "tl18", "agg-tl"):
         for w in ((comp.get(m) or {}).get("calibration_guards") or {}).get("warnings", []):
@@ -674,9 +890,13 @@ def main() -> None:
         if os.environ.get("AEROMAG_DEBUG"):
             raise
         text = " ".join(str(exc).split())
-        console.print(f"aeromag: internal error: {type(exc).__name__}: {text} "
-                      "(set AEROMAG_DEBUG=1 for the traceback)", markup=False, highlight=False,
-                      soft_wrap=True)
+        console.print(
+            f"aeromag: internal error: {type(exc).__name__}: {text} "
+            "(set AEROMAG_DEBUG=1 for the traceback)",
+            markup=False,
+            highlight=False,
+            soft_wrap=True,
+        )
         sys.exit(3)
 
 

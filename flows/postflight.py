@@ -30,8 +30,9 @@ from pipeline.config import Config
 from pipeline.report import sha256_file
 
 
-def postflight_steps(recording: str, out_dir: str, cfg: Config, call: Callable[..., Any]
-                     ) -> dict[str, Any]:
+def postflight_steps(
+    recording: str, out_dir: str, cfg: Config, call: Callable[..., Any]
+) -> dict[str, Any]:
     """Every stage in order; ``call(stage, *args)`` runs one (see the module docstring).
 
     The seconds of each stage (summed over calls: ``compensate`` covers every model) go to
@@ -59,21 +60,42 @@ def postflight_steps(recording: str, out_dir: str, cfg: Config, call: Callable[.
     if cfg["vector"]["enabled"] and flight.has("vector_x_nT", "roll_deg"):
         vector = call("vector", flight, seg, cfg)
     final = stages.final_field(runs, audit)
-    if final is not None and seg is not None and seg.mask("survey").sum() > 100 \
-            and flight.has("lat_deg", "alt_m"):
+    if (
+        final is not None
+        and seg is not None
+        and seg.mask("survey").sum() > 100
+        and flight.has("lat_deg", "alt_m")
+    ):
         map_run = call("map", flight, seg, final[1], cfg)
         quality = call("quality", flight, seg, runs, audit, cfg)
-    return call("write", recording, out_dir, cfg, flight, seg, why, runs, audit, vector,
-                map_run, quality, timings)
+    return call(
+        "write",
+        recording,
+        out_dir,
+        cfg,
+        flight,
+        seg,
+        why,
+        runs,
+        audit,
+        vector,
+        map_run,
+        quality,
+        timings,
+    )
 
 
 # --------------------------------------------------------------------------------------------
 install_one_line_errors()
 
 STAGE_FUNCTIONS: dict[str, Callable[..., Any]] = {
-    "ingest": stages.ingest_stage, "segment": stages.try_segment,
-    "compensate": stages.compensate_stage, "audit": stages.audit_stage,
-    "vector": stages.vector_stage, "map": stages.map_stage, "quality": stages.quality_stage,
+    "ingest": stages.ingest_stage,
+    "segment": stages.try_segment,
+    "compensate": stages.compensate_stage,
+    "audit": stages.audit_stage,
+    "vector": stages.vector_stage,
+    "map": stages.map_stage,
+    "quality": stages.quality_stage,
     "write": stages.write_stage,
 }
 
@@ -130,8 +152,9 @@ def postflight(recording: str, out_dir: str, config_path: str | None = None) -> 
         if stage == "write":
             return _write(args)
         variant = args[2] if stage == "compensate" else ""
-        t = _stage.with_options(name=stage,
-                                task_run_name=f"{stage}{'-' + variant if variant else ''}")
+        t = _stage.with_options(
+            name=stage, task_run_name=f"{stage}{'-' + variant if variant else ''}"
+        )
         return t(stage, key, variant, args)
 
     result = postflight_steps(recording, out_dir, cfg, call)
@@ -143,5 +166,6 @@ def run_plain(recording: str, out_dir: str, config_path: str | None = None) -> d
     """The same steps without Prefect tasks (archive workers, benchmarks)."""
     cfg = Config.load(config_path)
     cfg.validate()
-    return postflight_steps(str(recording), str(out_dir), cfg,
-                            lambda stage, *args: STAGE_FUNCTIONS[stage](*args))
+    return postflight_steps(
+        str(recording), str(out_dir), cfg, lambda stage, *args: STAGE_FUNCTIONS[stage](*args)
+    )

@@ -92,25 +92,39 @@ def compensation_lines(run: CompensationRun) -> list[tuple[int, str]]:
     """
     m = run.model
     fom = run.fom.total if run.fom else None
-    text = (f"compensate: {m.model}: {len(m.terms)} terms, lambda {m.lambda_:.3g}, "
-            f"{m.n_fit} samples, fit residual {m.fit_residual_nT:.4f} nT")
+    text = (
+        f"compensate: {m.model}: {len(m.terms)} terms, lambda {m.lambda_:.3g}, "
+        f"{m.n_fit} samples, fit residual {m.fit_residual_nT:.4f} nT"
+    )
     if fom and fom["uncompensated"] is not None:
         text += f", FOM {fom['uncompensated']:.2f} -> {fom['compensated']:.2f} nT"
     lines = [(LOG_INFO, text)]
     g = m.gradient_nT_per_m()
     if g:
-        lines.append((LOG_INFO, f"compensate: {m.model}: gradient at the calibration site "
-                                f"{g['east']:.3f} E, {g['north']:.3f} N, {g['up']:.3f} U nT/m"))
+        lines.append(
+            (
+                LOG_INFO,
+                f"compensate: {m.model}: gradient at the calibration site "
+                f"{g['east']:.3f} E, {g['north']:.3f} N, {g['up']:.3f} U nT/m",
+            )
+        )
     if run.check is not None:
-        lines += [(LOG_WARNING, f"compensate: calibration warning: {w}")
-                  for w in run.check.warnings]
+        lines += [
+            (LOG_WARNING, f"compensate: calibration warning: {w}") for w in run.check.warnings
+        ]
     return lines
 
 
-def compensate_recording(src: Path, dst: Path, summary_path: Path,
-                         settings: FitSettings | None, calibration: str = "auto",
-                         scalar_topic: str | None = None, vector_topic: str | None = None,
-                         cfg: Config | None = None) -> dict[str, Any]:
+def compensate_recording(
+    src: Path,
+    dst: Path,
+    summary_path: Path,
+    settings: FitSettings | None,
+    calibration: str = "auto",
+    scalar_topic: str | None = None,
+    vector_topic: str | None = None,
+    cfg: Config | None = None,
+) -> dict[str, Any]:
     """``aeromag compensate``: fit one model and write the output recording and summary.
     ``settings`` None: the configuration's final model this flight can fit (as ``aeromag
     process``), with its settings."""
@@ -127,9 +141,14 @@ def compensate_recording(src: Path, dst: Path, summary_path: Path,
     if seg is not None:
         channels.append(segment_channel(flight, seg))
     channels += [compensated_channel(flight, run), model_message(flight, run)]
-    summary = {"aeromag_version": __version__, **run.summary(),
-               "calibration": calibration, "scalar_topic": flight.topic_of["scalar"],
-               "vector_topic": flight.topic_of.get("vector"), "input": flight_summary(flight)}
+    summary = {
+        "aeromag_version": __version__,
+        **run.summary(),
+        "calibration": calibration,
+        "scalar_topic": flight.topic_of["scalar"],
+        "vector_topic": flight.topic_of.get("vector"),
+        "input": flight_summary(flight),
+    }
     if run.model.lcurve is not None:
         png = summary_path.with_name(summary_path.stem + ".lcurve.png")
         save_figure(lcurve_figure(run.model.lcurve, f"L-curve, {run.model.model}"), png)
@@ -155,8 +174,9 @@ def existing_compensated(flight: Flight) -> dict[str, np.ndarray]:
     from pipeline.io.contract import rule_for_topic
     from pipeline.io.reader import decode_topic, read_topics
 
-    names = [t for t in flight.all_topics
-             if t == "/mag/compensated" or t.startswith("/mag/compensated/")]
+    names = [
+        t for t in flight.all_topics if t == "/mag/compensated" or t.startswith("/mag/compensated/")
+    ]
     raw = read_topics(flight.source, names).topics if names else {}
     out: dict[str, np.ndarray] = {}
     t0 = flight.time_ns[0]
@@ -167,11 +187,15 @@ def existing_compensated(flight: Flight) -> dict[str, np.ndarray]:
         if s.time_ns.size < 2:
             continue
         models = s.labels.get("model")
-        name = (str(models[0]) if models is not None and models.size
-                else topic.rsplit("/", 1)[-1])
+        name = str(models[0]) if models is not None and models.size else topic.rsplit("/", 1)[-1]
         out.pop(name, None)
-        out[name] = np.interp((flight.time_ns - t0) / 1e9, (s.time_ns - t0) / 1e9,
-                              s.values["total_nT"], left=np.nan, right=np.nan)
+        out[name] = np.interp(
+            (flight.time_ns - t0) / 1e9,
+            (s.time_ns - t0) / 1e9,
+            s.values["total_nT"],
+            left=np.nan,
+            right=np.nan,
+        )
     return out
 
 
@@ -180,9 +204,11 @@ def map_channels(flight: Flight, seg: Segmentation, mr) -> list[OutputChannel]:
     (``foxglove.Grid``) and ``/map/tracks`` (``foxglove.GeoJSON``).
     """
     t0 = int(flight.time_ns[0])
-    return [grid_channel("/map/anomaly", t0, mr.grid),
-            grid_channel("/map/anomaly_filtered", t0, mr.filtered),
-            tracks_channel(flight, seg, t0)]
+    return [
+        grid_channel("/map/anomaly", t0, mr.grid),
+        grid_channel("/map/anomaly_filtered", t0, mr.filtered),
+        tracks_channel(flight, seg, t0),
+    ]
 
 
 def map_figures(mr) -> dict[str, object]:
@@ -195,10 +221,12 @@ def map_figures(mr) -> dict[str, object]:
         ``anomaly``, ``anomaly_filtered``.
     """
     lo, hi = np.nanpercentile(mr.grid.values, [1, 99])
-    return {"anomaly": map_figure(mr.grid, mr.lines, "levelled anomaly (nT)", lo, hi),
-            "anomaly_filtered": map_figure(mr.filtered, mr.lines,
-                                           f"ARIMA{tuple(mr.model.order)} + Kalman filtered",
-                                           lo, hi)}
+    return {
+        "anomaly": map_figure(mr.grid, mr.lines, "levelled anomaly (nT)", lo, hi),
+        "anomaly_filtered": map_figure(
+            mr.filtered, mr.lines, f"ARIMA{tuple(mr.model.order)} + Kalman filtered", lo, hi
+        ),
+    }
 
 
 def map_lines(mr) -> list[tuple[int, str]]:
@@ -211,34 +239,46 @@ def map_lines(mr) -> list[tuple[int, str]]:
         ``(level, text)`` pairs.
     """
     s = mr.summary()
-    return [(LOG_INFO, f"map: grid {s['grid_shape'][0]} x {s['grid_shape'][1]} cells of "
-                       f"{s['cell_m']:.2f} m, line spacing {s['line_spacing_m']:.1f} m"),
-            (LOG_INFO, f"map: crossover RMS {s['crossover_rms_nT']['before']:.3f} -> "
-                       f"{s['crossover_rms_nT']['after']:.3f} nT "
-                       f"({s['leveling']['crossovers']} crossovers)"),
-            (LOG_INFO, f"map: ARIMA{tuple(s['arima_order'])} "
-                       f"ar {np.round(s['arima_coefficients']['ar'], 4).tolist()} "
-                       f"ma {np.round(s['arima_coefficients']['ma'], 4).tolist()}; "
-                       f"Kalman measurement noise {s['kalman']['measurement_noise_nT']:.3f} nT")]
+    return [
+        (
+            LOG_INFO,
+            f"map: grid {s['grid_shape'][0]} x {s['grid_shape'][1]} cells of "
+            f"{s['cell_m']:.2f} m, line spacing {s['line_spacing_m']:.1f} m",
+        ),
+        (
+            LOG_INFO,
+            f"map: crossover RMS {s['crossover_rms_nT']['before']:.3f} -> "
+            f"{s['crossover_rms_nT']['after']:.3f} nT "
+            f"({s['leveling']['crossovers']} crossovers)",
+        ),
+        (
+            LOG_INFO,
+            f"map: ARIMA{tuple(s['arima_order'])} "
+            f"ar {np.round(s['arima_coefficients']['ar'], 4).tolist()} "
+            f"ma {np.round(s['arima_coefficients']['ma'], 4).tolist()}; "
+            f"Kalman measurement noise {s['kalman']['measurement_noise_nT']:.3f} nT",
+        ),
+    ]
 
 
 def configured_models(flight: Flight, cfg: Config) -> list[str]:
     """The configuration's compensation models this flight can fit, in order (the last is
     the final one): AGG-TL needs positions."""
-    return [m for m in cfg["compensation"]["models"]
-            if m != "agg-tl" or flight.has("lat_deg", "alt_m")]
+    return [
+        m for m in cfg["compensation"]["models"] if m != "agg-tl" or flight.has("lat_deg", "alt_m")
+    ]
 
 
-def map_recording(src: Path, dst: Path, summary_path: Path, settings: MapSettings,
-                  cfg: Config | None = None) -> dict:
+def map_recording(
+    src: Path, dst: Path, summary_path: Path, settings: MapSettings, cfg: Config | None = None
+) -> dict:
     """``aeromag map``: segment and compensate when needed (the configuration's final model,
     with its settings, as ``aeromag process``), then grid, level and filter."""
     cfg = cfg or Config.load()
     flight = read_flight(src)
     seg, why = try_segment(flight)
     if seg is None:
-        raise AeromagError(f"mapping needs the flight lines: {why}", file=src,
-                           channel="/gnss/fix")
+        raise AeromagError(f"mapping needs the flight lines: {why}", file=src, channel="/gnss/fix")
     present = set(flight.all_topics)
     channels: list[OutputChannel] = []
     lines = ingest_lines(flight)
@@ -248,8 +288,11 @@ def map_recording(src: Path, dst: Path, summary_path: Path, settings: MapSetting
     if comp is None:
         models = configured_models(flight, cfg)
         if not models:
-            raise AeromagError("no configured compensation model fits this flight "
-                               "(agg-tl needs positions)", file=src, channel="/gnss/fix")
+            raise AeromagError(
+                "no configured compensation model fits this flight (agg-tl needs positions)",
+                file=src,
+                channel="/gnss/fix",
+            )
         run = run_compensation(flight, seg, cfg.fit_settings(models[-1]))
         comp = run.compensated_nT
         lines += compensation_lines(run)
@@ -264,21 +307,29 @@ def map_recording(src: Path, dst: Path, summary_path: Path, settings: MapSetting
     channels = [c for c in channels if c.topic not in present]
     figures = {}
     for name, fig in map_figures(mr).items():
-        figures[name] = str(save_figure(fig, summary_path.with_name(
-            f"{summary_path.stem}.{name}.png")))
+        figures[name] = str(
+            save_figure(fig, summary_path.with_name(f"{summary_path.stem}.{name}.png"))
+        )
     write_with_new_channels(src, dst, channels, metadata={"aeromag.run": run_metadata()})
-    summary.update({"map": mr.summary(), "figures": figures,
-                    "outputs": {"mcap": str(dst), "summary": str(summary_path)}})
+    summary.update(
+        {
+            "map": mr.summary(),
+            "figures": figures,
+            "outputs": {"mcap": str(dst), "summary": str(summary_path)},
+        }
+    )
     write_json_atomic(summary_path, summary)
     return summary
 
 
 # --------------------------------------------------------------------------------------------
 # quality
-def quality_fields(flight: Flight, seg: Segmentation, runs: dict[str, CompensationRun] | None
-                   = None, cfg: Config | None = None
-                   ) -> tuple[dict[str, np.ndarray], list[tuple[int, str]],
-                              dict[str, CompensationRun]]:
+def quality_fields(
+    flight: Flight,
+    seg: Segmentation,
+    runs: dict[str, CompensationRun] | None = None,
+    cfg: Config | None = None,
+) -> tuple[dict[str, np.ndarray], list[tuple[int, str]], dict[str, CompensationRun]]:
     """Raw plus every compensated state: from ``runs``, else from the recording's own
     ``/mag/compensated*`` channels, else fitted here (the configuration's models with its
     settings, as ``aeromag process``; returned too)."""
@@ -289,13 +340,22 @@ def quality_fields(flight: Flight, seg: Segmentation, runs: dict[str, Compensati
         return fields, lines, {}
     earlier = existing_compensated(flight)
     if earlier:
-        lines.append((LOG_INFO, "quality: using the compensated fields in the recording: "
-                                + ", ".join(earlier)))
+        lines.append(
+            (
+                LOG_INFO,
+                "quality: using the compensated fields in the recording: " + ", ".join(earlier),
+            )
+        )
         fields.update(earlier)
         return fields, lines, {}
     if not flight.has("vector_x_nT") or not seg.passes():
-        lines.append((LOG_WARNING, "quality: no vector magnetometer or no calibration pass: "
-                                   "only the raw field is assessed"))
+        lines.append(
+            (
+                LOG_WARNING,
+                "quality: no vector magnetometer or no calibration pass: "
+                "only the raw field is assessed",
+            )
+        )
         return fields, lines, {}
     fitted = {}
     cfg = cfg or Config.load()
@@ -327,33 +387,62 @@ def quality_lines(q: QualityRun) -> list[tuple[int, str]]:
     def row(d):
         return ", ".join(f"{k} {v:.3f}" if v is not None else f"{k} -" for k, v in d.items())
 
-    out = [(LOG_INFO, f"quality: heading error RMS at {s['overlap_pairs']} pairs closer than "
-                      f"{s['overlap_m']:g} m (paper 002's statistic, nT): "
-                      f"{row(s['overlap_pair_rms_nT'])}"),
-           (LOG_INFO, f"quality: heading error RMS at {s['intersections']} track "
-                      f"intersections (ours, nT): {row(s['intersection_rms_nT'])}"),
-           (LOG_INFO, f"quality: headline heading_error_rms_nT = {s['heading_error_method']}"),
-           (LOG_INFO, f"quality: validation vs interpolated map RMS (nT): "
-                      f"{row(s['interpolated_rms_nT'])}")]
+    out = [
+        (
+            LOG_INFO,
+            f"quality: heading error RMS at {s['overlap_pairs']} pairs closer than "
+            f"{s['overlap_m']:g} m (paper 002's statistic, nT): "
+            f"{row(s['overlap_pair_rms_nT'])}",
+        ),
+        (
+            LOG_INFO,
+            f"quality: heading error RMS at {s['intersections']} track "
+            f"intersections (ours, nT): {row(s['intersection_rms_nT'])}",
+        ),
+        (LOG_INFO, f"quality: headline heading_error_rms_nT = {s['heading_error_method']}"),
+        (
+            LOG_INFO,
+            f"quality: validation vs interpolated map RMS (nT): {row(s['interpolated_rms_nT'])}",
+        ),
+    ]
     xo = s["crossover_rms_nT"]
     if xo["before"] is not None:
-        out.append((LOG_INFO, f"quality: crossover RMS {xo['before']:.3f} -> {xo['after']:.3f} "
-                              f"nT ({s['crossovers']['count']} crossovers)"))
+        out.append(
+            (
+                LOG_INFO,
+                f"quality: crossover RMS {xo['before']:.3f} -> {xo['after']:.3f} "
+                f"nT ({s['crossovers']['count']} crossovers)",
+            )
+        )
     qc = s["qc"]
     noise = qc["noise"]
     if noise.get("median_nT") is not None:
-        out.append((LOG_WARNING if noise["lines_over"] else LOG_INFO,
-                    f"quality: 4th-difference noise median {noise['median_nT']:.4f} nT, max "
-                    f"{noise['max_nT']:.4f} nT; lines over {noise['threshold_nT']:g} nT: "
-                    f"{', '.join(noise['lines_over']) or 'none'}"))
-    for key, what in (("flight_height", "lines_over"), ("line_spacing", "pairs_over"),
-                      ("speed", "spans"), ("diurnal", "spans_over")):
+        out.append(
+            (
+                LOG_WARNING if noise["lines_over"] else LOG_INFO,
+                f"quality: 4th-difference noise median {noise['median_nT']:.4f} nT, max "
+                f"{noise['max_nT']:.4f} nT; lines over {noise['threshold_nT']:g} nT: "
+                f"{', '.join(noise['lines_over']) or 'none'}",
+            )
+        )
+    for key, what in (
+        ("flight_height", "lines_over"),
+        ("line_spacing", "pairs_over"),
+        ("speed", "spans"),
+        ("diurnal", "spans_over"),
+    ):
         bad = qc.get(key, {}).get(what) or []
         if bad:
-            shown = ", ".join(str(b if isinstance(b, str) else b.get("line_id", b))
-                              for b in bad[:6])
-            out.append((LOG_WARNING, f"quality: {key.replace('_', ' ')} out of tolerance: "
-                                     f"{shown}{' ...' if len(bad) > 6 else ''}"))
+            shown = ", ".join(
+                str(b if isinstance(b, str) else b.get("line_id", b)) for b in bad[:6]
+            )
+            out.append(
+                (
+                    LOG_WARNING,
+                    f"quality: {key.replace('_', ' ')} out of tolerance: "
+                    f"{shown}{' ...' if len(bad) > 6 else ''}",
+                )
+            )
     out += [(LOG_WARNING, f"quality: {n}") for n in q.notes]
     return out
 
@@ -368,10 +457,15 @@ def quality_figures(q: QualityRun) -> dict[str, object]:
     """
     s = q.summary()
     states = [st for st in q.states if st != "raw"] or q.states
-    return {"heading_error": heading_error_figure(s),
-            "validation_profiles": profile_figure(q.profiles, states),
-            "crossovers": crossover_figure([t for t in q.tracks if t.kind != "validation"],
-                                           q.leveling, f"tie-line crossovers ({s['qc']['field']})")}
+    return {
+        "heading_error": heading_error_figure(s),
+        "validation_profiles": profile_figure(q.profiles, states),
+        "crossovers": crossover_figure(
+            [t for t in q.tracks if t.kind != "validation"],
+            q.leveling,
+            f"tie-line crossovers ({s['qc']['field']})",
+        ),
+    }
 
 
 def quality_channels(flight: Flight, q: QualityRun) -> list[OutputChannel]:
@@ -379,14 +473,18 @@ def quality_channels(flight: Flight, q: QualityRun) -> list[OutputChannel]:
     return [heading_error_channel(flight, q), crossover_channel(flight, q)]
 
 
-def _refuse_existing(src: Path, channels: list[OutputChannel], present: set[str],
-                     advice: str) -> None:
+def _refuse_existing(
+    src: Path, channels: list[OutputChannel], present: set[str], advice: str
+) -> None:
     """One line naming every output channel the recording already holds (all of them, where
     the writer's own check names the first)."""
     clash = sorted({c.topic for c in channels} & present)
     if clash:
-        raise AeromagError(f"the recording already holds {', '.join(clash)}; {advice} or "
-                           "omit --out", file=src, channel=clash[0])
+        raise AeromagError(
+            f"the recording already holds {', '.join(clash)}; {advice} or omit --out",
+            file=src,
+            channel=clash[0],
+        )
 
 
 def fom_settings(cfg: Config) -> tuple[tuple[float, float], int]:
@@ -396,28 +494,50 @@ def fom_settings(cfg: Config) -> tuple[tuple[float, float], int]:
     return tuple(c["band_hz"]), c["poles"]
 
 
-def quality_recording(src: Path, summary_path: Path, settings: QualitySettings,
-                      out: Path | None = None, cfg: Config | None = None) -> dict[str, Any]:
+def quality_recording(
+    src: Path,
+    summary_path: Path,
+    settings: QualitySettings,
+    out: Path | None = None,
+    cfg: Config | None = None,
+) -> dict[str, Any]:
     """``aeromag quality``: every stage it needs (with the configuration's settings), then
     the quality figures, plots, summary."""
     cfg = cfg or Config.load()
     flight = read_flight(src)
     seg, why = try_segment(flight)
     if seg is None:
-        raise AeromagError(f"quality statistics need the flight lines: {why}", file=src,
-                           channel="/gnss/fix")
+        raise AeromagError(
+            f"quality statistics need the flight lines: {why}", file=src, channel="/gnss/fix"
+        )
     fields, lines, fitted = quality_fields(flight, seg, cfg=cfg)
     t = flight.data["time_s"].to_numpy(float)
-    fom = fom_table(t, fields["raw"], {k: v for k, v in fields.items() if k != "raw"},
-                    seg.boxes(), *fom_settings(cfg)) if len(fields) > 1 and seg.boxes() else None
-    q = run_quality(flight, seg, fields, tl_alias(fields, cfg["compensation"]["agg_base"]),
-                    fom, settings)
+    fom = (
+        fom_table(
+            t,
+            fields["raw"],
+            {k: v for k, v in fields.items() if k != "raw"},
+            seg.boxes(),
+            *fom_settings(cfg),
+        )
+        if len(fields) > 1 and seg.boxes()
+        else None
+    )
+    q = run_quality(
+        flight, seg, fields, tl_alias(fields, cfg["compensation"]["agg_base"]), fom, settings
+    )
     lines = ingest_lines(flight) + lines + quality_lines(q)
-    figures = {name: str(save_figure(fig, summary_path.with_name(
-        f"{summary_path.stem}.{name}.png"))) for name, fig in quality_figures(q).items()}
-    summary: dict[str, Any] = {"aeromag_version": __version__, "input": flight_summary(flight),
-                               "quality": q.summary(), "figures": figures,
-                               "outputs": {"summary": str(summary_path)}}
+    figures = {
+        name: str(save_figure(fig, summary_path.with_name(f"{summary_path.stem}.{name}.png")))
+        for name, fig in quality_figures(q).items()
+    }
+    summary: dict[str, Any] = {
+        "aeromag_version": __version__,
+        "input": flight_summary(flight),
+        "quality": q.summary(),
+        "figures": figures,
+        "outputs": {"summary": str(summary_path)},
+    }
     if out is not None:
         present = set(flight.all_topics)
         channels = [log_channel(flight, lines, "quality"), *quality_channels(flight, q)]
@@ -434,8 +554,9 @@ def quality_recording(src: Path, summary_path: Path, settings: QualitySettings,
 
 # --------------------------------------------------------------------------------------------
 # audit
-def audit_recording(src: Path, json_path: Path, report_dir: Path, settings,
-                    out: Path | None = None, progress=None) -> dict[str, Any]:
+def audit_recording(
+    src: Path, json_path: Path, report_dir: Path, settings, out: Path | None = None, progress=None
+) -> dict[str, Any]:
     """``aeromag audit``: baseline, candidate effects, extended model, gain, report."""
     from pipeline.audit import run_audit
     from pipeline.audit.report import figures, finding_channel, jsonable, log_lines, markdown
@@ -443,29 +564,37 @@ def audit_recording(src: Path, json_path: Path, report_dir: Path, settings,
     flight = read_flight(src)
     seg, why = try_segment(flight)
     if seg is None:
-        raise AeromagError(f"the audit needs the calibration passes: {why}", file=src,
-                           channel="/gnss/fix")
+        raise AeromagError(
+            f"the audit needs the calibration passes: {why}", file=src, channel="/gnss/fix"
+        )
     flight.require("vector_x_nT", purpose="the model audit")
     res = run_audit(flight, seg, settings, progress)
     report_dir.mkdir(parents=True, exist_ok=True)
-    images = {name: save_figure(fig, report_dir / f"audit_{name}.png").name
-              for name, fig in figures(res, flight).items()}
+    images = {
+        name: save_figure(fig, report_dir / f"audit_{name}.png").name
+        for name, fig in figures(res, flight).items()
+    }
     j = res.to_json()
     j["input"] = flight_summary(flight)
     j["aeromag_version"] = __version__
     text = markdown(res, Path(src).name, images)
     write_text_atomic(report_dir / "report.md", text)
-    j["report"] = {"markdown": str(report_dir / "report.md"),
-                   "figures": {k: str(report_dir / v) for k, v in images.items()}}
+    j["report"] = {
+        "markdown": str(report_dir / "report.md"),
+        "figures": {k: str(report_dir / v) for k, v in images.items()},
+    }
     if out is not None:
         present = set(flight.all_topics)
         lines = ingest_lines(flight) + log_lines(res)
         channels = [log_channel(flight, lines, "audit"), finding_channel(flight, res)]
         for topic, comp, model in (
-                ("/mag/compensated", res.compensated["extended"],
-                 "+".join(res.extended.spec.label())),
-                (f"/mag/compensated/{res.baseline.spec.base}", res.compensated["baseline"],
-                 res.baseline.spec.base)):
+            ("/mag/compensated", res.compensated["extended"], "+".join(res.extended.spec.label())),
+            (
+                f"/mag/compensated/{res.baseline.spec.base}",
+                res.compensated["baseline"],
+                res.baseline.spec.base,
+            ),
+        ):
             if topic not in present:
                 channels.append(field_channel(flight, topic, comp, None, model))
         _refuse_existing(src, channels, present, "audit the unprocessed recording")
@@ -489,23 +618,29 @@ def vector_recording(src: Path, dst: Path, summary_path: Path, method: str) -> d
     try:
         run = run_vector(flight, seg, method)
     except ValueError as exc:
-        raise AeromagError(str(exc), file=src, channel=flight.topic_of.get("vector", "")
-                           ) from None
+        raise AeromagError(str(exc), file=src, channel=flight.topic_of.get("vector", "")) from None
     present = set(flight.all_topics)
     if run.output_topic in present:
-        raise AeromagError(f"the recording already holds {run.output_topic}", file=src,
-                           channel=run.output_topic)
+        raise AeromagError(
+            f"the recording already holds {run.output_topic}", file=src, channel=run.output_topic
+        )
     ch = vector_channel(flight, run.output_topic, run.vectors_nT, method)
     s = run.summary()
     text = f"vector: {method}: " + ", ".join(
-        f"{k} {val['before']:.2f} -> {val['after']:.2f} nT" for k, val in s.items()
-        if isinstance(val, dict) and "before" in val and not isinstance(val["before"], list))
+        f"{k} {val['before']:.2f} -> {val['after']:.2f} nT"
+        for k, val in s.items()
+        if isinstance(val, dict) and "before" in val and not isinstance(val["before"], list)
+    )
     lines = ingest_lines(flight) + ([(LOG_INFO, why)] if why else []) + [(LOG_INFO, text)]
     channels = [log_channel(flight, lines, "vector"), ch]
     channels = [c for c in channels if c.topic not in present]
     write_with_new_channels(src, dst, channels, metadata={"aeromag.run": run_metadata()})
-    summary = {"aeromag_version": __version__, "input": flight_summary(flight),
-               "vector": s, "outputs": {"mcap": str(dst), "summary": str(summary_path)}}
+    summary = {
+        "aeromag_version": __version__,
+        "input": flight_summary(flight),
+        "vector": s,
+        "outputs": {"mcap": str(dst), "summary": str(summary_path)},
+    }
     write_json_atomic(summary_path, summary)
     return summary
 
@@ -657,10 +792,25 @@ def quality_stage(flight: Flight, seg: Segmentation, runs: dict, audit, cfg) -> 
     if final is not None and final[0] == "extended":
         fields["extended"] = final[1]
     t = flight.data["time_s"].to_numpy(float)
-    fom = fom_table(t, fields["raw"], {k: v for k, v in fields.items() if k != "raw"},
-                    seg.boxes(), *fom_settings(cfg)) if seg.boxes() and len(fields) > 1 else None
-    return run_quality(flight, seg, fields, tl_alias(fields, cfg["compensation"]["agg_base"]),
-                       fom, cfg.quality_settings())
+    fom = (
+        fom_table(
+            t,
+            fields["raw"],
+            {k: v for k, v in fields.items() if k != "raw"},
+            seg.boxes(),
+            *fom_settings(cfg),
+        )
+        if seg.boxes() and len(fields) > 1
+        else None
+    )
+    return run_quality(
+        flight,
+        seg,
+        fields,
+        tl_alias(fields, cfg["compensation"]["agg_base"]),
+        fom,
+        cfg.quality_settings(),
+    )
 
 
 def _model_channels(flight: Flight, runs: dict, audit) -> tuple[list[OutputChannel], str]:
@@ -685,18 +835,33 @@ def output_paths(recording: str | Path, out_dir: str | Path) -> dict[str, Path]:
     """Where the post-flight outputs of ``recording`` go."""
     stem = Path(recording).stem
     out = Path(out_dir)
-    return {"mcap": out / f"{stem}.processed.mcap", "summary": out / f"{stem}.summary.json",
-            "report": out / f"{stem}.report.md", "report_html": out / f"{stem}.report.html",
-            "layout": out / f"{stem}.layout.json"}
+    return {
+        "mcap": out / f"{stem}.processed.mcap",
+        "summary": out / f"{stem}.summary.json",
+        "report": out / f"{stem}.report.md",
+        "report_html": out / f"{stem}.report.html",
+        "layout": out / f"{stem}.layout.json",
+    }
 
 
 # output_paths keys that are not figures
 DOCUMENTS = ("mcap", "summary", "report", "report_html", "layout")
 
 
-def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str, runs: dict,
-                audit, vector, map_run, quality,
-                timings: dict[str, float] | None = None) -> dict[str, Any]:
+def write_stage(
+    recording: str,
+    out_dir: str,
+    cfg,
+    flight: Flight,
+    seg,
+    why: str,
+    runs: dict,
+    audit,
+    vector,
+    map_run,
+    quality,
+    timings: dict[str, float] | None = None,
+) -> dict[str, Any]:
     """Every output of the post-flight flow, each written atomically; the summary last (its
     presence marks the recording as done).
 
@@ -714,22 +879,29 @@ def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str
     lines = ingest_lines(flight)
     if why:
         lines.append((LOG_INFO, why))
-    summary: dict[str, Any] = {"aeromag_version": __version__, "input": flight_summary(flight),
-                               "config": {"version": cfg["config_version"], "hash": cfg.hash,
-                                          "source": cfg.source}}
+    summary: dict[str, Any] = {
+        "aeromag_version": __version__,
+        "input": flight_summary(flight),
+        "config": {"version": cfg["config_version"], "hash": cfg.hash, "source": cfg.source},
+    }
     channels: list[OutputChannel] = []
     figures: dict[str, Any] = {}
     if seg is not None:
         channels.append(segment_channel(flight, seg))
-        if flight.has("lat_deg", "lon_deg") and np.isfinite(
-                flight.data[["lat_deg", "lon_deg"]].to_numpy(float)).all(axis=1).any():
+        if (
+            flight.has("lat_deg", "lon_deg")
+            and np.isfinite(flight.data[["lat_deg", "lon_deg"]].to_numpy(float)).all(axis=1).any()
+        ):
             figures["flight_map"] = _flight_map(flight, seg)
-        summary["segments"] = {"source": seg.source,
-                               "epochs": {lab: int(seg.mask(lab).sum()) for lab in
-                                          ("calibration", "survey", "tie", "validation",
-                                           "turn", "transit")},
-                               "calibration_passes": len(seg.passes()),
-                               "boxes": len(seg.boxes())}
+        summary["segments"] = {
+            "source": seg.source,
+            "epochs": {
+                lab: int(seg.mask(lab).sum())
+                for lab in ("calibration", "survey", "tie", "validation", "turn", "transit")
+            },
+            "calibration_passes": len(seg.passes()),
+            "boxes": len(seg.boxes()),
+        }
     if runs:
         for run in runs.values():
             lines += compensation_lines(run)
@@ -745,23 +917,37 @@ def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str
 
         band, poles = fom_settings(cfg)  # the configured band, as every FOM
         figures["compensation"] = compensation_figure(
-            t, bandpassed(t, flight.data["scalar_nT"].to_numpy(), band, poles),
+            t,
+            bandpassed(t, flight.data["scalar_nT"].to_numpy(), band, poles),
             {m: bandpassed(t, r.compensated_nT, band, poles) for m, r in runs.items()},
-            seg.passes(), band)
+            seg.passes(),
+            band,
+        )
     if audit is not None:
         lines += audit_log_lines(audit)
         channels.append(finding_channel(flight, audit))
         aj = audit.to_json()
-        summary["audit"] = jsonable({k: aj[k] for k in ("baseline", "findings",
-                                                        "extended_model", "unexplained_rms_nT",
-                                                        "noise_floor_nT", "unexplained",
-                                                        "gain")})
+        summary["audit"] = jsonable(
+            {
+                k: aj[k]
+                for k in (
+                    "baseline",
+                    "findings",
+                    "extended_model",
+                    "unexplained_rms_nT",
+                    "noise_floor_nT",
+                    "unexplained",
+                    "gain",
+                )
+            }
+        )
         figures.update({f"audit_{k}": v for k, v in audit_figures(audit, flight).items()})
     if isinstance(vector, str):
         lines.append((LOG_WARNING, f"vector: skipped: {vector}"))
     elif vector is not None:
-        channels.append(vector_channel(flight, vector.output_topic, vector.vectors_nT,
-                                       vector.method))
+        channels.append(
+            vector_channel(flight, vector.output_topic, vector.vectors_nT, vector.method)
+        )
         summary["vector"] = jsonable(vector.summary())
         lines.append((LOG_INFO, f"vector: {vector.method} -> {vector.output_topic}"))
     if map_run is not None:
@@ -777,19 +963,29 @@ def write_stage(recording: str, out_dir: str, cfg, flight: Flight, seg, why: str
     channels.insert(0, log_channel(flight, lines, "postflight"))
     for name, fig in figures.items():
         paths[name] = save_figure(fig, out / f"{stem}.{name}.png")
-    meta = {"aeromag.run": {**run_metadata(), "config_hash": cfg.hash,
-                            "config_version": str(cfg["config_version"])}}
+    meta = {
+        "aeromag.run": {
+            **run_metadata(),
+            "config_hash": cfg.hash,
+            "config_version": str(cfg["config_version"]),
+        }
+    }
     write_with_new_channels(recording, paths["mcap"], channels, metadata=meta)
     images = {k: v for k, v in paths.items() if k not in DOCUMENTS}
     report = report_markdown(stem, summary, {k: v.name for k, v in images.items()})
     write_text_atomic(paths["report"], report)
     write_text_atomic(paths["report_html"], render_html(stem, summary, images))
     write_json_atomic(paths["layout"], recording_layout(paths["mcap"]))
-    summary = {**summary, "outputs": {k: str(v) for k, v in paths.items()},
-               "channels_written": sorted({c.topic for c in channels if c.messages})}
+    summary = {
+        **summary,
+        "outputs": {k: str(v) for k, v in paths.items()},
+        "channels_written": sorted({c.topic for c in channels if c.messages}),
+    }
     summary = jsonable(summary)
-    summary["timings_s"] = {k: round(v, 3) for k, v in
-                            {**(timings or {}), "write": time.perf_counter() - t_start}.items()}
+    summary["timings_s"] = {
+        k: round(v, 3)
+        for k, v in {**(timings or {}), "write": time.perf_counter() - t_start}.items()
+    }
     summary["peak_memory_mb"] = peak_memory_mb()
     write_json_atomic(paths["summary"], summary)
     publish_artifact(stem, report)
@@ -828,64 +1024,99 @@ def publish_artifact(stem: str, markdown: str) -> None:
 
 def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
     """The post-flight report: the tables people look at, and the figures."""
+
     def f(x, fmt=".3f"):
         return "-" if x is None else format(x, fmt)
 
-    out = [f"# Post-flight report: {stem}", "",
-           f"aeromag {s['aeromag_version']}, configuration {s['config']['hash'][:12]} "
-           f"(version {s['config']['version']}, {s['config']['source']})", "",
-           f"Input: {s['input'].get('epochs', '-')} epochs, "
-           f"{f(s['input'].get('duration_s'), '.0f')} s, sha256 "
-           f"{s['input'].get('sha256', '')[:16]}", ""]
+    out = [
+        f"# Post-flight report: {stem}",
+        "",
+        f"aeromag {s['aeromag_version']}, configuration {s['config']['hash'][:12]} "
+        f"(version {s['config']['version']}, {s['config']['source']})",
+        "",
+        f"Input: {s['input'].get('epochs', '-')} epochs, "
+        f"{f(s['input'].get('duration_s'), '.0f')} s, sha256 "
+        f"{s['input'].get('sha256', '')[:16]}",
+        "",
+    ]
     comp = s.get("compensation")
     if comp:
-        out += ["## Compensation", "", f"Final: **{comp['final']}**", "",
-                "| model | FOM raw nT | FOM compensated nT | lambda | survey residual nT |",
-                "|---|---|---|---|---|"]
+        out += [
+            "## Compensation",
+            "",
+            f"Final: **{comp['final']}**",
+            "",
+            "| model | FOM raw nT | FOM compensated nT | lambda | survey residual nT |",
+            "|---|---|---|---|---|",
+        ]
         for m, r in comp.items():
             if m == "final":
                 continue
-            out.append(f"| {m} | {f(r['fom_nT']['uncompensated'], '.2f')} | "
-                       f"{f(r['fom_nT']['compensated'], '.2f')} | {f(r['lambda'], '.3g')} | "
-                       f"{f(r['residual_std_nT']['survey'])} |")
+            out.append(
+                f"| {m} | {f(r['fom_nT']['uncompensated'], '.2f')} | "
+                f"{f(r['fom_nT']['compensated'], '.2f')} | {f(r['lambda'], '.3g')} | "
+                f"{f(r['residual_std_nT']['survey'])} |"
+            )
         out.append("")
     a = s.get("audit")
     if a:
-        out += ["## Model audit", "",
-                f"Extended model: **{' + '.join(a['extended_model'])}**; held-out residual "
-                f"{f(a['baseline']['residual_rms_nT'], '.4f')} -> "
-                f"{f(a['unexplained_rms_nT'], '.4f')} nT (noise floor "
-                f"{f(a['noise_floor_nT'], '.4f')} nT)", ""]
+        out += [
+            "## Model audit",
+            "",
+            f"Extended model: **{' + '.join(a['extended_model'])}**; held-out residual "
+            f"{f(a['baseline']['residual_rms_nT'], '.4f')} -> "
+            f"{f(a['unexplained_rms_nT'], '.4f')} nT (noise floor "
+            f"{f(a['noise_floor_nT'], '.4f')} nT)",
+            "",
+        ]
         for fd in a["findings"]:
-            out.append(f"- `{fd['effect']}`: " + ", ".join(
-                f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-                for k, v in fd["estimate"].items() if k != "at_acceptance"
-                and not isinstance(v, list | dict)))
+            out.append(
+                f"- `{fd['effect']}`: "
+                + ", ".join(
+                    f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                    for k, v in fd["estimate"].items()
+                    if k != "at_acceptance" and not isinstance(v, list | dict)
+                )
+            )
         if (a.get("unexplained") or {}).get("note"):
             out.append(f"- unexplained: {a['unexplained']['note']}")
         out.append("")
     q = s.get("quality")
     if q:
-        out += ["## Heading error and quality", "",
-                f"{q['intersections']} intersections, {q['overlap_pairs']} pairs < "
-                f"{q['overlap_m']} m; headline heading_error_rms_nT = "
-                f"{q.get('heading_error_method', 'intersections')}", "",
-                "| state | pairs RMS nT (paper 002) | intersections RMS nT (ours) | "
-                "interpolated map RMS nT (paper 002) |",
-                "|---|---|---|---|"]
+        out += [
+            "## Heading error and quality",
+            "",
+            f"{q['intersections']} intersections, {q['overlap_pairs']} pairs < "
+            f"{q['overlap_m']} m; headline heading_error_rms_nT = "
+            f"{q.get('heading_error_method', 'intersections')}",
+            "",
+            "| state | pairs RMS nT (paper 002) | intersections RMS nT (ours) | "
+            "interpolated map RMS nT (paper 002) |",
+            "|---|---|---|---|",
+        ]
         inter = q.get("intersection_rms_nT", q["heading_error_rms_nT"])
         for st in q["states"]:
-            out.append(f"| {st} | {f(q['overlap_pair_rms_nT'][st])} | "
-                       f"{f(inter[st])} | "
-                       f"{f(q['interpolated_rms_nT'][st])} |")
+            out.append(
+                f"| {st} | {f(q['overlap_pair_rms_nT'][st])} | "
+                f"{f(inter[st])} | "
+                f"{f(q['interpolated_rms_nT'][st])} |"
+            )
         xo = q["crossover_rms_nT"]
-        out += ["", f"Crossovers: RMS {f(xo['before'])} -> {f(xo['after'])} nT after "
-                    f"leveling; 4th-difference noise {f(q['noise_4th_diff_nT'], '.4f')} nT", ""]
+        out += [
+            "",
+            f"Crossovers: RMS {f(xo['before'])} -> {f(xo['after'])} nT after "
+            f"leveling; 4th-difference noise {f(q['noise_4th_diff_nT'], '.4f')} nT",
+            "",
+        ]
     m = s.get("map")
     if m:
-        out += ["## Map", "", f"{m['grid_shape'][0]} x {m['grid_shape'][1]} cells of "
-                              f"{m['cell_m']:.2f} m; ARIMA{tuple(m['arima_order'])} + Kalman",
-                ""]
+        out += [
+            "## Map",
+            "",
+            f"{m['grid_shape'][0]} x {m['grid_shape'][1]} cells of "
+            f"{m['cell_m']:.2f} m; ARIMA{tuple(m['arima_order'])} + Kalman",
+            "",
+        ]
     v = s.get("vector")
     if v:
         out += ["## Vector magnetometer", "", f"{v['method']} -> `{v['output_topic']}`", ""]

@@ -37,13 +37,16 @@ def _merge(base: dict, over: dict, source: str, prefix: str = "") -> dict:
             out[k] = _merge(base[k], v, source, key + ".")
             continue
         b = base[k]
-        ok = (isinstance(v, bool) if isinstance(b, bool) else
-              isinstance(v, int | float) and not isinstance(v, bool) if isinstance(b, float)
-              else isinstance(v, type(b)))
+        ok = (
+            isinstance(v, bool)
+            if isinstance(b, bool)
+            else isinstance(v, int | float) and not isinstance(v, bool)
+            if isinstance(b, float)
+            else isinstance(v, type(b))
+        )
         if key == "compensation.ridge":  # the one place a ridge value is checked
             if ridge_problem(v):
-                raise AeromagError(f"{key} = {v!r}: use \"auto\" or a number >= 0",
-                                   file=source)
+                raise AeromagError(f'{key} = {v!r}: use "auto" or a number >= 0', file=source)
             ok = True
         if not ok:
             raise AeromagError(f"{key} = {v!r}: expected {type(b).__name__}", file=source)
@@ -65,8 +68,11 @@ class Config:
         user = read_toml(p, "configuration")
         values = _merge(base, user, str(p))
         if values["config_version"] != CONFIG_VERSION:
-            raise AeromagError(f"config_version {values['config_version']} is not supported "
-                               f"(this aeromag reads {CONFIG_VERSION})", file=p)
+            raise AeromagError(
+                f"config_version {values['config_version']} is not supported "
+                f"(this aeromag reads {CONFIG_VERSION})",
+                file=p,
+            )
         return cls(values, str(p))
 
     def with_values(self, changes: dict[str, Any], source: str = "command line") -> Config:
@@ -78,8 +84,11 @@ class Config:
             section, _, key = dotted.rpartition(".")
             (nested.setdefault(section, {}) if section else nested)[key] = v
         values = _merge(self.values, nested, source)
-        label = self.source if not changes else (
-            f"{self.source} + {source}" if self.source != "defaults" else source)
+        label = (
+            self.source
+            if not changes
+            else (f"{self.source} + {source}" if self.source != "defaults" else source)
+        )
         return Config(values, label)
 
     @property
@@ -95,31 +104,47 @@ class Config:
         from pipeline.compensate import FitSettings
 
         c = self.values["compensation"]
-        return FitSettings(model=model, band_hz=tuple(c["band_hz"]), poles=c["poles"],
-                           trim=c["trim"], ridge=c["ridge"], base=c["agg_base"])
+        return FitSettings(
+            model=model,
+            band_hz=tuple(c["band_hz"]),
+            poles=c["poles"],
+            trim=c["trim"],
+            ridge=c["ridge"],
+            base=c["agg_base"],
+        )
 
     def map_settings(self):
         from pipeline.maps.stage import MapSettings, parse_arima
 
         m = self.values["map"]
-        return MapSettings(cell_m=m["cell_m"] or None, arima=parse_arima(m["arima"]),
-                           noise_nT=m["noise_nT"] or None, level_trend=m["level_trend"],
-                           direction=m["direction"],
-                           min_crossing_angle_deg=m["min_crossing_angle_deg"])
+        return MapSettings(
+            cell_m=m["cell_m"] or None,
+            arima=parse_arima(m["arima"]),
+            noise_nT=m["noise_nT"] or None,
+            level_trend=m["level_trend"],
+            direction=m["direction"],
+            min_crossing_angle_deg=m["min_crossing_angle_deg"],
+        )
 
     def quality_settings(self):
         from pipeline.quality import QualitySettings
 
-        return QualitySettings(**self.values["quality"], min_crossing_angle_deg=self.values[
-            "map"]["min_crossing_angle_deg"])
+        return QualitySettings(
+            **self.values["quality"],
+            min_crossing_angle_deg=self.values["map"]["min_crossing_angle_deg"],
+        )
 
     def audit_settings(self):
         from pipeline.audit import AuditSettings
         from pipeline.audit.extended import BandSettings
 
         a, c = self.values["audit"], self.values["compensation"]
-        return AuditSettings(baseline=a["baseline"], alpha=a["alpha"], min_gain=a["min_gain"],
-                             band=BandSettings(tuple(c["band_hz"]), c["poles"], c["trim"]))
+        return AuditSettings(
+            baseline=a["baseline"],
+            alpha=a["alpha"],
+            min_gain=a["min_gain"],
+            band=BandSettings(tuple(c["band_hz"]), c["poles"], c["trim"]),
+        )
 
     def validate(self) -> None:
         """Check values that types alone do not (raises AeromagError)."""
@@ -129,37 +154,46 @@ class Config:
         c = self.values["compensation"]
         bad = [m for m in c["models"] if m not in MODELS]
         if bad or not c["models"]:
-            raise AeromagError(f"compensation.models: use some of {', '.join(MODELS)}",
-                               file=self.source)
+            raise AeromagError(
+                f"compensation.models: use some of {', '.join(MODELS)}", file=self.source
+            )
         if self.values["vector"]["method"] not in METHODS:
-            raise AeromagError(f"vector.method: use one of {', '.join(METHODS)}",
-                               file=self.source)
+            raise AeromagError(f"vector.method: use one of {', '.join(METHODS)}", file=self.source)
         if self.values["map"]["direction"] not in ("smooth", "both", "forward"):
-            raise AeromagError("map.direction: use smooth (both is its old name) or forward",
-                               file=self.source)
+            raise AeromagError(
+                "map.direction: use smooth (both is its old name) or forward", file=self.source
+            )
         if not 0.0 <= self.values["map"]["min_crossing_angle_deg"] <= 90.0:
-            raise AeromagError("map.min_crossing_angle_deg: use 0 to 90 degrees",
-                               file=self.source)
+            raise AeromagError("map.min_crossing_angle_deg: use 0 to 90 degrees", file=self.source)
         band = c["band_hz"]
-        if (len(band) != 2 or not all(isinstance(b, int | float) and not isinstance(b, bool)
-                                      for b in band) or not 0 < band[0] < band[1]):
-            raise AeromagError(f"compensation.band_hz = {band!r}: use [LOW, HIGH] Hz, "
-                               "0 < LOW < HIGH", file=self.source)
+        if (
+            len(band) != 2
+            or not all(isinstance(b, int | float) and not isinstance(b, bool) for b in band)
+            or not 0 < band[0] < band[1]
+        ):
+            raise AeromagError(
+                f"compensation.band_hz = {band!r}: use [LOW, HIGH] Hz, 0 < LOW < HIGH",
+                file=self.source,
+            )
         if c["poles"] < 1 or c["trim"] < 0:
-            raise AeromagError("compensation.poles must be >= 1 and compensation.trim >= 0",
-                               file=self.source)
+            raise AeromagError(
+                "compensation.poles must be >= 1 and compensation.trim >= 0", file=self.source
+            )
         a = self.values["audit"]
         if a["baseline"] not in ("tl16", "tl18"):
             raise AeromagError("audit.baseline: use tl18 or tl16", file=self.source)
         if not 0 < a["alpha"] < 1:
-            raise AeromagError(f"audit.alpha = {a['alpha']}: must be between 0 and 1",
-                               file=self.source)
+            raise AeromagError(
+                f"audit.alpha = {a['alpha']}: must be between 0 and 1", file=self.source
+            )
         if not 0 <= a["min_gain"] < 1:
-            raise AeromagError(f"audit.min_gain = {a['min_gain']}: must be in [0, 1)",
-                               file=self.source)
+            raise AeromagError(
+                f"audit.min_gain = {a['min_gain']}: must be in [0, 1)", file=self.source
+            )
         if self.values["map"]["cell_m"] < 0:
-            raise AeromagError("map.cell_m: must be > 0 m (0: a quarter of the line spacing)",
-                               file=self.source)
+            raise AeromagError(
+                "map.cell_m: must be > 0 m (0: a quarter of the line spacing)", file=self.source
+            )
         if self.values["quality"]["overlap_m"] <= 0:
             raise AeromagError("quality.overlap_m: must be > 0 m", file=self.source)
         try:

@@ -37,6 +37,7 @@ def default_value(section: str, key: str) -> Any:
 def default_field(section: str, key: str, convert: Callable[[Any], Any] | None = None) -> Any:
     """A dataclass field defaulting to a shipped value (``convert`` maps the TOML value to the
     field's type, e.g. ``tuple`` for a band): settings classes never re-type a literal."""
+
     def make() -> Any:
         v = default_value(section, key)
         return convert(v) if convert else v
@@ -46,8 +47,9 @@ def default_field(section: str, key: str, convert: Callable[[Any], Any] | None =
 
 def ridge_problem(value: Any) -> str | None:
     """The one rule for ``compensation.ridge``: ``"auto"`` or a number >= 0 (None: fine)."""
-    if value == "auto" or (isinstance(value, int | float) and not isinstance(value, bool)
-                           and value >= 0):
+    if value == "auto" or (
+        isinstance(value, int | float) and not isinstance(value, bool) and value >= 0
+    ):
         return None
     return f"ridge must be 'auto' or a number >= 0, not {value!r}"
 

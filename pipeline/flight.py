@@ -72,12 +72,22 @@ class Flight:
         """Raise a one-line error when a needed column (hence channel) is missing."""
         missing = [c for c in columns if c not in self.data.columns]
         if missing:
-            raise AeromagError(f"{purpose} needs {', '.join(missing)} but the channel is absent",
-                               file=self.source, channel=_CHANNEL_OF_COLUMN.get(missing[0], ""))
+            raise AeromagError(
+                f"{purpose} needs {', '.join(missing)} but the channel is absent",
+                file=self.source,
+                channel=_CHANNEL_OF_COLUMN.get(missing[0], ""),
+            )
 
 
 _CHANNEL_OF_COLUMN = {
-    "vector_x_nT": "/mag/vector", "vector_y_nT": "/mag/vector", "vector_z_nT": "/mag/vector",
-    "roll_deg": "/ins/attitude", "pitch_deg": "/ins/attitude", "yaw_deg": "/ins/attitude",
-    "lat_deg": "/gnss/fix", "lon_deg": "/gnss/fix", "alt_m": "/gnss/fix", "base_nT": "/base/scalar",
+    "vector_x_nT": "/mag/vector",
+    "vector_y_nT": "/mag/vector",
+    "vector_z_nT": "/mag/vector",
+    "roll_deg": "/ins/attitude",
+    "pitch_deg": "/ins/attitude",
+    "yaw_deg": "/ins/attitude",
+    "lat_deg": "/gnss/fix",
+    "lon_deg": "/gnss/fix",
+    "alt_m": "/gnss/fix",
+    "base_nT": "/base/scalar",
 }

@@ -15,41 +15,61 @@ def segment_channel(flight: Flight, seg: Segmentation) -> OutputChannel:
     ch = OutputChannel("/flight/segment", "aeromag.Segment")
     for i in seg.changes():
         h = seg.heading_deg[i]
-        ch.add(int(flight.time_ns[i]), {
-            "label": str(seg.label[i]), "line_id": str(seg.line_id[i]),
-            "heading_deg": None if not np.isfinite(h) else round(float(h), 3),
-            "manoeuvre": str(seg.manoeuvre[i]), "cardinal": str(seg.cardinal[i]),
-            "calibration_pass": int(seg.calibration_pass[i]), "source": seg.source})
+        ch.add(
+            int(flight.time_ns[i]),
+            {
+                "label": str(seg.label[i]),
+                "line_id": str(seg.line_id[i]),
+                "heading_deg": None if not np.isfinite(h) else round(float(h), 3),
+                "manoeuvre": str(seg.manoeuvre[i]),
+                "cardinal": str(seg.cardinal[i]),
+                "calibration_pass": int(seg.calibration_pass[i]),
+                "source": seg.source,
+            },
+        )
     return ch
 
 
-def compensated_channel(flight: Flight, run: CompensationRun,
-                        topic: str = "/mag/compensated") -> OutputChannel:
+def compensated_channel(
+    flight: Flight, run: CompensationRun, topic: str = "/mag/compensated"
+) -> OutputChannel:
     """Compensated field at every epoch where it exists."""
-    return field_channel(flight, topic, run.compensated_nT, run.interference_nT,
-                         run.model.model)
+    return field_channel(flight, topic, run.compensated_nT, run.interference_nT, run.model.model)
 
 
-def field_channel(flight: Flight, topic: str, compensated_nT: np.ndarray,
-                  interference_nT: np.ndarray | None, model: str) -> OutputChannel:
+def field_channel(
+    flight: Flight,
+    topic: str,
+    compensated_nT: np.ndarray,
+    interference_nT: np.ndarray | None,
+    model: str,
+) -> OutputChannel:
     """An ``aeromag.CompensatedField`` channel from per-epoch arrays; the interference
     defaults to what was removed from the recorded scalar."""
     sensor = _sensor_id(flight)
     comp = np.asarray(compensated_nT, float)
-    inter = (flight.data["scalar_nT"].to_numpy(float) - comp if interference_nT is None
-             else np.asarray(interference_nT, float))
+    inter = (
+        flight.data["scalar_nT"].to_numpy(float) - comp
+        if interference_nT is None
+        else np.asarray(interference_nT, float)
+    )
     ix = np.flatnonzero(np.isfinite(comp))
     total, removed = comp[ix], inter[ix]
 
     def payload(k: int) -> dict:  # made when written (one message per epoch)
-        return {"sensor_id": sensor, "total_nT": float(total[k]),
-                "interference_nT": float(removed[k]), "model": model}
+        return {
+            "sensor_id": sensor,
+            "total_nT": float(total[k]),
+            "interference_nT": float(removed[k]),
+            "model": model,
+        }
 
     return OutputChannel.rows(topic, "aeromag.CompensatedField", flight.time_ns[ix], payload)
 
 
-def vector_channel(flight: Flight, topic: str, vectors_nT: np.ndarray, method: str
-                   ) -> OutputChannel:
+def vector_channel(
+    flight: Flight, topic: str, vectors_nT: np.ndarray, method: str
+) -> OutputChannel:
     """An ``aeromag.VectorField`` channel (body frame) from per-epoch vectors; the sensor
     id is the fluxgate's with the method that made them."""
     sensor = str(flight.series[flight.topic_of["vector"]].labels["sensor_id"][0])
@@ -65,17 +85,34 @@ def vector_channel(flight: Flight, topic: str, vectors_nT: np.ndarray, method: s
     return OutputChannel.rows(topic, "aeromag.VectorField", flight.time_ns[ix], payload)
 
 
-def model_message(flight: Flight, run: CompensationRun, ch: OutputChannel | None = None
-                  ) -> OutputChannel:
+def model_message(
+    flight: Flight, run: CompensationRun, ch: OutputChannel | None = None
+) -> OutputChannel:
     """``/compensation/model``: the fitted model (one message, at the first epoch)."""
     ch = ch or OutputChannel("/compensation/model", "aeromag.CompensationModel")
     m = run.model.to_dict()
     fom = run.fom.total if run.fom else {"uncompensated": None, "compensated": None}
-    payload = {"sensor_id": _sensor_id(flight), "fom_nT": fom,
-               **{k: m[k] for k in ("model", "terms", "coefficients", "compensating_terms",
-                                    "lambda", "band_hz", "poles", "trim", "samples",
-                                    "fit_residual_nT", "calibration_windows_s",
-                                    "gradient_nT_per_m")}}
+    payload = {
+        "sensor_id": _sensor_id(flight),
+        "fom_nT": fom,
+        **{
+            k: m[k]
+            for k in (
+                "model",
+                "terms",
+                "coefficients",
+                "compensating_terms",
+                "lambda",
+                "band_hz",
+                "poles",
+                "trim",
+                "samples",
+                "fit_residual_nT",
+                "calibration_windows_s",
+                "gradient_nT_per_m",
+            )
+        },
+    }
     # one ns apart so several models on the topic keep their order
     ch.add(int(flight.time_ns[0]) + len(ch.messages), payload)
     return ch
@@ -91,8 +128,7 @@ def _sensor_id(flight: Flight) -> str:
 MAP_FRAME = "local_enu"  # x east, y north (m) about the map origin in the summary
 
 
-def grid_channel(topic: str, time_ns: int, grid, field_name: str = "anomaly_nT"
-                 ) -> OutputChannel:
+def grid_channel(topic: str, time_ns: int, grid, field_name: str = "anomaly_nT") -> OutputChannel:
     """A ``foxglove.Grid`` message: float32 cells, row-major from the south-west corner.
 
     The pose puts the grid's corner (half a cell south-west of the first cell centre) in the
@@ -103,21 +139,32 @@ def grid_channel(topic: str, time_ns: int, grid, field_name: str = "anomaly_nT"
     ch = OutputChannel(topic, "foxglove.Grid")
     ny, nx = grid.shape
     data = np.ascontiguousarray(grid.values, dtype="<f4").tobytes()
-    ch.add(int(time_ns), {
-        "frame_id": MAP_FRAME,
-        "pose": {"position": {"x": grid.east0_m - grid.cell_m / 2,
-                              "y": grid.north0_m - grid.cell_m / 2, "z": 0.0},
-                 "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0}},
-        "column_count": int(nx),
-        "cell_size": {"x": float(grid.cell_m), "y": float(grid.cell_m)},
-        "row_stride": int(nx * 4), "cell_stride": 4,
-        "fields": [{"name": field_name, "offset": 0, "type": 7}],  # 7 = FLOAT32
-        "data": base64.b64encode(data).decode("ascii")})
+    ch.add(
+        int(time_ns),
+        {
+            "frame_id": MAP_FRAME,
+            "pose": {
+                "position": {
+                    "x": grid.east0_m - grid.cell_m / 2,
+                    "y": grid.north0_m - grid.cell_m / 2,
+                    "z": 0.0,
+                },
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+            },
+            "column_count": int(nx),
+            "cell_size": {"x": float(grid.cell_m), "y": float(grid.cell_m)},
+            "row_stride": int(nx * 4),
+            "cell_stride": 4,
+            "fields": [{"name": field_name, "offset": 0, "type": 7}],  # 7 = FLOAT32
+            "data": base64.b64encode(data).decode("ascii"),
+        },
+    )
     return ch
 
 
-def tracks_channel(flight: Flight, seg: Segmentation, time_ns: int,
-                   every_s: float = 1.0) -> OutputChannel:
+def tracks_channel(
+    flight: Flight, seg: Segmentation, time_ns: int, every_s: float = 1.0
+) -> OutputChannel:
     """``/map/tracks``: flight lines as a GeoJSON FeatureCollection (lon/lat, ~1 point/s)."""
     import json
 
@@ -132,12 +179,20 @@ def tracks_channel(flight: Flight, seg: Segmentation, time_ns: int,
             if ix.size < 2:
                 continue
             ix = np.r_[ix[::step], ix[-1]]
-            feats.append({"type": "Feature", "properties": {"line_id": lid, "label": kind},
-                          "geometry": {"type": "LineString", "coordinates": [
-                              [round(float(lon[i]), 7), round(float(lat[i]), 7)] for i in ix]}})
+            feats.append(
+                {
+                    "type": "Feature",
+                    "properties": {"line_id": lid, "label": kind},
+                    "geometry": {
+                        "type": "LineString",
+                        "coordinates": [
+                            [round(float(lon[i]), 7), round(float(lat[i]), 7)] for i in ix
+                        ],
+                    },
+                }
+            )
     ch = OutputChannel("/map/tracks", "foxglove.GeoJSON")
-    ch.add(int(time_ns), {"geojson": json.dumps({"type": "FeatureCollection",
-                                                 "features": feats})})
+    ch.add(int(time_ns), {"geojson": json.dumps({"type": "FeatureCollection", "features": feats})})
     return ch
 
 
@@ -148,8 +203,9 @@ def _epoch_time_ns(flight: Flight, epoch: np.ndarray) -> np.ndarray:
     i0 = np.floor(epoch).astype(int)
     i1 = np.minimum(i0 + 1, flight.time_ns.size - 1)
     frac = epoch - i0
-    return flight.time_ns[i0] + np.rint(frac * (flight.time_ns[i1] - flight.time_ns[i0])
-                                        ).astype(np.int64)
+    return flight.time_ns[i0] + np.rint(frac * (flight.time_ns[i1] - flight.time_ns[i0])).astype(
+        np.int64
+    )
 
 
 def heading_error_channel(flight: Flight, q) -> OutputChannel:
@@ -165,16 +221,25 @@ def heading_error_channel(flight: Flight, q) -> OutputChannel:
         tb = _epoch_time_ns(flight, (1 - ov.wb) * ov.b0 + ov.wb * ov.b1)
         diffs = {state_key(s): q.differences[kind][s] for s in q.states}
         for k in range(ov.count):
-            ch.add(int(ta[k]), {
-                "kind": kind, "validation_line": str(ov.validation_line[k]),
-                "map_line": str(ov.map_line[k]), "east_m": round(float(ov.east_m[k]), 3),
-                "north_m": round(float(ov.north_m[k]), 3), "latitude": float(lat[k]),
-                "longitude": float(lon[k]), "distance_m": round(float(ov.distance_m[k]), 4),
-                "validation_heading_deg": round(float(ov.validation_heading_deg[k]), 3),
-                "map_heading_deg": round(float(ov.map_heading_deg[k]), 3),
-                "time_separation_s": round(float(tb[k] - ta[k]) / 1e9, 3),
-                "difference_nT": {s: (float(v[k]) if np.isfinite(v[k]) else None)
-                                  for s, v in diffs.items()}})
+            ch.add(
+                int(ta[k]),
+                {
+                    "kind": kind,
+                    "validation_line": str(ov.validation_line[k]),
+                    "map_line": str(ov.map_line[k]),
+                    "east_m": round(float(ov.east_m[k]), 3),
+                    "north_m": round(float(ov.north_m[k]), 3),
+                    "latitude": float(lat[k]),
+                    "longitude": float(lon[k]),
+                    "distance_m": round(float(ov.distance_m[k]), 4),
+                    "validation_heading_deg": round(float(ov.validation_heading_deg[k]), 3),
+                    "map_heading_deg": round(float(ov.map_heading_deg[k]), 3),
+                    "time_separation_s": round(float(tb[k] - ta[k]) / 1e9, 3),
+                    "difference_nT": {
+                        s: (float(v[k]) if np.isfinite(v[k]) else None) for s, v in diffs.items()
+                    },
+                },
+            )
     ch.messages.sort(key=lambda m: m[0])
     return ch
 
@@ -194,12 +259,20 @@ def crossover_channel(flight: Flight, q) -> OutputChannel:
     for k, c in enumerate(xs):
         later = max(c.time_a_s, c.time_b_s)
         t_ns = int(t_first + round((later - t_rel[0]) * 1e9))
-        ch.add(t_ns, {"survey_line": c.line_a, "tie_line": c.line_b,
-                      "east_m": round(float(c.east_m), 3), "north_m": round(float(c.north_m), 3),
-                      "latitude": float(lat[k]), "longitude": float(lon[k]),
-                      "difference_before_nT": float(c.difference_nT),
-                      "difference_after_nT": float(lev.residuals_nT[k]),
-                      "time_separation_s": round(float(c.time_b_s - c.time_a_s), 3),
-                      "field": state_key(q.states[-1])})
+        ch.add(
+            t_ns,
+            {
+                "survey_line": c.line_a,
+                "tie_line": c.line_b,
+                "east_m": round(float(c.east_m), 3),
+                "north_m": round(float(c.north_m), 3),
+                "latitude": float(lat[k]),
+                "longitude": float(lon[k]),
+                "difference_before_nT": float(c.difference_nT),
+                "difference_after_nT": float(lev.residuals_nT[k]),
+                "time_separation_s": round(float(c.time_b_s - c.time_a_s), 3),
+                "field": state_key(q.states[-1]),
+            },
+        )
     ch.messages.sort(key=lambda m: m[0])
     return ch

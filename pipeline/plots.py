@@ -17,8 +17,13 @@ def lcurve_figure(lc: LCurve, title: str = "L-curve") -> plt.Figure:
     fig, (ax, ax2) = plt.subplots(1, 2, figsize=(10, 4.2))
     ax.loglog(lc.residual_norm, lc.solution_norm, "-", color="tab:blue", lw=1.5)
     c = lc.corner
-    ax.loglog(lc.residual_norm[c], lc.solution_norm[c], "o", color="tab:red",
-              label=f"corner: lambda = {lc.lambda_corner:.3g}")
+    ax.loglog(
+        lc.residual_norm[c],
+        lc.solution_norm[c],
+        "o",
+        color="tab:red",
+        label=f"corner: lambda = {lc.lambda_corner:.3g}",
+    )
     ax.set_xlabel("residual norm |K theta - y| (nT)")
     ax.set_ylabel("solution norm |theta|")
     ax.set_title(title)
@@ -33,9 +38,13 @@ def lcurve_figure(lc: LCurve, title: str = "L-curve") -> plt.Figure:
     return fig
 
 
-def compensation_figure(time_s: np.ndarray, raw_bp_nT: np.ndarray,
-                        comp_bp_nT: dict[str, np.ndarray], passes: list[np.ndarray],
-                        band_hz: tuple[float, float] | None = None) -> plt.Figure:
+def compensation_figure(
+    time_s: np.ndarray,
+    raw_bp_nT: np.ndarray,
+    comp_bp_nT: dict[str, np.ndarray],
+    passes: list[np.ndarray],
+    band_hz: tuple[float, float] | None = None,
+) -> plt.Figure:
     """Band-passed field over each calibration pass: uncompensated (top row) and each
     model's compensated signal (bottom row, its own scale: what the FOM measures);
     ``band_hz`` names the band in the titles (None: the shipped configuration's)."""
@@ -61,19 +70,33 @@ def compensation_figure(time_s: np.ndarray, raw_bp_nT: np.ndarray,
     return fig
 
 
-def map_figure(grid, lines, title: str, vmin: float | None = None,
-               vmax: float | None = None) -> plt.Figure:
+def map_figure(
+    grid, lines, title: str, vmin: float | None = None, vmax: float | None = None
+) -> plt.Figure:
     """An anomaly grid with colour bar and the flight lines (local metres)."""
     e, n = grid.coordinates()
     half = grid.cell_m / 2
     extent = (e[0] - half, e[-1] + half, n[0] - half, n[-1] + half)
     aspect = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9)
     fig, ax = plt.subplots(figsize=(6.5, min(max(4.0, 5.5 * aspect), 11)))
-    im = ax.imshow(grid.values, origin="lower", extent=extent, cmap="RdYlBu_r",
-                   vmin=vmin, vmax=vmax, interpolation="nearest")
+    im = ax.imshow(
+        grid.values,
+        origin="lower",
+        extent=extent,
+        cmap="RdYlBu_r",
+        vmin=vmin,
+        vmax=vmax,
+        interpolation="nearest",
+    )
     for ln in lines:
-        ax.plot(ln.east_m[::20], ln.north_m[::20], "-", lw=0.4,
-                color="k" if ln.kind == "survey" else "0.35", alpha=0.6)
+        ax.plot(
+            ln.east_m[::20],
+            ln.north_m[::20],
+            "-",
+            lw=0.4,
+            color="k" if ln.kind == "survey" else "0.35",
+            alpha=0.6,
+        )
     cb = fig.colorbar(im, ax=ax, shrink=0.85)
     cb.set_label("total-field anomaly (nT)")
     ax.set_xlabel("east (m)")
@@ -91,10 +114,14 @@ def heading_error_figure(summary: dict) -> plt.Figure:
     sample pairs closer than the overlap distance, and against the interpolated map."""
     states = summary["states"]
     inter = summary.get("intersection_rms_nT", summary["heading_error_rms_nT"])
-    series = [(f"pairs < {summary['overlap_m']:g} m (paper 002's overlap statistic)",
-               summary["overlap_pair_rms_nT"]),
-              ("track intersections (ours, interpolated along track)", inter),
-              ("interpolated map (paper 002's 2nd statistic)", summary["interpolated_rms_nT"])]
+    series = [
+        (
+            f"pairs < {summary['overlap_m']:g} m (paper 002's overlap statistic)",
+            summary["overlap_pair_rms_nT"],
+        ),
+        ("track intersections (ours, interpolated along track)", inter),
+        ("interpolated map (paper 002's 2nd statistic)", summary["interpolated_rms_nT"]),
+    ]
     fig, ax = plt.subplots(figsize=(max(6.5, 1.6 * len(states) + 3), 4.4))
     width = 0.8 / len(series)
     x = np.arange(len(states))
@@ -103,14 +130,23 @@ def heading_error_figure(summary: dict) -> plt.Figure:
         bars = ax.bar(x + (k - (len(series) - 1) / 2) * width, v, width, label=label)
         for b, val in zip(bars, v, strict=True):
             if np.isfinite(val):
-                ax.annotate(f"{val:.3g}", (b.get_x() + b.get_width() / 2, val), ha="center",
-                            va="bottom", fontsize=7, xytext=(0, 1), textcoords="offset points")
+                ax.annotate(
+                    f"{val:.3g}",
+                    (b.get_x() + b.get_width() / 2, val),
+                    ha="center",
+                    va="bottom",
+                    fontsize=7,
+                    xytext=(0, 1),
+                    textcoords="offset points",
+                )
     ax.set_yscale("log")
     ax.set_xticks(x, states)
     ax.set_ylabel("RMS of B_validation - B_map (nT)")
-    ax.set_title(f"heading error at overlap points ({summary['intersections']} intersections, "
-                 f"{summary['overlap_pairs']} pairs; headline: "
-                 f"{summary.get('heading_error_method', 'intersections')})")
+    ax.set_title(
+        f"heading error at overlap points ({summary['intersections']} intersections, "
+        f"{summary['overlap_pairs']} pairs; headline: "
+        f"{summary.get('heading_error_method', 'intersections')})"
+    )
     ax.grid(True, axis="y", which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
@@ -122,24 +158,43 @@ def profile_figure(profiles, states: list[str]) -> plt.Figure:
     interpolated along it for the last state; bottom, validation minus interpolated map for
     every state. Gaps (NaN) where the track leaves the map."""
     n = max(len(profiles), 1)
-    fig, axes = plt.subplots(2 * n, 1, figsize=(10, 5.2 * n), squeeze=False,
-                             gridspec_kw={"height_ratios": [1.4, 1] * n})
+    fig, axes = plt.subplots(
+        2 * n, 1, figsize=(10, 5.2 * n), squeeze=False, gridspec_kw={"height_ratios": [1.4, 1] * n}
+    )
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     final = states[-1]
     for k, p in enumerate(profiles):
         top, bottom = axes[2 * k, 0], axes[2 * k + 1, 0]
-        top.plot(p.distance_m, p.validation_nT[final], "-", color="k", lw=1.0,
-                 label=f"validation line ({final})")
-        top.plot(p.distance_m, p.interpolated_nT[final], "--", color="tab:red", lw=1.0,
-                 label="map interpolated (bilinear)")
+        top.plot(
+            p.distance_m,
+            p.validation_nT[final],
+            "-",
+            color="k",
+            lw=1.0,
+            label=f"validation line ({final})",
+        )
+        top.plot(
+            p.distance_m,
+            p.interpolated_nT[final],
+            "--",
+            color="tab:red",
+            lw=1.0,
+            label="map interpolated (bilinear)",
+        )
         top.set_title(f"validation line {p.line_id}")
         top.set_ylabel("reduced field (nT)")
         top.legend(fontsize=8, loc="best")
         for j, s in enumerate(states):
             d = p.validation_nT[s] - p.interpolated_nT[s]
             rms = np.sqrt(np.nanmean(d**2)) if np.isfinite(d).any() else np.nan
-            bottom.plot(p.distance_m, d, "-", color=colours[j % len(colours)], lw=0.7,
-                        label=f"{s}: RMS {rms:.3f} nT")
+            bottom.plot(
+                p.distance_m,
+                d,
+                "-",
+                color=colours[j % len(colours)],
+                lw=0.7,
+                label=f"{s}: RMS {rms:.3f} nT",
+            )
         bottom.axhline(0.0, color="0.5", lw=0.5)
         bottom.set_ylabel("validation - map (nT)")
         bottom.set_xlabel("distance along the line (m)")
@@ -157,16 +212,32 @@ def crossover_figure(tracks, leveling, title: str = "tie-line crossovers") -> pl
     before = np.array([c.difference_nT for c in xs])
     after = np.asarray(leveling.residuals_nT) if xs else np.zeros(0)
     lim = float(np.max(np.abs(before))) if before.size else 1.0
-    for ax, vals, name in ((axes[0], before, "before leveling"),
-                           (axes[1], after, "after leveling")):
+    for ax, vals, name in (
+        (axes[0], before, "before leveling"),
+        (axes[1], after, "after leveling"),
+    ):
         for t in tracks:
-            ax.plot(t.east_m[::20], t.north_m[::20], "-", lw=0.7,
-                    color={"survey": "0.3", "tie": "0.55"}.get(t.kind, "tab:purple"),
-                    alpha=0.7)
+            ax.plot(
+                t.east_m[::20],
+                t.north_m[::20],
+                "-",
+                lw=0.7,
+                color={"survey": "0.3", "tie": "0.55"}.get(t.kind, "tab:purple"),
+                alpha=0.7,
+            )
         if xs:
-            sc = ax.scatter([c.east_m for c in xs], [c.north_m for c in xs], c=vals,
-                            cmap="RdBu_r", vmin=-lim, vmax=lim, s=28, edgecolors="k",
-                            linewidths=0.3, zorder=3)
+            sc = ax.scatter(
+                [c.east_m for c in xs],
+                [c.north_m for c in xs],
+                c=vals,
+                cmap="RdBu_r",
+                vmin=-lim,
+                vmax=lim,
+                s=28,
+                edgecolors="k",
+                linewidths=0.3,
+                zorder=3,
+            )
             rms = float(np.sqrt(np.mean(vals**2)))
             ax.set_title(f"{name}: RMS {rms:.3f} nT")
         ax.set_xlabel("east (m)")
@@ -186,8 +257,9 @@ def _cal_segments(time_s, where, gap_s=5.0):
     return np.split(np.arange(where.size), breaks)
 
 
-def audit_time_figure(time_s: np.ndarray, where: np.ndarray,
-                      residuals: dict[str, np.ndarray], labels: dict[str, str]) -> plt.Figure:
+def audit_time_figure(
+    time_s: np.ndarray, where: np.ndarray, residuals: dict[str, np.ndarray], labels: dict[str, str]
+) -> plt.Figure:
     """Band-passed measured - simulated over the calibration passes, baseline vs extended."""
     segs = [s for s in _cal_segments(time_s, where, 60.0) if s.size > 10]
     n = max(len(segs), 1)
@@ -197,8 +269,13 @@ def audit_time_figure(time_s: np.ndarray, where: np.ndarray,
         t = time_s[where[seg]]
         for name, r in residuals.items():
             rms = float(np.sqrt(np.nanmean(r[seg] ** 2)))
-            ax.plot(t, r[seg], lw=0.6, color=colours.get(name),
-                    label=f"{labels.get(name, name)}: RMS {rms:.4f} nT")
+            ax.plot(
+                t,
+                r[seg],
+                lw=0.6,
+                color=colours.get(name),
+                label=f"{labels.get(name, name)}: RMS {rms:.4f} nT",
+            )
         ax.set_ylabel("measured - simulated (nT)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="upper right")
@@ -208,12 +285,16 @@ def audit_time_figure(time_s: np.ndarray, where: np.ndarray,
     return fig
 
 
-def audit_position_figure(east_m: np.ndarray, north_m: np.ndarray,
-                          residuals: dict[str, np.ndarray], labels: dict[str, str]
-                          ) -> plt.Figure:
+def audit_position_figure(
+    east_m: np.ndarray,
+    north_m: np.ndarray,
+    residuals: dict[str, np.ndarray],
+    labels: dict[str, str],
+) -> plt.Figure:
     """Where on the calibration box the residual is (RMS over 2 s, coloured track)."""
-    fig, axes = plt.subplots(1, len(residuals), figsize=(5.5 * len(residuals), 5.0),
-                             squeeze=False, sharey=True)
+    fig, axes = plt.subplots(
+        1, len(residuals), figsize=(5.5 * len(residuals), 5.0), squeeze=False, sharey=True
+    )
     lim = max(float(np.nanpercentile(np.abs(r), 99)) for r in residuals.values())
     for ax, (name, r) in zip(axes[0], residuals.items(), strict=True):
         sc = ax.scatter(east_m, north_m, c=np.abs(r), s=2, cmap="viridis", vmin=0, vmax=lim)
@@ -225,9 +306,12 @@ def audit_position_figure(east_m: np.ndarray, north_m: np.ndarray,
     return fig
 
 
-def audit_heading_figure(heading_deg: np.ndarray, residuals: dict[str, np.ndarray],
-                         labels: dict[str, str], by_heading: dict[str, list] | None = None
-                         ) -> plt.Figure:
+def audit_heading_figure(
+    heading_deg: np.ndarray,
+    residuals: dict[str, np.ndarray],
+    labels: dict[str, str],
+    by_heading: dict[str, list] | None = None,
+) -> plt.Figure:
     """Residual RMS by heading on the calibration passes, and (when a survey exists) the
     heading error (validation - map mean by map-line heading) before and after."""
     ncol = 2 if by_heading else 1
@@ -237,8 +321,12 @@ def audit_heading_figure(heading_deg: np.ndarray, residuals: dict[str, np.ndarra
     mid = edges[:-1] + 15
     h = np.mod(heading_deg, 360)
     for name, r in residuals.items():
-        rms = [np.sqrt(np.nanmean(r[(h >= a) & (h < b)] ** 2)) if np.any((h >= a) & (h < b))
-               else np.nan for a, b in zip(edges[:-1], edges[1:], strict=True)]
+        rms = [
+            np.sqrt(np.nanmean(r[(h >= a) & (h < b)] ** 2))
+            if np.any((h >= a) & (h < b))
+            else np.nan
+            for a, b in zip(edges[:-1], edges[1:], strict=True)
+        ]
         ax.plot(mid, rms, "o-", label=labels.get(name, name))
     ax.set_xlabel("heading (deg)")
     ax.set_ylabel("band-passed residual RMS (nT)")
@@ -249,15 +337,21 @@ def audit_heading_figure(heading_deg: np.ndarray, residuals: dict[str, np.ndarra
     if by_heading:
         ax2 = axes[0, 1]
         width = 0.38
-        keys = sorted({(g["validation_heading_deg"], g["map_heading_deg"])
-                       for rows in by_heading.values() for g in rows})
+        keys = sorted(
+            {
+                (g["validation_heading_deg"], g["map_heading_deg"])
+                for rows in by_heading.values()
+                for g in rows
+            }
+        )
         x = np.arange(len(keys))
         for k, (name, rows) in enumerate(by_heading.items()):
             d = {(g["validation_heading_deg"], g["map_heading_deg"]): g for g in rows}
             mean = [d[key]["mean_nT"] if key in d else np.nan for key in keys]
             ci = [d[key]["ci_nT"] or 0.0 if key in d else 0.0 for key in keys]
-            ax2.bar(x + (k - 0.5) * width, mean, width, yerr=ci, capsize=2,
-                    label=labels.get(name, name))
+            ax2.bar(
+                x + (k - 0.5) * width, mean, width, yerr=ci, capsize=2, label=labels.get(name, name)
+            )
         ax2.set_xticks(x, [f"{a:.0f}/{b:.0f}" for a, b in keys], fontsize=7)
         ax2.set_xlabel("validation / map line heading (deg)")
         ax2.set_ylabel("mean B_validation - B_map (nT), 95 % CI")
@@ -271,8 +365,11 @@ def audit_heading_figure(heading_deg: np.ndarray, residuals: dict[str, np.ndarra
 
 def audit_gain_figure(gain: dict[str, dict[str, float | None]]) -> plt.Figure:
     """Before vs after for every gain metric (log scale)."""
-    rows = [(k, v["before"], v["after"]) for k, v in gain.items()
-            if v["before"] is not None and v["after"] is not None]
+    rows = [
+        (k, v["before"], v["after"])
+        for k, v in gain.items()
+        if v["before"] is not None and v["after"] is not None
+    ]
     fig, ax = plt.subplots(figsize=(8, 4))
     x = np.arange(len(rows))
     ax.bar(x - 0.2, [r[1] for r in rows], 0.4, label="baseline", color="0.6")
@@ -293,12 +390,22 @@ def audit_gain_figure(gain: dict[str, dict[str, float | None]]) -> plt.Figure:
 # --------------------------------------------------------------------------------------------
 # flight overview
 
-SEGMENT_COLOURS = {"calibration": "tab:red", "survey": "tab:blue", "tie": "tab:green",
-                   "validation": "tab:purple", "turn": "0.75", "transit": "0.55"}
+SEGMENT_COLOURS = {
+    "calibration": "tab:red",
+    "survey": "tab:blue",
+    "tie": "tab:green",
+    "validation": "tab:purple",
+    "turn": "0.75",
+    "transit": "0.55",
+}
 
 
-def flight_map_figure(east_m: np.ndarray, north_m: np.ndarray, labels: np.ndarray,
-                      title: str = "flight track by segment") -> plt.Figure:
+def flight_map_figure(
+    east_m: np.ndarray,
+    north_m: np.ndarray,
+    labels: np.ndarray,
+    title: str = "flight track by segment",
+) -> plt.Figure:
     """The GNSS track in local east/north metres, coloured by segment label.
 
     Turns and transits are drawn thin and grey so the calibration box and the lines stand out.
@@ -313,8 +420,15 @@ def flight_map_figure(east_m: np.ndarray, north_m: np.ndarray, labels: np.ndarra
         e = np.where(sel, east_m, np.nan)
         n = np.where(sel, north_m, np.nan)
         minor = label in ("turn", "transit")
-        ax.plot(e, n, "-", color=colour, lw=0.6 if minor else 1.2,
-                label=f"{label} ({sel.sum()} epochs)", zorder=1 if minor else 2)
+        ax.plot(
+            e,
+            n,
+            "-",
+            color=colour,
+            lw=0.6 if minor else 1.2,
+            label=f"{label} ({sel.sum()} epochs)",
+            zorder=1 if minor else 2,
+        )
     ax.plot(east_m[:1], north_m[:1], "k^", ms=7, label="start")
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")

@@ -27,8 +27,12 @@ from pipeline.io.schemas import schema
 _PLAIN_TOPIC = re.compile(r"^[A-Za-z0-9_/]+$")
 
 # the order models are plotted in, with their labels
-MODEL_LABELS = {"tl16": "T-L (16 terms)", "tl18": "T-L (18 terms)", "agg-tl": "AGG-TL",
-                "extended": "extended model"}
+MODEL_LABELS = {
+    "tl16": "T-L (16 terms)",
+    "tl18": "T-L (18 terms)",
+    "agg-tl": "AGG-TL",
+    "extended": "extended model",
+}
 COLOURS = ["#7f7f7f", "#1f77b4", "#2ca02c", "#d62728", "#9467bd", "#ff7f0e", "#8c564b"]
 
 
@@ -43,7 +47,7 @@ def path_topic_field(path: str) -> tuple[str, str]:
     """Inverse of :func:`message_path` (for checks): (topic, first field)."""
     if path.startswith('"'):
         end = path.index('"', 1)
-        topic, rest = path[1:end], path[end + 2:]
+        topic, rest = path[1:end], path[end + 2 :]
     else:
         topic, _, rest = path.partition(".")
     return topic, re.split(r"[.\[{]", rest, maxsplit=1)[0]
@@ -52,28 +56,62 @@ def path_topic_field(path: str) -> tuple[str, str]:
 def _plot(title: str, series: list[tuple[str, str]], y_label: str) -> dict[str, Any]:
     return {
         "title": title,
-        "paths": [{"value": p, "label": label, "enabled": True, "timestampMethod": "receiveTime",
-                   "color": COLOURS[k % len(COLOURS)]} for k, (p, label) in enumerate(series)],
-        "showXAxisLabels": True, "showYAxisLabels": True, "showLegend": True,
-        "legendDisplay": "floating", "showPlotValuesInLegend": False, "isSynced": True,
-        "xAxisVal": "timestamp", "sidebarDimension": 240, "yAxisLabel": y_label,
+        "paths": [
+            {
+                "value": p,
+                "label": label,
+                "enabled": True,
+                "timestampMethod": "receiveTime",
+                "color": COLOURS[k % len(COLOURS)],
+            }
+            for k, (p, label) in enumerate(series)
+        ],
+        "showXAxisLabels": True,
+        "showYAxisLabels": True,
+        "showLegend": True,
+        "legendDisplay": "floating",
+        "showPlotValuesInLegend": False,
+        "isSynced": True,
+        "xAxisVal": "timestamp",
+        "sidebarDimension": 240,
+        "yAxisLabel": y_label,
     }
 
 
-def _grid_view(topic: str, field: str, centre_m: tuple[float, float] | None,
-               span_m: float | None, frame: str) -> dict[str, Any]:
-    camera: dict[str, Any] = {"perspective": False, "phi": 0.0, "thetaOffset": 0.0,
-                              "fovy": 45.0, "near": 0.5, "far": 50000.0,
-                              "distance": max(span_m or 1000.0, 10.0) * 1.2,
-                              "targetOffset": [*(centre_m or (0.0, 0.0)), 0.0],
-                              "target": [0.0, 0.0, 0.0],
-                              "targetOrientation": [0.0, 0.0, 0.0, 1.0]}
-    return {"followTf": frame, "followMode": "follow-none", "cameraState": camera,
-            "scene": {"enableStats": False},
-            "layers": {"grid": {"layerId": "foxglove.Grid", "visible": False}},
-            "topics": {topic: {"visible": True, "colorField": field, "colorMode": "colormap",
-                               "colorMap": "turbo", "frameLocked": True}},
-            "transforms": {}, "publish": {"type": "point"}, "imageMode": {}}
+def _grid_view(
+    topic: str, field: str, centre_m: tuple[float, float] | None, span_m: float | None, frame: str
+) -> dict[str, Any]:
+    camera: dict[str, Any] = {
+        "perspective": False,
+        "phi": 0.0,
+        "thetaOffset": 0.0,
+        "fovy": 45.0,
+        "near": 0.5,
+        "far": 50000.0,
+        "distance": max(span_m or 1000.0, 10.0) * 1.2,
+        "targetOffset": [*(centre_m or (0.0, 0.0)), 0.0],
+        "target": [0.0, 0.0, 0.0],
+        "targetOrientation": [0.0, 0.0, 0.0, 1.0],
+    }
+    return {
+        "followTf": frame,
+        "followMode": "follow-none",
+        "cameraState": camera,
+        "scene": {"enableStats": False},
+        "layers": {"grid": {"layerId": "foxglove.Grid", "visible": False}},
+        "topics": {
+            topic: {
+                "visible": True,
+                "colorField": field,
+                "colorMode": "colormap",
+                "colorMap": "turbo",
+                "frameLocked": True,
+            }
+        },
+        "transforms": {},
+        "publish": {"type": "point"},
+        "imageMode": {},
+    }
 
 
 def _split(first, second, direction: str, percent: float = 50.0):
@@ -81,8 +119,7 @@ def _split(first, second, direction: str, percent: float = 50.0):
         return second
     if second is None:
         return first
-    return {"first": first, "second": second, "direction": direction,
-            "splitPercentage": percent}
+    return {"first": first, "second": second, "direction": direction, "splitPercentage": percent}
 
 
 def _stack(items: list, direction: str):
@@ -95,9 +132,13 @@ def _stack(items: list, direction: str):
     return _split(items[0], _stack(items[1:], direction), direction, 100.0 / len(items))
 
 
-def foxglove_layout(channels: Mapping[str, str], *, grid_centre_m: tuple[float, float] | None
-                    = None, grid_span_m: float | None = None,
-                    grid_frame: str = "local_enu") -> dict[str, Any]:
+def foxglove_layout(
+    channels: Mapping[str, str],
+    *,
+    grid_centre_m: tuple[float, float] | None = None,
+    grid_span_m: float | None = None,
+    grid_frame: str = "local_enu",
+) -> dict[str, Any]:
     """Foxglove layout for a recording holding ``channels`` (topic -> schema name).
 
     Parameters
@@ -111,8 +152,7 @@ def foxglove_layout(channels: Mapping[str, str], *, grid_centre_m: tuple[float, 
     cfg: dict[str, dict[str, Any]] = {}
 
     def topics_of(schema_name: str, prefix: str = "") -> list[str]:
-        return sorted(t for t, s in channels.items() if s == schema_name
-                      and t.startswith(prefix))
+        return sorted(t for t, s in channels.items() if s == schema_name and t.startswith(prefix))
 
     def has_field(topic: str, field: str) -> bool:
         try:
@@ -125,13 +165,18 @@ def foxglove_layout(channels: Mapping[str, str], *, grid_centre_m: tuple[float, 
     map_panel = None
     if fixes or geojson:
         cfg["map!aeromag-track"] = {
-            "layer": "map", "zoomLevel": 15, "maxNativeZoom": 18, "disabledTopics": [],
+            "layer": "map",
+            "zoomLevel": 15,
+            "maxNativeZoom": 18,
+            "disabledTopics": [],
             "followTopic": fixes[0] if fixes else "",
-            "topicColors": {**{t: "#1f77b4" for t in fixes}, **{t: "#d62728" for t in geojson}}}
+            "topicColors": {**{t: "#1f77b4" for t in fixes}, **{t: "#d62728" for t in geojson}},
+        }
         map_panel = "map!aeromag-track"
 
-    grids = [t for t in ("/map/anomaly", "/map/anomaly_filtered")
-             if channels.get(t) == "foxglove.Grid"]
+    grids = [
+        t for t in ("/map/anomaly", "/map/anomaly_filtered") if channels.get(t) == "foxglove.Grid"
+    ]
     grid_panels = []
     for t in grids:
         key = f"3D!aeromag-{t.rsplit('/', 1)[-1].replace('_', '-')}"
@@ -141,30 +186,43 @@ def foxglove_layout(channels: Mapping[str, str], *, grid_centre_m: tuple[float, 
     raw = topics_of("aeromag.ScalarField", "/mag/scalar")
     compensated = topics_of("aeromag.CompensatedField", "/mag/compensated")
     per_model = {t.rsplit("/", 1)[-1]: t for t in compensated if t != "/mag/compensated"}
-    ordered = [m for m in MODEL_LABELS if m in per_model] + sorted(set(per_model) -
-                                                                   set(MODEL_LABELS))
-    field_series = [(message_path(t, "total_nT"), f"raw {t}") for t in raw
-                    if has_field(t, "total_nT")]
-    field_series += [(message_path(per_model[m], "total_nT"), MODEL_LABELS.get(m, m))
-                     for m in ordered]
+    ordered = [m for m in MODEL_LABELS if m in per_model] + sorted(
+        set(per_model) - set(MODEL_LABELS)
+    )
+    field_series = [
+        (message_path(t, "total_nT"), f"raw {t}") for t in raw if has_field(t, "total_nT")
+    ]
+    field_series += [
+        (message_path(per_model[m], "total_nT"), MODEL_LABELS.get(m, m)) for m in ordered
+    ]
     if "/mag/compensated" in compensated:
         field_series.append((message_path("/mag/compensated", "total_nT"), "final"))
     plots = []
     if field_series:
-        cfg["Plot!aeromag-field"] = _plot("total field: raw, T-L, AGG-TL", field_series,
-                                          "total field (nT)")
+        cfg["Plot!aeromag-field"] = _plot(
+            "total field: raw, T-L, AGG-TL", field_series, "total field (nT)"
+        )
         plots.append("Plot!aeromag-field")
-    interference = [(message_path(per_model[m], "interference_nT"),
-                     MODEL_LABELS.get(m, m)) for m in ordered]
+    interference = [
+        (message_path(per_model[m], "interference_nT"), MODEL_LABELS.get(m, m)) for m in ordered
+    ]
     if interference:
-        cfg["Plot!aeromag-interference"] = _plot("platform interference removed", interference,
-                                                 "interference (nT)")
+        cfg["Plot!aeromag-interference"] = _plot(
+            "platform interference removed", interference, "interference (nT)"
+        )
         plots.append("Plot!aeromag-interference")
     if channels.get("/flight/segment") == "aeromag.Segment":
         cfg["StateTransitions!aeromag-segments"] = {
-            "paths": [{"value": message_path("/flight/segment", f), "timestampMethod":
-                       "receiveTime", "label": f} for f in ("label", "line_id", "manoeuvre")],
-            "isSynced": True}
+            "paths": [
+                {
+                    "value": message_path("/flight/segment", f),
+                    "timestampMethod": "receiveTime",
+                    "label": f,
+                }
+                for f in ("label", "line_id", "manoeuvre")
+            ],
+            "isSynced": True,
+        }
         plots.append("StateTransitions!aeromag-segments")
 
     logs = []
@@ -174,16 +232,26 @@ def foxglove_layout(channels: Mapping[str, str], *, grid_centre_m: tuple[float, 
         logs.append(key)
     if channels.get("/audit/finding") == "aeromag.AuditFinding":
         cfg["RawMessages!aeromag-audit"] = {
-            "topicPath": "/audit/finding", "diffEnabled": False, "diffMethod": "custom",
-            "diffTopicPath": "", "showFullMessageForDiff": False, "expansion": "all"}
+            "topicPath": "/audit/finding",
+            "diffEnabled": False,
+            "diffMethod": "custom",
+            "diffTopicPath": "",
+            "showFullMessageForDiff": False,
+            "expansion": "all",
+        }
         logs.append("RawMessages!aeromag-audit")
 
     left = _split(map_panel, _stack(grid_panels, "row"), "column", 55.0)
     right = _split(_stack(plots, "column"), _stack(logs, "row"), "column", 70.0)
     layout = _split(left, right, "row", 45.0)
-    return {"configById": cfg, "globalVariables": {}, "userNodes": {},
-            "linkedGlobalVariables": [], "playbackConfig": {"speed": 1.0},
-            "layout": layout}
+    return {
+        "configById": cfg,
+        "globalVariables": {},
+        "userNodes": {},
+        "linkedGlobalVariables": [],
+        "playbackConfig": {"speed": 1.0},
+        "layout": layout,
+    }
 
 
 def layout_panels(layout: Any) -> list[str]:
@@ -237,10 +305,14 @@ def recording_layout(path) -> dict[str, Any]:
             reader = make_reader(f)
             summary = reader.get_summary()
             if summary is None:
-                raise AeromagError("no summary section (was it written by aeromag process?)",
-                                   file=path)
-            channels = {c.topic: summary.schemas[c.schema_id].name
-                        for c in summary.channels.values() if c.schema_id in summary.schemas}
+                raise AeromagError(
+                    "no summary section (was it written by aeromag process?)", file=path
+                )
+            channels = {
+                c.topic: summary.schemas[c.schema_id].name
+                for c in summary.channels.values()
+                if c.schema_id in summary.schemas
+            }
             centre = span = None
             if channels.get("/map/anomaly") == "foxglove.Grid":
                 for _, _, msg in reader.iter_messages(topics=["/map/anomaly"]):
@@ -254,6 +326,7 @@ def recording_layout(path) -> dict[str, Any]:
     except FileNotFoundError:
         raise AeromagError("file not found", file=path) from None
     except (McapError, ValueError, KeyError, OSError) as exc:
-        raise AeromagError(f"not a readable MCAP recording ({type(exc).__name__}: {exc})",
-                           file=path) from None
+        raise AeromagError(
+            f"not a readable MCAP recording ({type(exc).__name__}: {exc})", file=path
+        ) from None
     return foxglove_layout(channels, grid_centre_m=centre, grid_span_m=span)

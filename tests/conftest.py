@@ -30,10 +30,16 @@ FIXTURES = REPO / "fixtures"
 
 # No noise, every stream at 10 Hz on the same clock: physics checks compare samples 1:1.
 QUIET = [
-    "sensors.scalar_noise_nT=0.0", "sensors.scalar_drift_nT_per_sqrt_s=0.0",
-    "sensors.vector_noise_nT=0.0", "sensors.attitude_noise_deg=0.0", "sensors.gnss_noise_m=0.0",
-    "sensors.base_noise_nT=0.0", "sensors.vector_rate_hz=10.0", "sensors.attitude_rate_hz=10.0",
-    "sensors.gnss_rate_hz=10.0", "sensors.aux_rate_hz=10.0",
+    "sensors.scalar_noise_nT=0.0",
+    "sensors.scalar_drift_nT_per_sqrt_s=0.0",
+    "sensors.vector_noise_nT=0.0",
+    "sensors.attitude_noise_deg=0.0",
+    "sensors.gnss_noise_m=0.0",
+    "sensors.base_noise_nT=0.0",
+    "sensors.vector_rate_hz=10.0",
+    "sensors.attitude_rate_hz=10.0",
+    "sensors.gnss_rate_hz=10.0",
+    "sensors.aux_rate_hz=10.0",
     "sensors.clock_offset_s={scalar=0.0, vector=0.0, attitude=0.0, gnss=0.0, base=0.0, aux=0.0}",
 ]
 
@@ -93,13 +99,30 @@ def prefect_server(tmp_path_factory):
     home = tmp_path_factory.mktemp("prefect-home")
     port = _free_port()
     url = f"http://127.0.0.1:{port}/api"
-    env = {**os.environ, "PREFECT_HOME": str(home), "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
-           "DO_NOT_TRACK": "1"}
+    env = {
+        **os.environ,
+        "PREFECT_HOME": str(home),
+        "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+        "DO_NOT_TRACK": "1",
+    }
     env.pop("PREFECT_API_URL", None)
-    proc = subprocess.Popen([sys.executable, "-m", "prefect", "server", "start", "--host",
-                             "127.0.0.1", "--port", str(port)], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "prefect",
+            "server",
+            "start",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            str(port),
+        ],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
     try:
         wait_healthy(url, 120, proc)
         yield url

@@ -24,19 +24,29 @@ def test_every_public_name_resolves_to_its_module_object():
 
 def test_type_checking_imports_match_the_lazy_table():
     tree = ast.parse(Path(pipeline.__file__).read_text())
-    block = next(n for n in tree.body if isinstance(n, ast.If)
-                 and getattr(n.test, "id", "") == "TYPE_CHECKING")
+    block = next(
+        n
+        for n in tree.body
+        if isinstance(n, ast.If) and getattr(n.test, "id", "") == "TYPE_CHECKING"
+    )
     imported = {a.name: n.module for n in block.body for a in n.names}
     assert imported == pipeline._LAZY
 
 
 def test_import_pipeline_is_cheap():
     """``import pipeline`` loads none of the heavy dependencies (they load on first use)."""
-    code = ("import sys, pipeline; "
-            "print(sorted(m for m in ('numpy', 'pandas', 'scipy', 'prefect', 'typing', "
-            "'pipeline.io', 'pipeline.config') if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True, cwd=Path(pipeline.__file__).parent.parent)
+    code = (
+        "import sys, pipeline; "
+        "print(sorted(m for m in ('numpy', 'pandas', 'scipy', 'prefect', 'typing', "
+        "'pipeline.io', 'pipeline.config') if m in sys.modules))"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(pipeline.__file__).parent.parent,
+    )
     assert out.stdout.strip() == "[]"
 
 

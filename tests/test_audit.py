@@ -26,8 +26,9 @@ SEED = 3
 
 
 def audited(tmp_path, effects=(), extra=(), seed=SEED, mutate=None):
-    sim = run_sim("uav-small", seed, [*AUDIT, *[f"effects.{e}.enabled=true" for e in effects],
-                                      *extra])
+    sim = run_sim(
+        "uav-small", seed, [*AUDIT, *[f"effects.{e}.enabled=true" for e in effects], *extra]
+    )
     if mutate:
         mutate(sim)
     flight = read_flight(write_simulation(sim, tmp_path / "f.mcap"))
@@ -49,13 +50,20 @@ def test_clean_recording_gives_no_finding(tmp_path):
     assert j["baseline"]["generalization_gap"] < 1.5
     # every candidate was tested and rejected with a stated reason
     keys = {e["key"] for e in j["rounds"][0]}
-    assert {"geomagnetic_gradient", "sensor_lag", "diurnal", "vector_calibration",
-            "electrical_current:payload_current"} <= keys
+    assert {
+        "geomagnetic_gradient",
+        "sensor_lag",
+        "diurnal",
+        "vector_calibration",
+        "electrical_current:payload_current",
+    } <= keys
     assert all(e["reason"] and not e["accepted"] for e in j["rounds"][0])
 
 
-@pytest.mark.parametrize("effect", ["geomagnetic_gradient", "sensor_lag", "diurnal",
-                                    "electrical_current", "vector_calibration"])
+@pytest.mark.parametrize(
+    "effect",
+    ["geomagnetic_gradient", "sensor_lag", "diurnal", "electrical_current", "vector_calibration"],
+)
 def test_a_hidden_effect_is_found_named_and_estimated(tmp_path, effect):
     sim, _, _, res = audited(tmp_path, [effect])
     est = found(res)
@@ -66,8 +74,7 @@ def test_a_hidden_effect_is_found_named_and_estimated(tmp_path, effect):
         assert est[effect]["east_nT_per_m"] == pytest.approx(g[0], rel=0.10)
         assert est[effect]["north_nT_per_m"] == pytest.approx(g[1], rel=0.10)
     elif effect == "sensor_lag":
-        assert est[effect]["lag_s"] == pytest.approx(truth["effective"]["sensor_lag_s"],
-                                                     abs=0.005)
+        assert est[effect]["lag_s"] == pytest.approx(truth["effective"]["sensor_lag_s"], abs=0.005)
     elif effect == "diurnal":
         p = truth["effects"]["diurnal"]
         assert est[effect]["base_coefficient"] == pytest.approx(1.0, abs=0.1)
@@ -82,10 +89,12 @@ def test_a_hidden_effect_is_found_named_and_estimated(tmp_path, effect):
         # observable: the sensor errors combined with the carrier's soft iron at the fluxgate
         fe = truth["fluxgate_errors"]
         soft = np.diag(truth["interference"]["vector"]["induced"])
-        np.testing.assert_allclose(est[effect]["scale_error"][:2],
-                                   (np.asarray(fe["scale_error"]) + soft)[:2], atol=0.004)
-        np.testing.assert_allclose(est[effect]["nonorthogonality_deg"],
-                                   fe["nonorthogonality_deg"], atol=0.1)
+        np.testing.assert_allclose(
+            est[effect]["scale_error"][:2], (np.asarray(fe["scale_error"]) + soft)[:2], atol=0.004
+        )
+        np.testing.assert_allclose(
+            est[effect]["nonorthogonality_deg"], fe["nonorthogonality_deg"], atol=0.1
+        )
     f = res.findings[0]
     assert f.heldout.rms_after_nT < 0.8 * f.heldout.rms_before_nT
     assert f.test.delta_bic < 0 and f.p_adjusted < 0.01
@@ -93,18 +102,25 @@ def test_a_hidden_effect_is_found_named_and_estimated(tmp_path, effect):
     # the 95 % interval of each estimate covers the truth checked above
     ci = f.ci95
     if effect == "geomagnetic_gradient":
-        for key, g in zip(("east_nT_per_m", "north_nT_per_m"), (truth["effective"][
-                "gradient_nT_per_m"]), strict=False):
+        for key, g in zip(
+            ("east_nT_per_m", "north_nT_per_m"),
+            (truth["effective"]["gradient_nT_per_m"]),
+            strict=False,
+        ):
             assert ci[key][0] - 0.01 <= g <= ci[key][1] + 0.01, (key, ci[key], g)
     elif effect == "sensor_lag":
-        assert ci["lag_s"][0] - 0.005 <= truth["effective"]["sensor_lag_s"] <= \
-            ci["lag_s"][1] + 0.005
+        assert (
+            ci["lag_s"][0] - 0.005 <= truth["effective"]["sensor_lag_s"] <= ci["lag_s"][1] + 0.005
+        )
     # the extension pays off on the survey, not only on the calibration passes
     gain = res.gain
     # uav-small's X lines meet the survey lines at 26.5 deg, below the 30 deg that makes an
     # intersection: the survey's own crossovers (survey x tie, 90 deg) measure the gain
-    metric = "heading_error_rms_nT" if gain["heading_error_rms_nT"]["before"] is not None \
+    metric = (
+        "heading_error_rms_nT"
+        if gain["heading_error_rms_nT"]["before"] is not None
         else "crossover_rms_nT"
+    )
     assert gain[metric]["after"] < gain[metric]["before"], gain
 
 
@@ -120,13 +136,16 @@ def test_several_effects_at_once(tmp_path):
     g = res.gain
     # no X-line intersection at >= 30 deg on uav-small: the survey x tie crossovers instead
     assert g["crossover_rms_nT"]["after"] < 0.1 * g["crossover_rms_nT"]["before"], g
-    assert g["heldout_calibration_residual_rms_nT"]["after"] < 0.2 * g[
-        "heldout_calibration_residual_rms_nT"]["before"]
+    assert (
+        g["heldout_calibration_residual_rms_nT"]["after"]
+        < 0.2 * g["heldout_calibration_residual_rms_nT"]["before"]
+    )
 
 
 def test_structure_outside_the_catalogue_is_reported_as_unexplained(tmp_path):
     """A 0.25 Hz, 0.4 nT oscillation on the scalar sensor (a gimbal motor, say) that no
     candidate effect produces: no finding, and the residual above the floor is reported."""
+
     def gimbal(sim):
         s = sim.streams["/mag/scalar"]
         s["cols"]["total_nT"] = s["cols"]["total_nT"] + 0.4 * np.sin(2 * np.pi * 0.25 * s["t"])
@@ -155,18 +174,23 @@ def test_baseline_is_the_production_tl18_model(tmp_path):
 def test_simulated_measurement_reproduces_the_simulator():
     """With the true coefficients and Earth field, the audit's forward model (simulator
     physics driven by the measured vector) reproduces the recorded scalar field."""
-    sim = run_sim("calibration-only", 4, ["calibration.passes=1", *QUIET,
-                                          "vector_interference.permanent_nT=[0.0,0.0,0.0]",
-                                          "vector_interference.induced=[[0.0,0.0,0.0],"
-                                          "[0.0,0.0,0.0],[0.0,0.0,0.0]]",
-                                          "vector_interference.eddy_s=[[0.0,0.0,0.0],"
-                                          "[0.0,0.0,0.0],[0.0,0.0,0.0]]"])
+    sim = run_sim(
+        "calibration-only",
+        4,
+        [
+            "calibration.passes=1",
+            *QUIET,
+            "vector_interference.permanent_nT=[0.0,0.0,0.0]",
+            "vector_interference.induced=[[0.0,0.0,0.0],[0.0,0.0,0.0],[0.0,0.0,0.0]]",
+            "vector_interference.eddy_s=[[0.0,0.0,0.0],[0.0,0.0,0.0],[0.0,0.0,0.0]]",
+        ],
+    )
     tr = sim.truth["interference"]["scalar"]
-    vec = np.stack([sim.streams["/mag/vector"]["cols"][k] for k in ("x_nT", "y_nT", "z_nT")],
-                   -1)
+    vec = np.stack([sim.streams["/mag/vector"]["cols"][k] for k in ("x_nT", "y_nT", "z_nT")], -1)
     t = sim.streams["/mag/vector"]["t"]
-    theta = tl18_truth_coefficients(tr["permanent_nT"], tr["induced"], tr["eddy_s"],
-                                    float(np.median(np.diff(t))))
+    theta = tl18_truth_coefficients(
+        tr["permanent_nT"], tr["induced"], tr["eddy_s"], float(np.median(np.diff(t)))
+    )
     scalar = sim.streams["/mag/scalar"]["cols"]["total_nT"]
     data = AuditData(t, scalar, vec, None)
     names = tl18_terms(vec[:3], t[:3])[1]
@@ -182,10 +206,24 @@ def test_audit_command_writes_the_contract(tmp_path):
     sim = run_sim("uav-small", SEED, [*AUDIT, "effects.sensor_lag.enabled=true"])
     src = write_simulation(sim, tmp_path / "lag.mcap")
     before = sha256(src)
-    res = subprocess.run([sys.executable, "-m", "flows.cli", "audit", str(src), "--json",
-                          str(tmp_path / "audit.json"), "--report", str(tmp_path / "rep"),
-                          "--out", str(tmp_path / "out.mcap")], capture_output=True,
-                         text=True, timeout=600)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "audit",
+            str(src),
+            "--json",
+            str(tmp_path / "audit.json"),
+            "--report",
+            str(tmp_path / "rep"),
+            "--out",
+            str(tmp_path / "out.mcap"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert res.returncode == 0, res.stderr[-2000:]
     assert sha256(src) == before
     j = json.loads((tmp_path / "audit.json").read_text())
@@ -204,8 +242,12 @@ def test_audit_command_writes_the_contract(tmp_path):
         assert png.stat().st_size > 10000 and png.name in text
     assert "sensor_lag" in res.stdout
     out = tmp_path / "out.mcap"
-    assert validate_every_message(out, {"/audit/finding", "/aeromag/log", "/mag/compensated",
-                                        "/mag/compensated/tl18"}) > 0
+    assert (
+        validate_every_message(
+            out, {"/audit/finding", "/aeromag/log", "/mag/compensated", "/mag/compensated/tl18"}
+        )
+        > 0
+    )
     from tests.test_writer import records
 
     msgs = [m for m in records(out)[0] if m[0] == "/audit/finding"]

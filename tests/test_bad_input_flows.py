@@ -56,9 +56,13 @@ def test_process_bad_input_is_one_line(case, corpus, prefect_server, tmp_path):
     src = corpus[case]
     before = sha256(src)
     out = tmp_path / "out"
-    res = subprocess.run([sys.executable, "-m", "flows.cli", "process", str(src), "--out",
-                          str(out)], env=_env(prefect_server), capture_output=True, text=True,
-                         timeout=600)
+    res = subprocess.run(
+        [sys.executable, "-m", "flows.cli", "process", str(src), "--out", str(out)],
+        env=_env(prefect_server),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert sha256(src) == before, "the input was modified"
     err = _stderr_lines(res.stderr)
     assert "Traceback" not in res.stdout + res.stderr
@@ -84,9 +88,23 @@ def test_reprocess_quarantines_with_the_same_line(corpus, prefect_server, tmp_pa
     for p in corpus.values():
         (archive / p.name).write_bytes(p.read_bytes())
     out = tmp_path / "out"
-    res = subprocess.run([sys.executable, "-m", "flows.cli", "reprocess", str(archive), "--out",
-                          str(out), "--workers", "2"], env=_env(prefect_server),
-                         capture_output=True, text=True, timeout=900)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "reprocess",
+            str(archive),
+            "--out",
+            str(out),
+            "--workers",
+            "2",
+        ],
+        env=_env(prefect_server),
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert res.returncode == 0, res.stdout + res.stderr
     assert "Traceback" not in res.stdout + res.stderr
     assert len(_stderr_lines(res.stderr)) <= 2, res.stderr
@@ -122,8 +140,12 @@ def test_errors_inside_a_flow_are_logged_as_one_line():
     assert first.getMessage() == "aeromag: error: f.mcap: /mag/scalar: no survey lines"
     assert first.exc_info is None
     assert not filt.filter(record("Encountered exception during execution", err))
-    assert not filt.filter(record("Finished in state Failed('Task run encountered an exception "
-                                  "AeromagError: f.mcap: /mag/scalar: no survey lines')"))
+    assert not filt.filter(
+        record(
+            "Finished in state Failed('Task run encountered an exception "
+            "AeromagError: f.mcap: /mag/scalar: no survey lines')"
+        )
+    )
     bug = ValueError("a bug")
     kept = record("Task run failed with exception", bug)
     assert filt.filter(kept) and kept.exc_info[1] is bug
@@ -151,11 +173,17 @@ except AeromagError as exc:
 
 
 def test_an_error_raised_inside_a_flow_run_is_one_line(prefect_server):
-    res = subprocess.run([sys.executable, "-c", FAILING_FLOW], env=_env(prefect_server),
-                         capture_output=True, text=True, timeout=300)
+    res = subprocess.run(
+        [sys.executable, "-c", FAILING_FLOW],
+        env=_env(prefect_server),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert res.returncode == 0, res.stderr
     assert "caught: f.mcap: /gnss/fix: no survey lines to grid" in res.stdout
     assert "Traceback" not in res.stderr
     err = _stderr_lines(res.stderr)
     assert len(err) == 1 and err[0].endswith(
-        "aeromag: error: f.mcap: /gnss/fix: no survey lines to grid"), res.stderr
+        "aeromag: error: f.mcap: /gnss/fix: no survey lines to grid"
+    ), res.stderr

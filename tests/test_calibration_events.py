@@ -25,8 +25,13 @@ def legs_with_residual(seed: int, step_nT: float = 0.0, step_s: float = 0.0):
     for k in range(4):
         m = (t >= 90 * k) & (t < 90 * k + 80)
         leg[m] = k
-        y[m] = (50_000 + rng.normal(0, 20) + rng.normal(0, 0.01) * (t[m] - 90 * k)
-                + ar[m] + rng.normal(0, 0.05, m.sum()))
+        y[m] = (
+            50_000
+            + rng.normal(0, 20)
+            + rng.normal(0, 0.01) * (t[m] - 90 * k)
+            + ar[m]
+            + rng.normal(0, 0.05, m.sum())
+        )
     y = y + step_nT * (t > step_s)
     return t, y, leg
 
@@ -46,8 +51,10 @@ def test_a_step_between_legs_is_not_one():
 
 
 def test_no_events_from_autocorrelated_residual():
-    false = sum(bool(calibration_steps(*legs_with_residual(100 + s), alpha=0.01,
-                                       min_size_nT=0.0)) for s in range(40))
+    false = sum(
+        bool(calibration_steps(*legs_with_residual(100 + s), alpha=0.01, min_size_nT=0.0))
+        for s in range(40)
+    )
     # alpha 0.01 after the scan correction: 0.4 expected; 3 or more would mean the
     # autocorrelation is not accounted for (p < 0.01 under a binomial(40, 0.01))
     assert false <= 2

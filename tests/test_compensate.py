@@ -22,8 +22,9 @@ from tests.test_schemas import validate_every_message
 
 
 def cli(*args):
-    return subprocess.run([sys.executable, "-m", "flows.cli", *args], capture_output=True,
-                          text=True, timeout=600)
+    return subprocess.run(
+        [sys.executable, "-m", "flows.cli", *args], capture_output=True, text=True, timeout=600
+    )
 
 
 # ------------------------------------------------------------------------------------------
@@ -43,14 +44,28 @@ def _magnav_create_tl_a(bx, by, bz, bt_scale=50000.0):
     bt = np.sqrt(bx**2 + by**2 + bz**2)
     xh, yh, zh = bx / bt, by / bt, bz / bt
     dx, dy, dz = _fdm(bx), _fdm(by), _fdm(bz)
-    return np.column_stack([
-        xh, yh, zh,
-        xh * bx / bt_scale, xh * by / bt_scale, xh * bz / bt_scale,
-        yh * by / bt_scale, yh * bz / bt_scale, zh * bz / bt_scale,
-        xh * dx / bt_scale, xh * dy / bt_scale, xh * dz / bt_scale,
-        yh * dx / bt_scale, yh * dy / bt_scale, yh * dz / bt_scale,
-        zh * dx / bt_scale, zh * dy / bt_scale, zh * dz / bt_scale,
-    ])
+    return np.column_stack(
+        [
+            xh,
+            yh,
+            zh,
+            xh * bx / bt_scale,
+            xh * by / bt_scale,
+            xh * bz / bt_scale,
+            yh * by / bt_scale,
+            yh * bz / bt_scale,
+            zh * bz / bt_scale,
+            xh * dx / bt_scale,
+            xh * dy / bt_scale,
+            xh * dz / bt_scale,
+            yh * dx / bt_scale,
+            yh * dy / bt_scale,
+            yh * dz / bt_scale,
+            zh * dx / bt_scale,
+            zh * dy / bt_scale,
+            zh * dz / bt_scale,
+        ]
+    )
 
 
 def _small_vector_input(n=9, seed=5):
@@ -65,7 +80,11 @@ def test_tl18_equals_magnavs_design_matrix_at_any_sample_rate():
 
     b = _small_vector_input()
     want = _magnav_create_tl_a(b[:, 0], b[:, 1], b[:, 2])
-    for t in (np.arange(9) * 0.1, np.arange(9) * 1.0, np.cumsum(np.r_[0, np.linspace(.05, .2, 8)])):
+    for t in (
+        np.arange(9) * 0.1,
+        np.arange(9) * 1.0,
+        np.cumsum(np.r_[0, np.linspace(0.05, 0.2, 8)]),
+    ):
         k, names = tl18_terms(b, t)
         assert k.shape == (9, 18) and len(names) == 18
         np.testing.assert_allclose(k, want, rtol=1e-13, atol=1e-16)
@@ -112,8 +131,9 @@ def test_tl18_eddy_coefficients_scale_with_the_sample_interval():
     for rate in (10.0, 20.0):
         t = np.arange(0, 30, 1 / rate)
         ang = 0.3 * np.sin(2 * np.pi * 0.2 * t)[:, None] * np.array([1.0, 0.7, 0.4])
-        b = 50000 * np.column_stack([np.cos(ang[:, 0]), np.sin(ang[:, 0]) * np.cos(ang[:, 1]),
-                                     np.sin(ang[:, 1]) + 0.5])
+        b = 50000 * np.column_stack(
+            [np.cos(ang[:, 0]), np.sin(ang[:, 0]) * np.cos(ang[:, 1]), np.sin(ang[:, 1]) + 0.5]
+        )
         db = np.gradient(b, t, axis=0)
         u = b / np.linalg.norm(b, axis=1, keepdims=True)
         physics = np.einsum("ni,ni->n", u, p + b @ a.T + db @ e.T)
@@ -132,9 +152,27 @@ def test_tl18_coefficients_equal_the_closed_form(tmp_path):
     """`--model tl18 --band 0.1 0.9 --poles 4 --trim 20 --ridge 0.001` on a recording with
     only the two magnetometers equals theta = (K'K + lambda I)^-1 K'y written out here."""
     src = FIXTURES / "box_scalar_vector_only.mcap"
-    res = cli("compensate", str(src), "--out", str(tmp_path / "o.mcap"), "--json",
-              str(tmp_path / "s.json"), "--model", "tl18", "--band", "0.1", "0.9", "--poles",
-              "4", "--trim", "20", "--ridge", "0.001", "--calibration", "all")
+    res = cli(
+        "compensate",
+        str(src),
+        "--out",
+        str(tmp_path / "o.mcap"),
+        "--json",
+        str(tmp_path / "s.json"),
+        "--model",
+        "tl18",
+        "--band",
+        "0.1",
+        "0.9",
+        "--poles",
+        "4",
+        "--trim",
+        "20",
+        "--ridge",
+        "0.001",
+        "--calibration",
+        "all",
+    )
     assert res.returncode == 0, res.stderr
     summary = json.loads((tmp_path / "s.json").read_text())
 
@@ -146,16 +184,17 @@ def test_tl18_coefficients_equal_the_closed_form(tmp_path):
     u = b / bt[:, None]
     db = _fdm(b)
     cols = [u[:, 0], u[:, 1], u[:, 2]]
-    cols += [u[:, i] * b[:, j] / 50000.0 for i, j in
-             ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))]
+    cols += [
+        u[:, i] * b[:, j] / 50000.0 for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+    ]
     cols += [u[:, i] * db[:, j] / 50000.0 for i in range(3) for j in range(3)]
     k = np.column_stack(cols)
     ok = np.isfinite(k).all(axis=1) & np.isfinite(y)
     first, last = np.flatnonzero(ok)[[0, -1]]
-    assert ok[first:last + 1].all()  # one contiguous block
+    assert ok[first : last + 1].all()  # one contiguous block
     sos = butter(4, [0.1 / 5.0, 0.9 / 5.0], btype="bandpass", output="sos")
-    kf = sosfiltfilt(sos, k[first:last + 1], axis=0)[20:-20]
-    yf = sosfiltfilt(sos, y[first:last + 1])[20:-20]
+    kf = sosfiltfilt(sos, k[first : last + 1], axis=0)[20:-20]
+    yf = sosfiltfilt(sos, y[first : last + 1])[20:-20]
     theta = np.linalg.solve(kf.T @ kf + 0.001 * np.eye(18), kf.T @ yf)
     assert summary["model"] == "tl18" and summary["lambda"] == 0.001
     assert len(summary["terms"]) == 18 and summary["samples"] == len(yf)
@@ -254,8 +293,9 @@ def _recovery_error(sim, fl, meas, cal, model):
 @pytest.mark.parametrize("seed", [3, 4])
 def test_gradient_biases_tl_and_agg_tl_recovers(seed):
     (s0, f0, m0, c0), (s1, f1, m1, c1) = _box_pair(seed)
-    base_err, base_noise = _recovery_error(s0, f0, m0, c0,
-                                           fit_compensation(m0, c0, FitSettings("tl18")))
+    base_err, base_noise = _recovery_error(
+        s0, f0, m0, c0, fit_compensation(m0, c0, FitSettings("tl18"))
+    )
     tl_err, _ = _recovery_error(s1, f1, m1, c1, fit_compensation(m1, c1, FitSettings("tl18")))
     agg = fit_compensation(m1, c1, FitSettings("agg-tl"))
     agg_err, agg_noise = _recovery_error(s1, f1, m1, c1, agg)
@@ -299,28 +339,73 @@ def test_lcurve_finds_a_known_corner():
 
 def test_compensate_cli_errors_and_window(tmp_path):
     src = FIXTURES / "box_scalar_vector_only.mcap"
-    res = cli("compensate", str(src), "--out", str(tmp_path / "a.mcap"), "--json",
-              str(tmp_path / "a.json"))
+    res = cli(
+        "compensate",
+        str(src),
+        "--out",
+        str(tmp_path / "a.mcap"),
+        "--json",
+        str(tmp_path / "a.json"),
+    )
     assert res.returncode == 2 and "--calibration auto needs the segmentation" in res.stderr
     assert not (tmp_path / "a.mcap").exists()
-    res = cli("compensate", str(src), "--out", str(tmp_path / "b.mcap"), "--json",
-              str(tmp_path / "b.json"), "--calibration", "100:400", "--model", "tl16")
+    res = cli(
+        "compensate",
+        str(src),
+        "--out",
+        str(tmp_path / "b.mcap"),
+        "--json",
+        str(tmp_path / "b.json"),
+        "--calibration",
+        "100:400",
+        "--model",
+        "tl16",
+    )
     assert res.returncode == 0, res.stderr
     s = json.loads((tmp_path / "b.json").read_text())
     w = s["calibration_windows_s"]
     assert len(w) == 1 and 99.9 <= w[0][0] and w[0][1] <= 400.1
     assert s["lcurve_png"].endswith(".lcurve.png")
-    res = cli("compensate", str(src), "--out", str(tmp_path / "c.mcap"), "--json",
-              str(tmp_path / "c.json"), "--calibration", "all", "--model", "agg-tl")
+    res = cli(
+        "compensate",
+        str(src),
+        "--out",
+        str(tmp_path / "c.mcap"),
+        "--json",
+        str(tmp_path / "c.json"),
+        "--calibration",
+        "all",
+        "--model",
+        "agg-tl",
+    )
     assert res.returncode == 2 and "agg-tl needs positions" in res.stderr
-    res = cli("compensate", str(src), "--out", str(tmp_path / "d.mcap"), "--json",
-              str(tmp_path / "d.json"), "--calibration", "all", "--band", "0.1", "6.0")
+    res = cli(
+        "compensate",
+        str(src),
+        "--out",
+        str(tmp_path / "d.mcap"),
+        "--json",
+        str(tmp_path / "d.json"),
+        "--calibration",
+        "all",
+        "--band",
+        "0.1",
+        "6.0",
+    )
     assert res.returncode == 2 and "Nyquist" in res.stderr
 
 
 def test_compensate_with_segmentation_writes_every_channel(tmp_path, box_path):
-    res = cli("compensate", str(box_path), "--out", str(tmp_path / "o.mcap"), "--json",
-              str(tmp_path / "s.json"), "--model", "agg-tl")
+    res = cli(
+        "compensate",
+        str(box_path),
+        "--out",
+        str(tmp_path / "o.mcap"),
+        "--json",
+        str(tmp_path / "s.json"),
+        "--model",
+        "agg-tl",
+    )
     assert res.returncode == 0, res.stderr
     s = json.loads((tmp_path / "s.json").read_text())
     assert s["fom_nT"]["uncompensated"] > 5 * s["fom_nT"]["compensated"]
@@ -330,8 +415,7 @@ def test_compensate_with_segmentation_writes_every_channel(tmp_path, box_path):
 
     with (tmp_path / "o.mcap").open("rb") as f:
         topics = {c.topic for c in make_reader(f).get_summary().channels.values()}
-    assert {"/flight/segment", "/mag/compensated", "/compensation/model",
-            "/aeromag/log"} <= topics
+    assert {"/flight/segment", "/mag/compensated", "/compensation/model", "/aeromag/log"} <= topics
     validate_every_message(tmp_path / "o.mcap")
 
 
@@ -369,9 +453,16 @@ def test_calibration_guards_pass_a_full_box_and_flag_a_poor_one(box_path):
     for b in seg.boxes():
         mask[b.index[:45]] = True
     model = fit_compensation(meas, mask, FitSettings(model="tl16"))
-    check = check_calibration("tl16", model.condition_number, model.weakest_terms, t,
-                              fl.data["yaw_deg"].to_numpy(), mask, seg.boxes(),
-                              min_heading_s=5.0)
+    check = check_calibration(
+        "tl16",
+        model.condition_number,
+        model.weakest_terms,
+        t,
+        fl.data["yaw_deg"].to_numpy(),
+        mask,
+        seg.boxes(),
+        min_heading_s=5.0,
+    )
     text = " | ".join(check.warnings)
     assert "12 manoeuvre(s) shorter than 5 s" in text
     assert "ill-conditioned" in text

@@ -40,18 +40,37 @@ def test_settings_defaults_are_the_shipped_configuration():
     c = d["compensation"]
     fit = FitSettings()
     assert (fit.band_hz, fit.poles, fit.trim, fit.ridge, fit.base) == (
-        tuple(c["band_hz"]), c["poles"], c["trim"], c["ridge"], c["agg_base"])
+        tuple(c["band_hz"]),
+        c["poles"],
+        c["trim"],
+        c["ridge"],
+        c["agg_base"],
+    )
     assert BandSettings() == BandSettings(tuple(c["band_hz"]), c["poles"], c["trim"])
     a = AuditSettings()
-    assert (a.baseline, a.alpha, a.min_gain) == (d["audit"]["baseline"], d["audit"]["alpha"],
-                                                 d["audit"]["min_gain"])
+    assert (a.baseline, a.alpha, a.min_gain) == (
+        d["audit"]["baseline"],
+        d["audit"]["alpha"],
+        d["audit"]["min_gain"],
+    )
     q = QualitySettings()
     assert {k: getattr(q, k) for k in d["quality"]} == d["quality"]
     m = MapSettings()
-    assert (m.cell_m or 0.0, m.noise_nT or 0.0, m.level_trend, m.direction, m.arima,
-            m.min_crossing_angle_deg) == (d["map"]["cell_m"], d["map"]["noise_nT"],
-                                          d["map"]["level_trend"], d["map"]["direction"],
-                                          d["map"]["arima"], d["map"]["min_crossing_angle_deg"])
+    assert (
+        m.cell_m or 0.0,
+        m.noise_nT or 0.0,
+        m.level_trend,
+        m.direction,
+        m.arima,
+        m.min_crossing_angle_deg,
+    ) == (
+        d["map"]["cell_m"],
+        d["map"]["noise_nT"],
+        d["map"]["level_trend"],
+        d["map"]["direction"],
+        d["map"]["arima"],
+        d["map"]["min_crossing_angle_deg"],
+    )
     # the configuration's settings are the dataclasses' defaults: nothing re-typed between them
     assert cfg.fit_settings("tl16") == FitSettings()
     assert cfg.audit_settings() == AuditSettings()
@@ -62,10 +81,13 @@ def test_settings_defaults_are_the_shipped_configuration():
 def test_no_processing_default_is_retyped_in_the_code():
     """The band (and its order and trim) is written in the TOML only."""
     band = re.compile(r"\(\s*0\.1\s*,\s*0\.9\s*\)|\[\s*0\.1\s*,\s*0\.9\s*\]")
-    hits = [f"{p.relative_to(REPO)}:{n}" for root in ("pipeline", "flows")
-            for p in sorted((REPO / root).rglob("*.py"))
-            for n, line in enumerate(p.read_text().splitlines(), 1)
-            if band.search(line) or re.search(r"\b(poles|trim)\s*[:=][^=].*\b(4|20)\b", line)]
+    hits = [
+        f"{p.relative_to(REPO)}:{n}"
+        for root in ("pipeline", "flows")
+        for p in sorted((REPO / root).rglob("*.py"))
+        for n, line in enumerate(p.read_text().splitlines(), 1)
+        if band.search(line) or re.search(r"\b(poles|trim)\s*[:=][^=].*\b(4|20)\b", line)
+    ]
     assert hits == []
 
 
@@ -98,15 +120,29 @@ def test_single_stage_commands_take_a_configuration_their_options_override(tmp_p
         assert "--config" in [o for p in cmd.commands[name].params for o in p.opts], name
     src = FIXTURES / "box_scalar_vector_only.mcap"
     cfg = tmp_path / "c.toml"
-    cfg.write_text(f"config_version = 1\n[compensation]\nband_hz = {BAND}\nridge = 0.001\n"
-                   "models = ['tl18']\n")
+    cfg.write_text(
+        f"config_version = 1\n[compensation]\nband_hz = {BAND}\nridge = 0.001\nmodels = ['tl18']\n"
+    )
     runner = CliRunner()
 
     def run(*extra):
         js = tmp_path / f"s{len(list(tmp_path.glob('*.json')))}.json"
-        res = runner.invoke(app, ["compensate", str(src), "--out", str(js.with_suffix(".mcap")),
-                                  "--json", str(js), "--calibration", "all", "--config",
-                                  str(cfg), *extra])
+        res = runner.invoke(
+            app,
+            [
+                "compensate",
+                str(src),
+                "--out",
+                str(js.with_suffix(".mcap")),
+                "--json",
+                str(js),
+                "--calibration",
+                "all",
+                "--config",
+                str(cfg),
+                *extra,
+            ],
+        )
         return res, js
 
     res, js = run()
@@ -133,9 +169,11 @@ def processed(tmp_path_factory):
     folder = tmp_path_factory.mktemp("band")
     src = write_simulation(run_sim("uav-small", 3), folder / "flight.mcap")
     cfg = folder / "c.toml"
-    cfg.write_text(f"config_version = 1\n[compensation]\nband_hz = {BAND}\n"
-                   "models = ['tl18', 'agg-tl']\n[audit]\nenabled = false\n"
-                   "[vector]\nenabled = false\n[map]\narima = '1,1,1'\n")
+    cfg.write_text(
+        f"config_version = 1\n[compensation]\nband_hz = {BAND}\n"
+        "models = ['tl18', 'agg-tl']\n[audit]\nenabled = false\n"
+        "[vector]\nenabled = false\n[map]\narima = '1,1,1'\n"
+    )
     return src, run_plain(str(src), str(folder / "out"), str(cfg))
 
 
@@ -153,20 +191,25 @@ def test_every_fom_table_agrees_with_a_non_default_band(processed):
         assert len(boxes) == len(table)
         for row, b in zip(table, boxes, strict=True):
             assert (row["pass"], row["cardinal"], row["manoeuvre"]) == (
-                b["pass"], b["cardinal"], b["manoeuvre"])
+                b["pass"],
+                b["cardinal"],
+                b["manoeuvre"],
+            )
             assert row["uncompensated_nT"] == pytest.approx(b["uncompensated_nT"], rel=1e-9)
             assert row[f"{state_key(m)}_nT"] == pytest.approx(b["compensated_nT"], rel=1e-9)
     report = Path(s["outputs"]["report"]).read_text()
     for m in ("tl18", "agg-tl"):
         fom = comp[m]["fom_nT"]
-        assert (f"| {m} | {fom['uncompensated']:.2f} | {fom['compensated']:.2f} |"
-                in report), m
+        assert f"| {m} | {fom['uncompensated']:.2f} | {fom['compensated']:.2f} |" in report, m
     # the band matters: in the shipped band the same boxes measure differently
     flight = read_flight(src)
     t, raw = flight.data["time_s"].to_numpy(float), flight.data["scalar_nT"].to_numpy(float)
     shipped_band = fom_table(t, raw, {"raw": raw}, segment_flight(flight).boxes())
-    assert not np.allclose([r["uncompensated_nT"] for r in shipped_band],
-                           [r["uncompensated_nT"] for r in table], rtol=1e-3)
+    assert not np.allclose(
+        [r["uncompensated_nT"] for r in shipped_band],
+        [r["uncompensated_nT"] for r in table],
+        rtol=1e-3,
+    )
 
 
 def test_the_audit_measures_its_fom_in_the_configured_band(monkeypatch):
@@ -187,8 +230,11 @@ def test_the_audit_measures_its_fom_in_the_configured_band(monkeypatch):
         raise Caught
 
     monkeypatch.setattr(audit_stage, "figure_of_merit", spy)
-    monkeypatch.setattr(audit_stage.Auditor, "run",
-                        lambda self, progress=None: (ModelSpec(base=self.s.baseline), [], []))
+    monkeypatch.setattr(
+        audit_stage.Auditor,
+        "run",
+        lambda self, progress=None: (ModelSpec(base=self.s.baseline), [], []),
+    )
     cfg = Config.load().with_values({"compensation.band_hz": BAND, "compensation.poles": 3})
     flight = read_flight(FIXTURES / "box_uav.mcap")
     with pytest.raises(Caught):

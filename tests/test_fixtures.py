@@ -32,6 +32,7 @@ def test_fixture_comparison_tolerates_rounding_but_not_change():
     assert mod.same(msg, rounded)
     assert not mod.same(msg, changed)
     assert not mod.same(msg, [("/mag/scalar", 2, msg[0][2])])
-    assert not mod.same(msg, [("/mag/scalar", 1, {"total_nT": 51234.123456789, "n": 4,
-                                                  "ok": True})])
+    assert not mod.same(
+        msg, [("/mag/scalar", 1, {"total_nT": 51234.123456789, "n": 4, "ok": True})]
+    )
     assert not mod.same({"a": 1.0}, {"a": 1.0, "b": 2.0})

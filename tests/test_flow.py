@@ -13,8 +13,11 @@ from tests.conftest import sha256
 def _messages(path):
     """(topic, log_time, payload) of every message, by our salvaging scanner (fast)."""
     sc = scan_mcap(path)
-    return sorted((ch.topic, t, d) for ch in sc.channels.values()
-                  for t, d in zip(ch.log_time_ns, ch.data, strict=True))
+    return sorted(
+        (ch.topic, t, d)
+        for ch in sc.channels.values()
+        for t, d in zip(ch.log_time_ns, ch.data, strict=True)
+    )
 
 
 def test_postflight_flow_writes_input_plus_new_channels(demo_output):
@@ -25,10 +28,22 @@ def test_postflight_flow_writes_input_plus_new_channels(demo_output):
     out = out_dir / "demo_flight.processed.mcap"
     assert summary["outputs"]["mcap"] == str(out)
     assert summary["input"]["sha256"] == sha256(src)  # read-only: the hash did not change
-    new = {"/aeromag/log", "/flight/segment", "/mag/compensated", "/mag/compensated/tl16",
-           "/mag/compensated/tl18", "/mag/compensated/agg-tl", "/compensation/model",
-           "/audit/finding", "/mag/vector/compensated", "/map/anomaly", "/map/anomaly_filtered",
-           "/map/tracks", "/quality/heading_error", "/quality/crossovers"}
+    new = {
+        "/aeromag/log",
+        "/flight/segment",
+        "/mag/compensated",
+        "/mag/compensated/tl16",
+        "/mag/compensated/tl18",
+        "/mag/compensated/agg-tl",
+        "/compensation/model",
+        "/audit/finding",
+        "/mag/vector/compensated",
+        "/map/anomaly",
+        "/map/anomaly_filtered",
+        "/map/tracks",
+        "/quality/heading_error",
+        "/quality/crossovers",
+    }
     assert set(summary["channels_written"]) == new
     comp = summary["compensation"]
     assert {"tl16", "tl18", "agg-tl"} <= set(comp)
@@ -51,8 +66,16 @@ def test_summary_records_stage_timings_and_peak_memory(demo_output):
     write up to the summary itself; `peak_memory_mb`: the process's peak resident memory."""
     _, summary = demo_output
     t = summary["timings_s"]
-    assert list(t) == ["ingest", "segment", "compensate", "audit", "vector", "map", "quality",
-                       "write"]
+    assert list(t) == [
+        "ingest",
+        "segment",
+        "compensate",
+        "audit",
+        "vector",
+        "map",
+        "quality",
+        "write",
+    ]
     assert all(isinstance(v, float) and 0 <= v < 600 for v in t.values())
     assert t["ingest"] > 0.05 and t["audit"] > t["segment"]  # the flight was really read
     assert 100 < summary["peak_memory_mb"] < 4000
@@ -62,12 +85,28 @@ def test_process_command_runs_the_flow_without_a_server(box_path, tmp_path):
     """`aeromag process` with no Prefect server configured: a temporary one is started."""
     env = {**os.environ, "PREFECT_HOME": str(tmp_path / "prefect")}
     env.pop("PREFECT_API_URL", None)
-    res = subprocess.run([sys.executable, "-m", "flows.cli", "process", str(box_path), "--out",
-                          str(tmp_path / "out")], capture_output=True, text=True, env=env,
-                         timeout=600)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "process",
+            str(box_path),
+            "--out",
+            str(tmp_path / "out"),
+        ],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=600,
+    )
     assert res.returncode == 0, res.stderr[-2000:]
     out = tmp_path / "out" / "box_uav.processed.mcap"
     assert f"output recording: {out}" in res.stdout
-    insp = subprocess.run([sys.executable, "-m", "flows.cli", "inspect", str(out)],
-                          capture_output=True, text=True, timeout=300)
+    insp = subprocess.run(
+        [sys.executable, "-m", "flows.cli", "inspect", str(out)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert insp.returncode == 0 and "/mag/compensated" in insp.stdout

@@ -27,13 +27,19 @@ def _seed_recordings(folder) -> list[bytes]:
     msgs = []
     for i in range(120):
         t = T0 + i * NS // 10
-        msgs += [("/mag/scalar", t, scalar(t, 5.2e4 + 0.1 * i)),
-                 ("/mag/vector", t + 3, vector(t + 3, 2e4 + i, -3e3, 4.5e4)),
-                 ("/ins/attitude", t + 5, attitude(t + 5, 1.0, -2.0, (3.0 * i) % 360))]
+        msgs += [
+            ("/mag/scalar", t, scalar(t, 5.2e4 + 0.1 * i)),
+            ("/mag/vector", t + 3, vector(t + 3, 2e4 + i, -3e3, 4.5e4)),
+            ("/ins/attitude", t + 5, attitude(t + 5, 1.0, -2.0, (3.0 * i) % 360)),
+        ]
     out = []
-    for k, kw in enumerate(({"compression": CompressionType.NONE, "chunk_size": 4096},
-                            {"compression": CompressionType.ZSTD, "chunk_size": 4096},
-                            {"summary": False})):
+    for k, kw in enumerate(
+        (
+            {"compression": CompressionType.NONE, "chunk_size": 4096},
+            {"compression": CompressionType.ZSTD, "chunk_size": 4096},
+            {"summary": False},
+        )
+    ):
         out.append(build(folder / f"seed{k}.mcap", msgs, **kw).read_bytes())
     return out
 
@@ -66,7 +72,7 @@ def mutate(data: bytes, muts) -> bytes:
         elif kind == "insert":
             b[i:i] = value.to_bytes(8, "little")[: 1 + value % 8]
         elif kind == "delete":
-            del b[i:i + 1 + value % 64]
+            del b[i : i + 1 + value % 64]
         elif kind == "u64" and i + 8 <= len(b):  # a hostile length or time field
             struct.pack_into("<Q", b, i, value)
         elif kind == "u32" and i + 4 <= len(b):
@@ -88,8 +94,13 @@ def _check(seeds, tmp_path_factory, which, muts):
     assert fl.time_ns.size >= 2 and len(fl.data) == fl.time_ns.size
 
 
-@settings(max_examples=EXAMPLES, deadline=5000, derandomize=True, database=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
+@settings(
+    max_examples=EXAMPLES,
+    deadline=5000,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 @given(which=st.integers(0, 2), muts=st.lists(mutation, min_size=1, max_size=4))
 def test_mutated_recordings_never_crash_ingest(seeds, tmp_path_factory, which, muts):
     _check(seeds, tmp_path_factory, which, muts)

@@ -44,7 +44,7 @@ def test_fuzzy_r_tracks_a_noise_step_and_beats_fixed_r():
     n = 4000
     truth = PAPER_000.state(True)
     sig = np.full(n, 5.0)
-    sig[n // 2:] = 20.0
+    sig[n // 2 :] = 20.0
     for seed in range(3):
         fl = rotating_carrier(n=n, noise_nT=sig, seed=seed)
         err = {}
@@ -54,7 +54,7 @@ def test_fuzzy_r_tracks_a_noise_step_and_beats_fixed_r():
             p = kf.run(fl.earth_nT, fl.earth_rate_nT_s, fl.measured_nT)
             err[fuzzy] = np.sqrt(np.mean(((p.state(True) - truth) / truth) ** 2))
         h = kf.history
-        before = np.median(h.r_nT2[n // 2 - 500:n // 2] / fl.noise_nT[n // 2 - 500:n // 2] ** 2)
+        before = np.median(h.r_nT2[n // 2 - 500 : n // 2] / fl.noise_nT[n // 2 - 500 : n // 2] ** 2)
         after = np.median(h.r_nT2[-1000:] / fl.noise_nT[-1000:] ** 2)
         assert 1 / 1.5 < before < 1.5 and 1 / 1.5 < after < 1.5, (seed, before, after)
         assert abs(np.nanmedian(h.ror[-1000:]) - 1.0) < 0.2  # settled where ROR ~ 1

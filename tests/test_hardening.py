@@ -29,8 +29,11 @@ SMALL_CHUNK = 64 * 1024  # many chunks, so damage to one leaves most of the flig
 def box_messages() -> list[tuple[str, int, bytes]]:
     """The fixture's messages (topic, log time, payload) in log-time order."""
     sc = scan_mcap(BOX)
-    msgs = [(ch.topic, t, d) for ch in sc.channels.values()
-            for t, d in zip(ch.log_time_ns, ch.data, strict=True)]
+    msgs = [
+        (ch.topic, t, d)
+        for ch in sc.channels.values()
+        for t, d in zip(ch.log_time_ns, ch.data, strict=True)
+    ]
     return sorted(msgs, key=lambda m: m[1])
 
 
@@ -86,7 +89,7 @@ def truncated_mid_chunk(p, msgs):
     with full.open("rb") as f:
         ci = make_reader(f).get_summary().chunk_indexes
     c = ci[int(len(ci) * 0.9)]
-    p.write_bytes(full.read_bytes()[:c.chunk_start_offset + c.chunk_length // 2])
+    p.write_bytes(full.read_bytes()[: c.chunk_start_offset + c.chunk_length // 2])
 
 
 def flipped_byte_in_chunk(p, msgs):
@@ -102,7 +105,7 @@ def flipped_byte_in_chunk(p, msgs):
 def no_summary_no_footer(p, msgs):
     """A logger killed after its last chunk: no Data End, summary or footer."""
     full = rewrite(p.with_suffix(".full"), msgs, summary=False)
-    p.write_bytes(full.read_bytes()[:-(13 + 29 + 8)])  # Data End, Footer, magic
+    p.write_bytes(full.read_bytes()[: -(13 + 29 + 8)])  # Data End, Footer, magic
 
 
 def required_channel_missing(p, msgs):
@@ -131,8 +134,11 @@ def nan_inf_burst(p, msgs):
         if tp == "/mag/scalar" and lo <= t <= hi:
             q = json.loads(d)
             q["total_nT"] = math.nan if t % 2 else math.inf
-            d = json.dumps(q).encode().replace(b"Infinity", b"1e999") if t % 3 == 0 \
+            d = (
+                json.dumps(q).encode().replace(b"Infinity", b"1e999")
+                if t % 3 == 0
                 else json.dumps(q).encode()
+            )
         out.append((tp, t, d))
     rewrite(p, out)
 
@@ -174,13 +180,17 @@ def absurd_chunk_size(p, msgs):
 def non_utf8_json(p, msgs):
     scal = [i for i, m in enumerate(msgs) if m[0] == "/mag/scalar"]
     bad = set(scal[500:530])
-    rewrite(p, [(tp, t, (b'{"total_nT": "\xff\xfe"}' if i in bad else d))
-                for i, (tp, t, d) in enumerate(msgs)])
+    rewrite(
+        p,
+        [
+            (tp, t, (b'{"total_nT": "\xff\xfe"}' if i in bad else d))
+            for i, (tp, t, d) in enumerate(msgs)
+        ],
+    )
 
 
 def attitude_in_radians(p, msgs):
-    rewrite(p, scale(msgs, "/ins/attitude", ("roll_deg", "pitch_deg", "yaw_deg"),
-                     math.pi / 180))
+    rewrite(p, scale(msgs, "/ins/attitude", ("roll_deg", "pitch_deg", "yaw_deg"), math.pi / 180))
 
 
 # class -> (builder, outcome): ("error", channel or None, words) | ("processed", check)
@@ -190,13 +200,17 @@ CORPUS = {
     "random bytes": (random_bytes, ("error", None, "not a readable MCAP recording")),
     "only the MCAP magic": (only_the_magic, ("error", None, "not a readable MCAP recording")),
     "a text file": (text_file, ("error", None, "not a readable MCAP recording")),
-    "no /mag/scalar": (scalar_channel_missing,
-                       ("error", "/mag/scalar", "no scalar magnetometer channel")),
+    "no /mag/scalar": (
+        scalar_channel_missing,
+        ("error", "/mag/scalar", "no scalar magnetometer channel"),
+    ),
     "truncated mid-chunk": (truncated_mid_chunk, ("processed", "file truncated")),
     "flipped byte in a chunk (CRC)": (flipped_byte_in_chunk, ("processed", "CRC mismatch")),
     "no summary, no footer": (no_summary_no_footer, ("processed", "no footer")),
-    "required channel missing": (required_channel_missing,
-                                 ("error", "/mag/vector", "channel is absent")),
+    "required channel missing": (
+        required_channel_missing,
+        ("error", "/mag/vector", "channel is absent"),
+    ),
     "wrong field types": (wrong_field_types, ("error", "/mag/scalar", "is str, not a number")),
     "NaN/inf burst": (nan_inf_burst, ("processed", "dropped")),
     "unsorted and duplicated timestamps": (unsorted_and_duplicated, ("processed", "order")),
@@ -233,8 +247,9 @@ def test_bad_input_corpus(case, messages, tmp_path, capsys):
     builder(src, messages)
     before = sha256(src)
     out, js = tmp_path / "out" / "c.mcap", tmp_path / "out" / "c.json"
-    code, stdout, stderr = run_cli(["compensate", str(src), "--out", str(out), "--json",
-                                    str(js), "--model", "tl18"], capsys)
+    code, stdout, stderr = run_cli(
+        ["compensate", str(src), "--out", str(out), "--json", str(js), "--model", "tl18"], capsys
+    )
     assert sha256(src) == before, "the input was modified"
     assert "Traceback" not in stdout + stderr
     leftovers = [p.name for p in (tmp_path / "out").glob(".*")] if out.parent.exists() else []
@@ -262,19 +277,30 @@ def test_bad_input_corpus(case, messages, tmp_path, capsys):
     fom = summary["fom_nT"]
     if fom["uncompensated"] is not None:
         assert fom["compensated"] < fom["uncompensated"] / 5  # still compensates well
-    if case in ("truncated mid-chunk", "flipped byte in a chunk (CRC)",
-                "absurd uncompressed chunk size"):
+    if case in (
+        "truncated mid-chunk",
+        "flipped byte in a chunk (CRC)",
+        "absurd uncompressed chunk size",
+    ):
         loss = inp["losses"][0]
         assert loss["bytes_lost"] > 0 and loss["offset"] > 0
         assert inp["epochs"] < 0.99 * sum(1 for m in messages if m[0] == "/mag/scalar")
     if case == "NaN/inf burst":
         d = inp["dropped"]["/mag/scalar"]
-        burst = [t for tp, t, _ in messages if tp == "/mag/scalar"
-                 and t_at(messages, NAN_BURST[0]) <= t <= t_at(messages, NAN_BURST[1])]
+        burst = [
+            t
+            for tp, t, _ in messages
+            if tp == "/mag/scalar"
+            and t_at(messages, NAN_BURST[0]) <= t <= t_at(messages, NAN_BURST[1])
+        ]
         assert d["samples"] == len(burst)
         t0 = inp["start_ns"]
-        assert d["ranges_s"] == [[pytest.approx((burst[0] - t0) / NS, abs=1e-3),
-                                  pytest.approx((burst[-1] - t0) / NS, abs=1e-3)]]
+        assert d["ranges_s"] == [
+            [
+                pytest.approx((burst[0] - t0) / NS, abs=1e-3),
+                pytest.approx((burst[-1] - t0) / NS, abs=1e-3),
+            ]
+        ]
     if case == "non-UTF-8 JSON":
         assert inp["dropped"]["/mag/scalar"]["samples"] == 30
     if case == "time gap":
@@ -292,14 +318,18 @@ def test_salvage_reads_every_intact_chunk(messages, tmp_path):
         ci = make_reader(f).get_summary().chunk_indexes
     cut = ci[len(ci) // 2]
     part = tmp_path / "cut.mcap"
-    part.write_bytes(full.read_bytes()[:cut.chunk_start_offset + 100])
+    part.write_bytes(full.read_bytes()[: cut.chunk_start_offset + 100])
     sc = scan_mcap(part)
     got = sum(len(c.data) for c in sc.channels.values())
     with full.open("rb") as f:
-        expected = sum(1 for _, _, m in make_reader(f).iter_messages()
-                       if m.log_time <= ci[len(ci) // 2 - 1].message_end_time
-                       and any(c.message_start_time <= m.log_time <= c.message_end_time
-                               for c in ci[:len(ci) // 2]))
+        expected = sum(
+            1
+            for _, _, m in make_reader(f).iter_messages()
+            if m.log_time <= ci[len(ci) // 2 - 1].message_end_time
+            and any(
+                c.message_start_time <= m.log_time <= c.message_end_time for c in ci[: len(ci) // 2]
+            )
+        )
     assert got == expected and got > 0
     assert [x.reason for x in sc.losses] == ["file truncated: the last record is incomplete"]
 

@@ -17,23 +17,65 @@ from pipeline.io.sgl import import_sgl
 from tests.conftest import sha256
 from tests.test_schemas import validate_every_message
 
-XYZ_COLUMNS = ("LINE FLT YEAR DOY TIME UTM-X UTM-Y UTM-Z MSL-Z LAT LONG BARO RADAR TOPO DEM "
-               "DRAPE PITCH ROLL AZIMUTH DIURNAL COMPMAG1 LAGMAG1 DCMAG1 IGRFMAG1 UNCOMPMAG1 "
-               "UNCOMPMAG2 UNCOMPMAG3 FLUXB_X FLUXB_Y FLUXB_Z FLUXB_TOT FLUXC_X FLUXC_Y FLUXC_Z "
-               "FLUXC_TOT CUR_HEAT CUR_STRB V_BAT_1").split()
-H5_NAMES = ["line", "flight", "year", "doy", "tt", "utm_x", "utm_y", "utm_z", "msl", "lat",
-            "lon", "baro", "radar", "topo", "dem", "drape", "ins_pitch", "ins_roll", "ins_yaw",
-            "diurnal", "mag_1_c", "mag_1_lag", "mag_1_dc", "mag_1_igrf", "mag_1_uc",
-            "mag_2_uc", "mag_3_uc", "flux_b_x", "flux_b_y", "flux_b_z", "flux_b_t", "flux_c_x",
-            "flux_c_y", "flux_c_z", "flux_c_t", "cur_heat", "cur_strb", "vol_bat_1"]
+XYZ_COLUMNS = (
+    "LINE FLT YEAR DOY TIME UTM-X UTM-Y UTM-Z MSL-Z LAT LONG BARO RADAR TOPO DEM "
+    "DRAPE PITCH ROLL AZIMUTH DIURNAL COMPMAG1 LAGMAG1 DCMAG1 IGRFMAG1 UNCOMPMAG1 "
+    "UNCOMPMAG2 UNCOMPMAG3 FLUXB_X FLUXB_Y FLUXB_Z FLUXB_TOT FLUXC_X FLUXC_Y FLUXC_Z "
+    "FLUXC_TOT CUR_HEAT CUR_STRB V_BAT_1"
+).split()
+H5_NAMES = [
+    "line",
+    "flight",
+    "year",
+    "doy",
+    "tt",
+    "utm_x",
+    "utm_y",
+    "utm_z",
+    "msl",
+    "lat",
+    "lon",
+    "baro",
+    "radar",
+    "topo",
+    "dem",
+    "drape",
+    "ins_pitch",
+    "ins_roll",
+    "ins_yaw",
+    "diurnal",
+    "mag_1_c",
+    "mag_1_lag",
+    "mag_1_dc",
+    "mag_1_igrf",
+    "mag_1_uc",
+    "mag_2_uc",
+    "mag_3_uc",
+    "flux_b_x",
+    "flux_b_y",
+    "flux_b_z",
+    "flux_b_t",
+    "flux_c_x",
+    "flux_c_y",
+    "flux_c_z",
+    "flux_c_t",
+    "cur_heat",
+    "cur_strb",
+    "vol_bat_1",
+]
 
 
 def sgl_table(n: int = 600, seed: int = 0) -> dict[str, np.ndarray]:
     """One minute of a 10 Hz SGL-like flight over two lines, values in the real units."""
     rng = np.random.default_rng(seed)
     tt = 46370.0 + np.arange(n) / 10.0
-    f = {"line": np.where(np.arange(n) < n // 2, 1002.02, 1002.20), "flight": np.full(n, 1002.0),
-         "year": np.full(n, 2020.0), "doy": np.full(n, 174.0), "tt": tt}
+    f = {
+        "line": np.where(np.arange(n) < n // 2, 1002.02, 1002.20),
+        "flight": np.full(n, 1002.0),
+        "year": np.full(n, 2020.0),
+        "doy": np.full(n, 174.0),
+        "tt": tt,
+    }
     f["utm_x"], f["utm_y"] = 400_000 + 60 * (tt - tt[0]), np.full(n, 5_030_000.0)
     f["utm_z"] = 1800 + rng.normal(0, 0.3, n)
     f["msl"] = f["utm_z"] + 34.0
@@ -50,8 +92,13 @@ def sgl_table(n: int = 600, seed: int = 0) -> dict[str, np.ndarray]:
     for i in (1, 2, 3):
         f[f"mag_{i}_uc"] = base + 50 * i + rng.normal(0, 1, n)
     for c in ("b", "c"):
-        v = np.column_stack([18_000 + rng.normal(0, 5, n), -1500 + rng.normal(0, 5, n),
-                             50_800 + rng.normal(0, 5, n)])
+        v = np.column_stack(
+            [
+                18_000 + rng.normal(0, 5, n),
+                -1500 + rng.normal(0, 5, n),
+                50_800 + rng.normal(0, 5, n),
+            ]
+        )
         for a, col in zip("xyz", v.T, strict=True):
             f[f"flux_{c}_{a}"] = col
         f[f"flux_{c}_t"] = np.linalg.norm(v, axis=1)
@@ -72,15 +119,18 @@ def write_h5(path, f):
 
 
 def write_xyz(path, f):
-    lines = ["/ SGL 2020 flight 1002 (test data in the published layout)",
-             "/ " + " ".join(XYZ_COLUMNS)]
+    lines = [
+        "/ SGL 2020 flight 1002 (test data in the published layout)",
+        "/ " + " ".join(XYZ_COLUMNS),
+    ]
     n = len(f["tt"])
     for i in range(n):
         vals = []
         for k in H5_NAMES:
             v = f[k][i]
-            vals.append("*" if not np.isfinite(v) else (f"{v:.2f}" if k == "line"
-                                                         else repr(float(v))))
+            vals.append(
+                "*" if not np.isfinite(v) else (f"{v:.2f}" if k == "line" else repr(float(v)))
+            )
         lines.append(" ".join(vals))
     path.write_text("\n".join(lines) + "\n")
 
@@ -119,10 +169,21 @@ def test_hdf5_and_xyz_import_to_the_same_contract_recording(sgl, tmp_path):
                     assert v == pytest.approx(pb[k], rel=1e-12, abs=1e-9), (topic, k)
                 else:
                     assert v == pb[k], (topic, k)
-    assert {"/mag/scalar/1", "/mag/scalar/2", "/mag/scalar/3", "/mag/vector/b",
-            "/mag/vector/c", "/ins/attitude", "/gnss/fix", "/reference/mag_1_c",
-            "/reference/diurnal", "/aux/cur_heat", "/aux/cur_strb", "/aux/vol_bat_1",
-            "/plan/line"} <= set(a)
+    assert {
+        "/mag/scalar/1",
+        "/mag/scalar/2",
+        "/mag/scalar/3",
+        "/mag/vector/b",
+        "/mag/vector/c",
+        "/ins/attitude",
+        "/gnss/fix",
+        "/reference/mag_1_c",
+        "/reference/diurnal",
+        "/aux/cur_heat",
+        "/aux/cur_strb",
+        "/aux/vol_bat_1",
+        "/plan/line",
+    } <= set(a)
     assert r1["channels"]["/mag/scalar/2"] == 599  # the missing sample is dropped
     assert validate_every_message(tmp_path / "a.mcap") > 0
 
@@ -145,16 +206,44 @@ def test_imported_recording_reads_with_the_right_times_and_values(sgl, tmp_path)
 
 def test_line_selection_and_the_command(sgl, tmp_path):
     _, h5, _ = sgl
-    res = subprocess.run([sys.executable, "-m", "flows.cli", "import", "sgl", str(h5),
-                          "--out", str(tmp_path / "c.mcap"), "--lines", "1002.20"],
-                         capture_output=True, text=True, timeout=300)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "import",
+            "sgl",
+            str(h5),
+            "--out",
+            str(tmp_path / "c.mcap"),
+            "--lines",
+            "1002.20",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert res.returncode == 0, res.stderr
     m = messages(tmp_path / "c.mcap")
     assert len(m["/mag/scalar/1"]) == 300
     assert [p["line_id"] for _, p in m["/plan/line"]] == ["1002.20"]
-    bad = subprocess.run([sys.executable, "-m", "flows.cli", "import", "sgl", str(h5),
-                          "--out", str(tmp_path / "d.mcap"), "--lines", "9999.01"],
-                         capture_output=True, text=True, timeout=300)
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "import",
+            "sgl",
+            str(h5),
+            "--out",
+            str(tmp_path / "d.mcap"),
+            "--lines",
+            "9999.01",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert bad.returncode == 2 and "9999.01" in bad.stderr and "Traceback" not in bad.stderr
     assert not (tmp_path / "d.mcap").exists()
 
@@ -184,25 +273,30 @@ def test_attitude_in_radians_is_caught(tmp_path):
 # --------------------------------------------------------------------------------------------
 # ROS 2 recordings and topic mapping
 _SEP = "=" * 80
-_HEADER = ("MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
-           f"{_SEP}\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n")
+_HEADER = (
+    "MSG: std_msgs/Header\nbuiltin_interfaces/Time stamp\nstring frame_id\n"
+    f"{_SEP}\nMSG: builtin_interfaces/Time\nint32 sec\nuint32 nanosec\n"
+)
 _VEC3 = f"{_SEP}\nMSG: geometry_msgs/Vector3\nfloat64 x\nfloat64 y\nfloat64 z\n"
 MSGDEFS = {
     "sensor_msgs/msg/MagneticField": (
         "std_msgs/Header header\ngeometry_msgs/Vector3 magnetic_field\n"
-        f"float64[9] magnetic_field_covariance\n{_SEP}\n{_HEADER}{_VEC3}"),
+        f"float64[9] magnetic_field_covariance\n{_SEP}\n{_HEADER}{_VEC3}"
+    ),
     "sensor_msgs/msg/Imu": (
         "std_msgs/Header header\ngeometry_msgs/Quaternion orientation\n"
         "float64[9] orientation_covariance\ngeometry_msgs/Vector3 angular_velocity\n"
         "float64[9] angular_velocity_covariance\ngeometry_msgs/Vector3 linear_acceleration\n"
         f"float64[9] linear_acceleration_covariance\n{_SEP}\n{_HEADER}"
         f"{_SEP}\nMSG: geometry_msgs/Quaternion\nfloat64 x 0\nfloat64 y 0\nfloat64 z 0\n"
-        f"float64 w 1\n{_VEC3}"),
+        f"float64 w 1\n{_VEC3}"
+    ),
     "sensor_msgs/msg/NavSatFix": (
         "std_msgs/Header header\nsensor_msgs/NavSatStatus status\nfloat64 latitude\n"
         "float64 longitude\nfloat64 altitude\nfloat64[9] position_covariance\n"
         f"uint8 position_covariance_type\n{_SEP}\n{_HEADER}{_SEP}\n"
-        "MSG: sensor_msgs/NavSatStatus\nint8 status\nuint16 service\n"),
+        "MSG: sensor_msgs/NavSatStatus\nint8 status\nuint16 service\n"
+    ),
     "std_msgs/msg/Float64": "float64 data\n",
 }
 MAPPING = """
@@ -251,40 +345,71 @@ def write_ros2(sim, path):
         def ns(t):
             return t0 + int(round(t * 1e9))
 
-        for t, v in zip(s["/mag/scalar"]["t"], s["/mag/scalar"]["cols"]["total_nT"],
-                        strict=True):
+        for t, v in zip(s["/mag/scalar"]["t"], s["/mag/scalar"]["cols"]["total_nT"], strict=True):
             # no header: the log time is the sample time
-            w.write_message("/cesium/field", sch["std_msgs/msg/Float64"], {"data": v * 1e-9},
-                            log_time=ns(t))
+            w.write_message(
+                "/cesium/field", sch["std_msgs/msg/Float64"], {"data": v * 1e-9}, log_time=ns(t)
+            )
         vec = s["/mag/vector"]
-        for t, x, y, z in zip(vec["t"], vec["cols"]["x_nT"], vec["cols"]["y_nT"],
-                              vec["cols"]["z_nT"], strict=True):
-            w.write_message("/imu/mag", sch["sensor_msgs/msg/MagneticField"], {
-                "header": {"stamp": _stamp(ns(t)), "frame_id": "imu"},
-                "magnetic_field": {"x": x * 1e-9, "y": -y * 1e-9, "z": -z * 1e-9},
-                "magnetic_field_covariance": [0.0] * 9}, log_time=ns(t) + 1_000_000)
+        for t, x, y, z in zip(
+            vec["t"], vec["cols"]["x_nT"], vec["cols"]["y_nT"], vec["cols"]["z_nT"], strict=True
+        ):
+            w.write_message(
+                "/imu/mag",
+                sch["sensor_msgs/msg/MagneticField"],
+                {
+                    "header": {"stamp": _stamp(ns(t)), "frame_id": "imu"},
+                    "magnetic_field": {"x": x * 1e-9, "y": -y * 1e-9, "z": -z * 1e-9},
+                    "magnetic_field_covariance": [0.0] * 9,
+                },
+                log_time=ns(t) + 1_000_000,
+            )
         att = s["/ins/attitude"]
-        r_frd_ned = Rotation.from_euler("ZYX", np.column_stack(
-            [att["cols"]["yaw_deg"], att["cols"]["pitch_deg"], att["cols"]["roll_deg"]]),
-            degrees=True).as_matrix()
+        r_frd_ned = Rotation.from_euler(
+            "ZYX",
+            np.column_stack(
+                [att["cols"]["yaw_deg"], att["cols"]["pitch_deg"], att["cols"]["roll_deg"]]
+            ),
+            degrees=True,
+        ).as_matrix()
         q = Rotation.from_matrix(_ENU_TO_NED @ r_frd_ned @ _FLU_TO_FRD).as_quat()
         for t, qq in zip(att["t"], q, strict=True):
-            w.write_message("/imu/data", sch["sensor_msgs/msg/Imu"], {
-                "header": {"stamp": _stamp(ns(t)), "frame_id": "imu"},
-                "orientation": {"x": qq[0], "y": qq[1], "z": qq[2], "w": qq[3]},
-                "orientation_covariance": [0.0] * 9,
-                "angular_velocity": {"x": 0.0, "y": 0.0, "z": 0.0},
-                "angular_velocity_covariance": [0.0] * 9,
-                "linear_acceleration": {"x": 0.0, "y": 0.0, "z": 0.0},
-                "linear_acceleration_covariance": [0.0] * 9}, log_time=ns(t))
+            w.write_message(
+                "/imu/data",
+                sch["sensor_msgs/msg/Imu"],
+                {
+                    "header": {"stamp": _stamp(ns(t)), "frame_id": "imu"},
+                    "orientation": {"x": qq[0], "y": qq[1], "z": qq[2], "w": qq[3]},
+                    "orientation_covariance": [0.0] * 9,
+                    "angular_velocity": {"x": 0.0, "y": 0.0, "z": 0.0},
+                    "angular_velocity_covariance": [0.0] * 9,
+                    "linear_acceleration": {"x": 0.0, "y": 0.0, "z": 0.0},
+                    "linear_acceleration_covariance": [0.0] * 9,
+                },
+                log_time=ns(t),
+            )
         g = s["/gnss/fix"]
-        for t, la, lo, h in zip(g["t"], g["cols"]["latitude"], g["cols"]["longitude"],
-                                g["cols"]["altitude"], strict=True):
-            w.write_message("/fix", sch["sensor_msgs/msg/NavSatFix"], {
-                "header": {"stamp": _stamp(ns(t)), "frame_id": "gnss"},
-                "status": {"status": 0, "service": 1}, "latitude": la, "longitude": lo,
-                "altitude": h, "position_covariance": [0.0] * 9,
-                "position_covariance_type": 0}, log_time=ns(t))
+        for t, la, lo, h in zip(
+            g["t"],
+            g["cols"]["latitude"],
+            g["cols"]["longitude"],
+            g["cols"]["altitude"],
+            strict=True,
+        ):
+            w.write_message(
+                "/fix",
+                sch["sensor_msgs/msg/NavSatFix"],
+                {
+                    "header": {"stamp": _stamp(ns(t)), "frame_id": "gnss"},
+                    "status": {"status": 0, "service": 1},
+                    "latitude": la,
+                    "longitude": lo,
+                    "altitude": h,
+                    "position_covariance": [0.0] * 9,
+                    "position_covariance_type": 0,
+                },
+                log_time=ns(t),
+            )
         w.finish()
     return t0
 
@@ -296,15 +421,25 @@ def test_ros2_recording_compensates_like_the_json_one(tmp_path):
     from pipeline.simulate import write_simulation
     from tests.conftest import run_sim
 
-    sim = run_sim("calibration-only", 5, ["calibration.passes=1",
-                                          "sensors.clock_offset_s={scalar=0.0, vector=0.013, "
-                                          "attitude=0.007, gnss=0.031, base=0.25, aux=0.041}"])
+    sim = run_sim(
+        "calibration-only",
+        5,
+        [
+            "calibration.passes=1",
+            "sensors.clock_offset_s={scalar=0.0, vector=0.013, "
+            "attitude=0.007, gnss=0.031, base=0.25, aux=0.041}",
+        ],
+    )
     json_path = write_simulation(sim, tmp_path / "json.mcap")
     ros_path = tmp_path / "ros2.mcap"
     write_ros2(sim, ros_path)
     (tmp_path / "map.toml").write_text(MAPPING)
-    res = subprocess.run([sys.executable, "-m", "flows.cli", "inspect", str(ros_path),
-                          "--suggest-mapping"], capture_output=True, text=True, timeout=120)
+    res = subprocess.run(
+        [sys.executable, "-m", "flows.cli", "inspect", str(ros_path), "--suggest-mapping"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert res.returncode == 0, res.stderr
     assert '[topics."/imu/mag"]' in res.stdout and 'role = "attitude"' in res.stdout
     suggested = tmp_path / "suggested.toml"
@@ -316,8 +451,7 @@ def test_ros2_recording_compensates_like_the_json_one(tmp_path):
     assert b.topic_of["scalar"] == "/cesium/field" and b.topic_of["vector"] == "/imu/mag"
     # same epochs: the vector's header stamps are used, not its (1 ms late) log times
     np.testing.assert_array_equal(b.time_ns, a.time_ns)
-    for col in ("scalar_nT", "vector_x_nT", "vector_y_nT", "vector_z_nT", "lat_deg",
-                "alt_m"):
+    for col in ("scalar_nT", "vector_x_nT", "vector_y_nT", "vector_z_nT", "lat_deg", "alt_m"):
         np.testing.assert_allclose(b.data[col], a.data[col], rtol=1e-12, atol=1e-6)
     for col in ("roll_deg", "pitch_deg"):
         np.testing.assert_allclose(b.data[col], a.data[col], atol=1e-7)
@@ -327,8 +461,7 @@ def test_ros2_recording_compensates_like_the_json_one(tmp_path):
 
     ca = run_compensation(a, segment_flight(a), FitSettings(model="tl18"))
     cb = run_compensation(b, segment_flight(b), FitSettings(model="tl18"))
-    np.testing.assert_allclose(cb.model.coefficients, ca.model.coefficients, rtol=1e-6,
-                               atol=1e-6)
+    np.testing.assert_allclose(cb.model.coefficients, ca.model.coefficients, rtol=1e-6, atol=1e-6)
     np.testing.assert_allclose(cb.compensated_nT, ca.compensated_nT, atol=1e-5)
 
 
@@ -357,18 +490,35 @@ def test_import_mapped_and_a_protobuf_location_fix(tmp_path):
     ros = tmp_path / "ros2.mcap"
     write_ros2(sim, ros)
     (tmp_path / "map.toml").write_text(MAPPING)
-    res = subprocess.run([sys.executable, "-m", "flows.cli", "import", "mapped", str(ros),
-                          "--mapping", str(tmp_path / "map.toml"), "--out",
-                          str(tmp_path / "c.mcap")], capture_output=True, text=True,
-                         timeout=300)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "import",
+            "mapped",
+            str(ros),
+            "--mapping",
+            str(tmp_path / "map.toml"),
+            "--out",
+            str(tmp_path / "c.mcap"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert res.returncode == 0, res.stderr
     assert "/imu/mag -> /mag/vector" in res.stdout
     direct = read_flight(ros, mapping=Mapping.load(tmp_path / "map.toml"))
     converted = read_flight(tmp_path / "c.mcap")
     np.testing.assert_allclose(converted.data["vector_y_nT"], direct.data["vector_y_nT"])
     np.testing.assert_allclose(converted.data["yaw_deg"], direct.data["yaw_deg"])
-    ins = subprocess.run([sys.executable, "-m", "flows.cli", "inspect",
-                          str(tmp_path / "c.mcap")], capture_output=True, text=True, timeout=120)
+    ins = subprocess.run(
+        [sys.executable, "-m", "flows.cli", "inspect", str(tmp_path / "c.mcap")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert ins.returncode == 0 and "contract: ok" in ins.stdout
     # protobuf: a LocationFix channel next to the JSON contract channels
     pb = tmp_path / "pb.mcap"
@@ -376,17 +526,27 @@ def test_import_mapped_and_a_protobuf_location_fix(tmp_path):
     t0 = int(sim.truth["start_time_ns"])
     with open(pb, "wb") as f:
         w = PbWriter(f)
-        for t, la, lo, h in zip(g["t"], g["cols"]["latitude"], g["cols"]["longitude"],
-                                g["cols"]["altitude"], strict=True):
+        for t, la, lo, h in zip(
+            g["t"],
+            g["cols"]["latitude"],
+            g["cols"]["longitude"],
+            g["cols"]["altitude"],
+            strict=True,
+        ):
             msg = LocationFix(latitude=la, longitude=lo, altitude=h)
             w.write_message("/gps/fix_pb", msg, log_time=t0 + int(round(t * 1e9)))
         w.finish()
-    sug = subprocess.run([sys.executable, "-m", "flows.cli", "inspect", str(pb),
-                          "--suggest-mapping"], capture_output=True, text=True, timeout=120)
+    sug = subprocess.run(
+        [sys.executable, "-m", "flows.cli", "inspect", str(pb), "--suggest-mapping"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert '[topics."/gps/fix_pb"]' in sug.stdout and 'role = "position"' in sug.stdout
     (tmp_path / "pb.toml").write_text(sug.stdout)
     series = __import__("pipeline.io.reader", fromlist=["_mapped_series"])._mapped_series(
-        pb, Mapping.load(tmp_path / "pb.toml"))
+        pb, Mapping.load(tmp_path / "pb.toml")
+    )
     s = series["/gps/fix_pb"]
     np.testing.assert_allclose(s.values["latitude"], g["cols"]["latitude"])
     np.testing.assert_allclose(s.values["altitude"], g["cols"]["altitude"])

@@ -15,16 +15,22 @@ from tests.mcap_builder import NS, T0, attitude, build, scalar, ts, vector
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "flows.cli", *args], capture_output=True,
-                          text=True, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "flows.cli", *args], capture_output=True, text=True, timeout=300
+    )
 
 
 def test_clean_recording_has_no_violations(box_path):
     rep = inspect_recording(box_path)
     assert rep.violations == []
     d = rep.to_dict()
-    assert {t["topic"] for t in d["topics"]} >= {"/mag/scalar", "/mag/vector", "/ins/attitude",
-                                                   "/gnss/fix", "/base/scalar"}
+    assert {t["topic"] for t in d["topics"]} >= {
+        "/mag/scalar",
+        "/mag/vector",
+        "/ins/attitude",
+        "/gnss/fix",
+        "/base/scalar",
+    }
     rates = {t["topic"]: t["rate_hz"] for t in d["topics"]}
     assert rates["/mag/scalar"] == pytest.approx(10.0) and rates["/gnss/fix"] == pytest.approx(2.0)
     res = cli("inspect", str(box_path))
@@ -32,8 +38,14 @@ def test_clean_recording_has_no_violations(box_path):
 
 
 def test_injected_gaps_are_reported(tmp_path):
-    sim = run_sim("calibration-only", 1, ["calibration.passes=1", 'sensors.dropouts=['
-                                          '{topic="/gnss/fix", start_s=120.0, duration_s=4.0}]'])
+    sim = run_sim(
+        "calibration-only",
+        1,
+        [
+            "calibration.passes=1",
+            'sensors.dropouts=[{topic="/gnss/fix", start_s=120.0, duration_s=4.0}]',
+        ],
+    )
     path = write_simulation(sim, tmp_path / "gap.mcap")
     rep = inspect_recording(path)
     assert rep.violations == []
@@ -52,11 +64,18 @@ def test_contract_violations_each_get_one_line_and_exit_1(tmp_path):
     msgs = []
     for i in range(50):
         t = T0 + i * NS // 10
-        msgs += [("/mag/scalar", t, scalar(t, 5e4)),
-                 ("/mag/vector", t, vector(t, 1, 2, 3) if i != 7 else
-                  {"timestamp": ts(t), "sensor_id": "v", "x_nT": "1", "y_nT": 2, "z_nT": 3}),
-                 ("/ins/attitude", t, attitude(t, 0, 0, 10)),
-                 ("/base/scalar", t, scalar(t + (5 if i == 3 else 0), 5e4))]
+        msgs += [
+            ("/mag/scalar", t, scalar(t, 5e4)),
+            (
+                "/mag/vector",
+                t,
+                vector(t, 1, 2, 3)
+                if i != 7
+                else {"timestamp": ts(t), "sensor_id": "v", "x_nT": "1", "y_nT": 2, "z_nT": 3},
+            ),
+            ("/ins/attitude", t, attitude(t, 0, 0, 10)),
+            ("/base/scalar", t, scalar(t + (5 if i == 3 else 0), 5e4)),
+        ]
     msgs.append(("/mag/scalar", T0, scalar(T0, 5e4)))  # duplicate
     path = build(tmp_path / "bad.mcap", msgs, schema_of={"/ins/attitude": "my.Attitude"})
     rep = inspect_recording(path)
@@ -84,11 +103,16 @@ def test_bad_files_give_one_line_errors(tmp_path):
     junk = tmp_path / "junk.mcap"
     junk.write_bytes(b"\x89PNG not an mcap" * 100)
     truncated = tmp_path / "trunc.mcap"
-    good = build(tmp_path / "good.mcap", [("/mag/scalar", T0 + i * NS, scalar(T0 + i * NS, 5e4))
-                                          for i in range(2000)])
+    good = build(
+        tmp_path / "good.mcap",
+        [("/mag/scalar", T0 + i * NS, scalar(T0 + i * NS, 5e4)) for i in range(2000)],
+    )
     truncated.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
-    for path, needle in ((empty, "empty file"), (junk, "not a readable MCAP"),
-                         (tmp_path / "missing.mcap", "file not found")):
+    for path, needle in (
+        (empty, "empty file"),
+        (junk, "not a readable MCAP"),
+        (tmp_path / "missing.mcap", "file not found"),
+    ):
         res = cli("inspect", str(path))
         assert res.returncode == 2, res.stderr
         err = res.stderr.strip().splitlines()
@@ -102,9 +126,19 @@ def test_bad_files_give_one_line_errors(tmp_path):
 
 
 def test_simulate_cli_and_bad_scenario(tmp_path):
-    res = cli("simulate", "--scenario", "calibration-only", "--seed", "2", "--set",
-              "calibration.passes=1", "--out", str(tmp_path / "f.mcap"), "--truth",
-              str(tmp_path / "t.json"))
+    res = cli(
+        "simulate",
+        "--scenario",
+        "calibration-only",
+        "--seed",
+        "2",
+        "--set",
+        "calibration.passes=1",
+        "--out",
+        str(tmp_path / "f.mcap"),
+        "--truth",
+        str(tmp_path / "t.json"),
+    )
     assert res.returncode == 0, res.stderr
     assert (tmp_path / "f.mcap").is_file() and (tmp_path / "t.json").is_file()
     res = cli("simulate", "--scenario", "nope", "--out", str(tmp_path / "g.mcap"))

@@ -28,7 +28,7 @@ def test_grid_noise_is_the_grids_own_not_the_raw_samples():
     per = grid_noise_nT(sv.grid, along_north=True)[0]  # one value per lane (column)
     assert np.nanmedian(per) < 0.3 * sv.sensor_nT
     q = np.sort(per[np.isfinite(per)])  # one lane in four is on a line
-    assert np.median(q[-q.size // 4:]) > 1.5 * np.median(q[: q.size // 2]), q
+    assert np.median(q[-q.size // 4 :]) > 1.5 * np.median(q[: q.size // 2]), q
 
 
 def test_fourth_difference_does_not_join_across_a_gap():

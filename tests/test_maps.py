@@ -35,8 +35,11 @@ def simulate_arima(ar, ma, d, n, rng):
     e = rng.normal(size=n + 100)
     w = np.zeros_like(e)
     for k in range(e.size):
-        w[k] = e[k] + sum(ar[i] * w[k - 1 - i] for i in range(len(ar)) if k - 1 - i >= 0) \
+        w[k] = (
+            e[k]
+            + sum(ar[i] * w[k - 1 - i] for i in range(len(ar)) if k - 1 - i >= 0)
             + sum(ma[j] * e[k - 1 - j] for j in range(len(ma)) if k - 1 - j >= 0)
+        )
     x = w[100:]
     for _ in range(d):
         x = np.cumsum(x)
@@ -63,8 +66,11 @@ def test_companion_form_reproduces_the_recursion_exactly():
     w = np.zeros(500)
     x = np.zeros(500)
     for k in range(500):
-        w[k] = e[k] + 0.002 * (e[k - 1] if k else 0.0) + sum(
-            PAPER_AR[i] * w[k - 1 - i] for i in range(2) if k - 1 - i >= 0)
+        w[k] = (
+            e[k]
+            + 0.002 * (e[k - 1] if k else 0.0)
+            + sum(PAPER_AR[i] * w[k - 1 - i] for i in range(2) if k - 1 - i >= 0)
+        )
         x[k] = (x[k - 1] if k else 0.0) + w[k]
     # the lagged-state companion matrix (paper's form), driven by the MA-filtered noise w
     f = m.companion()
@@ -146,10 +152,22 @@ def test_noisy_grid_has_one_crossover_per_survey_and_tie_line():
     pair, at the nominal crossing; a tie flown 0-10 deg along a survey line adds none."""
     rng = np.random.default_rng(8)
     xs_east, ys_north = (0.0, 60.0, 120.0, 180.0, 240.0, 300.0), (40.0, 140.0, 240.0, 340.0)
-    survey = [_noisy_line(f"L{k}", "survey", *(((x, -20.0), (x, 420.0))[::1 - 2 * (k % 2)]),
-                          10_000 * k, rng) for k, x in enumerate(xs_east)]
-    ties = [_noisy_line(f"T{k}", "tie", *(((-20.0, y), (320.0, y))[::1 - 2 * (k % 2)]),
-                        100_000 + 10_000 * k, rng) for k, y in enumerate(ys_north)]
+    survey = [
+        _noisy_line(
+            f"L{k}", "survey", *(((x, -20.0), (x, 420.0))[:: 1 - 2 * (k % 2)]), 10_000 * k, rng
+        )
+        for k, x in enumerate(xs_east)
+    ]
+    ties = [
+        _noisy_line(
+            f"T{k}",
+            "tie",
+            *(((-20.0, y), (320.0, y))[:: 1 - 2 * (k % 2)]),
+            100_000 + 10_000 * k,
+            rng,
+        )
+        for k, y in enumerate(ys_north)
+    ]
     xs = crossovers(survey, ties)
     assert len(xs) == 6 * 4
     assert len({(c.line_a, c.line_b) for c in xs}) == 6 * 4
@@ -161,8 +179,14 @@ def test_noisy_grid_has_one_crossover_per_survey_and_tie_line():
     # of them a crossover
     for deg in (0.0, 4.0, 10.0):
         a = np.radians(deg)
-        along = _noisy_line("T9", "tie", (120.0 - 200 * np.sin(a), 200.0 - 200 * np.cos(a)),
-                            (120.0 + 200 * np.sin(a), 200.0 + 200 * np.cos(a)), 900_000, rng)
+        along = _noisy_line(
+            "T9",
+            "tie",
+            (120.0 - 200 * np.sin(a), 200.0 - 200 * np.cos(a)),
+            (120.0 + 200 * np.sin(a), 200.0 + 200 * np.cos(a)),
+            900_000,
+            rng,
+        )
         assert crossovers(survey, [along]) == []
     assert len(crossovers(survey, ties + [along])) == 6 * 4
     lev = level_lines(survey + ties + [along])
@@ -179,13 +203,23 @@ def test_leveling_removes_line_offsets():
         e = np.full(n.size, 100.0 * k)
         off = rng.normal(0, 3)
         offsets[f"L{k}"] = off
-        lines.append(Line(f"L{k}", "survey", e, n, n + 1000 * k, truth(e, n) + off,
-                          np.arange(n.size)))
+        lines.append(
+            Line(f"L{k}", "survey", e, n, n + 1000 * k, truth(e, n) + off, np.arange(n.size))
+        )
     for k in range(3):
         e = np.linspace(-10, 510, 400)
         n = np.full(e.size, 50.0 + 200 * k)
-        lines.append(Line(f"T{k}", "tie", e, n, e + 9000 + 1000 * k, truth(e, n) + rng.normal(0, 3),
-                          np.arange(e.size)))
+        lines.append(
+            Line(
+                f"T{k}",
+                "tie",
+                e,
+                n,
+                e + 9000 + 1000 * k,
+                truth(e, n) + rng.normal(0, 3),
+                np.arange(e.size),
+            )
+        )
     lev = level_lines(lines)
     assert lev.rms_before_nT > 1.0 and lev.rms_after_nT < 1e-9
     corrected = [off - lev.correction(f"L{k}", 0.0) for k, off in enumerate(offsets.values())]
@@ -219,9 +253,17 @@ def mapped(tmp_path_factory):
     """A UAV survey over geology the 50 m lines resolve: two induced sources 300-500 m deep
     under the block (a negative margin keeps them inside it), so the largest anomaly is an
     interior peak."""
-    sim = run_sim("uav-small", 7, ["anomaly.depth_m=[300.0, 500.0]", "anomaly.dipoles=2",
-                                   "anomaly.moment_A_m2=[2.0e7, 5.0e7]",
-                                   "anomaly.margin_m=-100.0", "anomaly.remanent_fraction=0.0"])
+    sim = run_sim(
+        "uav-small",
+        7,
+        [
+            "anomaly.depth_m=[300.0, 500.0]",
+            "anomaly.dipoles=2",
+            "anomaly.moment_A_m2=[2.0e7, 5.0e7]",
+            "anomaly.margin_m=-100.0",
+            "anomaly.remanent_fraction=0.0",
+        ],
+    )
     path = write_simulation(sim, tmp_path_factory.mktemp("m") / "m.mcap")
     flight = read_flight(path)
     seg = segment_flight(flight)
@@ -238,13 +280,22 @@ def truth_on(sim, grid: Grid, frame: LocalFrame) -> np.ndarray:
     gx, gy = np.meshgrid(*grid.coordinates())
     lat, lon, _ = frame.to_geodetic(gx, gy)
     e, n, _ = LocalFrame(site["latitude_deg"], site["longitude_deg"]).to_enu(lat, lon)
-    ri = RegularGridInterpolator((tg["north0_m"] + tg["cell_m"] * np.arange(tv.shape[0]),
-                                  tg["east0_m"] + tg["cell_m"] * np.arange(tv.shape[1])), tv,
-                                 bounds_error=False)
+    ri = RegularGridInterpolator(
+        (
+            tg["north0_m"] + tg["cell_m"] * np.arange(tv.shape[0]),
+            tg["east0_m"] + tg["cell_m"] * np.arange(tv.shape[1]),
+        ),
+        tv,
+        bounds_error=False,
+    )
     out = ri(np.stack([n, e], -1))
     s = sim.scenario["survey"]
-    inside = ((e > s["east_m"] + 25) & (e < s["east_m"] + s["width_m"] - 25)
-              & (n > s["north_m"] + 25) & (n < s["north_m"] + s["length_m"] - 25))
+    inside = (
+        (e > s["east_m"] + 25)
+        & (e < s["east_m"] + s["width_m"] - 25)
+        & (n > s["north_m"] + 25)
+        & (n < s["north_m"] + s["length_m"] - 25)
+    )
     out[~inside] = np.nan  # score the block the lines cover
     return out
 
@@ -265,7 +316,10 @@ def test_levelled_grid_matches_the_truth_within_noise(mapped):
     trace_third = np.trace(np.array(sim.truth["interference"]["scalar"]["induced"])) / 3
     se = rmse / (np.std(truth[ok]) * np.sqrt(ok.sum() / 16))
     assert abs((coef[1] - 1.0) - trace_third) <= 3 * se + 0.05 * abs(trace_third), (
-        coef[1], trace_third, se)
+        coef[1],
+        trace_third,
+        se,
+    )
     assert mr.leveling.rms_after_nT < mr.leveling.rms_before_nT
     assert abs(mr.spacing_m - 50.0) < 1.0 and abs(mr.grid.cell_m - 12.5) < 0.3
 
@@ -297,7 +351,7 @@ def test_arima_kalman_removes_map_noise_and_keeps_the_peak(mapped):
     def peak(g, r, c):
         """3 x 3 mean about (r, c), relative to the block's median: one cell would measure
         the remaining noise, not whether the filter flattened or shifted the anomaly."""
-        return np.mean(g[r - 1:r + 2, c - 1:c + 2]) - np.median(g[ok])
+        return np.mean(g[r - 1 : r + 2, c - 1 : c + 2]) - np.median(g[ok])
 
     # the anomaly's peak: the truth's maximum among cells whose 3 x 3 neighbourhood is scored
     from scipy.ndimage import minimum_filter
@@ -344,25 +398,53 @@ def test_forward_filter_lags_and_removes_less_noise(mapped):
 
 def test_map_cli_and_channels(mapped, tmp_path):
     _sim, path, *_ = mapped
-    res = subprocess.run([sys.executable, "-m", "flows.cli", "map", str(path), "--out",
-                          str(tmp_path / "o.mcap"), "--json", str(tmp_path / "s.json"),
-                          "--arima", "2,1,1"], capture_output=True, text=True, timeout=600)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "map",
+            str(path),
+            "--out",
+            str(tmp_path / "o.mcap"),
+            "--json",
+            str(tmp_path / "s.json"),
+            "--arima",
+            "2,1,1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert res.returncode == 0, res.stderr
     s = json.loads((tmp_path / "s.json").read_text())["map"]
-    for key in ("grid_shape", "cell_m", "crossover_rms_nT", "arima_order",
-                "arima_coefficients"):
+    for key in ("grid_shape", "cell_m", "crossover_rms_nT", "arima_order", "arima_coefficients"):
         assert key in s
     assert s["arima_order"] == [2, 1, 1] and len(s["arima_coefficients"]["ar"]) == 2
     assert set(s["crossover_rms_nT"]) == {"before", "after"}
     # Foxglove's official Grid and GeoJSON, and every other channel the command added
-    assert validate_every_message(tmp_path / "o.mcap", {
-        "/map/anomaly", "/map/anomaly_filtered", "/map/tracks", "/aeromag/log",
-        "/flight/segment", "/mag/compensated", "/compensation/model"}) > 1000
+    assert (
+        validate_every_message(
+            tmp_path / "o.mcap",
+            {
+                "/map/anomaly",
+                "/map/anomaly_filtered",
+                "/map/tracks",
+                "/aeromag/log",
+                "/flight/segment",
+                "/mag/compensated",
+                "/compensation/model",
+            },
+        )
+        > 1000
+    )
     from mcap.reader import make_reader
 
     with (tmp_path / "o.mcap").open("rb") as f:
-        msgs = {c.topic: json.loads(m.data) for _s, c, m in
-                make_reader(f).iter_messages(topics=["/map/anomaly", "/map/tracks"])}
+        msgs = {
+            c.topic: json.loads(m.data)
+            for _s, c, m in make_reader(f).iter_messages(topics=["/map/anomaly", "/map/tracks"])
+        }
     g = msgs["/map/anomaly"]
     import base64
 
@@ -373,7 +455,22 @@ def test_map_cli_and_channels(mapped, tmp_path):
     assert {f["properties"]["label"] for f in feats} >= {"survey", "tie", "calibration"}
     for png in ("anomaly", "anomaly_filtered"):
         assert (tmp_path / f"s.{png}.png").stat().st_size > 10000
-    bad = subprocess.run([sys.executable, "-m", "flows.cli", "map", str(path), "--out",
-                          str(tmp_path / "x.mcap"), "--json", str(tmp_path / "x.json"),
-                          "--arima", "two"], capture_output=True, text=True, timeout=600)
+    bad = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "map",
+            str(path),
+            "--out",
+            str(tmp_path / "x.mcap"),
+            "--json",
+            str(tmp_path / "x.json"),
+            "--arima",
+            "two",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert bad.returncode == 2 and "--arima 'two'" in bad.stderr

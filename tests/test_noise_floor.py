@@ -21,10 +21,13 @@ def test_white_noise_under_a_line_a_step_and_a_smooth_signal():
     rng = np.random.default_rng(7)
     t = np.arange(30_000) / RATE_HZ
     sigma = 0.08
-    x = (200.0 * np.sin(2 * np.pi * t / 300.0) + 30.0 * np.sin(2 * np.pi * t / 17.0)  # smooth
-         + 0.5 * np.sin(2 * np.pi * 3.3 * t)  # a line (vibration), 4x the noise in RMS
-         + 5.0 * (t > 1234.5)  # a step
-         + rng.normal(0.0, sigma, t.size))
+    x = (
+        200.0 * np.sin(2 * np.pi * t / 300.0)
+        + 30.0 * np.sin(2 * np.pi * t / 17.0)  # smooth
+        + 0.5 * np.sin(2 * np.pi * 3.3 * t)  # a line (vibration), 4x the noise in RMS
+        + 5.0 * (t > 1234.5)  # a step
+        + rng.normal(0.0, sigma, t.size)
+    )
     x[5000:5100] = np.nan  # a gap
     est = white_noise_nT(x, t, RATE_HZ)
     assert est == pytest.approx(sigma, rel=0.10)
@@ -42,9 +45,9 @@ def _ratios(seeds) -> list[float]:
         # broadband vibration aliased into the band is noise-like by its spectrum and is
         # excluded here (its effect is measured in benchmarks/bench_noise_floor.py)
         ov = random_flight_overrides(
-            rng, outside_terms=("second_order", "eddy_lag", "unrecorded_current"))
-        true = float(next(o for o in ov if o.startswith("sensors.scalar_noise_nT=")
-                          ).split("=")[1])
+            rng, outside_terms=("second_order", "eddy_lag", "unrecorded_current")
+        )
+        true = float(next(o for o in ov if o.startswith("sensors.scalar_noise_nT=")).split("=")[1])
         sim = simulate(Scenario.load("uav-small", ov), int(rng.integers(2**31)))
         s = sim.streams["/mag/scalar"]
         out.append(white_noise_nT(s["cols"]["total_nT"], s["t"], RATE_HZ) / true)

@@ -33,10 +33,12 @@ def test_config_defaults_overrides_and_errors(tmp_path):
     assert c["map"]["cell_m"] == 10.0 and c.map_settings().cell_m == 10.0
     assert c["audit"]["enabled"] is False and c["quality"]["overlap_m"] == 0.5
     assert c.hash != base.hash and Config.load(f).hash == c.hash
-    for text, needle in (("[map]\ncel_m = 3\n", "unknown configuration key 'map.cel_m'"),
-                         ("[map]\ncell_m = 'big'\n", "map.cell_m"),
-                         ("config_version = 7\n", "config_version 7"),
-                         ("[map\n", "not valid TOML")):
+    for text, needle in (
+        ("[map]\ncel_m = 3\n", "unknown configuration key 'map.cel_m'"),
+        ("[map]\ncell_m = 'big'\n", "map.cell_m"),
+        ("config_version = 7\n", "config_version 7"),
+        ("[map\n", "not valid TOML"),
+    ):
         f.write_text(text)
         with pytest.raises(AeromagError) as exc:
             Config.load(f)
@@ -47,15 +49,15 @@ def test_config_defaults_overrides_and_errors(tmp_path):
 
 
 def test_config_command_prints_a_loadable_file(tmp_path):
-    res = subprocess.run([sys.executable, "-m", "flows.cli", "config"], capture_output=True,
-                         text=True, timeout=120)
+    res = subprocess.run(
+        [sys.executable, "-m", "flows.cli", "config"], capture_output=True, text=True, timeout=120
+    )
     assert res.returncode == 0
     (tmp_path / "c.toml").write_text(res.stdout)
     assert Config.load(tmp_path / "c.toml").hash == Config.load().hash
 
 
-def test_a_failed_flow_resumes_from_its_last_finished_task(prefect_harness, tmp_path,
-                                                           monkeypatch):
+def test_a_failed_flow_resumes_from_its_last_finished_task(prefect_harness, tmp_path, monkeypatch):
     """The vector stage fails once: the re-run takes ingest, segment, compensation and audit
     from the persisted results (task state Cached) and finishes."""
     import asyncio
@@ -94,13 +96,21 @@ def test_a_failed_flow_resumes_from_its_last_finished_task(prefect_harness, tmp_
         async with get_client() as client:
             runs = await client.read_task_runs(
                 flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=[flow_run_id])),
-                sort=TaskRunSort.EXPECTED_START_TIME_ASC, limit=200)
+                sort=TaskRunSort.EXPECTED_START_TIME_ASC,
+                limit=200,
+            )
             return {r.name: r.state.name for r in runs}
 
     states = asyncio.run(task_states(state2.state_details.flow_run_id))
     cached = {k for k, v in states.items() if v == "Cached"}
-    assert {"ingest", "segment", "compensate-tl16", "compensate-tl18", "compensate-agg-tl",
-            "audit"} <= cached, states
+    assert {
+        "ingest",
+        "segment",
+        "compensate-tl16",
+        "compensate-tl18",
+        "compensate-agg-tl",
+        "audit",
+    } <= cached, states
     assert states.get("vector") == "Completed"
     # finished: the persisted results are gone
     key = pf.run_key(str(src), Config.load())
@@ -138,14 +148,14 @@ def test_archive_reprocessing_on_a_dask_cluster(prefect_server, tmp_path, monkey
     hashes = {p: sha256(p) for p in arch.rglob("*.mcap")}
     out = tmp_path / "out"
     with temporary_settings(updates={PREFECT_API_URL: prefect_server}):
-        res = reprocess_archive.with_options(task_runner=dask_runner(2, None))(
-            str(arch), str(out))
+        res = reprocess_archive.with_options(task_runner=dask_runner(2, None))(str(arch), str(out))
     assert res["recordings"] == 5 and res["processed"] == 3 and res["quarantined"] == 2
     idx = _index(out)
     for good in ("flight_a.mcap", "flight_b.mcap", "truncated.mcap"):
         assert idx[good]["status"] == "processed", idx[good]
-    cut = json.loads((Path(idx["truncated.mcap"]["output_dir"]) / "truncated.summary.json")
-                     .read_text())
+    cut = json.loads(
+        (Path(idx["truncated.mcap"]["output_dir"]) / "truncated.summary.json").read_text()
+    )
     assert cut["input"]["losses"], "the truncation is reported"
     for bad in ("broken.mcap", "empty.mcap"):
         assert idx[bad]["status"] == "quarantined"
@@ -161,7 +171,8 @@ def test_archive_reprocessing_on_a_dask_cluster(prefect_server, tmp_path, monkey
     assert {p: sha256(p) for p in arch.rglob("*.mcap")} == hashes
     with temporary_settings(updates={PREFECT_API_URL: prefect_server}):
         again = reprocess_archive.with_options(task_runner=dask_runner(2, None))(
-            str(arch), str(out))
+            str(arch), str(out)
+        )
     assert again["processed"] == 0 and again["done"] == 3
 
 
@@ -172,10 +183,20 @@ def test_reprocess_after_kill_9_does_only_the_missing_work(prefect_server, tmp_p
         shutil.copy(BOX, arch / f"flight_{k}.mcap")
     out = tmp_path / "out"
     env = {**os.environ, "PREFECT_API_URL": prefect_server}
-    cmd = [sys.executable, "-m", "flows.cli", "reprocess", str(arch), "--out", str(out),
-           "--workers", "1"]
-    proc = subprocess.Popen(cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-                            start_new_session=True)
+    cmd = [
+        sys.executable,
+        "-m",
+        "flows.cli",
+        "reprocess",
+        str(arch),
+        "--out",
+        str(out),
+        "--workers",
+        "1",
+    ]
+    proc = subprocess.Popen(
+        cmd, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, start_new_session=True
+    )
     t_end = time.monotonic() + 300
     while time.monotonic() < t_end and not list(out.glob("*/*.summary.json")):
         time.sleep(0.2)
@@ -212,21 +233,43 @@ def test_serve_processes_new_complete_recordings(prefect_server, tmp_path):
     data = BOX.read_bytes()
     (watch / "writing.mcap").write_bytes(data[: len(data) // 2])  # no footer yet
     env = {**os.environ, "PREFECT_API_URL": prefect_server}
-    proc = subprocess.Popen([sys.executable, "-m", "flows.cli", "serve", "--watch", str(watch),
-                             "--out", str(out), "--cron", "0 0 1 1 *", "--name", "test-watch"],
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                            start_new_session=True)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "serve",
+            "--watch",
+            str(watch),
+            "--out",
+            str(out),
+            "--cron",
+            "0 0 1 1 *",
+            "--name",
+            "test-watch",
+        ],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        start_new_session=True,
+    )
     try:
         with temporary_settings(updates={PREFECT_API_URL: prefect_server}):
+
             async def deployments():
                 async with get_client() as client:
-                    return [d.name for d in await client.read_deployments(
-                        sort=DeploymentSort.NAME_ASC, limit=50)]
+                    return [
+                        d.name
+                        for d in await client.read_deployments(
+                            sort=DeploymentSort.NAME_ASC, limit=50
+                        )
+                    ]
 
             t_end = time.monotonic() + 120
             while "test-watch" not in asyncio.run(deployments()):
-                assert time.monotonic() < t_end and proc.poll() is None, \
+                assert time.monotonic() < t_end and proc.poll() is None, (
                     proc.stderr.read().decode()[-2000:]
+                )
                 time.sleep(1)
             run = run_deployment("process-new-recordings/test-watch", timeout=300)
             assert run.state.is_completed(), run.state

@@ -71,8 +71,9 @@ def evaluate(seed: int, share_nT: float, terms: tuple[str, ...]) -> dict:
     earth = sim.series["earth_total_nT"][idx]
     model = fit_compensation(meas, cal, FitSettings("tl18"))
     # the best a tl18 calibration can do on this flight: the same fit on the noise-free field
-    oracle = fit_compensation(replace(meas, scalar_nT=earth + true), cal,
-                              FitSettings("tl18", ridge=model.lambda_))
+    oracle = fit_compensation(
+        replace(meas, scalar_nT=earth + true), cal, FitSettings("tl18", ridge=model.lambda_)
+    )
     pred, best = model.interference_nT(meas), oracle.interference_nT(meas)
     srv = seg.mask("survey") & np.isfinite(pred)
     sos = bandpass_sos((0.1, 0.9), meas.rate_hz, 4)
@@ -83,14 +84,17 @@ def evaluate(seed: int, share_nT: float, terms: tuple[str, ...]) -> dict:
     n_eff = model.n_fit * 2 * (0.9 - 0.1) / meas.rate_hz  # independent samples in the band
     noise = sim.truth["noise"]["scalar_nT"]
     ob = sim.truth.get("outside_basis_interference") or {}
-    return {"noise_nT": noise, "calibration_error_nT": float(np.sqrt(np.mean((pb - tb) ** 2))),
-            "oracle_calibration_error_nT": float(np.sqrt(np.mean((ob_ - tb) ** 2))),
-            "noise_bound_nT": noise * np.sqrt(len(model.terms) / n_eff),
-            "survey_error_nT": _survey_error(pred, true, earth, srv),
-            "oracle_survey_error_nT": _survey_error(best, true, earth, srv),
-            "interference_std_nT": float(np.std(true[srv])),
-            "calibration_outside_nT": ob.get("calibration_outside_tl18_rms_nT", 0.0),
-            "survey_outside_nT": ob.get("survey_outside_tl18_rms_nT") or 0.0}
+    return {
+        "noise_nT": noise,
+        "calibration_error_nT": float(np.sqrt(np.mean((pb - tb) ** 2))),
+        "oracle_calibration_error_nT": float(np.sqrt(np.mean((ob_ - tb) ** 2))),
+        "noise_bound_nT": noise * np.sqrt(len(model.terms) / n_eff),
+        "survey_error_nT": _survey_error(pred, true, earth, srv),
+        "oracle_survey_error_nT": _survey_error(best, true, earth, srv),
+        "interference_std_nT": float(np.std(true[srv])),
+        "calibration_outside_nT": ob.get("calibration_outside_tl18_rms_nT", 0.0),
+        "survey_outside_nT": ob.get("survey_outside_tl18_rms_nT") or 0.0,
+    }
 
 
 def check(seed: int, share_nT: float, terms: tuple[str, ...]) -> dict:
@@ -102,11 +106,13 @@ def check(seed: int, share_nT: float, terms: tuple[str, ...]) -> dict:
     # survey: never better than the unrepresentable part (the truth did not leak in)
     assert r["survey_error_nT"] >= 0.8 * r["survey_outside_nT"]
     # as good as a noise-free calibration, up to what the noise alone costs
-    assert r["calibration_error_nT"] <= (1.1 * r["oracle_calibration_error_nT"]
-                                         + 3 * max(clean["calibration_error_nT"],
-                                                   r["noise_bound_nT"]))
-    assert r["survey_error_nT"] <= (1.1 * r["oracle_survey_error_nT"]
-                                    + 3 * max(clean["survey_error_nT"], r["noise_bound_nT"]))
+    assert r["calibration_error_nT"] <= (
+        1.1 * r["oracle_calibration_error_nT"]
+        + 3 * max(clean["calibration_error_nT"], r["noise_bound_nT"])
+    )
+    assert r["survey_error_nT"] <= (
+        1.1 * r["oracle_survey_error_nT"] + 3 * max(clean["survey_error_nT"], r["noise_bound_nT"])
+    )
     # compensation still helps: the error is below the interference it removes (a second-
     # order induced field of 0.6 nT outside the basis leaves 2.1 of 3.9 nT, seed 7)
     assert r["survey_error_nT"] < r["interference_std_nT"]

@@ -44,8 +44,9 @@ def test_dipole_field_matches_axial_and_equatorial_formulas():
 
 
 def test_interference_vector_and_first_order_projection():
-    ci = CarrierInterference([10.0, -20.0, 30.0], np.diag([0.001, 0.002, 0.003]),
-                             np.full((3, 3), 0.01))
+    ci = CarrierInterference(
+        [10.0, -20.0, 30.0], np.diag([0.001, 0.002, 0.003]), np.full((3, 3), 0.01)
+    )
     b = np.array([[20000.0, 0.0, 45000.0]])
     db = np.array([[100.0, -50.0, 0.0]])
     expected = np.array([10 + 20.0 + 0.5, -20 + 0.0 + 0.5, 30 + 135.0 + 0.5])
@@ -73,8 +74,9 @@ def test_fluxgate_errors_identity_and_model():
 @pytest.fixture(scope="module")
 def quiet_off(tmp_path_factory):
     """Noise-free calibration box with the carrier's interference switched off."""
-    sim = run_sim("calibration-only", 5, ["calibration.passes=1", "interference_enabled=false",
-                                          *QUIET])
+    sim = run_sim(
+        "calibration-only", 5, ["calibration.passes=1", "interference_enabled=false", *QUIET]
+    )
     path = write_simulation(sim, tmp_path_factory.mktemp("q") / "off.mcap")
     return sim, read_flight(path)
 
@@ -120,10 +122,17 @@ def test_scalar_interference_is_projection_on_field_to_first_order(tmp_path):
     the bound per sample is the second-order term |d_perp|^2/(2(|b| + u.d)) plus the 50 Hz
     central-difference error (< 0.005 nT here).
     """
-    sim = run_sim("calibration-only", 6, [
-        "calibration.passes=1", *QUIET, "sensors.vector_rate_hz=50.0",
-        "vector_interference={permanent_nT=[0.0,0.0,0.0], induced=[[0.0,0.0,0.0],[0.0,0.0,0.0],"
-        "[0.0,0.0,0.0]], eddy_s=[[0.0,0.0,0.0],[0.0,0.0,0.0],[0.0,0.0,0.0]]}"])
+    sim = run_sim(
+        "calibration-only",
+        6,
+        [
+            "calibration.passes=1",
+            *QUIET,
+            "sensors.vector_rate_hz=50.0",
+            "vector_interference={permanent_nT=[0.0,0.0,0.0], induced=[[0.0,0.0,0.0],[0.0,0.0,0.0],"
+            "[0.0,0.0,0.0]], eddy_s=[[0.0,0.0,0.0],[0.0,0.0,0.0],[0.0,0.0,0.0]]}",
+        ],
+    )
     sv, ss = sim.streams["/mag/vector"], sim.streams["/mag/scalar"]
     bv = np.stack([sv["cols"][k] for k in ("x_nT", "y_nT", "z_nT")], -1)
     dbv = np.gradient(bv, 1 / 50.0, axis=0)

@@ -84,18 +84,31 @@ def _noisy(line_id, kind, start, end, first_epoch, rng, noise_m=0.5, step_m=0.7)
     return _track(line_id, kind, e, n, first_epoch)
 
 
-def _grid(rng, survey_east=(50, 150, 250, 350, 450), tie_north=(80, 180, 280, 380),
-          north=(-20.0, 520.0), east=(-20.0, 520.0)):
+def _grid(
+    rng,
+    survey_east=(50, 150, 250, 350, 450),
+    tie_north=(80, 180, 280, 380),
+    north=(-20.0, 520.0),
+    east=(-20.0, 520.0),
+):
     """Noisy serpentine north-south survey lines and east-west tie lines across them."""
     tracks = []
     for k, x in enumerate(survey_east):
         a, b = (x, north[0]), (x, north[1])
-        tracks.append(_noisy(f"L{k:04d}", "survey", *((a, b) if k % 2 == 0 else (b, a)),
-                             100_000 * k, rng))
+        tracks.append(
+            _noisy(f"L{k:04d}", "survey", *((a, b) if k % 2 == 0 else (b, a)), 100_000 * k, rng)
+        )
     for k, y in enumerate(tie_north):
         a, b = (east[0], y), (east[1], y)
-        tracks.append(_noisy(f"T{k:04d}", "tie", *((a, b) if k % 2 == 0 else (b, a)),
-                             10_000_000 + 100_000 * k, rng))
+        tracks.append(
+            _noisy(
+                f"T{k:04d}",
+                "tie",
+                *((a, b) if k % 2 == 0 else (b, a)),
+                10_000_000 + 100_000 * k,
+                rng,
+            )
+        )
     return tracks
 
 
@@ -106,8 +119,14 @@ def test_track_flown_along_another_is_no_intersection(angle_deg):
     rng = np.random.default_rng(int(10 * angle_deg) + 1)
     tie = _noisy("T0010", "tie", (0.0, 0.0), (0.0, 1000.0), 0, rng)
     a = np.radians(angle_deg)
-    along = _noisy("V0010", "validation", (-500 * np.sin(a), 500 - 500 * np.cos(a)),
-                   (500 * np.sin(a), 500 + 500 * np.cos(a)), 100_000, rng)
+    along = _noisy(
+        "V0010",
+        "validation",
+        (-500 * np.sin(a), 500 - 500 * np.cos(a)),
+        (500 * np.sin(a), 500 + 500 * np.cos(a)),
+        100_000,
+        rng,
+    )
     raw = tie.geometry().intersection(along.geometry())
     assert len(getattr(raw, "geoms", [raw])) >= 3  # what counting raw hits would give
     assert track_intersections([along], [tie]).count == 0
@@ -119,16 +138,17 @@ def test_x_lines_over_a_noisy_grid_intersect_as_the_geometry_says():
     at the analytic crossing."""
     rng = np.random.default_rng(21)
     mapped = _grid(rng)
-    x_lines = [_noisy("V0010", "validation", (0.0, 0.0), (500.0, 500.0), 50_000_000, rng),
-               _noisy("V0020", "validation", (0.0, 500.0), (500.0, 0.0), 60_000_000, rng)]
+    x_lines = [
+        _noisy("V0010", "validation", (0.0, 0.0), (500.0, 500.0), 50_000_000, rng),
+        _noisy("V0020", "validation", (0.0, 500.0), (500.0, 0.0), 60_000_000, rng),
+    ]
     ov = track_intersections(x_lines, mapped)
     assert ov.count == 2 * (5 + 4)
     pairs = list(zip(ov.validation_line, ov.map_line, strict=True))
     assert len(set(pairs)) == ov.count  # one per pair of lines
     for v, m, e, n in zip(ov.validation_line, ov.map_line, ov.east_m, ov.north_m, strict=True):
         line = next(t for t in mapped if t.line_id == m)
-        along_x = float(np.mean(line.east_m)) if m.startswith("L") else float(
-            np.mean(line.north_m))
+        along_x = float(np.mean(line.east_m)) if m.startswith("L") else float(np.mean(line.north_m))
         # the diagonal's analytic crossing with that line (45 deg: noise moves it ~1 m)
         if m.startswith("L"):
             want = (along_x, along_x if v == "V0010" else 500.0 - along_x)
@@ -143,10 +163,17 @@ def test_x_lines_of_a_narrow_block_cross_only_the_tie_lines_at_30_degrees():
     default 30 deg only the 2 x 3 tie-line crossings count; at 5 deg the 2 x 3 interior
     survey-line crossings count too (the corners, where both tracks end, never do)."""
     rng = np.random.default_rng(4)
-    mapped = _grid(rng, survey_east=(0, 50, 100, 150, 200), tie_north=(100, 500, 900),
-                   north=(0.0, 1000.0), east=(-50.0, 250.0))
-    x_lines = [_noisy("V0010", "validation", (0.0, 0.0), (200.0, 1000.0), 50_000_000, rng),
-               _noisy("V0020", "validation", (0.0, 1000.0), (200.0, 0.0), 60_000_000, rng)]
+    mapped = _grid(
+        rng,
+        survey_east=(0, 50, 100, 150, 200),
+        tie_north=(100, 500, 900),
+        north=(0.0, 1000.0),
+        east=(-50.0, 250.0),
+    )
+    x_lines = [
+        _noisy("V0010", "validation", (0.0, 0.0), (200.0, 1000.0), 50_000_000, rng),
+        _noisy("V0020", "validation", (0.0, 1000.0), (200.0, 0.0), 60_000_000, rng),
+    ]
     ov = track_intersections(x_lines, mapped)
     assert ov.count == 6 and set(ov.map_line) == {"T0000", "T0001", "T0002"}
     shallow = track_intersections(x_lines, mapped, min_angle_deg=5.0)
@@ -171,9 +198,16 @@ def test_heading_dc_offsets_have_confidence_intervals():
     rng = np.random.default_rng(2)
     xv = np.linspace(0, 400, 600)
     vals = [_track("V0010", "validation", xv, xv, 0)]  # 45 deg to the lines
-    mapped = [_track(f"L{k:04d}", "survey", np.full(300, 20.0 + 40 * k),
-                     np.linspace(0, 800, 300)[:: 1 if k % 2 == 0 else -1], 1000 + 300 * k)
-              for k in range(10)]
+    mapped = [
+        _track(
+            f"L{k:04d}",
+            "survey",
+            np.full(300, 20.0 + 40 * k),
+            np.linspace(0, 800, 300)[:: 1 if k % 2 == 0 else -1],
+            1000 + 300 * k,
+        )
+        for k in range(10)
+    ]
     field = rng.normal(0, 0.05, 5000)
     for t in mapped:
         if t.heading_deg < 90 or t.heading_deg > 270:
@@ -194,7 +228,7 @@ def test_4th_difference_noise_within_10_percent_of_injected_white_noise():
         n = np.arange(3000) * 0.7  # 7 m/s at 10 Hz
         t = _track(f"L{k:04d}", "survey", np.full(n.size, 50.0 * k), n, 3000 * k)
         tracks.append(t)
-        geology = 80 * np.exp(-((n - 900) / 150) ** 2) + 0.3 * n + 25 * np.sin(n / 120)
+        geology = 80 * np.exp(-(((n - 900) / 150) ** 2)) + 0.3 * n + 25 * np.sin(n / 120)
         field[t.index] = geology + rng.normal(0, 0.05, n.size)
     res = qc.line_noise(tracks, field, threshold_nT=0.1)
     assert res["median_nT"] == pytest.approx(0.05, rel=0.10)
@@ -207,11 +241,11 @@ def test_4th_difference_noise_within_10_percent_of_injected_white_noise():
 
 def test_qc_checks_flag_what_is_out_of_tolerance():
     n = np.arange(0, 1000, 0.7)
-    tracks = [_track(f"L{k:04d}", "survey", np.full(n.size, 50.0 * k), n, k * n.size)
-              for k in range(5)]
+    tracks = [
+        _track(f"L{k:04d}", "survey", np.full(n.size, 50.0 * k), n, k * n.size) for k in range(5)
+    ]
     # line 2 drifts 20 m towards line 3 over its second half
-    tracks[2] = _track("L0002", "survey", 100.0 + np.clip(n - 500, 0, None) * 0.04, n,
-                       2 * n.size)
+    tracks[2] = _track("L0002", "survey", 100.0 + np.clip(n - 500, 0, None) * 0.04, n, 2 * n.size)
     sp = qc.line_spacing(tracks, 0.0, 0.25)
     assert sp["nominal_m"] == pytest.approx(50.0, abs=0.5)
     assert sp["pairs_over"] == ["L0001-L0002", "L0002-L0003"]
@@ -225,8 +259,9 @@ def test_qc_checks_flag_what_is_out_of_tolerance():
     ts = np.arange(0, 7200.0, 1.0)
     base = 48000 + 3 * np.sin(2 * np.pi * ts / 5400)
     assert qc.diurnal_check(ts, base, 300.0, 5.0)["spans_over"] == []
-    storm = base + np.where((ts > 3000) & (ts < 3200), 12.0 * np.sin(np.pi * (ts - 3000) / 200),
-                            0.0)
+    storm = base + np.where(
+        (ts > 3000) & (ts < 3200), 12.0 * np.sin(np.pi * (ts - 3000) / 200), 0.0
+    )
     assert qc.diurnal_check(ts, storm, 300.0, 5.0)["spans_over"]
 
 
@@ -242,8 +277,9 @@ def _demo_quality(tmp_path_factory, gradient: bool):
         fields[m] = run_compensation(flight, seg, FitSettings(model=m)).compensated_nT
     # the demo's X (2000 m x 700 m block, corner to corner) meets the survey lines at 19.3 deg:
     # below the default minimum crossing angle, which would leave only its 2 x 3 tie crossings
-    q = run_quality(flight, seg, fields, tl_alias="tl18",
-                    settings=QualitySettings(min_crossing_angle_deg=15.0))
+    q = run_quality(
+        flight, seg, fields, tl_alias="tl18", settings=QualitySettings(min_crossing_angle_deg=15.0)
+    )
     # the simulated sensor noise (white + drift) as it enters B_val - B_map at the same points
     noise = sim.series["noise_nT"][np.searchsorted(sim.series["time_ns"], flight.time_ns)]
     noise_rms = float(np.sqrt(np.nanmean(q.intersections.differences(noise) ** 2)))
@@ -291,8 +327,9 @@ def test_headline_heading_error_is_the_papers_pair_statistic_and_says_so(demo_wi
     assert s["heading_error_method"] == "pairs"
     assert "paper 002" in s["heading_error_methods"]["pairs"]
     for st in s["states"]:
-        assert s["heading_error_rms_nT"][st] == pytest.approx(s["overlap_pair_rms_nT"][st],
-                                                              rel=1e-12)
+        assert s["heading_error_rms_nT"][st] == pytest.approx(
+            s["overlap_pair_rms_nT"][st], rel=1e-12
+        )
         inter = s["heading_error"]["intersections"]["by_state"][st]["rms_nT"]
         assert s["intersection_rms_nT"][st] == pytest.approx(inter, rel=1e-12)
     # over the 0.45 nT/m gradient the pairs carry gradient x distance: above the intersections
@@ -304,8 +341,9 @@ def test_headline_falls_back_to_intersections_without_enough_pairs(demo_with_gra
 
     assert QualitySettings().min_overlap_pairs == 10  # from default_config.toml
     _, _, _, q = demo_with_gradient
-    few = dataclasses.replace(q, settings=dataclasses.replace(
-        q.settings, min_overlap_pairs=q.pairs.count + 1))
+    few = dataclasses.replace(
+        q, settings=dataclasses.replace(q.settings, min_overlap_pairs=q.pairs.count + 1)
+    )
     s = few.summary()
     assert s["heading_error_method"] == "intersections"
     assert s["heading_error_rms_nT"] == s["intersection_rms_nT"]
@@ -319,9 +357,24 @@ def test_quality_command_writes_summary_plots_and_valid_channels(tmp_path):
     src = write_simulation(sim, tmp_path / "small.mcap")
     before = sha256(src)
     out, js = tmp_path / "q.mcap", tmp_path / "q.json"
-    res = subprocess.run([sys.executable, "-m", "flows.cli", "quality", str(src), "--json",
-                          str(js), "--out", str(out), "--overlap-m", "0.7"],
-                         capture_output=True, text=True, timeout=600)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "quality",
+            str(src),
+            "--json",
+            str(js),
+            "--out",
+            str(out),
+            "--overlap-m",
+            "0.7",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert res.returncode == 0, res.stderr[-2000:]
     assert sha256(src) == before
     s = json.loads(js.read_text())["quality"]
@@ -341,16 +394,32 @@ def test_quality_command_writes_summary_plots_and_valid_channels(tmp_path):
     assert "heading error" in res.stdout and "agg_tl" in res.stdout
     for name in ("heading_error", "validation_profiles", "crossovers"):
         assert (tmp_path / f"q.{name}.png").stat().st_size > 10000
-    assert validate_every_message(out, {"/quality/heading_error", "/quality/crossovers",
-                                        "/aeromag/log", "/flight/segment"}) > 0
+    assert (
+        validate_every_message(
+            out,
+            {"/quality/heading_error", "/quality/crossovers", "/aeromag/log", "/flight/segment"},
+        )
+        > 0
+    )
     from tests.test_writer import records
 
     topics = {m[0] for m in records(out)[0]}
     assert {"/quality/heading_error", "/quality/crossovers", "/aeromag/log"} <= topics
     # a processed recording is assessed with its own compensated channels
-    res = subprocess.run([sys.executable, "-m", "flows.cli", "quality", str(out), "--json",
-                          str(tmp_path / "again.json")], capture_output=True, text=True,
-                         timeout=600)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "quality",
+            str(out),
+            "--json",
+            str(tmp_path / "again.json"),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert res.returncode == 0, res.stderr[-2000:]
     again = json.loads((tmp_path / "again.json").read_text())["quality"]
     assert again["states"] == ["raw", "tl16", "tl18", "agg_tl"]

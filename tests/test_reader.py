@@ -16,8 +16,17 @@ from tests.mcap_builder import NS, T0, attitude, build, scalar, ts, vector
 def test_fixture_reads_into_aligned_columns(box_path):
     fl = read_flight(box_path)
     d = fl.data
-    for col in ("time_s", "scalar_nT", "vector_x_nT", "roll_deg", "yaw_deg", "lat_deg", "alt_m",
-                "base_nT", "aux_payload_current"):
+    for col in (
+        "time_s",
+        "scalar_nT",
+        "vector_x_nT",
+        "roll_deg",
+        "yaw_deg",
+        "lat_deg",
+        "alt_m",
+        "base_nT",
+        "aux_payload_current",
+    ):
         assert col in d.columns
     assert fl.units["aux_payload_current"] == "A" and fl.units["alt_m"] == "m"
     assert len(d) == fl.series["/mag/scalar"].time_ns.size
@@ -35,8 +44,11 @@ def test_alignment_reproduces_the_trajectory_at_scalar_epochs(box_sim_file):
     of a roll manoeuvre (A w^2 ~ 11 deg/s^2) errs by (0.05^2/8) 11 ~ 0.004 deg; GNSS at 5 Hz
     in a 20 m turn (v^2/R ~ 2.5 m/s^2) by (0.2^2/8) 2.5 ~ 0.013 m.
     """
-    sim = run_sim("calibration-only", 11, ["calibration.passes=1", "sensors.attitude_noise_deg=0.0",
-                                           "sensors.gnss_noise_m=0.0"])
+    sim = run_sim(
+        "calibration-only",
+        11,
+        ["calibration.passes=1", "sensors.attitude_noise_deg=0.0", "sensors.gnss_noise_m=0.0"],
+    )
     import tempfile
     from pathlib import Path
 
@@ -50,25 +62,35 @@ def test_alignment_reproduces_the_trajectory_at_scalar_epochs(box_sim_file):
     dyaw = (d.yaw_deg - st["yaw_deg"] + 180) % 360 - 180
     assert np.max(np.abs(dyaw)) < 0.01
     site = sim.truth["site"]
-    e, n, u = LocalFrame(site["latitude_deg"], site["longitude_deg"],
-                         site["ground_altitude_m"]).to_enu(d.lat_deg, d.lon_deg, d.alt_m)
+    e, n, u = LocalFrame(
+        site["latitude_deg"], site["longitude_deg"], site["ground_altitude_m"]
+    ).to_enu(d.lat_deg, d.lon_deg, d.alt_m)
     assert np.max(np.hypot(e - st["east_m"], n - st["north_m"])) < 0.02
     assert np.max(np.abs(u - st["up_m"])) < 0.02
 
 
 def test_yaw_is_interpolated_across_north(tmp_path):
-    msgs = [("/ins/attitude", T0, attitude(T0, 0, 0, 359.0)),
-            ("/ins/attitude", T0 + NS // 10, attitude(T0 + NS // 10, 0, 0, 1.0)),
-            ("/mag/scalar", T0 + NS // 20, scalar(T0 + NS // 20, 5e4)),
-            ("/mag/scalar", T0 + NS // 10, scalar(T0 + NS // 10, 5e4))]
+    msgs = [
+        ("/ins/attitude", T0, attitude(T0, 0, 0, 359.0)),
+        ("/ins/attitude", T0 + NS // 10, attitude(T0 + NS // 10, 0, 0, 1.0)),
+        ("/mag/scalar", T0 + NS // 20, scalar(T0 + NS // 20, 5e4)),
+        ("/mag/scalar", T0 + NS // 10, scalar(T0 + NS // 10, 5e4)),
+    ]
     fl = read_flight(build(tmp_path / "yaw.mcap", msgs))
     assert abs(fl.data.yaw_deg.iloc[0] - 0.0) < 1e-9 or abs(fl.data.yaw_deg.iloc[0] - 360) < 1e-9
 
 
 def test_gap_in_a_stream_is_reported_and_left_empty(tmp_path):
-    sim = run_sim("calibration-only", 1, ["calibration.passes=1", 'sensors.dropouts=['
-                                          '{topic="/ins/attitude", start_s=200.0, duration_s=3.0},'
-                                          '{topic="/mag/scalar", start_s=300.0, duration_s=1.5}]'])
+    sim = run_sim(
+        "calibration-only",
+        1,
+        [
+            "calibration.passes=1",
+            "sensors.dropouts=["
+            '{topic="/ins/attitude", start_s=200.0, duration_s=3.0},'
+            '{topic="/mag/scalar", start_s=300.0, duration_s=1.5}]',
+        ],
+    )
     fl = read_flight(write_simulation(sim, tmp_path / "gaps.mcap"))
     gaps = {g.topic: g for g in fl.gaps}
     assert set(gaps) == {"/ins/attitude", "/mag/scalar"}
@@ -92,10 +114,12 @@ def test_secondary_sensors_and_unknown_topics(tmp_path):
     msgs = []
     for i in range(20):
         t = T0 + i * NS // 10
-        msgs += [("/mag/scalar/left", t, scalar(t, 5e4 + i, "left")),
-                 ("/mag/scalar/right", t, scalar(t, 6e4 + i, "right")),
-                 ("/mag/vector", t, vector(t, 2e4 + i, 2e3, 4e4)),
-                 ("/camera/raw", t, b"\x00\x01binary")]
+        msgs += [
+            ("/mag/scalar/left", t, scalar(t, 5e4 + i, "left")),
+            ("/mag/scalar/right", t, scalar(t, 6e4 + i, "right")),
+            ("/mag/vector", t, vector(t, 2e4 + i, 2e3, 4e4)),
+            ("/camera/raw", t, b"\x00\x01binary"),
+        ]
     fl = read_flight(build(tmp_path / "multi.mcap", msgs, schema_of={"/camera/raw": "x.Image"}))
     assert fl.topic_of["scalar"] == "/mag/scalar/left"
     assert "scalar_right_nT" in fl.data and fl.data.scalar_right_nT.iloc[3] == 6e4 + 3
@@ -116,8 +140,11 @@ def test_bad_payloads_are_dropped_and_reported(tmp_path):
         ("/mag/vector", T0 + 2 * NS, b"\xff\xfe not json"),
         ("/mag/vector", T0 + 2 * NS, vector(T0 + 2 * NS, 2e4, 2, 4e4)),
         ("/mag/vector", T0, vector(T0, 9, 9, 4e4)),  # duplicate time, out of order
-        ("/mag/vector", T0 + NS // 2, {"timestamp": ts(bad_t), "sensor_id": "v", "x_nT": None,
-                                       "y_nT": 0, "z_nT": 0}),
+        (
+            "/mag/vector",
+            T0 + NS // 2,
+            {"timestamp": ts(bad_t), "sensor_id": "v", "x_nT": None, "y_nT": 0, "z_nT": 0},
+        ),
         ("/mag/vector", T0 + 3 * NS, vector(T0 + 3 * NS + 7, 2e4, 2, 4e4)),  # stamp mismatch
     ]
     fl = read_flight(build(tmp_path / "bad.mcap", msgs))
@@ -130,10 +157,13 @@ def test_bad_payloads_are_dropped_and_reported(tmp_path):
     assert s.values["x_nT"][0] == 2e4  # the first of the duplicates is kept
 
 
-@pytest.mark.parametrize("content,expected", [
-    (b"", "empty file"),
-    (b"this is not an mcap file at all" * 10, "not a readable MCAP recording"),
-])
+@pytest.mark.parametrize(
+    "content,expected",
+    [
+        (b"", "empty file"),
+        (b"this is not an mcap file at all" * 10, "not a readable MCAP recording"),
+    ],
+)
 def test_unreadable_files_give_one_line_errors(tmp_path, content, expected):
     p = tmp_path / "bad.mcap"
     p.write_bytes(content)

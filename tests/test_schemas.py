@@ -39,7 +39,8 @@ def validate_every_message(path, topics: set[str] | None = None) -> int:
     n = 0
     with open(path, "rb") as f:
         for sch, ch, msg in make_reader(f).iter_messages(
-                topics=sorted(topics) if topics else None, log_time_order=False):
+            topics=sorted(topics) if topics else None, log_time_order=False
+        ):
             rule = rule_for_topic(ch.topic)
             assert rule is not None, f"{ch.topic} is not in the contract"
             assert sch.name == rule.schema_name and sch.encoding == "jsonschema"

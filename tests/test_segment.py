@@ -29,9 +29,11 @@ def three_class(lab):
     return np.where(np.isin(lab, ["calibration", "survey"]), lab, "other")
 
 
-@pytest.fixture(scope="module", params=[("uav-small", 1), ("uav-small", 2), ("fixed-wing", 1),
-                                        ("calibration-only", 3)],
-                ids=lambda p: f"{p[0]}-{p[1]}")
+@pytest.fixture(
+    scope="module",
+    params=[("uav-small", 1), ("uav-small", 2), ("fixed-wing", 1), ("calibration-only", 3)],
+    ids=lambda p: f"{p[0]}-{p[1]}",
+)
 def segmented(request, tmp_path_factory):
     name, seed = request.param
     sim = run_sim(name, seed)
@@ -56,7 +58,8 @@ def test_calibration_boxes_are_the_12_of_each_pass(segmented):
     boxes = seg.boxes()
     assert len(boxes) == 12 * passes
     assert {(b.cardinal, b.manoeuvre) for b in boxes} == {
-        (c, m) for c in "NESW" for m in ("roll", "pitch", "yaw")}
+        (c, m) for c in "NESW" for m in ("roll", "pitch", "yaw")
+    }
     lab, man = truth_labels(sim, flight)
     both = (lab == "calibration") & (seg.label == "calibration")
     # boundaries move by a second or two; the boxes' cores agree
@@ -71,8 +74,13 @@ def test_survey_lines_are_numbered_across_the_block(segmented):
     for lid in ids:
         h = seg.heading_deg[seg.line_id == lid]
         line_heading = sim.scenario["survey"]["line_heading_deg"]
-        assert min(abs(((h[0] - line_heading) + 180) % 360 - 180),
-                   abs(((h[0] - line_heading - 180) + 180) % 360 - 180)) < 2.0
+        assert (
+            min(
+                abs(((h[0] - line_heading) + 180) % 360 - 180),
+                abs(((h[0] - line_heading - 180) + 180) % 360 - 180),
+            )
+            < 2.0
+        )
 
 
 def test_plan_markers_are_used_when_present(tmp_path):
@@ -108,12 +116,22 @@ def test_survey_found_when_transits_and_ties_outlength_the_lines(tmp_path):
     lines on a grid, not the most length)."""
     from pipeline.simulate import Scenario, simulate
 
-    sc = Scenario.load("uav-small", [
-        "calibration.passes=2", 'calibration.heading_order="ESWN"',
-        "survey.length_m=400.0", "survey.width_m=200.0", "survey.line_spacing_m=50.0",
-        "survey.tie_spacing_m=150.0", "survey.validation=false", "survey.enabled=true",
-        "calibration.centre_east_m=-250.0", "calibration.centre_north_m=-250.0",
-        "flight.transit_s=10.0"])
+    sc = Scenario.load(
+        "uav-small",
+        [
+            "calibration.passes=2",
+            'calibration.heading_order="ESWN"',
+            "survey.length_m=400.0",
+            "survey.width_m=200.0",
+            "survey.line_spacing_m=50.0",
+            "survey.tie_spacing_m=150.0",
+            "survey.validation=false",
+            "survey.enabled=true",
+            "calibration.centre_east_m=-250.0",
+            "calibration.centre_north_m=-250.0",
+            "flight.transit_s=10.0",
+        ],
+    )
     sim = simulate(sc, 3)
     flight = read_flight(write_simulation(sim, tmp_path / "block.mcap"))
     lab, _ = truth_labels(sim, flight)

@@ -30,9 +30,17 @@ def test_recording_holds_only_what_a_recorder_has(box_sim_file):
         reader = make_reader(f)
         topics = {c.topic for c in reader.get_summary().channels.values()}
         assert not list(reader.iter_metadata()) and not list(reader.iter_attachments())
-    assert topics == {"/mag/scalar", "/mag/vector", "/ins/attitude", "/gnss/fix", "/base/scalar",
-                      "/aux/motor_current", "/aux/payload_current", "/aux/bus_voltage",
-                      "/aux/temperature"}  # no /plan/line unless asked, no truth
+    assert topics == {
+        "/mag/scalar",
+        "/mag/vector",
+        "/ins/attitude",
+        "/gnss/fix",
+        "/base/scalar",
+        "/aux/motor_current",
+        "/aux/payload_current",
+        "/aux/bus_voltage",
+        "/aux/temperature",
+    }  # no /plan/line unless asked, no truth
 
 
 def test_demo_plan_is_the_002_survey():
@@ -58,8 +66,11 @@ def test_segments_cover_the_flight_and_calibration_has_12_boxes_per_pass():
     ends = np.array([s["end_s"] for s in seg])
     np.testing.assert_allclose(starts[1:], ends[:-1])
     assert starts[0] == 0.0 and abs(ends[-1] - sim.truth["duration_s"]) < 1e-9
-    boxes = {(s["line_id"][:2], s["cardinal"], s["manoeuvre"]) for s in seg
-             if s["label"] == "calibration" and s["manoeuvre"] in ("roll", "pitch", "yaw")}
+    boxes = {
+        (s["line_id"][:2], s["cardinal"], s["manoeuvre"])
+        for s in seg
+        if s["label"] == "calibration" and s["manoeuvre"] in ("roll", "pitch", "yaw")
+    }
     assert len(boxes) == 24  # 2 passes x 4 headings x 3 manoeuvres
 
 
@@ -67,8 +78,11 @@ def test_manoeuvres_reach_their_amplitude_and_move_the_multicopter():
     """Roll +-10 deg at 6 s makes a multicopter sway sideways by g tan(10 deg)/w^2 ~ 1.58 m."""
     sc = Scenario.load("calibration-only", ["calibration.passes=1"])
     traj = build_trajectory(sc)
-    seg = next(s for s in run_sim("calibration-only", 1, ["calibration.passes=1"]).truth[
-        "segments"] if s["manoeuvre"] == "roll" and s["cardinal"] == "N")
+    seg = next(
+        s
+        for s in run_sim("calibration-only", 1, ["calibration.passes=1"]).truth["segments"]
+        if s["manoeuvre"] == "roll" and s["cardinal"] == "N"
+    )
     t = np.arange(seg["start_s"], seg["end_s"], 0.01)
     st = traj.state(t)
     assert abs(np.max(np.abs(st["roll_deg"])) - 10.0) < 0.05
@@ -86,8 +100,9 @@ def test_dubins_turns_end_on_the_next_leg():
     for _ in range(200):
         p0, p1 = rng.normal(size=2) * 100, rng.normal(size=2) * 100
         a0, a1 = rng.uniform(0, 2 * np.pi, 2)
-        d = _Dubins(p0, np.array([np.cos(a0), np.sin(a0)]), p1,
-                    np.array([np.cos(a1), np.sin(a1)]), 20.0)
+        d = _Dubins(
+            p0, np.array([np.cos(a0), np.sin(a0)]), p1, np.array([np.cos(a1), np.sin(a1)]), 20.0
+        )
         pos, ang, _k = d.evaluate(np.array([0.0, d.length]))
         np.testing.assert_allclose(pos[0], p0, atol=1e-6)
         np.testing.assert_allclose(pos[1], p1, atol=1e-6)
@@ -117,8 +132,10 @@ def test_gradient_effect_adds_the_planar_field(tmp_path):
     base = ["calibration.passes=1", *QUIET, "interference_enabled=false"]
     off = run_sim("calibration-only", 9, base)
     on = run_sim("calibration-only", 9, [*base, "effects.geomagnetic_gradient.enabled=true"])
-    diff = on.streams["/mag/scalar"]["cols"]["total_nT"] - off.streams["/mag/scalar"]["cols"][
-        "total_nT"]
+    diff = (
+        on.streams["/mag/scalar"]["cols"]["total_nT"]
+        - off.streams["/mag/scalar"]["cols"]["total_nT"]
+    )
     st = on.trajectory.state(on.streams["/mag/scalar"]["t"])
     gvec = np.array(on.truth["effective"]["gradient_nT_per_m"])
     ref = np.array([0.0, 0.0, 100.0])  # survey corner at survey height
@@ -132,8 +149,11 @@ def test_gradient_effect_adds_the_planar_field(tmp_path):
 def test_sensor_lag_delays_the_scalar_stream():
     base = ["calibration.passes=1", *QUIET]
     ref = run_sim("calibration-only", 4, base)
-    lag = run_sim("calibration-only", 4, [*base, "effects.sensor_lag.enabled=true",
-                                          "effects.sensor_lag.lag_s=0.2"])
+    lag = run_sim(
+        "calibration-only",
+        4,
+        [*base, "effects.sensor_lag.enabled=true", "effects.sensor_lag.lag_s=0.2"],
+    )
     assert lag.truth["effective"]["sensor_lag_s"] == 0.2
     t_ref, v_ref = ref.streams["/mag/scalar"]["t"], ref.streams["/mag/scalar"]["cols"]["total_nT"]
     t_lag, v_lag = lag.streams["/mag/scalar"]["t"], lag.streams["/mag/scalar"]["cols"]["total_nT"]
@@ -145,11 +165,18 @@ def test_sensor_lag_delays_the_scalar_stream():
 
 
 def test_diurnal_is_seen_by_the_base_station():
-    sim = run_sim("calibration-only", 2, ["calibration.passes=1", *QUIET,
-                                          "effects.diurnal.enabled=true",
-                                          "effects.diurnal.amplitude_nT=20.0",
-                                          "effects.diurnal.period_s=600.0",
-                                          "effects.diurnal.random_walk_nT_per_sqrt_s=0.0"])
+    sim = run_sim(
+        "calibration-only",
+        2,
+        [
+            "calibration.passes=1",
+            *QUIET,
+            "effects.diurnal.enabled=true",
+            "effects.diurnal.amplitude_nT=20.0",
+            "effects.diurnal.period_s=600.0",
+            "effects.diurnal.random_walk_nT_per_sqrt_s=0.0",
+        ],
+    )
     base = sim.streams["/base/scalar"]["cols"]["total_nT"]
     assert 30.0 < np.ptp(base) <= 40.0 + 1e-6  # a 20 nT sinusoid over most of a period
 
@@ -157,10 +184,19 @@ def test_diurnal_is_seen_by_the_base_station():
 def test_electrical_current_couples_into_the_scalar():
     base = ["calibration.passes=1", *QUIET]
     off = run_sim("calibration-only", 5, base)
-    on = run_sim("calibration-only", 5, [*base, "effects.electrical_current.enabled=true",
-                                         "effects.electrical_current.coupling_nT_per_A=4.0"])
-    diff = on.streams["/mag/scalar"]["cols"]["total_nT"] - off.streams["/mag/scalar"]["cols"][
-        "total_nT"]
+    on = run_sim(
+        "calibration-only",
+        5,
+        [
+            *base,
+            "effects.electrical_current.enabled=true",
+            "effects.electrical_current.coupling_nT_per_A=4.0",
+        ],
+    )
+    diff = (
+        on.streams["/mag/scalar"]["cols"]["total_nT"]
+        - off.streams["/mag/scalar"]["cols"]["total_nT"]
+    )
     current = on.streams["/aux/payload_current"]["cols"]["value"]  # same clock, no noise
     # |diff| = 4 nT/A x I x |u . d| with |u . d| <= 1
     assert np.corrcoef(diff, current)[0, 1] > 0.9
@@ -181,9 +217,15 @@ def test_vector_calibration_errors_apply_the_sensor_model():
 
 
 def test_plan_markers_and_dropouts(tmp_path):
-    sim = run_sim("calibration-only", 1, [
-        "calibration.passes=1", "sensors.plan_markers=true",
-        'sensors.dropouts=[{topic="/ins/attitude", start_s=200.0, duration_s=3.0}]'])
+    sim = run_sim(
+        "calibration-only",
+        1,
+        [
+            "calibration.passes=1",
+            "sensors.plan_markers=true",
+            'sensors.dropouts=[{topic="/ins/attitude", start_s=200.0, duration_s=3.0}]',
+        ],
+    )
     plan = sim.streams["/plan/line"]
     assert plan["labels"]["kind"][:3] == ["transit", "calibration", "turn"]
     assert "C1N" in plan["labels"]["line_id"]

@@ -17,8 +17,11 @@ from pipeline.simulate.variety import OUTSIDE_TERMS, random_flight_overrides
 from tests.conftest import QUIET, run_sim
 
 BOX = ["calibration.passes=1", *QUIET]
-RANGES = ["calibration.block_duration_s=[15.0, 60.0]", "calibration.period_range_s=[3.0, 10.0]",
-          "calibration.amplitude_range_deg=[3.0, 15.0]"]
+RANGES = [
+    "calibration.block_duration_s=[15.0, 60.0]",
+    "calibration.period_range_s=[3.0, 10.0]",
+    "calibration.amplitude_range_deg=[3.0, 15.0]",
+]
 
 
 def _scalar(sim) -> tuple[np.ndarray, np.ndarray]:
@@ -52,10 +55,18 @@ def _tl18_residual_rms(sim) -> float:
 # ------------------------------------------------------------------------- defaults unchanged
 def test_options_at_their_default_change_nothing():
     plain = run_sim("calibration-only", 3, ["calibration.passes=1"])
-    explicit = run_sim("calibration-only", 3, [
-        "calibration.passes=1", 'calibration.heading_order=""', "calibration.block_duration_s=[]",
-        "interference.outside_basis.vibration_nT=0.0", "effects.sensor_lag.response=delay",
-        "effects.electrical_current.temperature_coefficient_per_K=0.0"])
+    explicit = run_sim(
+        "calibration-only",
+        3,
+        [
+            "calibration.passes=1",
+            'calibration.heading_order=""',
+            "calibration.block_duration_s=[]",
+            "interference.outside_basis.vibration_nT=0.0",
+            "effects.sensor_lag.response=delay",
+            "effects.electrical_current.temperature_coefficient_per_K=0.0",
+        ],
+    )
     for topic, st in plain.streams.items():
         for col, values in st.get("cols", {}).items():
             np.testing.assert_array_equal(values, explicit.streams[topic]["cols"][col])
@@ -66,8 +77,10 @@ def test_options_at_their_default_change_nothing():
     assert "outside_basis" not in plain.truth["scenario"]["interference"]
     assert "response" not in plain.truth["effects"]["sensor_lag"]
     # a used option is recorded (a new section whole, with its time constants)
-    sc = Scenario.load("calibration-only", ["interference.outside_basis.vibration_nT=0.3",
-                                            "calibration.heading_order=random"])
+    sc = Scenario.load(
+        "calibration-only",
+        ["interference.outside_basis.vibration_nT=0.3", "calibration.heading_order=random"],
+    )
     rec = sc.recorded_config()
     assert rec["interference"]["outside_basis"]["vibration_nT"] == 0.3
     assert rec["interference"]["outside_basis"]["eddy_tau_s"] == 0.5
@@ -82,7 +95,9 @@ def test_heading_order_is_honoured_letters_and_random():
         return ["".join(g.cardinal for g in legs if g.block == b) for b in ("cal1", "cal2")]
 
     assert order(Scenario.load("calibration-only", ["calibration.heading_order=WNES"]), 0) == [
-        "WNES", "WNES"]
+        "WNES",
+        "WNES",
+    ]
     sc = Scenario.load("calibration-only", ["calibration.heading_order=random"])
     seen = [order(sc, seed) for seed in range(8)]
     assert all(sorted(p) == list("ENSW") for pair in seen for p in pair)
@@ -92,8 +107,13 @@ def test_heading_order_is_honoured_letters_and_random():
     # the flown legs really point that way
     legs = [g for g in plan_legs(sc, 3) if g.label == "calibration"]
     for g in legs:
-        assert abs((g.heading_deg - {"N": 0, "E": 90, "S": 180, "W": 270}[g.cardinal]
-                    + 180) % 360 - 180) < 1e-6
+        assert (
+            abs(
+                (g.heading_deg - {"N": 0, "E": 90, "S": 180, "W": 270}[g.cardinal] + 180) % 360
+                - 180
+            )
+            < 1e-6
+        )
     with pytest.raises(AeromagError, match="heading_order"):
         plan_legs(Scenario.load("calibration-only", ["calibration.heading_order=NXE"]))
 
@@ -102,8 +122,15 @@ def test_heading_order_is_honoured_letters_and_random():
 def test_manoeuvre_blocks_are_drawn_from_their_ranges_and_flown(profile):
     """Each block's length, period and amplitude lie in their ranges; the attitude reaches
     the drawn amplitude and oscillates at the drawn period (zero crossings every period/2)."""
-    sc = Scenario.load("calibration-only", [f"profile={profile}", "calibration.passes=1",
-                                            *RANGES, "calibration.manoeuvre_order=random"])
+    sc = Scenario.load(
+        "calibration-only",
+        [
+            f"profile={profile}",
+            "calibration.passes=1",
+            *RANGES,
+            "calibration.manoeuvre_order=random",
+        ],
+    )
     traj = build_trajectory(sc, 5)
     blocks = manoeuvre_truth(traj)
     assert len(blocks) == 12
@@ -128,12 +155,24 @@ def test_manoeuvre_blocks_are_drawn_from_their_ranges_and_flown(profile):
         zc = t[inner][1:][s[1:] != s[:-1]]
         assert abs(np.mean(np.diff(zc)) - b["period_s"] / 2) < 0.02 * b["period_s"]
     # the segment truth (what segmentation is scored against) follows the drawn blocks
-    sim = run_sim("calibration-only", 5, [f"profile={profile}", "calibration.passes=1", *RANGES,
-                                          "calibration.manoeuvre_order=random"])
-    seg = [(s["start_s"], s["end_s"]) for s in sim.truth["segments"]
-           if s["manoeuvre"] in ("roll", "pitch", "yaw")]
-    np.testing.assert_allclose(seg, [(b["start_s"], b["end_s"])
-                                     for b in sim.truth["calibration_manoeuvres"]])
+    sim = run_sim(
+        "calibration-only",
+        5,
+        [
+            f"profile={profile}",
+            "calibration.passes=1",
+            *RANGES,
+            "calibration.manoeuvre_order=random",
+        ],
+    )
+    seg = [
+        (s["start_s"], s["end_s"])
+        for s in sim.truth["segments"]
+        if s["manoeuvre"] in ("roll", "pitch", "yaw")
+    ]
+    np.testing.assert_allclose(
+        seg, [(b["start_s"], b["end_s"]) for b in sim.truth["calibration_manoeuvres"]]
+    )
     np.testing.assert_allclose(seg, [(b["start_s"], b["end_s"]) for b in blocks])
 
 
@@ -141,9 +180,16 @@ def test_manoeuvre_blocks_are_drawn_from_their_ranges_and_flown(profile):
 def test_first_order_sensor_lag_is_a_filter_with_group_delay_tau():
     tau = 0.3
     ref = run_sim("calibration-only", 4, BOX)
-    lag = run_sim("calibration-only", 4, [*BOX, "effects.sensor_lag.enabled=true",
-                                          f"effects.sensor_lag.lag_s={tau}",
-                                          "effects.sensor_lag.response=first_order"])
+    lag = run_sim(
+        "calibration-only",
+        4,
+        [
+            *BOX,
+            "effects.sensor_lag.enabled=true",
+            f"effects.sensor_lag.lag_s={tau}",
+            "effects.sensor_lag.response=first_order",
+        ],
+    )
     t_ref, v_ref = _scalar(ref)
     t_lag, v_lag = _scalar(lag)
     # cross-correlation lag: the shift of the unfiltered truth that best matches the recording
@@ -163,8 +209,11 @@ def test_first_order_sensor_lag_is_a_filter_with_group_delay_tau():
     np.testing.assert_allclose(v_lag[ok], y, atol=1e-6)
     assert min(cost) > 1e-4  # a shifted copy does not reproduce the filtered signal
     # the effect's delay mode is still a pure delay (shift 0.3 s reproduces it exactly)
-    dly = run_sim("calibration-only", 4, [*BOX, "effects.sensor_lag.enabled=true",
-                                          f"effects.sensor_lag.lag_s={tau}"])
+    dly = run_sim(
+        "calibration-only",
+        4,
+        [*BOX, "effects.sensor_lag.enabled=true", f"effects.sensor_lag.lag_s={tau}"],
+    )
     t_d, v_d = _scalar(dly)
     np.testing.assert_allclose(v_d[cal], spline(t_d[cal] - tau), atol=1e-3)
 
@@ -172,13 +221,18 @@ def test_first_order_sensor_lag_is_a_filter_with_group_delay_tau():
 # ------------------------------------------------------------------------- current coupling
 def test_current_coupling_drifts_with_the_recorded_temperature():
     base = [*BOX, "aux.temperature_rise_K=20.0", "aux.temperature_time_s=300.0"]
-    cur = ["effects.electrical_current.enabled=true",
-           "effects.electrical_current.coupling_nT_per_A=4.0"]
+    cur = [
+        "effects.electrical_current.enabled=true",
+        "effects.electrical_current.coupling_nT_per_A=4.0",
+    ]
     k = 0.01
     off = run_sim("calibration-only", 6, base)
     flat = run_sim("calibration-only", 6, [*base, *cur])
-    drift = run_sim("calibration-only", 6, [
-        *base, *cur, f"effects.electrical_current.temperature_coefficient_per_K={k}"])
+    drift = run_sim(
+        "calibration-only",
+        6,
+        [*base, *cur, f"effects.electrical_current.temperature_coefficient_per_K={k}"],
+    )
     d_flat = _scalar(flat)[1] - _scalar(off)[1]
     d_drift = _scalar(drift)[1] - _scalar(off)[1]
     temp = drift.streams["/aux/temperature"]["cols"]["value"]  # same clock, 0.05 K noise
@@ -211,10 +265,17 @@ def test_outside_basis_terms_have_the_requested_share(term):
 
 
 def test_lagging_eddy_currents_follow_the_manoeuvres_and_vibration_aliases():
-    sim = run_sim("calibration-only", 2, [
-        *BOX, "calibration.steady_s=10.0", "interference.outside_basis.eddy_lag_nT=0.5",
-        "interference.outside_basis.vibration_nT=0.5",
-        "interference.outside_basis.vibration_hz=23.3"])
+    sim = run_sim(
+        "calibration-only",
+        2,
+        [
+            *BOX,
+            "calibration.steady_s=10.0",
+            "interference.outside_basis.eddy_lag_nT=0.5",
+            "interference.outside_basis.vibration_nT=0.5",
+            "interference.outside_basis.vibration_hz=23.3",
+        ],
+    )
     t, _ = _scalar(sim)
     eddy = sim.series["outside_basis_eddy_lag_nT"]
     # lagging eddy fields need a changing field: none in steady straight flight (3 s after a
@@ -229,8 +290,10 @@ def test_lagging_eddy_currents_follow_the_manoeuvres_and_vibration_aliases():
     # vibration at 23.3 Hz (modes x1.13, x0.87) sampled at 10 Hz: in steady flight (rotors at
     # hover speed) the power sits at the aliased frequencies
     vib = sim.series["outside_basis_vibration_nT"]
-    seg = max((s for s in sim.truth["segments"] if s["label"] == "transit"),
-              key=lambda s: s["end_s"] - s["start_s"])
+    seg = max(
+        (s for s in sim.truth["segments"] if s["label"] == "transit"),
+        key=lambda s: s["end_s"] - s["start_s"],
+    )
     w = (t >= seg["start_s"]) & (t < seg["end_s"])
     x = vib[w] * np.hanning(w.sum())
     f = np.fft.rfftfreq(x.size, 0.1)
@@ -269,19 +332,26 @@ def test_random_flights_report_their_share_and_noise():
     outside the basis) the 4th-difference noise estimate recovers the requested sigma."""
     rng = np.random.default_rng(16)
     for seed in range(2):
-        ov = random_flight_overrides(rng, profiles=("uav",), passes=(1, 1),
-                                     outside_basis_nT=(0.3, 1.0))
+        ov = random_flight_overrides(
+            rng, profiles=("uav",), passes=(1, 1), outside_basis_nT=(0.3, 1.0)
+        )
         sim = run_sim("uav-small", seed, ov)
         sc = sim.scenario
-        want = np.sqrt(sum(sc["interference"]["outside_basis"][f"{k}_nT"] ** 2
-                           for k in OUTSIDE_TERMS))
+        want = np.sqrt(
+            sum(sc["interference"]["outside_basis"][f"{k}_nT"] ** 2 for k in OUTSIDE_TERMS)
+        )
         rep = sim.truth["outside_basis_interference"]
         assert abs(rep["calibration_outside_tl18_rms_nT"] - want) < 0.2 * want
         assert rep["survey_rms_nT"] > 0 and rep["survey_outside_tl18_rms_nT"] > 0
         assert sim.truth["duration_s"] < 30 * 60
     for profile, sigma in (("uav", 0.02), ("fixed-wing", 0.02), ("uav", 0.5)):
-        ov = random_flight_overrides(rng, profiles=(profile,), passes=(1, 1),
-                                     noise_nT=(sigma, sigma), outside_basis_nT=(0.0, 0.0))
+        ov = random_flight_overrides(
+            rng,
+            profiles=(profile,),
+            passes=(1, 1),
+            noise_nT=(sigma, sigma),
+            outside_basis_nT=(0.0, 0.0),
+        )
         sim = run_sim("uav-small", 1, ov)
         _t, v = _scalar(sim)
         # 4th differences (1, -4, 6, -4, 1: variance 70 sigma^2) remove the smooth field; the

@@ -43,8 +43,14 @@ def spin():
 @pytest.fixture(scope="module")
 def prior():
     """An earlier calibration of the same carrier, whose hard iron has moved since."""
-    fl = spinning_carrier(seed=7, duration_s=2.0, pitch_from_deg=30.0, pitch_to_deg=-30.0,
-                          spin_rev_s=3.0, hard_iron_G=(0.052, -0.028, 0.052))
+    fl = spinning_carrier(
+        seed=7,
+        duration_s=2.0,
+        pitch_from_deg=30.0,
+        pitch_to_deg=-30.0,
+        spin_rev_s=3.0,
+        hard_iron_G=(0.052, -0.028, 0.052),
+    )
     return fit_ellipsoid(fl.measured_G, FIELD, SIGMA)
 
 
@@ -66,8 +72,10 @@ def test_prior_start_converges_faster_and_does_not_diverge(spin, prior):
     Each sample is scored with the state *before* its own update: the updated state has
     already fitted the sample, and with it the prior start "converged" at 0 s."""
     times, hard = {}, {}
-    for name, kf in (("naive", EllipsoidKF.naive(FIELD, SIGMA)),
-                     ("prior", EllipsoidKF.from_prior(prior, SIGMA))):
+    for name, kf in (
+        ("naive", EllipsoidKF.naive(FIELD, SIGMA)),
+        ("prior", EllipsoidKF.from_prior(prior, SIGMA)),
+    ):
         st = kf.run(spin.measured_G)
         assert np.allclose(kf.states_before[1:], st[:-1])  # before k = after k - 1
         err = magnitude_error(kf.states_before, spin.measured_G, FIELD)
@@ -92,13 +100,15 @@ def test_after_calibration_magnitude_and_roll(spin, prior):
     tail = np.linalg.norm(final.calibrate(spin.measured_G[-500:]), axis=1) - FIELD
     assert np.sqrt(np.mean(tail**2)) <= 1.2 * SIGMA
     n = spin.time_s.size
-    unrolled = ned_to_body(np.tile(spin.field_ned_G, (n, 1)), np.zeros(n), spin.pitch_deg,
-                           np.zeros(n))
+    unrolled = ned_to_body(
+        np.tile(spin.field_ned_G, (n, 1)), np.zeros(n), spin.pitch_deg, np.zeros(n)
+    )
     exact = angle_error_deg(roll_from_radial(spin.field_body_G, unrolled), spin.roll_deg)
     assert np.abs(exact).max() < 1e-9
     raw = angle_error_deg(roll_from_radial(spin.measured_G, unrolled), spin.roll_deg)
-    cal = angle_error_deg(roll_from_radial(final.calibrate(spin.measured_G), unrolled),
-                          spin.roll_deg)
+    cal = angle_error_deg(
+        roll_from_radial(final.calibrate(spin.measured_G), unrolled), spin.roll_deg
+    )
     assert np.abs(raw).max() > 8.0  # uncalibrated: degrees off
     # within 1 deg except where the radial field nearly vanishes (field along the spin axis)
     assert np.percentile(np.abs(cal), 99) < 1.0 and abs(cal.mean()) < 0.1
@@ -143,8 +153,9 @@ def test_fuzzy_adaptive_r_beats_fixed_r_when_the_noise_changes():
     fl = rotating_carrier(noise_nT=sig, seed=2)
     errs = {}
     for name, fz in (("fixed", None), ("fuzzy", RorFuzzy())):
-        kf = ComponentKF(ComponentKF.paper().x0, 100 * np.eye(21), 1e-12 * np.eye(21),
-                         25.0 * np.eye(3), True, fz)
+        kf = ComponentKF(
+            ComponentKF.paper().x0, 100 * np.eye(21), 1e-12 * np.eye(21), 25.0 * np.eye(3), True, fz
+        )
         p = kf.run(fl.earth_nT, fl.earth_rate_nT_s, fl.measured_nT)
         errs[name] = np.sqrt(np.mean(((p.state(True) - truth) / truth) ** 2))
         assert np.nanmin(kf.history.min_eig) > 0
@@ -165,8 +176,11 @@ def uncalibrated_flight(tmp_path_factory):
     """A UAV survey whose fluxgate is uncalibrated (percent-level scale errors)."""
     from pipeline.simulate import write_simulation
 
-    sim = run_sim("uav-small", 3, ["anomaly.quiet_calibration_m=400.0",
-                                   "effects.vector_calibration.enabled=true"])
+    sim = run_sim(
+        "uav-small",
+        3,
+        ["anomaly.quiet_calibration_m=400.0", "effects.vector_calibration.enabled=true"],
+    )
     return sim, write_simulation(sim, tmp_path_factory.mktemp("vec") / "f.mcap")
 
 
@@ -178,9 +192,24 @@ def test_vector_command_on_a_flight(tmp_path, method, uncalibrated_flight):
     sim, src = uncalibrated_flight
     before = sha256(src)
     out, js = tmp_path / "o.mcap", tmp_path / "s.json"
-    res = subprocess.run([sys.executable, "-m", "flows.cli", "vector", str(src), "--out",
-                          str(out), "--json", str(js), "--method", method],
-                         capture_output=True, text=True, timeout=600)
+    res = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "vector",
+            str(src),
+            "--out",
+            str(out),
+            "--json",
+            str(js),
+            "--method",
+            method,
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert res.returncode == 0, res.stderr[-2000:]
     assert sha256(src) == before
     s = json.loads(js.read_text())["vector"]
@@ -190,8 +219,7 @@ def test_vector_command_on_a_flight(tmp_path, method, uncalibrated_flight):
     flight = read_flight(out, vector_topic=topic)
     v = flight.data[["vector_x_nT", "vector_y_nT", "vector_z_nT"]].to_numpy()
     raw = read_flight(src).data[["vector_x_nT", "vector_y_nT", "vector_z_nT"]].to_numpy()
-    earth = sim.series["earth_total_nT"][np.searchsorted(sim.series["time_ns"],
-                                                         flight.time_ns)]
+    earth = sim.series["earth_total_nT"][np.searchsorted(sim.series["time_ns"], flight.time_ns)]
     err_before = np.sqrt(np.nanmean((np.linalg.norm(raw, axis=1) - earth) ** 2))
     err_after = np.sqrt(np.nanmean((np.linalg.norm(v, axis=1) - earth) ** 2))
     assert err_after < 0.02 * err_before and err_after < 5.0, (err_before, err_after)
@@ -208,7 +236,8 @@ def test_vector_command_on_a_flight(tmp_path, method, uncalibrated_flight):
         assert np.all(np.abs(np.asarray(est["induced"]) - tr.induced) * t_mag <= 10.0)
         assert np.all(np.abs(np.asarray(est["eddy_s"]) - tr.eddy_s) * 2000.0 <= 10.0)
         # the vector-calibration effect (percent scale errors) is most of A: recovered
-        assert np.abs(np.asarray(est["induced"]) - tr.induced).max() < 0.02 * np.abs(
-            tr.induced).max()
+        assert (
+            np.abs(np.asarray(est["induced"]) - tr.induced).max() < 0.02 * np.abs(tr.induced).max()
+        )
     if method == "component-kf":
         assert s["covariance_min_eigenvalue"] > 0

@@ -19,8 +19,14 @@ from pipeline.io.contract import rule_for_topic
 from pipeline.io.schemas import schema_dir, schema_path
 from pipeline.viewer_layout import layout_panels, layout_paths, path_topic_field
 
-CHROMIUM_FLAGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking",
-                  "--disable-component-update", "--disable-sync", "--no-first-run"]
+CHROMIUM_FLAGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+]
 
 
 def test_foxglove_schemas_are_the_official_package():
@@ -29,8 +35,17 @@ def test_foxglove_schemas_are_the_official_package():
     assert (folder / "fetch.sh").is_file()
     # as published: Foxglove's own requirements, not ours (toolchain.md)
     grid = json.loads(schema_path("foxglove.Grid").read_text())
-    assert {"timestamp", "frame_id", "pose", "column_count", "cell_size", "row_stride",
-            "cell_stride", "fields", "data"} <= set(grid["required"])
+    assert {
+        "timestamp",
+        "frame_id",
+        "pose",
+        "column_count",
+        "cell_size",
+        "row_stride",
+        "cell_stride",
+        "fields",
+        "data",
+    } <= set(grid["required"])
     fix = json.loads(schema_path("foxglove.LocationFix").read_text())
     cov = fix["properties"]["position_covariance"]
     assert cov["minItems"] == cov["maxItems"] == 9
@@ -43,8 +58,7 @@ def test_every_output_message_of_the_demo_validates(demo_output):
     validators: dict[str, object] = {}
     counts: Counter[str] = Counter()
     with open(out / "demo_flight.processed.mcap", "rb") as f:
-        for sch, ch, msg in make_reader(f, validate_crcs=True).iter_messages(
-                log_time_order=False):
+        for sch, ch, msg in make_reader(f, validate_crcs=True).iter_messages(log_time_order=False):
             rule = rule_for_topic(ch.topic)
             assert rule is not None and sch.name == rule.schema_name, ch.topic
             assert sch.encoding == "jsonschema" and ch.message_encoding == "json"
@@ -61,11 +75,21 @@ def test_every_output_message_of_the_demo_validates(demo_output):
             assert stamp["sec"] * 1_000_000_000 + stamp["nsec"] == msg.log_time, ch.topic
             counts[ch.topic] += 1
     written = summary["channels_written"]
-    assert {"/aeromag/log", "/map/anomaly", "/map/anomaly_filtered", "/map/tracks",
-            "/mag/compensated", "/flight/segment"} <= set(written)
+    assert {
+        "/aeromag/log",
+        "/map/anomaly",
+        "/map/anomaly_filtered",
+        "/map/tracks",
+        "/mag/compensated",
+        "/flight/segment",
+    } <= set(written)
     assert all(counts[t] > 0 for t in written)
     assert {n for n in validators if n.startswith("foxglove.")} == {
-        "foxglove.Log", "foxglove.Grid", "foxglove.GeoJSON", "foxglove.LocationFix"}
+        "foxglove.Log",
+        "foxglove.Grid",
+        "foxglove.GeoJSON",
+        "foxglove.LocationFix",
+    }
     # one compensated sample per epoch of the recording (the final model covers the flight,
     # but for the first and last few epochs, before the attitude and vector streams start)
     assert 0 <= summary["input"]["epochs"] - counts["/mag/compensated"] <= 10
@@ -78,8 +102,10 @@ def test_demo_layout_refers_to_real_channels_and_fields(demo_output, tmp_path):
     s_map = summary["map"]
     doc = json.loads((out / "demo_flight.layout.json").read_text())
     # the command writes the same layout as the flow
-    res = CliRunner().invoke(app, ["layout", str(out / "demo_flight.processed.mcap"),
-                                   "--out", str(tmp_path / "layout.json")])
+    res = CliRunner().invoke(
+        app,
+        ["layout", str(out / "demo_flight.processed.mcap"), "--out", str(tmp_path / "layout.json")],
+    )
     assert res.exit_code == 0, res.output
     assert json.loads((tmp_path / "layout.json").read_text()) == doc
 
@@ -87,8 +113,14 @@ def test_demo_layout_refers_to_real_channels_and_fields(demo_output, tmp_path):
     panels = layout_panels(doc["layout"])
     assert sorted(panels) == sorted(doc["configById"])  # every panel placed exactly once
     kinds = Counter(p.split("!", 1)[0] for p in panels)
-    assert kinds == {"map": 1, "3D": 2, "Plot": 2, "StateTransitions": 1, "RosOut": 1,
-                     "RawMessages": 1}
+    assert kinds == {
+        "map": 1,
+        "3D": 2,
+        "Plot": 2,
+        "StateTransitions": 1,
+        "RosOut": 1,
+        "RawMessages": 1,
+    }
 
     with open(out / "demo_flight.processed.mcap", "rb") as f:
         s = make_reader(f).get_summary()
@@ -129,8 +161,10 @@ def test_layout_command_refuses_a_non_mcap_file(tmp_path):
 def _chromium() -> str:
     exe = shutil.which("chromium") or shutil.which("chromium-browser")
     if exe is None:
-        pytest.fail("Debian's chromium is needed for the report test: `make test` installs it "
-                    "(apt-get install chromium)")
+        pytest.fail(
+            "Debian's chromium is needed for the report test: `make test` installs it "
+            "(apt-get install chromium)"
+        )
     return exe
 
 
@@ -147,7 +181,8 @@ def test_report_renders_in_headless_chromium(demo_output, tmp_path):
             page = browser.new_page(viewport={"width": 1280, "height": 900})
             page.goto(page_path.as_uri(), wait_until="load")
             images = page.evaluate(
-                "Array.from(document.images).map(i => [i.alt, i.complete, i.naturalWidth])")
+                "Array.from(document.images).map(i => [i.alt, i.complete, i.naturalWidth])"
+            )
             text = page.inner_text("body")
             shot = tmp_path / "report.png"
             page.screenshot(path=str(shot), full_page=True)
@@ -158,9 +193,15 @@ def test_report_renders_in_headless_chromium(demo_output, tmp_path):
     assert sorted(f"demo_flight.{alt}.png" for alt, _, _ in images) == figures
     assert all(ok and width > 100 for _, ok, width in images), images
     assert shot.stat().st_size > 50_000
-    for heading in ("Flight and segments", "Calibration and compensation",
-                    "Calibration FOM per box", "Heading error: T-L vs AGG-TL", "Model audit",
-                    "Before and after ARIMA-Kalman filtering", "Quality control"):
+    for heading in (
+        "Flight and segments",
+        "Calibration and compensation",
+        "Calibration FOM per box",
+        "Heading error: T-L vs AGG-TL",
+        "Model audit",
+        "Before and after ARIMA-Kalman filtering",
+        "Quality control",
+    ):
         assert heading in text, heading
     # the key numbers, as the summary has them
     q = s["quality"]
@@ -173,8 +214,9 @@ def test_report_renders_in_headless_chromium(demo_output, tmp_path):
     assert f"{s['map']['crossover_rms_nT']['after']:.3f}" in text
     assert str(tuple(s["map"]["arima_order"])) in text
     assert f"{q['qc']['noise']['median_nT']:.4f}" in text or all(
-        f"{v:.4f}" in text for v in q["qc"]["noise"]["per_line_nT"].values())
+        f"{v:.4f}" in text for v in q["qc"]["noise"]["per_line_nT"].values()
+    )
     # the page is self-contained: no file or network reference besides data URIs
     page_html = page_path.read_text()
-    assert "src=\"data:image/png;base64," in page_html and "http" not in page_html
+    assert 'src="data:image/png;base64,' in page_html and "http" not in page_html
     assert not list(Path(out).glob(".*partial*"))

@@ -18,12 +18,22 @@ def records(path: Path) -> tuple[list, list, list, dict]:
     """Messages with their channel and schema content, attachments, metadata, channel list."""
     with path.open("rb") as f:
         r = make_reader(f)
-        msgs = [(c.topic, c.message_encoding, dict(c.metadata),
-                 (s.name, s.encoding, s.data) if s else None,
-                 m.log_time, m.publish_time, m.sequence, m.data)
-                for s, c, m in r.iter_messages(log_time_order=False)]
-        atts = [(a.name, a.media_type, a.log_time, a.create_time, a.data)
-                for a in r.iter_attachments()]
+        msgs = [
+            (
+                c.topic,
+                c.message_encoding,
+                dict(c.metadata),
+                (s.name, s.encoding, s.data) if s else None,
+                m.log_time,
+                m.publish_time,
+                m.sequence,
+                m.data,
+            )
+            for s, c, m in r.iter_messages(log_time_order=False)
+        ]
+        atts = [
+            (a.name, a.media_type, a.log_time, a.create_time, a.data) for a in r.iter_attachments()
+        ]
         meta = [(m.name, dict(m.metadata)) for m in r.iter_metadata()]
         summ = r.get_summary()
         chans = {c.topic: c.message_encoding for c in summ.channels.values()} if summ else {}
@@ -36,22 +46,30 @@ def make_rich_input(path: Path) -> Path:
     msgs = []
     for i in range(200):
         t = T0 + i * NS // 10
-        msgs += [("/mag/scalar", t, scalar(t, 50000.0 + np.sin(i))),
-                 ("/mag/vector", t + 3_000_000, vector(t + 3_000_000, 1.0 * i, 2.0, 3.0)),
-                 ("/cam/pb", t + 1, bytes([i % 256, 0, 255, 17]) * 5),
-                 ("/raw/noschema", t + 2, b"raw-bytes-%d" % i)]
+        msgs += [
+            ("/mag/scalar", t, scalar(t, 50000.0 + np.sin(i))),
+            ("/mag/vector", t + 3_000_000, vector(t + 3_000_000, 1.0 * i, 2.0, 3.0)),
+            ("/cam/pb", t + 1, bytes([i % 256, 0, 255, 17]) * 5),
+            ("/raw/noschema", t + 2, b"raw-bytes-%d" % i),
+        ]
 
     def extra(w):
-        w.add_attachment(create_time=T0, log_time=T0, name="calib.txt",
-                         media_type="text/plain", data=b"hello")
+        w.add_attachment(
+            create_time=T0, log_time=T0, name="calib.txt", media_type="text/plain", data=b"hello"
+        )
         w.add_metadata(name="logger", data={"version": "1.2", "pilot": "X"})
         sid = w.register_schema(name="aeromag.Scalar", encoding="jsonschema", data=b"{}")
         w.register_channel(topic="/aux/unused", message_encoding="json", schema_id=sid)
 
     def builder(path):
-        return build(path, msgs, schema_of={"/cam/pb": "foxglove.CompressedImage",
-                                            "/raw/noschema": ""},
-                     encoding={"/cam/pb": "protobuf", "/raw/noschema": "cbor"}, extra=extra)
+        return build(
+            path,
+            msgs,
+            schema_of={"/cam/pb": "foxglove.CompressedImage", "/raw/noschema": ""},
+            encoding={"/cam/pb": "protobuf", "/raw/noschema": "cbor"},
+            extra=extra,
+        )
+
     return builder(path)
 
 
@@ -60,10 +78,15 @@ def test_round_trip_preserves_every_record_byte_for_byte(tmp_path):
     before = sha256(src)
     new = OutputChannel("/aeromag/log", "foxglove.Log")
     for k in range(5):
-        new.add(T0 + k * NS, {"level": 2, "message": f"line {k}", "name": "t", "file": "",
-                              "line": 0})
-    dst = write_with_new_channels(src, tmp_path / "out" / "out.mcap", [new],
-                                  metadata={"aeromag.run": {"aeromag_version": "x"}})
+        new.add(
+            T0 + k * NS, {"level": 2, "message": f"line {k}", "name": "t", "file": "", "line": 0}
+        )
+    dst = write_with_new_channels(
+        src,
+        tmp_path / "out" / "out.mcap",
+        [new],
+        metadata={"aeromag.run": {"aeromag_version": "x"}},
+    )
     assert sha256(src) == before  # the input is never modified
     m_in, a_in, md_in, ch_in = records(src)
     m_out, a_out, md_out, ch_out = records(dst)

@@ -4,6 +4,15 @@ from pipeline.audit.extended import AuditData, ModelSpec, fit_model, simulate_me
 from pipeline.audit.stage import EFFECTS, AuditResult, AuditSettings, run_audit
 from pipeline.audit.vector_cal import VectorCalibration, fit_vector_calibration
 
-__all__ = ["EFFECTS", "AuditData", "AuditResult", "AuditSettings", "ModelSpec",
-           "VectorCalibration", "fit_model", "fit_vector_calibration", "run_audit",
-           "simulate_measurement"]
+__all__ = [
+    "EFFECTS",
+    "AuditData",
+    "AuditResult",
+    "AuditSettings",
+    "ModelSpec",
+    "VectorCalibration",
+    "fit_model",
+    "fit_vector_calibration",
+    "run_audit",
+    "simulate_measurement",
+]

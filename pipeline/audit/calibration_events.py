@@ -36,9 +36,14 @@ class CalibrationStep:
     p_value: float  # Bonferroni over the scanned positions
 
     def to_dict(self, t0_ns: int) -> dict:
-        return {"kind": "step", "start_ns": int(t0_ns + round(self.start_s * 1e9)),
-                "end_ns": int(t0_ns + round(self.end_s * 1e9)), "size_nT": self.size_nT,
-                "p_value": self.p_value, "evidence": "calibration residual"}
+        return {
+            "kind": "step",
+            "start_ns": int(t0_ns + round(self.start_s * 1e9)),
+            "end_ns": int(t0_ns + round(self.end_s * 1e9)),
+            "size_nT": self.size_nT,
+            "p_value": self.p_value,
+            "evidence": "calibration residual",
+        }
 
 
 def _bins(t: np.ndarray, y: np.ndarray, bin_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -50,9 +55,16 @@ def _bins(t: np.ndarray, y: np.ndarray, bin_s: float) -> tuple[np.ndarray, np.nd
     return tb[ok] / counts[ok], sums[ok] / counts[ok]
 
 
-def calibration_steps(time_s: np.ndarray, compensated_nT: np.ndarray, leg: np.ndarray,
-                      alpha: float = 0.01, min_size_nT: float = 0.0, guard_s: float = 5.0,
-                      bin_s: float = 1.0, min_leg_s: float = 30.0) -> list[CalibrationStep]:
+def calibration_steps(
+    time_s: np.ndarray,
+    compensated_nT: np.ndarray,
+    leg: np.ndarray,
+    alpha: float = 0.01,
+    min_size_nT: float = 0.0,
+    guard_s: float = 5.0,
+    bin_s: float = 1.0,
+    min_leg_s: float = 30.0,
+) -> list[CalibrationStep]:
     """The most significant step inside a calibration leg, if any.
 
     Parameters
@@ -104,7 +116,7 @@ def calibration_steps(time_s: np.ndarray, compensated_nT: np.ndarray, leg: np.nd
     for i in range(len(legs)):
         ri = resid[which == i]
         target.append(ri[order:])
-        lagged.append(np.column_stack([ri[order - 1 - j:ri.size - 1 - j] for j in range(order)]))
+        lagged.append(np.column_stack([ri[order - 1 - j : ri.size - 1 - j] for j in range(order)]))
     phi, *_ = np.linalg.lstsq(np.vstack(lagged), np.concatenate(target), rcond=None)
 
     def whiten(x: np.ndarray) -> np.ndarray:
@@ -114,7 +126,7 @@ def calibration_steps(time_s: np.ndarray, compensated_nT: np.ndarray, leg: np.nd
             xi = x[which == i]
             w = xi[order:].copy()
             for j in range(order):
-                w = w - phi[j] * xi[order - 1 - j:xi.shape[0] - 1 - j]
+                w = w - phi[j] * xi[order - 1 - j : xi.shape[0] - 1 - j]
             out.append(w)
         return np.concatenate(out)
 

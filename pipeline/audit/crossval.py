@@ -32,8 +32,9 @@ N_FOLDS = 5
 BLOCK_S = 6.0  # about one manoeuvre period: short enough for every stratum to reach each fold
 
 
-def calibration_strata(cardinal: np.ndarray, manoeuvre: np.ndarray, heading_deg: np.ndarray
-                       ) -> np.ndarray:
+def calibration_strata(
+    cardinal: np.ndarray, manoeuvre: np.ndarray, heading_deg: np.ndarray
+) -> np.ndarray:
     """Stratum label per epoch: ``N:roll`` ... on calibration legs, ``turn:<octant>``
     elsewhere (turns between legs sweep the heading: their octants are distinct situations).
 
@@ -51,9 +52,14 @@ def calibration_strata(cardinal: np.ndarray, manoeuvre: np.ndarray, heading_deg:
     return np.where(on_leg, leg, turn)
 
 
-def stratified_block_folds(time_s: np.ndarray, mask: np.ndarray, strata: np.ndarray,
-                           n_folds: int = N_FOLDS, block_s: float = BLOCK_S, seed: int = 0
-                           ) -> np.ndarray:
+def stratified_block_folds(
+    time_s: np.ndarray,
+    mask: np.ndarray,
+    strata: np.ndarray,
+    n_folds: int = N_FOLDS,
+    block_s: float = BLOCK_S,
+    seed: int = 0,
+) -> np.ndarray:
     """Fold number (0 .. n_folds-1) per epoch inside ``mask``, -1 outside.
 
     Each stratum's epochs are cut into contiguous blocks of ``block_s`` seconds, and the
@@ -110,8 +116,9 @@ class CVLambda:
     best: float  # the one-standard-error choice (see choose_lambda)
 
 
-def choose_lambda(k: np.ndarray, y: np.ndarray, groups: np.ndarray,
-                  lambdas: np.ndarray | None = None) -> CVLambda:
+def choose_lambda(
+    k: np.ndarray, y: np.ndarray, groups: np.ndarray, lambdas: np.ndarray | None = None
+) -> CVLambda:
     """Ridge lambda by cross-validation over ``groups`` (fold labels of the rows).
 
     The largest lambda whose held-out mean squared residual is within one standard error
@@ -127,14 +134,19 @@ def choose_lambda(k: np.ndarray, y: np.ndarray, groups: np.ndarray,
     if labels.size < 2:
         full = RidgeSVD(k, y)
         lams = lambda_grid(full) if lambdas is None else np.asarray(lambdas, float)
-        return CVLambda(lams, np.full(lams.size, np.nan), np.full(lams.size, np.nan),
-                        full.lcurve().lambda_corner)
+        return CVLambda(
+            lams,
+            np.full(lams.size, np.nan),
+            np.full(lams.size, np.nan),
+            full.lcurve().lambda_corner,
+        )
     # Each training set's normal equations are the total minus the held-out group's, so one
     # pass over the rows and a p x p eigendecomposition per group replace an SVD of every
     # training matrix (the audit chooses lambda ~100 times a flight; measured 74 % of its
     # time in those SVDs). Squared singular values = eigenvalues of K'K.
-    gram = {g: (k[groups == g].T @ k[groups == g], k[groups == g].T @ y[groups == g])
-            for g in labels}
+    gram = {
+        g: (k[groups == g].T @ k[groups == g], k[groups == g].T @ y[groups == g]) for g in labels
+    }
     g_all = sum(v[0] for v in gram.values())
     b_all = sum(v[1] for v in gram.values())
     if lambdas is None:
@@ -185,8 +197,7 @@ def jackknife_ci95(estimate: dict, by_fold: list[dict]) -> dict:
             out[key] = None
         elif isinstance(val, int | float):
             out[key] = interval(val, vals)
-        elif isinstance(val, list | tuple) and val and all(isinstance(v, int | float)
-                                                          for v in val):
+        elif isinstance(val, list | tuple) and val and all(isinstance(v, int | float) for v in val):
             out[key] = [interval(val[i], [v[i] for v in vals]) for i in range(len(val))]
         else:
             out[key] = None

@@ -33,8 +33,13 @@ class NestedTest:
     samples: int
 
     def to_dict(self) -> dict:
-        return {"f": self.f, "p_value": self.p_value, "df": self.df,
-                "delta_bic": self.delta_bic, "samples": self.samples}
+        return {
+            "f": self.f,
+            "p_value": self.p_value,
+            "df": self.df,
+            "delta_bic": self.delta_bic,
+            "samples": self.samples,
+        }
 
 
 def nested_test(y: np.ndarray, x_base: np.ndarray, x_ext: np.ndarray, step: int) -> NestedTest:
@@ -65,13 +70,18 @@ class HeldOut:
         return 1.0 - self.rms_after_nT / self.rms_before_nT if self.rms_before_nT > 0 else 0.0
 
     def to_dict(self) -> dict:
-        return {"rms_before_nT": self.rms_before_nT, "rms_after_nT": self.rms_after_nT,
-                "p_value": self.p_value, "blocks": self.blocks,
-                "reduction_pct": 100.0 * self.reduction}
+        return {
+            "rms_before_nT": self.rms_before_nT,
+            "rms_after_nT": self.rms_after_nT,
+            "p_value": self.p_value,
+            "blocks": self.blocks,
+            "reduction_pct": 100.0 * self.reduction,
+        }
 
 
-def heldout_gain(r_before: np.ndarray, r_after: np.ndarray, time_s: np.ndarray,
-                 block_s: float = 10.0) -> HeldOut:
+def heldout_gain(
+    r_before: np.ndarray, r_after: np.ndarray, time_s: np.ndarray, block_s: float = 10.0
+) -> HeldOut:
     """Is ``r_after`` smaller than ``r_before`` (same samples) beyond what noise explains?"""
     a, b, t = (np.asarray(v, float) for v in (r_before, r_after, time_s))
     ok = np.isfinite(a) & np.isfinite(b)
@@ -83,8 +93,11 @@ def heldout_gain(r_before: np.ndarray, r_after: np.ndarray, time_s: np.ndarray,
     n = np.bincount(inv)
     d = (np.bincount(inv, a**2) - np.bincount(inv, b**2)) / n
     d = d[n >= 5]
-    p = float(stats.wilcoxon(d, alternative="greater").pvalue) if d.size > 5 and \
-        np.any(d != 0) else 1.0
+    p = (
+        float(stats.wilcoxon(d, alternative="greater").pvalue)
+        if d.size > 5 and np.any(d != 0)
+        else 1.0
+    )
     return HeldOut(float(np.sqrt(np.mean(a**2))), float(np.sqrt(np.mean(b**2))), p, int(d.size))
 
 
@@ -96,10 +109,8 @@ def paired_point_gain(d_before: np.ndarray, d_after: np.ndarray) -> HeldOut:
     if a.size < 3:
         return HeldOut(float("nan"), float("nan"), 1.0, int(a.size))
     d = a**2 - b**2
-    p = float(stats.ttest_1samp(d, 0.0, alternative="greater").pvalue) if np.std(d) > 0 \
-        else 1.0
-    return HeldOut(float(np.sqrt(np.mean(a**2))), float(np.sqrt(np.mean(b**2))), p,
-                   int(a.size))
+    p = float(stats.ttest_1samp(d, 0.0, alternative="greater").pvalue) if np.std(d) > 0 else 1.0
+    return HeldOut(float(np.sqrt(np.mean(a**2))), float(np.sqrt(np.mean(b**2))), p, int(a.size))
 
 
 def band_noise_gain(rate_hz: float, band_hz: tuple[float, float], poles: int) -> float:

@@ -59,14 +59,20 @@ class AuditData:
         if flight.has("lat_deg", "lon_deg", "alt_m"):
             lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
             sel = calibration_mask & np.isfinite(lat)
-            frame = LocalFrame(float(np.mean(lat[sel])), float(np.mean(lon[sel])),
-                               float(np.mean(alt[sel])))
+            frame = LocalFrame(
+                float(np.mean(lat[sel])), float(np.mean(lon[sel])), float(np.mean(alt[sel]))
+            )
             enu = np.column_stack(frame.to_enu(lat, lon, alt))
         aux = {c[4:]: d[c].to_numpy(float) for c in d.columns if c.startswith("aux_")}
         units = {k: flight.units.get(f"aux_{k}", "") for k in aux}
-        return cls(d["time_s"].to_numpy(float), d["scalar_nT"].to_numpy(float),
-                   d[["vector_x_nT", "vector_y_nT", "vector_z_nT"]].to_numpy(float), enu, aux,
-                   units)
+        return cls(
+            d["time_s"].to_numpy(float),
+            d["scalar_nT"].to_numpy(float),
+            d[["vector_x_nT", "vector_y_nT", "vector_z_nT"]].to_numpy(float),
+            enu,
+            aux,
+            units,
+        )
 
     @property
     def rate_hz(self) -> float:
@@ -141,8 +147,9 @@ def scalar_series(data: AuditData, lag_s: float, response: str = "delay") -> np.
         return out
     if response != "delay":
         raise ValueError(f"unknown lag response {response!r} ({', '.join(LAG_RESPONSES)})")
-    return np.interp(data.time_s + lag_s, data.time_s[ok], data.scalar_nT[ok], left=np.nan,
-                     right=np.nan)
+    return np.interp(
+        data.time_s + lag_s, data.time_s[ok], data.scalar_nT[ok], left=np.nan, right=np.nan
+    )
 
 
 def design(data: AuditData, spec: ModelSpec) -> Design:
@@ -159,17 +166,22 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
     if spec.eddy_rate:
         u = direction_cosines(v)
         d2b = np.gradient(np.gradient(v, data.time_s, axis=0), data.time_s, axis=0)
-        cols.append(np.column_stack([u[:, i] * d2b[:, j] / BT_SCALE_NT for i in range(3)
-                                     for j in range(3)]))
+        cols.append(
+            np.column_stack([u[:, i] * d2b[:, j] / BT_SCALE_NT for i in range(3) for j in range(3)])
+        )
         names = names + [f"eddy_rate_u{a}d2B{b}" for a in "xyz" for b in "xyz"]
         sub += [True] * 9
     if spec.second_order:
         u = direction_cosines(v)
         quad = [(j, k) for j in range(3) for k in range(j, 3)]
-        cols.append(np.column_stack([u[:, i] * v[:, j] * v[:, k] / BT_SCALE_NT**2
-                                     for i in range(3) for j, k in quad]))
-        names = names + [f"second_u{'xyz'[i]}B{'xyz'[j]}B{'xyz'[k]}" for i in range(3)
-                         for j, k in quad]
+        cols.append(
+            np.column_stack(
+                [u[:, i] * v[:, j] * v[:, k] / BT_SCALE_NT**2 for i in range(3) for j, k in quad]
+            )
+        )
+        names = names + [
+            f"second_u{'xyz'[i]}B{'xyz'[j]}B{'xyz'[k]}" for i in range(3) for j, k in quad
+        ]
         sub += [True] * 18
     if spec.gradient:
         if data.enu_m is None:
@@ -178,8 +190,12 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
         cols.append(kp)
         names = names + pn
         sub += [False] * kp.shape[1]
-    return Design(np.column_stack(cols), names, np.array(sub),
-                  scalar_series(data, spec.lag_s, spec.lag_response))
+    return Design(
+        np.column_stack(cols),
+        names,
+        np.array(sub),
+        scalar_series(data, spec.lag_s, spec.lag_response),
+    )
 
 
 @dataclass
@@ -191,9 +207,9 @@ class BandSettings:
     trim: int = default_field("compensation", "trim")
 
 
-def bandpassed_rows(data: AuditData, des: Design, mask: np.ndarray, bs: BandSettings,
-                    keep: np.ndarray | None = None
-                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def bandpassed_rows(
+    data: AuditData, des: Design, mask: np.ndarray, bs: BandSettings, keep: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(K_bp, y_bp, epoch indices) over the contiguous blocks of ``mask``; with ``keep``
     (epoch mask) only the rows of kept epochs, band-passed with all of ``mask`` (folds of
     short blocks select rows of the once-filtered calibration)."""
@@ -219,8 +235,9 @@ class FittedModel:
     fit_residual_nT: float
 
     def coefficient(self, prefix: str) -> np.ndarray:
-        return np.array([c for n, c in zip(self.names, self.theta, strict=True)
-                         if n.startswith(prefix)])
+        return np.array(
+            [c for n, c in zip(self.names, self.theta, strict=True) if n.startswith(prefix)]
+        )
 
     def compensate(self, data: AuditData) -> tuple[np.ndarray, np.ndarray]:
         """(compensated field, interference) at every epoch, nT."""
@@ -228,17 +245,24 @@ class FittedModel:
         interference = des.columns[:, self.subtract] @ self.theta[self.subtract]
         return des.y - interference, interference
 
-    def residual_bp(self, data: AuditData, mask: np.ndarray, bs: BandSettings,
-                    keep: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def residual_bp(
+        self, data: AuditData, mask: np.ndarray, bs: BandSettings, keep: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Band-passed measured minus model (all columns) over ``mask`` (rows of ``keep``
         only, when given): (residual, epochs)."""
         kf, yf, where = bandpassed_rows(data, design(data, self.spec), mask, bs, keep)
         return yf - kf @ self.theta, where
 
 
-def fit_model(data: AuditData, spec: ModelSpec, mask: np.ndarray,
-              bs: BandSettings | None = None, ridge: float | str = "auto",
-              keep: np.ndarray | None = None, folds: np.ndarray | None = None) -> FittedModel:
+def fit_model(
+    data: AuditData,
+    spec: ModelSpec,
+    mask: np.ndarray,
+    bs: BandSettings | None = None,
+    ridge: float | str = "auto",
+    keep: np.ndarray | None = None,
+    folds: np.ndarray | None = None,
+) -> FittedModel:
     """Fit ``spec`` on the epochs of ``mask`` (only the rows of ``keep`` when given).
 
     ``ridge``: ``"auto"`` (L-curve corner), ``"cv"`` (inner cross-validation over the fold
@@ -250,8 +274,7 @@ def fit_model(data: AuditData, spec: ModelSpec, mask: np.ndarray,
     des = design(data, spec)
     kf, yf, where = bandpassed_rows(data, des, mask, bs, keep)
     if where.size < 2 * kf.shape[1]:
-        raise ValueError(f"only {where.size} usable calibration samples for {kf.shape[1]} "
-                         "terms")
+        raise ValueError(f"only {where.size} usable calibration samples for {kf.shape[1]} terms")
     if ridge == "cv":
         if folds is None:
             raise ValueError("ridge 'cv' needs the fold numbers")
@@ -265,12 +288,26 @@ def fit_model(data: AuditData, spec: ModelSpec, mask: np.ndarray,
         lam = solver.lcurve().lambda_corner if ridge == "auto" else float(ridge)
         theta = solver.solve(lam)
     resid = yf - kf @ theta
-    return FittedModel(spec, des.names, des.subtract, theta, float(lam), int(where.size),
-                       float(np.sqrt(np.mean(resid**2))))
+    return FittedModel(
+        spec,
+        des.names,
+        des.subtract,
+        theta,
+        float(lam),
+        int(where.size),
+        float(np.sqrt(np.mean(resid**2))),
+    )
 
 
-def lag_cost(data: AuditData, spec: ModelSpec, mask: np.ndarray, bs: BandSettings,
-             lam: float, max_lag_s: float, keep: np.ndarray | None = None):
+def lag_cost(
+    data: AuditData,
+    spec: ModelSpec,
+    mask: np.ndarray,
+    bs: BandSettings,
+    lam: float,
+    max_lag_s: float,
+    keep: np.ndarray | None = None,
+):
     """cost(tau): fit residual RMS (nT) of ``spec`` refitted with the scalar re-timed by tau.
 
     Only the scalar moves with the lag, so the design matrix and its SVD are built once for
@@ -288,13 +325,13 @@ def lag_cost(data: AuditData, spec: ModelSpec, mask: np.ndarray, bs: BandSetting
     rows = np.ones(where.size, bool) if keep is None else keep[where]
     kf = kf[rows]
     if kf.shape[0] < 2 * kf.shape[1]:
-        raise ValueError(f"only {kf.shape[0]} usable calibration samples for {kf.shape[1]} "
-                         "terms")
+        raise ValueError(f"only {kf.shape[0]} usable calibration samples for {kf.shape[1]} terms")
     solver = RidgeSVD(kf, np.zeros(kf.shape[0]))
 
     def cost(tau: float) -> float:
-        yf, _ = bandpass_blocks(scalar_series(data, float(tau), spec.lag_response), blocks,
-                                sos, bs.trim)
+        yf, _ = bandpass_blocks(
+            scalar_series(data, float(tau), spec.lag_response), blocks, sos, bs.trim
+        )
         yf = yf[rows]
         if not np.all(np.isfinite(yf)):
             return np.inf
@@ -305,9 +342,9 @@ def lag_cost(data: AuditData, spec: ModelSpec, mask: np.ndarray, bs: BandSetting
 
 
 # --------------------------------------------------------------------------------------------
-def carrier_from_coefficients(fitted: FittedModel, mean_field_nT: float,
-                              sample_interval_s: float
-                              ) -> tuple[CarrierInterference, np.ndarray]:
+def carrier_from_coefficients(
+    fitted: FittedModel, mean_field_nT: float, sample_interval_s: float
+) -> tuple[CarrierInterference, np.ndarray]:
     """The physical interference (p, A, E) a fitted T-L model stands for, and the coupling
     vectors (nT per unit, body frame) of its auxiliary channels.
 
@@ -339,8 +376,9 @@ def carrier_from_coefficients(fitted: FittedModel, mean_field_nT: float,
     return CarrierInterference(p, a, e), aux
 
 
-def simulate_measurement(data: AuditData, fitted: FittedModel, earth_total_nT: np.ndarray
-                         ) -> np.ndarray:
+def simulate_measurement(
+    data: AuditData, fitted: FittedModel, earth_total_nT: np.ndarray
+) -> np.ndarray:
     """The scalar reading the project's simulator physics predicts for this flight.
 
     Driven by the measured vector field (its direction; calibrated when the model says so),
@@ -348,8 +386,11 @@ def simulate_measurement(data: AuditData, fitted: FittedModel, earth_total_nT: n
     ``earth_total_nT`` (plus, with the gradient extension, the fitted position terms). With a
     lag the prediction is for the re-timed stream. Exact |b + b_int|, not the linearised T-L.
     """
-    v = data.vector_nT if fitted.spec.vector_cal is None else fitted.spec.vector_cal.apply(
-        data.vector_nT)
+    v = (
+        data.vector_nT
+        if fitted.spec.vector_cal is None
+        else fitted.spec.vector_cal.apply(data.vector_nT)
+    )
     u = direction_cosines(v)
     earth = np.asarray(earth_total_nT, float).copy()
     if fitted.spec.gradient and data.enu_m is not None:
@@ -358,7 +399,8 @@ def simulate_measurement(data: AuditData, fitted: FittedModel, earth_total_nT: n
         earth = earth + kp @ np.array([c[n] for n in pn])
     dt = float(np.median(np.diff(data.time_s)))
     carrier, aux = carrier_from_coefficients(
-        fitted, float(np.nanmean(np.linalg.norm(v, axis=1))), dt)
+        fitted, float(np.nanmean(np.linalg.norm(v, axis=1))), dt
+    )
     b = u * earth[:, None]
     if fitted.spec.base == "tl18":  # per-sample differences, as the tl18 columns, in nT/s
         b_in, db = v, per_sample_difference(v) / dt

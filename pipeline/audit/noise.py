@@ -60,8 +60,7 @@ def white_noise_nT(x_nT: np.ndarray, time_s: np.ndarray, rate_hz: float) -> floa
     for b in contiguous_blocks(np.isfinite(x), np.asarray(time_s, float)):
         if b.size < 2 * SEGMENT_SAMPLES:
             continue
-        f, p = welch(np.diff(x[b], 4), fs=rate_hz, nperseg=SEGMENT_SAMPLES,
-                     average="median")
+        f, p = welch(np.diff(x[b], 4), fs=rate_hz, nperseg=SEGMENT_SAMPLES, average="median")
         spectra.append(p)
         weights.append(b.size)
     if not spectra:

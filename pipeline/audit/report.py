@@ -12,8 +12,10 @@ from pipeline.io.writer import OutputChannel
 
 
 def labels(res: AuditResult) -> dict[str, str]:
-    return {"baseline": f"baseline ({res.baseline.spec.base})",
-            "extended": "extended (" + " + ".join(res.extended.spec.label()) + ")"}
+    return {
+        "baseline": f"baseline ({res.baseline.spec.base})",
+        "extended": "extended (" + " + ".join(res.extended.spec.label()) + ")",
+    }
 
 
 def figures(res: AuditResult, flight: Flight) -> dict[str, Any]:
@@ -28,12 +30,12 @@ def figures(res: AuditResult, flight: Flight) -> dict[str, Any]:
     w = res.residual_epochs
     out = {"residual_time": audit_time_figure(res.data.time_s, w, res.simulated, lab)}
     if res.data.enu_m is not None:
-        out["residual_position"] = audit_position_figure(res.data.enu_m[w, 0],
-                                                         res.data.enu_m[w, 1],
-                                                         res.simulated, lab)
+        out["residual_position"] = audit_position_figure(
+            res.data.enu_m[w, 0], res.data.enu_m[w, 1], res.simulated, lab
+        )
     heading = flight.data["yaw_deg"].to_numpy(float)[w] if flight.has("yaw_deg") else None
     if heading is not None:
-        by = ({k: v["by_heading"] for k, v in res.quality.items()} if res.quality else None)
+        by = {k: v["by_heading"] for k, v in res.quality.items()} if res.quality else None
         out["residual_heading"] = audit_heading_figure(heading, res.simulated, lab, by)
     out["gain"] = audit_gain_figure(res.gain)
     return out
@@ -50,28 +52,47 @@ def _fmt(v: Any) -> str:
 
 
 def _estimate(est: dict) -> str:
-    return ", ".join(f"{k} {_fmt(v)}" for k, v in est.items() if k != "at_acceptance"
-                     and not k.endswith("_by_fold_s"))
+    return ", ".join(
+        f"{k} {_fmt(v)}"
+        for k, v in est.items()
+        if k != "at_acceptance" and not k.endswith("_by_fold_s")
+    )
 
 
 def log_lines(res: AuditResult) -> list[tuple[int, str]]:
     from pipeline.report import LOG_INFO, LOG_WARNING
 
     j = res.to_json()
-    out = [(LOG_INFO, f"audit: baseline {j['baseline']['model']}: held-out calibration "
-                      f"residual {j['baseline']['residual_rms_nT']:.4f} nT, noise floor "
-                      f"{j['noise_floor_nT']:.4f} nT")]
+    out = [
+        (
+            LOG_INFO,
+            f"audit: baseline {j['baseline']['model']}: held-out calibration "
+            f"residual {j['baseline']['residual_rms_nT']:.4f} nT, noise floor "
+            f"{j['noise_floor_nT']:.4f} nT",
+        )
+    ]
     for f in res.findings:
         g = f.heldout
-        out.append((LOG_WARNING, f"audit: finding {f.effect}: {_estimate(f.estimate)}; "
-                                 f"delta BIC {f.test.delta_bic:.1f}, p {f.p_adjusted:.2g}; "
-                                 f"{f.metric.replace('_', ' ')} {g.rms_before_nT:.4f} -> "
-                                 f"{g.rms_after_nT:.4f} nT"))
+        out.append(
+            (
+                LOG_WARNING,
+                f"audit: finding {f.effect}: {_estimate(f.estimate)}; "
+                f"delta BIC {f.test.delta_bic:.1f}, p {f.p_adjusted:.2g}; "
+                f"{f.metric.replace('_', ' ')} {g.rms_before_nT:.4f} -> "
+                f"{g.rms_after_nT:.4f} nT",
+            )
+        )
     if not res.findings:
-        out.append((LOG_INFO, "audit: no finding: no candidate effect improves held-out data "
-                              "beyond noise"))
-    out.append((LOG_INFO, f"audit: extended model {' + '.join(j['extended_model'])}: "
-                          f"held-out residual {j['unexplained_rms_nT']:.4f} nT"))
+        out.append(
+            (LOG_INFO, "audit: no finding: no candidate effect improves held-out data beyond noise")
+        )
+    out.append(
+        (
+            LOG_INFO,
+            f"audit: extended model {' + '.join(j['extended_model'])}: "
+            f"held-out residual {j['unexplained_rms_nT']:.4f} nT",
+        )
+    )
     if res.unexplained.get("note"):
         out.append((LOG_WARNING, f"audit: unexplained: {res.unexplained['note']}"))
     for k, v in res.gain.items():
@@ -86,72 +107,119 @@ def finding_channel(flight: Flight, res: AuditResult) -> OutputChannel:
     ch = OutputChannel("/audit/finding", "aeromag.AuditFinding")
     t0 = int(flight.time_ns[0])
     for k, f in enumerate(res.findings):
-        ch.add(t0 + k, {
-            "effect": f.effect, "accepted": True,
-            "estimate": jsonable(f.estimate), "estimate_ci95": jsonable(f.ci95),
-            "delta_bic": f.test.delta_bic if f.test else None,
-            "p_value": f.test.p_value if f.test else None,
-            "p_value_holm": f.p_adjusted,
-            "heldout_p_value": f.heldout.p_value if f.heldout else None,
-            "gain_metric": f.metric,
-            "before_nT": f.heldout.rms_before_nT if f.heldout else None,
-            "after_nT": f.heldout.rms_after_nT if f.heldout else None,
-            "message": f"{f.effect}: {_estimate(f.estimate)}"})
+        ch.add(
+            t0 + k,
+            {
+                "effect": f.effect,
+                "accepted": True,
+                "estimate": jsonable(f.estimate),
+                "estimate_ci95": jsonable(f.ci95),
+                "delta_bic": f.test.delta_bic if f.test else None,
+                "p_value": f.test.p_value if f.test else None,
+                "p_value_holm": f.p_adjusted,
+                "heldout_p_value": f.heldout.p_value if f.heldout else None,
+                "gain_metric": f.metric,
+                "before_nT": f.heldout.rms_before_nT if f.heldout else None,
+                "after_nT": f.heldout.rms_after_nT if f.heldout else None,
+                "message": f"{f.effect}: {_estimate(f.estimate)}",
+            },
+        )
     if res.unexplained.get("note"):
         u = res.unexplained
-        ch.add(t0 + len(res.findings), {
-            "effect": "unexplained", "accepted": False,
-            "estimate": jsonable(u), "delta_bic": None, "p_value": None,
-            "p_value_holm": None, "heldout_p_value": None,
-            "gain_metric": "heldout_calibration_residual_rms",
-            "before_nT": u.get("noise_floor_nT", res.noise_floor_nT),
-            "after_nT": u.get("rms_nT", res.heldout_extended_nT), "message": u["note"]})
+        ch.add(
+            t0 + len(res.findings),
+            {
+                "effect": "unexplained",
+                "accepted": False,
+                "estimate": jsonable(u),
+                "delta_bic": None,
+                "p_value": None,
+                "p_value_holm": None,
+                "heldout_p_value": None,
+                "gain_metric": "heldout_calibration_residual_rms",
+                "before_nT": u.get("noise_floor_nT", res.noise_floor_nT),
+                "after_nT": u.get("rms_nT", res.heldout_extended_nT),
+                "message": u["note"],
+            },
+        )
     events = sorted(res.unexplained["events"], key=lambda e: e["start_ns"])
     for k, e in enumerate(events):  # on the timeline where they happen
-        ch.add(int(e["start_ns"]) + len(res.findings) + 1 + k, {
-            "effect": "unexplained", "accepted": False, "estimate": jsonable(e),
-            "estimate_ci95": None, "delta_bic": None, "p_value": e.get("p_value"),
-            "p_value_holm": None, "heldout_p_value": None, "gain_metric": e["evidence"],
-            "before_nT": None, "after_nT": None,
-            "message": f"unexplained {e['kind']} of {e['size_nT']:.2f} nT ({e['evidence']})"})
+        ch.add(
+            int(e["start_ns"]) + len(res.findings) + 1 + k,
+            {
+                "effect": "unexplained",
+                "accepted": False,
+                "estimate": jsonable(e),
+                "estimate_ci95": None,
+                "delta_bic": None,
+                "p_value": e.get("p_value"),
+                "p_value_holm": None,
+                "heldout_p_value": None,
+                "gain_metric": e["evidence"],
+                "before_nT": None,
+                "after_nT": None,
+                "message": f"unexplained {e['kind']} of {e['size_nT']:.2f} nT ({e['evidence']})",
+            },
+        )
     return ch
 
 
 def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
     j = res.to_json()
-    lines = [f"# Model audit: {source}", "",
-             f"Baseline: **{j['baseline']['model']}** (T-L with eddy terms, constant Earth "
-             "field during calibration, no lag, no diurnal, no auxiliary couplings, vector "
-             "sensor taken as calibrated). Held-out calibration residual "
-             f"{j['baseline']['residual_rms_nT']:.4f} nT; noise floor in the same band "
-             f"{j['noise_floor_nT']:.4f} nT (white sensor noise "
-             f"{j['sensor_noise_nT']:.4f} nT).", "",
-             "## Findings", ""]
+    lines = [
+        f"# Model audit: {source}",
+        "",
+        f"Baseline: **{j['baseline']['model']}** (T-L with eddy terms, constant Earth "
+        "field during calibration, no lag, no diurnal, no auxiliary couplings, vector "
+        "sensor taken as calibrated). Held-out calibration residual "
+        f"{j['baseline']['residual_rms_nT']:.4f} nT; noise floor in the same band "
+        f"{j['noise_floor_nT']:.4f} nT (white sensor noise "
+        f"{j['sensor_noise_nT']:.4f} nT).",
+        "",
+        "## Findings",
+        "",
+    ]
     if res.findings:
-        lines += ["| effect | estimate | delta BIC | p (Holm) | held-out p | gain metric | "
-                  "before nT | after nT |", "|---|---|---|---|---|---|---|---|"]
+        lines += [
+            "| effect | estimate | delta BIC | p (Holm) | held-out p | gain metric | "
+            "before nT | after nT |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
         for f in res.findings:
-            lines.append(f"| `{f.effect}` | {_estimate(f.estimate)} | {f.test.delta_bic:.1f} | "
-                         f"{f.p_adjusted:.2g} | {f.heldout.p_value:.2g} | {f.metric} | "
-                         f"{f.heldout.rms_before_nT:.4f} | {f.heldout.rms_after_nT:.4f} |")
+            lines.append(
+                f"| `{f.effect}` | {_estimate(f.estimate)} | {f.test.delta_bic:.1f} | "
+                f"{f.p_adjusted:.2g} | {f.heldout.p_value:.2g} | {f.metric} | "
+                f"{f.heldout.rms_before_nT:.4f} | {f.heldout.rms_after_nT:.4f} |"
+            )
     else:
         lines.append("No finding: no candidate effect improves held-out data beyond noise.")
-    lines += ["", f"Extended model: **{' + '.join(j['extended_model'])}**; held-out residual "
-                  f"{j['unexplained_rms_nT']:.4f} nT.", ""]
+    lines += [
+        "",
+        f"Extended model: **{' + '.join(j['extended_model'])}**; held-out residual "
+        f"{j['unexplained_rms_nT']:.4f} nT.",
+        "",
+    ]
     if res.unexplained.get("note"):
         lines += ["## Unexplained", "", res.unexplained["note"] + ".", ""]
         for e in res.unexplained["events"]:
-            lines.append(f"- {e['kind']}: {e['size_nT']:.2f} nT, from "
-                         f"{(e['start_ns'] - int(res.t0_ns)) / 1e9:.1f} s to "
-                         f"{(e['end_ns'] - int(res.t0_ns)) / 1e9:.1f} s "
-                         f"({e['evidence']})")
+            lines.append(
+                f"- {e['kind']}: {e['size_nT']:.2f} nT, from "
+                f"{(e['start_ns'] - int(res.t0_ns)) / 1e9:.1f} s to "
+                f"{(e['end_ns'] - int(res.t0_ns)) / 1e9:.1f} s "
+                f"({e['evidence']})"
+            )
         lines.append("")
     lines += ["## Gain", "", "| metric | baseline | extended |", "|---|---|---|"]
     for k, v in res.gain.items():
         lines.append(f"| {k} | {_fmt(v['before'])} | {_fmt(v['after'])} |")
-    lines += ["", "## Candidates, round by round", "",
-              "| round | candidate | F p (Holm) | delta BIC | held-out before / after nT | "
-              "held-out p | decision |", "|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "## Candidates, round by round",
+        "",
+        "| round | candidate | F p (Holm) | delta BIC | held-out before / after nT | "
+        "held-out p | decision |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r, rnd in enumerate(res.rounds, 1):
         for e in rnd:
             h = e.heldout
@@ -160,13 +228,15 @@ def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
                 f"{_fmt(e.test.delta_bic) if e.test else '-'} | "
                 f"{'-' if h is None else f'{h.rms_before_nT:.4f} / {h.rms_after_nT:.4f}'} | "
                 f"{'-' if h is None else _fmt(h.p_value)} | "
-                f"{'accepted' if e.accepted else e.reason} |")
+                f"{'accepted' if e.accepted else e.reason} |"
+            )
     lines += ["", "## Measured vs simulated", ""]
-    captions = {"residual_time": "Residual vs time (calibration passes, band-passed)",
-                "residual_position": "Residual vs position",
-                "residual_heading": "Residual vs heading; heading error at validation "
-                                    "intersections",
-                "gain": "Gain"}
+    captions = {
+        "residual_time": "Residual vs time (calibration passes, band-passed)",
+        "residual_position": "Residual vs position",
+        "residual_heading": "Residual vs heading; heading error at validation intersections",
+        "gain": "Gain",
+    }
     for name, path in images.items():
         lines += [f"### {captions.get(name, name)}", "", f"![{name}]({path})", ""]
     if res.notes:

@@ -76,8 +76,13 @@ from pipeline.flight import Flight
 from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
 from pipeline.segment import Segmentation
 
-EFFECTS = ("geomagnetic_gradient", "sensor_lag", "diurnal", "electrical_current",
-           "vector_calibration")
+EFFECTS = (
+    "geomagnetic_gradient",
+    "sensor_lag",
+    "diurnal",
+    "electrical_current",
+    "vector_calibration",
+)
 
 
 @dataclass
@@ -115,9 +120,15 @@ class Evaluation:
     held_back: bool = False  # a competing explanation fits as well: never accepted
 
     def passes(self, s: AuditSettings) -> bool:
-        return (not self.held_back and self.test is not None and self.heldout is not None
-                and self.p_adjusted < s.alpha and self.test.delta_bic < 0
-                and self.heldout.p_value < s.alpha and self.heldout.reduction >= s.min_gain)
+        return (
+            not self.held_back
+            and self.test is not None
+            and self.heldout is not None
+            and self.p_adjusted < s.alpha
+            and self.test.delta_bic < 0
+            and self.heldout.p_value < s.alpha
+            and self.heldout.reduction >= s.min_gain
+        )
 
     def why_not(self, s: AuditSettings) -> str:
         if self.reason:
@@ -130,22 +141,32 @@ class Evaluation:
         if self.heldout is not None and self.heldout.p_value >= s.alpha:
             out.append(f"held-out p {self.heldout.p_value:.3g} >= {s.alpha}")
         if self.heldout is not None and self.heldout.reduction < s.min_gain:
-            out.append(f"held-out gain {100 * self.heldout.reduction:.1f} % < "
-                       f"{100 * s.min_gain:.0f} %")
+            out.append(
+                f"held-out gain {100 * self.heldout.reduction:.1f} % < {100 * s.min_gain:.0f} %"
+            )
         return "; ".join(out)
 
     def to_dict(self) -> dict[str, Any]:
-        return {"effect": self.effect, "key": self.key, "estimate": self.estimate,
-                "estimate_ci95": self.ci95,
-                "delta_bic": None if self.test is None else self.test.delta_bic,
-                "p_value": None if self.test is None else self.test.p_value,
-                "p_value_holm": self.p_adjusted,
-                "f": None if self.test is None else self.test.f,
-                "heldout": None if self.heldout is None else self.heldout.to_dict(),
-                "gain": None if self.heldout is None else {
-                    "metric": self.metric, "before_nT": self.heldout.rms_before_nT,
-                    "after_nT": self.heldout.rms_after_nT},
-                "accepted": self.accepted, "reason": self.reason}
+        return {
+            "effect": self.effect,
+            "key": self.key,
+            "estimate": self.estimate,
+            "estimate_ci95": self.ci95,
+            "delta_bic": None if self.test is None else self.test.delta_bic,
+            "p_value": None if self.test is None else self.test.p_value,
+            "p_value_holm": self.p_adjusted,
+            "f": None if self.test is None else self.test.f,
+            "heldout": None if self.heldout is None else self.heldout.to_dict(),
+            "gain": None
+            if self.heldout is None
+            else {
+                "metric": self.metric,
+                "before_nT": self.heldout.rms_before_nT,
+                "after_nT": self.heldout.rms_after_nT,
+            },
+            "accepted": self.accepted,
+            "reason": self.reason,
+        }
 
 
 @dataclass
@@ -174,33 +195,46 @@ class AuditResult:
     def to_json(self) -> dict[str, Any]:
         """AUDIT.json (issue 6 contract plus details)."""
         return {
-            "baseline": {"model": self.baseline.spec.base,
-                         "residual_rms_nT": self.heldout_baseline_nT,
-                         "fit_residual_nT": self.baseline.fit_residual_nT,
-                         "generalization_gap": self.generalization_gap,
-                         "passwise_residual_rms_nT": self.passwise_heldout_nT,
-                         "lambda": self.baseline.lambda_},
-            "findings": [{"effect": f.effect, "estimate": f.estimate,
-                          "estimate_ci95": f.ci95,
-                          "delta_bic": f.test.delta_bic if f.test else None,
-                          "p_value": f.test.p_value if f.test else None,
-                          "p_value_holm": f.p_adjusted,
-                          "heldout_p_value": f.heldout.p_value if f.heldout else None,
-                          "gain": {"metric": f.metric,
-                                   "before_nT": f.heldout.rms_before_nT,
-                                   "after_nT": f.heldout.rms_after_nT} if f.heldout else None}
-                         for f in self.findings],
+            "baseline": {
+                "model": self.baseline.spec.base,
+                "residual_rms_nT": self.heldout_baseline_nT,
+                "fit_residual_nT": self.baseline.fit_residual_nT,
+                "generalization_gap": self.generalization_gap,
+                "passwise_residual_rms_nT": self.passwise_heldout_nT,
+                "lambda": self.baseline.lambda_,
+            },
+            "findings": [
+                {
+                    "effect": f.effect,
+                    "estimate": f.estimate,
+                    "estimate_ci95": f.ci95,
+                    "delta_bic": f.test.delta_bic if f.test else None,
+                    "p_value": f.test.p_value if f.test else None,
+                    "p_value_holm": f.p_adjusted,
+                    "heldout_p_value": f.heldout.p_value if f.heldout else None,
+                    "gain": {
+                        "metric": f.metric,
+                        "before_nT": f.heldout.rms_before_nT,
+                        "after_nT": f.heldout.rms_after_nT,
+                    }
+                    if f.heldout
+                    else None,
+                }
+                for f in self.findings
+            ],
             "extended_model": self.extended.spec.label(),
             "unexplained_rms_nT": self.heldout_extended_nT,
             "noise_floor_nT": self.noise_floor_nT,
             "unexplained": self.unexplained,  # {"events": [...], "note", "spectrum", ...}
             "sensor_noise_nT": self.sensor_noise_nT,
             "gain": self.gain,
-            "extended": {"residual_rms_nT": self.heldout_extended_nT,
-                         "fit_residual_nT": self.extended.fit_residual_nT,
-                         "lambda": self.extended.lambda_,
-                         "terms": self.extended.names,
-                         "coefficients": [float(c) for c in self.extended.theta]},
+            "extended": {
+                "residual_rms_nT": self.heldout_extended_nT,
+                "fit_residual_nT": self.extended.fit_residual_nT,
+                "lambda": self.extended.lambda_,
+                "terms": self.extended.names,
+                "coefficients": [float(c) for c in self.extended.theta],
+            },
             "rounds": [[e.to_dict() for e in r] for r in self.rounds],
             "notes": self.notes,
         }
@@ -221,11 +255,16 @@ class Auditor:
         self.mask = calibration_mask(flight, seg, "auto")
         self.data = AuditData.from_flight(flight, self.mask)
         self.passes = seg.passes()
-        strata = calibration_strata(seg.cardinal, seg.manoeuvre,
-                                    flight.data["yaw_deg"].to_numpy(float)
-                                    if flight.has("yaw_deg") else np.zeros(self.mask.size))
-        self.fold = stratified_block_folds(self.data.time_s, self.mask, strata,
-                                           settings.n_folds, settings.block_s_cv)
+        strata = calibration_strata(
+            seg.cardinal,
+            seg.manoeuvre,
+            flight.data["yaw_deg"].to_numpy(float)
+            if flight.has("yaw_deg")
+            else np.zeros(self.mask.size),
+        )
+        self.fold = stratified_block_folds(
+            self.data.time_s, self.mask, strata, settings.n_folds, settings.block_s_cv
+        )
         self.folds = _fold_masks(self.fold)
         self.pass_fold = passwise_folds(self.mask, self.passes)
         self.step = thinning_step(self.data.rate_hz, settings.band.band_hz)
@@ -233,8 +272,9 @@ class Auditor:
         self._fit_cache: dict[tuple, FittedModel] = {}
 
     # -- fitting helpers ------------------------------------------------------------------
-    def fit(self, spec: ModelSpec, keep: np.ndarray | None, key: str,
-            ridge: str | None = None) -> FittedModel:
+    def fit(
+        self, spec: ModelSpec, keep: np.ndarray | None, key: str, ridge: str | None = None
+    ) -> FittedModel:
         """``spec`` fitted on the calibration rows of ``keep``, band-passed over the whole
         calibration. Fold fits (``keep`` given) choose ridge lambda by inner
         cross-validation over the training folds; the fit on all of the calibration (``keep``
@@ -244,8 +284,9 @@ class Auditor:
         ridge = ridge or ("auto" if keep is None else "cv")
         ck = (spec, key, ridge)
         if ck not in self._fit_cache:
-            self._fit_cache[ck] = fit_model(self.data, spec, self.mask, self.s.band,
-                                            ridge=ridge, keep=keep, folds=self.fold)
+            self._fit_cache[ck] = fit_model(
+                self.data, spec, self.mask, self.s.band, ridge=ridge, keep=keep, folds=self.fold
+            )
         return self._fit_cache[ck]
 
     def heldout(self, before: ModelSpec, after_for_fold) -> HeldOut:
@@ -262,11 +303,13 @@ class Auditor:
             rb.append(r0[i0])
             ra.append(r1[i1])
             tt.append(self.data.time_s[common])
-        return heldout_gain(np.concatenate(rb), np.concatenate(ra), np.concatenate(tt),
-                            self.s.block_s)
+        return heldout_gain(
+            np.concatenate(rb), np.concatenate(ra), np.concatenate(tt), self.s.block_s
+        )
 
-    def _nested(self, spec: ModelSpec, extra: np.ndarray | None = None,
-                ext_spec: ModelSpec | None = None) -> NestedTest:
+    def _nested(
+        self, spec: ModelSpec, extra: np.ndarray | None = None, ext_spec: ModelSpec | None = None
+    ) -> NestedTest:
         """Nested test on the whole calibration: ``spec``'s columns vs ``ext_spec``'s (or
         plus the unfiltered ``extra`` columns), band-passed on the same blocks."""
         des = design(self.data, spec)
@@ -275,8 +318,12 @@ class Auditor:
             cols_e = des_e.columns
         else:
             cols_e = np.column_stack([des.columns, extra])
-        valid = (self.mask & np.isfinite(des.y) & np.all(np.isfinite(cols_e), axis=1)
-                 & np.all(np.isfinite(des.columns), axis=1))
+        valid = (
+            self.mask
+            & np.isfinite(des.y)
+            & np.all(np.isfinite(cols_e), axis=1)
+            & np.all(np.isfinite(des.columns), axis=1)
+        )
         blocks = contiguous_blocks(valid, self.data.time_s)
         sos = bandpass_sos(self.s.band.band_hz, self.data.rate_hz, self.s.band.poles)
         kb, _ = bandpass_blocks(des.columns, blocks, sos, self.s.band.trim)
@@ -307,23 +354,28 @@ class Auditor:
         try:
             return getattr(self, f"_eval_{effect}")(current, key)
         except (ValueError, np.linalg.LinAlgError) as exc:
-            return Evaluation(effect, key, {}, None, None, None,
-                              reason=f"could not be tested: {exc}")
+            return Evaluation(
+                effect, key, {}, None, None, None, reason=f"could not be tested: {exc}"
+            )
 
     def _eval_geomagnetic_gradient(self, current: ModelSpec, key: str) -> Evaluation:
         ext = current.with_(gradient=True)
         test = self._nested(current, ext_spec=ext)
         held = self.heldout(current, lambda train, k: ext)
+
         def gradient(fm: FittedModel) -> dict[str, float]:
             c = dict(zip(fm.names, fm.theta, strict=True))
-            return {"east_nT_per_m": float(c["pos_e"]), "north_nT_per_m": float(c["pos_n"]),
-                    "up_nT_per_m": float(c["pos_up"])}
+            return {
+                "east_nT_per_m": float(c["pos_e"]),
+                "north_nT_per_m": float(c["pos_n"]),
+                "up_nT_per_m": float(c["pos_up"]),
+            }
 
         est = gradient(self.fit(ext, None, "all"))
-        folds = [gradient(self.fit(ext, tr, f"fold{k}")) for k, (tr, _) in
-                 enumerate(self.folds)]
-        return Evaluation("geomagnetic_gradient", key, est, test, held, ext,
-                          ci95=jackknife_ci95(est, folds))
+        folds = [gradient(self.fit(ext, tr, f"fold{k}")) for k, (tr, _) in enumerate(self.folds)]
+        return Evaluation(
+            "geomagnetic_gradient", key, est, test, held, ext, ci95=jackknife_ci95(est, folds)
+        )
 
     def _lag_estimate(self, current: ModelSpec, keep: np.ndarray | None, key: str) -> float:
         """The lag minimising the refitted model's residual: a coarse grid over
@@ -333,16 +385,18 @@ class Auditor:
         # the eddy terms absorb part of the lag (measured: 0.07 s found for 0.16 s)
         lam = self.fit(current, keep, key, ridge="auto").lambda_
         try:
-            cost = lag_cost(self.data, current, self.mask, self.s.band, lam, self.s.max_lag_s,
-                            keep=keep)
+            cost = lag_cost(
+                self.data, current, self.mask, self.s.band, lam, self.s.max_lag_s, keep=keep
+            )
         except ValueError:
             return 0.0
         step = 0.05
         grid = np.arange(-self.s.max_lag_s, self.s.max_lag_s + step / 2, step)
         costs = [cost(float(t)) for t in grid]
         best = float(grid[int(np.argmin(costs))])
-        res = minimize_scalar(cost, bounds=(best - step, best + step), method="bounded",
-                              options={"xatol": 1e-4})
+        res = minimize_scalar(
+            cost, bounds=(best - step, best + step), method="bounded", options={"xatol": 1e-4}
+        )
         return float(res.x)
 
     def _lag_response(self, current: ModelSpec) -> str:
@@ -378,20 +432,41 @@ class Auditor:
         # (the carrier's, not the sensor's); a late sensor delays its whole reading, which
         # the extra eddy columns cannot mimic (checked in _beyond)
         lag = self._lag_estimate(current, None, "all")
-        est = {"lag_s": lag, "response": current.lag_response,
-               "lag_by_fold_s": [lags[k] for k in sorted(lags)]}
+        est = {
+            "lag_s": lag,
+            "response": current.lag_response,
+            "lag_by_fold_s": [lags[k] for k in sorted(lags)],
+        }
         sl = self.survey_lag(current)
         if sl is not None:  # independent evidence: the survey's crossovers
-            est.update(survey_lag_s=sl.lag_s, survey_lag_ci95_s=list(sl.ci95_s),
-                       survey_lag_p_value=sl.p_value)
+            est.update(
+                survey_lag_s=sl.lag_s,
+                survey_lag_ci95_s=list(sl.ci95_s),
+                survey_lag_p_value=sl.p_value,
+            )
         ci = jackknife_ci95({"lag_s": lag}, [{"lag_s": lags[k]} for k in sorted(lags)])
-        ev = Evaluation("sensor_lag", key, est, test, held, current.with_(lag_s=lag),
-                        ci95={**ci, **{k: None for k in est if k not in ci}})
-        self._beyond(ev, current.with_(eddy_rate=True),
-                     current.with_(eddy_rate=True, lag_s=lag),
-                     "eddy currents with a time constant", "a late sensor")
-        if ev.held_back and sl is not None and sl.p_value < self.s.alpha \
-                and sl.ci95_s[0] <= lag <= sl.ci95_s[1]:
+        ev = Evaluation(
+            "sensor_lag",
+            key,
+            est,
+            test,
+            held,
+            current.with_(lag_s=lag),
+            ci95={**ci, **{k: None for k in est if k not in ci}},
+        )
+        self._beyond(
+            ev,
+            current.with_(eddy_rate=True),
+            current.with_(eddy_rate=True, lag_s=lag),
+            "eddy currents with a time constant",
+            "a late sensor",
+        )
+        if (
+            ev.held_back
+            and sl is not None
+            and sl.p_value < self.s.alpha
+            and sl.ci95_s[0] <= lag <= sl.ci95_s[1]
+        ):
             # the calibration cannot tell the two apart, the survey can: eddy currents do
             # not move anomalies along track, a late sensor does
             ev.held_back = False
@@ -411,41 +486,57 @@ class Auditor:
             c = fm.coefficient(f"aux_{name}_u")
             mag = float(np.linalg.norm(c))
             # what the scalar sensor sees: the coupling projected on the field direction
-            return {"channel": f"/aux/{name}", "nT_per_unit": mag,
-                    "total_field_nT_per_unit": float(np.mean(u[inside] @ c)),
-                    "unit": self.data.aux_units.get(name, ""),
-                    "direction_body": [float(v) for v in c / mag] if mag > 0 else None}
+            return {
+                "channel": f"/aux/{name}",
+                "nT_per_unit": mag,
+                "total_field_nT_per_unit": float(np.mean(u[inside] @ c)),
+                "unit": self.data.aux_units.get(name, ""),
+                "direction_body": [float(v) for v in c / mag] if mag > 0 else None,
+            }
 
         est = coupling(self.fit(ext, None, "all"))
-        folds = [coupling(self.fit(ext, tr, f"fold{k}")) for k, (tr, _) in
-                 enumerate(self.folds)]
+        folds = [coupling(self.fit(ext, tr, f"fold{k}")) for k, (tr, _) in enumerate(self.folds)]
         ci = jackknife_ci95(est, folds)
         sc = self.survey_coupling(current, name)
         if sc is not None:  # independent evidence: the survey's crossovers
-            est.update(survey_total_field_nT_per_unit=sc.nT_per_unit,
-                       survey_ci95=list(sc.ci95), survey_p_value=sc.p_value)
-            ci.update({k: None for k in ("survey_total_field_nT_per_unit", "survey_ci95",
-                                         "survey_p_value")})
+            est.update(
+                survey_total_field_nT_per_unit=sc.nT_per_unit,
+                survey_ci95=list(sc.ci95),
+                survey_p_value=sc.p_value,
+            )
+            ci.update(
+                {
+                    k: None
+                    for k in ("survey_total_field_nT_per_unit", "survey_ci95", "survey_p_value")
+                }
+            )
         ev = Evaluation("electrical_current", key, est, test, held, ext, ci95=ci)
         # a current that follows the manoeuvres (a motor's) can stand in for interference
         # that is not linear in the field: the coupling is named only when it explains
         # held-out data better than second-order induced terms do
-        self._beyond(ev, current.with_(second_order=True), ext.with_(second_order=True),
-                     "second-order induced terms", "a current coupling")
+        self._beyond(
+            ev,
+            current.with_(second_order=True),
+            ext.with_(second_order=True),
+            "second-order induced terms",
+            "a current coupling",
+        )
         return ev
 
-    def _beyond(self, ev: Evaluation, alt: ModelSpec, both: ModelSpec, alt_name: str,
-                what: str) -> None:
+    def _beyond(
+        self, ev: Evaluation, alt: ModelSpec, both: ModelSpec, alt_name: str, what: str
+    ) -> None:
         """Hold ``ev`` back unless its extension still lowers held-out data (p < alpha, by
         ``min_gain``) in a model that already has the competing explanation ``alt``."""
         beyond = self.heldout(alt, lambda train, k: both)
-        ev.estimate["beyond_alternative"] = {"alternative": alt_name,
-                                             **beyond.to_dict()}
+        ev.estimate["beyond_alternative"] = {"alternative": alt_name, **beyond.to_dict()}
         ev.ci95["beyond_alternative"] = None
         if not (beyond.p_value < self.s.alpha and beyond.reduction >= self.s.min_gain):
-            ev.reason = (f"{alt_name} explain the residual about as well: with them in the "
-                         f"model it lowers held-out data by {100 * beyond.reduction:.1f} % "
-                         f"(p {beyond.p_value:.2g}); not {what}")
+            ev.reason = (
+                f"{alt_name} explain the residual about as well: with them in the "
+                f"model it lowers held-out data by {100 * beyond.reduction:.1f} % "
+                f"(p {beyond.p_value:.2g}); not {what}"
+            )
             ev.held_back = True
 
     def _eval_vector_calibration(self, current: ModelSpec, key: str) -> Evaluation:
@@ -456,12 +547,14 @@ class Auditor:
         sel = self.mask & np.isfinite(ref) & np.all(np.isfinite(m), axis=1)
         mismatch = np.linalg.norm(m, axis=1) - ref
         u = direction_cosines(m)
-        quad = np.column_stack([u[:, i] * u[:, j] for i, j in
-                                ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2))])
+        quad = np.column_stack(
+            [u[:, i] * u[:, j] for i, j in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2))]
+        )
         ones = np.ones((m.shape[0], 1))
         # attitude dependence of |m| - B: offsets (u) and scale/non-orthogonality (u u)
-        test = nested_test(mismatch[sel], ones[sel], np.column_stack([ones, u, quad])[sel],
-                           max(self.step, 5))
+        test = nested_test(
+            mismatch[sel], ones[sel], np.column_stack([ones, u, quad])[sel], max(self.step, 5)
+        )
 
         fold_vc = {}
 
@@ -474,14 +567,23 @@ class Auditor:
 
         held = self.heldout(current, ext_for)
         vc = fit_vector_calibration(m[sel], ref[sel])
-        est = {**vc.sensor_errors(), "mismatch_rms_before_nT": vc.residual_before_nT,
-               "mismatch_rms_after_nT": vc.residual_after_nT}
-        ci = jackknife_ci95(vc.sensor_errors(), [fold_vc[k].sensor_errors()
-                                                 for k in sorted(fold_vc)])
-        return Evaluation("vector_calibration", key, est, test, held,
-                          current.with_(vector_cal=vc),
-                          ci95={**ci, "mismatch_rms_before_nT": None,
-                                "mismatch_rms_after_nT": None})
+        est = {
+            **vc.sensor_errors(),
+            "mismatch_rms_before_nT": vc.residual_before_nT,
+            "mismatch_rms_after_nT": vc.residual_after_nT,
+        }
+        ci = jackknife_ci95(
+            vc.sensor_errors(), [fold_vc[k].sensor_errors() for k in sorted(fold_vc)]
+        )
+        return Evaluation(
+            "vector_calibration",
+            key,
+            est,
+            test,
+            held,
+            current.with_(vector_cal=vc),
+            ci95={**ci, "mismatch_rms_before_nT": None, "mismatch_rms_after_nT": None},
+        )
 
     def _crossover_data(self, spec: ModelSpec, smooth_s: float = 0.0):
         """Crossover and validation-overlap differences of ``spec``'s compensated field,
@@ -500,8 +602,7 @@ class Auditor:
         red = comp - igrf_total_nT(self.flight.time_ns, lat, lon, alt)
         if smooth_s > 0:
             red = time_window_mean(self.data.time_s, red, smooth_s)
-        base = time_window_mean(self.data.time_s, d["base_nT"].to_numpy(float),
-                                BASE_SMOOTHING_S)
+        base = time_window_mean(self.data.time_s, d["base_nT"].to_numpy(float), BASE_SMOOTHING_S)
         sel = self.seg.mask("survey")
         frame = LocalFrame(float(np.nanmean(lat[sel])), float(np.nanmean(lon[sel])))
         e, n, _ = frame.to_enu(lat, lon)
@@ -509,15 +610,16 @@ class Auditor:
         t = self.data.time_s
 
         def line(tr):
-            return Line(tr.line_id, tr.kind, tr.east_m, tr.north_m, t[tr.index],
-                        red[tr.index], tr.index)
+            return Line(
+                tr.line_id, tr.kind, tr.east_m, tr.north_m, t[tr.index], red[tr.index], tr.index
+            )
+
         survey = [line(tr) for tr in tracks if tr.kind == "survey"]
         ties = [line(tr) for tr in tracks if tr.kind == "tie"]
         xs = crossovers(survey, ties)
         heading = {tr.line_id: int(round(tr.heading_deg / 90.0)) % 4 for tr in tracks}
         dx = np.array([c.difference_nT for c in xs])
-        db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base)
-                       for c in xs])
+        db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base) for c in xs])
         groups = [f"{heading[c.line_a]}{heading[c.line_b]}" for c in xs]
         tie_of = [c.line_b for c in xs]
         val = [tr for tr in tracks if tr.kind == "validation"]
@@ -529,8 +631,9 @@ class Auditor:
 
         dx, db, groups, tie_of, ov, red, base, _, _ = self._crossover_data(current)
         if dx.size < 8:
-            return Evaluation("diurnal", key, {}, None, None, None,
-                              reason=f"only {dx.size} survey-tie crossovers")
+            return Evaluation(
+                "diurnal", key, {}, None, None, None, reason=f"only {dx.size} survey-tie crossovers"
+            )
         labels = sorted(set(groups))
         dummies = np.array([[g == lab for lab in labels] for g in groups], float)
         test = nested_test(dx, dummies, np.column_stack([dummies, db]), 1)
@@ -547,8 +650,9 @@ class Auditor:
         return ev
 
     @staticmethod
-    def _leave_one_tie_out(dx: np.ndarray, db: np.ndarray, dummies: np.ndarray,
-                           tie_of: np.ndarray) -> HeldOut:
+    def _leave_one_tie_out(
+        dx: np.ndarray, db: np.ndarray, dummies: np.ndarray, tie_of: np.ndarray
+    ) -> HeldOut:
         """Crossover residuals of each tie line, the base coefficient fitted on the other
         tie lines' crossovers; each heading pair's level is removed within the held-out tie
         (a tie's own heading level cannot be learnt from ties flown the other way)."""
@@ -572,8 +676,11 @@ class Auditor:
     def survey_evidence(self, spec: ModelSpec) -> list[dict[str, Any]]:
         """Steps and drifts in ``spec``'s compensated field seen at survey/tie crossovers
         (:mod:`pipeline.audit.survey`), as ``unexplained.events`` entries."""
-        if not (self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
-                and self.seg.mask("tie").any() and self.seg.mask("survey").any()):
+        if not (
+            self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
+            and self.seg.mask("tie").any()
+            and self.seg.mask("survey").any()
+        ):
             return []
         # a second along track (7-15 m at survey speeds, well inside the smoothest anomaly
         # at survey height) averages the sensor noise out of each crossover reading
@@ -581,10 +688,13 @@ class Auditor:
         if dx.size < 8:
             return []
         d = dx - db  # the base station's variation is the day's, never the carrier's
-        cs = CrossoverSet(d, np.array([c.time_a_s for c in xs]),
-                          np.array([c.time_b_s for c in xs]),
-                          np.array([heading[c.line_a] for c in xs]),
-                          np.array([heading[c.line_b] for c in xs]))
+        cs = CrossoverSet(
+            d,
+            np.array([c.time_a_s for c in xs]),
+            np.array([c.time_b_s for c in xs]),
+            np.array([heading[c.line_a] for c in xs]),
+            np.array([heading[c.line_b] for c in xs]),
+        )
         events = survey_events(cs, self.s.alpha, self.s.min_event_nT)
         t0 = int(self.flight.time_ns[0])
         return [e.to_dict(t0) for e in events]
@@ -603,15 +713,17 @@ class Auditor:
             edges = np.flatnonzero(key[1:] != key[:-1]) + 1
             for j, part in enumerate(np.split(b, edges)):
                 leg[part] = 1000 * k + j
-        steps = calibration_steps(self.data.time_s, comp, leg, self.s.alpha,
-                                  self.s.min_event_nT)
+        steps = calibration_steps(self.data.time_s, comp, leg, self.s.alpha, self.s.min_event_nT)
         t0 = int(self.flight.time_ns[0])
         return [e.to_dict(t0) for e in steps]
 
     def survey_lag(self, spec: ModelSpec) -> SurveyLag | None:
         """The lag seen at the survey's crossovers (:func:`pipeline.audit.survey.survey_lag`)."""
-        if not (self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
-                and self.seg.mask("tie").any() and self.seg.mask("survey").any()):
+        if not (
+            self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
+            and self.seg.mask("tie").any()
+            and self.seg.mask("survey").any()
+        ):
             return None
         dx, db, _, _, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
         if dx.size < 8:
@@ -621,15 +733,23 @@ class Auditor:
         rate = np.full(t.size, np.nan)
         rate[ok] = np.gradient(red[ok], t[ok])
         ta, tb = np.array([c.time_a_s for c in xs]), np.array([c.time_b_s for c in xs])
-        cs = CrossoverSet(dx - db, ta, tb, np.array([heading[c.line_a] for c in xs]),
-                          np.array([heading[c.line_b] for c in xs]))
+        cs = CrossoverSet(
+            dx - db,
+            ta,
+            tb,
+            np.array([heading[c.line_a] for c in xs]),
+            np.array([heading[c.line_b] for c in xs]),
+        )
         return survey_lag(cs, np.interp(ta, t, rate), np.interp(tb, t, rate))
 
     def survey_coupling(self, spec: ModelSpec, name: str) -> SurveyCoupling | None:
         """Channel ``name``'s coupling seen at the survey's crossovers
         (:func:`pipeline.audit.survey.survey_coupling`)."""
-        if not (self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
-                and self.seg.mask("tie").any() and self.seg.mask("survey").any()):
+        if not (
+            self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
+            and self.seg.mask("tie").any()
+            and self.seg.mask("survey").any()
+        ):
             return None
         dx, db, _, _, _, _, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
         if dx.size < 8:
@@ -637,13 +757,19 @@ class Auditor:
         t = self.data.time_s
         aux = time_window_mean(t, self.data.aux[name], 1.0)  # as the crossovers are smoothed
         ta, tb = np.array([c.time_a_s for c in xs]), np.array([c.time_b_s for c in xs])
-        cs = CrossoverSet(dx - db, ta, tb, np.array([heading[c.line_a] for c in xs]),
-                          np.array([heading[c.line_b] for c in xs]))
+        cs = CrossoverSet(
+            dx - db,
+            ta,
+            tb,
+            np.array([heading[c.line_a] for c in xs]),
+            np.array([heading[c.line_b] for c in xs]),
+        )
         return survey_coupling(cs, np.interp(ta, t, aux), np.interp(tb, t, aux))
 
     # -- the whole audit ------------------------------------------------------------------
-    def cv_residual(self, spec: ModelSpec, fold: np.ndarray | None = None,
-                    tag: str = "fold") -> tuple[float, np.ndarray, np.ndarray]:
+    def cv_residual(
+        self, spec: ModelSpec, fold: np.ndarray | None = None, tag: str = "fold"
+    ) -> tuple[float, np.ndarray, np.ndarray]:
         """Held-out band-passed residual RMS (nT) of ``spec`` over the folds (stratified
         blocks by default; ``fold`` e.g. leave-one-pass-out), with its rows in epoch order."""
         folds = self.folds if fold is None else _fold_masks(fold)
@@ -730,8 +856,7 @@ def _electrical(unit: str) -> bool:
     return u == "" or u in {"A", "mA", "uA", "kA", "V", "mV"}
 
 
-def residual_spectrum(residual: np.ndarray, rate_hz: float, band: BandSettings
-                      ) -> dict[str, Any]:
+def residual_spectrum(residual: np.ndarray, rate_hz: float, band: BandSettings) -> dict[str, Any]:
     """Name the shape of the held-out residual's spectrum inside the fit band.
 
     White noise through the band-pass has the filter's flat pass band; a line (an
@@ -743,8 +868,13 @@ def residual_spectrum(residual: np.ndarray, rate_hz: float, band: BandSettings
     r = np.asarray(residual, float)
     r = r[np.isfinite(r)]
     if r.size < 64:
-        return {"kind": "unknown", "dominant_frequency_hz": None, "peak_ratio": None,
-                "slope": None, "description": "too few samples"}
+        return {
+            "kind": "unknown",
+            "dominant_frequency_hz": None,
+            "peak_ratio": None,
+            "slope": None,
+            "description": "too few samples",
+        }
     f, pxx = welch(r, fs=rate_hz, nperseg=min(512, r.size))
     lo, hi = band.band_hz
     inside = (f >= lo * 1.5) & (f <= hi / 1.1)  # the flat part of the pass band
@@ -757,12 +887,19 @@ def residual_spectrum(residual: np.ndarray, rate_hz: float, band: BandSettings
     if ratio > 8.0:
         kind, text = "line", f"a line at {fi[k]:.3f} Hz ({ratio:.0f}x the band's median power)"
     elif abs(slope) > 1.0:
-        kind, text = "coloured", (f"coloured noise (power ~ f^{slope:.1f} in the band; white "
-                                  "noise would be flat)")
+        kind, text = (
+            "coloured",
+            (f"coloured noise (power ~ f^{slope:.1f} in the band; white noise would be flat)"),
+        )
     else:
         kind, text = "white", "flat in the band, like white noise"
-    return {"kind": kind, "dominant_frequency_hz": float(fi[k]), "peak_ratio": ratio,
-            "slope": slope, "description": text}
+    return {
+        "kind": kind,
+        "dominant_frequency_hz": float(fi[k]),
+        "peak_ratio": ratio,
+        "slope": slope,
+        "description": text,
+    }
 
 
 def _diurnal_shape(time_s: np.ndarray, base: np.ndarray) -> dict[str, float | None]:
@@ -775,8 +912,13 @@ def _diurnal_shape(time_s: np.ndarray, base: np.ndarray) -> dict[str, float | No
     best = None
     for p0 in (span / 2, span, 2 * span):
         try:
-            par, _ = curve_fit(lambda x, a, p, ph, c: a * np.sin(2 * np.pi * x / p + ph) + c,
-                               t, b, p0=[np.std(b) * 1.4, p0, 0.0, 0.0], maxfev=20_000)
+            par, _ = curve_fit(
+                lambda x, a, p, ph, c: a * np.sin(2 * np.pi * x / p + ph) + c,
+                t,
+                b,
+                p0=[np.std(b) * 1.4, p0, 0.0, 0.0],
+                maxfev=20_000,
+            )
         except (RuntimeError, ValueError):
             continue
         r = np.mean((b - (par[0] * np.sin(2 * np.pi * t / par[1] + par[2]) + par[3])) ** 2)
@@ -786,40 +928,51 @@ def _diurnal_shape(time_s: np.ndarray, base: np.ndarray) -> dict[str, float | No
         return {"amplitude_nT": float(np.ptp(b) / 2), "period_s": None}
     a, p = abs(float(best[1][0])), abs(float(best[1][1]))
     # a period much longer than the record is not determined: report the range instead
-    return {"amplitude_nT": a if p < 4 * span else float(np.ptp(b) / 2),
-            "period_s": p if p < 4 * span else None}
+    return {
+        "amplitude_nT": a if p < 4 * span else float(np.ptp(b) / 2),
+        "period_s": p if p < 4 * span else None,
+    }
 
 
-def _quality_figures(flight: Flight, seg: Segmentation, comp: np.ndarray, subtract_base: bool
-                     ) -> dict[str, Any] | None:
+def _quality_figures(
+    flight: Flight, seg: Segmentation, comp: np.ndarray, subtract_base: bool
+) -> dict[str, Any] | None:
     from pipeline.quality.stage import QualitySettings, run_quality
 
     if not (seg.mask("survey").sum() > 100 and flight.has("lat_deg", "alt_m")):
         return None
-    q = run_quality(flight, seg, {"raw": flight.data["scalar_nT"].to_numpy(float),
-                                  "model": comp},
-                    settings=QualitySettings(subtract_base=subtract_base))
+    q = run_quality(
+        flight,
+        seg,
+        {"raw": flight.data["scalar_nT"].to_numpy(float), "model": comp},
+        settings=QualitySettings(subtract_base=subtract_base),
+    )
     s = q.summary()
     xo = q.crossover_stats()
     # the audit judges its gain at the exact intersections (only heading error and noise
     # remain there; pairs add gradient x distance), and says so; the pair figure rides along
-    return {"heading_error_rms_nT": s["intersection_rms_nT"]["model"],
-            "heading_error_method": "intersections",
-            "overlap_pair_rms_nT": s["overlap_pair_rms_nT"]["model"],
-            "crossover_rms_nT": xo["before"]["rms_nT"] if xo["count"] else None,
-            "interpolated_rms_nT": s["interpolated_rms_nT"]["model"],
-            "intersections": s["intersections"],
-            "by_heading": s["heading_error"]["intersections"]["by_state"]["model"][
-                "by_heading"]}
+    return {
+        "heading_error_rms_nT": s["intersection_rms_nT"]["model"],
+        "heading_error_method": "intersections",
+        "overlap_pair_rms_nT": s["overlap_pair_rms_nT"]["model"],
+        "crossover_rms_nT": xo["before"]["rms_nT"] if xo["count"] else None,
+        "interpolated_rms_nT": s["interpolated_rms_nT"]["model"],
+        "intersections": s["intersections"],
+        "by_heading": s["heading_error"]["intersections"]["by_state"]["model"]["by_heading"],
+    }
 
 
-def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None = None,
-              progress=None) -> AuditResult:
+def run_audit(
+    flight: Flight, seg: Segmentation, settings: AuditSettings | None = None, progress=None
+) -> AuditResult:
     """Audit ``flight`` (see the module docstring)."""
     s = settings or AuditSettings()
     if not seg.passes():
-        raise AeromagError("the audit needs a calibration pass (no manoeuvres found)",
-                           file=flight.source, channel="/ins/attitude")
+        raise AeromagError(
+            "the audit needs a calibration pass (no manoeuvres found)",
+            file=flight.source,
+            channel="/ins/attitude",
+        )
     aud = Auditor(flight, seg, s)
     final_spec, findings, rounds = aud.run(progress)
     data = aud.data
@@ -833,64 +986,110 @@ def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None 
     # like with like: the in-sample residual with lambda chosen as in the folds
     fit_cv = aud.fit(base_spec, None, "all", ridge="cv").fit_residual_nT
     gap = cv_b / fit_cv if fit_cv > 0 else float("nan")
-    passwise = (aud.cv_residual(base_spec, aud.pass_fold, "pass")[0]
-                if aud.pass_fold is not None else None)
+    passwise = (
+        aud.cv_residual(base_spec, aud.pass_fold, "pass")[0] if aud.pass_fold is not None else None
+    )
     # the sensor's white noise: both the raw and the compensated record bound it from above
     # (compensation removes interference the sensor's jitter puts in, but adds the vector
     # sensor's noise through the regressors), so the smaller is the better bound
     comp_e, _ = extended.compensate(data)
-    sigma = float(np.nanmin([white_noise_nT(data.scalar_nT, data.time_s, data.rate_hz),
-                             white_noise_nT(comp_e, data.time_s, data.rate_hz)]))
+    sigma = float(
+        np.nanmin(
+            [
+                white_noise_nT(data.scalar_nT, data.time_s, data.rate_hz),
+                white_noise_nT(comp_e, data.time_s, data.rate_hz),
+            ]
+        )
+    )
     floor = sigma * band_noise_gain(data.rate_hz, s.band.band_hz, s.band.poles)
     if progress:
         progress("survey-side evidence")
     events = aud.survey_evidence(final_spec) + aud.calibration_events(final_spec)
-    unexplained: dict[str, Any] = {"events": events, "note": None,
-                                   "spectrum": residual_spectrum(r_e, data.rate_hz, s.band)}
+    unexplained: dict[str, Any] = {
+        "events": events,
+        "note": None,
+        "spectrum": residual_spectrum(r_e, data.rate_hz, s.band),
+    }
     spec_ = unexplained["spectrum"]
     white_excess = cv_e > s.unexplained_factor * floor and spec_["kind"] == "white"
     if cv_e > s.unexplained_factor * floor and not white_excess:
-        unexplained.update({
-            "rms_nT": cv_e, "noise_floor_nT": floor, "ratio": cv_e / floor,
-            "dominant_frequency_hz": spec_["dominant_frequency_hz"],
-            "note": (f"held-out calibration residual {cv_e:.4f} nT is {cv_e / floor:.1f}x the "
-                     f"noise floor {floor:.4f} nT and no candidate effect explains it; "
-                     f"its spectrum: {spec_['description']}")})
+        unexplained.update(
+            {
+                "rms_nT": cv_e,
+                "noise_floor_nT": floor,
+                "ratio": cv_e / floor,
+                "dominant_frequency_hz": spec_["dominant_frequency_hz"],
+                "note": (
+                    f"held-out calibration residual {cv_e:.4f} nT is {cv_e / floor:.1f}x the "
+                    f"noise floor {floor:.4f} nT and no candidate effect explains it; "
+                    f"its spectrum: {spec_['description']}"
+                ),
+            }
+        )
         if spec_["kind"] == "line":
             t_cal = data.time_s[aud.mask]
             t0 = int(flight.time_ns[0])
-            events.append({"kind": "oscillation", "start_ns": t0 + int(t_cal[0] * 1e9),
-                           "end_ns": t0 + int(t_cal[-1] * 1e9), "size_nT": cv_e,
-                           "frequency_hz": spec_["dominant_frequency_hz"],
-                           "evidence": "calibration residual spectrum"})
+            events.append(
+                {
+                    "kind": "oscillation",
+                    "start_ns": t0 + int(t_cal[0] * 1e9),
+                    "end_ns": t0 + int(t_cal[-1] * 1e9),
+                    "size_nT": cv_e,
+                    "frequency_hz": spec_["dominant_frequency_hz"],
+                    "evidence": "calibration residual spectrum",
+                }
+            )
     for e in events:
         if e["kind"] in ("step", "drift") and not unexplained["note"]:
-            where = ("in the survey (crossovers" if e["evidence"] == "survey crossovers"
-                     else "during calibration (calibration residual")
-            unexplained["note"] = (f"{e['kind']} of {e['size_nT']:.2f} nT {where}, "
-                                   f"p {e['p_value']:.2g}); not a catalogue effect")
+            where = (
+                "in the survey (crossovers"
+                if e["evidence"] == "survey crossovers"
+                else "during calibration (calibration residual"
+            )
+            unexplained["note"] = (
+                f"{e['kind']} of {e['size_nT']:.2f} nT {where}, "
+                f"p {e['p_value']:.2g}); not a catalogue effect"
+            )
     comp_b, _ = baseline.compensate(data)
     t = data.time_s
     boxes = seg.boxes()
-    fom_b = figure_of_merit(t, data.scalar_nT, comp_b, boxes, s.band.band_hz,
-                            s.band.poles).total if boxes else None
-    fom_e = figure_of_merit(t, data.scalar_nT, comp_e, boxes, s.band.band_hz,
-                            s.band.poles).total if boxes else None
+    fom_b = (
+        figure_of_merit(t, data.scalar_nT, comp_b, boxes, s.band.band_hz, s.band.poles).total
+        if boxes
+        else None
+    )
+    fom_e = (
+        figure_of_merit(t, data.scalar_nT, comp_e, boxes, s.band.band_hz, s.band.poles).total
+        if boxes
+        else None
+    )
     q_b = _quality_figures(flight, seg, comp_b, subtract_base=False)
     q_e = _quality_figures(flight, seg, comp_e, subtract_base=final_spec.diurnal)
-    gain = {"heldout_calibration_residual_rms_nT": {"before": cv_b, "after": cv_e},
-            "fom_nT": {"before": fom_b["compensated"] if fom_b else None,
-                       "after": fom_e["compensated"] if fom_e else None},
-            "heading_error_rms_nT": {"before": q_b["heading_error_rms_nT"] if q_b else None,
-                                     "after": q_e["heading_error_rms_nT"] if q_e else None,
-                                     "heading_error_method": "intersections"},
-            "overlap_pair_rms_nT": {"before": q_b["overlap_pair_rms_nT"] if q_b else None,
-                                    "after": q_e["overlap_pair_rms_nT"] if q_e else None},
-            "crossover_rms_nT": {"before": q_b["crossover_rms_nT"] if q_b else None,
-                                 "after": q_e["crossover_rms_nT"] if q_e else None},
-            # the map gridded from the other lines, interpolated along the validation lines
-            "interpolated_map_rms_nT": {"before": q_b["interpolated_rms_nT"] if q_b else None,
-                                        "after": q_e["interpolated_rms_nT"] if q_e else None}}
+    gain = {
+        "heldout_calibration_residual_rms_nT": {"before": cv_b, "after": cv_e},
+        "fom_nT": {
+            "before": fom_b["compensated"] if fom_b else None,
+            "after": fom_e["compensated"] if fom_e else None,
+        },
+        "heading_error_rms_nT": {
+            "before": q_b["heading_error_rms_nT"] if q_b else None,
+            "after": q_e["heading_error_rms_nT"] if q_e else None,
+            "heading_error_method": "intersections",
+        },
+        "overlap_pair_rms_nT": {
+            "before": q_b["overlap_pair_rms_nT"] if q_b else None,
+            "after": q_e["overlap_pair_rms_nT"] if q_e else None,
+        },
+        "crossover_rms_nT": {
+            "before": q_b["crossover_rms_nT"] if q_b else None,
+            "after": q_e["crossover_rms_nT"] if q_e else None,
+        },
+        # the map gridded from the other lines, interpolated along the validation lines
+        "interpolated_map_rms_nT": {
+            "before": q_b["interpolated_rms_nT"] if q_b else None,
+            "after": q_e["interpolated_rms_nT"] if q_e else None,
+        },
+    }
     # measured vs simulated (simulator physics), band-passed over the calibration passes
     sim_res, where = {}, None
     sos = bandpass_sos(s.band.band_hz, data.rate_hz, s.band.poles)
@@ -908,18 +1107,42 @@ def run_audit(flight: Flight, seg: Segmentation, settings: AuditSettings | None 
     if white_excess:
         # flat in the band: no model term can follow it; broadband interference faster than
         # the sample rate resolves (vibration, attitude jitter) looks exactly like this
-        notes.append(f"the held-out residual {cv_e:.4f} nT is {cv_e / floor:.1f}x the white-noise "
-                     f"floor {floor:.4f} nT but flat in the band, like white noise: broadband "
-                     "interference the sample rate cannot resolve, not structure a model term "
-                     "could follow")
-    notes.append(f"held out: {len(aud.folds)} folds of {s.block_s_cv:g} s blocks, each "
-                 "holding every heading x manoeuvre; ridge lambda by inner cross-validation")
+        notes.append(
+            f"the held-out residual {cv_e:.4f} nT is {cv_e / floor:.1f}x the white-noise "
+            f"floor {floor:.4f} nT but flat in the band, like white noise: broadband "
+            "interference the sample rate cannot resolve, not structure a model term "
+            "could follow"
+        )
+    notes.append(
+        f"held out: {len(aud.folds)} folds of {s.block_s_cv:g} s blocks, each "
+        "holding every heading x manoeuvre; ridge lambda by inner cross-validation"
+    )
     if gap > s.max_generalization_gap:
-        notes.append(f"warning: the baseline's held-out residual is {gap:.1f}x its fit "
-                     f"residual (> {s.max_generalization_gap:g}): the calibration does not "
-                     "determine the model well; findings are less certain")
+        notes.append(
+            f"warning: the baseline's held-out residual is {gap:.1f}x its fit "
+            f"residual (> {s.max_generalization_gap:g}): the calibration does not "
+            "determine the model well; findings are less certain"
+        )
     quality = {"baseline": q_b, "extended": q_e} if q_b else {}
-    return AuditResult(baseline, extended, findings, rounds, cv_b, cv_e, floor, sigma,
-                       unexplained, gain, {"baseline": comp_b, "extended": comp_e}, sim_res,
-                       where, quality, data, aud.passes, notes, gap, passwise,
-                       int(flight.time_ns[0]))
+    return AuditResult(
+        baseline,
+        extended,
+        findings,
+        rounds,
+        cv_b,
+        cv_e,
+        floor,
+        sigma,
+        unexplained,
+        gain,
+        {"baseline": comp_b, "extended": comp_e},
+        sim_res,
+        where,
+        quality,
+        data,
+        aud.passes,
+        notes,
+        gap,
+        passwise,
+        int(flight.time_ns[0]),
+    )

@@ -53,25 +53,33 @@ class SurveyEvent:
     detail: dict
 
     def to_dict(self, t0_ns: int) -> dict:
-        return {"kind": self.kind, "start_ns": int(t0_ns + round(self.start_s * 1e9)),
-                "end_ns": int(t0_ns + round(self.end_s * 1e9)), "size_nT": self.size_nT,
-                "p_value": self.p_value, "evidence": "survey crossovers", **self.detail}
+        return {
+            "kind": self.kind,
+            "start_ns": int(t0_ns + round(self.start_s * 1e9)),
+            "end_ns": int(t0_ns + round(self.end_s * 1e9)),
+            "size_nT": self.size_nT,
+            "p_value": self.p_value,
+            "evidence": "survey crossovers",
+            **self.detail,
+        }
 
 
 def _levels(x: CrossoverSet) -> np.ndarray:
     """Design columns of mu_h: one per heading class present, the first dropped (only
     differences are observed)."""
     classes = sorted(set(x.heading_a.tolist()) | set(x.heading_b.tolist()))
-    cols = [(x.heading_a == h).astype(float) - (x.heading_b == h).astype(float)
-            for h in classes[1:]]
+    cols = [
+        (x.heading_a == h).astype(float) - (x.heading_b == h).astype(float) for h in classes[1:]
+    ]
     return np.column_stack(cols) if cols else np.zeros((x.size, 0))
 
 
 def _step_columns(x: CrossoverSet, t_s: float) -> np.ndarray:
     cols = []
     for h in range(4):
-        c = ((x.heading_a == h) & (x.time_a_s > t_s)).astype(float) \
-            - ((x.heading_b == h) & (x.time_b_s > t_s)).astype(float)
+        c = ((x.heading_a == h) & (x.time_a_s > t_s)).astype(float) - (
+            (x.heading_b == h) & (x.time_b_s > t_s)
+        ).astype(float)
         if np.any(c != 0):
             cols.append(c)
     return np.column_stack(cols) if cols else np.zeros((x.size, 0))
@@ -93,8 +101,9 @@ def _f_test(rss0: float, k0: int, rss1: float, k1: int, n: int) -> float:
     return float(stats.f.sf(f, df1, df2))
 
 
-def survey_events(x: CrossoverSet, alpha: float = 0.01, min_size_nT: float = 0.0,
-                  min_each_side: int = 2) -> list[SurveyEvent]:
+def survey_events(
+    x: CrossoverSet, alpha: float = 0.01, min_size_nT: float = 0.0, min_each_side: int = 2
+) -> list[SurveyEvent]:
     """Steps and drifts in the compensated field's error, from crossovers.
 
     Parameters
@@ -121,8 +130,12 @@ def survey_events(x: CrossoverSet, alpha: float = 0.01, min_size_nT: float = 0.0
     out: list[SurveyEvent] = []
     # candidate change points: between consecutive crossover readings (in time)
     times = np.unique(np.r_[x.time_a_s, x.time_b_s])
-    gaps = [(float(a), float(b)) for a, b in zip(times[min_each_side - 1:-min_each_side],
-                                                 times[min_each_side:], strict=False)]
+    gaps = [
+        (float(a), float(b))
+        for a, b in zip(
+            times[min_each_side - 1 : -min_each_side], times[min_each_side:], strict=False
+        )
+    ]
     best = None
     for lo, hi in gaps:
         t_s = 0.5 * (lo + hi)
@@ -130,13 +143,21 @@ def survey_events(x: CrossoverSet, alpha: float = 0.01, min_size_nT: float = 0.0
         rss1, k1, coef = _rss(a1, y)
         p = _f_test(rss0, k0, rss1, k1, n)
         if best is None or p < best[0]:
-            best = (p, lo, hi, coef[base.shape[1]:], k1 - k0)
+            best = (p, lo, hi, coef[base.shape[1] :], k1 - k0)
     if best is not None and best[4] > 0:
         p_adj = min(1.0, best[0] * len(gaps))
         size = float(np.max(np.abs(best[3]))) if best[3].size else 0.0
         if p_adj < alpha and size >= min_size_nT:
-            out.append(SurveyEvent("step", float(best[1]), float(best[2]), size, p_adj,
-                                   {"step_by_heading_nT": [float(v) for v in best[3]]}))
+            out.append(
+                SurveyEvent(
+                    "step",
+                    float(best[1]),
+                    float(best[2]),
+                    size,
+                    p_adj,
+                    {"step_by_heading_nT": [float(v) for v in best[3]]},
+                )
+            )
     if not out:  # a drift only when no step explains the trend
         drift = (x.time_a_s - x.time_b_s)[:, None]
         rss1, k1, coef = _rss(np.column_stack([base, drift]), y)
@@ -145,8 +166,16 @@ def survey_events(x: CrossoverSet, alpha: float = 0.01, min_size_nT: float = 0.0
         span = float(t_all.max() - t_all.min())
         size = abs(float(coef[-1])) * span
         if p < alpha and size >= min_size_nT:
-            out.append(SurveyEvent("drift", float(t_all.min()), float(t_all.max()), size, p,
-                                   {"rate_nT_per_h": float(coef[-1]) * 3600.0}))
+            out.append(
+                SurveyEvent(
+                    "drift",
+                    float(t_all.min()),
+                    float(t_all.max()),
+                    size,
+                    p,
+                    {"rate_nT_per_h": float(coef[-1]) * 3600.0},
+                )
+            )
     return out
 
 
@@ -158,8 +187,9 @@ class SurveyLag:
     crossovers: int
 
 
-def survey_lag(x: CrossoverSet, rate_a_nT_per_s: np.ndarray, rate_b_nT_per_s: np.ndarray
-               ) -> SurveyLag | None:
+def survey_lag(
+    x: CrossoverSet, rate_a_nT_per_s: np.ndarray, rate_b_nT_per_s: np.ndarray
+) -> SurveyLag | None:
     """A sensor that reports ``tau`` late reads F(t - tau) ~ F(t) - tau dF/dt: at a crossing
     the two lines disagree by -tau (dF_a/dt - dF_b/dt) besides their heading levels, the
     along-track shift a lag makes, opposite on opposite headings. Regressing the crossover
@@ -184,8 +214,7 @@ class SurveyCoupling:
     crossovers: int
 
 
-def survey_coupling(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray
-                    ) -> SurveyCoupling | None:
+def survey_coupling(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray) -> SurveyCoupling | None:
     """A channel (a current) that couples into the scalar reading by k nT per unit makes two
     crossing lines disagree by k (I_a - I_b) besides their heading levels: regressing the
     crossover differences on the channel's difference estimates k from the survey alone (k
@@ -194,8 +223,9 @@ def survey_coupling(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray
     return None if fit is None else SurveyCoupling(*fit)
 
 
-def _regress_on(x: CrossoverSet, g: np.ndarray
-                ) -> tuple[float, tuple[float, float], float, int] | None:
+def _regress_on(
+    x: CrossoverSet, g: np.ndarray
+) -> tuple[float, tuple[float, float], float, int] | None:
     """Coefficient of ``g`` in crossover differences ~ heading levels + c g: estimate,
     95 % interval, two-sided p against 0, crossovers used."""
     y = np.asarray(x.difference_nT, float)

@@ -34,8 +34,7 @@ class VectorCalibration:
     samples: int = 0
 
     def apply(self, m_nT: np.ndarray) -> np.ndarray:
-        return (np.asarray(m_nT, float) - np.asarray(self.offset_nT)) @ np.asarray(
-            self.matrix).T
+        return (np.asarray(m_nT, float) - np.asarray(self.offset_nT)) @ np.asarray(self.matrix).T
 
     def sensor_errors(self) -> dict[str, list[float]]:
         """The equivalent sensor errors: scale, non-orthogonality (deg), offset (nT)."""
@@ -45,20 +44,30 @@ class VectorCalibration:
         a1 = np.degrees(np.arcsin(np.clip(n[1, 0], -1, 1)))
         a2 = np.arcsin(np.clip(n[2, 0], -1, 1))
         a3 = np.degrees(np.arcsin(np.clip(n[2, 1] / max(np.cos(a2), 1e-12), -1, 1)))
-        return {"scale_error": [float(v) for v in scale],
-                "nonorthogonality_deg": [float(a1), float(np.degrees(a2)), float(a3)],
-                "offset_nT": [float(v) for v in self.offset_nT]}
+        return {
+            "scale_error": [float(v) for v in scale],
+            "nonorthogonality_deg": [float(a1), float(np.degrees(a2)), float(a3)],
+            "offset_nT": [float(v) for v in self.offset_nT],
+        }
 
     def to_dict(self) -> dict:
-        return {**self.sensor_errors(), "matrix": [list(r) for r in self.matrix],
-                "residual_before_nT": self.residual_before_nT,
-                "residual_after_nT": self.residual_after_nT, "samples": self.samples}
+        return {
+            **self.sensor_errors(),
+            "matrix": [list(r) for r in self.matrix],
+            "residual_before_nT": self.residual_before_nT,
+            "residual_after_nT": self.residual_after_nT,
+            "samples": self.samples,
+        }
 
 
-def fit_vector_calibration(m_nT: np.ndarray, reference_nT: np.ndarray,
-                           prior_scale: float = 0.05, prior_offset_nT: float = 2000.0,
-                           fit_sigma_nT: float = 1.0, max_samples: int = 20_000
-                           ) -> VectorCalibration:
+def fit_vector_calibration(
+    m_nT: np.ndarray,
+    reference_nT: np.ndarray,
+    prior_scale: float = 0.05,
+    prior_offset_nT: float = 2000.0,
+    fit_sigma_nT: float = 1.0,
+    max_samples: int = 20_000,
+) -> VectorCalibration:
     """Fit M (lower-triangular) and o so that |M (m - o)| matches ``reference_nT``.
 
     Parameters
@@ -93,11 +102,16 @@ def fit_vector_calibration(m_nT: np.ndarray, reference_nT: np.ndarray,
         return np.r_[fit, prior]
 
     x0 = np.r_[eye, np.zeros(3)]
-    sol = least_squares(residuals, x0, method="lm", x_scale=np.r_[np.full(6, 1e-3),
-                                                                    np.full(3, 0.1)])
+    sol = least_squares(
+        residuals, x0, method="lm", x_scale=np.r_[np.full(6, 1e-3), np.full(3, 0.1)]
+    )
     mat, off = unpack(sol.x)
     before = float(np.sqrt(np.mean((np.linalg.norm(m, axis=1) - ref) ** 2)))
     after = float(np.sqrt(np.mean((np.linalg.norm((m - off) @ mat.T, axis=1) - ref) ** 2)))
-    return VectorCalibration(tuple(tuple(float(v) for v in r) for r in mat),
-                             (float(off[0]), float(off[1]), float(off[2])), before, after,
-                             int(ms.shape[0]))
+    return VectorCalibration(
+        tuple(tuple(float(v) for v in r) for r in mat),
+        (float(off[0]), float(off[1]), float(off[2])),
+        before,
+        after,
+        int(ms.shape[0]),
+    )

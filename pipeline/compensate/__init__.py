@@ -19,7 +19,20 @@ from pipeline.compensate.terms import (
     tl18_truth_coefficients,
 )
 
-__all__ = ["MAGNAV_TERMS", "MODELS", "CompensationModel", "FigureOfMerit", "FitSettings", "LCurve",
-           "Measurements", "RidgeSVD", "bandpassed", "figure_of_merit", "fit_compensation",
-           "tl16_terms", "tl18_rate_terms", "tl18_terms",
-           "tl18_truth_coefficients"]
+__all__ = [
+    "MAGNAV_TERMS",
+    "MODELS",
+    "CompensationModel",
+    "FigureOfMerit",
+    "FitSettings",
+    "LCurve",
+    "Measurements",
+    "RidgeSVD",
+    "bandpassed",
+    "figure_of_merit",
+    "fit_compensation",
+    "tl16_terms",
+    "tl18_rate_terms",
+    "tl18_terms",
+    "tl18_truth_coefficients",
+]

@@ -17,13 +17,16 @@ def bandpass_sos(band_hz: tuple[float, float], fs_hz: float, poles: int) -> np.n
     lo, hi = band_hz
     nyq = fs_hz / 2.0
     if not 0 < lo < hi < nyq:
-        raise ValueError(f"band {lo}-{hi} Hz does not fit below the Nyquist frequency "
-                         f"{nyq:.3g} Hz of a {fs_hz:.3g} Hz recording")
+        raise ValueError(
+            f"band {lo}-{hi} Hz does not fit below the Nyquist frequency "
+            f"{nyq:.3g} Hz of a {fs_hz:.3g} Hz recording"
+        )
     return butter(poles, [lo / nyq, hi / nyq], btype="bandpass", output="sos")
 
 
-def contiguous_blocks(mask: np.ndarray, time_s: np.ndarray,
-                      gap_factor: float = 3.0) -> list[np.ndarray]:
+def contiguous_blocks(
+    mask: np.ndarray, time_s: np.ndarray, gap_factor: float = 3.0
+) -> list[np.ndarray]:
     """Index arrays of the runs of ``mask``, also split where sampling has a gap."""
     idx = np.flatnonzero(mask)
     if idx.size == 0:
@@ -33,8 +36,9 @@ def contiguous_blocks(mask: np.ndarray, time_s: np.ndarray,
     return np.split(idx, np.flatnonzero(breaks) + 1)
 
 
-def bandpass_blocks(x: np.ndarray, blocks: list[np.ndarray], sos: np.ndarray,
-                    trim: int = 0) -> tuple[np.ndarray, np.ndarray]:
+def bandpass_blocks(
+    x: np.ndarray, blocks: list[np.ndarray], sos: np.ndarray, trim: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
     """Band-pass ``x`` (n,) or (n, k) within each block; drop ``trim`` samples at both ends.
 
     Returns the filtered rows and their epoch indices. Blocks too short to filter after

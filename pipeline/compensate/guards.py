@@ -62,15 +62,29 @@ class CalibrationCheck:
 
     def to_dict(self) -> dict[str, Any]:
         cond = self.condition_number
-        return {"ok": self.ok, "condition_number": cond if np.isfinite(cond) else None,
-                "condition_limit": self.condition_limit, "weakest_terms": self.weakest_terms,
-                "headings_s": self.headings_s, "boxes": self.boxes, "warnings": self.warnings}
+        return {
+            "ok": self.ok,
+            "condition_number": cond if np.isfinite(cond) else None,
+            "condition_limit": self.condition_limit,
+            "weakest_terms": self.weakest_terms,
+            "headings_s": self.headings_s,
+            "boxes": self.boxes,
+            "warnings": self.warnings,
+        }
 
 
-def check_calibration(model: str, condition_number: float, weakest_terms: list[str],
-                      time_s: np.ndarray, yaw_deg: np.ndarray | None, mask: np.ndarray,
-                      boxes: list | None, *, min_box_s: float = 5.0,
-                      min_heading_s: float = 10.0) -> CalibrationCheck:
+def check_calibration(
+    model: str,
+    condition_number: float,
+    weakest_terms: list[str],
+    time_s: np.ndarray,
+    yaw_deg: np.ndarray | None,
+    mask: np.ndarray,
+    boxes: list | None,
+    *,
+    min_box_s: float = 5.0,
+    min_heading_s: float = 10.0,
+) -> CalibrationCheck:
     """Run the three guards on a fitted calibration.
 
     Parameters
@@ -94,36 +108,50 @@ def check_calibration(model: str, condition_number: float, weakest_terms: list[s
             f"{model}: ill-conditioned calibration (scaled condition number "
             f"{condition_number:.3g} > {limit:.0e}); weakest combination of terms: "
             f"{', '.join(weakest_terms) or '-'}; fly the full box (4 headings x roll, pitch, "
-            "yaw) or use a simpler model")
+            "yaw) or use a simpler model"
+        )
     headings: dict[str, float] = {}
     if yaw_deg is not None:
         y = np.asarray(yaw_deg, float)[mask]
         y = y[np.isfinite(y)]
         sector = ((np.mod(y, 360.0) + 45.0) // 90.0).astype(int) % 4
-        headings = {c: round(float(np.sum(sector == k)) / rate, 2)
-                    for k, c in enumerate(CARDINALS)}
+        headings = {c: round(float(np.sum(sector == k)) / rate, 2) for k, c in enumerate(CARDINALS)}
         missing = [c for c in CARDINALS if headings[c] < min_heading_s]
         if missing:
-            warnings.append(f"{model}: calibration misses heading(s) {', '.join(missing)} "
-                            f"(< {min_heading_s:g} s each); the coefficients extrapolate to "
-                            "those headings")
+            warnings.append(
+                f"{model}: calibration misses heading(s) {', '.join(missing)} "
+                f"(< {min_heading_s:g} s each); the coefficients extrapolate to "
+                "those headings"
+            )
     rows = []
     for b in boxes or []:
         idx = b.index[mask[b.index]]
-        rows.append({"pass": b.calibration_pass, "cardinal": b.cardinal,
-                     "manoeuvre": b.manoeuvre, "samples": int(idx.size),
-                     "seconds": round(idx.size / rate, 2)})
+        rows.append(
+            {
+                "pass": b.calibration_pass,
+                "cardinal": b.cardinal,
+                "manoeuvre": b.manoeuvre,
+                "samples": int(idx.size),
+                "seconds": round(idx.size / rate, 2),
+            }
+        )
     if boxes is not None and rows:
         short = [r for r in rows if 0 < r["seconds"] < min_box_s]
         if short:
-            names = ", ".join(f"C{r['pass']}{r['cardinal']}-{r['manoeuvre']} "
-                              f"({r['seconds']:g} s)" for r in short[:6])
-            warnings.append(f"{model}: {len(short)} manoeuvre(s) shorter than {min_box_s:g} s: "
-                            f"{names}")
+            names = ", ".join(
+                f"C{r['pass']}{r['cardinal']}-{r['manoeuvre']} ({r['seconds']:g} s)"
+                for r in short[:6]
+            )
+            warnings.append(
+                f"{model}: {len(short)} manoeuvre(s) shorter than {min_box_s:g} s: {names}"
+            )
         flown = {(r["cardinal"], r["manoeuvre"]) for r in rows if r["samples"]}
-        absent = [f"{c}-{m}" for c in CARDINALS for m in MANOEUVRES
-                  if (c, m) not in flown and headings.get(c, 0.0) >= min_heading_s]
+        absent = [
+            f"{c}-{m}"
+            for c in CARDINALS
+            for m in MANOEUVRES
+            if (c, m) not in flown and headings.get(c, 0.0) >= min_heading_s
+        ]
         if absent:
             warnings.append(f"{model}: manoeuvre(s) not flown: {', '.join(absent)}")
-    return CalibrationCheck(model, condition_number, limit, weakest_terms, headings, rows,
-                            warnings)
+    return CalibrationCheck(model, condition_number, limit, weakest_terms, headings, rows, warnings)

@@ -46,11 +46,14 @@ class Measurements:
         flight.require("vector_x_nT", "vector_y_nT", "vector_z_nT", purpose="compensation")
         d = flight.data
         pos = flight.has("lat_deg", "lon_deg", "alt_m")
-        return cls(d["time_s"].to_numpy(float), d["scalar_nT"].to_numpy(float),
-                   d[["vector_x_nT", "vector_y_nT", "vector_z_nT"]].to_numpy(float),
-                   d["lat_deg"].to_numpy(float) if pos else None,
-                   d["lon_deg"].to_numpy(float) if pos else None,
-                   d["alt_m"].to_numpy(float) if pos else None)
+        return cls(
+            d["time_s"].to_numpy(float),
+            d["scalar_nT"].to_numpy(float),
+            d[["vector_x_nT", "vector_y_nT", "vector_z_nT"]].to_numpy(float),
+            d["lat_deg"].to_numpy(float) if pos else None,
+            d["lon_deg"].to_numpy(float) if pos else None,
+            d["alt_m"].to_numpy(float) if pos else None,
+        )
 
     @property
     def has_position(self) -> bool:
@@ -136,13 +139,17 @@ class CompensationModel:
     def to_dict(self) -> dict[str, Any]:
         s = self.settings
         return {
-            "model": s.model, "base_terms": s.base if s.model == "agg-tl" else s.model,
+            "model": s.model,
+            "base_terms": s.base if s.model == "agg-tl" else s.model,
             "terms": list(self.terms),
             "coefficients": [float(c) for c in self.coefficients],
-            "compensating_terms": self.n_tl, "lambda": float(self.lambda_),
+            "compensating_terms": self.n_tl,
+            "lambda": float(self.lambda_),
             "ridge": "auto" if s.ridge == "auto" else float(s.ridge),
             "band_hz": None if s.band_hz is None else [float(b) for b in s.band_hz],
-            "poles": s.poles, "trim": s.trim, "samples": int(self.n_fit),
+            "poles": s.poles,
+            "trim": s.trim,
+            "samples": int(self.n_fit),
             "fit_residual_nT": float(self.fit_residual_nT),
             "calibration_windows_s": [[float(a), float(b)] for a, b in self.calibration_blocks],
             "gradient_nT_per_m": self.gradient_nT_per_m(),
@@ -150,8 +157,9 @@ class CompensationModel:
         }
 
 
-def _design(settings: FitSettings, meas: Measurements, fit_mask: np.ndarray
-            ) -> tuple[np.ndarray, list[str], int, dict[str, float]]:
+def _design(
+    settings: FitSettings, meas: Measurements, fit_mask: np.ndarray
+) -> tuple[np.ndarray, list[str], int, dict[str, float]]:
     k, names = tl_terms(settings.model, meas, settings.base)
     n_tl = k.shape[1]
     reference: dict[str, float] = {}
@@ -170,8 +178,9 @@ def _design(settings: FitSettings, meas: Measurements, fit_mask: np.ndarray
     return k, names, n_tl, reference
 
 
-def fit_compensation(meas: Measurements, calibration_mask: np.ndarray,
-                     settings: FitSettings | None = None) -> CompensationModel:
+def fit_compensation(
+    meas: Measurements, calibration_mask: np.ndarray, settings: FitSettings | None = None
+) -> CompensationModel:
     """Fit a compensation model on the epochs of ``calibration_mask``.
 
     Raises
@@ -193,8 +202,9 @@ def fit_compensation(meas: Measurements, calibration_mask: np.ndarray,
         where = np.concatenate(blocks) if blocks else np.zeros(0, int)
         kf, yf = k_full[where], meas.scalar_nT[where]
     if where.size < 2 * k_full.shape[1]:
-        raise ValueError(f"only {where.size} usable calibration samples for "
-                         f"{k_full.shape[1]} terms")
+        raise ValueError(
+            f"only {where.size} usable calibration samples for {k_full.shape[1]} terms"
+        )
     cond, weakest = scaled_condition(kf, names)
     solver = RidgeSVD(kf, yf)
     lcurve = None
@@ -211,9 +221,21 @@ def fit_compensation(meas: Measurements, calibration_mask: np.ndarray,
     v = solver.vt[: s_pos.size].T
     std = np.sqrt(sigma2 * np.sum((v / s_pos) ** 2, axis=1))
     spans = [(float(meas.time_s[b[0]]), float(meas.time_s[b[-1]])) for b in blocks]
-    return CompensationModel(s, names, theta, n_tl, lam, int(where.size),
-                             float(np.sqrt(np.mean(resid**2))), spans, lcurve, reference, std,
-                             cond, weakest)
+    return CompensationModel(
+        s,
+        names,
+        theta,
+        n_tl,
+        lam,
+        int(where.size),
+        float(np.sqrt(np.mean(resid**2))),
+        spans,
+        lcurve,
+        reference,
+        std,
+        cond,
+        weakest,
+    )
 
 
 # --------------------------------------------------------------------------------------------
@@ -236,17 +258,20 @@ class FigureOfMerit:
         return {**self.total, "passes": self.passes, "boxes": self.boxes}
 
 
-def fom_band(band_hz: tuple[float, float] | None = None, poles: int | None = None
-             ) -> tuple[tuple[float, float], int]:
+def fom_band(
+    band_hz: tuple[float, float] | None = None, poles: int | None = None
+) -> tuple[tuple[float, float], int]:
     """The band and order a FOM is measured in: the given ones, else the shipped defaults
     (``[compensation] band_hz``, ``poles``)."""
-    band = tuple(band_hz) if band_hz is not None else tuple(
-        default_value("compensation", "band_hz"))
+    band = (
+        tuple(band_hz) if band_hz is not None else tuple(default_value("compensation", "band_hz"))
+    )
     return band, int(poles if poles is not None else default_value("compensation", "poles"))
 
 
-def bandpassed(meas_time_s: np.ndarray, x: np.ndarray, band_hz: tuple[float, float],
-               poles: int) -> np.ndarray:
+def bandpassed(
+    meas_time_s: np.ndarray, x: np.ndarray, band_hz: tuple[float, float], poles: int
+) -> np.ndarray:
     """Band-pass ``x`` over each contiguous finite block of the whole flight (NaN elsewhere)."""
     out = np.full(x.shape, np.nan)
     rate = 1.0 / float(np.median(np.diff(meas_time_s)))
@@ -257,9 +282,14 @@ def bandpassed(meas_time_s: np.ndarray, x: np.ndarray, band_hz: tuple[float, flo
     return out
 
 
-def figure_of_merit(time_s: np.ndarray, raw_nT: np.ndarray, compensated_nT: np.ndarray,
-                    boxes: list, band_hz: tuple[float, float] | None = None,
-                    poles: int | None = None) -> FigureOfMerit:
+def figure_of_merit(
+    time_s: np.ndarray,
+    raw_nT: np.ndarray,
+    compensated_nT: np.ndarray,
+    boxes: list,
+    band_hz: tuple[float, float] | None = None,
+    poles: int | None = None,
+) -> FigureOfMerit:
     """FOM of each box (see :class:`pipeline.segment.Box`) and per pass, raw vs compensated,
     band-passed with ``band_hz`` / ``poles`` (None: the shipped configuration's): pass the
     configured band so every FOM table of a run agrees."""
@@ -269,14 +299,26 @@ def figure_of_merit(time_s: np.ndarray, raw_nT: np.ndarray, compensated_nT: np.n
     rows = []
     for b in boxes:
         r, c = raw_bp[b.index], comp_bp[b.index]
-        rows.append({"pass": b.calibration_pass, "cardinal": b.cardinal,
-                     "manoeuvre": b.manoeuvre, "samples": int(b.index.size),
-                     "uncompensated_nT": float(np.nanmax(r) - np.nanmin(r)),
-                     "compensated_nT": float(np.nanmax(c) - np.nanmin(c))})
+        rows.append(
+            {
+                "pass": b.calibration_pass,
+                "cardinal": b.cardinal,
+                "manoeuvre": b.manoeuvre,
+                "samples": int(b.index.size),
+                "uncompensated_nT": float(np.nanmax(r) - np.nanmin(r)),
+                "compensated_nT": float(np.nanmax(c) - np.nanmin(c)),
+            }
+        )
     passes = []
     for p in sorted({r["pass"] for r in rows}):
         mine = [r for r in rows if r["pass"] == p]
-        passes.append({"pass": p, "boxes": len(mine), "complete": len(mine) == 12,
-                       "uncompensated_nT": float(sum(r["uncompensated_nT"] for r in mine)),
-                       "compensated_nT": float(sum(r["compensated_nT"] for r in mine))})
+        passes.append(
+            {
+                "pass": p,
+                "boxes": len(mine),
+                "complete": len(mine) == 12,
+                "uncompensated_nT": float(sum(r["uncompensated_nT"] for r in mine)),
+                "compensated_nT": float(sum(r["compensated_nT"] for r in mine)),
+            }
+        )
     return FigureOfMerit(rows, passes)

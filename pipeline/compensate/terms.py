@@ -31,10 +31,22 @@ AXES = "xyz"
 PAIRS_UPPER = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
 # MagNav.jl's term-group names (create_TL_A's `terms`) -> our column-name prefixes
 MAGNAV_TERMS = {"permanent": "perm_", "induced": "ind_", "eddy": "eddy_", "bias": "bias"}
-MAGNAV_ALIASES = {"permanent": "permanent", "p": "permanent", "permanent3": "permanent",
-                  "p3": "permanent", "induced": "induced", "i": "induced",
-                  "induced6": "induced", "i6": "induced", "eddy": "eddy", "e": "eddy",
-                  "eddy9": "eddy", "e9": "eddy", "bias": "bias", "b": "bias"}
+MAGNAV_ALIASES = {
+    "permanent": "permanent",
+    "p": "permanent",
+    "permanent3": "permanent",
+    "p3": "permanent",
+    "induced": "induced",
+    "i": "induced",
+    "induced6": "induced",
+    "i6": "induced",
+    "eddy": "eddy",
+    "e": "eddy",
+    "eddy9": "eddy",
+    "e9": "eddy",
+    "bias": "bias",
+    "b": "bias",
+}
 TL18_TERMS = ("permanent", "induced", "eddy")  # MagNav's default
 
 
@@ -79,14 +91,14 @@ def per_sample_difference(x: np.ndarray) -> np.ndarray:
     return np.gradient(np.asarray(x, float), axis=0)
 
 
-def _tl18(b: np.ndarray, db: np.ndarray, terms: tuple[str, ...], bt_scale_nT: float,
-          eddy_suffix: str) -> tuple[np.ndarray, list[str]]:
+def _tl18(
+    b: np.ndarray, db: np.ndarray, terms: tuple[str, ...], bt_scale_nT: float, eddy_suffix: str
+) -> tuple[np.ndarray, list[str]]:
     wanted = set()
     for t in terms:
         key = MAGNAV_ALIASES.get(str(t).lstrip(":"))
         if key is None:
-            raise ValueError(f"unknown T-L term group {t!r} (use "
-                             f"{', '.join(MAGNAV_TERMS)})")
+            raise ValueError(f"unknown T-L term group {t!r} (use {', '.join(MAGNAV_TERMS)})")
         wanted.add(key)
     u = direction_cosines(b)
     cols: list[np.ndarray] = []
@@ -110,9 +122,12 @@ def _tl18(b: np.ndarray, db: np.ndarray, terms: tuple[str, ...], bt_scale_nT: fl
     return np.column_stack(cols), names
 
 
-def tl18_terms(b_nT: np.ndarray, time_s: np.ndarray | None = None,
-               bt_scale_nT: float = BT_SCALE_NT,
-               terms: tuple[str, ...] = TL18_TERMS) -> tuple[np.ndarray, list[str]]:
+def tl18_terms(
+    b_nT: np.ndarray,
+    time_s: np.ndarray | None = None,
+    bt_scale_nT: float = BT_SCALE_NT,
+    terms: tuple[str, ...] = TL18_TERMS,
+) -> tuple[np.ndarray, list[str]]:
     """MagNav.jl's Tolles-Lawson ``A`` matrix (``create_TL_A``), (n, 18) by default.
 
     Parameters
@@ -137,8 +152,9 @@ def tl18_terms(b_nT: np.ndarray, time_s: np.ndarray | None = None,
     return _tl18(b, per_sample_difference(b), tuple(terms), bt_scale_nT, "")
 
 
-def tl18_rate_terms(b_nT: np.ndarray, time_s: np.ndarray,
-                    bt_scale_nT: float = BT_SCALE_NT) -> tuple[np.ndarray, list[str]]:
+def tl18_rate_terms(
+    b_nT: np.ndarray, time_s: np.ndarray, bt_scale_nT: float = BT_SCALE_NT
+) -> tuple[np.ndarray, list[str]]:
     """``tl18`` with rate-independent eddy columns u_i (dB_j/dt) / Bt_scale, (n, 18).
 
     Parameters
@@ -153,20 +169,25 @@ def tl18_rate_terms(b_nT: np.ndarray, time_s: np.ndarray,
         ``eddy_u{i}dB{j}dt``. Their coefficients are E_ij Bt_scale whatever the sample rate.
     """
     b = np.asarray(b_nT, float)
-    return _tl18(b, np.gradient(b, np.asarray(time_s, float), axis=0), TL18_TERMS,
-                 bt_scale_nT, "dt")
+    return _tl18(
+        b, np.gradient(b, np.asarray(time_s, float), axis=0), TL18_TERMS, bt_scale_nT, "dt"
+    )
 
 
-def position_terms(east_m: np.ndarray, north_m: np.ndarray,
-                   up_m: np.ndarray) -> tuple[np.ndarray, list[str]]:
+def position_terms(
+    east_m: np.ndarray, north_m: np.ndarray, up_m: np.ndarray
+) -> tuple[np.ndarray, list[str]]:
     """AGG-TL position columns: second-order horizontal Taylor terms and height, (n, 6)."""
     e, n, u = (np.asarray(a, float) for a in (east_m, north_m, up_m))
-    return (np.column_stack([e, n, e * e, e * n, n * n, u]),
-            ["pos_e", "pos_n", "pos_ee", "pos_en", "pos_nn", "pos_up"])
+    return (
+        np.column_stack([e, n, e * e, e * n, n * n, u]),
+        ["pos_e", "pos_n", "pos_ee", "pos_en", "pos_nn", "pos_up"],
+    )
 
 
-def tl18_truth_coefficients(permanent_nT, induced, eddy_s, sample_interval_s: float,
-                            bt_scale_nT: float = BT_SCALE_NT) -> np.ndarray:
+def tl18_truth_coefficients(
+    permanent_nT, induced, eddy_s, sample_interval_s: float, bt_scale_nT: float = BT_SCALE_NT
+) -> np.ndarray:
     """The tl18 coefficients that a carrier with interference (p, A, E) has, to first order.
 
     Parameters
@@ -184,7 +205,10 @@ def tl18_truth_coefficients(permanent_nT, induced, eddy_s, sample_interval_s: fl
     (18,) coefficients in the column order of :func:`tl18_terms`, nT.
     """
     a, e = np.asarray(induced, float), np.asarray(eddy_s, float)
-    ind = [(a[i, j] + a[j, i]) * bt_scale_nT if i != j else a[i, i] * bt_scale_nT
-           for i, j in PAIRS_UPPER]
-    return np.concatenate([np.asarray(permanent_nT, float), ind,
-                           (e * bt_scale_nT / float(sample_interval_s)).ravel()])
+    ind = [
+        (a[i, j] + a[j, i]) * bt_scale_nT if i != j else a[i, i] * bt_scale_nT
+        for i, j in PAIRS_UPPER
+    ]
+    return np.concatenate(
+        [np.asarray(permanent_nT, float), ind, (e * bt_scale_nT / float(sample_interval_s)).ravel()]
+    )

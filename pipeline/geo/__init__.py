@@ -4,5 +4,11 @@ from pipeline.geo.frames import attitude_rotation, body_to_ned, ned_to_body
 from pipeline.geo.igrf import igrf_ned_nT, main_field_direction
 from pipeline.geo.local import LocalFrame
 
-__all__ = ["LocalFrame", "attitude_rotation", "body_to_ned", "igrf_ned_nT",
-           "main_field_direction", "ned_to_body"]
+__all__ = [
+    "LocalFrame",
+    "attitude_rotation",
+    "body_to_ned",
+    "igrf_ned_nT",
+    "main_field_direction",
+    "ned_to_body",
+]

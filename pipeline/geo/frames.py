@@ -14,8 +14,9 @@ from scipy.spatial.transform import Rotation
 
 def attitude_rotation(roll_deg, pitch_deg, yaw_deg) -> Rotation:
     """Rotation body -> NED for Z-Y-X Euler angles in degrees (arrays broadcast)."""
-    r, p, y = np.broadcast_arrays(np.asarray(roll_deg, float), np.asarray(pitch_deg, float),
-                                  np.asarray(yaw_deg, float))
+    r, p, y = np.broadcast_arrays(
+        np.asarray(roll_deg, float), np.asarray(pitch_deg, float), np.asarray(yaw_deg, float)
+    )
     angles = np.stack([y.ravel(), p.ravel(), r.ravel()], axis=-1)
     if y.ndim == 0:  # scalar angles: one rotation, so a single vector stays a single vector
         angles = angles[0]

@@ -25,8 +25,9 @@ def igrf_ned_nT(lat_deg, lon_deg, alt_m, when: datetime) -> np.ndarray:
     return np.stack([np.ravel(bn), np.ravel(be), -np.ravel(bu)], axis=-1)
 
 
-def main_field_direction(lat_deg: float, lon_deg: float, alt_m: float,
-                         when: datetime) -> tuple[np.ndarray, float, float, float]:
+def main_field_direction(
+    lat_deg: float, lon_deg: float, alt_m: float, when: datetime
+) -> tuple[np.ndarray, float, float, float]:
     """Unit vector (NED) of the main field, with total (nT), inclination and declination (deg)."""
     b = igrf_ned_nT(lat_deg, lon_deg, alt_m, when)[0]
     total = float(np.linalg.norm(b))

@@ -26,7 +26,8 @@ class LocalFrame:
         self._fwd = Transformer.from_crs(
             "EPSG:4326",
             f"+proj=aeqd +lat_0={self.lat0_deg} +lon_0={self.lon0_deg} +datum=WGS84 +units=m",
-            always_xy=True)
+            always_xy=True,
+        )
 
     @property
     def crs(self) -> str:
@@ -38,8 +39,9 @@ class LocalFrame:
         return np.asarray(e), np.asarray(n), np.asarray(u)
 
     def to_geodetic(self, east_m, north_m, up_m=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        lon, lat = self._fwd.transform(np.asarray(east_m, float), np.asarray(north_m, float),
-                                       direction="INVERSE")
+        lon, lat = self._fwd.transform(
+            np.asarray(east_m, float), np.asarray(north_m, float), direction="INVERSE"
+        )
         alt = (np.asarray(up_m, float) + self.alt0_m) if up_m is not None else np.zeros_like(lat)
         return np.asarray(lat), np.asarray(lon), np.asarray(alt)
 

@@ -40,11 +40,21 @@ MAGIC = b"\x89MCAP0\r\n"
 _MSG = struct.Struct("<BQHIQQ")  # opcode, length, channel id, sequence, log time, publish time
 
 
-def message_record(channel_id: int, sequence: int, log_time_ns: int, publish_time_ns: int,
-                   data: bytes) -> bytes:
+def message_record(
+    channel_id: int, sequence: int, log_time_ns: int, publish_time_ns: int, data: bytes
+) -> bytes:
     """One serialised Message record."""
-    return _MSG.pack(Opcode.MESSAGE, 22 + len(data), channel_id, sequence & 0xFFFFFFFF,
-                     log_time_ns, publish_time_ns) + data
+    return (
+        _MSG.pack(
+            Opcode.MESSAGE,
+            22 + len(data),
+            channel_id,
+            sequence & 0xFFFFFFFF,
+            log_time_ns,
+            publish_time_ns,
+        )
+        + data
+    )
 
 
 def serialise(record) -> bytes:
@@ -76,9 +86,17 @@ class BulkWriter:
         self.chunk_indexes: list[ChunkIndex] = []
         self.metadata_indexes: list[MetadataIndex] = []
         self.attachment_indexes: list[AttachmentIndex] = []
-        self.stats = Statistics(attachment_count=0, channel_count=0, channel_message_counts={},
-                                chunk_count=0, message_count=0, message_end_time=0,
-                                message_start_time=0, metadata_count=0, schema_count=0)
+        self.stats = Statistics(
+            attachment_count=0,
+            channel_count=0,
+            channel_message_counts={},
+            chunk_count=0,
+            message_count=0,
+            message_end_time=0,
+            message_start_time=0,
+            metadata_count=0,
+            schema_count=0,
+        )
 
     # -- low level ---------------------------------------------------------------------------
     def _write(self, data: bytes) -> int:
@@ -132,8 +150,9 @@ class BulkWriter:
         index.length = len(record)
         self.attachment_indexes.append(index)
 
-    def add_messages(self, records: Iterable[bytes], channel_id: np.ndarray,
-                     log_time_ns: np.ndarray) -> None:
+    def add_messages(
+        self, records: Iterable[bytes], channel_id: np.ndarray, log_time_ns: np.ndarray
+    ) -> None:
         """Message records in the order to write them (log time order), packed into chunks.
 
         ``records`` may be any iterable (a generator encoding them on the fly): they are
@@ -149,8 +168,9 @@ class BulkWriter:
         size = start = 0
         for k, rec in enumerate(records):
             if batch and size + len(rec) > limit:  # a record larger than a chunk gets its own
-                self._chunk(batch, channel_id[start:k], log_time_ns[start:k],
-                            np.array(offsets, np.int64))
+                self._chunk(
+                    batch, channel_id[start:k], log_time_ns[start:k], np.array(offsets, np.int64)
+                )
                 batch, offsets, size, start = [], [], 0, k
             batch.append(rec)
             offsets.append(size)
@@ -160,8 +180,9 @@ class BulkWriter:
         self._chunk(batch, channel_id[start:], log_time_ns[start:], np.array(offsets, np.int64))
         counts = np.bincount(channel_id.astype(np.int64))
         for cid in np.flatnonzero(counts):
-            self.stats.channel_message_counts[int(cid)] = (
-                self.stats.channel_message_counts.get(int(cid), 0) + int(counts[cid]))
+            self.stats.channel_message_counts[int(cid)] = self.stats.channel_message_counts.get(
+                int(cid), 0
+            ) + int(counts[cid])
         first, last = int(log_time_ns.min()), int(log_time_ns.max())
         if self.stats.message_count == 0:
             self.stats.message_start_time, self.stats.message_end_time = first, last
@@ -170,20 +191,32 @@ class BulkWriter:
             self.stats.message_end_time = max(self.stats.message_end_time, last)
         self.stats.message_count += n
 
-    def _chunk(self, records: Sequence[bytes], cids: np.ndarray, times: np.ndarray,
-               offsets: np.ndarray) -> None:
+    def _chunk(
+        self, records: Sequence[bytes], cids: np.ndarray, times: np.ndarray, offsets: np.ndarray
+    ) -> None:
         data = b"".join(records)
         compressed = self._zstd.compress(data)
-        chunk = Chunk(compression="zstd", data=compressed,
-                      message_start_time=int(times.min()), message_end_time=int(times.max()),
-                      uncompressed_crc=zlib.crc32(data), uncompressed_size=len(data))
+        chunk = Chunk(
+            compression="zstd",
+            data=compressed,
+            message_start_time=int(times.min()),
+            message_end_time=int(times.max()),
+            uncompressed_crc=zlib.crc32(data),
+            uncompressed_size=len(data),
+        )
         rec = serialise(chunk)
         at = self._write(rec)
-        index = ChunkIndex(message_start_time=chunk.message_start_time,
-                           message_end_time=chunk.message_end_time, chunk_start_offset=at,
-                           chunk_length=len(rec), message_index_offsets={},
-                           message_index_length=0, compression="zstd",
-                           compressed_size=len(compressed), uncompressed_size=len(data))
+        index = ChunkIndex(
+            message_start_time=chunk.message_start_time,
+            message_end_time=chunk.message_end_time,
+            chunk_start_offset=at,
+            chunk_length=len(rec),
+            message_index_offsets={},
+            message_index_length=0,
+            compression="zstd",
+            compressed_size=len(compressed),
+            uncompressed_size=len(data),
+        )
         parts = []
         pos = self._pos
         for cid in np.unique(cids):
@@ -193,8 +226,10 @@ class BulkWriter:
             pairs[:, 1] = offsets[sel]
             body = pairs.tobytes()
             # MessageIndex: opcode, length, channel id u16, records as u32-prefixed byte array
-            part = struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 2 + 4 + len(body), int(cid),
-                               len(body)) + body
+            part = (
+                struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 2 + 4 + len(body), int(cid), len(body))
+                + body
+            )
             index.message_index_offsets[int(cid)] = pos
             pos += len(part)
             parts.append(part)
@@ -211,16 +246,20 @@ class BulkWriter:
         summary_start = self._pos
         s = self.stats
         s.schema_count, s.channel_count = len(self.schemas), len(self.channels)
-        s.metadata_count, s.attachment_count = (len(self.metadata_indexes),
-                                                len(self.attachment_indexes))
+        s.metadata_count, s.attachment_count = (
+            len(self.metadata_indexes),
+            len(self.attachment_indexes),
+        )
         for cid in self.channels:
             s.channel_message_counts.setdefault(cid, 0)
-        groups = [(Opcode.SCHEMA, list(self.schemas.values())),
-                  (Opcode.CHANNEL, list(self.channels.values())),
-                  (Opcode.STATISTICS, [s]),
-                  (Opcode.CHUNK_INDEX, self.chunk_indexes),
-                  (Opcode.ATTACHMENT_INDEX, self.attachment_indexes),
-                  (Opcode.METADATA_INDEX, self.metadata_indexes)]
+        groups = [
+            (Opcode.SCHEMA, list(self.schemas.values())),
+            (Opcode.CHANNEL, list(self.channels.values())),
+            (Opcode.STATISTICS, [s]),
+            (Opcode.CHUNK_INDEX, self.chunk_indexes),
+            (Opcode.ATTACHMENT_INDEX, self.attachment_indexes),
+            (Opcode.METADATA_INDEX, self.metadata_indexes),
+        ]
         body: list[bytes] = []
         offsets: list[SummaryOffset] = []
         pos = summary_start
@@ -228,18 +267,26 @@ class BulkWriter:
             if not recs:
                 continue
             blob = b"".join(serialise(r) for r in recs)
-            offsets.append(SummaryOffset(group_opcode=opcode, group_start=pos,
-                                         group_length=len(blob)))
+            offsets.append(
+                SummaryOffset(group_opcode=opcode, group_start=pos, group_length=len(blob))
+            )
             body.append(blob)
             pos += len(blob)
         summary_offset_start = pos
         body += [serialise(o) for o in offsets]
         summary = b"".join(body)
         crc = zlib.crc32(summary)
-        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start,
-                                     summary_offset_start), crc)
+        crc = zlib.crc32(
+            struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, summary_offset_start), crc
+        )
         self.stream.write(summary)
-        self.stream.write(serialise(Footer(summary_start=summary_start,
-                                              summary_offset_start=summary_offset_start,
-                                              summary_crc=crc)))
+        self.stream.write(
+            serialise(
+                Footer(
+                    summary_start=summary_start,
+                    summary_offset_start=summary_offset_start,
+                    summary_crc=crc,
+                )
+            )
+        )
         self.stream.write(MAGIC)

@@ -42,59 +42,149 @@ class TopicRule:
         """
         if topic == self.topic:
             return True
-        sub = topic[len(self.topic) + 1:]
+        sub = topic[len(self.topic) + 1 :]
         return self.prefix and topic.startswith(self.topic + "/") and bool(sub)
 
 
 INPUT_CONTRACT: tuple[TopicRule, ...] = (
-    TopicRule("/mag/scalar", "aeromag.ScalarField", "scalar", ("sensor_id", "total_nT"), True,
-              "scalar (total-field) magnetometer"),
-    TopicRule("/mag/vector", "aeromag.VectorField", "vector", ("sensor_id", "x_nT", "y_nT", "z_nT"),
-              True, "vector magnetometer, body frame x forward, y right, z down (also "
-                    "/mag/vector/calibrated and /compensated written by aeromag vector)"),
-    TopicRule("/ins/attitude", "aeromag.Attitude", "attitude", ("roll_deg", "pitch_deg", "yaw_deg"),
-              description="attitude, Z-Y-X Euler angles, yaw = true heading"),
-    TopicRule("/gnss/fix", "foxglove.LocationFix", "position",
-              ("latitude", "longitude", "altitude"),
-              description="GNSS position, WGS-84, altitude above the ellipsoid"),
-    TopicRule("/base/scalar", "aeromag.ScalarField", "base", ("sensor_id", "total_nT"),
-              description="base-station magnetometer"),
-    TopicRule("/aux", "aeromag.Scalar", "aux", ("value", "unit"), True,
-              description="auxiliary channel (currents, voltages, temperatures)"),
-    TopicRule("/plan/line", "aeromag.LineMarker", "plan", ("line_id", "kind"),
-              description="start of a planned segment"),
-    TopicRule("/reference", "aeromag.ScalarField", "reference", ("sensor_id", "total_nT"), True,
-              description="another processor's product for comparison (e.g. SGL's "
-                          "compensated mag_1_c, diurnal, igrf); read, never processed"),
+    TopicRule(
+        "/mag/scalar",
+        "aeromag.ScalarField",
+        "scalar",
+        ("sensor_id", "total_nT"),
+        True,
+        "scalar (total-field) magnetometer",
+    ),
+    TopicRule(
+        "/mag/vector",
+        "aeromag.VectorField",
+        "vector",
+        ("sensor_id", "x_nT", "y_nT", "z_nT"),
+        True,
+        "vector magnetometer, body frame x forward, y right, z down (also "
+        "/mag/vector/calibrated and /compensated written by aeromag vector)",
+    ),
+    TopicRule(
+        "/ins/attitude",
+        "aeromag.Attitude",
+        "attitude",
+        ("roll_deg", "pitch_deg", "yaw_deg"),
+        description="attitude, Z-Y-X Euler angles, yaw = true heading",
+    ),
+    TopicRule(
+        "/gnss/fix",
+        "foxglove.LocationFix",
+        "position",
+        ("latitude", "longitude", "altitude"),
+        description="GNSS position, WGS-84, altitude above the ellipsoid",
+    ),
+    TopicRule(
+        "/base/scalar",
+        "aeromag.ScalarField",
+        "base",
+        ("sensor_id", "total_nT"),
+        description="base-station magnetometer",
+    ),
+    TopicRule(
+        "/aux",
+        "aeromag.Scalar",
+        "aux",
+        ("value", "unit"),
+        True,
+        description="auxiliary channel (currents, voltages, temperatures)",
+    ),
+    TopicRule(
+        "/plan/line",
+        "aeromag.LineMarker",
+        "plan",
+        ("line_id", "kind"),
+        description="start of a planned segment",
+    ),
+    TopicRule(
+        "/reference",
+        "aeromag.ScalarField",
+        "reference",
+        ("sensor_id", "total_nT"),
+        True,
+        description="another processor's product for comparison (e.g. SGL's "
+        "compensated mag_1_c, diurnal, igrf); read, never processed",
+    ),
 )
 
 # Channels aeromag writes. ``inspect`` validates them like input channels; the reader skips them
 # (they are results, not measurements) and the writer refuses to write one twice.
 OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
-    TopicRule("/aeromag/log", "foxglove.Log", "output", ("level", "message"),
-              description="human-readable processing log"),
-    TopicRule("/flight/segment", "aeromag.Segment", "output", ("label", "line_id"),
-              description="segment labels, at each change"),
-    TopicRule("/mag/compensated", "aeromag.CompensatedField", "output",
-              ("sensor_id", "total_nT", "interference_nT", "model"), True,
-              description="compensated scalar field (/mag/compensated/<model> for others)"),
-    TopicRule("/compensation/model", "aeromag.CompensationModel", "output",
-              ("model", "terms", "coefficients"), description="fitted compensation models"),
-    TopicRule("/map/anomaly", "foxglove.Grid", "output", ("column_count", "data"),
-              description="levelled total-field anomaly grid"),
-    TopicRule("/map/anomaly_filtered", "foxglove.Grid", "output", ("column_count", "data"),
-              description="anomaly grid after the ARIMA + Kalman filter"),
-    TopicRule("/map/tracks", "foxglove.GeoJSON", "output", ("geojson",),
-              description="flight lines as GeoJSON"),
-    TopicRule("/quality/heading_error", "aeromag.HeadingErrorPoint", "output",
-              ("kind", "validation_line", "map_line", "difference_nT"),
-              description="validation-vs-map differences at overlap points, per model"),
-    TopicRule("/quality/crossovers", "aeromag.Crossover", "output",
-              ("survey_line", "tie_line", "difference_before_nT", "difference_after_nT"),
-              description="survey-tie crossover differences before and after leveling"),
-    TopicRule("/audit/finding", "aeromag.AuditFinding", "output",
-              ("effect", "accepted", "estimate", "message"),
-              description="model-audit findings (effects the baseline misses)"),
+    TopicRule(
+        "/aeromag/log",
+        "foxglove.Log",
+        "output",
+        ("level", "message"),
+        description="human-readable processing log",
+    ),
+    TopicRule(
+        "/flight/segment",
+        "aeromag.Segment",
+        "output",
+        ("label", "line_id"),
+        description="segment labels, at each change",
+    ),
+    TopicRule(
+        "/mag/compensated",
+        "aeromag.CompensatedField",
+        "output",
+        ("sensor_id", "total_nT", "interference_nT", "model"),
+        True,
+        description="compensated scalar field (/mag/compensated/<model> for others)",
+    ),
+    TopicRule(
+        "/compensation/model",
+        "aeromag.CompensationModel",
+        "output",
+        ("model", "terms", "coefficients"),
+        description="fitted compensation models",
+    ),
+    TopicRule(
+        "/map/anomaly",
+        "foxglove.Grid",
+        "output",
+        ("column_count", "data"),
+        description="levelled total-field anomaly grid",
+    ),
+    TopicRule(
+        "/map/anomaly_filtered",
+        "foxglove.Grid",
+        "output",
+        ("column_count", "data"),
+        description="anomaly grid after the ARIMA + Kalman filter",
+    ),
+    TopicRule(
+        "/map/tracks",
+        "foxglove.GeoJSON",
+        "output",
+        ("geojson",),
+        description="flight lines as GeoJSON",
+    ),
+    TopicRule(
+        "/quality/heading_error",
+        "aeromag.HeadingErrorPoint",
+        "output",
+        ("kind", "validation_line", "map_line", "difference_nT"),
+        description="validation-vs-map differences at overlap points, per model",
+    ),
+    TopicRule(
+        "/quality/crossovers",
+        "aeromag.Crossover",
+        "output",
+        ("survey_line", "tie_line", "difference_before_nT", "difference_after_nT"),
+        description="survey-tie crossover differences before and after leveling",
+    ),
+    TopicRule(
+        "/audit/finding",
+        "aeromag.AuditFinding",
+        "output",
+        ("effect", "accepted", "estimate", "message"),
+        description="model-audit findings (effects the baseline misses)",
+    ),
 )
 
 # Roles each processing stage needs; a stage must not demand more than it uses.

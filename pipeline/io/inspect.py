@@ -63,14 +63,26 @@ class InspectReport:
         t0 = self.start_ns
         return {
             "file": str(self.path),
-            "start_ns": t0, "end_ns": self.end_ns,
+            "start_ns": t0,
+            "end_ns": self.end_ns,
             "duration_s": (self.end_ns - t0) / NS if t0 is not None else 0.0,
-            "topics": [{"topic": t.topic, "schema": t.schema_name, "encoding": t.message_encoding,
-                        "messages": t.count, "role": t.role,
-                        "rate_hz": None if t.rate_hz != t.rate_hz else round(t.rate_hz, 4),
-                        "gaps": [{"start_s": (g.start_ns - t0) / NS, "duration_s": g.duration_s}
-                                 for g in t.gaps]} for t in self.topics],
-            "violations": self.violations, "warnings": self.warnings,
+            "topics": [
+                {
+                    "topic": t.topic,
+                    "schema": t.schema_name,
+                    "encoding": t.message_encoding,
+                    "messages": t.count,
+                    "role": t.role,
+                    "rate_hz": None if t.rate_hz != t.rate_hz else round(t.rate_hz, 4),
+                    "gaps": [
+                        {"start_s": (g.start_ns - t0) / NS, "duration_s": g.duration_s}
+                        for g in t.gaps
+                    ],
+                }
+                for t in self.topics
+            ],
+            "violations": self.violations,
+            "warnings": self.warnings,
         }
 
 
@@ -86,24 +98,28 @@ def inspect_recording(path: str | Path, gap_factor: float = 3.0) -> InspectRepor
     roles_present: set[str] = set()
     for name, rt in sorted(raw.topics.items()):
         rule = rule_for_topic(name)
-        rep = TopicReport(name, rt.schema_name, rt.message_encoding, rt.count,
-                          rule.role if rule else None)
+        rep = TopicReport(
+            name, rt.schema_name, rt.message_encoding, rt.count, rule.role if rule else None
+        )
         topics.append(rep)
         if rt.count:
             rep.start_ns, rep.end_ns = min(rt.log_time_ns), max(rt.log_time_ns)
         if rule is None:
             continue
         if rt.schema_name != rule.schema_name:
-            violations.append(f"{name}: schema is {rt.schema_name!r}, the contract says "
-                              f"{rule.schema_name!r}")
+            violations.append(
+                f"{name}: schema is {rt.schema_name!r}, the contract says {rule.schema_name!r}"
+            )
             continue
         if rt.message_encoding != "json":
-            violations.append(f"{name}: message encoding is {rt.message_encoding!r}, the "
-                              "contract says 'json'")
+            violations.append(
+                f"{name}: message encoding is {rt.message_encoding!r}, the contract says 'json'"
+            )
             continue
         if rt.schema_encoding != "jsonschema":
-            violations.append(f"{name}: schema encoding is {rt.schema_encoding!r}, the contract "
-                              "says 'jsonschema'")
+            violations.append(
+                f"{name}: schema encoding is {rt.schema_encoding!r}, the contract says 'jsonschema'"
+            )
         invalid, first = 0, ""
         for data in rt.data:
             try:
@@ -114,13 +130,18 @@ def inspect_recording(path: str | Path, gap_factor: float = 3.0) -> InspectRepor
                 invalid += 1
                 first = first or problem
         if invalid:
-            violations.append(f"{name}: {invalid} of {rt.count} messages do not match "
-                              f"{rule.schema_name}: {first}")
+            violations.append(
+                f"{name}: {invalid} of {rt.count} messages do not match {rule.schema_name}: {first}"
+            )
         series = decode_topic(rt, rule)
         # field problems were reported above against the full schema; keep the time-level ones
-        violations.extend(f"{name}: {p}" for p in series.problems
-                          if "do not match the schema" not in p and "not valid JSON" not in p
-                          and "NaN or infinite" not in p)
+        violations.extend(
+            f"{name}: {p}"
+            for p in series.problems
+            if "do not match the schema" not in p
+            and "not valid JSON" not in p
+            and "NaN or infinite" not in p
+        )
         nonfinite = [p for p in series.problems if "NaN or infinite" in p]
         if nonfinite and rule.role != "output":  # NaN cells are how a grid masks
             violations.extend(f"{name}: {p}" for p in nonfinite)
@@ -137,12 +158,14 @@ def inspect_recording(path: str | Path, gap_factor: float = 3.0) -> InspectRepor
     for role in missing:
         rule = next(r for r in INPUT_CONTRACT if r.role == role)
         if role != "scalar":
-            warnings.append(f"{rule.topic}: absent ({rule.description}); stages that need it "
-                            "will not run")
+            warnings.append(
+                f"{rule.topic}: absent ({rule.description}); stages that need it will not run"
+            )
     unknown = [t.topic for t in topics if t.role is None]
     if unknown:
-        warnings.append(f"{len(unknown)} topic(s) outside the contract, kept untouched: "
-                        + ", ".join(unknown))
+        warnings.append(
+            f"{len(unknown)} topic(s) outside the contract, kept untouched: " + ", ".join(unknown)
+        )
     # damage is a violation: the data it held is gone (the rest was salvaged and is reported)
     violations.extend(raw.loss_notes())
     if not raw.has_summary:
@@ -150,6 +173,7 @@ def inspect_recording(path: str | Path, gap_factor: float = 3.0) -> InspectRepor
     t0 = min((t.start_ns for t in topics if t.start_ns is not None), default=0)
     for t in topics:
         for g in t.gaps:
-            warnings.append(f"{t.topic}: gap of {g.duration_s:.3f} s at "
-                            f"{(g.start_ns - t0) / NS:.3f} s")
+            warnings.append(
+                f"{t.topic}: gap of {g.duration_s:.3f} s at {(g.start_ns - t0) / NS:.3f} s"
+            )
     return InspectReport(raw.path, topics, violations, warnings, raw.has_summary)

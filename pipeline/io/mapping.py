@@ -93,15 +93,19 @@ class Mapping:
                 raise AeromagError(f"unknown key {sorted(bad)[0]!r}", file=p, channel=topic)
             tm = TopicMap(topic, **spec)
             if tm.role not in ROLES:
-                raise AeromagError(f"role {tm.role!r}: use one of {', '.join(ROLES)}", file=p,
-                                   channel=topic)
+                raise AeromagError(
+                    f"role {tm.role!r}: use one of {', '.join(ROLES)}", file=p, channel=topic
+                )
             if tm.frame not in ("frd", "flu"):
                 raise AeromagError(f"frame {tm.frame!r}: use frd or flu", file=p, channel=topic)
             need = _NFIELDS[tm.role]
             if not (tm.role == "attitude" and tm.quaternion) and len(tm.fields) != need:
-                raise AeromagError(f"role {tm.role} needs {need} field(s)"
-                                   + (" or a quaternion" if tm.role == "attitude" else ""),
-                                   file=p, channel=topic)
+                raise AeromagError(
+                    f"role {tm.role} needs {need} field(s)"
+                    + (" or a quaternion" if tm.role == "attitude" else ""),
+                    file=p,
+                    channel=topic,
+                )
             out[topic] = tm
         if not out:
             raise AeromagError("the mapping names no topic", file=p)
@@ -174,35 +178,49 @@ def decoded_messages(path: Path, topics: list[str]) -> dict[str, list[tuple[int,
     out: dict[str, list[tuple[int, Any]]] = {t: [] for t in topics}
     try:
         with path.open("rb") as f:
-            reader = make_reader(f, validate_crcs=True, decoder_factories=[
-                Ros2Decoder(), ProtobufDecoder(), JsonDecoder()])
-            for _s, ch, msg, obj in reader.iter_decoded_messages(topics=topics,
-                                                                 log_time_order=False):
+            reader = make_reader(
+                f,
+                validate_crcs=True,
+                decoder_factories=[Ros2Decoder(), ProtobufDecoder(), JsonDecoder()],
+            )
+            for _s, ch, msg, obj in reader.iter_decoded_messages(
+                topics=topics, log_time_order=False
+            ):
                 out[ch.topic].append((msg.log_time, obj))
     except AeromagError:
         raise
     except Exception as exc:  # noqa: BLE001 - decoder libraries raise many kinds
-        raise AeromagError(f"could not decode mapped topics ({type(exc).__name__}: "
-                           f"{' '.join(str(exc).split())[:200]})", file=path) from None
+        raise AeromagError(
+            f"could not decode mapped topics ({type(exc).__name__}: "
+            f"{' '.join(str(exc).split())[:200]})",
+            file=path,
+        ) from None
     return out
 
 
-def mapped_columns(tm: TopicMap, msgs: list[tuple[int, Any]], path: Path
-                   ) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
+def mapped_columns(
+    tm: TopicMap, msgs: list[tuple[int, Any]], path: Path
+) -> tuple[np.ndarray, dict[str, np.ndarray], dict[str, np.ndarray]]:
     """(time_ns, values, labels) of one mapped topic, in our units and frames."""
     n = len(msgs)
     t = np.array([_stamp_ns(m, lt) for lt, m in msgs], dtype=np.int64)
     try:
         if tm.role == "attitude" and tm.quaternion:
-            q = np.array([[float(get_path(get_path(m, tm.quaternion), a)) for a in "xyzw"]
-                          for _, m in msgs]).reshape(n, 4)
+            q = np.array(
+                [[float(get_path(get_path(m, tm.quaternion), a)) for a in "xyzw"] for _, m in msgs]
+            ).reshape(n, 4)
             vals = quaternion_to_euler_deg(q, tm.frame)
         else:
-            vals = np.array([[float(get_path(m, f)) for f in tm.fields] for _, m in msgs]
-                            ).reshape(n, len(tm.fields)) * tm.scale
+            vals = (
+                np.array([[float(get_path(m, f)) for f in tm.fields] for _, m in msgs]).reshape(
+                    n, len(tm.fields)
+                )
+                * tm.scale
+            )
     except (AttributeError, KeyError, TypeError, IndexError) as exc:
-        raise AeromagError(f"field not found in the message ({exc})", file=path,
-                           channel=tm.topic) from None
+        raise AeromagError(
+            f"field not found in the message ({exc})", file=path, channel=tm.topic
+        ) from None
     if tm.role == "vector" and tm.frame == "flu":
         vals = vals @ _FLU_TO_FRD
     name = tm.name or tm.topic.strip("/").replace("/", "_")
@@ -232,10 +250,14 @@ def _check_nT(v: np.ndarray, path: Path, topic: str) -> None:
 # --------------------------------------------------------------------------------------------
 KNOWN_TYPES = {
     "sensor_msgs/msg/MagneticField": (
-        "vector", {"fields": ["magnetic_field.x", "magnetic_field.y", "magnetic_field.z"],
-                   "scale": 1e9, "frame": "flu"}),
-    "sensor_msgs/msg/NavSatFix": ("position", {"fields": ["latitude", "longitude",
-                                                          "altitude"]}),
+        "vector",
+        {
+            "fields": ["magnetic_field.x", "magnetic_field.y", "magnetic_field.z"],
+            "scale": 1e9,
+            "frame": "flu",
+        },
+    ),
+    "sensor_msgs/msg/NavSatFix": ("position", {"fields": ["latitude", "longitude", "altitude"]}),
     "sensor_msgs/msg/Imu": ("attitude", {"quaternion": "orientation", "frame": "flu"}),
     "foxglove.LocationFix": ("position", {"fields": ["latitude", "longitude", "altitude"]}),
     "std_msgs/msg/Float64": ("scalar", {"fields": ["data"]}),
@@ -251,32 +273,35 @@ def suggest_mapping(path: str | Path) -> str:
         summ = make_reader(f).get_summary()
     if summ is None:
         raise AeromagError("no summary section: cannot list the channels", file=p)
-    lines = [f"# topic mapping suggested by aeromag for {p.name}; check roles, scales and",
-             "# frames before use (scalar magnetometers in tesla need scale = 1e9)", ""]
+    lines = [
+        f"# topic mapping suggested by aeromag for {p.name}; check roles, scales and",
+        "# frames before use (scalar magnetometers in tesla need scale = 1e9)",
+        "",
+    ]
     for ch in sorted(summ.channels.values(), key=lambda c: c.topic):
         sc = summ.schemas.get(ch.schema_id)
         name = sc.name if sc else ""
         if name not in KNOWN_TYPES:
-            lines.append(f"# {ch.topic}: {name or 'no schema'} ({ch.message_encoding}): "
-                         "not mapped")
+            lines.append(f"# {ch.topic}: {name or 'no schema'} ({ch.message_encoding}): not mapped")
             continue
         role, spec = KNOWN_TYPES[name]
         lines.append(f'[topics."{ch.topic}"]  # {name}')
         lines.append(f'role = "{role}"')
         for k, v in spec.items():
-            lines.append(f"{k} = {json.dumps(v)}" if not isinstance(v, float)
-                         else f"{k} = {v:g}")
+            lines.append(f"{k} = {json.dumps(v)}" if not isinstance(v, float) else f"{k} = {v:g}")
         lines.append("")
     return "\n".join(lines) + "\n"
 
 
 # --------------------------------------------------------------------------------------------
-CONTRACT_TOPIC = {"scalar": ("/mag/scalar", "aeromag.ScalarField"),
-                  "vector": ("/mag/vector", "aeromag.VectorField"),
-                  "attitude": ("/ins/attitude", "aeromag.Attitude"),
-                  "position": ("/gnss/fix", "foxglove.LocationFix"),
-                  "base": ("/base/scalar", "aeromag.ScalarField"),
-                  "aux": ("/aux", "aeromag.Scalar")}
+CONTRACT_TOPIC = {
+    "scalar": ("/mag/scalar", "aeromag.ScalarField"),
+    "vector": ("/mag/vector", "aeromag.VectorField"),
+    "attitude": ("/ins/attitude", "aeromag.Attitude"),
+    "position": ("/gnss/fix", "foxglove.LocationFix"),
+    "base": ("/base/scalar", "aeromag.ScalarField"),
+    "aux": ("/aux", "aeromag.Scalar"),
+}
 
 
 def import_mapped(src: str | Path, dst: str | Path, mapping: Mapping) -> dict[str, str]:
@@ -300,8 +325,9 @@ def import_mapped(src: str | Path, dst: str | Path, mapping: Mapping) -> dict[st
             out_topic = base if k == 0 else f"{base}/{s.rule.alias}"
         else:
             if k:
-                raise AeromagError(f"a second {s.rule.role} topic: map only one", file=p,
-                                   channel=topic)
+                raise AeromagError(
+                    f"a second {s.rule.role} topic: map only one", file=p, channel=topic
+                )
             out_topic = base
         ch = OutputChannel(out_topic, schema)
         for i, tn in enumerate(s.time_ns):
@@ -311,11 +337,18 @@ def import_mapped(src: str | Path, dst: str | Path, mapping: Mapping) -> dict[st
             if s.rule.role == "aux":
                 payload["unit"] = str(s.labels["unit"][i])
             if s.rule.role == "position":
-                payload.update(frame_id="gnss", position_covariance=[0.0] * 9,
-                               position_covariance_type=0)
+                payload.update(
+                    frame_id="gnss", position_covariance=[0.0] * 9, position_covariance_type=0
+                )
             ch.add(int(tn), payload)
         channels.append(ch)
         names[topic] = out_topic
-    write_with_new_channels(p, dst, channels, metadata={"aeromag.import": {
-        "source": str(p), "format": "mapped", "mapping": mapping.source}})
+    write_with_new_channels(
+        p,
+        dst,
+        channels,
+        metadata={
+            "aeromag.import": {"source": str(p), "format": "mapped", "mapping": mapping.source}
+        },
+    )
     return names

@@ -103,11 +103,16 @@ def read_topics(path: str | Path, topics: Iterable[str] | None = None) -> RawRec
     except ScanError as exc:
         raise AeromagError(str(exc), file=path) from None
     except OSError as exc:
-        raise AeromagError(f"cannot read the file ({type(exc).__name__}: {exc})",
-                           file=path) from None
+        raise AeromagError(
+            f"cannot read the file ({type(exc).__name__}: {exc})", file=path
+        ) from None
     if not sc.channels and sc.losses:
-        raise AeromagError("not a readable MCAP recording (no intact channel or message; "
-                           + "; ".join(x.describe() for x in sc.losses[:2]) + ")", file=path)
+        raise AeromagError(
+            "not a readable MCAP recording (no intact channel or message; "
+            + "; ".join(x.describe() for x in sc.losses[:2])
+            + ")",
+            file=path,
+        )
     out: dict[str, RawTopic] = {}
     for ch in sc.channels.values():
         if wanted is not None and ch.topic not in wanted:
@@ -115,15 +120,17 @@ def read_topics(path: str | Path, topics: Iterable[str] | None = None) -> RawRec
         name, enc = sc.schema_of(ch)
         raw = out.get(ch.topic)
         if raw is None:
-            out[ch.topic] = RawTopic(ch.topic, name, enc, ch.message_encoding,
-                                     ch.log_time_ns, ch.data)
+            out[ch.topic] = RawTopic(
+                ch.topic, name, enc, ch.message_encoding, ch.log_time_ns, ch.data
+            )
         else:  # two channels on one topic: merged, decode_topic sorts by time
             raw.log_time_ns.extend(ch.log_time_ns)
             raw.data.extend(ch.data)
     losses = list(sc.losses)
     if sc.orphan_messages:
-        losses.append(Loss(0, f"{sc.orphan_messages} messages on channels whose definition "
-                              "was lost"))
+        losses.append(
+            Loss(0, f"{sc.orphan_messages} messages on channels whose definition was lost")
+        )
     return RawRecording(path=path, topics=out, has_summary=sc.summary_seen, losses=losses)
 
 
@@ -213,15 +220,19 @@ def decode_topic(raw: RawTopic, rule: TopicRule) -> TopicSeries:
             first_bad = None
         else:
             t, vals, labs, ok, bad_decode, bad_field, bad_stamp, first_bad = _decode_each(
-                raw, numeric, strings)
+                raw, numeric, strings
+            )
     if bad_decode:
         problems.append(f"{bad_decode} of {n} messages are not valid JSON (dropped)")
     if bad_field:
-        problems.append(f"{bad_field} of {n} messages do not match the schema: {first_bad} "
-                        "(dropped)")
+        problems.append(
+            f"{bad_field} of {n} messages do not match the schema: {first_bad} (dropped)"
+        )
     if bad_stamp:
-        problems.append(f"{bad_stamp} of {n} messages have a payload timestamp that differs "
-                        "from log_time (log_time used)")
+        problems.append(
+            f"{bad_stamp} of {n} messages have a payload timestamp that differs "
+            "from log_time (log_time used)"
+        )
     finite = np.ones(n, bool)
     for f in numeric:
         finite &= np.isfinite(vals[f])
@@ -241,10 +252,14 @@ def decode_topic(raw: RawTopic, rule: TopicRule) -> TopicSeries:
     dropped = np.concatenate([t[~keep], tt[dup]])
     order = order[~dup]
     return TopicSeries(
-        topic=raw.topic, rule=rule, time_ns=t[order],
+        topic=raw.topic,
+        rule=rule,
+        time_ns=t[order],
         values={f: v[order] for f, v in vals.items()},
         labels={f: np.asarray(v, dtype=object)[order] for f, v in labs.items()},
-        problems=problems, n_messages=n, dropped_ns=dropped,
+        problems=problems,
+        n_messages=n,
+        dropped_ns=dropped,
     )
 
 
@@ -278,23 +293,27 @@ def _decode_each(raw: RawTopic, numeric: list[str], strings: list[str]):
         except (KeyError, TypeError) as exc:
             bad_field += 1
             if first_bad is None:
-                first_bad = (f"field {exc.args[0]!r} missing" if isinstance(exc, KeyError)
-                             else str(exc))
+                first_bad = (
+                    f"field {exc.args[0]!r} missing" if isinstance(exc, KeyError) else str(exc)
+                )
             continue
         except Exception:  # noqa: BLE001 - payload is not even an object
             bad_field += 1
             first_bad = first_bad or "payload is not a JSON object"
             continue
         ts = msg.get("timestamp") if isinstance(msg, dict) else None
-        if not (isinstance(ts, dict) and isinstance(ts.get("sec"), int)
-                and isinstance(ts.get("nsec"), int) and ts["sec"] * NS + ts["nsec"] == lt):
+        if not (
+            isinstance(ts, dict)
+            and isinstance(ts.get("sec"), int)
+            and isinstance(ts.get("nsec"), int)
+            and ts["sec"] * NS + ts["nsec"] == lt
+        ):
             bad_stamp += 1
         ok[i] = True
     return t, vals, labs, ok, bad_decode, bad_field, bad_stamp, first_bad
 
 
-def _decode_columns(raw: RawTopic, numeric: list[str], strings: list[str],
-                    batch: int = 1 << 15):
+def _decode_columns(raw: RawTopic, numeric: list[str], strings: list[str], batch: int = 1 << 15):
     """Whole-topic decoding: one JSON parse per ``batch`` payloads, straight into one array
     (numbers) or list (strings, equal ones shared) per field.
 
@@ -315,7 +334,7 @@ def _decode_columns(raw: RawTopic, numeric: list[str], strings: list[str],
     nsec = np.empty(n, np.int64)
     stamps_ok = True
     for b in range(0, n, batch):
-        part = raw.data[b:b + batch]
+        part = raw.data[b : b + batch]
         stop = b + len(part)
         try:
             msgs = orjson.loads(b"[" + b",".join(part) + b"]")
@@ -331,8 +350,7 @@ def _decode_columns(raw: RawTopic, numeric: list[str], strings: list[str],
                     return None
                 vals[f][b:stop] = np.array(col, dtype=float)
             for f in strings:
-                col = ([m.get(f, "") for m in msgs] if f == "sensor_id"
-                       else [m[f] for m in msgs])
+                col = [m.get(f, "") for m in msgs] if f == "sensor_id" else [m[f] for m in msgs]
                 if set(map(type, col)) != {str}:
                     return None
                 labs[f] += [shared.setdefault(v, v) for v in col]
@@ -377,8 +395,14 @@ def find_gaps(time_ns: np.ndarray, topic: str, gap_factor: float = 3.0) -> list[
     return [Gap(topic, int(time_ns[i]), int(time_ns[i + 1])) for i in np.flatnonzero(dt > limit)]
 
 
-def _interp_onto(t_dst: np.ndarray, series: TopicSeries, values: np.ndarray,
-                 gaps: list[Gap], *, angle: bool = False) -> tuple[np.ndarray, int]:
+def _interp_onto(
+    t_dst: np.ndarray,
+    series: TopicSeries,
+    values: np.ndarray,
+    gaps: list[Gap],
+    *,
+    angle: bool = False,
+) -> tuple[np.ndarray, int]:
     """Linear interpolation of ``values`` (at ``series.time_ns``) onto ``t_dst``.
 
     Returns the interpolated array (NaN outside the span and inside gaps) and the number of
@@ -410,7 +434,7 @@ def _interp_onto(t_dst: np.ndarray, series: TopicSeries, values: np.ndarray,
 def _suffix(topic: str, rule: TopicRule) -> str:
     if rule.alias:
         return rule.alias
-    return topic[len(rule.topic) + 1:].replace("/", "_") if topic != rule.topic else ""
+    return topic[len(rule.topic) + 1 :].replace("/", "_") if topic != rule.topic else ""
 
 
 def _mapped_series(path: Path, mapping) -> dict[str, TopicSeries]:
@@ -422,24 +446,32 @@ def _mapped_series(path: Path, mapping) -> dict[str, TopicSeries]:
     for topic, tm in mapping.topics.items():
         msgs = decoded.get(topic) or []
         if not msgs:
-            raise AeromagError("the mapping names this topic but the recording has no "
-                               "message on it", file=path, channel=topic)
+            raise AeromagError(
+                "the mapping names this topic but the recording has no message on it",
+                file=path,
+                channel=topic,
+            )
         t, values, labels = mapped_columns(tm, msgs, path)
         order = np.argsort(t, kind="stable")
         t = t[order]
         keep = np.r_[True, np.diff(t) > 0]
-        finite = np.all(np.column_stack([np.isfinite(v[order]) for v in values.values()]),
-                        axis=1)
+        finite = np.all(np.column_stack([np.isfinite(v[order]) for v in values.values()]), axis=1)
         keep &= finite
         problems = []
         if (~keep).any():
             problems.append(f"{int((~keep).sum())} samples dropped (duplicate times or NaN)")
-        rule = TopicRule(topic, "", tm.role, tuple(values), alias=tm.name or
-                         topic.strip("/").replace("/", "_"))
-        out[topic] = TopicSeries(topic, rule, t[keep],
-                                 {k: v[order][keep] for k, v in values.items()},
-                                 {k: v[order][keep] for k, v in labels.items()}, problems,
-                                 len(msgs))
+        rule = TopicRule(
+            topic, "", tm.role, tuple(values), alias=tm.name or topic.strip("/").replace("/", "_")
+        )
+        out[topic] = TopicSeries(
+            topic,
+            rule,
+            t[keep],
+            {k: v[order][keep] for k, v in values.items()},
+            {k: v[order][keep] for k, v in labels.items()},
+            problems,
+            len(msgs),
+        )
     return out
 
 
@@ -455,12 +487,21 @@ def _check_plausible(series: dict[str, TopicSeries], path: Path) -> None:
             mag = np.sqrt(sum(s.values[f"{ax}_nT"] ** 2 for ax in "xyz"))
             check_units("the vector magnitude", mag, path, topic)
         elif role == "attitude":
-            check_degrees({f: s.values[f] for f in ("roll_deg", "pitch_deg", "yaw_deg")},
-                          ("roll_deg", "pitch_deg", "yaw_deg"), path)
+            check_degrees(
+                {f: s.values[f] for f in ("roll_deg", "pitch_deg", "yaw_deg")},
+                ("roll_deg", "pitch_deg", "yaw_deg"),
+                path,
+            )
 
 
-def read_flight(path: str | Path, *, mapping=None, scalar_topic: str | None = None,
-                vector_topic: str | None = None, gap_factor: float = 3.0) -> Flight:
+def read_flight(
+    path: str | Path,
+    *,
+    mapping=None,
+    scalar_topic: str | None = None,
+    vector_topic: str | None = None,
+    gap_factor: float = 3.0,
+) -> Flight:
     """Read a recording and align every contract stream onto the primary scalar epochs.
 
     Parameters
@@ -504,8 +545,9 @@ def read_flight(path: str | Path, *, mapping=None, scalar_topic: str | None = No
     def pick(role: str, wanted: str | None, default: str) -> str | None:
         if wanted is not None:
             if wanted not in series or series[wanted].rule.role != role:
-                raise AeromagError(f"no {role} magnetometer messages on this topic", file=path,
-                                   channel=wanted)
+                raise AeromagError(
+                    f"no {role} magnetometer messages on this topic", file=path, channel=wanted
+                )
             return wanted
         if default in series:
             return default
@@ -517,8 +559,11 @@ def read_flight(path: str | Path, *, mapping=None, scalar_topic: str | None = No
 
     primary = pick("scalar", scalar_topic, "/mag/scalar")
     if primary is None:
-        raise AeromagError("no scalar magnetometer channel (/mag/scalar or /mag/scalar/<id>)",
-                           file=path, channel="/mag/scalar")
+        raise AeromagError(
+            "no scalar magnetometer channel (/mag/scalar or /mag/scalar/<id>)",
+            file=path,
+            channel="/mag/scalar",
+        )
     _check_plausible(series, path)
     ps = series[primary]
     if ps.time_ns.size < 2:
@@ -544,14 +589,22 @@ def read_flight(path: str | Path, *, mapping=None, scalar_topic: str | None = No
             notes.append(f"{topic}: no usable samples")
             continue
 
-        def put(name: str, values: np.ndarray, unit: str, angle: bool = False,
-                _s: TopicSeries = s, _g: list[Gap] = gaps) -> None:
+        def put(
+            name: str,
+            values: np.ndarray,
+            unit: str,
+            angle: bool = False,
+            _s: TopicSeries = s,
+            _g: list[Gap] = gaps,
+        ) -> None:
             arr, missing = _interp_onto(t, _s, values, _g, angle=angle)
             cols[name] = arr
             units[name] = unit
             if missing:
-                notes.append(f"{_s.topic}: {missing} of {t.size} epochs without data "
-                             "(outside its span or in a gap)")
+                notes.append(
+                    f"{_s.topic}: {missing} of {t.size} epochs without data "
+                    "(outside its span or in a gap)"
+                )
 
         if role == "scalar":
             put(f"scalar_{_suffix(topic, s.rule)}_nT", s.values["total_nT"], "nT")
@@ -590,8 +643,20 @@ def read_flight(path: str | Path, *, mapping=None, scalar_topic: str | None = No
                 cols[col] = arr
                 units[col] = ""
     for g in gaps_all:
-        notes.append(f"{g.topic}: gap of {g.duration_s:.3f} s from "
-                     f"{(g.start_ns - t[0]) / NS:.3f} s to {(g.end_ns - t[0]) / NS:.3f} s")
-    return Flight(source=path, time_ns=t, data=pd.DataFrame(cols), units=units, series=series,
-                  topic_of=topic_of, gaps=gaps_all, notes=notes, unknown_topics=unknown,
-                  losses=raw.losses, all_topics=sorted(raw.topics))
+        notes.append(
+            f"{g.topic}: gap of {g.duration_s:.3f} s from "
+            f"{(g.start_ns - t[0]) / NS:.3f} s to {(g.end_ns - t[0]) / NS:.3f} s"
+        )
+    return Flight(
+        source=path,
+        time_ns=t,
+        data=pd.DataFrame(cols),
+        units=units,
+        series=series,
+        topic_of=topic_of,
+        gaps=gaps_all,
+        notes=notes,
+        unknown_topics=unknown,
+        losses=raw.losses,
+        all_topics=sorted(raw.topics),
+    )

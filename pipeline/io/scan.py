@@ -53,8 +53,10 @@ class Loss:
             if t0_ns is None:
                 span = f", messages logged {self.start_ns} to {self.end_ns} ns"
             else:
-                span = (f", messages logged {(self.start_ns - t0_ns) / 1e9:.3f} s to "
-                        f"{(self.end_ns - t0_ns) / 1e9:.3f} s")
+                span = (
+                    f", messages logged {(self.start_ns - t0_ns) / 1e9:.3f} s to "
+                    f"{(self.end_ns - t0_ns) / 1e9:.3f} s"
+                )
         return f"{self.reason} at byte {self.offset} ({self.bytes_lost} bytes lost{span})"
 
 
@@ -103,7 +105,7 @@ def _string(buf, pos: int, end: int) -> tuple[str, int]:
     pos += 4
     if pos + n > end:
         raise ValueError("string runs past its record")
-    return bytes(buf[pos:pos + n]).decode("utf-8"), pos + n
+    return bytes(buf[pos : pos + n]).decode("utf-8"), pos + n
 
 
 def _string_map(buf, pos: int, end: int) -> dict[str, str]:
@@ -166,7 +168,7 @@ class _Scanner:
             n = _U32.unpack_from(buf, p)[0]
             if p + 4 + n > end:
                 raise ValueError("schema data runs past its record")
-            self.out.schemas.setdefault(sid, (name, enc, bytes(buf[p + 4:p + 4 + n])))
+            self.out.schemas.setdefault(sid, (name, enc, bytes(buf[p + 4 : p + 4 + n])))
 
     def chunk(self, pos: int, end: int) -> None:
         buf = self.buf
@@ -178,11 +180,12 @@ class _Scanner:
             if p + 8 + dlen > end:
                 raise ValueError("chunk data runs past its record")
             if usize > MAX_CHUNK_BYTES:
-                loss.reason = (f"chunk declares {usize} uncompressed bytes (limit "
-                               f"{MAX_CHUNK_BYTES}): skipped")
+                loss.reason = (
+                    f"chunk declares {usize} uncompressed bytes (limit {MAX_CHUNK_BYTES}): skipped"
+                )
                 self.out.losses.append(loss)
                 return
-            data = _decompress(compression, memoryview(buf)[p + 8:p + 8 + dlen], usize)
+            data = _decompress(compression, memoryview(buf)[p + 8 : p + 8 + dlen], usize)
         except Exception as exc:  # noqa: BLE001 - any damage to one chunk loses that chunk only
             loss.reason = f"chunk unreadable ({type(exc).__name__}: {exc})"
             self.out.losses.append(loss)
@@ -216,15 +219,19 @@ class _Scanner:
                 # the hot path, inlined: one message record (header: channel id, sequence,
                 # log time, publish time = 22 bytes)
                 if end - pos < 31:
-                    self.out.losses.append(Loss(base + pos, "malformed record (message "
-                                                "shorter than its header)",
-                                                bytes_lost=end - pos))
+                    self.out.losses.append(
+                        Loss(
+                            base + pos,
+                            "malformed record (message shorter than its header)",
+                            bytes_lost=end - pos,
+                        )
+                    )
                 else:
                     cid, lt = head(buf, pos + 9)
                     sink = sinks.get(cid)
                     if sink is not None:
                         sink[0](lt)
-                        sink[1](buf[pos:end] if whole else buf[pos + 31:end])
+                        sink[1](buf[pos:end] if whole else buf[pos + 31 : end])
                     elif cid not in self.out.channels:
                         self.out.orphan_messages += 1
                 pos = end
@@ -247,21 +254,29 @@ class _Scanner:
                 if self._after_data_end and op != OP_DATA_END and not inner:
                     self.out.summary_seen = True
             except (struct.error, ValueError, UnicodeDecodeError) as exc:
-                self.out.losses.append(Loss(base + pos, f"malformed record (opcode {op:#04x}: "
-                                            f"{exc})", bytes_lost=end - pos))
+                self.out.losses.append(
+                    Loss(
+                        base + pos,
+                        f"malformed record (opcode {op:#04x}: {exc})",
+                        bytes_lost=end - pos,
+                    )
+                )
             pos = end
 
     def _truncated(self, pos: int, size: int, inner: bool, base: int) -> None:
         if inner:
-            self.out.losses.append(Loss(base, "chunk content ends inside a record",
-                                        bytes_lost=size - pos))
+            self.out.losses.append(
+                Loss(base, "chunk content ends inside a record", bytes_lost=size - pos)
+            )
         else:
-            self.out.losses.append(Loss(pos, "file truncated: the last record is incomplete",
-                                        bytes_lost=size - pos))
+            self.out.losses.append(
+                Loss(pos, "file truncated: the last record is incomplete", bytes_lost=size - pos)
+            )
 
 
-def scan_mcap(path: str | Path, topics: set[str] | None = None, *,
-              whole_records: bool = False) -> Scan:
+def scan_mcap(
+    path: str | Path, topics: set[str] | None = None, *, whole_records: bool = False
+) -> Scan:
     """Read every intact record of an MCAP file, salvaging around damage.
 
     Parameters
@@ -286,8 +301,9 @@ def scan_mcap(path: str | Path, topics: set[str] | None = None, *,
             raise ScanError("empty file (0 bytes), not an MCAP recording")
         head = f.read(len(MAGIC))
         if head != MAGIC:
-            raise ScanError(f"not a readable MCAP recording (starts with {head[:8]!r}, not the "
-                            "MCAP magic)")
+            raise ScanError(
+                f"not a readable MCAP recording (starts with {head[:8]!r}, not the MCAP magic)"
+            )
         mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
         try:
             sc = _Scanner(mm, topics, whole_records)

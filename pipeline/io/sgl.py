@@ -35,12 +35,33 @@ from pipeline.io.plausibility import check_degrees, check_units
 from pipeline.io.writer import McapOutput, encode, stamp
 
 XYZ_NAMES = {
-    "LINE": "line", "FLT": "flight", "YEAR": "year", "DOY": "doy", "TIME": "tt",
-    "UTM-X": "utm_x", "UTM-Y": "utm_y", "UTM-Z": "utm_z", "MSL-Z": "msl", "LAT": "lat",
-    "LONG": "lon", "BARO": "baro", "RADAR": "radar", "TOPO": "topo", "DEM": "dem",
-    "DRAPE": "drape", "PITCH": "ins_pitch", "ROLL": "ins_roll", "AZIMUTH": "ins_yaw",
-    "DIURNAL": "diurnal", "COMPMAG1": "mag_1_c", "LAGMAG1": "mag_1_lag", "DCMAG1": "mag_1_dc",
-    "IGRFMAG1": "mag_1_igrf", "OGS_MAG": "ogs_mag", "OGS_HGT": "ogs_alt", "IGRF": "igrf",
+    "LINE": "line",
+    "FLT": "flight",
+    "YEAR": "year",
+    "DOY": "doy",
+    "TIME": "tt",
+    "UTM-X": "utm_x",
+    "UTM-Y": "utm_y",
+    "UTM-Z": "utm_z",
+    "MSL-Z": "msl",
+    "LAT": "lat",
+    "LONG": "lon",
+    "BARO": "baro",
+    "RADAR": "radar",
+    "TOPO": "topo",
+    "DEM": "dem",
+    "DRAPE": "drape",
+    "PITCH": "ins_pitch",
+    "ROLL": "ins_roll",
+    "AZIMUTH": "ins_yaw",
+    "DIURNAL": "diurnal",
+    "COMPMAG1": "mag_1_c",
+    "LAGMAG1": "mag_1_lag",
+    "DCMAG1": "mag_1_dc",
+    "IGRFMAG1": "mag_1_igrf",
+    "OGS_MAG": "ogs_mag",
+    "OGS_HGT": "ogs_alt",
+    "IGRF": "igrf",
 }
 
 
@@ -83,8 +104,9 @@ def read_xyz(path: Path) -> dict[str, np.ndarray]:
     try:
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError:
-        raise AeromagError("not an SGL XYZ text file (not UTF-8 text) nor HDF5",
-                           file=path) from None
+        raise AeromagError(
+            "not an SGL XYZ text file (not UTF-8 text) nor HDF5", file=path
+        ) from None
     for line in text.splitlines():
         s = line.strip()
         if not s:
@@ -94,13 +116,16 @@ def read_xyz(path: Path) -> dict[str, np.ndarray]:
             continue
         rows.append(s.split())
     if not header:
-        raise AeromagError("no header line (lines beginning with '/') naming the columns",
-                           file=path)
+        raise AeromagError(
+            "no header line (lines beginning with '/') naming the columns", file=path
+        )
     cols = [_xyz_name(c) for c in header[-1].split()]
     bad = [k for k, r in enumerate(rows) if len(r) != len(cols)]
     if bad:
-        raise AeromagError(f"data line {bad[0] + 1} has {len(rows[bad[0]])} values for "
-                           f"{len(cols)} columns", file=path)
+        raise AeromagError(
+            f"data line {bad[0] + 1} has {len(rows[bad[0]])} values for {len(cols)} columns",
+            file=path,
+        )
     if not rows:
         raise AeromagError("no data lines", file=path)
     table = np.array(rows, dtype=object)
@@ -111,8 +136,11 @@ def read_xyz(path: Path) -> dict[str, np.ndarray]:
             out[name] = np.array([np.nan if v == "*" else float(v) for v in vals])
         except ValueError:
             bad = next(i for i, v in enumerate(vals) if v != "*" and not _is_number(v))
-            raise AeromagError(f"data line {bad + 1}: {vals[bad]!r} is not a number",
-                               file=path, channel=header[-1].split()[k]) from None
+            raise AeromagError(
+                f"data line {bad + 1}: {vals[bad]!r} is not a number",
+                file=path,
+                channel=header[-1].split()[k],
+            ) from None
     return out
 
 
@@ -153,8 +181,9 @@ def read_h5(path: Path) -> dict[str, np.ndarray]:
         if not lengths:
             raise AeromagError("no 1-D datasets", file=path)
         n = max(set(lengths), key=lengths.count)
-        return {k: np.asarray(f[k][()], float) for k, s in sizes.items()
-                if len(s) == 1 and s[0] == n}
+        return {
+            k: np.asarray(f[k][()], float) for k, s in sizes.items() if len(s) == 1 and s[0] == n
+        }
 
 
 def read_sgl(path: str | Path) -> dict[str, np.ndarray]:
@@ -166,8 +195,9 @@ def read_sgl(path: str | Path) -> dict[str, np.ndarray]:
     fields = read_h5(p) if head.startswith(b"\x89HDF") else read_xyz(p)
     missing = [k for k in ("tt", "year", "doy") if k not in fields]
     if missing:
-        raise AeromagError(f"no {', '.join(missing)} field: cannot build timestamps",
-                           file=p, channel=missing[0])
+        raise AeromagError(
+            f"no {', '.join(missing)} field: cannot build timestamps", file=p, channel=missing[0]
+        )
     return fields
 
 
@@ -186,8 +216,12 @@ def _times_ns(fields: dict[str, np.ndarray], path: Path) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
-def import_sgl(src: str | Path, dst: str | Path, lines: list[str] | None = None,
-               calibration_lines: list[str] | None = None) -> dict:
+def import_sgl(
+    src: str | Path,
+    dst: str | Path,
+    lines: list[str] | None = None,
+    calibration_lines: list[str] | None = None,
+) -> dict:
     """Convert an SGL file into a contract MCAP; returns what was written."""
     p = Path(src)
     fields = read_sgl(p)
@@ -196,31 +230,39 @@ def import_sgl(src: str | Path, dst: str | Path, lines: list[str] | None = None,
     line_vals = fields.get("line")
     if lines:
         if line_vals is None:
-            raise AeromagError("--lines given but the file has no line field", file=p,
-                               channel="line")
+            raise AeromagError(
+                "--lines given but the file has no line field", file=p, channel="line"
+            )
         wanted = {round(float(x), 2) for x in lines}
         keep &= np.isin(np.round(line_vals, 2), list(wanted))
         if not keep.any():
-            raise AeromagError(f"none of the lines {', '.join(lines)} is in the file", file=p,
-                               channel="line")
+            raise AeromagError(
+                f"none of the lines {', '.join(lines)} is in the file", file=p, channel="line"
+            )
     order = np.argsort(t_ns[keep], kind="stable")
     idx = np.flatnonzero(keep)[order]
     t = t_ns[idx]
     f = {k: v[idx] for k, v in fields.items()}
     scalars = sorted(k for k in f if re.fullmatch(r"mag_\d_uc", k))
     if not scalars:
-        raise AeromagError("no uncompensated scalar magnetometer (mag_N_uc)", file=p,
-                           channel="mag_1_uc")
+        raise AeromagError(
+            "no uncompensated scalar magnetometer (mag_N_uc)", file=p, channel="mag_1_uc"
+        )
     for k in scalars:
         check_units(k, f[k], p, k)
     fluxes = sorted({m.group(1) for k in f if (m := re.fullmatch(r"flux_([a-d])_x", k))})
     for c in fluxes:
-        check_units(f"flux_{c}", np.linalg.norm(np.column_stack(
-            [f[f"flux_{c}_{a}"] for a in "xyz"]), axis=1), p, f"flux_{c}_x")
+        check_units(
+            f"flux_{c}",
+            np.linalg.norm(np.column_stack([f[f"flux_{c}_{a}"] for a in "xyz"]), axis=1),
+            p,
+            f"flux_{c}_x",
+        )
     att = ("ins_roll", "ins_pitch", "ins_yaw")
     check_degrees(f, att, p)
     written: dict[str, int] = {}
     with McapOutput(Path(dst)) as out:
+
         def emit(topic: str, schema: str, rows: Iterable[tuple[int, dict]]) -> None:
             cid = out.channel(topic, schema)
             n = 0
@@ -236,45 +278,95 @@ def import_sgl(src: str | Path, dst: str | Path, lines: list[str] | None = None,
         for k in scalars:
             sid = k.split("_")[1]
             ok = finite(k)
-            emit(f"/mag/scalar/{sid}", "aeromag.ScalarField",
-                 ((tn, {"sensor_id": f"mag_{sid}", "total_nT": float(v)})
-                  for tn, v in zip(t[ok], f[k][ok], strict=True)))
+            emit(
+                f"/mag/scalar/{sid}",
+                "aeromag.ScalarField",
+                (
+                    (tn, {"sensor_id": f"mag_{sid}", "total_nT": float(v)})
+                    for tn, v in zip(t[ok], f[k][ok], strict=True)
+                ),
+            )
         for c in fluxes:
             names = [f"flux_{c}_{a}" for a in "xyz"]
             ok = finite(*names)
             xyz = np.column_stack([f[n][ok] for n in names])
-            emit(f"/mag/vector/{c}", "aeromag.VectorField",
-                 ((tn, {"sensor_id": f"flux_{c}", "x_nT": float(a), "y_nT": float(b),
-                        "z_nT": float(z)}) for tn, (a, b, z) in zip(t[ok], xyz, strict=True)))
+            emit(
+                f"/mag/vector/{c}",
+                "aeromag.VectorField",
+                (
+                    (
+                        tn,
+                        {
+                            "sensor_id": f"flux_{c}",
+                            "x_nT": float(a),
+                            "y_nT": float(b),
+                            "z_nT": float(z),
+                        },
+                    )
+                    for tn, (a, b, z) in zip(t[ok], xyz, strict=True)
+                ),
+            )
         if all(a in f for a in att):
             ok = finite(*att)
-            emit("/ins/attitude", "aeromag.Attitude",
-                 ((tn, {"roll_deg": float(r), "pitch_deg": float(pp),
-                        "yaw_deg": float(y % 360.0)})
-                  for tn, r, pp, y in zip(t[ok], f["ins_roll"][ok], f["ins_pitch"][ok],
-                                          f["ins_yaw"][ok], strict=True)))
+            emit(
+                "/ins/attitude",
+                "aeromag.Attitude",
+                (
+                    (
+                        tn,
+                        {"roll_deg": float(r), "pitch_deg": float(pp), "yaw_deg": float(y % 360.0)},
+                    )
+                    for tn, r, pp, y in zip(
+                        t[ok], f["ins_roll"][ok], f["ins_pitch"][ok], f["ins_yaw"][ok], strict=True
+                    )
+                ),
+            )
         alt = next((a for a in ("utm_z", "alt", "ins_alt") if a in f), None)
         if "lat" in f and "lon" in f and alt:
             ok = finite("lat", "lon", alt)
-            emit("/gnss/fix", "foxglove.LocationFix",
-                 ((tn, {"frame_id": "gnss", "latitude": float(la), "longitude": float(lo),
-                        "altitude": float(h), "position_covariance": [0.0] * 9,
-                        "position_covariance_type": 0})
-                  for tn, la, lo, h in zip(t[ok], f["lat"][ok], f["lon"][ok], f[alt][ok],
-                                           strict=True)))
+            emit(
+                "/gnss/fix",
+                "foxglove.LocationFix",
+                (
+                    (
+                        tn,
+                        {
+                            "frame_id": "gnss",
+                            "latitude": float(la),
+                            "longitude": float(lo),
+                            "altitude": float(h),
+                            "position_covariance": [0.0] * 9,
+                            "position_covariance_type": 0,
+                        },
+                    )
+                    for tn, la, lo, h in zip(
+                        t[ok], f["lat"][ok], f["lon"][ok], f[alt][ok], strict=True
+                    )
+                ),
+            )
         for ref in ("mag_1_c", "diurnal", "igrf"):
             if ref in f:
                 ok = finite(ref)
-                emit(f"/reference/{ref}", "aeromag.ScalarField",
-                     ((tn, {"sensor_id": ref, "total_nT": float(v)})
-                      for tn, v in zip(t[ok], f[ref][ok], strict=True)))
+                emit(
+                    f"/reference/{ref}",
+                    "aeromag.ScalarField",
+                    (
+                        (tn, {"sensor_id": ref, "total_nT": float(v)})
+                        for tn, v in zip(t[ok], f[ref][ok], strict=True)
+                    ),
+                )
         for k in sorted(f):
             if k.startswith(("cur_", "vol_")):
                 ok = finite(k)
                 unit = "A" if k.startswith("cur_") else "V"
-                emit(f"/aux/{k}", "aeromag.Scalar",
-                     ((tn, {"value": float(v), "unit": unit})
-                      for tn, v in zip(t[ok], f[k][ok], strict=True)))
+                emit(
+                    f"/aux/{k}",
+                    "aeromag.Scalar",
+                    (
+                        (tn, {"value": float(v), "unit": unit})
+                        for tn, v in zip(t[ok], f[k][ok], strict=True)
+                    ),
+                )
         if line_vals is not None:
             cal = {round(float(x), 2) for x in (calibration_lines or [])}
             lv = np.round(f["line"], 2)
@@ -285,10 +377,21 @@ def import_sgl(src: str | Path, dst: str | Path, lines: list[str] | None = None,
                 if not np.isfinite(v) or v == 0:
                     rows.append((t[i], {"line_id": "", "kind": "transit"}))
                 else:
-                    rows.append((t[i], {"line_id": f"{v:.2f}",
-                                        "kind": "calibration" if v in cal else "survey"}))
+                    rows.append(
+                        (
+                            t[i],
+                            {
+                                "line_id": f"{v:.2f}",
+                                "kind": "calibration" if v in cal else "survey",
+                            },
+                        )
+                    )
             emit("/plan/line", "aeromag.LineMarker", rows)
-        out.metadata("aeromag.import", {"source": str(p), "format": "sgl",
-                                        "samples": str(int(t.size))})
-    return {"samples": int(t.size), "channels": written,
-            "span_s": float((t[-1] - t[0]) / 1e9) if t.size else 0.0}
+        out.metadata(
+            "aeromag.import", {"source": str(p), "format": "sgl", "samples": str(int(t.size))}
+        )
+    return {
+        "samples": int(t.size),
+        "channels": written,
+        "span_s": float((t[-1] - t[0]) / 1e9) if t.size else 0.0,
+    }

@@ -68,8 +68,13 @@ class McapOutput:
     and the destination is left as it was.
     """
 
-    def __init__(self, path: str | Path, *, compression: CompressionType = CompressionType.ZSTD,
-                 chunk_size: int = 1 << 20):
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        compression: CompressionType = CompressionType.ZSTD,
+        chunk_size: int = 1 << 20,
+    ):
         self.path = Path(path)
         self._compression = compression
         self._chunk_size = chunk_size
@@ -80,8 +85,9 @@ class McapOutput:
 
     def __enter__(self) -> McapOutput:
         self._output = atomic_output(self.path)
-        self.writer = Writer(self._output.__enter__(), compression=self._compression,
-                             chunk_size=self._chunk_size)
+        self.writer = Writer(
+            self._output.__enter__(), compression=self._compression, chunk_size=self._chunk_size
+        )
         self.writer.start(profile=PROFILE, library=LIBRARY)
         return self
 
@@ -95,8 +101,9 @@ class McapOutput:
                 raise
         self._output.__exit__(exc_type, exc, tb)
 
-    def schema_id(self, name: str, encoding: str = SCHEMA_ENCODING,
-                  data: bytes | None = None) -> int:
+    def schema_id(
+        self, name: str, encoding: str = SCHEMA_ENCODING, data: bytes | None = None
+    ) -> int:
         """Id of a schema, registered on first use.
 
         Parameters
@@ -116,8 +123,9 @@ class McapOutput:
         key = (name, encoding, data)
         if key not in self._schemas:
             assert self.writer is not None
-            self._schemas[key] = self.writer.register_schema(name=name, encoding=encoding,
-                                                             data=data)
+            self._schemas[key] = self.writer.register_schema(
+                name=name, encoding=encoding, data=data
+            )
         return self._schemas[key]
 
     def channel(self, topic: str, schema_name: str) -> int:
@@ -126,11 +134,18 @@ class McapOutput:
             assert self.writer is not None
             sid = self.schema_id(schema_name)
             self._channels[topic] = self.writer.register_channel(
-                topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=sid)
+                topic=topic, message_encoding=MESSAGE_ENCODING, schema_id=sid
+            )
         return self._channels[topic]
 
-    def write(self, channel_id: int, log_time_ns: int, data: bytes,
-              publish_time_ns: int | None = None, sequence: int | None = None) -> None:
+    def write(
+        self,
+        channel_id: int,
+        log_time_ns: int,
+        data: bytes,
+        publish_time_ns: int | None = None,
+        sequence: int | None = None,
+    ) -> None:
         """Write one message.
 
         Parameters
@@ -150,10 +165,13 @@ class McapOutput:
         if sequence is None:
             sequence = self._sequence.get(channel_id, 0)
             self._sequence[channel_id] = sequence + 1
-        self.writer.add_message(channel_id=channel_id, log_time=int(log_time_ns), data=data,
-                                publish_time=int(log_time_ns if publish_time_ns is None
-                                                 else publish_time_ns),
-                                sequence=sequence)
+        self.writer.add_message(
+            channel_id=channel_id,
+            log_time=int(log_time_ns),
+            data=data,
+            publish_time=int(log_time_ns if publish_time_ns is None else publish_time_ns),
+            sequence=sequence,
+        )
 
     def metadata(self, name: str, data: dict[str, str]) -> None:
         """Write a Metadata record; values are stored as strings."""
@@ -199,8 +217,13 @@ class OutputChannel:
     messages: list[tuple[int, dict[str, Any]]] | RowMessages = field(default_factory=list)
 
     @classmethod
-    def rows(cls, topic: str, schema_name: str, time_ns: np.ndarray,
-             payload: Callable[[int], dict[str, Any]]) -> OutputChannel:
+    def rows(
+        cls,
+        topic: str,
+        schema_name: str,
+        time_ns: np.ndarray,
+        payload: Callable[[int], dict[str, Any]],
+    ) -> OutputChannel:
         """A channel whose message ``i`` is ``payload(i)`` at ``time_ns[i]`` (ns), built when
         written (see :class:`RowMessages`)."""
         return cls(topic, schema_name, RowMessages(time_ns, payload))
@@ -233,8 +256,12 @@ def _same_file(a: Path, b: Path) -> bool:
         return False
 
 
-def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable[OutputChannel],
-                            metadata: dict[str, dict[str, str]] | None = None) -> Path:
+def write_with_new_channels(
+    src: str | Path,
+    dst: str | Path,
+    channels: Iterable[OutputChannel],
+    metadata: dict[str, dict[str, str]] | None = None,
+) -> Path:
     """Copy every record of ``src`` unchanged into ``dst`` and add ``channels``.
 
     Input schemas and channels keep their ids; input messages, metadata and attachments are
@@ -251,8 +278,9 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
 
     src, dst = Path(src), Path(dst)
     if _same_file(src, dst) or src.resolve() == dst.resolve():
-        raise AeromagError("output path is the input file; the input is never overwritten",
-                           file=dst)
+        raise AeromagError(
+            "output path is the input file; the input is never overwritten", file=dst
+        )
     channels = [c for c in channels if c.messages]
     try:
         sc = scan_mcap(src, whole_records=True)
@@ -260,8 +288,11 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
         raise AeromagError(f"could not copy the input recording ({exc})", file=src) from None
     clash = sorted({c.topic for c in sc.channels.values()} & {c.topic for c in channels})
     if clash:
-        raise AeromagError("the input already has this output channel; process the original "
-                           "recording instead", file=src, channel=clash[0])
+        raise AeromagError(
+            "the input already has this output channel; process the original recording instead",
+            file=src,
+            channel=clash[0],
+        )
 
     def parse(record: bytes, cls):
         return cls.read(ReadDataStream(io.BytesIO(record[9:])))
@@ -274,8 +305,15 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
         for cid, ch in sorted(sc.channels.items()):
             if ch.schema_id and ch.schema_id not in sc.schemas:
                 continue  # its schema was lost with a damaged chunk
-            w.add_channel(Channel(id=cid, topic=ch.topic, message_encoding=ch.message_encoding,
-                                  metadata=ch.metadata, schema_id=ch.schema_id))
+            w.add_channel(
+                Channel(
+                    id=cid,
+                    topic=ch.topic,
+                    message_encoding=ch.message_encoding,
+                    metadata=ch.metadata,
+                    schema_id=ch.schema_id,
+                )
+            )
         schema_ids = {(n, e, d): sid for sid, (n, e, d) in sc.schemas.items()}
         next_sid = max(sc.schemas, default=0) + 1
         next_cid = max(sc.channels, default=-1) + 1
@@ -301,8 +339,15 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
                 next_sid += 1
             cid = next_cid
             next_cid += 1
-            w.add_channel(Channel(id=cid, topic=c.topic, message_encoding=MESSAGE_ENCODING,
-                                  metadata={}, schema_id=schema_ids[key]))
+            w.add_channel(
+                Channel(
+                    id=cid,
+                    topic=c.topic,
+                    message_encoding=MESSAGE_ENCODING,
+                    metadata={},
+                    schema_id=schema_ids[key],
+                )
+            )
             t_c = c.log_times_ns()
             rank = np.argsort(t_c, kind="stable")  # as sorted(messages, key=time)
             sources.append(_encoded(c.messages, rank, cid))
@@ -313,10 +358,13 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
             c_all = np.concatenate(cids)
             order = np.argsort(t_all, kind="stable")
             # which new channel each position belongs to (-1: an input record)
-            owner = np.repeat(np.arange(-1, len(sources)),
-                              [n_input] + [len(t) for t in times[len(times) - len(sources):]])
-            w.add_messages(_merged(records, sources, order, owner[order]),
-                           c_all[order], t_all[order])
+            owner = np.repeat(
+                np.arange(-1, len(sources)),
+                [n_input] + [len(t) for t in times[len(times) - len(sources) :]],
+            )
+            w.add_messages(
+                _merged(records, sources, order, owner[order]), c_all[order], t_all[order]
+            )
             del records
         for rec in sc.metadata_records:
             w.add_metadata_record(rec, parse(rec, Metadata).name)
@@ -325,9 +373,18 @@ def write_with_new_channels(src: str | Path, dst: str | Path, channels: Iterable
             w.add_metadata_record(rec, name)
         for rec in sc.attachment_records:
             att = parse(rec, Attachment)
-            w.add_attachment_record(rec, AttachmentIndex(
-                offset=0, length=0, log_time=att.log_time, create_time=att.create_time,
-                data_size=len(att.data), name=att.name, media_type=att.media_type))
+            w.add_attachment_record(
+                rec,
+                AttachmentIndex(
+                    offset=0,
+                    length=0,
+                    log_time=att.log_time,
+                    create_time=att.create_time,
+                    data_size=len(att.data),
+                    name=att.name,
+                    media_type=att.media_type,
+                ),
+            )
         w.finish()
     return dst
 
@@ -341,22 +398,32 @@ def _encoded(messages, rank: np.ndarray, cid: int) -> Iterator[bytes]:
         yield message_record(cid, k, t, t, encode(p))
 
 
-def _merged(records: list[bytes], sources: list[Iterator[bytes]], order: np.ndarray,
-            owner: np.ndarray, block: int = 1 << 16) -> Iterator[bytes]:
+def _merged(
+    records: list[bytes],
+    sources: list[Iterator[bytes]],
+    order: np.ndarray,
+    owner: np.ndarray,
+    block: int = 1 << 16,
+) -> Iterator[bytes]:
     """Input records (``records[order[j]]``) and new ones (the next of ``sources[owner[j]]``)
     in merged order: a stable time sort keeps each new channel's own order."""
     nexts = [s.__next__ for s in sources]
     for b in range(0, order.size, block):
-        for j, src in zip(order[b:b + block].tolist(), owner[b:b + block].tolist(),
-                          strict=True):
+        for j, src in zip(
+            order[b : b + block].tolist(), owner[b : b + block].tolist(), strict=True
+        ):
             yield records[j] if src < 0 else nexts[src]()
 
 
 def write_json_atomic(path: str | Path, obj: Any) -> Path:
     """Write a JSON document atomically (see :func:`atomic_output`)."""
     with atomic_output(path) as f:
-        f.write(orjson.dumps(obj, option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY
-                             | orjson.OPT_NON_STR_KEYS))
+        f.write(
+            orjson.dumps(
+                obj,
+                option=orjson.OPT_INDENT_2 | orjson.OPT_SERIALIZE_NUMPY | orjson.OPT_NON_STR_KEYS,
+            )
+        )
     return Path(path)
 
 

@@ -35,12 +35,19 @@ class ReverseArrangements:
     segments: int
 
     def to_dict(self) -> dict:
-        return {"A": self.arrangements, "E_A": self.expected, "Var_A": self.variance,
-                "u": self.u, "stationary": self.stationary, "segments": self.segments}
+        return {
+            "A": self.arrangements,
+            "E_A": self.expected,
+            "Var_A": self.variance,
+            "u": self.u,
+            "stationary": self.stationary,
+            "segments": self.segments,
+        }
 
 
-def reverse_arrangements(x: np.ndarray, segments: int = 20,
-                         alpha: float = 0.05) -> ReverseArrangements:
+def reverse_arrangements(
+    x: np.ndarray, segments: int = 20, alpha: float = 0.05
+) -> ReverseArrangements:
     """Stationary at level ``alpha`` when |u| <= z_(1-alpha/2) (1.96 for 5 %).
 
     The series is split into ``segments`` sub-series; A counts pairs i < j with
@@ -51,7 +58,7 @@ def reverse_arrangements(x: np.ndarray, segments: int = 20,
     x = x[np.isfinite(x)]
     n = segments
     means = np.array([c.mean() for c in np.array_split(x, n)])
-    a = int(sum(np.sum(means[i] > means[i + 1:]) for i in range(n - 1)))
+    a = int(sum(np.sum(means[i] > means[i + 1 :]) for i in range(n - 1)))
     e = n * (n - 1) / 4.0
     var = n * (2 * n + 5) * (n - 1) / 72.0
     u = (a - e + 0.5) / np.sqrt(var)
@@ -63,8 +70,6 @@ def normality(x: np.ndarray) -> dict[str, float]:
     x = np.asarray(x, float)
     x = x[np.isfinite(x)]
     return {"skewness": float(skew(x)), "kurtosis": float(kurtosis(x, fisher=False))}
-
-
 
 
 # --------------------------------------------------------------------------------------------
@@ -120,16 +125,21 @@ class ArimaModel:
         t[:-1, 1:] = np.eye(r - 1)
         rr = np.zeros(r)
         rr[0] = 1.0
-        rr[1: 1 + self.q] = self.ma
+        rr[1 : 1 + self.q] = self.ma
         z = np.zeros(r)
         z[0] = 1.0
         return t, rr, z
 
     def to_dict(self) -> dict:
-        return {"order": list(self.order), "ar": [float(v) for v in self.ar],
-                "ma": [float(v) for v in self.ma], "sigma2": float(self.sigma2),
-                "integrated_ar": [float(v) for v in self.integrated_ar()],
-                "bic": float(self.bic), **self.tests}
+        return {
+            "order": list(self.order),
+            "ar": [float(v) for v in self.ar],
+            "ma": [float(v) for v in self.ma],
+            "sigma2": float(self.sigma2),
+            "integrated_ar": [float(v) for v in self.integrated_ar()],
+            "bic": float(self.bic),
+            **self.tests,
+        }
 
 
 def choose_d(x: np.ndarray, max_d: int = 2, segments: int = 20) -> tuple[int, list[dict]]:
@@ -189,9 +199,14 @@ def degenerate(res, measurement_var: float | None) -> str | None:
     return None
 
 
-def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: int = 3,
-              max_q: int = 2, max_d: int = 2,
-              measurement_var: float | None = None) -> ArimaModel:
+def fit_arima(
+    x: np.ndarray,
+    order: tuple[int, int, int] | None = None,
+    max_p: int = 3,
+    max_q: int = 2,
+    max_d: int = 2,
+    measurement_var: float | None = None,
+) -> ArimaModel:
     """Fit ARIMA to a 1-D sequence: orders by BIC unless ``order`` is given.
 
     ``d`` starts from the reverse-arrangements test (difference until stationary); (p, q) by
@@ -220,7 +235,7 @@ def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: i
     fin = np.flatnonzero(np.isfinite(x))
     if fin.size == 0:
         raise ValueError("no finite sample to fit")
-    x = x[fin[0]:fin[-1] + 1]
+    x = x[fin[0] : fin[-1] + 1]
     if order is None:
         d0, steps = choose_d(x, max_d)
     else:
@@ -231,8 +246,7 @@ def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: i
             y = np.diff(x, n=d) if d else x  # differences across a gap are NaN, not joined
             return ARIMA(y, order=(p, 0, q), trend="n").fit()
         mod = SARIMAX(x, order=(p, d, q), measurement_error=True, trend="n")
-        return mod.fit_constrained({"var.measurement_error": float(measurement_var)},
-                                   disp=False)
+        return mod.fit_constrained({"var.measurement_error": float(measurement_var)}, disp=False)
 
     failed: list[str] = []
     best = None
@@ -241,8 +255,11 @@ def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: i
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # convergence chatter on poor candidates
         for d in d_range:
-            candidates = [(order[0], order[2])] if order else [
-                (p, q) for p in range(max_p + 1) for q in range(max_q + 1) if p + q > 0]
+            candidates = (
+                [(order[0], order[2])]
+                if order
+                else [(p, q) for p in range(max_p + 1) for q in range(max_q + 1) if p + q > 0]
+            )
             for p, q in candidates:
                 try:
                     res = fit_one(p, d, q)
@@ -274,10 +291,15 @@ def fit_arima(x: np.ndarray, order: tuple[int, int, int] | None = None, max_p: i
     params = dict(zip(res.model.param_names, res.params, strict=True))
     ar = np.array([params[f"ar.L{i}"] for i in range(1, p + 1)])
     ma = np.array([params[f"ma.L{i}"] for i in range(1, q + 1)])
-    tests = {"stationarity": steps, "normality_differenced": normality(y),
-             "samples": int(np.isfinite(x).sum()), "missing_inside": int((~np.isfinite(x)).sum()),
-             "measurement_var": measurement_var, "failed_candidates": failed,
-             "d_from_test": d0}
+    tests = {
+        "stationarity": steps,
+        "normality_differenced": normality(y),
+        "samples": int(np.isfinite(x).sum()),
+        "missing_inside": int((~np.isfinite(x)).sum()),
+        "measurement_var": measurement_var,
+        "failed_candidates": failed,
+        "d_from_test": d0,
+    }
     if bad_explicit is not None:
         tests["degenerate"] = bad_explicit
     return ArimaModel(p, d, q, ar, ma, float(params["sigma2"]), float(res.bic), tests)
@@ -294,8 +316,9 @@ class KalmanResult:
     exact_steps: int  # samples run through the full Riccati recursion (the rest: modal IIR)
 
 
-def _advance(t: np.ndarray, q: np.ndarray, x: np.ndarray, pm: np.ndarray,
-             m: int) -> tuple[np.ndarray, np.ndarray]:
+def _advance(
+    t: np.ndarray, q: np.ndarray, x: np.ndarray, pm: np.ndarray, m: int
+) -> tuple[np.ndarray, np.ndarray]:
     """m prediction steps at once: x <- T^m x, P <- T^m P T^m' + sum_j T^j Q T^j'.
 
     Binary doubling of (T^n, S_n), S_n = sum_(j<n) T^j Q T^j', so a gap costs O(log m)."""
@@ -309,8 +332,9 @@ def _advance(t: np.ndarray, q: np.ndarray, x: np.ndarray, pm: np.ndarray,
     return acc_t @ x, acc_t @ pm @ acc_t.T + acc_s
 
 
-def _modal_run(a: np.ndarray, gain: np.ndarray, z: np.ndarray, x0: np.ndarray,
-               y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _modal_run(
+    a: np.ndarray, gain: np.ndarray, z: np.ndarray, x0: np.ndarray, y: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Outputs z x_k and the last state of x_k = A x_(k-1) + gain y_k over a gap-free run.
 
     A is diagonalised, A = V diag(l) V^-1; each mode w_i = l_i w_i + c_i y is a first-order
@@ -329,8 +353,9 @@ def _modal_run(a: np.ndarray, gain: np.ndarray, z: np.ndarray, x0: np.ndarray,
     return out.real, (v @ last).real
 
 
-def _steady_run(a: np.ndarray, gain: np.ndarray, z: np.ndarray, x0: np.ndarray,
-                y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _steady_run(
+    a: np.ndarray, gain: np.ndarray, z: np.ndarray, x0: np.ndarray, y: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Same as :func:`_modal_run`, as one real IIR filter (about 5x faster).
 
     The steady-state filter x_k = A x_(k-1) + g y_k, out_k = z x_k is the transfer function
@@ -358,24 +383,30 @@ def _steady_run(a: np.ndarray, gain: np.ndarray, z: np.ndarray, x0: np.ndarray,
     # the free response decays like rho^k (the steady-state filter is stable): run it only
     # until it is below double precision of its start
     rho = float(np.max(np.abs(np.linalg.eigvals(a))))
-    span = n - d if rho >= 1.0 else min(n - d, int(np.ceil(-40.0 / np.log(max(rho, 1e-300))))
-                                        + d)
+    span = n - d if rho >= 1.0 else min(n - d, int(np.ceil(-40.0 / np.log(max(rho, 1e-300)))) + d)
     rest = lfilter([1.0], den, np.zeros(span), zi=lfiltic([1.0], den, free[::-1]))[0]
     out[:d] += free
-    out[d:d + span] += rest
+    out[d : d + span] += rest
     # x_(n-d) from out_(n-d+i) = z A^i x_(n-d) + sum_(j=1..i) z A^(i-j) g y_(n-d+j)
-    ys, outs = y[n - d:], out[n - d:]
-    rhs = np.array([outs[i] - sum(z @ powers[i - j] @ gain * ys[j] for j in range(1, i + 1))
-                    for i in range(d)])
+    ys, outs = y[n - d :], out[n - d :]
+    rhs = np.array(
+        [outs[i] - sum(z @ powers[i - j] @ gain * ys[j] for j in range(1, i + 1)) for i in range(d)]
+    )
     x = np.linalg.solve(obs, rhs)
     for j in range(1, d):
         x = a @ x + gain * ys[j]
     return out, x
 
 
-def kalman_filter(y: np.ndarray, model: ArimaModel, measurement_var: float,
-                  process_var: float | None = None, x0: np.ndarray | None = None,
-                  p0: np.ndarray | None = None, tol: float = 1e-13) -> KalmanResult:
+def kalman_filter(
+    y: np.ndarray,
+    model: ArimaModel,
+    measurement_var: float,
+    process_var: float | None = None,
+    x0: np.ndarray | None = None,
+    p0: np.ndarray | None = None,
+    tol: float = 1e-13,
+) -> KalmanResult:
     """Kalman filter of ``y`` (NaN = missing) with the ARIMA model as the state equation.
 
     Process noise: ``process_var`` (default: the model's innovation variance) through R;
@@ -401,8 +432,9 @@ def kalman_filter(y: np.ndarray, model: ArimaModel, measurement_var: float,
         x = _level_state(t, y[first])
     else:
         x = np.asarray(x0, float)
-    pm = (np.eye(dim) * 1e6 * max(float(np.nanvar(y)), 1e-12) if p0 is None
-          else np.asarray(p0, float))
+    pm = (
+        np.eye(dim) * 1e6 * max(float(np.nanvar(y)), 1e-12) if p0 is None else np.asarray(p0, float)
+    )
     # runs of finite samples
     edges = np.flatnonzero(np.diff(np.r_[0, finite.astype(int), 0]))
     runs = list(zip(edges[::2], edges[1::2], strict=True))
@@ -451,8 +483,7 @@ SMOOTH_CHUNK = 200_000  # samples per statsmodels smoother call (its memory: ~2 
 SMOOTH_OVERLAP = 2_000  # samples each side a chunk runs beyond the part it returns
 
 
-def rts_smooth(y: np.ndarray, model: ArimaModel, measurement_var: float | np.ndarray
-               ) -> np.ndarray:
+def rts_smooth(y: np.ndarray, model: ArimaModel, measurement_var: float | np.ndarray) -> np.ndarray:
     """Fixed-interval smoothed signal E[x_k | all of y] of ``y`` = ARIMA signal + white noise.
 
     statsmodels' state-space smoother (SARIMAX in Harvey form, the fitted AR/MA coefficients
@@ -488,7 +519,7 @@ def rts_smooth(y: np.ndarray, model: ArimaModel, measurement_var: float | np.nda
                 mod.ssm["obs_cov"] = r[a:b].reshape(1, 1, -1).copy()
                 res = mod.smooth(params)
             sm = np.asarray(res.smoother_results.smoothed_forecasts)[0]
-            out[start:stop] = sm[start - a:stop - a]
+            out[start:stop] = sm[start - a : stop - a]
         start = stop
     out[~np.isfinite(y)] = np.nan
     return out

@@ -48,8 +48,10 @@ class Grid:
             One per row, m north of the frame's origin.
         """
         ny, nx = self.shape
-        return (self.east0_m + self.cell_m * np.arange(nx),
-                self.north0_m + self.cell_m * np.arange(ny))
+        return (
+            self.east0_m + self.cell_m * np.arange(nx),
+            self.north0_m + self.cell_m * np.arange(ny),
+        )
 
     def interpolate(self, east_m: np.ndarray, north_m: np.ndarray) -> np.ndarray:
         """Bilinear interpolation; NaN outside the grid or next to a masked cell."""
@@ -62,8 +64,12 @@ class Grid:
         i, j = ix[ok], iy[ok]
         tx, ty = fx[ok] - i, fy[ok] - j
         v = self.values
-        out[ok] = ((1 - tx) * (1 - ty) * v[j, i] + tx * (1 - ty) * v[j, i + 1]
-                   + (1 - tx) * ty * v[j + 1, i] + tx * ty * v[j + 1, i + 1])
+        out[ok] = (
+            (1 - tx) * (1 - ty) * v[j, i]
+            + tx * (1 - ty) * v[j, i + 1]
+            + (1 - tx) * ty * v[j + 1, i]
+            + tx * ty * v[j + 1, i + 1]
+        )
         return out
 
     def with_values(self, values: np.ndarray) -> Grid:
@@ -74,25 +80,38 @@ class Grid:
 def _laplacian(ny: int, nx: int) -> sp.csr_matrix:
     """Operator whose squared norm is the discrete thin-plate energy
     f_xx^2 + 2 f_xy^2 + f_yy^2 (second differences in cell units)."""
+
     def second_diff(n):
-        return sp.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(n - 2, n)) if n > 2 else \
-            sp.csr_matrix((0, n))
+        return (
+            sp.diags([1.0, -2.0, 1.0], [0, 1, 2], shape=(n - 2, n))
+            if n > 2
+            else sp.csr_matrix((0, n))
+        )
+
     ix, iy = sp.identity(nx), sp.identity(ny)
     dxx = sp.kron(iy, second_diff(nx))
     dyy = sp.kron(second_diff(ny), ix)
     # curvature along x in every row, along y in every column, and the twist f_xy
-    dxy = sp.kron(sp.diags([-1.0, 1.0], [0, 1], shape=(ny - 1, ny)),
-                  sp.diags([-1.0, 1.0], [0, 1], shape=(nx - 1, nx)))
+    dxy = sp.kron(
+        sp.diags([-1.0, 1.0], [0, 1], shape=(ny - 1, ny)),
+        sp.diags([-1.0, 1.0], [0, 1], shape=(nx - 1, nx)),
+    )
     return sp.vstack([dxx, dyy, np.sqrt(2.0) * dxy]).tocsr()
 
 
 MAX_CELLS = 1_000_000  # 1000 x 1000 grids in ~6 s (benchmarks/bench_maps.py); more would need GBs
 
 
-def minimum_curvature(east_m: np.ndarray, north_m: np.ndarray, value: np.ndarray,
-                      cell_m: float, mask_distance_m: float | None = None,
-                      smoothness: float = 1e-3, margin_cells: int = 2,
-                      crs: str = "") -> Grid:
+def minimum_curvature(
+    east_m: np.ndarray,
+    north_m: np.ndarray,
+    value: np.ndarray,
+    cell_m: float,
+    mask_distance_m: float | None = None,
+    smoothness: float = 1e-3,
+    margin_cells: int = 2,
+    crs: str = "",
+) -> Grid:
     """Grid scattered line data.
 
     Parameters
@@ -134,8 +153,9 @@ def minimum_curvature(east_m: np.ndarray, north_m: np.ndarray, value: np.ndarray
     i0, j0 = np.floor(fx).astype(int), np.floor(fy).astype(int)
     tx, ty = fx - i0, fy - j0
     rows = np.repeat(np.arange(be.size), 4)
-    cols = np.stack([j0 * nx + i0, j0 * nx + i0 + 1, (j0 + 1) * nx + i0,
-                     (j0 + 1) * nx + i0 + 1], axis=1).ravel()
+    cols = np.stack(
+        [j0 * nx + i0, j0 * nx + i0 + 1, (j0 + 1) * nx + i0, (j0 + 1) * nx + i0 + 1], axis=1
+    ).ravel()
     w = np.stack([(1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty], axis=1).ravel()
     keep = cols < nx * ny
     a = sp.csr_matrix((w[keep], (rows[keep], cols[keep])), shape=(be.size, nx * ny))

@@ -51,8 +51,10 @@ class Line:
 
     def at(self, distance_m: float) -> tuple[float, float]:
         """(value, time) interpolated along track at ``distance_m``."""
-        return (float(np.interp(distance_m, self.along_m, self.value_nT)),
-                float(np.interp(distance_m, self.along_m, self.time_s)))
+        return (
+            float(np.interp(distance_m, self.along_m, self.value_nT)),
+            float(np.interp(distance_m, self.along_m, self.time_s)),
+        )
 
 
 @dataclass
@@ -96,8 +98,9 @@ class Crossing:
     angle_deg: float
 
 
-def _local_direction(east: np.ndarray, north: np.ndarray, along: np.ndarray, x: float,
-                     y: float, s: float) -> tuple[np.ndarray, float]:
+def _local_direction(
+    east: np.ndarray, north: np.ndarray, along: np.ndarray, x: float, y: float, s: float
+) -> tuple[np.ndarray, float]:
     """The track's direction at the point (x, y) that lies ``s`` m along it (principal axis
     of the samples CHORD_M and CHORD_SAMPLES either side), and the point's distance (straight
     line, m) to the nearer of the track's first and last sample."""
@@ -105,13 +108,13 @@ def _local_direction(east: np.ndarray, north: np.ndarray, along: np.ndarray, x: 
     k = int(np.clip(np.searchsorted(along, s, side="right") - 1, 0, n - 2))  # segment k, k+1
     d = np.hypot(east - x, north - y)
     stop = k + 2 - CHORD_SAMPLES  # samples 0 .. stop-1 are CHORD_SAMPLES or more before
-    back = np.flatnonzero(d[:max(stop, 0)] >= CHORD_M)
+    back = np.flatnonzero(d[: max(stop, 0)] >= CHORD_M)
     i = int(back[-1]) if back.size else 0
     start = k + CHORD_SAMPLES
     ahead = np.flatnonzero(d[start:] >= CHORD_M) if start < n else np.zeros(0, int)
     j = start + int(ahead[0]) if ahead.size else n - 1
     to_end = float(min(d[0], d[-1]))
-    xy = np.column_stack([east[i:j + 1], north[i:j + 1]])
+    xy = np.column_stack([east[i : j + 1], north[i : j + 1]])
     xy = xy - xy.mean(axis=0)
     if not np.any(xy):
         return np.zeros(2), to_end
@@ -145,9 +148,10 @@ def _merge(hits: list[Crossing], along_a: np.ndarray, along_b: np.ndarray) -> li
     ka = np.searchsorted(along_a, [h.along_a_m for h in hits])
     kb = np.searchsorted(along_b, [h.along_b_m for h in hits])
     dist = np.hypot(xy[:, None, 0] - xy[None, :, 0], xy[:, None, 1] - xy[None, :, 1])
-    close = ((dist <= np.maximum(reach[:, None], reach[None]))
-             | ((np.abs(ka[:, None] - ka[None]) <= MERGE_SAMPLES)
-                & (np.abs(kb[:, None] - kb[None]) <= MERGE_SAMPLES)))
+    close = (dist <= np.maximum(reach[:, None], reach[None])) | (
+        (np.abs(ka[:, None] - ka[None]) <= MERGE_SAMPLES)
+        & (np.abs(kb[:, None] - kb[None]) <= MERGE_SAMPLES)
+    )
     group = np.full(len(hits), -1)
     for g in range(len(hits)):
         if group[g] >= 0:
@@ -165,9 +169,13 @@ def _merge(hits: list[Crossing], along_a: np.ndarray, along_b: np.ndarray) -> li
     return out
 
 
-def crossing_points(a, b, min_angle_deg: float = MIN_CROSSING_ANGLE_DEG,
-                    geom_a: LineString | None = None,
-                    geom_b: LineString | None = None) -> list[Crossing]:
+def crossing_points(
+    a,
+    b,
+    min_angle_deg: float = MIN_CROSSING_ANGLE_DEG,
+    geom_a: LineString | None = None,
+    geom_b: LineString | None = None,
+) -> list[Crossing]:
     """The crossings of two tracks (anything with ``east_m``, ``north_m``, ``along_m``).
 
     Exact polyline intersections, kept where the local track directions (over CHORD_M and
@@ -192,8 +200,9 @@ def crossing_points(a, b, min_angle_deg: float = MIN_CROSSING_ANGLE_DEG,
     return _merge(hits, a.along_m, b.along_m)
 
 
-def crossovers(lines_a: list[Line], lines_b: list[Line],
-               min_angle_deg: float = MIN_CROSSING_ANGLE_DEG) -> list[Crossover]:
+def crossovers(
+    lines_a: list[Line], lines_b: list[Line], min_angle_deg: float = MIN_CROSSING_ANGLE_DEG
+) -> list[Crossover]:
     """Track crossings (:func:`crossing_points`) of every line of ``lines_a`` with every line
     of ``lines_b``, both fields interpolated along track to the crossing."""
     out = []
@@ -207,8 +216,11 @@ def crossovers(lines_a: list[Line], lines_b: list[Line],
                 va, ta = la.at(c.along_a_m)
                 vb, tb = lb.at(c.along_b_m)
                 if np.isfinite(va) and np.isfinite(vb):
-                    out.append(Crossover(la.line_id, lb.line_id, c.east_m, c.north_m, va, vb,
-                                         ta, tb, c.angle_deg))
+                    out.append(
+                        Crossover(
+                            la.line_id, lb.line_id, c.east_m, c.north_m, va, vb, ta, tb, c.angle_deg
+                        )
+                    )
     return out
 
 
@@ -228,16 +240,20 @@ class Leveling:
 
     def to_dict(self) -> dict:
         diffs = np.array([c.difference_nT for c in self.crossovers])
-        return {"crossovers": len(self.crossovers), "rms_before_nT": self.rms_before_nT,
-                "rms_after_nT": self.rms_after_nT,
-                "mean_before_nT": float(diffs.mean()) if diffs.size else None,
-                "std_before_nT": float(diffs.std()) if diffs.size else None,
-                "offsets_nT": {k: v[0] for k, v in self.offsets.items()},
-                "slopes_nT_per_s": {k: v[1] for k, v in self.offsets.items()}}
+        return {
+            "crossovers": len(self.crossovers),
+            "rms_before_nT": self.rms_before_nT,
+            "rms_after_nT": self.rms_after_nT,
+            "mean_before_nT": float(diffs.mean()) if diffs.size else None,
+            "std_before_nT": float(diffs.std()) if diffs.size else None,
+            "offsets_nT": {k: v[0] for k, v in self.offsets.items()},
+            "slopes_nT_per_s": {k: v[1] for k, v in self.offsets.items()},
+        }
 
 
-def level_lines(lines: list[Line], trend: bool = False,
-                min_angle_deg: float = MIN_CROSSING_ANGLE_DEG) -> Leveling:
+def level_lines(
+    lines: list[Line], trend: bool = False, min_angle_deg: float = MIN_CROSSING_ANGLE_DEG
+) -> Leveling:
     """Least-squares line corrections from survey-tie crossovers.
 
     Every crossover says value_a - corr_a(t_a) = value_b - corr_b(t_b). The corrections are a
@@ -265,6 +281,8 @@ def level_lines(lines: list[Line], trend: bool = False,
             a[r, len(ids) + ib] = -(c.time_b_s - tref[c.line_b])
     sol, *_ = np.linalg.lstsq(a, diffs, rcond=None)
     resid = diffs - a @ sol
-    offsets = {lid: (float(sol[col[lid]]), float(sol[len(ids) + col[lid]]) if trend else 0.0,
-                     tref[lid]) for lid in ids}
+    offsets = {
+        lid: (float(sol[col[lid]]), float(sol[len(ids) + col[lid]]) if trend else 0.0, tref[lid])
+        for lid in ids
+    }
     return Leveling(offsets, rms_before, float(np.sqrt(np.mean(resid**2))), xs, resid)

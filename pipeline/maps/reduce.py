@@ -18,8 +18,13 @@ class Reduction:
     lag_s: float
 
 
-def igrf_total_nT(time_ns: np.ndarray, lat_deg: np.ndarray, lon_deg: np.ndarray,
-                  alt_m: np.ndarray, every: int = 10) -> np.ndarray:
+def igrf_total_nT(
+    time_ns: np.ndarray,
+    lat_deg: np.ndarray,
+    lon_deg: np.ndarray,
+    alt_m: np.ndarray,
+    every: int = 10,
+) -> np.ndarray:
     """IGRF total field at each sample (position, ellipsoidal height, date).
 
     ppigrf is evaluated on every ``every``-th finite sample and interpolated in time: the main
@@ -64,10 +69,16 @@ def time_window_mean(time_s: np.ndarray, x: np.ndarray, window_s: float) -> np.n
 BASE_SMOOTHING_S = 60.0
 
 
-def reduce_to_anomaly(time_ns: np.ndarray, compensated_nT: np.ndarray, lat_deg: np.ndarray,
-                      lon_deg: np.ndarray, alt_m: np.ndarray, base_nT: np.ndarray | None = None,
-                      lag_s: float = 0.0, base_smoothing_s: float = BASE_SMOOTHING_S
-                      ) -> Reduction:
+def reduce_to_anomaly(
+    time_ns: np.ndarray,
+    compensated_nT: np.ndarray,
+    lat_deg: np.ndarray,
+    lon_deg: np.ndarray,
+    alt_m: np.ndarray,
+    base_nT: np.ndarray | None = None,
+    lag_s: float = 0.0,
+    base_smoothing_s: float = BASE_SMOOTHING_S,
+) -> Reduction:
     """anomaly = compensated - IGRF - diurnal.
 
     The diurnal is the base-station reading, smoothed over ``base_smoothing_s``, minus its

@@ -88,9 +88,12 @@ def grid_noise_nT(grid: Grid, along_north: bool) -> np.ndarray:
     return np.ascontiguousarray(out.T if along_north else out)
 
 
-def filter_sequence(seq: np.ndarray, model: ArimaModel,
-                    measurement_var: float | np.ndarray,
-                    direction: str = "smooth") -> tuple[np.ndarray, KalmanResult]:
+def filter_sequence(
+    seq: np.ndarray,
+    model: ArimaModel,
+    measurement_var: float | np.ndarray,
+    direction: str = "smooth",
+) -> tuple[np.ndarray, KalmanResult]:
     """Kalman-filter a serialised map. ``forward`` is paper 004's causal filter, which lags
     along the lines; ``smooth`` (``both``: its former name) is the fixed-interval
     Rauch-Tung-Striebel smoother (statsmodels), the optimal zero-phase estimate under the
@@ -119,10 +122,16 @@ def serialize(grid: Grid, along_north: bool) -> tuple[np.ndarray, np.ndarray]:
     return grid.values.ravel()[order], order
 
 
-def filter_grid(grid: Grid, along_north: bool, arima: str | tuple[int, int, int] = "auto",
-                noise_nT: float | None = None, direction: str = "smooth",
-                sample_limit: int = ARIMA_SAMPLE_LIMIT, max_p: int = 3, max_q: int = 2
-                ) -> tuple[Grid, ArimaModel, KalmanResult, float, str, dict[str, Any]]:
+def filter_grid(
+    grid: Grid,
+    along_north: bool,
+    arima: str | tuple[int, int, int] = "auto",
+    noise_nT: float | None = None,
+    direction: str = "smooth",
+    sample_limit: int = ARIMA_SAMPLE_LIMIT,
+    max_p: int = 3,
+    max_q: int = 2,
+) -> tuple[Grid, ArimaModel, KalmanResult, float, str, dict[str, Any]]:
     """ARIMA identification and Kalman filtering/smoothing of a grid along its lines.
 
     The grid is serialised in acquisition order; the model is identified (BIC) on a
@@ -139,11 +148,13 @@ def filter_grid(grid: Grid, along_north: bool, arima: str | tuple[int, int, int]
     if finite.size < 10:
         raise ValueError("fewer than 10 finite cells to filter")
     last = finite[min(sample_limit, finite.size) - 1]
-    ident = seq[finite[0]:last + 1]
+    ident = seq[finite[0] : last + 1]
     ident_finite = ident[np.isfinite(ident)]
-    tests: dict[str, Any] = {"reverse_arrangements": reverse_arrangements(ident_finite).to_dict(),
-                             "normality": normality(ident_finite),
-                             "samples_for_identification": int(ident_finite.size)}
+    tests: dict[str, Any] = {
+        "reverse_arrangements": reverse_arrangements(ident_finite).to_dict(),
+        "normality": normality(ident_finite),
+        "samples_for_identification": int(ident_finite.size),
+    }
     if noise_nT is not None:
         noise_cells = np.full(seq.size, float(noise_nT))
         source = "given"
@@ -154,11 +165,12 @@ def filter_grid(grid: Grid, along_north: bool, arima: str | tuple[int, int, int]
         source = "4th difference of the grid, per lane"
     var_cells = noise_cells**2
     noise = float(np.sqrt(np.nanmedian(var_cells[finite])))
-    tests["grid_noise_nT_range"] = [float(np.nanmin(noise_cells[finite])),
-                                    float(np.nanmax(noise_cells[finite]))]
+    tests["grid_noise_nT_range"] = [
+        float(np.nanmin(noise_cells[finite])),
+        float(np.nanmax(noise_cells[finite])),
+    ]
     arima_order = None if arima == "auto" else tuple(arima)
-    model = fit_arima(ident, order=arima_order, measurement_var=noise**2, max_p=max_p,
-                      max_q=max_q)
+    model = fit_arima(ident, order=arima_order, measurement_var=noise**2, max_p=max_p, max_q=max_q)
     filt = np.full(grid.values.size, np.nan)
     filt[order], kf = filter_sequence(seq, model, var_cells, direction)
     return grid.with_values(filt.reshape(grid.shape)), model, kf, noise, source, tests
@@ -183,32 +195,48 @@ class MapRun:
     def summary(self) -> dict[str, Any]:
         ny, nx = self.grid.shape
         return {
-            "grid_shape": [ny, nx], "cell_m": self.grid.cell_m,
-            "origin": {"east_m": self.grid.east0_m, "north_m": self.grid.north0_m,
-                       "latitude_deg": self.frame.lat0_deg, "longitude_deg": self.frame.lon0_deg,
-                       "crs": self.frame.crs},
+            "grid_shape": [ny, nx],
+            "cell_m": self.grid.cell_m,
+            "origin": {
+                "east_m": self.grid.east0_m,
+                "north_m": self.grid.north0_m,
+                "latitude_deg": self.frame.lat0_deg,
+                "longitude_deg": self.frame.lon0_deg,
+                "crs": self.frame.crs,
+            },
             "line_spacing_m": self.spacing_m,
-            "lines": {"survey": sum(ln.kind == "survey" for ln in self.lines),
-                      "tie": sum(ln.kind == "tie" for ln in self.lines)},
-            "crossover_rms_nT": {"before": self.leveling.rms_before_nT,
-                                 "after": self.leveling.rms_after_nT},
+            "lines": {
+                "survey": sum(ln.kind == "survey" for ln in self.lines),
+                "tie": sum(ln.kind == "tie" for ln in self.lines),
+            },
+            "crossover_rms_nT": {
+                "before": self.leveling.rms_before_nT,
+                "after": self.leveling.rms_after_nT,
+            },
             "leveling": self.leveling.to_dict(),
             "arima_order": list(self.model.order),
-            "arima_coefficients": {"ar": [float(v) for v in self.model.ar],
-                                   "ma": [float(v) for v in self.model.ma],
-                                   "integrated_ar": [float(v) for v in
-                                                     self.model.integrated_ar()]},
+            "arima_coefficients": {
+                "ar": [float(v) for v in self.model.ar],
+                "ma": [float(v) for v in self.model.ma],
+                "integrated_ar": [float(v) for v in self.model.integrated_ar()],
+            },
             "arima": self.model.to_dict(),
-            "kalman": {"measurement_noise_nT": self.noise_nT, "noise_source": self.noise_source,
-                       "process_noise_var_nT2": float(self.model.sigma2),
-                       "direction": self.direction,
-                       "smoother": ("Rauch-Tung-Striebel (statsmodels)"
-                                    if self.direction != "forward" else None),
-                       "steady_gain": [float(g) for g in self.kalman.gain_steady],
-                       "exact_steps": self.kalman.exact_steps},
+            "kalman": {
+                "measurement_noise_nT": self.noise_nT,
+                "noise_source": self.noise_source,
+                "process_noise_var_nT2": float(self.model.sigma2),
+                "direction": self.direction,
+                "smoother": (
+                    "Rauch-Tung-Striebel (statsmodels)" if self.direction != "forward" else None
+                ),
+                "steady_gain": [float(g) for g in self.kalman.gain_steady],
+                "exact_steps": self.kalman.exact_steps,
+            },
             "sequence_tests": self.sequence_tests,
-            "anomaly_range_nT": [float(np.nanmin(self.grid.values)),
-                                 float(np.nanmax(self.grid.values))],
+            "anomaly_range_nT": [
+                float(np.nanmin(self.grid.values)),
+                float(np.nanmax(self.grid.values)),
+            ],
         }
 
 
@@ -216,15 +244,20 @@ def _lines(seg: Segmentation, e, n, t, v) -> list[Line]:
     out = []
     for kind in ("survey", "tie"):
         for lid in sorted(set(seg.line_id[seg.mask(kind)])):
-            ix = np.flatnonzero((seg.line_id == lid) & seg.mask(kind) & np.isfinite(v)
-                                & np.isfinite(e))
+            ix = np.flatnonzero(
+                (seg.line_id == lid) & seg.mask(kind) & np.isfinite(v) & np.isfinite(e)
+            )
             if ix.size >= 10:
                 out.append(Line(lid, kind, e[ix], n[ix], t[ix], v[ix], ix))
     return out
 
 
-def build_map(flight: Flight, seg: Segmentation, compensated_nT: np.ndarray,
-              settings: MapSettings | None = None) -> MapRun:
+def build_map(
+    flight: Flight,
+    seg: Segmentation,
+    compensated_nT: np.ndarray,
+    settings: MapSettings | None = None,
+) -> MapRun:
     """Anomaly grid and its ARIMA-Kalman-filtered version from a compensated flight."""
     s = settings or MapSettings()
     flight.require("lat_deg", "lon_deg", "alt_m", purpose="mapping")
@@ -232,10 +265,10 @@ def build_map(flight: Flight, seg: Segmentation, compensated_nT: np.ndarray,
     lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
     surv = seg.mask("survey") & np.isfinite(lat)
     if surv.sum() < 100:
-        raise AeromagError("no survey lines found to map", file=flight.source,
-                           channel="/gnss/fix")
-    frame = LocalFrame(float(np.mean(lat[surv])), float(np.mean(lon[surv])),
-                       float(np.mean(alt[surv])))
+        raise AeromagError("no survey lines found to map", file=flight.source, channel="/gnss/fix")
+    frame = LocalFrame(
+        float(np.mean(lat[surv])), float(np.mean(lon[surv])), float(np.mean(alt[surv]))
+    )
     e, n, _u = frame.to_enu(lat, lon, alt)
     base = d["base_nT"].to_numpy(float) if flight.has("base_nT") else None
     red = reduce_to_anomaly(flight.time_ns, compensated_nT, lat, lon, alt, base, s.lag_s)
@@ -248,24 +281,46 @@ def build_map(flight: Flight, seg: Segmentation, compensated_nT: np.ndarray,
     heading = float(np.nanmedian(np.mod(seg.heading_deg[seg.mask("survey")], 180.0)))
     along = np.array([np.sin(np.radians(heading)), np.cos(np.radians(heading))])
     across = np.array([along[1], -along[0]])
-    offs = np.sort([np.median(ln.east_m * across[0] + ln.north_m * across[1])
-                    for ln in lines if ln.kind == "survey"])
+    offs = np.sort(
+        [
+            np.median(ln.east_m * across[0] + ln.north_m * across[1])
+            for ln in lines
+            if ln.kind == "survey"
+        ]
+    )
     spacing = float(np.median(np.diff(offs))) if offs.size > 1 else 50.0
     cell = s.cell_m or spacing / 4.0
     pts = [(ln.east_m, ln.north_m, ln.value_nT) for ln in lines]
     ge, gn, gv = (np.concatenate([p[k] for p in pts]) for k in range(3))
-    grid = minimum_curvature(ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing,
-                             crs=frame.crs)
+    grid = minimum_curvature(
+        ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing, crs=frame.crs
+    )
     # ARIMA + Kalman along the flight lines
     along_north = abs(along[1]) >= abs(along[0])
-    sensor = float(np.nanmedian([noise_4th_difference_nT(ln.value_nT) for ln in lines
-                                 if ln.kind == "survey"]))
+    sensor = float(
+        np.nanmedian([noise_4th_difference_nT(ln.value_nT) for ln in lines if ln.kind == "survey"])
+    )
     try:
         filtered, model, kf, noise, source, tests = filter_grid(
-            grid, along_north, s.arima, s.noise_nT, s.direction)
+            grid, along_north, s.arima, s.noise_nT, s.direction
+        )
     except ValueError as exc:
-        raise AeromagError(f"map filter: {exc}", file=flight.source,
-                           channel="/mag/compensated") from None
+        raise AeromagError(
+            f"map filter: {exc}", file=flight.source, channel="/mag/compensated"
+        ) from None
     tests["sensor_noise_nT"] = sensor
-    return MapRun(frame, red, lines, lev, spacing, grid, filtered, model, kf, noise, source,
-                  s.direction, tests)
+    return MapRun(
+        frame,
+        red,
+        lines,
+        lev,
+        spacing,
+        grid,
+        filtered,
+        model,
+        kf,
+        noise,
+        source,
+        s.direction,
+        tests,
+    )

@@ -43,4 +43,4 @@ def dipole_field_ned_nT(sources: list[DipoleSource], east_m, north_m, up_m) -> n
 def total_field_anomaly_nT(b_anomaly_ned_nT: np.ndarray, b_main_ned_nT: np.ndarray) -> np.ndarray:
     """Exact total-field anomaly |B_main + b| - |B_main| (what a scalar survey maps), nT."""
     bm = np.asarray(b_main_ned_nT, float)
-    return (np.linalg.norm(bm + b_anomaly_ned_nT, axis=-1) - np.linalg.norm(bm, axis=-1))
+    return np.linalg.norm(bm + b_anomaly_ned_nT, axis=-1) - np.linalg.norm(bm, axis=-1)

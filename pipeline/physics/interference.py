@@ -47,19 +47,24 @@ class CarrierInterference:
         db = np.asarray(db_dt_body_nT_s, float)
         return self.permanent_nT + b @ self.induced.T + db @ self.eddy_s.T
 
-    def scalar_first_order_nT(self, b_body_nT: np.ndarray,
-                              db_dt_body_nT_s: np.ndarray) -> np.ndarray:
+    def scalar_first_order_nT(
+        self, b_body_nT: np.ndarray, db_dt_body_nT_s: np.ndarray
+    ) -> np.ndarray:
         """First-order scalar interference u . b_int (what T-L models), nT."""
         b = np.asarray(b_body_nT, float)
         u = b / np.linalg.norm(b, axis=-1, keepdims=True)
         return np.einsum("ij,ij->i", u, self.vector_nT(b, db_dt_body_nT_s))
 
     def to_dict(self) -> dict[str, list]:
-        return {"permanent_nT": self.permanent_nT.tolist(), "induced": self.induced.tolist(),
-                "eddy_s": self.eddy_s.tolist()}
+        return {
+            "permanent_nT": self.permanent_nT.tolist(),
+            "induced": self.induced.tolist(),
+            "eddy_s": self.eddy_s.tolist(),
+        }
 
 
 def scalar_reading_nT(b_body_nT: np.ndarray, b_interference_nT: np.ndarray) -> np.ndarray:
     """What a total-field sensor reads: |b + b_int| (exact, not linearised), nT."""
-    return np.linalg.norm(np.asarray(b_body_nT, float) + np.asarray(b_interference_nT, float),
-                          axis=-1)
+    return np.linalg.norm(
+        np.asarray(b_body_nT, float) + np.asarray(b_interference_nT, float), axis=-1
+    )

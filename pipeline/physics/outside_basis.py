@@ -75,15 +75,17 @@ def second_order_vector(b_nT: np.ndarray, q: np.ndarray) -> np.ndarray:
     return np.einsum("ijk,nj,nk->ni", np.asarray(q, float), b, b) / B_SCALE_NT
 
 
-def lagging_eddy_vector(db_dt_nT_s: np.ndarray, dt_s: float, tau_s: float,
-                        eddy_s: np.ndarray) -> np.ndarray:
+def lagging_eddy_vector(
+    db_dt_nT_s: np.ndarray, dt_s: float, tau_s: float, eddy_s: np.ndarray
+) -> np.ndarray:
     """E (lowpass_tau(db/dt) - db/dt): what an L/R-lagging eddy current adds to T-L's E db/dt."""
     db = np.asarray(db_dt_nT_s, float)
     return (first_order_lowpass(db, dt_s, tau_s, axis=0) - db) @ np.asarray(eddy_s, float).T
 
 
-def vibration_vector(b_nT: np.ndarray, angular_rate_rad_s: np.ndarray,
-                     eddy_s: np.ndarray) -> np.ndarray:
+def vibration_vector(
+    b_nT: np.ndarray, angular_rate_rad_s: np.ndarray, eddy_s: np.ndarray
+) -> np.ndarray:
     """E (-w x b): eddy field of parts turning at angular rate w through the field b."""
     db = -np.cross(np.asarray(angular_rate_rad_s, float), np.asarray(b_nT, float))
     return db @ np.asarray(eddy_s, float).T

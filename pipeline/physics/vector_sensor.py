@@ -28,10 +28,17 @@ class FluxgateErrors:
     def matrix(self) -> np.ndarray:
         """The 3x3 matrix S N mapping true body-frame field to measured (before offset)."""
         a1, a2, a3 = np.radians(self.nonorthogonality_deg)
-        n = np.array([[1.0, 0.0, 0.0],
-                      [np.sin(a1), np.cos(a1), 0.0],
-                      [np.sin(a2), np.sin(a3) * np.cos(a2),
-                       np.sqrt(max(0.0, 1 - np.sin(a2) ** 2 - (np.sin(a3) * np.cos(a2)) ** 2))]])
+        n = np.array(
+            [
+                [1.0, 0.0, 0.0],
+                [np.sin(a1), np.cos(a1), 0.0],
+                [
+                    np.sin(a2),
+                    np.sin(a3) * np.cos(a2),
+                    np.sqrt(max(0.0, 1 - np.sin(a2) ** 2 - (np.sin(a3) * np.cos(a2)) ** 2)),
+                ],
+            ]
+        )
         return np.diag(1.0 + self.scale_error) @ n
 
     def apply(self, b_body_nT: np.ndarray) -> np.ndarray:
@@ -39,6 +46,8 @@ class FluxgateErrors:
         return np.asarray(b_body_nT, float) @ self.matrix().T + self.offset_nT
 
     def to_dict(self) -> dict[str, list]:
-        return {"scale_error": self.scale_error.tolist(),
-                "nonorthogonality_deg": self.nonorthogonality_deg.tolist(),
-                "offset_nT": self.offset_nT.tolist()}
+        return {
+            "scale_error": self.scale_error.tolist(),
+            "nonorthogonality_deg": self.nonorthogonality_deg.tolist(),
+            "offset_nT": self.offset_nT.tolist(),
+        }

@@ -9,5 +9,13 @@ from pipeline.quality.overlap import (
 )
 from pipeline.quality.stage import QualityRun, QualitySettings, run_quality
 
-__all__ = ["OverlapSet", "QualityRun", "QualitySettings", "Track", "group_stats",
-           "overlap_pairs", "run_quality", "track_intersections"]
+__all__ = [
+    "OverlapSet",
+    "QualityRun",
+    "QualitySettings",
+    "Track",
+    "group_stats",
+    "overlap_pairs",
+    "run_quality",
+    "track_intersections",
+]

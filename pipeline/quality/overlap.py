@@ -43,16 +43,14 @@ class Track:
     heading_deg: float
 
     def __post_init__(self) -> None:
-        self.along_m = np.r_[0.0, np.cumsum(np.hypot(np.diff(self.east_m),
-                                                     np.diff(self.north_m)))]
+        self.along_m = np.r_[0.0, np.cumsum(np.hypot(np.diff(self.east_m), np.diff(self.north_m)))]
 
     def geometry(self) -> LineString:
         return LineString(np.column_stack([self.east_m, self.north_m]))
 
     def bracket(self, distance_m: float) -> tuple[int, int, float]:
         """The two epochs around ``distance_m`` along track and the weight of the second."""
-        k = int(np.clip(np.searchsorted(self.along_m, distance_m) - 1, 0,
-                        self.along_m.size - 2))
+        k = int(np.clip(np.searchsorted(self.along_m, distance_m) - 1, 0, self.along_m.size - 2))
         span = self.along_m[k + 1] - self.along_m[k]
         w = float(np.clip((distance_m - self.along_m[k]) / span, 0.0, 1.0)) if span > 0 else 0.0
         return int(self.index[k]), int(self.index[k + 1]), w
@@ -112,14 +110,25 @@ def _build(kind: str, rows: list[tuple]) -> OverlapSet:
         return _empty(kind)
     cols = list(zip(*rows, strict=True))
     ints = [np.asarray(c, int) for c in (cols[0], cols[1], cols[3], cols[4])]
-    return OverlapSet(kind, ints[0], ints[1], np.asarray(cols[2], float), ints[2], ints[3],
-                      np.asarray(cols[5], float), *(np.asarray(c, float) for c in cols[6:9]),
-                      np.asarray(cols[9], dtype=object), np.asarray(cols[10], dtype=object),
-                      np.asarray(cols[11], float), np.asarray(cols[12], float))
+    return OverlapSet(
+        kind,
+        ints[0],
+        ints[1],
+        np.asarray(cols[2], float),
+        ints[2],
+        ints[3],
+        np.asarray(cols[5], float),
+        *(np.asarray(c, float) for c in cols[6:9]),
+        np.asarray(cols[9], dtype=object),
+        np.asarray(cols[10], dtype=object),
+        np.asarray(cols[11], float),
+        np.asarray(cols[12], float),
+    )
 
 
-def track_intersections(validation: list[Track], mapped: list[Track],
-                        min_angle_deg: float = MIN_CROSSING_ANGLE_DEG) -> OverlapSet:
+def track_intersections(
+    validation: list[Track], mapped: list[Track], min_angle_deg: float = MIN_CROSSING_ANGLE_DEG
+) -> OverlapSet:
     """Exact crossings of every validation track with every map track that meet at
     ``min_angle_deg`` or more (one per crossing, however noise makes the tracks wiggle)."""
     rows = []
@@ -130,34 +139,68 @@ def track_intersections(validation: list[Track], mapped: list[Track],
             for c in crossing_points(v, m, min_angle_deg, gv, gm):
                 a0, a1, wa = v.bracket(c.along_a_m)
                 b0, b1, wb = m.bracket(c.along_b_m)
-                rows.append((a0, a1, wa, b0, b1, wb, c.east_m, c.north_m, 0.0, v.line_id,
-                             m.line_id, v.heading_deg, m.heading_deg))
+                rows.append(
+                    (
+                        a0,
+                        a1,
+                        wa,
+                        b0,
+                        b1,
+                        wb,
+                        c.east_m,
+                        c.north_m,
+                        0.0,
+                        v.line_id,
+                        m.line_id,
+                        v.heading_deg,
+                        m.heading_deg,
+                    )
+                )
     rows.sort(key=lambda r: r[0] + r[2])
     return _build("intersection", rows)
 
 
-def overlap_pairs(validation: list[Track], mapped: list[Track],
-                  max_distance_m: float = 0.5) -> OverlapSet:
+def overlap_pairs(
+    validation: list[Track], mapped: list[Track], max_distance_m: float = 0.5
+) -> OverlapSet:
     """Every (validation sample, map sample) pair closer than ``max_distance_m``."""
     if not validation or not mapped or max_distance_m <= 0:
         return _empty("pair")
 
     def stack(tracks):
-        xy = np.column_stack([np.concatenate([t.east_m for t in tracks]),
-                              np.concatenate([t.north_m for t in tracks])])
+        xy = np.column_stack(
+            [
+                np.concatenate([t.east_m for t in tracks]),
+                np.concatenate([t.north_m for t in tracks]),
+            ]
+        )
         owner = np.concatenate([np.full(t.index.size, k) for k, t in enumerate(tracks)])
         return xy, np.concatenate([t.index for t in tracks]), owner
 
     vxy, vidx, vown = stack(validation)
     mxy, midx, mown = stack(mapped)
-    d = cKDTree(vxy).sparse_distance_matrix(cKDTree(mxy), max_distance_m,
-                                            output_type="ndarray")
+    d = cKDTree(vxy).sparse_distance_matrix(cKDTree(mxy), max_distance_m, output_type="ndarray")
     d = np.sort(d, order=["i", "j"])
     rows = []
     for i, j, dist in zip(d["i"], d["j"], d["v"], strict=True):
         v, m = validation[vown[i]], mapped[mown[j]]
-        rows.append((vidx[i], vidx[i], 0.0, midx[j], midx[j], 0.0, vxy[i, 0], vxy[i, 1],
-                     float(dist), v.line_id, m.line_id, v.heading_deg, m.heading_deg))
+        rows.append(
+            (
+                vidx[i],
+                vidx[i],
+                0.0,
+                midx[j],
+                midx[j],
+                0.0,
+                vxy[i, 0],
+                vxy[i, 1],
+                float(dist),
+                v.line_id,
+                m.line_id,
+                v.heading_deg,
+                m.heading_deg,
+            )
+        )
     return _build("pair", rows)
 
 
@@ -167,8 +210,12 @@ def difference_stats(diff: np.ndarray) -> dict[str, float | int | None]:
     d = d[np.isfinite(d)]
     if d.size == 0:
         return {"rms_nT": None, "mean_nT": None, "std_nT": None, "count": 0}
-    return {"rms_nT": float(np.sqrt(np.mean(d**2))), "mean_nT": float(d.mean()),
-            "std_nT": float(d.std(ddof=1)) if d.size > 1 else 0.0, "count": int(d.size)}
+    return {
+        "rms_nT": float(np.sqrt(np.mean(d**2))),
+        "mean_nT": float(d.mean()),
+        "std_nT": float(d.std(ddof=1)) if d.size > 1 else 0.0,
+        "count": int(d.size),
+    }
 
 
 def heading_sector(heading_deg: np.ndarray, step_deg: float = 45.0) -> np.ndarray:
@@ -192,9 +239,19 @@ def group_stats(diff: np.ndarray, ov: OverlapSet, confidence: float = 0.95) -> l
         d = diff[sel]
         if d.size == 0:
             continue
-        ci = (float(stats.t.ppf(0.5 + confidence / 2, d.size - 1) * d.std(ddof=1)
-                    / np.sqrt(d.size)) if d.size > 1 else None)
-        out.append({"validation_heading_deg": float(key[0]), "map_heading_deg": float(key[1]),
-                    "count": int(d.size), "mean_nT": float(d.mean()), "ci_nT": ci,
-                    "confidence": confidence})
+        ci = (
+            float(stats.t.ppf(0.5 + confidence / 2, d.size - 1) * d.std(ddof=1) / np.sqrt(d.size))
+            if d.size > 1
+            else None
+        )
+        out.append(
+            {
+                "validation_heading_deg": float(key[0]),
+                "map_heading_deg": float(key[1]),
+                "count": int(d.size),
+                "mean_nT": float(d.mean()),
+                "ci_nT": ci,
+                "confidence": confidence,
+            }
+        )
     return out

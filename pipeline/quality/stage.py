@@ -104,8 +104,9 @@ class QualityRun:
         return out
 
     def heading_error_rms_nT(self, kind: str = "intersection") -> dict[str, float | None]:
-        return self._keyed({s: difference_stats(self.differences[kind][s])["rms_nT"]
-                            for s in self.states})
+        return self._keyed(
+            {s: difference_stats(self.differences[kind][s])["rms_nT"] for s in self.states}
+        )
 
     @property
     def heading_error_method(self) -> str:
@@ -113,13 +114,17 @@ class QualityRun:
         §3.2: validation and map samples closer than ``overlap_m``, compared as measured) when
         there are at least ``min_overlap_pairs`` of them, else ``"intersections"`` (exact
         track crossings, both fields interpolated along track)."""
-        return ("pairs" if self.pairs.count >= max(self.settings.min_overlap_pairs, 1)
-                else "intersections")
+        return (
+            "pairs"
+            if self.pairs.count >= max(self.settings.min_overlap_pairs, 1)
+            else "intersections"
+        )
 
     def headline_rms_nT(self) -> dict[str, float | None]:
         """``heading_error_rms_nT``: the statistic :attr:`heading_error_method` names."""
         return self.heading_error_rms_nT(
-            "pair" if self.heading_error_method == "pairs" else "intersection")
+            "pair" if self.heading_error_method == "pairs" else "intersection"
+        )
 
     def noise_floor_nT(self) -> float | None:
         """RMS the intersection differences would have from white sensor noise alone.
@@ -141,23 +146,38 @@ class QualityRun:
             return {"count": 0, "before": None, "after": None}
         before = np.array([c.difference_nT for c in lev.crossovers])
         after = np.asarray(lev.residuals_nT)
-        return {"count": int(before.size),
-                "before": {"rms_nT": float(np.sqrt(np.mean(before**2))),
-                           "mean_nT": float(before.mean()), "std_nT": float(before.std())},
-                "after": {"rms_nT": float(np.sqrt(np.mean(after**2))),
-                          "mean_nT": float(after.mean()), "std_nT": float(after.std())}}
+        return {
+            "count": int(before.size),
+            "before": {
+                "rms_nT": float(np.sqrt(np.mean(before**2))),
+                "mean_nT": float(before.mean()),
+                "std_nT": float(before.std()),
+            },
+            "after": {
+                "rms_nT": float(np.sqrt(np.mean(after**2))),
+                "mean_nT": float(after.mean()),
+                "std_nT": float(after.std()),
+            },
+        }
 
     def summary(self) -> dict[str, Any]:
         """The ``quality`` section of the summary JSON."""
         kinds = {}
         for kind, ov in (("intersections", self.intersections), ("pairs", self.pairs)):
             k = "intersection" if kind == "intersections" else "pair"
-            kinds[kind] = {"count": ov.count, **({"max_distance_m": self.settings.overlap_m}
-                                                 if k == "pair" else {}),
-                           "by_state": self._keyed({s: {
-                               **difference_stats(self.differences[k][s]),
-                               "by_heading": group_stats(self.differences[k][s], ov)}
-                               for s in self.states})}
+            kinds[kind] = {
+                "count": ov.count,
+                **({"max_distance_m": self.settings.overlap_m} if k == "pair" else {}),
+                "by_state": self._keyed(
+                    {
+                        s: {
+                            **difference_stats(self.differences[k][s]),
+                            "by_heading": group_stats(self.differences[k][s], ov),
+                        }
+                        for s in self.states
+                    }
+                ),
+            }
         xo = self.crossover_stats()
         noise = self.qc.get("noise", {})
         return {
@@ -176,11 +196,14 @@ class QualityRun:
             "min_crossing_angle_deg": self.settings.min_crossing_angle_deg,
             "heading_error_noise_floor_nT": self.noise_floor_nT(),
             "heading_error": kinds,
-            "interpolated_rms_nT": self._keyed({s: self.interpolated[s]["rms_nT"]
-                                                for s in self.states}),
+            "interpolated_rms_nT": self._keyed(
+                {s: self.interpolated[s]["rms_nT"] for s in self.states}
+            ),
             "interpolated": self._keyed(self.interpolated),
-            "crossover_rms_nT": {"before": xo["before"]["rms_nT"] if xo["count"] else None,
-                                 "after": xo["after"]["rms_nT"] if xo["count"] else None},
+            "crossover_rms_nT": {
+                "before": xo["before"]["rms_nT"] if xo["count"] else None,
+                "after": xo["after"]["rms_nT"] if xo["count"] else None,
+            },
             "crossovers": xo,
             "noise_4th_diff_nT": noise.get("median_nT"),
             "qc": self.qc,
@@ -191,10 +214,11 @@ class QualityRun:
 
 HEADING_ERROR_METHODS = {
     "pairs": "paper 002 §3.2: RMS of B_validation - B_map over sample pairs closer than "
-             "overlap_m (paper: 0.5 m), compared as measured (adds gradient x distance)",
+    "overlap_m (paper: 0.5 m), compared as measured (adds gradient x distance)",
     "intersections": "exact track intersections of the validation lines with the survey and "
-                     "tie lines, both fields interpolated along track to the crossing (only "
-                     "heading error and noise remain; not the paper's statistic)"}
+    "tie lines, both fields interpolated along track to the crossing (only "
+    "heading error and noise remain; not the paper's statistic)",
+}
 
 
 def _circmean_deg(a: np.ndarray) -> float:
@@ -202,8 +226,13 @@ def _circmean_deg(a: np.ndarray) -> float:
     return float(np.degrees(np.arctan2(np.sin(r).mean(), np.cos(r).mean())) % 360.0)
 
 
-def flight_tracks(seg: Segmentation, east_m: np.ndarray, north_m: np.ndarray,
-                  kinds=("survey", "tie", "validation"), min_samples: int = 10) -> list[Track]:
+def flight_tracks(
+    seg: Segmentation,
+    east_m: np.ndarray,
+    north_m: np.ndarray,
+    kinds=("survey", "tie", "validation"),
+    min_samples: int = 10,
+) -> list[Track]:
     """The straight lines of the given kinds, as tracks with finite positions."""
     out = []
     ok = np.isfinite(east_m) & np.isfinite(north_m)
@@ -212,13 +241,22 @@ def flight_tracks(seg: Segmentation, east_m: np.ndarray, north_m: np.ndarray,
         for lid in sorted(set(seg.line_id[sel])):
             ix = np.flatnonzero(sel & (seg.line_id == lid))
             if ix.size >= min_samples:
-                out.append(Track(str(lid), kind, ix, east_m[ix], north_m[ix],
-                                 _circmean_deg(seg.heading_deg[ix])))
+                out.append(
+                    Track(
+                        str(lid),
+                        kind,
+                        ix,
+                        east_m[ix],
+                        north_m[ix],
+                        _circmean_deg(seg.heading_deg[ix]),
+                    )
+                )
     return out
 
 
-def _interpolated(grid: Grid, tracks: list[Track], val: np.ndarray, east: np.ndarray,
-                  north: np.ndarray) -> tuple[np.ndarray, list[tuple[Track, np.ndarray]]]:
+def _interpolated(
+    grid: Grid, tracks: list[Track], val: np.ndarray, east: np.ndarray, north: np.ndarray
+) -> tuple[np.ndarray, list[tuple[Track, np.ndarray]]]:
     diffs, per_line = [], []
     for t in tracks:
         g = grid.interpolate(east[t.index], north[t.index])
@@ -227,9 +265,14 @@ def _interpolated(grid: Grid, tracks: list[Track], val: np.ndarray, east: np.nda
     return (np.concatenate(diffs) if diffs else np.zeros(0)), per_line
 
 
-def run_quality(flight: Flight, seg: Segmentation, fields: dict[str, np.ndarray],
-                tl_alias: str | None = None, fom: list[dict] | None = None,
-                settings: QualitySettings | None = None) -> QualityRun:
+def run_quality(
+    flight: Flight,
+    seg: Segmentation,
+    fields: dict[str, np.ndarray],
+    tl_alias: str | None = None,
+    fom: list[dict] | None = None,
+    settings: QualitySettings | None = None,
+) -> QualityRun:
     """Quality figures of every processing state in ``fields`` (name -> nT per epoch).
 
     ``fields`` should start with ``raw`` and end with the final model; ``tl_alias`` names the
@@ -242,15 +285,20 @@ def run_quality(flight: Flight, seg: Segmentation, fields: dict[str, np.ndarray]
     t = d["time_s"].to_numpy(float)
     surv = seg.mask("survey") & np.isfinite(lat)
     if surv.sum() < 100:
-        raise AeromagError("no survey lines found: quality statistics need a mapped block",
-                           file=flight.source, channel="/gnss/fix")
-    frame = LocalFrame(float(np.mean(lat[surv])), float(np.mean(lon[surv])),
-                       float(np.mean(alt[surv])))
+        raise AeromagError(
+            "no survey lines found: quality statistics need a mapped block",
+            file=flight.source,
+            channel="/gnss/fix",
+        )
+    frame = LocalFrame(
+        float(np.mean(lat[surv])), float(np.mean(lon[surv])), float(np.mean(alt[surv]))
+    )
     east, north, up = frame.to_enu(lat, lon, alt)
     base = d["base_nT"].to_numpy(float) if flight.has("base_nT") else None
     # IGRF and diurnal are the same for every state: reduce a zero field once
-    offset = -reduce_to_anomaly(flight.time_ns, np.zeros(t.size), lat, lon, alt,
-                                base if s.subtract_base else None).anomaly_nT
+    offset = -reduce_to_anomaly(
+        flight.time_ns, np.zeros(t.size), lat, lon, alt, base if s.subtract_base else None
+    ).anomaly_nT
     reduced = {name: np.asarray(f, float) - offset for name, f in fields.items()}
 
     tracks = flight_tracks(seg, east, north)
@@ -259,12 +307,16 @@ def run_quality(flight: Flight, seg: Segmentation, fields: dict[str, np.ndarray]
     validation = [tr for tr in tracks if tr.kind == "validation"]
     notes = []
     if not validation:
-        notes.append("no validation lines: heading error at overlap points and the "
-                     "interpolated comparison need the diagonal X flight")
+        notes.append(
+            "no validation lines: heading error at overlap points and the "
+            "interpolated comparison need the diagonal X flight"
+        )
     inter = track_intersections(validation, mapped, s.min_crossing_angle_deg)
     pairs = overlap_pairs(validation, mapped, s.overlap_m)
-    diffs = {"intersection": {n: inter.differences(v) for n, v in reduced.items()},
-             "pair": {n: pairs.differences(v) for n, v in reduced.items()}}
+    diffs = {
+        "intersection": {n: inter.differences(v) for n, v in reduced.items()},
+        "pair": {n: pairs.differences(v) for n, v in reduced.items()},
+    }
 
     heading = _circmean_deg(np.mod(np.array([tr.heading_deg for tr in survey]), 180.0) * 2) / 2
     spacing = qc.line_spacing(survey, heading, s.spacing_tolerance_fraction)
@@ -273,39 +325,78 @@ def run_quality(flight: Flight, seg: Segmentation, fields: dict[str, np.ndarray]
     for name, v in reduced.items():
         pts = [(tr.east_m, tr.north_m, v[tr.index]) for tr in mapped]
         ge, gn, gv = (np.concatenate([p[k] for p in pts]) for k in range(3))
-        grid = minimum_curvature(ge, gn, gv, s.cell_fraction * spacing_m,
-                                 mask_distance_m=spacing_m, crs=frame.crs)
+        grid = minimum_curvature(
+            ge, gn, gv, s.cell_fraction * spacing_m, mask_distance_m=spacing_m, crs=frame.crs
+        )
         grids[name] = grid
         diff, per_line = _interpolated(grid, validation, v, east, north)
         st = difference_stats(diff)
         st["samples_outside_map"] = int(np.isnan(diff).sum())
         interp[name] = st
         profiles[name] = per_line
-    prof = [Profile(tr.line_id, tr.along_m,
-                    {n: reduced[n][tr.index] for n in reduced},
-                    {n: profiles[n][k][1] for n in reduced}) for k, tr in enumerate(validation)]
+    prof = [
+        Profile(
+            tr.line_id,
+            tr.along_m,
+            {n: reduced[n][tr.index] for n in reduced},
+            {n: profiles[n][k][1] for n in reduced},
+        )
+        for k, tr in enumerate(validation)
+    ]
 
     final = list(fields)[-1]
-    lines = [Line(tr.line_id, tr.kind, tr.east_m, tr.north_m, t[tr.index],
-                  reduced[final][tr.index], tr.index) for tr in mapped
-             if np.isfinite(reduced[final][tr.index]).all()]
+    lines = [
+        Line(
+            tr.line_id,
+            tr.kind,
+            tr.east_m,
+            tr.north_m,
+            t[tr.index],
+            reduced[final][tr.index],
+            tr.index,
+        )
+        for tr in mapped
+        if np.isfinite(reduced[final][tr.index]).all()
+    ]
     lev = level_lines(lines, min_angle_deg=s.min_crossing_angle_deg) if lines else None
-    checks = {"field": state_key(final),
-              "noise": qc.line_noise(mapped, reduced[final], s.noise_threshold_nT),
-              "flight_height": qc.flight_height(mapped, up, s.height_tolerance_m),
-              "line_spacing": spacing,
-              "speed": qc.speed_excursions(mapped, t, s.speed_tolerance_fraction)}
+    checks = {
+        "field": state_key(final),
+        "noise": qc.line_noise(mapped, reduced[final], s.noise_threshold_nT),
+        "flight_height": qc.flight_height(mapped, up, s.height_tolerance_m),
+        "line_spacing": spacing,
+        "speed": qc.speed_excursions(mapped, t, s.speed_tolerance_fraction),
+    }
     if base is not None:
         checks["diurnal"] = qc.diurnal_check(t, base, s.diurnal_chord_s, s.diurnal_tolerance_nT)
     else:
         checks["diurnal"] = {"available": False}
-    return QualityRun(list(fields), tl_alias if tl_alias in fields else None, frame, tracks,
-                      inter, pairs, diffs, interp, prof, grids, lev, checks, fom, s, notes)
+    return QualityRun(
+        list(fields),
+        tl_alias if tl_alias in fields else None,
+        frame,
+        tracks,
+        inter,
+        pairs,
+        diffs,
+        interp,
+        prof,
+        grids,
+        lev,
+        checks,
+        fom,
+        s,
+        notes,
+    )
 
 
-def fom_table(time_s: np.ndarray, raw_nT: np.ndarray, fields: dict[str, np.ndarray],
-              boxes: list, band_hz: tuple[float, float] | None = None,
-              poles: int | None = None) -> list[dict]:
+def fom_table(
+    time_s: np.ndarray,
+    raw_nT: np.ndarray,
+    fields: dict[str, np.ndarray],
+    boxes: list,
+    band_hz: tuple[float, float] | None = None,
+    poles: int | None = None,
+) -> list[dict]:
     """The calibration FOM per box (pass, heading, manoeuvre): uncompensated and each model,
     in the fit band ``band_hz`` / ``poles`` (None: the shipped configuration's; pass the
     configured band so the table agrees with the compensation stage's FOM)."""
@@ -316,7 +407,11 @@ def fom_table(time_s: np.ndarray, raw_nT: np.ndarray, fields: dict[str, np.ndarr
         fom = figure_of_merit(time_s, raw_nT, f, boxes, band_hz, poles)
         for k, r in enumerate(fom.boxes):
             if len(rows) <= k:
-                rows.append({key: r[key] for key in ("pass", "cardinal", "manoeuvre",
-                                                     "samples", "uncompensated_nT")})
+                rows.append(
+                    {
+                        key: r[key]
+                        for key in ("pass", "cardinal", "manoeuvre", "samples", "uncompensated_nT")
+                    }
+                )
             rows[k][f"{state_key(name)}_nT"] = r["compensated_nT"]
     return rows

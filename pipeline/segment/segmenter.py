@@ -103,8 +103,9 @@ class Segmentation:
         out: dict[tuple[int, str, str], list[int]] = {}
         sel = np.flatnonzero((self.label == "calibration") & np.isin(self.manoeuvre, MANOEUVRES))
         for i in sel:
-            out.setdefault((int(self.calibration_pass[i]), str(self.cardinal[i]),
-                            str(self.manoeuvre[i])), []).append(int(i))
+            out.setdefault(
+                (int(self.calibration_pass[i]), str(self.cardinal[i]), str(self.manoeuvre[i])), []
+            ).append(int(i))
         return [Box(p, c, m, np.asarray(ix)) for (p, c, m), ix in out.items()]
 
     def passes(self) -> list[np.ndarray]:
@@ -126,8 +127,12 @@ class Segmentation:
 # --------------------------------------------------------------------------------------------
 def _circmean_deg(a: np.ndarray, period: float = 360.0) -> float:
     ang = np.radians(np.asarray(a, float) * 360.0 / period)
-    return float(np.degrees(np.arctan2(np.nanmean(np.sin(ang)), np.nanmean(np.cos(ang))))
-                 * period / 360.0 % period)
+    return float(
+        np.degrees(np.arctan2(np.nanmean(np.sin(ang)), np.nanmean(np.cos(ang))))
+        * period
+        / 360.0
+        % period
+    )
 
 
 def _angle_diff(a: float, b: float, period: float = 360.0) -> float:
@@ -175,8 +180,11 @@ def _straight_runs(e: np.ndarray, n: np.ndarray, t: np.ndarray, p: SegmentParams
     # merge consecutive collinear runs split by a small excursion
     merged: list[_Leg] = []
     for leg in legs:
-        if merged and leg.i0 == merged[-1].i1 and _angle_diff(leg.heading_deg,
-                                                              merged[-1].heading_deg) < 3.0:
+        if (
+            merged
+            and leg.i0 == merged[-1].i1
+            and _angle_diff(leg.heading_deg, merged[-1].heading_deg) < 3.0
+        ):
             prev = merged[-1]
             d = coords[leg.i1] - coords[prev.i0]
             merged[-1] = _Leg(prev.i0, leg.i1, float(np.degrees(np.arctan2(d[0], d[1])) % 360))
@@ -185,8 +193,9 @@ def _straight_runs(e: np.ndarray, n: np.ndarray, t: np.ndarray, p: SegmentParams
     return merged
 
 
-def _refine_ends(leg: _Leg, e: np.ndarray, n: np.ndarray, t: np.ndarray, lo: int, hi: int,
-                 p: SegmentParams) -> _Leg:
+def _refine_ends(
+    leg: _Leg, e: np.ndarray, n: np.ndarray, t: np.ndarray, lo: int, hi: int, p: SegmentParams
+) -> _Leg:
     """Move each leg end to where the track leaves the leg's line by more than its noise.
 
     The line is fitted to the leg's central 80 %. Each end first walks outward from the core
@@ -225,7 +234,7 @@ def _refine_ends(leg: _Leg, e: np.ndarray, n: np.ndarray, t: np.ndarray, lo: int
 def _deviation(flight: Flight, leg: _Leg, axis: str) -> np.ndarray:
     """Attitude deviation from the leg's own level (yaw: from its mean heading), degrees."""
     col = {"roll": "roll_deg", "pitch": "pitch_deg", "yaw": "yaw_deg"}[axis]
-    a = flight.data[col].to_numpy()[leg.i0:leg.i1 + 1].astype(float)
+    a = flight.data[col].to_numpy()[leg.i0 : leg.i1 + 1].astype(float)
     if axis == "yaw":
         return np.nan_to_num((a - _circmean_deg(a) + 180.0) % 360.0 - 180.0)
     return np.nan_to_num(a - np.nanmedian(a))
@@ -238,12 +247,15 @@ def _activity(flight: Flight, leg: _Leg, p: SegmentParams, rate: float) -> dict[
     where a moving RMS would smear it by half its window; a 1 s mean removes the ripple.
     """
     w = max(int(1.0 * rate), 1)
-    return {a: uniform_filter1d(np.abs(hilbert(_deviation(flight, leg, a))), w, mode="nearest")
-            for a in MANOEUVRES}
+    return {
+        a: uniform_filter1d(np.abs(hilbert(_deviation(flight, leg, a))), w, mode="nearest")
+        for a in MANOEUVRES
+    }
 
 
-def _swings(flight: Flight, leg: _Leg, act: dict[str, np.ndarray],
-            thr: dict[str, float]) -> dict[str, int]:
+def _swings(
+    flight: Flight, leg: _Leg, act: dict[str, np.ndarray], thr: dict[str, float]
+) -> dict[str, int]:
     """Swings of each axis' deviation where it is active: passages from beyond
     +0.75 x its threshold to beyond -0.75 x (or back), counted with that hysteresis.
 
@@ -297,8 +309,9 @@ def _from_plan(flight: Flight) -> tuple[np.ndarray, np.ndarray]:
     return kind, line
 
 
-def segment_flight(flight: Flight, params: SegmentParams | None = None,
-                   use_plan: bool = True) -> Segmentation:
+def segment_flight(
+    flight: Flight, params: SegmentParams | None = None, use_plan: bool = True
+) -> Segmentation:
     """Label every epoch of ``flight``.
 
     Needs GNSS position (and attitude for the manoeuvre boxes) unless the recording carries
@@ -335,13 +348,16 @@ def segment_flight(flight: Flight, params: SegmentParams | None = None,
                 dd = np.array([e[b] - e[a], n[b] - n[a]])
                 leg.heading_deg = float(np.degrees(np.arctan2(dd[0], dd[1])) % 360)
             elif has_att:
-                leg.heading_deg = _circmean_deg(d["yaw_deg"].to_numpy()[a:b + 1])
+                leg.heading_deg = _circmean_deg(d["yaw_deg"].to_numpy()[a : b + 1])
             legs.append(leg)
         _assign_passes([lg for lg in legs if lg.kind == "calibration"], t, p)
     else:
         if not flight.has("lat_deg", "lon_deg"):
-            raise AeromagError("segmentation needs /gnss/fix (or /plan/line) to find the lines",
-                               file=flight.source, channel="/gnss/fix")
+            raise AeromagError(
+                "segmentation needs /gnss/fix (or /plan/line) to find the lines",
+                file=flight.source,
+                channel="/gnss/fix",
+            )
         source = "inferred"
         e, n = _local_en(flight)
         runs = _straight_runs(e, n, t, p)
@@ -384,8 +400,9 @@ def _local_en(flight: Flight) -> tuple[np.ndarray, np.ndarray]:
     try:
         return local_east_north(lat, lon)
     except ValueError:
-        raise AeromagError("no valid position in the recording", file=flight.source,
-                           channel="/gnss/fix") from None
+        raise AeromagError(
+            "no valid position in the recording", file=flight.source, channel="/gnss/fix"
+        ) from None
 
 
 def _assign_passes(cal: list[_Leg], t: np.ndarray, p: SegmentParams) -> None:
@@ -403,8 +420,9 @@ def _assign_passes(cal: list[_Leg], t: np.ndarray, p: SegmentParams) -> None:
             leg.line_id = f"C{npass}{_cardinal(leg.heading_deg)}"
 
 
-def _classify(flight: Flight, legs: list[_Leg], e, n, t, p: SegmentParams, rate: float,
-              has_att: bool) -> None:
+def _classify(
+    flight: Flight, legs: list[_Leg], e, n, t, p: SegmentParams, rate: float, has_att: bool
+) -> None:
     thr = _thresholds(p)
     for leg in legs:
         leg.kind = "transit"
@@ -413,8 +431,9 @@ def _classify(flight: Flight, legs: list[_Leg], e, n, t, p: SegmentParams, rate:
             leg.active_s = {a: float((act[a] >= thr[a]).sum() / rate) for a in MANOEUVRES}
             swings = _swings(flight, leg, act, thr)
             # sustained *and* oscillating: a turn's bank is one-sided, a manoeuvre alternates
-            if any(leg.active_s[a] >= p.min_active_s and swings[a] >= p.min_swings
-                   for a in MANOEUVRES):
+            if any(
+                leg.active_s[a] >= p.min_active_s and swings[a] >= p.min_swings for a in MANOEUVRES
+            ):
                 leg.kind = "calibration"
     cal = [lg for lg in legs if lg.kind == "calibration"]
     _assign_passes(cal, t, p)
@@ -428,8 +447,12 @@ def _classify(flight: Flight, legs: list[_Leg], e, n, t, p: SegmentParams, rate:
     # out-length short survey lines, so each distinct peak is tried and the direction
     # giving the most lines on a regular grid inside one block wins (ties: more length).
     cand = np.arange(0.0, 180.0, 1.0)
-    score = np.array([length[np.array([_angle_diff(o, c, 180.0) for o in orient])
-                             <= p.parallel_tol_deg].sum() for c in cand])
+    score = np.array(
+        [
+            length[np.array([_angle_diff(o, c, 180.0) for o in orient]) <= p.parallel_tol_deg].sum()
+            for c in cand
+        ]
+    )
     peaks: list[float] = []
     for c in cand[np.argsort(-score, kind="stable")]:
         if score[int(c)] <= 0 or len(peaks) == 3:
@@ -439,8 +462,9 @@ def _classify(flight: Flight, legs: list[_Leg], e, n, t, p: SegmentParams, rate:
     best, best_peak = None, None
     for peak in peaks:
         found = _survey_block(rest, e, n, orient, length, peak, p)
-        if found is not None and (best is None or (len(found[0]), found[-1])
-                                  > (len(best[0]), best[-1])):
+        if found is not None and (
+            best is None or (len(found[0]), found[-1]) > (len(best[0]), best[-1])
+        ):
             best, best_peak = found, peak
     if best is None:
         return
@@ -462,17 +486,28 @@ def _classify(flight: Flight, legs: list[_Leg], e, n, t, p: SegmentParams, rate:
         c0 = e[lg.i0] * across[0] + n[lg.i0] * across[1]
         c1 = e[lg.i1] * across[0] + n[lg.i1] * across[1]
         crosses = min(max(c0, c1), xhi) - max(min(c0, c1), xlo) > 0.5 * (xhi - xlo)
-        if ang >= 90.0 - p.parallel_tol_deg and crosses and (
-                lo - spacing / 4 <= a_mid <= hi + spacing / 4):
+        if (
+            ang >= 90.0 - p.parallel_tol_deg
+            and crosses
+            and (lo - spacing / 4 <= a_mid <= hi + spacing / 4)
+        ):
             lg.kind = "tie"
-        elif p.parallel_tol_deg < ang < 90.0 - p.parallel_tol_deg and crosses and (
-                lo <= a_mid <= hi):
+        elif (
+            p.parallel_tol_deg < ang < 90.0 - p.parallel_tol_deg and crosses and (lo <= a_mid <= hi)
+        ):
             lg.kind = "validation"
     _name_lines(rest, spacing)
 
 
-def _survey_block(rest: list[_Leg], e: np.ndarray, n: np.ndarray, orient: np.ndarray,
-                  length: np.ndarray, peak_deg: float, p: SegmentParams):
+def _survey_block(
+    rest: list[_Leg],
+    e: np.ndarray,
+    n: np.ndarray,
+    orient: np.ndarray,
+    length: np.ndarray,
+    peak_deg: float,
+    p: SegmentParams,
+):
     """The survey lines if the lines run along ``peak_deg`` (mod 180): parallel legs that
     share the block's along-track extent and sit on the line-spacing grid. Sets each leg's
     ``along`` extent and cross-track ``offset`` for that direction. Returns ``(lines,
@@ -480,8 +515,9 @@ def _survey_block(rest: list[_Leg], e: np.ndarray, n: np.ndarray, orient: np.nda
     near = np.array([_angle_diff(o, peak_deg, 180.0) <= p.parallel_tol_deg for o in orient])
     # refine about the length-weighted mean of the legs near the peak, then re-select
     w = length[near]
-    main = _circmean_deg(np.repeat(orient[near], np.maximum(1, (w / w.max() * 20).astype(int))),
-                         180.0)
+    main = _circmean_deg(
+        np.repeat(orient[near], np.maximum(1, (w / w.max() * 20).astype(int))), 180.0
+    )
     near = np.array([_angle_diff(o, main, 180.0) <= p.parallel_tol_deg for o in orient])
     along = np.array([np.sin(np.radians(main)), np.cos(np.radians(main))])
     across = np.array([along[1], -along[0]])
@@ -497,8 +533,7 @@ def _survey_block(rest: list[_Leg], e: np.ndarray, n: np.ndarray, orient: np.nda
     # the survey block: the along-track extent shared by most parallel lines
     lo = float(np.median([lg.along[0] for lg in par]))
     hi = float(np.median([lg.along[1] for lg in par]))
-    survey = [lg for lg in par
-              if min(lg.along[1], hi) - max(lg.along[0], lo) >= 0.5 * (hi - lo)]
+    survey = [lg for lg in par if min(lg.along[1], hi) - max(lg.along[0], lo) >= 0.5 * (hi - lo)]
     if len(survey) < p.min_survey_lines:
         return None
     # Survey lines sit on the line-spacing grid; a straight flown along the block edge between
@@ -507,6 +542,7 @@ def _survey_block(rest: list[_Leg], e: np.ndarray, n: np.ndarray, orient: np.nda
     uniq = np.unique(np.round(offs / 5.0) * 5.0)
     spacing = float(np.median(np.diff(uniq))) if uniq.size > 1 else 0.0
     if spacing > 0:
+
         def grid_miss(ref: float) -> np.ndarray:
             frac = (offs - ref) / spacing
             return np.abs(frac - np.round(frac)) * spacing
@@ -516,8 +552,11 @@ def _survey_block(rest: list[_Leg], e: np.ndarray, n: np.ndarray, orient: np.nda
         on_grid = grid_miss(ref) <= spacing / 4
         survey = [lg for lg, ok in zip(survey, on_grid, strict=True) if ok]
     # lines flown twice at one offset (a repeat) count once
-    distinct = np.unique(np.round(np.array([lg.offset for lg in survey]) / max(spacing, 1.0)
-                                  * 2)) if survey else []
+    distinct = (
+        np.unique(np.round(np.array([lg.offset for lg in survey]) / max(spacing, 1.0) * 2))
+        if survey
+        else []
+    )
     if len(distinct) < p.min_survey_lines:
         return None
     total = float(sum(np.hypot(e[lg.i1] - e[lg.i0], n[lg.i1] - n[lg.i0]) for lg in survey))
@@ -540,8 +579,7 @@ def _name_lines(legs: list[_Leg], spacing: float) -> None:
         group = [lg for lg in legs if lg.kind == kind]
         if not group:
             continue
-        vals = [lg.offset if key == "offset" else 0.5 * (lg.along[0] + lg.along[1])
-                for lg in group]
+        vals = [lg.offset if key == "offset" else 0.5 * (lg.along[0] + lg.along[1]) for lg in group]
         tol = max(spacing / 4, 5.0) if kind == "survey" else max(spacing, 20.0)
         ids = cluster(vals, tol)
         seen: dict[int, int] = {}
@@ -558,7 +596,7 @@ def _label_gaps(label: np.ndarray, legs: list[_Leg]) -> None:
     lines = [lg for lg in legs if lg.kind != "transit"]
     for prev, nxt in zip(lines[:-1], lines[1:], strict=True):
         gap = slice(prev.i1 + 1, nxt.i0)
-        same = ((prev.kind in SURVEY_BLOCK and nxt.kind in SURVEY_BLOCK)
-                or (prev.kind == nxt.kind == "calibration"
-                    and prev.calibration_pass == nxt.calibration_pass))
+        same = (prev.kind in SURVEY_BLOCK and nxt.kind in SURVEY_BLOCK) or (
+            prev.kind == nxt.kind == "calibration" and prev.calibration_pass == nxt.calibration_pass
+        )
         label[gap] = "turn" if same else "transit"

@@ -27,11 +27,20 @@ class MapSurvey:
     spacing_m: float
 
 
-def line_survey(seed: int, sensor_nT: float = 0.05, line_nT: float = 0.0,
-                spacing_m: float = 50.0, width_m: float = 500.0, length_m: float = 700.0,
-                height_m: float = 60.0, step_m: float = 0.7, jitter_m: float = 1.0,
-                sources: int = 12, depth_m: tuple[float, float] = (80.0, 300.0),
-                moment_A_m2: tuple[float, float] = (1e5, 1.5e6)) -> MapSurvey:
+def line_survey(
+    seed: int,
+    sensor_nT: float = 0.05,
+    line_nT: float = 0.0,
+    spacing_m: float = 50.0,
+    width_m: float = 500.0,
+    length_m: float = 700.0,
+    height_m: float = 60.0,
+    step_m: float = 0.7,
+    jitter_m: float = 1.0,
+    sources: int = 12,
+    depth_m: tuple[float, float] = (80.0, 300.0),
+    moment_A_m2: tuple[float, float] = (1e5, 1.5e6),
+) -> MapSurvey:
     """North-south lines ``spacing_m`` apart over a ``width_m`` x ``length_m`` block, sampled
     every ``step_m`` at ``height_m`` above the datum, gridded by minimum curvature at a
     quarter of the spacing (masked beyond one spacing), as the map stage does.
@@ -46,26 +55,41 @@ def line_survey(seed: int, sensor_nT: float = 0.05, line_nT: float = 0.0,
         Ranges of the sources' depths below the datum (m) and moment magnitudes (A m^2).
     """
     rng = np.random.default_rng(seed)
-    src = [DipoleSource(rng.uniform(-150, width_m + 150), rng.uniform(-150, length_m + 150),
-                        -rng.uniform(*depth_m),
-                        tuple(rng.normal(0, 1, 3) / np.sqrt(3) * rng.uniform(*moment_A_m2)))
-           for _ in range(sources)]
+    src = [
+        DipoleSource(
+            rng.uniform(-150, width_m + 150),
+            rng.uniform(-150, length_m + 150),
+            -rng.uniform(*depth_m),
+            tuple(rng.normal(0, 1, 3) / np.sqrt(3) * rng.uniform(*moment_A_m2)),
+        )
+        for _ in range(sources)
+    ]
 
     def field(e, n):
         e, n = np.ravel(e), np.ravel(n)
         return total_field_anomaly_nT(
-            dipole_field_ned_nT(src, e, n, np.full(e.size, height_m)), MAIN_FIELD_NED_NT)
+            dipole_field_ned_nT(src, e, n, np.full(e.size, height_m)), MAIN_FIELD_NED_NT
+        )
 
     es, ns, vs = [], [], []
     for e0 in np.arange(0.0, width_m + 1e-6, spacing_m):
         n = np.arange(0.0, length_m, step_m)
         e = e0 + rng.normal(0, jitter_m, n.size)
         frac = n / length_m - 0.5
-        v = (field(e, n) + rng.normal(0, sensor_nT, n.size) + rng.normal(0, line_nT)
-             + rng.normal(0, line_nT) * frac)
+        v = (
+            field(e, n)
+            + rng.normal(0, sensor_nT, n.size)
+            + rng.normal(0, line_nT)
+            + rng.normal(0, line_nT) * frac
+        )
         es.append(e), ns.append(n), vs.append(v)
-    g = minimum_curvature(np.concatenate(es), np.concatenate(ns), np.concatenate(vs),
-                          spacing_m / 4.0, mask_distance_m=spacing_m)
+    g = minimum_curvature(
+        np.concatenate(es),
+        np.concatenate(ns),
+        np.concatenate(vs),
+        spacing_m / 4.0,
+        mask_distance_m=spacing_m,
+    )
     gx, gy = np.meshgrid(*g.coordinates())
     truth = field(gx, gy).reshape(g.shape)
     inside = (gx >= 0) & (gx <= width_m) & (gy >= 0) & (gy <= length_m) & np.isfinite(g.values)

@@ -22,8 +22,13 @@ from typing import Any
 
 from pipeline.errors import AeromagError
 
-EFFECTS = ("geomagnetic_gradient", "sensor_lag", "diurnal", "electrical_current",
-           "vector_calibration")
+EFFECTS = (
+    "geomagnetic_gradient",
+    "sensor_lag",
+    "diurnal",
+    "electrical_current",
+    "vector_calibration",
+)
 
 _COMMON: dict[str, Any] = {
     "name": "custom",
@@ -90,16 +95,20 @@ _COMMON: dict[str, Any] = {
         "aux_rate_hz": 5.0,
         "plan_markers": False,  # write /plan/line (a recorder that knows the plan)
         # clock offsets of each stream's first sample (s): sensors are not aligned
-        "clock_offset_s": {"scalar": 0.0, "vector": 0.013, "attitude": 0.007, "gnss": 0.031,
-                           "base": 0.25, "aux": 0.041},
+        "clock_offset_s": {
+            "scalar": 0.0,
+            "vector": 0.013,
+            "attitude": 0.007,
+            "gnss": 0.031,
+            "base": 0.25,
+            "aux": 0.041,
+        },
         "dropouts": [],  # [{topic = "/mag/scalar", start_s = 100.0, duration_s = 2.0}]
     },
     "interference": {  # at the scalar sensor, body frame
         "permanent_nT": [35.0, -22.0, 48.0],
-        "induced": [[0.0012, 0.0004, -0.0007], [0.0004, 0.0009, 0.0003],
-                    [-0.0007, 0.0003, 0.0021]],
-        "eddy_s": [[0.0030, 0.0010, -0.0008], [-0.0006, 0.0024, 0.0011],
-                   [0.0009, -0.0013, 0.0018]],
+        "induced": [[0.0012, 0.0004, -0.0007], [0.0004, 0.0009, 0.0003], [-0.0007, 0.0003, 0.0021]],
+        "eddy_s": [[0.0030, 0.0010, -0.0008], [-0.0006, 0.0024, 0.0011], [0.0009, -0.0013, 0.0018]],
     },
     "vector_interference": {  # at the fluxgate, body frame
         "permanent_nT": [12.0, -8.0, 15.0],
@@ -122,17 +131,32 @@ _COMMON: dict[str, Any] = {
         "payload_switch_s": [40.0, 160.0],  # random dwell between switches
     },
     "effects": {
-        "geomagnetic_gradient": {"enabled": False, "east_nT_per_m": 0.318,
-                                 "north_nT_per_m": 0.318, "up_nT_per_m": 0.05},
+        "geomagnetic_gradient": {
+            "enabled": False,
+            "east_nT_per_m": 0.318,
+            "north_nT_per_m": 0.318,
+            "up_nT_per_m": 0.05,
+        },
         "sensor_lag": {"enabled": False, "lag_s": 0.1},
-        "diurnal": {"enabled": False, "amplitude_nT": 15.0, "period_s": 5400.0,
-                    "random_walk_nT_per_sqrt_s": 0.02},
-        "electrical_current": {"enabled": False, "channel": "payload_current",
-                               "coupling_nT_per_A": 3.0, "direction_body": [0.2, -0.3, 0.93]},
+        "diurnal": {
+            "enabled": False,
+            "amplitude_nT": 15.0,
+            "period_s": 5400.0,
+            "random_walk_nT_per_sqrt_s": 0.02,
+        },
+        "electrical_current": {
+            "enabled": False,
+            "channel": "payload_current",
+            "coupling_nT_per_A": 3.0,
+            "direction_body": [0.2, -0.3, 0.93],
+        },
         # an uncalibrated low-cost UAV fluxgate: percent-level scale, degree-level axes
-        "vector_calibration": {"enabled": False, "scale_error": [0.02, -0.015, 0.01],
-                               "nonorthogonality_deg": [1.0, -0.8, 0.9],
-                               "offset_nT": [150.0, -100.0, 80.0]},
+        "vector_calibration": {
+            "enabled": False,
+            "scale_error": [0.02, -0.015, 0.01],
+            "nonorthogonality_deg": [1.0, -0.8, 0.9],
+            "offset_nT": [150.0, -100.0, 80.0],
+        },
     },
 }
 
@@ -199,22 +223,40 @@ _PROFILES: dict[str, dict[str, Any]] = {
     "uav": {},
     "fixed-wing": {
         "site": {"latitude_deg": 45.3, "longitude_deg": -76.4, "ground_altitude_m": 80.0},
-        "flight": {"speed_m_s": 60.0, "transit_s": 30.0, "turn_radius_m": 640.0,
-                   "max_bank_deg": 35.0, "roll_in_s": 2.0, "cruise_pitch_deg": 2.0,
-                   "kinematics": "fixed-wing"},
-        "calibration": {"altitude_m": 1800.0, "centre_east_m": -16000.0,
-                        "centre_north_m": -12000.0},
-        "survey": {"length_m": 12000.0, "width_m": 4000.0, "line_spacing_m": 400.0,
-                   "tie_spacing_m": 4000.0, "altitude_m": 300.0},
+        "flight": {
+            "speed_m_s": 60.0,
+            "transit_s": 30.0,
+            "turn_radius_m": 640.0,
+            "max_bank_deg": 35.0,
+            "roll_in_s": 2.0,
+            "cruise_pitch_deg": 2.0,
+            "kinematics": "fixed-wing",
+        },
+        "calibration": {
+            "altitude_m": 1800.0,
+            "centre_east_m": -16000.0,
+            "centre_north_m": -12000.0,
+        },
+        "survey": {
+            "length_m": 12000.0,
+            "width_m": 4000.0,
+            "line_spacing_m": 400.0,
+            "tie_spacing_m": 4000.0,
+            "altitude_m": 300.0,
+        },
         "sensors": {"gnss_noise_m": 0.5, "attitude_noise_deg": 0.02},
-        "interference": {"permanent_nT": [120.0, -260.0, 310.0],
-                         "induced": [[0.006, 0.002, -0.003], [0.002, 0.004, 0.001],
-                                     [-0.003, 0.001, 0.009]],
-                         "eddy_s": [[0.02, 0.006, -0.004], [-0.003, 0.015, 0.007],
-                                    [0.005, -0.008, 0.011]]},
+        "interference": {
+            "permanent_nT": [120.0, -260.0, 310.0],
+            "induced": [[0.006, 0.002, -0.003], [0.002, 0.004, 0.001], [-0.003, 0.001, 0.009]],
+            "eddy_s": [[0.02, 0.006, -0.004], [-0.003, 0.015, 0.007], [0.005, -0.008, 0.011]],
+        },
         "aux": {"motor_hover_A": 45.0},
-        "anomaly": {"depth_m": [300.0, 2500.0], "moment_A_m2": [1.0e8, 5.0e9],
-                    "margin_m": 2000.0, "grid_cell_m": 100.0},
+        "anomaly": {
+            "depth_m": [300.0, 2500.0],
+            "moment_A_m2": [1.0e8, 5.0e9],
+            "margin_m": 2000.0,
+            "grid_cell_m": 100.0,
+        },
     },
 }
 
@@ -297,8 +339,9 @@ class Scenario:
         return cls(cfg, source)
 
     @classmethod
-    def load(cls, name_or_path: str | Path | None = None,
-             overrides: list[str] | None = None) -> Scenario:
+    def load(
+        cls, name_or_path: str | Path | None = None, overrides: list[str] | None = None
+    ) -> Scenario:
         """Load a built-in scenario by name (default ``demo``) or a TOML file by path, then
         apply ``key.sub=value`` overrides (values parsed as TOML, bare words as strings)."""
         name_or_path = name_or_path or "demo"
@@ -306,8 +349,10 @@ class Scenario:
         if not path.suffix:
             builtin = resources.files("pipeline.simulate") / "scenarios" / f"{name_or_path}.toml"
             if not builtin.is_file():
-                raise AeromagError(f"unknown scenario {str(name_or_path)!r} (built-in: "
-                                   f"{', '.join(builtin_scenarios())})")
+                raise AeromagError(
+                    f"unknown scenario {str(name_or_path)!r} (built-in: "
+                    f"{', '.join(builtin_scenarios())})"
+                )
             text, source = builtin.read_text(), f"scenario:{name_or_path}"
         else:
             if not path.is_file():

@@ -161,8 +161,12 @@ class EarthField:
         ndarray, shape (n, 3)
             NED, nT.
         """
-        return (self.main(t) + self.crust(east, north, up) + self.regional(east, north, up)
-                + self.diurnal(t)[:, None] * self.b_hat)
+        return (
+            self.main(t)
+            + self.crust(east, north, up)
+            + self.regional(east, north, up)
+            + self.diurnal(t)[:, None] * self.b_hat
+        )
 
 
 @dataclass
@@ -177,8 +181,12 @@ class SimulatedFlight:
     series: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
 
 
-def _draw_dipoles(sc: Scenario, rng: np.random.Generator, b_hat: np.ndarray,
-                  calibration_en: np.ndarray | None = None) -> list[DipoleSource]:
+def _draw_dipoles(
+    sc: Scenario,
+    rng: np.random.Generator,
+    b_hat: np.ndarray,
+    calibration_en: np.ndarray | None = None,
+) -> list[DipoleSource]:
     """Crustal sources under and around the survey block.
 
     With ``anomaly.quiet_calibration_m`` > 0 no source lies closer than that (horizontally)
@@ -188,8 +196,9 @@ def _draw_dipoles(sc: Scenario, rng: np.random.Generator, b_hat: np.ndarray,
     """
     a, s = sc["anomaly"], sc["survey"]
     quiet = float(a.get("quiet_calibration_m", 0.0))
-    along = np.array([np.sin(np.radians(s["line_heading_deg"])),
-                      np.cos(np.radians(s["line_heading_deg"]))])
+    along = np.array(
+        [np.sin(np.radians(s["line_heading_deg"])), np.cos(np.radians(s["line_heading_deg"]))]
+    )
     across = np.array([along[1], -along[0]])
     out = []
     for _ in range(int(a["dipoles"])):
@@ -197,8 +206,12 @@ def _draw_dipoles(sc: Scenario, rng: np.random.Generator, b_hat: np.ndarray,
             u = rng.uniform(-a["margin_m"], s["length_m"] + a["margin_m"])
             w = rng.uniform(-a["margin_m"], s["width_m"] + a["margin_m"])
             e, n = np.array([s["east_m"], s["north_m"]]) + u * along + w * across
-            if quiet <= 0 or calibration_en is None or not calibration_en.size or np.min(
-                    np.hypot(calibration_en[:, 0] - e, calibration_en[:, 1] - n)) >= quiet:
+            if (
+                quiet <= 0
+                or calibration_en is None
+                or not calibration_en.size
+                or np.min(np.hypot(calibration_en[:, 0] - e, calibration_en[:, 1] - n)) >= quiet
+            ):
                 break
         depth = rng.uniform(*a["depth_m"])
         m = np.exp(rng.uniform(np.log(a["moment_A_m2"][0]), np.log(a["moment_A_m2"][1])))
@@ -222,8 +235,7 @@ def _drop(t: np.ndarray, topic: str, dropouts: list[dict]) -> np.ndarray:
     return keep
 
 
-def _switching(levels, switch_s, rng: np.random.Generator, duration: float,
-               settle_s: float = 2.0):
+def _switching(levels, switch_s, rng: np.random.Generator, duration: float, settle_s: float = 2.0):
     """A current switching between two levels at random dwell times (A)."""
     lo, hi = levels
     t_sw, level, t = [0.0], [lo], 0.0
@@ -245,8 +257,7 @@ def _switching(levels, switch_s, rng: np.random.Generator, duration: float,
 
 def _payload_current(sc: Scenario, rng: np.random.Generator, duration: float):
     """The payload current: two levels, random dwell, 2 s settling (A)."""
-    return _switching(sc["aux"]["payload_levels_A"], sc["aux"]["payload_switch_s"], rng,
-                      duration)
+    return _switching(sc["aux"]["payload_levels_A"], sc["aux"]["payload_switch_s"], rng, duration)
 
 
 def _piece_mask(traj: Trajectory, t: np.ndarray, labels: tuple[str, ...]) -> np.ndarray:
@@ -257,9 +268,15 @@ def _piece_mask(traj: Trajectory, t: np.ndarray, labels: tuple[str, ...]) -> np.
     return mask
 
 
-def _outside_basis(sc: Scenario, seed: int, traj: Trajectory, t: np.ndarray, b: np.ndarray,
-                   db: np.ndarray, dt: float
-                   ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, float]]]:
+def _outside_basis(
+    sc: Scenario,
+    seed: int,
+    traj: Trajectory,
+    t: np.ndarray,
+    b: np.ndarray,
+    db: np.ndarray,
+    dt: float,
+) -> tuple[dict[str, np.ndarray], dict[str, dict[str, float]]]:
     """Body-frame interference vectors outside the T-L basis at the scalar epochs ``t``.
 
     Each enabled term gets a generator of its own (its shape does not depend on which other
@@ -294,16 +311,20 @@ def _outside_basis(sc: Scenario, seed: int, traj: Trajectory, t: np.ndarray, b: 
         elif name == "eddy_lag":
             shape = lagging_eddy_vector(db, dt, float(ob["eddy_tau_s"]), eddy)
         elif name == "unrecorded_current":
-            current = _switching((0.0, 1.0), ob["unrecorded_switch_s"], rng,
-                                 float(t[-1]) + 10.0, settle_s=1.0)
+            current = _switching(
+                (0.0, 1.0), ob["unrecorded_switch_s"], rng, float(t[-1]) + 10.0, settle_s=1.0
+            )
             d = rng.normal(size=3)
             shape = current(t)[:, None] * (d / np.linalg.norm(d))
         else:  # vibration
             f = float(ob["vibration_hz"]) * np.ones(traj.master_t.size)
             if sc["flight"]["kinematics"] != "fixed-wing":  # rotor speed follows the thrust
                 f = f * np.sqrt(1.0 + 0.25 * traj.motor_load)
-            phase = np.concatenate([[0.0], np.cumsum((f[1:] + f[:-1]) / 2
-                                                     * np.diff(traj.master_t))]) * 2 * np.pi
+            phase = (
+                np.concatenate([[0.0], np.cumsum((f[1:] + f[:-1]) / 2 * np.diff(traj.master_t))])
+                * 2
+                * np.pi
+            )
             ph = np.interp(t, traj.master_t, phase)
             fr = np.interp(t, traj.master_t, f)
             ratio = np.asarray(VIBRATION_MODES)  # each axis its own mode
@@ -347,18 +368,23 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
     lat, lon, alt = frame.to_geodetic(st["east_m"], st["north_m"], st["up_m"])
     main_ned = igrf_ned_nT(lat, lon, alt, when)
     survey_alt = sc["survey"]["altitude_m"]
-    b0 = igrf_ned_nT(site["latitude_deg"], site["longitude_deg"],
-                     site["ground_altitude_m"] + survey_alt, when)[0]
+    b0 = igrf_ned_nT(
+        site["latitude_deg"], site["longitude_deg"], site["ground_altitude_m"] + survey_alt, when
+    )[0]
     b_hat = b0 / np.linalg.norm(b0)
 
-    cal_t = np.concatenate([np.arange(p.t0_s, p.t1_s, 1.0) for p in traj.pieces
-                            if p.label == "calibration"] or [np.zeros(0)])
+    cal_t = np.concatenate(
+        [np.arange(p.t0_s, p.t1_s, 1.0) for p in traj.pieces if p.label == "calibration"]
+        or [np.zeros(0)]
+    )
     cal_st = traj.state(cal_t)
-    dipoles = _draw_dipoles(sc, rng, b_hat, np.column_stack([cal_st["east_m"],
-                                                             cal_st["north_m"]]))
+    dipoles = _draw_dipoles(sc, rng, b_hat, np.column_stack([cal_st["east_m"], cal_st["north_m"]]))
     grad = sc.effect("geomagnetic_gradient")
-    gvec = (np.array([grad["east_nT_per_m"], grad["north_nT_per_m"], grad["up_nT_per_m"]])
-            if grad else np.zeros(3))
+    gvec = (
+        np.array([grad["east_nT_per_m"], grad["north_nT_per_m"], grad["up_nT_per_m"]])
+        if grad
+        else np.zeros(3)
+    )
     s = sc["survey"]
     ref = np.array([s["east_m"], s["north_m"], survey_alt])
     diu = sc.effect("diurnal")
@@ -374,23 +400,30 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
     on = bool(sc["interference_enabled"])
     tl = {k: v for k, v in sc["interference"].items() if k != "outside_basis"}
     scalar_int = CarrierInterference(**tl) if on else CarrierInterference.none()
-    vector_int = (CarrierInterference(**sc["vector_interference"]) if on
-                  else CarrierInterference.none())
+    vector_int = (
+        CarrierInterference(**sc["vector_interference"]) if on else CarrierInterference.none()
+    )
     vcal = sc.effect("vector_calibration")
-    flux_err = (FluxgateErrors(vcal["scale_error"], vcal["nonorthogonality_deg"],
-                               vcal["offset_nT"]) if vcal else FluxgateErrors())
+    flux_err = (
+        FluxgateErrors(vcal["scale_error"], vcal["nonorthogonality_deg"], vcal["offset_nT"])
+        if vcal
+        else FluxgateErrors()
+    )
     lag = sc.effect("sensor_lag")
     lag_s = float(lag["lag_s"]) if lag else 0.0
     response = str(lag["response"]) if lag else "delay"
     if response not in ("delay", "first_order"):
-        raise AeromagError(f"effects.sensor_lag.response {response!r}: use delay or first_order",
-                           file=sc.source)
+        raise AeromagError(
+            f"effects.sensor_lag.response {response!r}: use delay or first_order", file=sc.source
+        )
     delay_s = lag_s if response == "delay" else 0.0  # physics read this much earlier
     cur = sc.effect("electrical_current")
     payload_current = _payload_current(sc, rng, T + 10.0)
     hover = float(sc["aux"]["motor_hover_A"])
-    temp0, temp_rise, temp_time = (float(sc["aux"][k]) for k in (
-        "temperature_start_degC", "temperature_rise_K", "temperature_time_s"))
+    temp0, temp_rise, temp_time = (
+        float(sc["aux"][k])
+        for k in ("temperature_start_degC", "temperature_rise_K", "temperature_time_s")
+    )
 
     def motor_current(tt: np.ndarray) -> np.ndarray:
         return hover * (1.0 + 0.25 * traj.motor_load_at(tt))
@@ -430,8 +463,9 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
         if k_temp:  # the coupling drifts with the (recorded) temperature
             temp = aux_funcs["temperature"][0]
             coupling = coupling * (1.0 + k_temp * (temp(t_phys) - temp(np.zeros(1))))
-        b_int = b_int + (coupling * aux_funcs[cur["channel"]][0](t_phys)
-                         )[:, None] * (d / np.linalg.norm(d))
+        b_int = b_int + (coupling * aux_funcs[cur["channel"]][0](t_phys))[:, None] * (
+            d / np.linalg.norm(d)
+        )
     dt_s = 1.0 / float(sens["scalar_rate_hz"])
     outside, outside_info = _outside_basis(sc, seed, traj, t_phys, b, db, dt_s)
     earth_total = np.linalg.norm(b, axis=1)
@@ -443,16 +477,24 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
         clean = first_order_lowpass(clean, dt_s, lag_s)
         earth_total = first_order_lowpass(earth_total, dt_s, lag_s)
     noise = rng.normal(0, sens["scalar_noise_nT"], t_s.size)
-    drift = np.cumsum(rng.normal(0, sens["scalar_drift_nT_per_sqrt_s"]
-                                 * np.sqrt(1 / sens["scalar_rate_hz"]), t_s.size))
+    drift = np.cumsum(
+        rng.normal(
+            0, sens["scalar_drift_nT_per_sqrt_s"] * np.sqrt(1 / sens["scalar_rate_hz"]), t_s.size
+        )
+    )
     keep = _drop(t_s, "/mag/scalar", drops)
-    streams["/mag/scalar"] = {"schema": "aeromag.ScalarField", "t": t_s[keep],
-                              "sensor_id": sens["scalar_id"],
-                              "cols": {"total_nT": (clean + noise + drift)[keep]}}
-    scalar_truth = {"time_ns": start_ns + np.round(t_s * NS).astype(np.int64),
-                    "earth_total_nT": earth_total,
-                    "interference_nT": clean - earth_total,
-                    "noise_nT": noise + drift}
+    streams["/mag/scalar"] = {
+        "schema": "aeromag.ScalarField",
+        "t": t_s[keep],
+        "sensor_id": sens["scalar_id"],
+        "cols": {"total_nT": (clean + noise + drift)[keep]},
+    }
+    scalar_truth = {
+        "time_ns": start_ns + np.round(t_s * NS).astype(np.int64),
+        "earth_total_nT": earth_total,
+        "interference_nT": clean - earth_total,
+        "noise_nT": noise + drift,
+    }
     outside_truth = None
     if outside:
         u = b / np.linalg.norm(b, axis=1, keepdims=True)
@@ -465,17 +507,23 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
         for name, vec in outside.items():
             proj = np.einsum("ij,ij->i", u, vec)
             scalar_truth[f"outside_basis_{name}_nT"] = proj
-            terms[name] = {**outside_info[name], "calibration_rms_nT": _rms(proj, cal),
-                           "calibration_outside_tl18_rms_nT": _rms(
-                               outside_part(proj, basis, cal), cal),
-                           "survey_rms_nT": _rms(proj, srv)}
+            terms[name] = {
+                **outside_info[name],
+                "calibration_rms_nT": _rms(proj, cal),
+                "calibration_outside_tl18_rms_nT": _rms(outside_part(proj, basis, cal), cal),
+                "survey_rms_nT": _rms(proj, srv),
+            }
         outside_truth = {
             "calibration_rms_nT": _rms(total, cal),
             "calibration_outside_tl18_rms_nT": _rms(outside_part(total, basis, cal), cal),
             "survey_rms_nT": _rms(total, srv),
-            "survey_outside_tl18_rms_nT": (_rms(outside_part(total, basis, srv), srv)
-                                           if srv.sum() > 4 * basis.shape[1] else None),
-            "terms": terms}
+            "survey_outside_tl18_rms_nT": (
+                _rms(outside_part(total, basis, srv), srv)
+                if srv.sum() > 4 * basis.shape[1]
+                else None
+            ),
+            "terms": terms,
+        }
 
     # vector magnetometer
     t_v = _times(T, sens["vector_rate_hz"], offs.get("vector", 0.0), margin)
@@ -483,69 +531,114 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
     meas = flux_err.apply(bv + vector_int.vector_nT(bv, dbv))
     meas = meas + rng.normal(0, sens["vector_noise_nT"], meas.shape)
     keep = _drop(t_v, "/mag/vector", drops)
-    streams["/mag/vector"] = {"schema": "aeromag.VectorField", "t": t_v[keep],
-                              "sensor_id": sens["vector_id"],
-                              "cols": {"x_nT": meas[keep, 0], "y_nT": meas[keep, 1],
-                                       "z_nT": meas[keep, 2]}}
+    streams["/mag/vector"] = {
+        "schema": "aeromag.VectorField",
+        "t": t_v[keep],
+        "sensor_id": sens["vector_id"],
+        "cols": {"x_nT": meas[keep, 0], "y_nT": meas[keep, 1], "z_nT": meas[keep, 2]},
+    }
 
     # attitude
     t_a = _times(T, sens["attitude_rate_hz"], offs.get("attitude", 0.0), margin)
     xa = traj.state(t_a)
     na = sens["attitude_noise_deg"]
     keep = _drop(t_a, "/ins/attitude", drops)
-    streams["/ins/attitude"] = {"schema": "aeromag.Attitude", "t": t_a[keep], "cols": {
-        "roll_deg": (xa["roll_deg"] + rng.normal(0, na, t_a.size))[keep],
-        "pitch_deg": (xa["pitch_deg"] + rng.normal(0, na, t_a.size))[keep],
-        "yaw_deg": np.mod(xa["yaw_deg"] + rng.normal(0, na, t_a.size), 360.0)[keep]}}
+    streams["/ins/attitude"] = {
+        "schema": "aeromag.Attitude",
+        "t": t_a[keep],
+        "cols": {
+            "roll_deg": (xa["roll_deg"] + rng.normal(0, na, t_a.size))[keep],
+            "pitch_deg": (xa["pitch_deg"] + rng.normal(0, na, t_a.size))[keep],
+            "yaw_deg": np.mod(xa["yaw_deg"] + rng.normal(0, na, t_a.size), 360.0)[keep],
+        },
+    }
 
     # GNSS
     t_g = _times(T, sens["gnss_rate_hz"], offs.get("gnss", 0.0), margin)
     xg = traj.state(t_g)
     ng = sens["gnss_noise_m"]
-    lat_g, lon_g, alt_g = frame.to_geodetic(xg["east_m"] + rng.normal(0, ng, t_g.size),
-                                            xg["north_m"] + rng.normal(0, ng, t_g.size),
-                                            xg["up_m"] + rng.normal(0, 2 * ng, t_g.size))
+    lat_g, lon_g, alt_g = frame.to_geodetic(
+        xg["east_m"] + rng.normal(0, ng, t_g.size),
+        xg["north_m"] + rng.normal(0, ng, t_g.size),
+        xg["up_m"] + rng.normal(0, 2 * ng, t_g.size),
+    )
     keep = _drop(t_g, "/gnss/fix", drops)
     var = ng**2
-    streams["/gnss/fix"] = {"schema": "foxglove.LocationFix", "t": t_g[keep], "cols": {
-        "latitude": lat_g[keep], "longitude": lon_g[keep], "altitude": alt_g[keep]},
-        "const": {"frame_id": "gnss", "position_covariance":
-                  [var, 0.0, 0.0, 0.0, var, 0.0, 0.0, 0.0, 4 * var],
-                  "position_covariance_type": 2}}
+    streams["/gnss/fix"] = {
+        "schema": "foxglove.LocationFix",
+        "t": t_g[keep],
+        "cols": {"latitude": lat_g[keep], "longitude": lon_g[keep], "altitude": alt_g[keep]},
+        "const": {
+            "frame_id": "gnss",
+            "position_covariance": [var, 0.0, 0.0, 0.0, var, 0.0, 0.0, 0.0, 4 * var],
+            "position_covariance_type": 2,
+        },
+    }
 
     # base station: fixed on the ground at the site, sees the main field and the diurnal
     if sens["base_station"]:
         t_b = _times(T, sens["base_rate_hz"], offs.get("base", 0.0), 0.0)
-        b_base = igrf_ned_nT(site["latitude_deg"], site["longitude_deg"],
-                             site["ground_altitude_m"] + 1.0, when)[0]
+        b_base = igrf_ned_nT(
+            site["latitude_deg"], site["longitude_deg"], site["ground_altitude_m"] + 1.0, when
+        )[0]
         b_base = b_base + field_model.crust(np.zeros(1), np.zeros(1), np.ones(1))[0]
         tot = np.linalg.norm(b_base + field_model.diurnal(t_b)[:, None] * b_hat, axis=1)
         keep = _drop(t_b, "/base/scalar", drops)
-        streams["/base/scalar"] = {"schema": "aeromag.ScalarField", "t": t_b[keep],
-                                   "sensor_id": "base",
-                                   "cols": {"total_nT": (tot + rng.normal(
-                                       0, sens["base_noise_nT"], t_b.size))[keep]}}
+        streams["/base/scalar"] = {
+            "schema": "aeromag.ScalarField",
+            "t": t_b[keep],
+            "sensor_id": "base",
+            "cols": {"total_nT": (tot + rng.normal(0, sens["base_noise_nT"], t_b.size))[keep]},
+        }
 
     # auxiliary channels
     t_x = _times(T, sens["aux_rate_hz"], offs.get("aux", 0.0), margin)
     for name, (fn, unit, sigma) in aux_funcs.items():
         topic = f"/aux/{name}"
         keep = _drop(t_x, topic, drops)
-        streams[topic] = {"schema": "aeromag.Scalar", "t": t_x[keep], "unit": unit,
-                          "cols": {"value": (fn(t_x) + rng.normal(0, sigma, t_x.size))[keep]}}
+        streams[topic] = {
+            "schema": "aeromag.Scalar",
+            "t": t_x[keep],
+            "unit": unit,
+            "cols": {"value": (fn(t_x) + rng.normal(0, sigma, t_x.size))[keep]},
+        }
 
     segments = segment_truth(traj)
     if sens["plan_markers"]:
         tp = np.array([max(sg["start_s"], 0.0) for sg in segments])
-        first = np.concatenate([[True], [segments[i]["label"] != segments[i - 1]["label"]
-                                         or segments[i]["line_id"] != segments[i - 1]["line_id"]
-                                         for i in range(1, len(segments))]])
-        streams["/plan/line"] = {"schema": "aeromag.LineMarker", "t": tp[first], "labels": {
-            "line_id": [sg["line_id"] for sg, f in zip(segments, first, strict=True) if f],
-            "kind": [sg["label"] for sg, f in zip(segments, first, strict=True) if f]}}
+        first = np.concatenate(
+            [
+                [True],
+                [
+                    segments[i]["label"] != segments[i - 1]["label"]
+                    or segments[i]["line_id"] != segments[i - 1]["line_id"]
+                    for i in range(1, len(segments))
+                ],
+            ]
+        )
+        streams["/plan/line"] = {
+            "schema": "aeromag.LineMarker",
+            "t": tp[first],
+            "labels": {
+                "line_id": [sg["line_id"] for sg, f in zip(segments, first, strict=True) if f],
+                "kind": [sg["label"] for sg, f in zip(segments, first, strict=True) if f],
+            },
+        }
 
-    truth = _truth(sc, seed, start_ns, traj, field_model, b0, scalar_int, vector_int, flux_err,
-                   lag_s, segments, scalar_truth)
+    truth = _truth(
+        sc,
+        seed,
+        start_ns,
+        traj,
+        field_model,
+        b0,
+        scalar_int,
+        vector_int,
+        flux_err,
+        lag_s,
+        segments,
+        scalar_truth,
+    )
     # variety options report only when on: older truth documents stay as they were
     if calibration_variety(sc):
         truth["calibration_manoeuvres"] = manoeuvre_truth(traj)
@@ -554,17 +647,33 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
     return SimulatedFlight(sc, seed, start_ns, streams, truth, traj, scalar_truth)
 
 
-def _truth(sc, seed, start_ns, traj, fm: EarthField, b0, scalar_int, vector_int, flux_err,
-           lag_s, segments, scalar_truth) -> dict[str, Any]:
+def _truth(
+    sc,
+    seed,
+    start_ns,
+    traj,
+    fm: EarthField,
+    b0,
+    scalar_int,
+    vector_int,
+    flux_err,
+    lag_s,
+    segments,
+    scalar_truth,
+) -> dict[str, Any]:
     s, a = sc["survey"], sc["anomaly"]
     cell = float(a["grid_cell_m"])
-    along = np.array([np.sin(np.radians(s["line_heading_deg"])),
-                      np.cos(np.radians(s["line_heading_deg"]))])
+    along = np.array(
+        [np.sin(np.radians(s["line_heading_deg"])), np.cos(np.radians(s["line_heading_deg"]))]
+    )
     # Truth grid: axis-aligned east/north box around the survey area at survey height.
     corners = np.array([[0, 0], [1, 0], [0, 1], [1, 1]], float)
     across = np.array([along[1], -along[0]])
-    pts = (np.array([s["east_m"], s["north_m"]]) + np.outer(corners[:, 0], s["length_m"] * along)
-           + np.outer(corners[:, 1], s["width_m"] * across))
+    pts = (
+        np.array([s["east_m"], s["north_m"]])
+        + np.outer(corners[:, 0], s["length_m"] * along)
+        + np.outer(corners[:, 1], s["width_m"] * across)
+    )
     e0, n0 = pts.min(axis=0)
     e1, n1 = pts.max(axis=0)
     ne = int(np.floor((e1 - e0) / cell)) + 1
@@ -584,40 +693,69 @@ def _truth(sc, seed, start_ns, traj, fm: EarthField, b0, scalar_int, vector_int,
         "seed": seed,
         "start_time_ns": start_ns,
         "duration_s": traj.duration_s,
-        "site": {"latitude_deg": sc["site"]["latitude_deg"],
-                 "longitude_deg": sc["site"]["longitude_deg"],
-                 "ground_altitude_m": sc["site"]["ground_altitude_m"],
-                 "local_frame": fm.frame.crs},
-        "main_field": {"ned_nT": b0.tolist(), "total_nT": total_b0,
-                       "inclination_deg": float(np.degrees(np.arcsin(b0[2] / total_b0))),
-                       "declination_deg": float(np.degrees(np.arctan2(b0[1], b0[0])))},
-        "interference": {"scalar": scalar_int.to_dict(), "vector": vector_int.to_dict(),
-                         "enabled": bool(sc["interference_enabled"])},
+        "site": {
+            "latitude_deg": sc["site"]["latitude_deg"],
+            "longitude_deg": sc["site"]["longitude_deg"],
+            "ground_altitude_m": sc["site"]["ground_altitude_m"],
+            "local_frame": fm.frame.crs,
+        },
+        "main_field": {
+            "ned_nT": b0.tolist(),
+            "total_nT": total_b0,
+            "inclination_deg": float(np.degrees(np.arcsin(b0[2] / total_b0))),
+            "declination_deg": float(np.degrees(np.arctan2(b0[1], b0[0]))),
+        },
+        "interference": {
+            "scalar": scalar_int.to_dict(),
+            "vector": vector_int.to_dict(),
+            "enabled": bool(sc["interference_enabled"]),
+        },
         "fluxgate_errors": flux_err.to_dict(),
         "effects": effects,
         "enabled_effects": sc.enabled_effects(),
-        "effective": {"sensor_lag_s": lag_s,
-                      "gradient_nT_per_m": fm.gradient_nT_per_m.tolist()},
-        "noise": {"scalar_nT": sens["scalar_noise_nT"], "vector_nT": sens["vector_noise_nT"],
-                  "attitude_deg": sens["attitude_noise_deg"], "gnss_m": sens["gnss_noise_m"],
-                  "base_nT": sens["base_noise_nT"],
-                  "scalar_drift_nT_per_sqrt_s": sens["scalar_drift_nT_per_sqrt_s"]},
+        "effective": {"sensor_lag_s": lag_s, "gradient_nT_per_m": fm.gradient_nT_per_m.tolist()},
+        "noise": {
+            "scalar_nT": sens["scalar_noise_nT"],
+            "vector_nT": sens["vector_noise_nT"],
+            "attitude_deg": sens["attitude_noise_deg"],
+            "gnss_m": sens["gnss_noise_m"],
+            "base_nT": sens["base_noise_nT"],
+            "scalar_drift_nT_per_sqrt_s": sens["scalar_drift_nT_per_sqrt_s"],
+        },
         "segments": segments,
         "scalar_interference_nT": {
             "rms": float(np.sqrt(np.mean(scalar_truth["interference_nT"] ** 2))),
-            "peak_to_peak": float(np.ptp(scalar_truth["interference_nT"]))},
+            "peak_to_peak": float(np.ptp(scalar_truth["interference_nT"])),
+        },
         "anomaly": {
-            "dipoles": [{"east_m": d.east_m, "north_m": d.north_m, "up_m": d.up_m,
-                         "moment_ned_A_m2": list(d.moment_ned_A_m2)} for d in fm.dipoles],
-            "grid": {"east0_m": float(e0), "north0_m": float(n0), "cell_m": cell,
-                     "shape": [nn, ne], "height_agl_m": float(s["altitude_m"]),
-                     "values_nT": np.round(anom, 4).tolist()},
-            "peak_abs_nT": float(np.max(np.abs(anom)))},
+            "dipoles": [
+                {
+                    "east_m": d.east_m,
+                    "north_m": d.north_m,
+                    "up_m": d.up_m,
+                    "moment_ned_A_m2": list(d.moment_ned_A_m2),
+                }
+                for d in fm.dipoles
+            ],
+            "grid": {
+                "east0_m": float(e0),
+                "north0_m": float(n0),
+                "cell_m": cell,
+                "shape": [nn, ne],
+                "height_agl_m": float(s["altitude_m"]),
+                "values_nT": np.round(anom, 4).tolist(),
+            },
+            "peak_abs_nT": float(np.max(np.abs(anom))),
+        },
     }
 
 
-def write_simulation(sim: SimulatedFlight, out: str | Path, truth_out: str | Path | None = None,
-                     topics: list[str] | None = None) -> Path:
+def write_simulation(
+    sim: SimulatedFlight,
+    out: str | Path,
+    truth_out: str | Path | None = None,
+    topics: list[str] | None = None,
+) -> Path:
     """Write the recording (streams merged in time order; only ``topics`` when given) and the
     truth JSON."""
     rows: list[tuple[int, str, int]] = []

@@ -95,8 +95,13 @@ def _unit(heading_deg: float) -> tuple[np.ndarray, np.ndarray]:
 def calibration_variety(sc: Scenario) -> bool:
     """True when a calibration variety option (order, randomised blocks) is on."""
     cal = sc["calibration"]
-    return bool(cal["heading_order"] or cal["manoeuvre_order"] or cal["block_duration_s"]
-                or cal["period_range_s"] or cal["amplitude_range_deg"])
+    return bool(
+        cal["heading_order"]
+        or cal["manoeuvre_order"]
+        or cal["block_duration_s"]
+        or cal["period_range_s"]
+        or cal["amplitude_range_deg"]
+    )
 
 
 def plan_rng(seed: int) -> np.random.Generator:
@@ -123,8 +128,9 @@ def _headings(cal: dict, rng: np.random.Generator | None) -> list[float]:
         return [listed[i] for i in rng.permutation(len(listed))]
     letters = order.upper()
     if not letters or set(letters) - set(HEADING_OF):
-        raise AeromagError(f"calibration.heading_order {order!r}: use letters N, E, S, W "
-                           "(e.g. \"WNES\") or \"random\"")
+        raise AeromagError(
+            f'calibration.heading_order {order!r}: use letters N, E, S, W (e.g. "WNES") or "random"'
+        )
     return [HEADING_OF[c] for c in letters]
 
 
@@ -134,12 +140,15 @@ def _leg_manoeuvres(cal: dict, rng: np.random.Generator | None) -> list[Manoeuvr
     kinds = list(KINDS)
     if cal["manoeuvre_order"]:
         if str(cal["manoeuvre_order"]).lower() != "random":
-            raise AeromagError(f"calibration.manoeuvre_order {cal['manoeuvre_order']!r}: use "
-                               "\"random\" (or leave it empty)")
+            raise AeromagError(
+                f"calibration.manoeuvre_order {cal['manoeuvre_order']!r}: use "
+                '"random" (or leave it empty)'
+            )
         assert rng is not None
         kinds = [kinds[i] for i in rng.permutation(3)]
-    blocks, periods, amps = (_range(cal, k) for k in ("block_duration_s", "period_range_s",
-                                                      "amplitude_range_deg"))
+    blocks, periods, amps = (
+        _range(cal, k) for k in ("block_duration_s", "period_range_s", "amplitude_range_deg")
+    )
     man: list[Manoeuvre] = []
     t = steady
     for kind in kinds:
@@ -155,8 +164,9 @@ def _leg_manoeuvres(cal: dict, rng: np.random.Generator | None) -> list[Manoeuvr
     return man
 
 
-def calibration_legs(sc: Scenario, pass_no: int,
-                     rng: np.random.Generator | None = None) -> list[Leg]:
+def calibration_legs(
+    sc: Scenario, pass_no: int, rng: np.random.Generator | None = None
+) -> list[Leg]:
     """The calibration box: one leg per heading, each with roll, pitch and yaw oscillations.
 
     ``rng`` (the plan's generator, see :func:`plan_rng`) draws the variety options; without
@@ -164,8 +174,9 @@ def calibration_legs(sc: Scenario, pass_no: int,
     """
     cal, v = sc["calibration"], sc["flight"]["speed_m_s"]
     survey = sc["survey"]
-    centre = np.array([survey["east_m"] + cal["centre_east_m"],
-                       survey["north_m"] + cal["centre_north_m"]])
+    centre = np.array(
+        [survey["east_m"] + cal["centre_east_m"], survey["north_m"] + cal["centre_north_m"]]
+    )
     variety = calibration_variety(sc)
     if variety and rng is None:
         rng = plan_rng(0)
@@ -180,14 +191,24 @@ def calibration_legs(sc: Scenario, pass_no: int,
         along, right = _unit(h)
         mid = centre - half * right
         card = CARDINALS.get(round(h) % 360, f"{h:g}")
-        legs.append(Leg("calibration", f"C{pass_no}{card}", f"cal{pass_no}",
-                        mid - along * length / 2, mid + along * length / 2,
-                        cal["altitude_m"], [Manoeuvre(**vars(m)) for m in man], card))
+        legs.append(
+            Leg(
+                "calibration",
+                f"C{pass_no}{card}",
+                f"cal{pass_no}",
+                mid - along * length / 2,
+                mid + along * length / 2,
+                cal["altitude_m"],
+                [Manoeuvre(**vars(m)) for m in man],
+                card,
+            )
+        )
     return legs
 
 
-def _nearest_order(lines: list[tuple[np.ndarray, np.ndarray]],
-                   here: np.ndarray) -> list[tuple[int, np.ndarray, np.ndarray]]:
+def _nearest_order(
+    lines: list[tuple[np.ndarray, np.ndarray]], here: np.ndarray
+) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """Fly parallel lines serpentine, starting with the line end nearest ``here``.
 
     Returns (index into ``lines``, start, end) in flying order.
@@ -211,27 +232,38 @@ def survey_legs(sc: Scenario, here: np.ndarray) -> list[Leg]:
     corner = np.array([s["east_m"], s["north_m"]])
     L, W = s["length_m"], s["width_m"]
     n_lines = int(np.floor(W / s["line_spacing_m"] + 1e-9)) + 1
-    lines = [(corner + i * s["line_spacing_m"] * across,
-              corner + i * s["line_spacing_m"] * across + L * along) for i in range(n_lines)]
+    lines = [
+        (
+            corner + i * s["line_spacing_m"] * across,
+            corner + i * s["line_spacing_m"] * across + L * along,
+        )
+        for i in range(n_lines)
+    ]
     legs: list[Leg] = []
     for num, a, b in _nearest_order(lines, here):
         legs.append(Leg("survey", f"L{10 * (num + 1):04d}", "survey", a, b, s["altitude_m"]))
     here = legs[-1].end_en
     n_ties = int(np.floor(L / s["tie_spacing_m"] + 1e-9)) + 1
-    ties = [(corner + j * s["tie_spacing_m"] * along,
-             corner + j * s["tie_spacing_m"] * along + W * across) for j in range(n_ties)]
+    ties = [
+        (
+            corner + j * s["tie_spacing_m"] * along,
+            corner + j * s["tie_spacing_m"] * along + W * across,
+        )
+        for j in range(n_ties)
+    ]
     for num, a, b in _nearest_order(ties, here):
         legs.append(Leg("tie", f"T{10 * (num + 1):04d}", "survey", a, b, s["altitude_m"]))
     if s["validation"]:
         here = legs[-1].end_en
-        diag = [(corner, corner + L * along + W * across),
-                (corner + W * across, corner + L * along)]
+        diag = [
+            (corner, corner + L * along + W * across),
+            (corner + W * across, corner + L * along),
+        ]
         # first diagonal from its end nearest the current position, second likewise
         for k, (a, b) in enumerate(diag):
             if np.linalg.norm(b - here) < np.linalg.norm(a - here):
                 a, b = b, a
-            legs.append(Leg("validation", f"V{10 * (k + 1):04d}", "survey", a, b,
-                            s["altitude_m"]))
+            legs.append(Leg("validation", f"V{10 * (k + 1):04d}", "survey", a, b, s["altitude_m"]))
             here = b
     return legs
 
@@ -356,8 +388,14 @@ class Trajectory:
     def state(self, t_s) -> dict[str, np.ndarray]:
         """east_m, north_m, up_m (above ground), roll_deg, pitch_deg, yaw_deg (0-360)."""
         v = self._spline(np.asarray(t_s, float))
-        return {"east_m": v[..., 0], "north_m": v[..., 1], "up_m": v[..., 2],
-                "roll_deg": v[..., 3], "pitch_deg": v[..., 4], "yaw_deg": np.mod(v[..., 5], 360)}
+        return {
+            "east_m": v[..., 0],
+            "north_m": v[..., 1],
+            "up_m": v[..., 2],
+            "roll_deg": v[..., 3],
+            "pitch_deg": v[..., 4],
+            "yaw_deg": np.mod(v[..., 5], 360),
+        }
 
     def motor_load_at(self, t_s) -> np.ndarray:
         """Manoeuvre intensity (drives the simulated motor current) at times ``t_s``.
@@ -419,8 +457,7 @@ def build_trajectory(sc: Scenario, seed: int = 0) -> Trajectory:
             geoms.append(("curve", curve, prev.alt_agl_m, leg.alt_agl_m))
             t += dur
         dur = leg.length_m / v
-        pieces.append(Piece(leg.label, leg.line_id, leg, t, t + dur, leg.heading_deg,
-                            leg.cardinal))
+        pieces.append(Piece(leg.label, leg.line_id, leg, t, t + dur, leg.heading_deg, leg.cardinal))
         geoms.append(("leg", leg, leg.alt_agl_m, leg.alt_agl_m))
         t += dur
     duration = t
@@ -435,8 +472,11 @@ def build_trajectory(sc: Scenario, seed: int = 0) -> Trajectory:
     climb_pitch = np.zeros(n)
 
     for piece, (kind, geom, alt0, alt1) in zip(pieces, geoms, strict=True):
-        sel = (tm >= piece.t0_s) & (tm < piece.t1_s) if piece is not pieces[-1] else (
-            tm >= piece.t0_s)
+        sel = (
+            (tm >= piece.t0_s) & (tm < piece.t1_s)
+            if piece is not pieces[-1]
+            else (tm >= piece.t0_s)
+        )
         s = np.clip((tm[sel] - piece.t0_s) * v, 0.0, None)
         length = (piece.t1_s - piece.t0_s) * v
         frac = np.clip(s / length, 0.0, 1.0) if length > 0 else np.zeros_like(s)
@@ -450,13 +490,18 @@ def build_trajectory(sc: Scenario, seed: int = 0) -> Trajectory:
             heading[sel] = leg.heading_deg
             idx = np.flatnonzero(sel)
             for m in leg.manoeuvres:
-                w = idx[(tm[idx] >= piece.t0_s + m.start_s)
-                        & (tm[idx] <= piece.t0_s + m.start_s + m.duration_s)]
+                w = idx[
+                    (tm[idx] >= piece.t0_s + m.start_s)
+                    & (tm[idx] <= piece.t0_s + m.start_s + m.duration_s)
+                ]
                 if w.size < 3:
                     continue
                 tt = tm[w] - tm[w[0]]
-                delta = (m.amplitude_deg * np.sin(2 * np.pi * tt / m.period_s)
-                         * _envelope(tt, m.duration_s, m.period_s / 2))
+                delta = (
+                    m.amplitude_deg
+                    * np.sin(2 * np.pi * tt / m.period_s)
+                    * _envelope(tt, m.duration_s, m.period_s / 2)
+                )
                 omega = 2 * np.pi / m.period_s
                 if m.kind == "roll":
                     d_roll[w] = delta
@@ -496,8 +541,7 @@ def build_trajectory(sc: Scenario, seed: int = 0) -> Trajectory:
     yaw = np.degrees(hd) + d_yaw + turn_yaw
     roll_all = roll + d_roll
     pitch_all = float(fl["cruise_pitch_deg"]) + climb_pitch + d_pitch
-    spline = CubicSpline(tm, np.stack([east, north, up, roll_all, pitch_all, yaw], axis=1),
-                         axis=0)
+    spline = CubicSpline(tm, np.stack([east, north, up, roll_all, pitch_all, yaw], axis=1), axis=0)
     load = np.abs(d_roll) / 10.0 + np.abs(d_pitch) / 5.0 + np.abs(d_yaw) / 5.0
     return Trajectory(duration, pieces, spline, tm, load)
 
@@ -509,12 +553,19 @@ def manoeuvre_truth(traj: Trajectory) -> list[dict]:
         if p.leg is None:
             continue
         for m in p.leg.manoeuvres:
-            out.append({"line_id": p.line_id, "cardinal": p.cardinal,
-                        "heading_deg": round(float(p.heading_deg or 0.0), 3), "kind": m.kind,
-                        "start_s": float(p.t0_s + m.start_s),
-                        "end_s": float(p.t0_s + m.start_s + m.duration_s),
-                        "period_s": float(m.period_s), "amplitude_deg": float(m.amplitude_deg),
-                        "cycles": float(m.cycles)})
+            out.append(
+                {
+                    "line_id": p.line_id,
+                    "cardinal": p.cardinal,
+                    "heading_deg": round(float(p.heading_deg or 0.0), 3),
+                    "kind": m.kind,
+                    "start_s": float(p.t0_s + m.start_s),
+                    "end_s": float(p.t0_s + m.start_s + m.duration_s),
+                    "period_s": float(m.period_s),
+                    "amplitude_deg": float(m.amplitude_deg),
+                    "cycles": float(m.cycles),
+                }
+            )
     return out
 
 
@@ -522,9 +573,13 @@ def segment_truth(traj: Trajectory) -> list[dict]:
     """Labelled time intervals: pieces, with calibration legs split into their manoeuvres."""
     out: list[dict] = []
     for p in traj.pieces:
-        base = {"label": p.label, "line_id": p.line_id,
-                "heading_deg": None if p.heading_deg is None else round(p.heading_deg, 3),
-                "manoeuvre": "", "cardinal": p.cardinal}
+        base = {
+            "label": p.label,
+            "line_id": p.line_id,
+            "heading_deg": None if p.heading_deg is None else round(p.heading_deg, 3),
+            "manoeuvre": "",
+            "cardinal": p.cardinal,
+        }
         if p.leg is None or not p.leg.manoeuvres:
             out.append({**base, "start_s": p.t0_s, "end_s": p.t1_s})
             continue

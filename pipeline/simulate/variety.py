@@ -24,15 +24,32 @@ import numpy as np
 OUTSIDE_TERMS = ("second_order", "eddy_lag", "unrecorded_current", "vibration")
 
 _SHORT = {
-    "uav": ["survey.length_m=400.0", "survey.width_m=100.0", "survey.line_spacing_m=50.0",
-            "survey.tie_spacing_m=400.0", "survey.validation=false", "survey.enabled=true",
-            "calibration.centre_east_m=-250.0", "calibration.centre_north_m=-250.0",
-            "flight.transit_s=10.0", "anomaly.dipoles=8", "anomaly.margin_m=200.0"],
-    "fixed-wing": ["survey.length_m=3000.0", "survey.width_m=800.0",
-                   "survey.line_spacing_m=400.0", "survey.tie_spacing_m=3000.0",
-                   "survey.validation=false", "survey.enabled=true",
-                   "calibration.centre_east_m=-5000.0", "calibration.centre_north_m=-4000.0",
-                   "flight.transit_s=10.0", "anomaly.dipoles=8", "anomaly.margin_m=1000.0"],
+    "uav": [
+        "survey.length_m=400.0",
+        "survey.width_m=100.0",
+        "survey.line_spacing_m=50.0",
+        "survey.tie_spacing_m=400.0",
+        "survey.validation=false",
+        "survey.enabled=true",
+        "calibration.centre_east_m=-250.0",
+        "calibration.centre_north_m=-250.0",
+        "flight.transit_s=10.0",
+        "anomaly.dipoles=8",
+        "anomaly.margin_m=200.0",
+    ],
+    "fixed-wing": [
+        "survey.length_m=3000.0",
+        "survey.width_m=800.0",
+        "survey.line_spacing_m=400.0",
+        "survey.tie_spacing_m=3000.0",
+        "survey.validation=false",
+        "survey.enabled=true",
+        "calibration.centre_east_m=-5000.0",
+        "calibration.centre_north_m=-4000.0",
+        "flight.transit_s=10.0",
+        "anomaly.dipoles=8",
+        "anomaly.margin_m=1000.0",
+    ],
 }
 
 
@@ -40,15 +57,19 @@ def _fmt(x: float) -> str:
     return repr(float(x))
 
 
-def random_flight_overrides(rng: np.random.Generator, *, short: bool = True,
-                            profiles: tuple[str, ...] = ("uav", "fixed-wing"),
-                            passes: tuple[int, int] = (1, 2),
-                            block_duration_s: tuple[float, float] = (15.0, 60.0),
-                            period_range_s: tuple[float, float] = (3.0, 10.0),
-                            amplitude_range_deg: tuple[float, float] = (3.0, 15.0),
-                            noise_nT: tuple[float, float] = (0.02, 0.5),
-                            outside_basis_nT: tuple[float, float] = (0.0, 1.0),
-                            outside_terms: tuple[str, ...] = OUTSIDE_TERMS) -> list[str]:
+def random_flight_overrides(
+    rng: np.random.Generator,
+    *,
+    short: bool = True,
+    profiles: tuple[str, ...] = ("uav", "fixed-wing"),
+    passes: tuple[int, int] = (1, 2),
+    block_duration_s: tuple[float, float] = (15.0, 60.0),
+    period_range_s: tuple[float, float] = (3.0, 10.0),
+    amplitude_range_deg: tuple[float, float] = (3.0, 15.0),
+    noise_nT: tuple[float, float] = (0.02, 0.5),
+    outside_basis_nT: tuple[float, float] = (0.0, 1.0),
+    outside_terms: tuple[str, ...] = OUTSIDE_TERMS,
+) -> list[str]:
     """A random flight within the given ranges, as ``key=value`` scenario overrides.
 
     ``noise_nT`` is drawn log-uniformly, ``outside_basis_nT`` (the total RMS outside the tl18
@@ -56,17 +77,21 @@ def random_flight_overrides(rng: np.random.Generator, *, short: bool = True,
     caps ``block_duration_s`` at 30 s. Deterministic for a given ``rng`` state.
     """
     if short:
-        block_duration_s = (block_duration_s[0],
-                            max(block_duration_s[0], min(block_duration_s[1], 30.0)))
+        block_duration_s = (
+            block_duration_s[0],
+            max(block_duration_s[0], min(block_duration_s[1], 30.0)),
+        )
     profile = str(rng.choice(list(profiles)))
-    out = [f"profile={profile}", "name=random-flight",
-           f"calibration.passes={int(rng.integers(passes[0], passes[1] + 1))}",
-           f'calibration.heading_order="{"".join(rng.permutation(list("NESW")))}"',
-           f"calibration.block_duration_s=[{_fmt(block_duration_s[0])}, "
-           f"{_fmt(block_duration_s[1])}]",
-           f"calibration.period_range_s=[{_fmt(period_range_s[0])}, {_fmt(period_range_s[1])}]",
-           f"calibration.amplitude_range_deg=[{_fmt(amplitude_range_deg[0])}, "
-           f"{_fmt(amplitude_range_deg[1])}]"]
+    out = [
+        f"profile={profile}",
+        "name=random-flight",
+        f"calibration.passes={int(rng.integers(passes[0], passes[1] + 1))}",
+        f'calibration.heading_order="{"".join(rng.permutation(list("NESW")))}"',
+        f"calibration.block_duration_s=[{_fmt(block_duration_s[0])}, {_fmt(block_duration_s[1])}]",
+        f"calibration.period_range_s=[{_fmt(period_range_s[0])}, {_fmt(period_range_s[1])}]",
+        f"calibration.amplitude_range_deg=[{_fmt(amplitude_range_deg[0])}, "
+        f"{_fmt(amplitude_range_deg[1])}]",
+    ]
     lo, hi = np.log(noise_nT[0]), np.log(noise_nT[1])
     out.append(f"sensors.scalar_noise_nT={_fmt(np.exp(rng.uniform(lo, hi)))}")
     total = float(rng.uniform(*outside_basis_nT))

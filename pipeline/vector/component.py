@@ -46,13 +46,18 @@ class ComponentParameters:
 
     def state(self, scaled: bool) -> np.ndarray:
         s = UT_SCALE if scaled else 1.0
-        return np.r_[np.asarray(self.permanent_nT) / s, np.ravel(self.induced),
-                     np.ravel(self.eddy_s)]
+        return np.r_[
+            np.asarray(self.permanent_nT) / s, np.ravel(self.induced), np.ravel(self.eddy_s)
+        ]
 
     def predict(self, t_nT: np.ndarray, dt_nT_s: np.ndarray) -> np.ndarray:
         """The measured field this model predicts for Earth field T (n, 3)."""
-        return (t_nT + self.permanent_nT + t_nT @ np.asarray(self.induced).T
-                + dt_nT_s @ np.asarray(self.eddy_s).T)
+        return (
+            t_nT
+            + self.permanent_nT
+            + t_nT @ np.asarray(self.induced).T
+            + dt_nT_s @ np.asarray(self.eddy_s).T
+        )
 
     def compensate(self, m_nT: np.ndarray, dt_nT_s: np.ndarray) -> np.ndarray:
         """Invert the model: T = (I + A)^-1 (T_m - T_p - B dT/dt)."""
@@ -60,9 +65,11 @@ class ComponentParameters:
         return np.linalg.solve(np.eye(3) + np.asarray(self.induced), rhs.T).T
 
     def to_dict(self) -> dict:
-        return {"permanent_nT": [float(v) for v in self.permanent_nT],
-                "induced": np.asarray(self.induced).tolist(),
-                "eddy_s": np.asarray(self.eddy_s).tolist()}
+        return {
+            "permanent_nT": [float(v) for v in self.permanent_nT],
+            "induced": np.asarray(self.induced).tolist(),
+            "eddy_s": np.asarray(self.eddy_s).tolist(),
+        }
 
 
 def design(t_nT: np.ndarray, dt_nT_s: np.ndarray, scaled: bool) -> np.ndarray:
@@ -73,13 +80,14 @@ def design(t_nT: np.ndarray, dt_nT_s: np.ndarray, scaled: bool) -> np.ndarray:
     s = UT_SCALE if scaled else 1.0
     for i in range(3):
         h[:, i, i] = s
-        h[:, i, 3 + 3 * i:6 + 3 * i] = t
-        h[:, i, 12 + 3 * i:15 + 3 * i] = dt
+        h[:, i, 3 + 3 * i : 6 + 3 * i] = t
+        h[:, i, 12 + 3 * i : 15 + 3 * i] = dt
     return h
 
 
-def batch_fit(t_nT: np.ndarray, dt_nT_s: np.ndarray, m_nT: np.ndarray
-              ) -> tuple[ComponentParameters, float, ComponentParameters]:
+def batch_fit(
+    t_nT: np.ndarray, dt_nT_s: np.ndarray, m_nT: np.ndarray
+) -> tuple[ComponentParameters, float, ComponentParameters]:
     """Least squares over all samples: the parameters, the residual RMS (nT) and the
     parameters' standard errors (from the residual variance, white noise assumed)."""
     h = design(t_nT, dt_nT_s, scaled=True).reshape(-1, N_STATES)
@@ -92,8 +100,11 @@ def batch_fit(t_nT: np.ndarray, dt_nT_s: np.ndarray, m_nT: np.ndarray
     sigma2 = float(r @ r) / max(r.size - N_STATES, 1)
     hs = h[ok] / col
     cov = sigma2 * np.linalg.pinv(hs.T @ hs) / np.outer(col, col)
-    return (ComponentParameters.from_state(x, scaled=True), float(np.sqrt(np.mean(r**2))),
-            ComponentParameters.from_state(np.sqrt(np.diag(cov)), scaled=True))
+    return (
+        ComponentParameters.from_state(x, scaled=True),
+        float(np.sqrt(np.mean(r**2))),
+        ComponentParameters.from_state(np.sqrt(np.diag(cov)), scaled=True),
+    )
 
 
 @dataclass
@@ -154,16 +165,22 @@ class ComponentKF:
     window: int = field(default_factory=lambda: int(default_value("vector", "fuzzy_window")))
     b: float = field(default_factory=lambda: float(default_value("vector", "fuzzy_exponent")))
     r_bounds: tuple[float, float] = field(  # R_k stays within these multiples of R_0
-        default_factory=lambda: tuple(float(v) for v in default_value("vector",
-                                                                      "fuzzy_r_bounds")))
+        default_factory=lambda: tuple(float(v) for v in default_value("vector", "fuzzy_r_bounds"))
+    )
     history: KFHistory | None = field(default=None, repr=False)
 
     @classmethod
     def paper(cls, scaled: bool = True, fuzzy: bool = False) -> ComponentKF:
         """Paper 000's Table 1 settings: X0, P0 = 100 I, Q = 1e-5 I, R = 1e-3 I."""
         x0 = np.r_[np.zeros(3), np.full(9, 0.01), np.full(9, 0.02)]
-        return cls(x0, 100.0 * np.eye(N_STATES), 1e-5 * np.eye(N_STATES), 1e-3 * np.eye(3),
-                   scaled, RorFuzzy() if fuzzy else None)
+        return cls(
+            x0,
+            100.0 * np.eye(N_STATES),
+            1e-5 * np.eye(N_STATES),
+            1e-3 * np.eye(3),
+            scaled,
+            RorFuzzy() if fuzzy else None,
+        )
 
     def configure(self, vector: dict[str, Any]) -> ComponentKF:
         """Take the fuzzy-R settings of a ``[vector]`` configuration table (``fuzzy_window``,
@@ -177,13 +194,13 @@ class ComponentKF:
             lo, hi = (float(v) for v in vector["fuzzy_r_bounds"])
             self.r_bounds = (lo, hi)
         if self.window < 1 or not 0.0 < self.r_bounds[0] <= 1.0 <= self.r_bounds[1]:
-            raise ValueError("vector.fuzzy_window >= 1 and fuzzy_r_bounds = [lo <= 1, hi >= 1] "
-                             "with lo > 0")
+            raise ValueError(
+                "vector.fuzzy_window >= 1 and fuzzy_r_bounds = [lo <= 1, hi >= 1] with lo > 0"
+            )
         self.fuzzy = RorFuzzy.from_values(vector)
         return self
 
-    def run(self, t_nT: np.ndarray, dt_nT_s: np.ndarray, m_nT: np.ndarray
-            ) -> ComponentParameters:
+    def run(self, t_nT: np.ndarray, dt_nT_s: np.ndarray, m_nT: np.ndarray) -> ComponentParameters:
         h_all = design(t_nT, dt_nT_s, self.scaled)
         y_all = np.asarray(m_nT, float) - np.asarray(t_nT, float)
         n = y_all.shape[0]
@@ -231,8 +248,7 @@ class ComponentKF:
         return ComponentParameters.from_state(x, self.scaled)
 
 
-def convergence_sample(states: np.ndarray, reference: np.ndarray, rel_tol: float = 0.02
-                       ) -> int:
+def convergence_sample(states: np.ndarray, reference: np.ndarray, rel_tol: float = 0.02) -> int:
     """First sample from which the RMS relative error of the states (against ``reference``:
     the truth in a simulation, else the final estimate) stays within ``rel_tol``."""
     rel = np.sqrt(np.mean(((states - reference) / np.abs(reference)) ** 2, axis=1))

@@ -66,9 +66,12 @@ class Ellipsoid:
         return (np.asarray(m, float) - self.centre) @ self.soft_iron_inverse.T
 
     def to_dict(self) -> dict:
-        return {"hard_iron": [float(v) for v in self.centre],
-                "soft_iron_inverse": self.soft_iron_inverse.tolist(),
-                "field": self.field, "theta": [float(v) for v in self.theta]}
+        return {
+            "hard_iron": [float(v) for v in self.centre],
+            "soft_iron_inverse": self.soft_iron_inverse.tolist(),
+            "field": self.field,
+            "theta": [float(v) for v in self.theta],
+        }
 
 
 def fit_ellipsoid(m: np.ndarray, field: float, noise: float | None = None) -> Ellipsoid:
@@ -116,8 +119,7 @@ class EllipsoidKF:
         return cls(sphere(field), np.diag((sigma_rel * scale) ** 2), noise)
 
     @classmethod
-    def from_prior(cls, prior: Ellipsoid, noise: float, inflate: float = 1000.0
-                   ) -> EllipsoidKF:
+    def from_prior(cls, prior: Ellipsoid, noise: float, inflate: float = 1000.0) -> EllipsoidKF:
         """Start at a prior batch fit with its covariance inflated ``inflate`` times: the
         prior then weighs like a handful of samples, so it sets the starting point without
         holding the filter back when the carrier has changed since (with 10x, a prior whose
@@ -172,12 +174,13 @@ def magnitude_error(states: np.ndarray, m: np.ndarray, field: float) -> np.ndarr
     for k in range(m.shape[0]):
         e = Ellipsoid(states[k], field)
         if e.valid():
-            out[k] = np.linalg.norm(e.calibrate(m[k:k + 1])) - field
+            out[k] = np.linalg.norm(e.calibrate(m[k : k + 1])) - field
     return out
 
 
-def convergence_time(time_s: np.ndarray, error: np.ndarray, threshold: float,
-                     hold_s: float) -> float | None:
+def convergence_time(
+    time_s: np.ndarray, error: np.ndarray, threshold: float, hold_s: float
+) -> float | None:
     """Online convergence detection: the first time from which the error (e.g. the running
     RMS of the magnitude error) stays below ``threshold`` for ``hold_s`` and never again
     exceeds it. None if it never settles."""
@@ -205,8 +208,10 @@ def roll_from_radial(b_body: np.ndarray, b_unrolled: np.ndarray) -> np.ndarray:
     the reference field and the other attitude angles); rolling by phi rotates its (y, z)
     components by -phi.
     """
-    a = np.degrees(np.arctan2(b_unrolled[..., 2], b_unrolled[..., 1])
-                   - np.arctan2(b_body[..., 2], b_body[..., 1]))
+    a = np.degrees(
+        np.arctan2(b_unrolled[..., 2], b_unrolled[..., 1])
+        - np.arctan2(b_body[..., 2], b_body[..., 1])
+    )
     return np.mod(a, 360.0)
 
 

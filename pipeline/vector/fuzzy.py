@@ -68,8 +68,9 @@ class RorFuzzy:
         for name in SET_KEYS:
             v = getattr(self, name)
             if len(v) != 4 or any(b < a for a, b in zip(v[:-1], v[1:], strict=True)):
-                raise ValueError(f"fuzzy_{name}: four non-decreasing numbers (a, b, c, d), "
-                                 f"got {list(v)}")
+                raise ValueError(
+                    f"fuzzy_{name}: four non-decreasing numbers (a, b, c, d), got {list(v)}"
+                )
         if self.s_small[0] <= 0.0:
             raise ValueError("fuzzy_s_small: the factor s must stay positive")
 
@@ -77,16 +78,28 @@ class RorFuzzy:
     def from_values(cls, vector: dict[str, Any]) -> RorFuzzy:
         """From a ``[vector]`` table of the configuration (keys ``fuzzy_ror_*``,
         ``fuzzy_s_*``; missing ones take the shipped defaults)."""
-        return cls(**{k: tuple(float(x) for x in vector[f"fuzzy_{k}"])
-                      for k in SET_KEYS if f"fuzzy_{k}" in vector})
+        return cls(
+            **{
+                k: tuple(float(x) for x in vector[f"fuzzy_{k}"])
+                for k in SET_KEYS
+                if f"fuzzy_{k}" in vector
+            }
+        )
 
     def scale(self, ror: float) -> float:
         """s for one ROR (min implication, max aggregation, centroid)."""
-        w = [float(_trap(ror, *self.ror_small)), float(_trap(ror, *self.ror_equal)),
-             float(_trap(ror, *self.ror_large))]
+        w = [
+            float(_trap(ror, *self.ror_small)),
+            float(_trap(ror, *self.ror_equal)),
+            float(_trap(ror, *self.ror_large)),
+        ]
         s = np.linspace(self.s_small[0], self.s_large[3], self.grid)
-        agg = np.max([np.minimum(wk, _trap(s, *mf)) for wk, mf in
-                      zip(w, (self.s_small, self.s_medium, self.s_large), strict=True)],
-                     axis=0)
+        agg = np.max(
+            [
+                np.minimum(wk, _trap(s, *mf))
+                for wk, mf in zip(w, (self.s_small, self.s_medium, self.s_large), strict=True)
+            ],
+            axis=0,
+        )
         total = agg.sum()
         return float((s * agg).sum() / total) if total > 0 else 1.0

@@ -17,7 +17,8 @@ from pipeline.vector.component import ComponentParameters
 PAPER_000 = ComponentParameters(
     np.array([40.0, -100.0, 120.0]),
     np.array([[0.065, 0.1, 0.26], [0.02, 0.5, 0.28], [0.2, 0.26, 0.16]]),
-    np.array([[0.1, 0.32, 0.22], [0.13, 0.16, 0.61], [0.16, 0.17, 0.02]]))
+    np.array([[0.1, 0.32, 0.22], [0.13, 0.16, 0.61], [0.16, 0.17, 0.02]]),
+)
 
 # a mid-latitude main field (NED, nT): |T| about 52 000 nT, inclination 50 deg
 EARTH_NED_NT = np.array([33_000.0, -3_000.0, 40_000.0])
@@ -33,9 +34,13 @@ class ComponentFlight:
     truth: ComponentParameters
 
 
-def rotating_carrier(n: int = 10_000, rate_hz: float = 10.0, noise_nT: float | np.ndarray = 5.0,
-                     params: ComponentParameters = PAPER_000, seed: int = 0
-                     ) -> ComponentFlight:
+def rotating_carrier(
+    n: int = 10_000,
+    rate_hz: float = 10.0,
+    noise_nT: float | np.ndarray = 5.0,
+    params: ComponentParameters = PAPER_000,
+    seed: int = 0,
+) -> ComponentFlight:
     """A carrier turning steadily in heading while pitching and rolling at other periods
     (a single fixed rotation axis would make dT/dt = w x T, i.e. B indistinguishable from A).
     """
@@ -77,13 +82,19 @@ class SpinFlight:
     field_ned_G: np.ndarray
 
 
-def spinning_carrier(rate_hz: float = 500.0, duration_s: float = 5.0, spin_rev_s: float = 5.0,
-                     pitch_from_deg: float = 45.0, pitch_to_deg: float = -45.0,
-                     field_G: float = PAPER_003_FIELD_G, noise_G: float = 0.0005,
-                     hard_iron_G=(0.06, -0.035, 0.045),
-                     soft_iron=((1.06, 0.025, -0.015), (0.025, 0.95, 0.02),
-                                (-0.015, 0.02, 1.03)),
-                     seed: int = 0, t0_s: float = 0.0) -> SpinFlight:
+def spinning_carrier(
+    rate_hz: float = 500.0,
+    duration_s: float = 5.0,
+    spin_rev_s: float = 5.0,
+    pitch_from_deg: float = 45.0,
+    pitch_to_deg: float = -45.0,
+    field_G: float = PAPER_003_FIELD_G,
+    noise_G: float = 0.0005,
+    hard_iron_G=(0.06, -0.035, 0.045),
+    soft_iron=((1.06, 0.025, -0.015), (0.025, 0.95, 0.02), (-0.015, 0.02, 1.03)),
+    seed: int = 0,
+    t0_s: float = 0.0,
+) -> SpinFlight:
     """Paper 003's simulation: spin 5 rev/s about the body x axis while the pitch runs
     linearly from +45 to -45 deg over 5 s; |H| = 0.5267 G; white noise 0.0005 G per axis.
     Hard/soft iron are ours (the paper does not list them): tens of mG and a few percent.

@@ -33,21 +33,33 @@ METHODS = ("ellipsoid-kf", "component-kf", "batch")
 
 def reference_field_body_nT(flight: Flight, every: int = 10) -> tuple[np.ndarray, np.ndarray]:
     """IGRF in the body frame at every epoch, and its time derivative (nT, nT/s)."""
-    flight.require("lat_deg", "lon_deg", "alt_m", "roll_deg", "pitch_deg", "yaw_deg",
-                   purpose="the reference field of component compensation")
+    flight.require(
+        "lat_deg",
+        "lon_deg",
+        "alt_m",
+        "roll_deg",
+        "pitch_deg",
+        "yaw_deg",
+        purpose="the reference field of component compensation",
+    )
     d = flight.data
     lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
     t = d["time_s"].to_numpy(float)
     ok = np.flatnonzero(np.isfinite(lat) & np.isfinite(lon) & np.isfinite(alt))
     if ok.size < 2:
-        raise AeromagError("no valid position for the reference field", file=flight.source,
-                           channel="/gnss/fix")
+        raise AeromagError(
+            "no valid position for the reference field", file=flight.source, channel="/gnss/fix"
+        )
     pick = np.unique(np.r_[ok[::every], ok[-1]])
     when = datetime.fromtimestamp(int(np.median(flight.time_ns[ok])) / 1e9, tz=UTC)
     ned_p = igrf_ned_nT(lat[pick], lon[pick], alt[pick], when)
     ned = np.column_stack([np.interp(t, t[pick], ned_p[:, i]) for i in range(3)])
-    body = ned_to_body(ned, d["roll_deg"].to_numpy(float), d["pitch_deg"].to_numpy(float),
-                       d["yaw_deg"].to_numpy(float))
+    body = ned_to_body(
+        ned,
+        d["roll_deg"].to_numpy(float),
+        d["pitch_deg"].to_numpy(float),
+        d["yaw_deg"].to_numpy(float),
+    )
     return body, np.gradient(body, t, axis=0)
 
 
@@ -61,9 +73,13 @@ class VectorRun:
     converged_s: float | None = None
 
     def summary(self) -> dict[str, Any]:
-        return {"method": self.method, "output_topic": self.output_topic,
-                "parameters": self.parameters, **self.figures,
-                "converged_s": self.converged_s}
+        return {
+            "method": self.method,
+            "output_topic": self.output_topic,
+            "parameters": self.parameters,
+            **self.figures,
+            "converged_s": self.converged_s,
+        }
 
 
 def _fit_mask(flight: Flight, seg: Segmentation | None) -> np.ndarray:
@@ -77,8 +93,9 @@ def _fit_mask(flight: Flight, seg: Segmentation | None) -> np.ndarray:
     return mask
 
 
-def run_vector(flight: Flight, seg: Segmentation | None, method: str,
-               settings: dict[str, Any] | None = None) -> VectorRun:
+def run_vector(
+    flight: Flight, seg: Segmentation | None, method: str, settings: dict[str, Any] | None = None
+) -> VectorRun:
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (use {', '.join(METHODS)})")
     flight.require("vector_x_nT", "vector_y_nT", "vector_z_nT", purpose="the vector stage")
@@ -91,8 +108,11 @@ def run_vector(flight: Flight, seg: Segmentation | None, method: str,
     ref, rate = reference_field_body_nT(flight)
     fit = mask & np.all(np.isfinite(ref), axis=1) & np.all(np.isfinite(rate), axis=1)
     if fit.sum() < 200:
-        raise AeromagError(f"only {int(fit.sum())} calibration epochs with vector, attitude "
-                           "and position", file=flight.source, channel="/mag/vector")
+        raise AeromagError(
+            f"only {int(fit.sum())} calibration epochs with vector, attitude and position",
+            file=flight.source,
+            channel="/mag/vector",
+        )
     if method == "batch":
         params, resid, se = batch_fit(ref[fit], rate[fit], m[fit])
         extra: dict[str, Any] = {"fit_residual_nT": resid, "standard_errors": se.to_dict()}
@@ -107,28 +127,35 @@ def run_vector(flight: Flight, seg: Segmentation | None, method: str,
         kf.q = 1e-12 * np.eye(21)
         params = kf.run(ref[fit], rate[fit], m[fit])
         h = kf.history
-        extra = {"kalman_steps": int(fit.sum()),
-                 "r_scale_final": float(h.r_scale[-1]),
-                 "r_final_nT2": float(h.r_nT2[-1]),
-                 "ror_median": (float(np.nanmedian(h.ror)) if np.isfinite(h.ror).any()
-                                else None),
-                 "covariance_min_eigenvalue": float(np.nanmin(h.min_eig)),
-                 "covariance_max_asymmetry": float(h.asym.max())}
+        extra = {
+            "kalman_steps": int(fit.sum()),
+            "r_scale_final": float(h.r_scale[-1]),
+            "r_final_nT2": float(h.r_nT2[-1]),
+            "ror_median": (float(np.nanmedian(h.ror)) if np.isfinite(h.ror).any() else None),
+            "covariance_min_eigenvalue": float(np.nanmin(h.min_eig)),
+            "covariance_max_asymmetry": float(h.asym.max()),
+        }
     comp = params.compensate(m, rate)
     before = np.linalg.norm(m, axis=1) - np.linalg.norm(ref, axis=1)
     after = np.linalg.norm(comp, axis=1) - np.linalg.norm(ref, axis=1)
-    figures = {"magnitude_vs_reference_rms_nT": {
-        "before": float(np.sqrt(np.nanmean(before[fit] ** 2))),
-        "after": float(np.sqrt(np.nanmean(after[fit] ** 2)))},
+    figures = {
+        "magnitude_vs_reference_rms_nT": {
+            "before": float(np.sqrt(np.nanmean(before[fit] ** 2))),
+            "after": float(np.sqrt(np.nanmean(after[fit] ** 2))),
+        },
         "component_vs_reference_rms_nT": {
             "before": [float(v) for v in np.sqrt(np.nanmean((m - ref)[fit] ** 2, axis=0))],
-            "after": [float(v) for v in np.sqrt(np.nanmean((comp - ref)[fit] ** 2, axis=0))]},
-        "fit_epochs": int(fit.sum()), **extra}
+            "after": [float(v) for v in np.sqrt(np.nanmean((comp - ref)[fit] ** 2, axis=0))],
+        },
+        "fit_epochs": int(fit.sum()),
+        **extra,
+    }
     return VectorRun(method, "/mag/vector/compensated", comp, params.to_dict(), figures)
 
 
-def _ellipsoid(flight: Flight, seg, m_raw: np.ndarray, t: np.ndarray, mask: np.ndarray
-               ) -> VectorRun:
+def _ellipsoid(
+    flight: Flight, seg, m_raw: np.ndarray, t: np.ndarray, mask: np.ndarray
+) -> VectorRun:
     # The ellipsoid model needs a constant |H|, while the main field changes along a flight
     # (tens of nT per 10 km): each vector is scaled by field / IGRF total first, so the sphere
     # is the same at every epoch (the hard iron is scaled along, by far under 1 %). Not by
@@ -137,8 +164,12 @@ def _ellipsoid(flight: Flight, seg, m_raw: np.ndarray, t: np.ndarray, mask: np.n
         from pipeline.maps.reduce import igrf_total_nT
 
         d = flight.data
-        reference = igrf_total_nT(flight.time_ns, d["lat_deg"].to_numpy(float),
-                                  d["lon_deg"].to_numpy(float), d["alt_m"].to_numpy(float))
+        reference = igrf_total_nT(
+            flight.time_ns,
+            d["lat_deg"].to_numpy(float),
+            d["lon_deg"].to_numpy(float),
+            d["alt_m"].to_numpy(float),
+        )
         reference = np.where(np.isfinite(reference), reference, np.nanmedian(reference))
     else:
         reference = np.full(t.size, np.nanmedian(np.linalg.norm(m_raw, axis=1)))
@@ -150,8 +181,9 @@ def _ellipsoid(flight: Flight, seg, m_raw: np.ndarray, t: np.ndarray, mask: np.n
         p0 = seg.passes()[0]
         first = p0[np.all(np.isfinite(m[p0]), axis=1)]
     prior = fit_ellipsoid(m[first], field)
-    noise = float(np.sqrt(np.mean((np.linalg.norm(prior.calibrate(m[first]), axis=1)
-                                   - field) ** 2)))
+    noise = float(
+        np.sqrt(np.mean((np.linalg.norm(prior.calibrate(m[first]), axis=1) - field) ** 2))
+    )
     kf = EllipsoidKF.from_prior(prior, max(noise, 1e-3))
     ok = np.all(np.isfinite(m), axis=1)
     states = np.full((m.shape[0], 9), np.nan)
@@ -162,7 +194,7 @@ def _ellipsoid(flight: Flight, seg, m_raw: np.ndarray, t: np.ndarray, mask: np.n
     step = max(int(round(1.0 / float(np.median(np.diff(t))))), 1)
     idx = np.flatnonzero(ok)
     for k0 in range(0, idx.size, step):
-        seg_ix = idx[k0:k0 + step]
+        seg_ix = idx[k0 : k0 + step]
         e = Ellipsoid(states[seg_ix[0]], field)
         if e.valid():
             out[seg_ix] = e.calibrate(m[seg_ix])
@@ -171,14 +203,23 @@ def _ellipsoid(flight: Flight, seg, m_raw: np.ndarray, t: np.ndarray, mask: np.n
     cal = ok & mask  # where the reference is the field (survey lines carry geology)
     mag_before = np.linalg.norm(m[cal], axis=1) - field
     mag_after = np.linalg.norm(final.calibrate(m[cal]), axis=1) - field
-    figures = {"field_nT": field, "prior_epochs": int(first.size),
-               "update_epochs": int(cal.sum()),
-               "magnitude_vs_reference_rms_nT": {
-                   "before": float(np.sqrt(np.mean(mag_before**2))),
-                   "after": float(np.sqrt(np.mean(mag_after**2)))},
-               "covariance_min_eigenvalue": kf.min_eig}
-    return VectorRun("ellipsoid-kf", "/mag/vector/calibrated", out,
-                     {**final.to_dict(), "prior": prior.to_dict()}, figures)
+    figures = {
+        "field_nT": field,
+        "prior_epochs": int(first.size),
+        "update_epochs": int(cal.sum()),
+        "magnitude_vs_reference_rms_nT": {
+            "before": float(np.sqrt(np.mean(mag_before**2))),
+            "after": float(np.sqrt(np.mean(mag_after**2))),
+        },
+        "covariance_min_eigenvalue": kf.min_eig,
+    }
+    return VectorRun(
+        "ellipsoid-kf",
+        "/mag/vector/calibrated",
+        out,
+        {**final.to_dict(), "prior": prior.to_dict()},
+        figures,
+    )
 
 
 def component_truth(truth: dict) -> ComponentParameters:
@@ -189,7 +230,8 @@ def component_truth(truth: dict) -> ComponentParameters:
 
     f = FluxgateErrors(**truth["fluxgate_errors"]).matrix()
     v = truth["interference"]["vector"]
-    return ComponentParameters(f @ np.asarray(v["permanent_nT"])
-                               + np.asarray(truth["fluxgate_errors"]["offset_nT"]),
-                               f @ (np.eye(3) + np.asarray(v["induced"])) - np.eye(3),
-                               f @ np.asarray(v["eddy_s"]))
+    return ComponentParameters(
+        f @ np.asarray(v["permanent_nT"]) + np.asarray(truth["fluxgate_errors"]["offset_nT"]),
+        f @ (np.eye(3) + np.asarray(v["induced"])) - np.eye(3),
+        f @ np.asarray(v["eddy_s"]),
+    )
