@@ -25,14 +25,13 @@ browser:
 	@command -v chromium >/dev/null || { $(SUDO) apt-get update -qq && \
 	  DEBIAN_FRONTEND=noninteractive $(SUDO) apt-get install -y -qq chromium >/dev/null; }
 
-# ruff check first: a lint error fails CI before the (long) test run
-test: $(STAMP) lint browser
+# ruff check and format check first: either fails CI before the (long) test run
+test: $(STAMP) lint format-check browser
 	$(BIN)/python -m pytest
 
 lint: $(STAMP)
 	$(BIN)/ruff check $(PY_PATHS)
 
-# Not part of `test` yet: the tree is formatted once, after the open branches merge.
 format-check: $(STAMP)
 	$(BIN)/ruff format --check $(PY_PATHS)
 
