@@ -97,6 +97,9 @@ class ModelSpec:
     # competing explanation of a residual that follows the attitude (as a motor's current
     # does during manoeuvres)
     second_order: bool = False
+    # the carrier's permanent field changed at this time (s; an out-of-catalogue step the
+    # survey showed between two calibration passes): permanent columns after it, u_i [t > t_s]
+    permanent_step_s: float | None = None
 
     def with_(self, **kw) -> ModelSpec:
         return replace(self, **kw)
@@ -183,6 +186,12 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
             f"second_u{'xyz'[i]}B{'xyz'[j]}B{'xyz'[k]}" for i in range(3) for j, k in quad
         ]
         sub += [True] * 18
+    if spec.permanent_step_s is not None:
+        u = direction_cosines(v)
+        after = (data.time_s > spec.permanent_step_s).astype(float)[:, None]
+        cols.append(u * after)
+        names = names + [f"perm_step_u{a}" for a in "xyz"]
+        sub += [True] * 3
     if spec.gradient:
         if data.enu_m is None:
             raise ValueError("the gradient terms need positions (/gnss/fix)")

@@ -783,8 +783,28 @@ class Auditor:
         order = np.argsort(wc, kind="stable")
         return float(np.sqrt(np.mean(rc**2))), rc[order], wc[order]
 
+    def permanent_step(self, spec: ModelSpec) -> float | None:
+        """The time (s) of a step the survey's crossovers show, when calibration data lie on
+        both sides of it: the passes then saw two different permanent fields, which no
+        catalogue effect explains but a current or a drift would imitate, so the baseline
+        allows the permanent field to change there."""
+        steps = [e for e in self.survey_evidence(spec) if e["kind"] == "step"]
+        if not steps:
+            return None
+        t0 = int(self.flight.time_ns[0])
+        t_s = 0.5 * (steps[0]["start_ns"] + steps[0]["end_ns"] - 2 * t0) / 1e9
+        t_cal = self.data.time_s[self.mask]
+        if min((t_cal < t_s).sum(), (t_cal > t_s).sum()) < 60 * self.data.rate_hz:
+            return None
+        self.notes.append(
+            f"the survey shows a step at {t_s:.0f} s between calibration passes: the "
+            "calibration model lets the carrier's permanent field change there"
+        )
+        return float(t_s)
+
     def run(self, progress=None) -> tuple[ModelSpec, list[Evaluation], list[list[Evaluation]]]:
         current = ModelSpec(base=self.s.baseline)
+        current = current.with_(permanent_step_s=self.permanent_step(current))
         findings: list[Evaluation] = []
         rounds: list[list[Evaluation]] = []
         while True:
@@ -1004,7 +1024,10 @@ def run_audit(
     floor = sigma * band_noise_gain(data.rate_hz, s.band.band_hz, s.band.poles)
     if progress:
         progress("survey-side evidence")
-    events = aud.survey_evidence(final_spec) + aud.calibration_events(final_spec)
+    # events are what the catalogue model leaves: without the permanent-field step the
+    # survey itself showed (which the extended model then absorbs)
+    plain = final_spec.with_(permanent_step_s=None)
+    events = aud.survey_evidence(plain) + aud.calibration_events(plain)
     unexplained: dict[str, Any] = {
         "events": events,
         "note": None,
