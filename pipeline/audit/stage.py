@@ -629,7 +629,9 @@ class Auditor:
     def _eval_diurnal(self, current: ModelSpec, key: str) -> Evaluation:
         import statsmodels.api as sm
 
-        dx, db, groups, tie_of, ov, red, base, _, _ = self._crossover_data(current)
+        # a second along track averages the sensor noise out of each crossover reading (the
+        # diurnal changes over minutes), as for the survey-side events
+        dx, db, groups, tie_of, ov, red, base, _, _ = self._crossover_data(current, smooth_s=1.0)
         if dx.size < 8:
             return Evaluation(
                 "diurnal", key, {}, None, None, None, reason=f"only {dx.size} survey-tie crossovers"
