@@ -704,7 +704,11 @@ class Auditor:
     def calibration_events(self, spec: ModelSpec) -> list[dict[str, Any]]:
         """A step in ``spec``'s compensated field inside a calibration leg
         (:mod:`pipeline.audit.calibration_events`), as ``unexplained.events`` entries."""
-        comp, _ = self.fit(spec, None, "all").compensate(self.data)
+        # everything the model explains removed, its geology terms (position) too: a
+        # gradient seen through the manoeuvres' height changes is no step
+        fm = self.fit(spec, None, "all")
+        des = design(self.data, spec)
+        comp = des.y - des.columns @ fm.theta
         leg = np.full(self.mask.size, -1)
         card = np.asarray(self.seg.cardinal, dtype=object)
         cpass = np.asarray(self.seg.calibration_pass)
