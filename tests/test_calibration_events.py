@@ -58,3 +58,11 @@ def test_no_events_from_autocorrelated_residual():
     # alpha 0.01 after the scan correction: 0.4 expected; 3 or more would mean the
     # autocorrelation is not accounted for (p < 0.01 under a binomial(40, 0.01))
     assert false <= 2
+
+
+def test_an_oscillation_is_not_a_step():
+    """A 0.4 nT, 0.25 Hz oscillation over the calibration (a gimbal motor) is structure, but
+    not a step: the oscillation event comes from the residual spectrum instead."""
+    t, y, leg = legs_with_residual(5)
+    y = y + 0.4 * np.sin(2 * np.pi * 0.25 * t)
+    assert calibration_steps(t, y, leg, alpha=0.01, min_size_nT=0.3) == []

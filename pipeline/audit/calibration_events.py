@@ -154,8 +154,13 @@ def calibration_steps(
     tval, lo, hi, step = best
     # the size from the unwhitened data at the located step (whitening trades a step's
     # level for its edge and biases the coefficient when phi is near the unit circle)
-    size = float(np.linalg.lstsq(np.column_stack([base, step]), y_all, rcond=None)[0][-1])
+    a = np.column_stack([base, step])
+    coef = np.linalg.lstsq(a, y_all, rcond=None)[0]
+    size = float(coef[-1])
+    # a step stands out of its leg's own residual; an oscillation (a gimbal, say) that the
+    # whitening models well enough to make a "step" significant does not
+    leg_rms = float(np.sqrt(np.mean((y_all - a @ coef)[which == which[step > 0][0]] ** 2)))
     p = min(1.0, 2 * float(stats.t.sf(abs(tval), n - k - 1)) * len(candidates))
-    if p < alpha and abs(size) >= min_size_nT:
+    if p < alpha and abs(size) >= max(min_size_nT, 3.0 * leg_rms):
         return [CalibrationStep(lo, hi, abs(size), p)]
     return []
