@@ -675,29 +675,37 @@ class Auditor:
                 after[sel] = corr - corr.mean()
         return paired_point_gain(before, after)
 
-    def survey_evidence(self, spec: ModelSpec) -> list[dict[str, Any]]:
-        """Steps and drifts in ``spec``'s compensated field seen at survey/tie crossovers
-        (:mod:`pipeline.audit.survey`), as ``unexplained.events`` entries."""
+    def _survey_crossovers(self, spec: ModelSpec) -> tuple[CrossoverSet, np.ndarray] | None:
+        """The survey's crossover differences of ``spec``'s compensated field, smoothed over
+        1 s along track (7-15 m at survey speeds, well inside the smoothest anomaly at survey
+        height: it averages the sensor noise out of each reading) and less the base
+        station's difference (the day's variation, never the carrier's), with the reduced
+        field along the flight; None without enough crossovers (8)."""
         if not (
             self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
             and self.seg.mask("tie").any()
             and self.seg.mask("survey").any()
         ):
-            return []
-        # a second along track (7-15 m at survey speeds, well inside the smoothest anomaly
-        # at survey height) averages the sensor noise out of each crossover reading
-        dx, db, _, _, _, _, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
+            return None
+        dx, db, _, _, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
         if dx.size < 8:
-            return []
-        d = dx - db  # the base station's variation is the day's, never the carrier's
+            return None
         cs = CrossoverSet(
-            d,
+            dx - db,
             np.array([c.time_a_s for c in xs]),
             np.array([c.time_b_s for c in xs]),
             np.array([heading[c.line_a] for c in xs]),
             np.array([heading[c.line_b] for c in xs]),
         )
-        events = survey_events(cs, self.s.alpha, self.s.min_event_nT)
+        return cs, red
+
+    def survey_evidence(self, spec: ModelSpec) -> list[dict[str, Any]]:
+        """Steps and drifts in ``spec``'s compensated field seen at survey/tie crossovers
+        (:mod:`pipeline.audit.survey`), as ``unexplained.events`` entries."""
+        got = self._survey_crossovers(spec)
+        if got is None:
+            return []
+        events = survey_events(got[0], self.s.alpha, self.s.min_event_nT)
         t0 = int(self.flight.time_ns[0])
         return [e.to_dict(t0) for e in events]
 
@@ -725,52 +733,26 @@ class Auditor:
 
     def survey_lag(self, spec: ModelSpec) -> SurveyLag | None:
         """The lag seen at the survey's crossovers (:func:`pipeline.audit.survey.survey_lag`)."""
-        if not (
-            self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
-            and self.seg.mask("tie").any()
-            and self.seg.mask("survey").any()
-        ):
+        got = self._survey_crossovers(spec)
+        if got is None:
             return None
-        dx, db, _, _, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
-        if dx.size < 8:
-            return None
+        cs, red = got
         t = self.data.time_s
         ok = np.isfinite(red)
         rate = np.full(t.size, np.nan)
         rate[ok] = np.gradient(red[ok], t[ok])
-        ta, tb = np.array([c.time_a_s for c in xs]), np.array([c.time_b_s for c in xs])
-        cs = CrossoverSet(
-            dx - db,
-            ta,
-            tb,
-            np.array([heading[c.line_a] for c in xs]),
-            np.array([heading[c.line_b] for c in xs]),
-        )
-        return survey_lag(cs, np.interp(ta, t, rate), np.interp(tb, t, rate))
+        return survey_lag(cs, np.interp(cs.time_a_s, t, rate), np.interp(cs.time_b_s, t, rate))
 
     def survey_coupling(self, spec: ModelSpec, name: str) -> SurveyCoupling | None:
         """Channel ``name``'s coupling seen at the survey's crossovers
         (:func:`pipeline.audit.survey.survey_coupling`)."""
-        if not (
-            self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT")
-            and self.seg.mask("tie").any()
-            and self.seg.mask("survey").any()
-        ):
+        got = self._survey_crossovers(spec)
+        if got is None:
             return None
-        dx, db, _, _, _, _, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
-        if dx.size < 8:
-            return None
+        cs = got[0]
         t = self.data.time_s
         aux = time_window_mean(t, self.data.aux[name], 1.0)  # as the crossovers are smoothed
-        ta, tb = np.array([c.time_a_s for c in xs]), np.array([c.time_b_s for c in xs])
-        cs = CrossoverSet(
-            dx - db,
-            ta,
-            tb,
-            np.array([heading[c.line_a] for c in xs]),
-            np.array([heading[c.line_b] for c in xs]),
-        )
-        return survey_coupling(cs, np.interp(ta, t, aux), np.interp(tb, t, aux))
+        return survey_coupling(cs, np.interp(cs.time_a_s, t, aux), np.interp(cs.time_b_s, t, aux))
 
     # -- the whole audit ------------------------------------------------------------------
     def cv_residual(
