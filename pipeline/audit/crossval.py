@@ -100,9 +100,11 @@ def passwise_folds(mask: np.ndarray, passes: list[np.ndarray]) -> np.ndarray | N
     return fold
 
 
-def lambda_grid(solver: RidgeSVD, n: int = 25) -> np.ndarray:
-    """Ridge values from far below the smallest to the largest squared singular value."""
-    s2 = solver.s[solver.s > 0] ** 2
+def lambda_grid(s2: np.ndarray, n: int = 25) -> np.ndarray:
+    """Ridge values from far below the smallest to the largest squared singular value
+    ``s2`` (the eigenvalues of K'K) of the design."""
+    s2 = np.asarray(s2, float)
+    s2 = s2[s2 > 0]
     return np.logspace(np.log10(s2.min()) - 4, np.log10(s2.max()), n)
 
 
@@ -133,7 +135,7 @@ def choose_lambda(
     labels = np.unique(groups)
     if labels.size < 2:
         full = RidgeSVD(k, y)
-        lams = lambda_grid(full) if lambdas is None else np.asarray(lambdas, float)
+        lams = lambda_grid(full.s**2) if lambdas is None else np.asarray(lambdas, float)
         return CVLambda(
             lams,
             np.full(lams.size, np.nan),
@@ -151,8 +153,8 @@ def choose_lambda(
     b_all = sum(v[1] for v in gram.values())
     if lambdas is None:
         s2 = np.linalg.eigvalsh(g_all)
-        s2 = s2[s2 > s2.max() * 1e-15]
-        lams = np.logspace(np.log10(s2.min()) - 4, np.log10(s2.max()), 25)
+        # eigenvalues of a numerically singular K'K come out as rounding noise, not zero
+        lams = lambda_grid(s2[s2 > s2.max() * 1e-15])
     else:
         lams = np.asarray(lambdas, float)
     per = np.zeros((labels.size, lams.size))

@@ -378,9 +378,16 @@ class Auditor:
         )
 
     def _lag_estimate(self, current: ModelSpec, keep: np.ndarray | None, key: str) -> float:
-        """The lag minimising the refitted model's residual: a coarse grid over
-        +-``max_lag_s`` (the eddy terms absorb part of a lag, so a linearised estimate with
-        the baseline's coefficients is biased low), then a bounded 1-D refinement."""
+        """The lag minimising the refitted model's residual (see :meth:`_lag_fit`)."""
+        return self._lag_fit(current, keep, key)[0]
+
+    def _lag_fit(
+        self, current: ModelSpec, keep: np.ndarray | None, key: str
+    ) -> tuple[float, float]:
+        """(lag s, residual RMS nT at it): a coarse grid over +-``max_lag_s`` (the eddy
+        terms absorb part of a lag, so a linearised estimate with the baseline's
+        coefficients is biased low), then a bounded 1-D refinement. (0, inf) when the
+        calibration is too short to refit."""
         # the L-curve's lambda even in a fold: with cross-validation's (often tiny) lambda
         # the eddy terms absorb part of the lag (measured: 0.07 s found for 0.16 s)
         lam = self.fit(current, keep, key, ridge="auto").lambda_
@@ -389,7 +396,7 @@ class Auditor:
                 self.data, current, self.mask, self.s.band, lam, self.s.max_lag_s, keep=keep
             )
         except ValueError:
-            return 0.0
+            return 0.0, np.inf
         step = 0.05
         grid = np.arange(-self.s.max_lag_s, self.s.max_lag_s + step / 2, step)
         costs = [cost(float(t)) for t in grid]
@@ -397,27 +404,20 @@ class Auditor:
         res = minimize_scalar(
             cost, bounds=(best - step, best + step), method="bounded", options={"xatol": 1e-4}
         )
-        return float(res.x)
+        return float(res.x), float(res.fun)
 
-    def _lag_response(self, current: ModelSpec) -> str:
+    def _lag_response(self, current: ModelSpec) -> tuple[str, float]:
         """A pure delay or a first-order sensor filter: the response whose best lag leaves
-        the smaller calibration residual (both have one parameter, so no penalty)."""
-        best, best_cost = "delay", np.inf
-        for response in LAG_RESPONSES:
-            spec = current.with_(lag_response=response)
-            lag = self._lag_estimate(spec, None, "all")
-            lam = self.fit(spec, None, "all", ridge="auto").lambda_
-            try:
-                c = lag_cost(self.data, spec, self.mask, self.s.band, lam, self.s.max_lag_s)(lag)
-            except ValueError:
-                continue
-            if c < best_cost:
-                best, best_cost = response, c
-        return best
+        the smaller calibration residual (both have one parameter, so no penalty), and that
+        lag (s) on all calibration data."""
+        fits = {r: self._lag_fit(current.with_(lag_response=r), None, "all") for r in LAG_RESPONSES}
+        best = min(LAG_RESPONSES, key=lambda r: fits[r][1])  # ties: the first, a delay
+        return best, fits[best][0]
 
     def _eval_sensor_lag(self, current: ModelSpec, key: str) -> Evaluation:
         # the response form is the flight's, chosen once on all calibration data
-        current = current.with_(lag_response=self._lag_response(current))
+        response, lag = self._lag_response(current)
+        current = current.with_(lag_response=response)
         des = design(self.data, current)
         dy = np.gradient(des.y, self.data.time_s)
         test = self._nested(current, extra=dy[:, None])
@@ -431,7 +431,6 @@ class Auditor:
         # the competing cause of a lag-like residual: eddy currents with a time constant
         # (the carrier's, not the sensor's); a late sensor delays its whole reading, which
         # the extra eddy columns cannot mimic (checked in _beyond)
-        lag = self._lag_estimate(current, None, "all")
         est = {
             "lag_s": lag,
             "response": current.lag_response,
