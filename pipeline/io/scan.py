@@ -274,6 +274,24 @@ class _Scanner:
             )
 
 
+def _close_map(mm: mmap.mmap) -> None:
+    """Close the file map. A view into it that only a reference cycle still holds (freed at
+    the next garbage collection) makes ``close`` raise BufferError: seen once as "internal
+    error: BufferError: cannot close exported pointers exist" on a Dask worker during archive
+    reprocessing, a valid file quarantined. Collect and retry; if a view is still alive the
+    map closes itself when the last one goes."""
+    try:
+        mm.close()
+    except BufferError:
+        import gc
+
+        gc.collect()
+        try:
+            mm.close()
+        except BufferError:
+            pass
+
+
 def scan_mcap(
     path: str | Path, topics: set[str] | None = None, *, whole_records: bool = False
 ) -> Scan:
@@ -310,7 +328,7 @@ def scan_mcap(
             sc.records(mm, len(MAGIC), size, inner=False)
             out = sc.out
         finally:
-            mm.close()
+            _close_map(mm)
     if not out.footer_seen and not any("truncated" in x.reason for x in out.losses):
         out.losses.append(Loss(size, "no footer: the recording was not closed (summary lost)"))
     return out
