@@ -467,3 +467,23 @@ def test_calibration_guards_pass_a_full_box_and_flag_a_poor_one(box_path):
     assert "12 manoeuvre(s) shorter than 5 s" in text
     assert "ill-conditioned" in text
     assert check.condition_number > max(10 * full["tl16"], CONDITION_LIMITS["tl16"])
+
+
+def test_audit_baseline_and_postflight_tl18_are_one_estimator(clean_survey):
+    """The audit's baseline model is a term set of the post-flight estimator: on the same
+    calibration epochs, the same band and the same lambda, ``fit_model`` (audit) and
+    ``fit_compensation`` (process) give the same coefficients."""
+    from pipeline.audit.extended import AuditData, ModelSpec, fit_model
+
+    _sim, flight, seg, run, _idx = clean_survey
+    cal = calibration_mask(flight, seg, "auto")
+    lam = run.model.lambda_
+    post = fit_compensation(
+        Measurements.from_flight(flight), cal, FitSettings(model="tl18", ridge=lam)
+    )
+    audit = fit_model(AuditData.from_flight(flight, cal), ModelSpec("tl18"), cal, ridge=lam)
+    assert audit.names[: len(post.terms)] == post.terms
+    scale = np.max(np.abs(post.coefficients))
+    np.testing.assert_allclose(
+        audit.theta[: post.coefficients.size], post.coefficients, rtol=0, atol=1e-8 * scale
+    )

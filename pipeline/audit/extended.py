@@ -13,8 +13,9 @@ during calibration, no lag, no auxiliary couplings, vector sensor as calibrated)
 * ``vector_cal``: direction cosines from the recalibrated fluxgate.
 
 Body frame: x forward, y right, z down; positions are local east/north/up metres about the
-calibration site. The fit is the same as :func:`pipeline.compensate.fit_compensation`:
-band-pass per contiguous block, trim, ridge with the L-curve corner.
+calibration site. These models are term sets of the one T-L estimator
+(:mod:`pipeline.compensate.estimator`) that :func:`pipeline.compensate.fit_compensation`
+also uses: band-pass per contiguous block, trim, ridge.
 """
 
 from __future__ import annotations
@@ -24,6 +25,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from pipeline.audit.vector_cal import VectorCalibration
+from pipeline.compensate.estimator import bandpassed_design, fit_ridge
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.ridge import RidgeSVD
 from pipeline.compensate.terms import (
@@ -222,15 +224,9 @@ def bandpassed_rows(
     """(K_bp, y_bp, epoch indices) over the contiguous blocks of ``mask``; with ``keep``
     (epoch mask) only the rows of kept epochs, band-passed with all of ``mask`` (folds of
     short blocks select rows of the once-filtered calibration)."""
-    valid = mask & np.isfinite(des.y) & np.all(np.isfinite(des.columns), axis=1)
-    blocks = contiguous_blocks(valid, data.time_s)
-    sos = bandpass_sos(bs.band_hz, data.rate_hz, bs.poles)
-    kf, where = bandpass_blocks(des.columns, blocks, sos, bs.trim)
-    yf, _ = bandpass_blocks(des.y, blocks, sos, bs.trim)
-    if keep is not None:
-        rows = keep[where]
-        kf, yf, where = kf[rows], yf[rows], where[rows]
-    return kf, yf, where
+    return bandpassed_design(
+        des.columns, des.y, data.time_s, data.rate_hz, mask, bs.band_hz, bs.poles, bs.trim, keep
+    )
 
 
 @dataclass
@@ -277,34 +273,18 @@ def fit_model(
     ``ridge``: ``"auto"`` (L-curve corner), ``"cv"`` (inner cross-validation over the fold
     numbers ``folds`` of the fitted rows, see :mod:`pipeline.audit.crossval`) or a value.
     """
-    from pipeline.audit.crossval import choose_lambda
-
     bs = bs or BandSettings()
     des = design(data, spec)
     kf, yf, where = bandpassed_rows(data, des, mask, bs, keep)
-    if where.size < 2 * kf.shape[1]:
-        raise ValueError(f"only {where.size} usable calibration samples for {kf.shape[1]} terms")
-    if ridge == "cv":
-        if folds is None:
-            raise ValueError("ridge 'cv' needs the fold numbers")
-        lam = choose_lambda(kf, yf, folds[where]).best
-        # the normal equations' eigendecomposition (p x p) instead of an SVD of the rows:
-        # fold fits are most of the audit's fits, and lambda is the cross-validated one
-        w, v = np.linalg.eigh(kf.T @ kf)
-        theta = v @ ((v.T @ (kf.T @ yf)) / (np.clip(w, 0.0, None) + lam))
-    else:
-        solver = RidgeSVD(kf, yf)
-        lam = solver.lcurve().lambda_corner if ridge == "auto" else float(ridge)
-        theta = solver.solve(lam)
-    resid = yf - kf @ theta
+    fit = fit_ridge(kf, yf, ridge, None if folds is None else folds[where])
     return FittedModel(
         spec,
         des.names,
         des.subtract,
-        theta,
-        float(lam),
-        int(where.size),
-        float(np.sqrt(np.mean(resid**2))),
+        fit.theta,
+        fit.lambda_,
+        fit.n_rows,
+        fit.residual_rms,
     )
 
 

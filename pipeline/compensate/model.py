@@ -15,9 +15,10 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.compensate.estimator import bandpassed_design, fit_ridge
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.guards import scaled_condition
-from pipeline.compensate.ridge import LCurve, RidgeSVD
+from pipeline.compensate.ridge import LCurve
 from pipeline.compensate.terms import position_terms, tl16_terms, tl18_terms
 from pipeline.defaults import default_field, default_value, ridge_problem
 from pipeline.flight import Flight
@@ -192,47 +193,30 @@ def fit_compensation(
     s = settings or FitSettings()
     mask = np.asarray(calibration_mask, bool)
     k_full, names, n_tl, reference = _design(s, meas, mask)
-    valid = mask & np.isfinite(meas.scalar_nT) & np.all(np.isfinite(k_full), axis=1)
-    blocks = contiguous_blocks(valid, meas.time_s)
-    if s.band_hz is not None:
-        sos = bandpass_sos(s.band_hz, meas.rate_hz, s.poles)
-        kf, where = bandpass_blocks(k_full, blocks, sos, s.trim)
-        yf, _ = bandpass_blocks(meas.scalar_nT, blocks, sos, s.trim)
-    else:
-        where = np.concatenate(blocks) if blocks else np.zeros(0, int)
-        kf, yf = k_full[where], meas.scalar_nT[where]
+    kf, yf, where = bandpassed_design(
+        k_full, meas.scalar_nT, meas.time_s, meas.rate_hz, mask, s.band_hz, s.poles, s.trim
+    )
     if where.size < 2 * k_full.shape[1]:
         raise ValueError(
             f"only {where.size} usable calibration samples for {k_full.shape[1]} terms"
         )
     cond, weakest = scaled_condition(kf, names)
-    solver = RidgeSVD(kf, yf)
-    lcurve = None
-    if s.ridge == "auto":
-        lcurve = solver.lcurve()
-        lam = lcurve.lambda_corner
-    else:
-        lam = float(s.ridge)
-    theta = solver.solve(lam)
-    resid = yf - kf @ theta
-    dof = max(where.size - kf.shape[1], 1)
-    sigma2 = float(resid @ resid) / dof
-    s_pos = solver.s[solver.s > solver.s.max() * 1e-12]
-    v = solver.vt[: s_pos.size].T
-    std = np.sqrt(sigma2 * np.sum((v / s_pos) ** 2, axis=1))
+    fit = fit_ridge(kf, yf, s.ridge, uncertainty=True)
+    valid = mask & np.isfinite(meas.scalar_nT) & np.all(np.isfinite(k_full), axis=1)
+    blocks = contiguous_blocks(valid, meas.time_s)
     spans = [(float(meas.time_s[b[0]]), float(meas.time_s[b[-1]])) for b in blocks]
     return CompensationModel(
         s,
         names,
-        theta,
+        fit.theta,
         n_tl,
-        lam,
-        int(where.size),
-        float(np.sqrt(np.mean(resid**2))),
+        fit.lambda_,
+        fit.n_rows,
+        fit.residual_rms,
         spans,
-        lcurve,
+        fit.lcurve,
         reference,
-        std,
+        fit.coefficient_std,
         cond,
         weakest,
     )
