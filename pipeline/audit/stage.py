@@ -20,6 +20,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
@@ -373,9 +374,33 @@ class Auditor:
 
         est = gradient(self.fit(ext, None, "all"))
         folds = [gradient(self.fit(ext, tr, f"fold{k}")) for k, (tr, _) in enumerate(self.folds)]
-        return Evaluation(
+        ev = Evaluation(
             "geomagnetic_gradient", key, est, test, held, ext, ci95=jackknife_ci95(est, folds)
         )
+        # the fitted gradient is the total field's: the main field's own (IGRF) is part of it
+        main = self._main_field_gradient()
+        if main is not None:
+            for axis, v in zip(("east", "north", "up"), main, strict=True):
+                ev.estimate[f"main_field_{axis}_nT_per_m"] = float(v)
+                ev.ci95[f"main_field_{axis}_nT_per_m"] = None
+        return ev
+
+    def _main_field_gradient(self) -> np.ndarray | None:
+        """IGRF's total-field gradient (east, north, up; nT/m) at the calibration site."""
+        from pipeline.geo.igrf import main_field_gradient_nT_per_m
+
+        f = self.flight
+        if not f.has("lat_deg", "lon_deg", "alt_m"):
+            return None
+        d = f.data
+        sel = self.mask & np.isfinite(d["lat_deg"].to_numpy(float))
+        if not sel.any():
+            return None
+        lat, lon, alt = (
+            float(np.mean(d[c].to_numpy(float)[sel])) for c in ("lat_deg", "lon_deg", "alt_m")
+        )
+        when = datetime.fromtimestamp(float(f.time_ns[np.flatnonzero(sel)[0]]) / 1e9, UTC)
+        return main_field_gradient_nT_per_m(lat, lon, alt, when)
 
     def _lag_estimate(self, current: ModelSpec, keep: np.ndarray | None, key: str) -> float:
         """The lag minimising the refitted model's residual (see :meth:`_lag_fit`)."""

@@ -34,3 +34,22 @@ def main_field_direction(
     incl = float(np.degrees(np.arctan2(b[2], np.hypot(b[0], b[1]))))
     decl = float(np.degrees(np.arctan2(b[1], b[0])))
     return b / total, total, incl, decl
+
+
+def main_field_gradient_nT_per_m(
+    lat_deg: float, lon_deg: float, alt_m: float, when: datetime, step_m: float = 100.0
+) -> np.ndarray:
+    """Gradient of the IGRF total field, (east, north, up) in nT/m, by central differences
+    over +-``step_m``.
+
+    A magnetometer moving over a survey area sees it on top of the crust's gradient (a few
+    nT per km: about 0.005 nT/m north at mid-latitudes), so a fitted gradient (AGG-TL's
+    position terms, the audit's gradient finding) includes it.
+    """
+    dlat = step_m / 111_320.0
+    dlon = dlat / np.cos(np.radians(lat_deg))
+    lat = np.array([lat_deg, lat_deg, lat_deg + dlat, lat_deg - dlat, lat_deg, lat_deg])
+    lon = np.array([lon_deg + dlon, lon_deg - dlon, lon_deg, lon_deg, lon_deg, lon_deg])
+    alt = np.array([alt_m] * 4 + [alt_m + step_m, alt_m - step_m])
+    f = np.linalg.norm(igrf_ned_nT(lat, lon, alt, when), axis=1)
+    return (f[0::2] - f[1::2]) / (2.0 * step_m)
