@@ -35,6 +35,8 @@ from pipeline.outputs import (
     field_channel,
     grid_channel,
     heading_error_channel,
+    line_samples_channel,
+    map_frame_channel,
     model_message,
     segment_channel,
     tracks_channel,
@@ -200,13 +202,16 @@ def existing_compensated(flight: Flight) -> dict[str, np.ndarray]:
 
 
 def map_channels(flight: Flight, seg: Segmentation, mr) -> list[OutputChannel]:
-    """Output channels of a map run: ``/map/anomaly``, ``/map/anomaly_filtered``
-    (``foxglove.Grid``) and ``/map/tracks`` (``foxglove.GeoJSON``).
+    """Output channels of a map run: ``/map/frame`` (the grids' georeference),
+    ``/map/anomaly``, ``/map/anomaly_filtered`` (``foxglove.Grid``), ``/map/lines`` (the
+    levelled line samples) and ``/map/tracks`` (``foxglove.GeoJSON``).
     """
     t0 = int(flight.time_ns[0])
     return [
+        map_frame_channel(flight, mr, t0),
         grid_channel("/map/anomaly", t0, mr.grid),
         grid_channel("/map/anomaly_filtered", t0, mr.filtered),
+        line_samples_channel(flight, mr),
         tracks_channel(flight, seg, t0),
     ]
 
