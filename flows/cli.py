@@ -899,6 +899,8 @@ def _say_outputs(result: dict) -> None:
         f"report: {o['report_html']} (open in a browser; Markdown: {o['report']}); "
         f"Foxglove layout: {o['layout']}"
     )
+    for fmt, paths in (result.get("exports") or {}).items():
+        say(f"export ({fmt}): {', '.join(paths)}")
 
 
 def _print_compensation(result: dict) -> None:

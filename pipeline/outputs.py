@@ -162,7 +162,7 @@ def grid_channel(topic: str, time_ns: int, grid, field_name: str = "anomaly_nT")
     return ch
 
 
-def map_frame_channel(flight: Flight, mr, time_ns: int) -> OutputChannel:
+def map_frame_channel(mr, time_ns: int) -> OutputChannel:
     """``/map/frame``: the georeference of every ``/map/*`` grid (one message).
 
     The ``local_enu`` frame's origin (WGS-84 latitude, longitude, ellipsoidal height = the
@@ -170,15 +170,10 @@ def map_frame_channel(flight: Flight, mr, time_ns: int) -> OutputChannel:
     inclination, declination and intensity at the origin on the survey date: what an
     independent reader needs to place the grids and to reduce them to the pole.
     """
-    from datetime import UTC, datetime
-
-    from pipeline.geo.igrf import main_field_direction
     from pipeline.geo.local import utm_epsg
 
     f = mr.frame
-    mid_ns = int(np.median(flight.time_ns))
-    when = datetime.fromtimestamp(mid_ns / 1e9, tz=UTC)
-    _, total, incl, decl = main_field_direction(f.lat0_deg, f.lon0_deg, f.alt0_m, when)
+    total, incl, decl = mr.main_field
     ch = OutputChannel("/map/frame", "aeromag.MapFrame")
     ch.add(
         int(time_ns),

@@ -47,6 +47,10 @@ def test_postflight_flow_writes_input_plus_new_channels(demo_output):
         "/quality/crossovers",
     }
     assert set(summary["channels_written"]) == new
+    # exports on by default, read back from the processed MCAP: GeoTIFF + netCDF
+    assert set(summary["exports"]) == {"geotiff", "netcdf"}
+    for f in ("demo_flight.anomaly.tif", "demo_flight.anomaly_filtered.tif", "demo_flight.maps.nc"):
+        assert (out_dir / f).stat().st_size > 10000
     comp = summary["compensation"]
     assert {"tl16", "tl18", "agg-tl"} <= set(comp)
     assert comp["final"] == "tl18+geomagnetic_gradient"  # the audit's extended model

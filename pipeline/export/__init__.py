@@ -37,7 +37,7 @@ def check_formats(formats, source: str | None = None) -> list[str]:
 
 
 def export_recording(
-    recording: str | Path, out_dir: str | Path, formats=("geotiff", "netcdf")
+    recording: str | Path, out_dir: str | Path, formats=None
 ) -> dict[str, list[str]]:
     """Write every map channel of a processed recording (and its levelled line data, for
     ``csv`` and ``xyz``) into ``out_dir``, each file atomically.
@@ -45,6 +45,8 @@ def export_recording(
     Files (``STEM``: the recording's name without ``.processed.mcap``):
     ``STEM.<grid>.tif`` per grid channel (``anomaly``, ``anomaly_filtered``, ``rtp`` ...),
     ``STEM.maps.nc``, ``STEM.lines.csv``, ``STEM.lines.xyz``, ``STEM.<grid>.magnav.h5``.
+
+    ``formats``: some of :data:`FORMATS`; by default the configuration's ``export.formats``.
 
     Returns
     -------
@@ -56,12 +58,13 @@ def export_recording(
     AeromagError
         No map channel, no georeference or no line data in the recording, or an unknown format.
     """
+    from pipeline.defaults import default_value
     from pipeline.export.grid_files import write_geotiff, write_netcdf
     from pipeline.export.lines import line_table, write_csv, write_xyz
     from pipeline.export.magnav import write_magnav_h5
     from pipeline.export.source import read_map_products
 
-    formats = check_formats(formats)
+    formats = check_formats(default_value("export", "formats") if formats is None else formats)
     out = Path(out_dir)
     mp = read_map_products(recording, lines=bool({"csv", "xyz"} & set(formats)))
     stem = mp.stem

@@ -51,13 +51,20 @@ def to_utm(grid: Grid, utm_epsg: int, cell_m: float | None = None):
     """
     from rasterio.enums import Resampling
 
+    return reproject(grid, f"EPSG:{utm_epsg}", float(cell_m or grid.cell_m), Resampling.bilinear)
+
+
+def reproject(grid: Grid, dst_crs: str, resolution, resampling):
+    """The grid resampled onto ``dst_crs`` (rioxarray/GDAL), north-up, NaN outside the data;
+    ``resolution`` in the target's units (one value or (x, y))."""
+    import warnings
+
     da = grid_dataarray(grid).isel(y=slice(None, None, -1))  # north-up for GDAL
-    return da.rio.reproject(
-        f"EPSG:{utm_epsg}",
-        resolution=float(cell_m or grid.cell_m),
-        resampling=Resampling.bilinear,
-        nodata=np.nan,
-    )
+    with warnings.catch_warnings():  # affine's `*` deprecation inside rioxarray
+        warnings.simplefilter("ignore", PendingDeprecationWarning)
+        return da.rio.reproject(
+            dst_crs, resolution=resolution, resampling=resampling, nodata=np.nan
+        )
 
 
 def write_geotiff(path: str | Path, mg: MapGrid, frame: MapFrame) -> Path:
@@ -71,9 +78,14 @@ def write_geotiff(path: str | Path, mg: MapGrid, frame: MapFrame) -> Path:
             "source": f"aeromag {__version__}: {mg.topic}",
         }
     )
+    import warnings
+
+    import rasterio
+
     with atomic_path(path) as tmp:
-        utm.rio.to_raster(tmp, driver="GTiff", compress="DEFLATE", dtype="float32")
-        import rasterio
+        with warnings.catch_warnings():  # affine's `*` deprecation inside rioxarray
+            warnings.simplefilter("ignore", PendingDeprecationWarning)
+            utm.rio.to_raster(tmp, driver="GTiff", compress="DEFLATE", dtype="float32")
 
         with rasterio.open(tmp, "r+") as ds:
             ds.set_band_description(1, mg.field_name)

@@ -38,14 +38,11 @@ def to_lonlat(mg: MapGrid, frame: MapFrame):
     """
     from rasterio.enums import Resampling
 
-    from pipeline.export.grid_files import grid_dataarray
+    from pipeline.export.grid_files import reproject
 
     dlat = mg.grid.cell_m / M_PER_DEG_LAT
     dlon = dlat / max(np.cos(np.radians(frame.latitude_deg)), 1e-6)
-    da = grid_dataarray(mg.grid).isel(y=slice(None, None, -1))
-    ll = da.rio.reproject(
-        "EPSG:4326", resolution=(dlon, dlat), resampling=Resampling.bilinear, nodata=np.nan
-    )
+    ll = reproject(mg.grid, "EPSG:4326", (dlon, dlat), Resampling.bilinear)
     ll = ll.isel(y=slice(None, None, -1))  # latitude ascending
     return ll["x"].to_numpy(), ll["y"].to_numpy(), ll.to_numpy().astype(np.float64)
 

@@ -5,6 +5,8 @@ The grid is prepared for the Fourier transform the usual way: masked cells (NaN)
 from the nearest covered cell, the mean is removed, and the grid is padded on every side by
 half its larger dimension with a linear ramp down to zero (no step at the periodic edges);
 the products are computed on the padded grid, cropped back and the masked cells masked again.
+The mean passes unchanged into the reduction to the pole and the upward continuation (the
+derivatives of a constant are zero).
 
 Products (``name``: channel, value field, units):
 
@@ -28,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.defaults import default_field
 from pipeline.maps.grid import Grid
 
 KINDS = {
@@ -95,6 +98,15 @@ def parse_products(items) -> list[Product]:
         if p not in out:
             out.append(p)
     return out
+
+
+@dataclass
+class EnhanceSettings:
+    """The ``[enhance]`` keys (defaults: the shipped configuration's)."""
+
+    products: list[Product] = default_field("enhance", "products", lambda v: parse_products(v))
+    source: str = default_field("enhance", "source")  # anomaly_filtered | anomaly
+    pad_fraction: float = PAD_FRACTION
 
 
 def fill_gaps(values: np.ndarray) -> np.ndarray:
@@ -191,8 +203,9 @@ def _enhance(hm, grid, products, inclination_deg, declination_deg, pad_fraction)
 
     out: dict[str, Grid] = {}
     for p in products:
-        if p.kind == "rtp":
+        if p.kind == "rtp":  # the mean (k = 0, where the operator is undefined) kept as is
             v = np.asarray(hm.reduction_to_pole(da, inclination_deg, declination_deg), float)
+            v = v + mean
         elif p.kind == "dz":
             v = deriv("z")
         elif p.kind == "thd":
