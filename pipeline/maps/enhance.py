@@ -2,11 +2,13 @@
 derivatives, tilt angle, analytic signal, upward continuation.
 
 The grid is prepared for the Fourier transform the usual way: masked cells (NaN) are filled
-from the nearest covered cell, the mean is removed, and the grid is padded on every side by
-half its larger dimension with a linear ramp down to zero (no step at the periodic edges);
-the products are computed on the padded grid, cropped back and the masked cells masked again.
-The mean passes unchanged into the reduction to the pole and the upward continuation (the
-derivatives of a constant are zero).
+from the nearest covered cell, the plane fitting the grid's border cells (level and regional
+gradient) is removed, and the residual is padded on every side by half the grid's larger
+dimension with a linear ramp down to zero (no step at the periodic edges); the products are
+computed on the padded grid, cropped back and the masked cells masked again. The plane is
+added back to the reduction to the pole and the upward continuation (a plane is harmonic: it
+continues unchanged) and its slopes to the horizontal derivatives; its vertical derivative is
+zero.
 
 Products (``name``: channel, value field, units):
 
@@ -128,19 +130,41 @@ def fill_gaps(values: np.ndarray) -> np.ndarray:
     return values[tuple(idx)]
 
 
-def _padded(grid: Grid, pad: int):
-    """The gap-filled, mean-removed grid padded by ``pad`` cells on each side (linear ramp to
-    0) as a harmonica-ready DataArray (dims northing, easting; m), and the mean."""
+@dataclass
+class _Prepared:
+    """A grid ready for the FFT: the padded, tapered residual (DataArray, dims northing,
+    easting; m) and the plane removed from it (grid-shaped values, east and north slopes)."""
+
+    residual: object
+    plane: np.ndarray
+    slope_east: float  # nT/m
+    slope_north: float  # nT/m
+
+
+BORDER_FRACTION = 0.05  # the plane is fitted to this fraction of the cells along each edge
+
+
+def _prepare(grid: Grid, pad: int) -> _Prepared:
+    """Fill the gaps, remove the plane that fits the grid's border (a regional gradient would
+    otherwise step at the periodic edges; an isolated anomaly, near zero at the border, keeps
+    its shape), pad with a linear ramp of the residual down to zero."""
     import xarray as xr
 
     v = fill_gaps(grid.values)
-    mean = float(v.mean())
-    p = np.pad(v - mean, pad, mode="linear_ramp", end_values=0.0)
-    ny, nx = p.shape
-    east = grid.east0_m + grid.cell_m * (np.arange(nx) - pad)
-    north = grid.north0_m + grid.cell_m * (np.arange(ny) - pad)
-    da = xr.DataArray(p, coords={"northing": north, "easting": east}, dims=("northing", "easting"))
-    return da, mean
+    ny, nx = grid.shape
+    east, north = grid.coordinates()
+    ee, nn = np.meshgrid(east - east.mean(), north - north.mean())
+    w = max(2, int(BORDER_FRACTION * min(ny, nx)))
+    ring = np.zeros((ny, nx), bool)
+    ring[:w], ring[-w:], ring[:, :w], ring[:, -w:] = True, True, True, True
+    design = np.column_stack([np.ones(ring.sum()), ee[ring], nn[ring]])
+    (c, a, b), *_ = np.linalg.lstsq(design, v[ring], rcond=None)
+    plane = c + a * ee + b * nn
+    r = np.pad(v - plane, pad, mode="linear_ramp", end_values=0.0)
+    e_pad = grid.east0_m + grid.cell_m * (np.arange(nx + 2 * pad) - pad)
+    n_pad = grid.north0_m + grid.cell_m * (np.arange(ny + 2 * pad) - pad)
+    da = xr.DataArray(r, coords={"northing": n_pad, "easting": e_pad}, dims=("northing", "easting"))
+    return _Prepared(da, plane, float(a), float(b))
 
 
 def enhance(
@@ -180,32 +204,32 @@ def enhance(
 
 def _enhance(hm, grid, products, inclination_deg, declination_deg, pad_fraction):
     pad = max(int(np.ceil(pad_fraction * max(grid.shape))), 2)
-    da, mean = _padded(grid, pad)
+    prep = _prepare(grid, pad)
+    da = prep.residual
     ny, nx = grid.shape
     mask = ~np.isfinite(grid.values)
 
-    def crop(a) -> Grid:
-        v = np.asarray(a, float)[pad : pad + ny, pad : pad + nx].copy()
-        v[mask] = np.nan
-        return grid.with_values(v)
+    def crop(a) -> np.ndarray:
+        return np.asarray(a, float)[pad : pad + ny, pad : pad + nx]
 
-    cache: dict[str, object] = {}
+    cache: dict[str, np.ndarray] = {}
 
-    def deriv(which: str):
+    def deriv(which: str) -> np.ndarray:
+        """nT/m on the grid cells; the plane's slopes added back to the horizontal ones (a
+        plane is harmonic: its vertical derivative is zero)."""
         if which not in cache:
             if which == "z":
-                cache[which] = hm.derivative_upward(da)
+                cache[which] = crop(hm.derivative_upward(da))
             elif which == "x":
-                cache[which] = hm.derivative_easting(da)
+                cache[which] = crop(hm.derivative_easting(da)) + prep.slope_east
             else:
-                cache[which] = hm.derivative_northing(da)
-        return np.asarray(cache[which], float)
+                cache[which] = crop(hm.derivative_northing(da)) + prep.slope_north
+        return cache[which]
 
     out: dict[str, Grid] = {}
     for p in products:
-        if p.kind == "rtp":  # the mean (k = 0, where the operator is undefined) kept as is
-            v = np.asarray(hm.reduction_to_pole(da, inclination_deg, declination_deg), float)
-            v = v + mean
+        if p.kind == "rtp":  # the plane (k ~ 0, where the operator is undefined) kept as is
+            v = crop(hm.reduction_to_pole(da, inclination_deg, declination_deg)) + prep.plane
         elif p.kind == "dz":
             v = deriv("z")
         elif p.kind == "thd":
@@ -214,7 +238,9 @@ def _enhance(hm, grid, products, inclination_deg, declination_deg, pad_fraction)
             v = np.degrees(np.arctan2(-deriv("z"), np.hypot(deriv("x"), deriv("y"))))
         elif p.kind == "as":
             v = np.sqrt(deriv("x") ** 2 + deriv("y") ** 2 + deriv("z") ** 2)
-        else:  # upward continuation: the mean (a constant field) continues unchanged
-            v = np.asarray(hm.upward_continuation(da, p.height_m), float) + mean
-        out[p.topic] = crop(v)
+        else:  # upward continuation: a plane is harmonic and continues unchanged
+            v = crop(hm.upward_continuation(da, p.height_m)) + prep.plane
+        v = np.array(v, float)
+        v[mask] = np.nan
+        out[p.topic] = grid.with_values(v)
     return out
