@@ -141,6 +141,22 @@ def decode_grid(topic: str, payload: dict, time_ns: int, crs: str = "") -> MapGr
     return MapGrid(topic, grid, str(fields[0]["name"]), int(time_ns))
 
 
+def _map_topics(path: Path) -> list[str] | None:
+    """The ``/map/*`` topics listed in the recording's summary section (None: no readable
+    summary; then every record is scanned). Reading only these keeps a long flight's millions
+    of other messages out of memory."""
+    from mcap.reader import make_reader
+
+    try:
+        with path.open("rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:  # noqa: BLE001 - damaged or not MCAP: the salvaging scan decides
+        return None
+    if summary is None:
+        return None
+    return sorted({c.topic for c in summary.channels.values() if c.topic.startswith("/map/")})
+
+
 def read_map_products(path: str | Path, lines: bool = False) -> MapProducts:
     """Read the map grids, the frame and (``lines``) the levelled line samples of a processed
     recording.
@@ -154,7 +170,7 @@ def read_map_products(path: str | Path, lines: bool = False) -> MapProducts:
     from pipeline.io.reader import read_topics
 
     path = Path(path)
-    rec = read_topics(path)
+    rec = read_topics(path, _map_topics(path))
     grid_topics = sorted(
         t for t, r in rec.topics.items() if t.startswith("/map/") and r.schema_name == GRID_SCHEMA
     )
