@@ -227,3 +227,10 @@ def test_cli_export_and_its_one_line_error(tmp_path):
     assert bad.returncode == 2
     lines = bad.stderr.strip().splitlines()
     assert len(lines) == 1 and "aeromag process" in lines[0] and "Traceback" not in bad.stderr
+
+
+def test_utm_zone_of_a_point():
+    assert utm_epsg(34.26, 108.9) == 32649  # the demo survey (Xi'an)
+    assert utm_epsg(-33.9, 151.2) == 32756  # southern hemisphere: 327zz
+    assert utm_epsg(45.0, -75.7) == 32618
+    assert utm_epsg(0.0, 179.99) == 32660 and utm_epsg(0.0, -180.0) == 32601
