@@ -416,7 +416,7 @@ def enhance(
         str | None,
         typer.Option(
             help="Comma-separated: rtp, dz, thd, tilt, as, up:H (upward continuation by H m) "
-            "(config: enhance.products; all but up when both are empty)."
+            "(config: enhance.products)."
         ),
     ] = None,
     source: Annotated[

@@ -93,8 +93,17 @@ def write_geotiff(path: str | Path, mg: MapGrid, frame: MapFrame) -> Path:
     return Path(path)
 
 
+def cf_name(name: str) -> str:
+    """A netCDF variable name as CF recommends (letters, digits, underscores): the channel
+    name with any other character as ``_`` (``upward_12.5m`` -> ``upward_12_5m``)."""
+    import re
+
+    return re.sub(r"[^A-Za-z0-9_]", "_", name)
+
+
 def write_netcdf(path: str | Path, grids: list[MapGrid], frame: MapFrame) -> Path:
-    """Every grid channel as a variable of one CF-1.8 netCDF-4 file, on the native grid.
+    """Every grid channel as a variable (:func:`cf_name` of its name) of one CF-1.8
+    netCDF-4 file, on the native grid.
 
     Coordinates ``x``, ``y`` (m, the projection's easting/northing of the cell centres),
     auxiliary 2-D ``lat``/``lon`` (degrees), a ``crs`` grid-mapping variable (CF attributes
@@ -124,7 +133,7 @@ def write_netcdf(path: str | Path, grids: list[MapGrid], frame: MapFrame) -> Pat
     cf["spatial_ref"] = cf.get("crs_wkt", crs.to_wkt())
     ds = xr.Dataset(
         {
-            mg.name: (
+            cf_name(mg.name): (
                 ("y", "x"),
                 mg.grid.values.astype(np.float32),
                 {
@@ -177,7 +186,7 @@ def write_netcdf(path: str | Path, grids: list[MapGrid], frame: MapFrame) -> Pat
         },
     )
     ds["crs"] = xr.DataArray(np.int32(0), attrs=cf)
-    enc = {mg.name: {"_FillValue": np.float32(np.nan), "zlib": True} for mg in grids}
+    enc = {cf_name(mg.name): {"_FillValue": np.float32(np.nan), "zlib": True} for mg in grids}
     enc.update({c: {"_FillValue": None} for c in ("x", "y", "lat", "lon")})
     with atomic_path(path) as tmp:
         ds.to_netcdf(tmp, engine="h5netcdf", encoding=enc)

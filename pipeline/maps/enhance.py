@@ -68,7 +68,8 @@ class Product:
 
 
 def _height_text(h: float) -> str:
-    return f"{h:g}"
+    """100.0 -> "100", 12.5 -> "12.5", 1e7 -> "10000000" (no exponent: topic names)."""
+    return np.format_float_positional(float(h), trim="-")
 
 
 def parse_products(items) -> list[Product]:
