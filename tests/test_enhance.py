@@ -193,3 +193,15 @@ def test_post_flight_enhancements_channels_figures_and_report(dipole, tmp_path):
     for bad in ({"export.formats": ["kml"]}, {"enhance.products": ["up:0"]}):
         with pytest.raises(AeromagError):
             Config.load().with_values(bad).validate()
+
+
+def test_enhancing_a_recording_without_maps_is_one_line(tmp_path):
+    from flows.stages import enhance_recording
+    from pipeline.config import Config
+    from tests.mapfile import write_processed
+
+    raw, _ = write_processed(tmp_path / "raw.mcap", frame=False, lines=False, grids=False)
+    with pytest.raises(AeromagError) as exc:
+        enhance_recording(raw, tmp_path / "out.mcap", Config.load())
+    assert "/map/anomaly" in str(exc.value) and "aeromag process" in str(exc.value)
+    assert not (tmp_path / "out.mcap").exists()

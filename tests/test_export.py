@@ -73,6 +73,16 @@ def test_netcdf_is_the_native_grid_cell_for_cell(exported):
     with xr.open_dataset(out / "flight.maps.nc", decode_coords="all") as ds:
         assert ds["anomaly"].rio.crs is not None
         assert "Azimuthal" in ds["anomaly"].rio.crs.to_wkt()
+    # GDAL's netCDF driver places it: north-up, corner half a cell beyond the first centres
+    import rasterio
+
+    with rasterio.open(f"netcdf:{out / 'flight.maps.nc'}:anomaly") as gd:
+        assert gd.shape == grid.shape
+        t = gd.transform
+        assert (t.a, t.e) == pytest.approx((grid.cell_m, -grid.cell_m))
+        assert t.c == pytest.approx(east[0] - grid.cell_m / 2)
+        assert t.f == pytest.approx(north[-1] + grid.cell_m / 2)
+        np.testing.assert_array_equal(gd.read(1), grid.values[::-1].astype(np.float32))
 
 
 def test_geotiff_is_utm_and_matches_the_grid_at_cell_centres(exported):

@@ -93,6 +93,14 @@ def write_geotiff(path: str | Path, mg: MapGrid, frame: MapFrame) -> Path:
     return Path(path)
 
 
+def _long_name(mg: MapGrid) -> str:
+    """The channel's description in the contract (``levelled total-field anomaly grid``)."""
+    from pipeline.io.contract import rule_for_topic
+
+    rule = rule_for_topic(mg.topic)
+    return rule.description if rule is not None and rule.description else mg.field_name
+
+
 def cf_name(name: str) -> str:
     """A netCDF variable name as CF recommends (letters, digits, underscores): the channel
     name with any other character as ``_`` (``upward_12.5m`` -> ``upward_12_5m``)."""
@@ -137,7 +145,7 @@ def write_netcdf(path: str | Path, grids: list[MapGrid], frame: MapFrame) -> Pat
                 ("y", "x"),
                 mg.grid.values.astype(np.float32),
                 {
-                    "long_name": mg.field_name,
+                    "long_name": _long_name(mg),
                     "units": mg.units,
                     "grid_mapping": "crs",
                     "coordinates": "lat lon",
@@ -173,7 +181,6 @@ def write_netcdf(path: str | Path, grids: list[MapGrid], frame: MapFrame) -> Pat
         attrs={
             "Conventions": "CF-1.8",
             "title": "aeromag magnetic anomaly maps",
-            "institution": "",
             "source": f"aeromag {__version__}",
             "references": "schemas/README.md (/map/* channels)",
             "frame_origin_latitude_deg": frame.latitude_deg,
