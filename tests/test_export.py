@@ -102,9 +102,10 @@ def test_geotiff_is_utm_and_matches_the_grid_at_cell_centres(exported):
     tif = v.ravel()
     both = np.isfinite(native) & np.isfinite(tif)
     assert both.sum() > 0.8 * np.isfinite(grid.values).sum()
-    # bilinear on both sides: within a few hundredths of the 50 nT anomaly
-    assert np.max(np.abs(tif[both] - native[both])) < 0.1
-    assert np.max(np.abs(tif[both] - field_nT(e, n)[both])) < 0.2
+    # GDAL's bilinear resampling is the grid's own bilinear interpolation (measured: 1e-4 nT,
+    # float32); both are within 0.06 nT of the analytic field on a +-60 nT anomaly
+    assert np.max(np.abs(tif[both] - native[both])) < 0.01
+    assert np.max(np.abs(tif[both] - field_nT(e, n)[both])) < 0.1
     # nodata outside: the uncovered corner and the rotated raster's margins are NaN
     assert np.isnan(tif).sum() > 0
     assert not np.isfinite(tif[np.isnan(native) & (np.abs(e) > 1e4)]).any()
