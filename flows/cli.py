@@ -382,6 +382,76 @@ def map_(
 
 
 @app.command()
+def export(
+    recording: Annotated[Path, typer.Argument(help="Processed recording (.processed.mcap).")],
+    out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")],
+    formats: Annotated[
+        str,
+        typer.Option(
+            "--format",
+            help="Comma-separated: geotiff (UTM), netcdf (CF-1.8), csv and xyz (levelled "
+            "lines), magnav (MagNav.jl HDF5).",
+        ),
+    ] = "geotiff,netcdf,csv,xyz,magnav",
+) -> None:
+    """Write the map grids and the levelled line data of a processed recording as GeoTIFF,
+    netCDF, CSV, Geosoft XYZ and MagNav.jl HDF5 (georeference from its /map/frame)."""
+    from flows.stages import require_readable
+    from pipeline.export import check_formats, export_recording
+
+    require_readable(recording)
+    chosen = check_formats([f for f in formats.split(",") if f.strip()], "--format")
+    with console.status(f"exporting {recording.name}"):
+        written = export_recording(recording, out_dir, chosen)
+    for fmt, paths in written.items():
+        for p in paths:
+            say(f"{fmt}: {p}")
+
+
+@app.command()
+def enhance(
+    recording: Annotated[Path, typer.Argument(help="Processed recording (.processed.mcap).")],
+    out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
+    products: Annotated[
+        str | None,
+        typer.Option(
+            help="Comma-separated: rtp, dz, thd, tilt, as, up:H (upward continuation by H m) "
+            "(config: enhance.products)."
+        ),
+    ] = None,
+    source: Annotated[
+        str | None,
+        typer.Option(help="Grid to enhance: anomaly or anomaly_filtered (config: enhance.source)."),
+    ] = None,
+    config: ConfigOption = None,
+) -> None:
+    """Map enhancements (harmonica): reduction to the pole, vertical and total horizontal
+    derivatives, tilt angle, analytic signal, upward continuation -> /map/* grid channels."""
+    from flows.stages import enhance_recording, require_readable
+
+    require_readable(recording)
+    cfg = _stage_config(
+        config,
+        {
+            "--products": (
+                "enhance.products",
+                None if products is None else [p for p in products.split(",") if p.strip()],
+            ),
+            "--source": ("enhance.source", source),
+        },
+    )
+    with console.status(f"enhancing {recording.name}"):
+        result = enhance_recording(recording, out_path, cfg)
+    for topic in result["channels"]:
+        say(f"{topic}")
+    say(
+        f"from /map/{result['source']}; RTP with IGRF inclination "
+        f"{result['inclination_deg']:.2f} deg, declination {result['declination_deg']:.2f} deg"
+    )
+    say(f"output recording: {out_path}")
+
+
+@app.command()
 def quality(
     recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap), raw or processed.")],
     json_out: Annotated[
@@ -829,6 +899,8 @@ def _say_outputs(result: dict) -> None:
         f"report: {o['report_html']} (open in a browser; Markdown: {o['report']}); "
         f"Foxglove layout: {o['layout']}"
     )
+    for fmt, paths in (result.get("exports") or {}).items():
+        say(f"export ({fmt}): {', '.join(paths)}")
 
 
 def _print_compensation(result: dict) -> None:

@@ -28,6 +28,7 @@ from pipeline.io.writer import (
     write_text_atomic,
     write_with_new_channels,
 )
+from pipeline.maps.grid import Grid
 from pipeline.maps.stage import MapSettings, build_map
 from pipeline.outputs import (
     compensated_channel,
@@ -35,6 +36,8 @@ from pipeline.outputs import (
     field_channel,
     grid_channel,
     heading_error_channel,
+    line_samples_channel,
+    map_frame_channel,
     model_message,
     segment_channel,
     tracks_channel,
@@ -200,13 +203,16 @@ def existing_compensated(flight: Flight) -> dict[str, np.ndarray]:
 
 
 def map_channels(flight: Flight, seg: Segmentation, mr) -> list[OutputChannel]:
-    """Output channels of a map run: ``/map/anomaly``, ``/map/anomaly_filtered``
-    (``foxglove.Grid``) and ``/map/tracks`` (``foxglove.GeoJSON``).
+    """Output channels of a map run: ``/map/frame`` (the grids' georeference),
+    ``/map/anomaly``, ``/map/anomaly_filtered`` (``foxglove.Grid``), ``/map/lines`` (the
+    levelled line samples) and ``/map/tracks`` (``foxglove.GeoJSON``).
     """
     t0 = int(flight.time_ns[0])
     return [
+        map_frame_channel(mr, t0),
         grid_channel("/map/anomaly", t0, mr.grid),
         grid_channel("/map/anomaly_filtered", t0, mr.filtered),
+        line_samples_channel(flight, mr),
         tracks_channel(flight, seg, t0),
     ]
 
@@ -259,6 +265,89 @@ def map_lines(mr) -> list[tuple[int, str]]:
             f"Kalman measurement noise {s['kalman']['measurement_noise_nT']:.3f} nT",
         ),
     ]
+
+
+ENHANCE_LABELS = {
+    "rtp_nT": "reduced to the pole (nT)",
+    "vertical_derivative_nT_per_m": "vertical derivative, upward (nT/m)",
+    "horizontal_derivative_nT_per_m": "total horizontal derivative (nT/m)",
+    "tilt_deg": "tilt angle (deg)",
+    "analytic_signal_nT_per_m": "analytic signal amplitude (nT/m)",
+}
+
+
+def enhancement_channels(grids: dict[str, Grid], settings, time_ns: int) -> list[OutputChannel]:
+    """``foxglove.Grid`` channels of enhancement grids (topic -> grid), field names from
+    the settings' products."""
+    names = {p.topic: p.field_name for p in settings.products}
+    return [grid_channel(t, time_ns, g, names[t]) for t, g in grids.items()]
+
+
+def enhancement_figures(grids: dict[str, Grid], settings, lines) -> dict[str, object]:
+    """One figure per enhancement grid (``enhance_<channel name>``; colour scale from the
+    1st-99th percentile)."""
+    names = {p.topic: p.field_name for p in settings.products}
+    out = {}
+    for topic, g in grids.items():
+        field_name = names[topic]
+        label = ENHANCE_LABELS.get(field_name, field_name.replace("_nT", " (nT)"))
+        lo, hi = np.nanpercentile(g.values, [1, 99])
+        name = topic.removeprefix("/map/")
+        out[f"enhance_{name}"] = map_figure(g, lines, name.replace("_", " "), lo, hi, label)
+    return out
+
+
+def enhance_recording(src: Path, dst: Path, cfg: Config) -> dict[str, Any]:
+    """``aeromag enhance``: the configured enhancements of a processed recording's anomaly
+    grid, added as ``/map/*`` grid channels to a copy of it (RTP with the IGRF direction of
+    its ``/map/frame``)."""
+    from pipeline.export.source import MAKE_MAPS, read_map_products
+    from pipeline.maps.enhance import enhance
+
+    settings = cfg.enhance_settings()
+    mp = read_map_products(src)
+    source = mp.grid(settings.source)
+    if source is None:
+        raise AeromagError(
+            f"no /map/{settings.source} grid to enhance: {MAKE_MAPS}",
+            file=src,
+            channel=f"/map/{settings.source}",
+        )
+    f = mp.frame
+    if not (np.isfinite(f.igrf_inclination_deg) and np.isfinite(f.igrf_declination_deg)):
+        raise AeromagError(
+            "the map frame has no main-field direction for the reduction to the pole",
+            file=src,
+            channel="/map/frame",
+        )
+    try:
+        grids = enhance(
+            source.grid,
+            settings.products,
+            f.igrf_inclination_deg,
+            f.igrf_declination_deg,
+            settings.pad_fraction,
+        )
+    except ValueError as exc:
+        raise AeromagError(f"enhance: {exc}", file=src, channel=source.topic) from None
+    channels = enhancement_channels(grids, settings, source.time_ns)
+    meta = {
+        "aeromag.enhance": {
+            **run_metadata(),
+            "source": source.topic,
+            "products": ",".join(grids),
+            "inclination_deg": f.igrf_inclination_deg,
+            "declination_deg": f.igrf_declination_deg,
+        }
+    }
+    write_with_new_channels(src, dst, channels, metadata=meta)
+    return {
+        "channels": list(grids),
+        "source": source.name,
+        "inclination_deg": f.igrf_inclination_deg,
+        "declination_deg": f.igrf_declination_deg,
+        "output": str(dst),
+    }
 
 
 def configured_models(flight: Flight, cfg: Config) -> list[str]:
@@ -769,6 +858,20 @@ def final_field(runs: dict[str, CompensationRun], audit) -> tuple[str, np.ndarra
     return None
 
 
+def enhancement_grids(map_run, cfg) -> dict[str, Grid]:
+    """The configured enhancements of a map run's grid (``enhance.source``), RTP with the
+    main field at the map origin (topic -> grid)."""
+    from pipeline.maps.enhance import enhance
+
+    st = cfg.enhance_settings()
+    grid = map_run.filtered if st.source == "anomaly_filtered" else map_run.grid
+    _, incl, decl = map_run.main_field
+    try:
+        return enhance(grid, st.products, incl, decl, st.pad_fraction)
+    except ValueError as exc:
+        raise AeromagError(f"enhance: {exc}", channel=f"/map/{st.source}") from None
+
+
 def map_stage(flight: Flight, seg: Segmentation, comp: np.ndarray, cfg):
     """Map: reduce, level, grid and filter ``comp`` (compensated field, nT, one per epoch).
 
@@ -955,6 +1058,12 @@ def write_stage(
         channels += map_channels(flight, seg, map_run)
         summary["map"] = map_run.summary()
         figures.update(map_figures(map_run))
+        if cfg["enhance"]["enabled"]:
+            grids = enhancement_grids(map_run, cfg)
+            channels += enhancement_channels(grids, cfg.enhance_settings(), int(flight.time_ns[0]))
+            figures.update(enhancement_figures(grids, cfg.enhance_settings(), map_run.lines))
+            summary["map"]["enhancements"] = sorted(grids)
+            lines.append((LOG_INFO, f"enhance: {', '.join(grids)}"))
     if quality is not None:
         lines += quality_lines(quality)
         channels += quality_channels(flight, quality)
@@ -976,8 +1085,14 @@ def write_stage(
     write_text_atomic(paths["report"], report)
     write_text_atomic(paths["report_html"], render_html(stem, summary, images))
     write_json_atomic(paths["layout"], recording_layout(paths["mcap"]))
+    exports: dict[str, list[str]] = {}
+    if map_run is not None and cfg["export"]["formats"]:
+        from pipeline.export import export_recording
+
+        exports = export_recording(paths["mcap"], out, cfg["export"]["formats"])
     summary = {
         **summary,
+        "exports": exports,
         "outputs": {k: str(v) for k, v in paths.items()},
         "channels_written": sorted({c.topic for c in channels if c.messages}),
     }

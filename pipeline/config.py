@@ -126,6 +126,12 @@ class Config:
             min_crossing_angle_deg=m["min_crossing_angle_deg"],
         )
 
+    def enhance_settings(self):
+        from pipeline.maps.enhance import EnhanceSettings, parse_products
+
+        e = self.values["enhance"]
+        return EnhanceSettings(products=parse_products(e["products"]), source=e["source"])
+
     def quality_settings(self):
         from pipeline.quality import QualitySettings
 
@@ -194,6 +200,20 @@ class Config:
             raise AeromagError(
                 "map.cell_m: must be > 0 m (0: a quarter of the line spacing)", file=self.source
             )
+        from pipeline.export import check_formats
+        from pipeline.maps.enhance import parse_products
+
+        try:
+            check_formats(self.values["export"]["formats"])
+        except AeromagError as exc:
+            raise AeromagError(f"export.formats: {exc.problem}", file=self.source) from None
+        e = self.values["enhance"]
+        if e["source"] not in ("anomaly", "anomaly_filtered"):
+            raise AeromagError("enhance.source: use anomaly_filtered or anomaly", file=self.source)
+        try:
+            parse_products(e["products"])
+        except ValueError as exc:
+            raise AeromagError(f"enhance.products: {exc}", file=self.source) from None
         if self.values["quality"]["overlap_m"] <= 0:
             raise AeromagError("quality.overlap_m: must be > 0 m", file=self.source)
         try:

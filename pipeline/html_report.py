@@ -423,6 +423,21 @@ def _map_section(s: dict, figs: _Figures) -> list[str]:
         "<h3>Before and after ARIMA-Kalman filtering</h3>",
         figs.take("anomaly", "anomaly_filtered", pair=True),
         figs.take("crossovers"),
+        *_enhancements(m, figs),
+    ]
+
+
+def _enhancements(m: dict, figs: _Figures) -> list[str]:
+    names = [f"enhance_{t.removeprefix('/map/')}" for t in m.get("enhancements") or []]
+    if not names:
+        return []
+    return [
+        "<h3>Enhancements</h3>",
+        "<p>FFT enhancements of the filtered anomaly grid (harmonica); the reduction to the "
+        "pole uses the IGRF direction at the survey centre "
+        f"(inclination {_f((m.get('main_field') or {}).get('inclination_deg'), '.2f')}°, "
+        f"declination {_f((m.get('main_field') or {}).get('declination_deg'), '.2f')}°).</p>",
+        figs.take(*names, pair=True),
     ]
 
 

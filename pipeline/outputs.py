@@ -162,6 +162,82 @@ def grid_channel(topic: str, time_ns: int, grid, field_name: str = "anomaly_nT")
     return ch
 
 
+def map_frame_channel(mr, time_ns: int) -> OutputChannel:
+    """``/map/frame``: the georeference of every ``/map/*`` grid (one message).
+
+    The ``local_enu`` frame's origin (WGS-84 latitude, longitude, ellipsoidal height = the
+    mean survey altitude), its PROJ string, the survey's UTM zone (EPSG) and the IGRF
+    inclination, declination and intensity at the origin on the survey date: what an
+    independent reader needs to place the grids and to reduce them to the pole.
+    """
+    from pipeline.geo.local import utm_epsg
+
+    f = mr.frame
+    total, incl, decl = mr.main_field
+    ch = OutputChannel("/map/frame", "aeromag.MapFrame")
+    ch.add(
+        int(time_ns),
+        {
+            "frame_id": MAP_FRAME,
+            "crs": f.crs,
+            "latitude": float(f.lat0_deg),
+            "longitude": float(f.lon0_deg),
+            "altitude_m": float(f.alt0_m),
+            "utm_epsg": utm_epsg(f.lat0_deg, f.lon0_deg),
+            "igrf_inclination_deg": round(incl, 6),
+            "igrf_declination_deg": round(decl, 6),
+            "igrf_total_nT": round(total, 3),
+        },
+    )
+    return ch
+
+
+def line_samples_channel(flight: Flight, mr) -> OutputChannel:
+    """``/map/lines``: every sample of the levelled survey and tie lines (what was gridded).
+
+    ``compensated_nT`` is the field the map was reduced from (after any lag shift),
+    ``levelled_nT`` = compensated - diurnal - line correction, ``anomaly_nT`` = levelled -
+    IGRF (the gridded value); ``raw_nT`` the recorded scalar (null where it has none).
+    """
+    red = mr.reduction
+    igrf = red.igrf_nT
+    diurnal = red.diurnal_nT if red.diurnal_nT is not None else np.zeros_like(igrf)
+    comp = red.anomaly_nT + igrf + diurnal
+    d = flight.data
+    lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
+    raw = d["scalar_nT"].to_numpy(float)
+    idx = np.concatenate([ln.index for ln in mr.lines]).astype(np.int64)
+    ids = np.concatenate([np.full(ln.index.size, ln.line_id, object) for ln in mr.lines])
+    kinds = np.concatenate([np.full(ln.index.size, ln.kind, object) for ln in mr.lines])
+    east = np.concatenate([ln.east_m for ln in mr.lines])
+    north = np.concatenate([ln.north_m for ln in mr.lines])
+    anomaly = np.concatenate([ln.value_nT for ln in mr.lines])
+    order = np.argsort(idx, kind="stable")
+    idx, ids, kinds, east, north, anomaly = (
+        a[order] for a in (idx, ids, kinds, east, north, anomaly)
+    )
+
+    def payload(k: int) -> dict:  # made when written (one message per sample)
+        i = int(idx[k])
+        r = raw[i]
+        return {
+            "line_id": str(ids[k]),
+            "kind": str(kinds[k]),
+            "fiducial": i,
+            "latitude": float(lat[i]),
+            "longitude": float(lon[i]),
+            "altitude_m": float(alt[i]),
+            "east_m": round(float(east[k]), 3),
+            "north_m": round(float(north[k]), 3),
+            "raw_nT": float(r) if np.isfinite(r) else None,
+            "compensated_nT": float(comp[i]),
+            "levelled_nT": float(anomaly[k] + igrf[i]),
+            "anomaly_nT": float(anomaly[k]),
+        }
+
+    return OutputChannel.rows("/map/lines", "aeromag.LineSample", flight.time_ns[idx], payload)
+
+
 def tracks_channel(
     flight: Flight, seg: Segmentation, time_ns: int, every_s: float = 1.0
 ) -> OutputChannel:

@@ -71,9 +71,14 @@ def compensation_figure(
 
 
 def map_figure(
-    grid, lines, title: str, vmin: float | None = None, vmax: float | None = None
+    grid,
+    lines,
+    title: str,
+    vmin: float | None = None,
+    vmax: float | None = None,
+    label: str = "total-field anomaly (nT)",
 ) -> plt.Figure:
-    """An anomaly grid with colour bar and the flight lines (local metres)."""
+    """A map grid with colour bar (``label``) and the flight lines (local metres)."""
     e, n = grid.coordinates()
     half = grid.cell_m / 2
     extent = (e[0] - half, e[-1] + half, n[0] - half, n[-1] + half)
@@ -98,7 +103,7 @@ def map_figure(
             alpha=0.6,
         )
     cb = fig.colorbar(im, ax=ax, shrink=0.85)
-    cb.set_label("total-field anomaly (nT)")
+    cb.set_label(label)
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
     ax.set_title(title)

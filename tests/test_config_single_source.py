@@ -76,6 +76,10 @@ def test_settings_defaults_are_the_shipped_configuration():
     assert cfg.audit_settings() == AuditSettings()
     assert cfg.map_settings() == MapSettings()
     assert cfg.quality_settings() == QualitySettings()
+    from pipeline.maps.enhance import EnhanceSettings, parse_products
+
+    assert cfg.enhance_settings() == EnhanceSettings()
+    assert EnhanceSettings().products == parse_products(d["enhance"]["products"])
 
 
 def test_no_processing_default_is_retyped_in_the_code():

@@ -38,13 +38,19 @@ def test_postflight_flow_writes_input_plus_new_channels(demo_output):
         "/compensation/model",
         "/audit/finding",
         "/mag/vector/compensated",
+        "/map/frame",
         "/map/anomaly",
         "/map/anomaly_filtered",
+        "/map/lines",
         "/map/tracks",
         "/quality/heading_error",
         "/quality/crossovers",
     }
     assert set(summary["channels_written"]) == new
+    # exports on by default, read back from the processed MCAP: GeoTIFF + netCDF
+    assert set(summary["exports"]) == {"geotiff", "netcdf"}
+    for f in ("demo_flight.anomaly.tif", "demo_flight.anomaly_filtered.tif", "demo_flight.maps.nc"):
+        assert (out_dir / f).stat().st_size > 10000
     comp = summary["compensation"]
     assert {"tl16", "tl18", "agg-tl"} <= set(comp)
     assert comp["final"] == "tl18+geomagnetic_gradient"  # the audit's extended model
@@ -59,6 +65,48 @@ def test_postflight_flow_writes_input_plus_new_channels(demo_output):
     m_in, m_out = _messages(src), _messages(out)
     assert [m for m in m_out if m[0] not in new] == m_in
     assert {m[0] for m in m_out} == {m[0] for m in m_in} | new
+
+
+def test_the_exported_geotiff_lands_on_the_simulated_anomaly(demo_output):
+    """End to end: the post-flight GeoTIFF (UTM, placed by /map/frame alone), its cell centres
+    taken back into the simulator's own frame, is the true anomaly there (up to the regional
+    plane the map keeps), and no shift of the truth fits better."""
+    import json
+
+    import numpy as np
+    import rasterio
+    from pyproj import Transformer
+
+    from pipeline.maps.grid import Grid
+
+    out_dir, _ = demo_output
+    t = json.loads((out_dir / "demo_truth.json").read_text())
+    g = t["anomaly"]["grid"]
+    truth = Grid(
+        np.array(g["values_nT"], float),
+        g["east0_m"],
+        g["north0_m"],
+        g["cell_m"],
+        t["site"]["local_frame"],
+    )
+    with rasterio.open(out_dir / "demo_flight.anomaly_filtered.tif") as ds:
+        v = ds.read(1).ravel()
+        rows, cols = np.indices(ds.shape)
+        x, y = rasterio.transform.xy(ds.transform, rows.ravel(), cols.ravel())
+        epsg = ds.crs.to_epsg()
+    assert epsg == 32649
+    e, n = Transformer.from_crs(f"EPSG:{epsg}", truth.crs, always_xy=True).transform(x, y)
+
+    def fit(de, dn):  # map = plane + gain * truth shifted by (de, dn) m
+        tv = truth.interpolate(e + de, n + dn)
+        ok = np.isfinite(tv) & np.isfinite(v)
+        a = np.column_stack([np.ones(ok.sum()), e[ok], n[ok], tv[ok]])
+        coef, *_ = np.linalg.lstsq(a, v[ok], rcond=None)
+        return float(np.sqrt(np.mean((v[ok] - a @ coef) ** 2))), float(coef[3]), int(ok.sum())
+
+    rms, gain, cells = fit(0.0, 0.0)
+    assert cells > 5000 and abs(gain - 1.0) < 0.02 and rms < 0.5
+    assert all(fit(de, dn)[0] > rms for de, dn in ((10, 0), (-10, 0), (0, 10), (0, -10)))
 
 
 def test_summary_records_stage_timings_and_peak_memory(demo_output):

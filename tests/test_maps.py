@@ -427,8 +427,10 @@ def test_map_cli_and_channels(mapped, tmp_path):
         validate_every_message(
             tmp_path / "o.mcap",
             {
+                "/map/frame",
                 "/map/anomaly",
                 "/map/anomaly_filtered",
+                "/map/lines",
                 "/map/tracks",
                 "/aeromag/log",
                 "/flight/segment",

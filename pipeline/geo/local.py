@@ -60,3 +60,10 @@ def local_east_north(lat_deg, lon_deg) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError("no valid position")
     e, n, _ = LocalFrame(float(np.median(lat[ok])), float(np.median(lon[ok]))).to_enu(lat, lon)
     return np.asarray(e), np.asarray(n)
+
+
+def utm_epsg(lat_deg: float, lon_deg: float) -> int:
+    """EPSG code of the WGS-84 UTM zone holding a point (326zz north of the equator, 327zz
+    south; the standard 6-degree zones, without the Norway and Svalbard exceptions)."""
+    zone = int(np.floor((float(lon_deg) + 180.0) / 6.0)) % 60 + 1
+    return (32600 if float(lat_deg) >= 0 else 32700) + zone

@@ -7,6 +7,7 @@ Every message is JSON (``message_encoding="json"``, schema encoding ``jsonschema
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 MESSAGE_ENCODING = "json"
@@ -27,6 +28,7 @@ class TopicRule:
     prefix: bool = False
     description: str = ""
     alias: str = ""  # column-name suffix of a mapped topic (see pipeline.io.mapping)
+    pattern: str = ""  # regular expression a whole topic may match instead (/map/upward_100m)
 
     def matches(self, topic: str) -> bool:
         """True when ``topic`` is this rule's topic, or ``<topic>/<id>`` for a prefix rule.
@@ -40,7 +42,7 @@ class TopicRule:
         -------
         bool
         """
-        if topic == self.topic:
+        if topic == self.topic or (self.pattern and re.fullmatch(self.pattern, topic)):
             return True
         sub = topic[len(self.topic) + 1 :]
         return self.prefix and topic.startswith(self.topic + "/") and bool(sub)
@@ -156,6 +158,44 @@ OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
         "output",
         ("column_count", "data"),
         description="anomaly grid after the ARIMA + Kalman filter",
+    ),
+    TopicRule(
+        "/map/frame",
+        "aeromag.MapFrame",
+        "output",
+        ("frame_id", "crs", "latitude", "longitude", "altitude_m", "utm_epsg"),
+        description="georeference of the map grids (local_enu origin, CRS, UTM zone)",
+    ),
+    TopicRule(
+        "/map/lines",
+        "aeromag.LineSample",
+        "output",
+        ("line_id", "fiducial", "levelled_nT", "anomaly_nT"),
+        description="levelled line data the anomaly grid is made from, one message per sample",
+    ),
+    *(
+        TopicRule(
+            topic,
+            "foxglove.Grid",
+            "output",
+            ("column_count", "data"),
+            description=f"enhancement of the levelled anomaly: {what}",
+        )
+        for topic, what in (
+            ("/map/rtp", "reduced to the pole"),
+            ("/map/vertical_derivative", "first vertical derivative"),
+            ("/map/horizontal_derivative", "total horizontal derivative"),
+            ("/map/tilt", "tilt angle"),
+            ("/map/analytic_signal", "analytic signal amplitude"),
+        )
+    ),
+    TopicRule(
+        "/map/upward_<H>m",
+        "foxglove.Grid",
+        "output",
+        ("column_count", "data"),
+        pattern=r"/map/upward_[0-9]+(\.[0-9]+)?m",
+        description="enhancement of the levelled anomaly: upward continued by H m",
     ),
     TopicRule(
         "/map/tracks",

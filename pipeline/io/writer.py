@@ -61,6 +61,22 @@ def atomic_output(path: str | Path) -> Iterator[BinaryIO]:
             tmp.unlink()
 
 
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary file name beside ``path`` for libraries that write by name (GDAL, HDF5):
+    renamed onto ``path`` when the block ends normally, deleted when it raises. The name keeps
+    the suffix (``.NAME.partial-PID.tif``) so format drivers chosen by extension still work."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.stem}.partial-{os.getpid()}{path.suffix}")
+    try:
+        yield tmp
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
 class McapOutput:
     """Atomic MCAP writer with JSON channels registered by topic and schema name.
 

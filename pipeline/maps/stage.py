@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from datetime import UTC, datetime
 from typing import Any
 
 import numpy as np
@@ -10,6 +11,7 @@ import numpy as np
 from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
+from pipeline.geo.igrf import main_field_direction
 from pipeline.geo.local import LocalFrame
 from pipeline.maps.arima import (
     ArimaModel,
@@ -191,6 +193,8 @@ class MapRun:
     noise_source: str
     direction: str = "smooth"
     sequence_tests: dict[str, Any] = field(default_factory=dict)
+    # IGRF at the frame origin on the survey's mid date: (total nT, inclination, declination deg)
+    main_field: tuple[float, float, float] = (float("nan"),) * 3
 
     def summary(self) -> dict[str, Any]:
         ny, nx = self.grid.shape
@@ -203,6 +207,12 @@ class MapRun:
                 "latitude_deg": self.frame.lat0_deg,
                 "longitude_deg": self.frame.lon0_deg,
                 "crs": self.frame.crs,
+                "altitude_m": self.frame.alt0_m,
+            },
+            "main_field": {
+                "total_nT": self.main_field[0],
+                "inclination_deg": self.main_field[1],
+                "declination_deg": self.main_field[2],
             },
             "line_spacing_m": self.spacing_m,
             "lines": {
@@ -309,6 +319,8 @@ def build_map(
             f"map filter: {exc}", file=flight.source, channel="/mag/compensated"
         ) from None
     tests["sensor_noise_nT"] = sensor
+    when = datetime.fromtimestamp(float(np.median(flight.time_ns)) / 1e9, tz=UTC)
+    _, total, incl, decl = main_field_direction(frame.lat0_deg, frame.lon0_deg, frame.alt0_m, when)
     return MapRun(
         frame,
         red,
@@ -323,4 +335,5 @@ def build_map(
         source,
         s.direction,
         tests,
+        (total, incl, decl),
     )

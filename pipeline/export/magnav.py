@@ -1,0 +1,66 @@
+"""A map grid as an HDF5 file MagNav.jl's ``get_map`` loads (a scalar ``MapS`` map).
+
+``get_map`` (MagNav.jl ``src/get_map.jl``) reads the datasets ``map`` (``ny`` x ``nx``), ``xx``
+(``nx`` longitudes) and ``yy`` (``ny`` latitudes), in degrees by default (``file_units =
+:deg``), ``alt`` (one altitude: a level map, m) and, when present, ``info`` (a string) and
+``mask`` (``ny`` x ``nx``, 1 where the map holds data). MagNav counts a zero cell as no data, so
+cells outside the coverage are 0 with mask 0.
+
+Julia stores arrays column-major and HDF5.jl reverses the dimensions of a dataset written in
+row-major order (h5py): the ``ny`` x ``nx`` Julia matrix is written as its (``nx``, ``ny``)
+transpose. The grid is resampled (bilinear) from the local frame onto a regular
+longitude/latitude grid of about the same cell size, ``yy`` ascending.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.export.source import MapFrame, MapGrid
+from pipeline.io.writer import atomic_path
+
+M_PER_DEG_LAT = 111_320.0  # a degree of latitude, m (to choose the cell size in degrees)
+
+
+def to_lonlat(mg: MapGrid, frame: MapFrame):
+    """The grid resampled (bilinear) onto a regular WGS-84 longitude/latitude grid.
+
+    Returns
+    -------
+    lon_deg : ndarray
+        ``nx`` cell-centre longitudes, ascending.
+    lat_deg : ndarray
+        ``ny`` cell-centre latitudes, ascending.
+    values : ndarray
+        ``(ny, nx)``; NaN outside the data.
+    """
+    from rasterio.enums import Resampling
+
+    from pipeline.export.grid_files import reproject
+
+    dlat = mg.grid.cell_m / M_PER_DEG_LAT
+    dlon = dlat / max(np.cos(np.radians(frame.latitude_deg)), 1e-6)
+    ll = reproject(mg.grid, "EPSG:4326", (dlon, dlat), Resampling.bilinear)
+    ll = ll.isel(y=slice(None, None, -1))  # latitude ascending
+    return ll["x"].to_numpy(), ll["y"].to_numpy(), ll.to_numpy().astype(np.float64)
+
+
+def write_magnav_h5(path: str | Path, mg: MapGrid, frame: MapFrame, info: str = "") -> Path:
+    """One grid channel as a MagNav.jl map file (see the module docstring), written
+    atomically. ``alt`` is the frame's altitude: the mean survey height above the WGS-84
+    ellipsoid, m."""
+    import h5py
+
+    lon, lat, values = to_lonlat(mg, frame)
+    valid = np.isfinite(values)
+    with atomic_path(path) as tmp:
+        with h5py.File(tmp, "w") as f:
+            f.create_dataset("info", data=info or f"aeromag {mg.topic} ({mg.field_name})")
+            f.create_dataset("map", data=np.where(valid, values, 0.0).T)
+            f.create_dataset("xx", data=lon.astype(np.float64))
+            f.create_dataset("yy", data=lat.astype(np.float64))
+            f.create_dataset("alt", data=np.float64(frame.altitude_m))
+            f.create_dataset("mask", data=valid.astype(np.int8).T)
+    return Path(path)

@@ -1,0 +1,221 @@
+"""The map products of a processed recording, read back from the MCAP alone.
+
+Every ``foxglove.Grid`` channel under ``/map/`` (``/map/anomaly``, ``/map/anomaly_filtered``,
+the enhancements), the georeference ``/map/frame`` and the levelled line samples
+``/map/lines``: what the exports and the enhancements start from. Nothing comes from the
+summary JSON, so any reader of the MCAP can place the grids the same way.
+"""
+
+from __future__ import annotations
+
+import base64
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import orjson
+
+from pipeline.errors import AeromagError
+from pipeline.maps.grid import Grid
+
+GRID_SCHEMA = "foxglove.Grid"
+FRAME_TOPIC = "/map/frame"
+LINES_TOPIC = "/map/lines"
+MAKE_MAPS = "`aeromag process` (or `aeromag map`) makes them"
+
+
+@dataclass(frozen=True)
+class MapFrame:
+    """Georeference of the ``local_enu`` frame the grids are placed in (``/map/frame``).
+
+    ``altitude_m`` is the origin's height above the WGS-84 ellipsoid (the mean survey
+    altitude); inclination and declination (deg) are the IGRF's at the origin on the survey
+    date.
+    """
+
+    latitude_deg: float
+    longitude_deg: float
+    altitude_m: float
+    crs: str
+    utm_epsg: int
+    igrf_inclination_deg: float
+    igrf_declination_deg: float
+    time_ns: int
+
+    @classmethod
+    def from_message(cls, m: dict, time_ns: int) -> MapFrame:
+        """From a decoded ``aeromag.MapFrame`` payload."""
+        return cls(
+            float(m["latitude"]),
+            float(m["longitude"]),
+            float(m["altitude_m"]),
+            str(m["crs"]),
+            int(m["utm_epsg"]),
+            float(m.get("igrf_inclination_deg", float("nan"))),
+            float(m.get("igrf_declination_deg", float("nan"))),
+            int(time_ns),
+        )
+
+
+@dataclass
+class MapGrid:
+    """One grid channel: its cells (:class:`Grid`, local_enu metres), the name of its value
+    field (``anomaly_nT``, ``tilt_deg`` ...) and the message's log time (ns)."""
+
+    topic: str
+    grid: Grid
+    field_name: str
+    time_ns: int
+
+    @property
+    def name(self) -> str:
+        """The topic below ``/map/`` (``anomaly``, ``upward_100m`` ...): the export name."""
+        return self.topic.removeprefix("/map/")
+
+    @property
+    def units(self) -> str:
+        """UDUNITS string of the values, from the field name's unit suffix."""
+        return units_of(self.field_name)
+
+
+def units_of(field_name: str) -> str:
+    """``anomaly_nT`` -> ``nT``, ``..._nT_per_m`` -> ``nT/m``, ``tilt_deg`` -> ``degree``."""
+    if field_name.endswith("_nT_per_m"):
+        return "nT/m"
+    if field_name.endswith("_nT"):
+        return "nT"
+    if field_name.endswith("_deg"):
+        return "degree"
+    return "1"
+
+
+@dataclass
+class MapProducts:
+    """The map channels of one processed recording."""
+
+    path: Path
+    frame: MapFrame
+    grids: list[MapGrid]
+    lines: list[tuple[int, dict]] = field(default_factory=list)  # (log time ns, payload)
+
+    @property
+    def stem(self) -> str:
+        """Recording name without ``.processed.mcap`` / ``.mcap``: the export files' stem."""
+        name = self.path.name
+        for suffix in (".processed.mcap", ".mcap"):
+            if name.endswith(suffix):
+                return name[: -len(suffix)]
+        return self.path.stem
+
+    def grid(self, name: str) -> MapGrid | None:
+        """The grid channel ``/map/<name>``, or None."""
+        return next((g for g in self.grids if g.name == name), None)
+
+
+def decode_grid(topic: str, payload: dict, time_ns: int, crs: str = "") -> MapGrid:
+    """A ``foxglove.Grid`` message (one FLOAT32 field, as :func:`pipeline.outputs.grid_channel`
+    writes) as a :class:`MapGrid`; the pose's position is the south-west corner of the grid.
+
+    Raises
+    ------
+    ValueError
+        Not a single-field FLOAT32 grid with square cells and no rotation.
+    """
+    fields = payload["fields"]
+    if len(fields) != 1 or fields[0]["type"] != 7 or payload.get("cell_stride", 4) != 4:
+        raise ValueError("expected one FLOAT32 field per cell")
+    cx, cy = payload["cell_size"]["x"], payload["cell_size"]["y"]
+    if not np.isclose(cx, cy):
+        raise ValueError(f"cells are not square ({cx} x {cy} m)")
+    q = payload["pose"]["orientation"]
+    if abs(q.get("w", 1.0)) < 1 - 1e-9:
+        raise ValueError("rotated grids are not supported")
+    nx = int(payload["column_count"])
+    raw = np.frombuffer(base64.b64decode(payload["data"]), "<f4")
+    stride = int(payload["row_stride"])
+    if stride != 4 * nx or raw.size % nx:
+        raise ValueError("row stride does not match the column count")
+    values = raw.reshape(-1, nx).astype(np.float64)
+    p = payload["pose"]["position"]
+    grid = Grid(values, float(p["x"]) + cx / 2, float(p["y"]) + cy / 2, float(cx), crs)
+    return MapGrid(topic, grid, str(fields[0]["name"]), int(time_ns))
+
+
+def _map_topics(path: Path) -> list[str] | None:
+    """The ``/map/*`` topics listed in the recording's summary section (None: no readable
+    summary; then every record is scanned). Reading only these keeps a long flight's millions
+    of other messages out of memory."""
+    from mcap.reader import make_reader
+
+    try:
+        with path.open("rb") as f:
+            summary = make_reader(f).get_summary()
+    except Exception:  # noqa: BLE001 - damaged or not MCAP: the salvaging scan decides
+        return None
+    if summary is None:
+        return None
+    return sorted({c.topic for c in summary.channels.values() if c.topic.startswith("/map/")})
+
+
+def read_map_products(path: str | Path, lines: bool = False) -> MapProducts:
+    """Read the map grids, the frame and (``lines``) the levelled line samples of a processed
+    recording.
+
+    Raises
+    ------
+    AeromagError
+        No map grid in the recording (``aeromag process`` makes them), no ``/map/frame``
+        georeference, or a grid that cannot be decoded.
+    """
+    from pipeline.io.reader import read_topics
+
+    path = Path(path)
+    rec = read_topics(path, _map_topics(path))
+    grid_topics = sorted(
+        t for t, r in rec.topics.items() if t.startswith("/map/") and r.schema_name == GRID_SCHEMA
+    )
+    if not grid_topics:
+        raise AeromagError(
+            f"no map grid in the recording (/map/anomaly, /map/anomaly_filtered): {MAKE_MAPS}",
+            file=path,
+            channel="/map/anomaly",
+        )
+    fr = rec.topics.get(FRAME_TOPIC)
+    if fr is None or not fr.data:
+        raise AeromagError(
+            "no map georeference (the recording was processed by an older aeromag): "
+            "process the original recording again with `aeromag process`",
+            file=path,
+            channel=FRAME_TOPIC,
+        )
+    try:
+        frame = MapFrame.from_message(orjson.loads(fr.data[0]), fr.log_time_ns[0])
+    except (orjson.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+        raise AeromagError(
+            f"unreadable map frame ({type(exc).__name__}: {exc})", file=path, channel=FRAME_TOPIC
+        ) from None
+    grids = []
+    for t in grid_topics:
+        raw = rec.topics[t]
+        try:
+            grids.append(decode_grid(t, orjson.loads(raw.data[-1]), raw.log_time_ns[-1], frame.crs))
+        except (orjson.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
+            raise AeromagError(
+                f"unreadable map grid ({type(exc).__name__}: {exc})", file=path, channel=t
+            ) from None
+    # the grids on the frame: anomaly first, then the others by name
+    grids.sort(key=lambda g: (g.name != "anomaly", g.name != "anomaly_filtered", g.name))
+    out = MapProducts(path, frame, grids)
+    if lines:
+        lr = rec.topics.get(LINES_TOPIC)
+        if lr is None or not lr.data:
+            raise AeromagError(
+                f"no levelled line data in the recording: {MAKE_MAPS}",
+                file=path,
+                channel=LINES_TOPIC,
+            )
+        out.lines = sorted(
+            zip(lr.log_time_ns, (orjson.loads(d) for d in lr.data), strict=True),
+            key=lambda tm: tm[0],
+        )
+    return out

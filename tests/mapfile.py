@@ -1,0 +1,124 @@
+"""A small synthetic processed recording with map channels (export and enhancement tests).
+
+The anomaly is an analytic field of the local east/north coordinates, so exported cells can
+be compared with it anywhere; a corner of the grid is masked (NaN).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.geo.local import LocalFrame, utm_epsg
+from pipeline.io.writer import McapOutput, encode
+from pipeline.maps.grid import Grid
+from pipeline.outputs import MAP_FRAME, grid_channel
+
+LAT0, LON0, ALT0 = 34.26, 108.9, 500.0
+T0 = 1_781_485_840_000_000_000
+CELL = 25.0
+
+
+def field_nT(east_m, north_m):
+    """The synthetic anomaly, nT, smooth on the scale of a few cells."""
+    e, n = np.asarray(east_m, float), np.asarray(north_m, float)
+    return 50.0 * np.sin(e / 300.0) * np.cos(n / 400.0) + 0.02 * e
+
+
+def synthetic_grid(ny: int = 30, nx: int = 40) -> Grid:
+    frame = LocalFrame(LAT0, LON0, ALT0)
+    east0, north0 = -CELL * (nx // 2), -CELL * (ny // 2)
+    e = east0 + CELL * np.arange(nx)
+    n = north0 + CELL * np.arange(ny)
+    ee, nn = np.meshgrid(e, n)
+    v = field_nT(ee, nn)
+    v[-5:, :6] = np.nan  # uncovered north-west corner
+    return Grid(v, east0, north0, CELL, frame.crs)
+
+
+def frame_payload() -> dict:
+    frame = LocalFrame(LAT0, LON0, ALT0)
+    return {
+        "frame_id": MAP_FRAME,
+        "crs": frame.crs,
+        "latitude": LAT0,
+        "longitude": LON0,
+        "altitude_m": ALT0,
+        "utm_epsg": utm_epsg(LAT0, LON0),
+        "igrf_inclination_deg": 53.3,
+        "igrf_declination_deg": -4.2,
+        "igrf_total_nT": 53000.0,
+    }
+
+
+def line_payloads(grid: Grid) -> list[tuple[int, dict]]:
+    """Samples along two survey lines (east-west) and a tie line (north-south)."""
+    frame = LocalFrame(LAT0, LON0, ALT0)
+    out = []
+    k = 0
+    tracks = [
+        ("L0010", "survey", np.linspace(-400, 400, 30), np.full(30, -100.0)),
+        ("L0020", "survey", np.linspace(400, -400, 30), np.full(30, 100.0)),
+        ("T0010", "tie", np.full(20, 50.0), np.linspace(-300, 300, 20)),
+    ]
+    for line, kind, e, n in tracks:
+        lat, lon, _ = frame.to_geodetic(e, n)
+        for i in range(e.size):
+            a = float(field_nT(e[i], n[i]))
+            out.append(
+                (
+                    T0 + k * 100_000_000,
+                    {
+                        "line_id": line,
+                        "kind": kind,
+                        "fiducial": k,
+                        "latitude": float(lat[i]),
+                        "longitude": float(lon[i]),
+                        "altitude_m": ALT0,
+                        "east_m": float(e[i]),
+                        "north_m": float(n[i]),
+                        "raw_nT": None if k == 3 else 53000.0 + a,
+                        "compensated_nT": 52990.0 + a,
+                        "levelled_nT": 52990.0 + a,
+                        "anomaly_nT": a,
+                    },
+                )
+            )
+            k += 1
+    return out
+
+
+def write_processed(
+    path: Path, frame: bool = True, lines: bool = True, grids: bool = True
+) -> tuple[Path, Grid]:
+    """A recording holding ``/map/frame``, ``/map/anomaly``, ``/map/anomaly_filtered`` and
+    ``/map/lines`` (each optional) plus one scalar sample."""
+    grid = synthetic_grid()
+    with McapOutput(path) as out:
+        cid = out.channel("/mag/scalar", "aeromag.ScalarField")
+        out.write(
+            cid,
+            T0,
+            encode(
+                {
+                    "timestamp": {"sec": T0 // 10**9, "nsec": 0},
+                    "sensor_id": "s",
+                    "total_nT": 53000.0,
+                }
+            ),
+        )
+        if frame:
+            p = {"timestamp": {"sec": T0 // 10**9, "nsec": 0}, **frame_payload()}
+            out.write(out.channel("/map/frame", "aeromag.MapFrame"), T0, encode(p))
+        if grids:
+            for topic, g in (("/map/anomaly", grid), ("/map/anomaly_filtered", grid)):
+                ch = grid_channel(topic, T0, g)
+                t, p = ch.messages[0]
+                out.write(out.channel(topic, "foxglove.Grid"), t, encode(p))
+        if lines:
+            cid = out.channel("/map/lines", "aeromag.LineSample")
+            for t, p in line_payloads(grid):
+                p = {"timestamp": {"sec": t // 10**9, "nsec": t % 10**9}, **p}
+                out.write(cid, t, encode(p))
+    return path, grid
