@@ -124,6 +124,9 @@ class Config:
             level_trend=m["level_trend"],
             direction=m["direction"],
             min_crossing_angle_deg=m["min_crossing_angle_deg"],
+            gridder=m["gridder"],
+            dem_path=m["dem_path"],
+            dem_clearance_m=m["dem_clearance_m"],
         )
 
     def enhance_settings(self):
@@ -168,6 +171,10 @@ class Config:
         if self.values["map"]["direction"] not in ("smooth", "both", "forward"):
             raise AeromagError(
                 "map.direction: use smooth (both is its old name) or forward", file=self.source
+            )
+        if self.values["map"]["gridder"] not in ("minimum_curvature", "equivalent_sources", "auto"):
+            raise AeromagError(
+                "map.gridder: use minimum_curvature, equivalent_sources or auto", file=self.source
             )
         if not 0.0 <= self.values["map"]["min_crossing_angle_deg"] <= 90.0:
             raise AeromagError("map.min_crossing_angle_deg: use 0 to 90 degrees", file=self.source)
