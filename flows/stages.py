@@ -17,6 +17,7 @@ from pipeline import __version__
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import CompensationRun, run_compensation
 from pipeline.config import Config
+from pipeline.despike import DespikeResult, despike_flight
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.html_report import render_html
@@ -81,6 +82,20 @@ def save_figure(fig, path: Path) -> Path:
     return path
 
 
+def read_despiked(
+    src: Path, cfg: Config | None, **read_options: Any
+) -> tuple[Flight, DespikeResult | None, list[tuple[int, str]]]:
+    """A single-stage command's flight, despiked as ``aeromag process`` does when the
+    configuration's ``despike.enabled`` (the result and its log line; None and none when not).
+    """
+    cfg = cfg or Config.load()
+    flight = read_flight(src, **read_options)
+    if not cfg["despike"]["enabled"]:
+        return flight, None, []
+    flight, res = despike_stage(flight, cfg)
+    return flight, res, despike_lines(res)
+
+
 def compensation_lines(run: CompensationRun) -> list[tuple[int, str]]:
     """Log lines of a compensation run: terms, lambda, fit residual and FOM (nT), the
     AGG-TL gradient (nT/m, east / north / up) and the calibration warnings.
@@ -128,15 +143,18 @@ def compensate_recording(
     """``aeromag compensate``: fit one model and write the output recording and summary.
     ``settings`` None: the configuration's final model this flight can fit (as ``aeromag
     process``), with its settings."""
-    flight = read_flight(src, scalar_topic=scalar_topic, vector_topic=vector_topic)
+    cfg = cfg or Config.load()
+    flight, despiked, dlines = read_despiked(
+        src, cfg, scalar_topic=scalar_topic, vector_topic=vector_topic
+    )
     flight.require("vector_x_nT", purpose="compensation")
     if settings is None:
-        cfg = cfg or Config.load()
         models = configured_models(flight, cfg) or cfg["compensation"]["models"]
         settings = cfg.fit_settings(models[-1])
     seg, why = try_segment(flight)
     run = run_compensation(flight, seg, settings, calibration)
-    lines = ingest_lines(flight) + ([(LOG_INFO, why)] if why else []) + compensation_lines(run)
+    lines = ingest_lines(flight) + dlines + ([(LOG_INFO, why)] if why else [])
+    lines += compensation_lines(run)
     channels: list[OutputChannel] = [log_channel(flight, lines, "compensate")]
     if seg is not None:
         channels.append(segment_channel(flight, seg))
@@ -149,6 +167,8 @@ def compensate_recording(
         "vector_topic": flight.topic_of.get("vector"),
         "input": flight_summary(flight),
     }
+    if despiked is not None:
+        summary["despike"] = despiked.summary()
     if run.model.lcurve is not None:
         png = summary_path.with_name(summary_path.stem + ".lcurve.png")
         save_figure(lcurve_figure(run.model.lcurve, f"L-curve, {run.model.model}"), png)
@@ -275,7 +295,7 @@ def map_recording(
     """``aeromag map``: segment and compensate when needed (the configuration's final model,
     with its settings, as ``aeromag process``), then grid, level and filter."""
     cfg = cfg or Config.load()
-    flight = read_flight(src)
+    flight, despiked, dlines = read_despiked(src, cfg)
     seg, why = try_segment(flight)
     if seg is None:
         raise AeromagError(f"mapping needs the flight lines: {why}", file=src, channel="/gnss/fix")
@@ -295,7 +315,9 @@ def map_recording(
             )
         run = run_compensation(flight, seg, cfg.fit_settings(models[-1]))
         comp = run.compensated_nT
-        lines += compensation_lines(run)
+        lines += dlines + compensation_lines(run)
+        if despiked is not None:
+            summary["despike"] = despiked.summary()
         channels += [compensated_channel(flight, run), model_message(flight, run)]
         summary["compensation"] = run.summary()
     else:
@@ -504,7 +526,7 @@ def quality_recording(
     """``aeromag quality``: every stage it needs (with the configuration's settings), then
     the quality figures, plots, summary."""
     cfg = cfg or Config.load()
-    flight = read_flight(src)
+    flight, despiked, dlines = read_despiked(src, cfg)
     seg, why = try_segment(flight)
     if seg is None:
         raise AeromagError(
@@ -526,7 +548,7 @@ def quality_recording(
     q = run_quality(
         flight, seg, fields, tl_alias(fields, cfg["compensation"]["agg_base"]), fom, settings
     )
-    lines = ingest_lines(flight) + lines + quality_lines(q)
+    lines = ingest_lines(flight) + dlines + lines + quality_lines(q)
     figures = {
         name: str(save_figure(fig, summary_path.with_name(f"{summary_path.stem}.{name}.png")))
         for name, fig in quality_figures(q).items()
@@ -538,6 +560,8 @@ def quality_recording(
         "figures": figures,
         "outputs": {"summary": str(summary_path)},
     }
+    if despiked is not None:
+        summary["despike"] = despiked.summary()
     if out is not None:
         present = set(flight.all_topics)
         channels = [log_channel(flight, lines, "quality"), *quality_channels(flight, q)]
@@ -719,6 +743,35 @@ def validated_read_s() -> float:
     return _Validated.handed_read_s
 
 
+def despike_stage(flight: Flight, cfg) -> tuple[Flight, DespikeResult]:
+    """Despike the primary scalar magnetometer (Hampel test on its 4th difference) with the
+    configuration's ``[despike]`` settings.
+
+    Returns
+    -------
+    Flight
+        The flight with the spike samples replaced (the same object when none was found).
+    DespikeResult
+    """
+    return despike_flight(flight, cfg.despike_settings())
+
+
+def despike_lines(res: DespikeResult | None) -> list[tuple[int, str]]:
+    """Log line of the despike step: spikes found (count, fraction, largest, nT)."""
+    if res is None:
+        return []
+    s = res.summary()
+    text = (
+        f"despike: {s['spikes']} spikes ({100 * s['fraction']:.3f} % of samples) above "
+        f"{s['threshold_sigma']:g} sigma of the 4th difference; noise {s['noise_nT']:.4f} nT"
+    )
+    if s["spikes"]:
+        text += f", largest {s['max_abs_amplitude_nT']:.2f} nT"
+    if s["steps_left"]:
+        text += f"; {s['steps_left']} level steps left alone"
+    return [(LOG_WARNING if s["fraction"] > 0.01 else LOG_INFO, text)]
+
+
 def compensate_stage(flight: Flight, seg: Segmentation, model: str, cfg) -> CompensationRun:
     """Compensate: fit ``model`` (``tl16``, ``tl18`` or ``agg-tl``) with the configuration's
     settings.
@@ -861,6 +914,7 @@ def write_stage(
     map_run,
     quality,
     timings: dict[str, float] | None = None,
+    despiked: DespikeResult | None = None,
 ) -> dict[str, Any]:
     """Every output of the post-flight flow, each written atomically; the summary last (its
     presence marks the recording as done).
@@ -886,6 +940,9 @@ def write_stage(
     }
     channels: list[OutputChannel] = []
     figures: dict[str, Any] = {}
+    if despiked is not None:
+        lines += despike_lines(despiked)
+        summary["despike"] = despiked.summary()
     if seg is not None:
         channels.append(segment_channel(flight, seg))
         if (
@@ -1039,6 +1096,17 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
         f"{s['input'].get('sha256', '')[:16]}",
         "",
     ]
+    d = s.get("despike")
+    if d:
+        out += [
+            "## Despiking",
+            "",
+            f"{d['spikes']} spikes ({100 * d['fraction']:.3f} % of samples) replaced before "
+            f"compensation: Hampel test at {d['threshold_sigma']:g} sigma on the 4th "
+            f"difference (window {d['window_samples']} samples); noise {f(d['noise_nT'], '.4f')} "
+            f"nT, largest spike {f(d['max_abs_amplitude_nT'], '.2f')} nT",
+            "",
+        ]
     comp = s.get("compensation")
     if comp:
         out += [

@@ -126,6 +126,11 @@ class Config:
             min_crossing_angle_deg=m["min_crossing_angle_deg"],
         )
 
+    def despike_settings(self):
+        from pipeline.despike import DespikeSettings
+
+        return DespikeSettings(**self.values["despike"])
+
     def quality_settings(self):
         from pipeline.quality import QualitySettings
 
@@ -199,5 +204,6 @@ class Config:
         try:
             self.fit_settings(c["models"][-1])
             self.map_settings()
+            self.despike_settings()
         except ValueError as exc:
             raise AeromagError(str(exc), file=self.source) from None

@@ -177,6 +177,37 @@ def _segments_section(s: dict, figs: _Figures) -> list[str]:
     ]
 
 
+def _despike_section(s: dict) -> list[str]:
+    d = s.get("despike")
+    if not d:
+        return []
+    return [
+        "<h2>Despiking</h2>",
+        _table(
+            [
+                "spikes",
+                "fraction %",
+                "threshold sigma",
+                "window samples",
+                "noise nT",
+                "largest spike nT",
+                "level steps left",
+            ],
+            [
+                [
+                    d["spikes"],
+                    _f(100 * d["fraction"], ".3f"),
+                    _f(d["threshold_sigma"], "g"),
+                    d["window_samples"],
+                    _f(d["noise_nT"], ".4f"),
+                    _f(d.get("max_abs_amplitude_nT"), ".2f"),
+                    d.get("steps_left", 0),
+                ]
+            ],
+        ),
+    ]
+
+
 def _compensation_section(s: dict, figs: _Figures) -> list[str]:
     comp = s.get("compensation")
     if not comp:
@@ -557,6 +588,7 @@ def render_html(stem: str, summary: dict, images: Mapping[str, str | Path]) -> s
     ]
     body += _input_section(s)
     body += _segments_section(s, figs)
+    body += _despike_section(s)
     body += _compensation_section(s, figs)
     body += _quality_section(s, figs)
     body += _audit_section(s, figs)

@@ -76,6 +76,11 @@ def test_settings_defaults_are_the_shipped_configuration():
     assert cfg.audit_settings() == AuditSettings()
     assert cfg.map_settings() == MapSettings()
     assert cfg.quality_settings() == QualitySettings()
+    from pipeline.despike import DespikeSettings
+
+    ds = DespikeSettings()
+    assert {k: getattr(ds, k) for k in d["despike"]} == d["despike"]
+    assert cfg.despike_settings() == ds
 
 
 def test_no_processing_default_is_retyped_in_the_code():
