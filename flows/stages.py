@@ -278,6 +278,28 @@ def map_lines(mr) -> list[tuple[int, str]]:
             f"ma {np.round(s['arima_coefficients']['ma'], 4).tolist()}; "
             f"Kalman measurement noise {s['kalman']['measurement_noise_nT']:.3f} nT",
         ),
+    ] + microlevel_lines(s["microlevel"])
+
+
+def microlevel_lines(m: dict[str, Any]) -> list[tuple[int, str]]:
+    """Log line of the micro-levelling (the map summary's ``microlevel`` block): the
+    corrugation removed (RMS of the correction, nT), its largest value and the grid change.
+
+    Returns
+    -------
+    list of (int, str)
+        One ``(level, text)`` pair, none when micro-levelling was off.
+    """
+    if not m.get("enabled"):
+        return []
+    return [
+        (
+            LOG_INFO,
+            f"map: micro-levelling removed {m['correction_rms_nT']:.3f} nT RMS of corrugation "
+            f"(max {m['correction_max_abs_nT']:.3f} nT, {100 * m['clipped_fraction']:.1f} % "
+            f"clipped at {m['clip_nT']:g} nT; cut-off {m['wavelength_m']:.0f} m across, "
+            f"{m['along_m']:.0f} m along); grid changed {m['grid_change_rms_nT']:.3f} nT RMS",
+        )
     ]
 
 
@@ -1185,6 +1207,14 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             f"{m['cell_m']:.2f} m; ARIMA{tuple(m['arima_order'])} + Kalman",
             "",
         ]
+        ml = m.get("microlevel") or {}
+        if ml.get("enabled"):
+            out += [
+                f"Micro-levelling: corrugation removed {f(ml['correction_rms_nT'])} nT RMS "
+                f"(max {f(ml['correction_max_abs_nT'])} nT, clip {ml['clip_nT']:g} nT); grid "
+                f"changed {f(ml['grid_change_rms_nT'])} nT RMS",
+                "",
+            ]
     v = s.get("vector")
     if v:
         out += ["## Vector magnetometer", "", f"{v['method']} -> `{v['output_topic']}`", ""]

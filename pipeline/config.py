@@ -124,6 +124,10 @@ class Config:
             level_trend=m["level_trend"],
             direction=m["direction"],
             min_crossing_angle_deg=m["min_crossing_angle_deg"],
+            microlevel=m["microlevel"],
+            microlevel_wavelength_m=m["microlevel_wavelength_m"],
+            microlevel_along_m=m["microlevel_along_m"],
+            microlevel_clip_nT=m["microlevel_clip_nT"],
         )
 
     def despike_settings(self):
@@ -199,6 +203,15 @@ class Config:
             raise AeromagError(
                 "map.cell_m: must be > 0 m (0: a quarter of the line spacing)", file=self.source
             )
+        m = self.values["map"]
+        if min(m["microlevel_wavelength_m"], m["microlevel_along_m"]) < 0:
+            raise AeromagError(
+                "map.microlevel_wavelength_m and microlevel_along_m: must be >= 0 m "
+                "(0: a multiple of the line spacing)",
+                file=self.source,
+            )
+        if m["microlevel_clip_nT"] <= 0:
+            raise AeromagError("map.microlevel_clip_nT: must be > 0 nT", file=self.source)
         if self.values["quality"]["overlap_m"] <= 0:
             raise AeromagError("quality.overlap_m: must be > 0 m", file=self.source)
         try:

@@ -451,10 +451,38 @@ def _map_section(s: dict, figs: _Figures) -> list[str]:
                 ]
             ],
         ),
+        _microlevel_row(m.get("microlevel") or {}),
         "<h3>Before and after ARIMA-Kalman filtering</h3>",
         figs.take("anomaly", "anomaly_filtered", pair=True),
         figs.take("crossovers"),
     ]
+
+
+def _microlevel_row(ml: dict) -> str:
+    if not ml.get("enabled"):
+        return ""
+    return "<h3>Micro-levelling</h3>\n" + _table(
+        [
+            "corrugation removed nT RMS",
+            "max nT",
+            "clipped %",
+            "clip nT",
+            "cut-off across m",
+            "low-pass along m",
+            "grid change nT RMS",
+        ],
+        [
+            [
+                _f(ml["correction_rms_nT"]),
+                _f(ml["correction_max_abs_nT"]),
+                _f(100 * ml["clipped_fraction"], ".1f"),
+                _f(ml["clip_nT"], "g"),
+                _f(ml["wavelength_m"], ".0f"),
+                _f(ml["along_m"], ".0f"),
+                _f(ml["grid_change_rms_nT"]),
+            ]
+        ],
+    )
 
 
 def _qc_section(s: dict) -> list[str]:

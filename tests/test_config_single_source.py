@@ -63,6 +63,10 @@ def test_settings_defaults_are_the_shipped_configuration():
         m.direction,
         m.arima,
         m.min_crossing_angle_deg,
+        m.microlevel,
+        m.microlevel_wavelength_m,
+        m.microlevel_along_m,
+        m.microlevel_clip_nT,
     ) == (
         d["map"]["cell_m"],
         d["map"]["noise_nT"],
@@ -70,6 +74,10 @@ def test_settings_defaults_are_the_shipped_configuration():
         d["map"]["direction"],
         d["map"]["arima"],
         d["map"]["min_crossing_angle_deg"],
+        d["map"]["microlevel"],
+        d["map"]["microlevel_wavelength_m"],
+        d["map"]["microlevel_along_m"],
+        d["map"]["microlevel_clip_nT"],
     )
     # the configuration's settings are the dataclasses' defaults: nothing re-typed between them
     assert cfg.fit_settings("tl16") == FitSettings()

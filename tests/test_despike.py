@@ -151,3 +151,15 @@ def test_compensation_fom_with_spikes_and_despiking_matches_the_clean_fom(uav_fl
         assert np.setdiff1d(r.spike_index, pos).size == 0
         s = r.summary()
         assert s["spikes"] == pos.size and s["fraction"] == pytest.approx(pos.size / x0.size)
+
+
+def test_configuration_drives_the_despike_settings():
+    from pipeline.config import Config
+    from pipeline.errors import AeromagError
+
+    cfg = Config.load().with_values({"despike.threshold_sigma": 4.5})
+    assert cfg.despike_settings() == DespikeSettings(threshold_sigma=4.5)
+    with pytest.raises(AeromagError, match="window_samples"):
+        Config.load().with_values({"despike.window_samples": 3}).validate()
+    with pytest.raises(AeromagError, match="unknown configuration key"):
+        Config.load().with_values({"despike.window": 3})

@@ -22,6 +22,7 @@ from pipeline.maps.arima import (
 )
 from pipeline.maps.grid import Grid, minimum_curvature
 from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, Leveling, Line, level_lines
+from pipeline.maps.microlevel import MicroLevel, microlevel_lines
 from pipeline.maps.reduce import Reduction, reduce_to_anomaly
 from pipeline.segment import Segmentation
 
@@ -56,6 +57,12 @@ class MapSettings:
     # smooth (Rauch-Tung-Striebel, zero phase: the map product) | forward (paper 004)
     direction: str = default_field("map", "direction")
     min_crossing_angle_deg: float = MIN_CROSSING_ANGLE_DEG  # shallower: no crossover
+    # micro-levelling of the grid (pipeline.maps.microlevel); lengths 0: multiples of the
+    # line spacing
+    microlevel: bool = default_field("map", "microlevel")
+    microlevel_wavelength_m: float = default_field("map", "microlevel_wavelength_m")
+    microlevel_along_m: float = default_field("map", "microlevel_along_m")
+    microlevel_clip_nT: float = default_field("map", "microlevel_clip_nT")
 
 
 def noise_4th_difference_nT(x: np.ndarray) -> float:
@@ -191,6 +198,7 @@ class MapRun:
     noise_source: str
     direction: str = "smooth"
     sequence_tests: dict[str, Any] = field(default_factory=dict)
+    microlevel: MicroLevel | None = None
 
     def summary(self) -> dict[str, Any]:
         ny, nx = self.grid.shape
@@ -214,6 +222,11 @@ class MapRun:
                 "after": self.leveling.rms_after_nT,
             },
             "leveling": self.leveling.to_dict(),
+            "microlevel": (
+                {"enabled": True, **self.microlevel.summary()}
+                if self.microlevel is not None
+                else {"enabled": False}
+            ),
             "arima_order": list(self.model.order),
             "arima_coefficients": {
                 "ar": [float(v) for v in self.model.ar],
@@ -295,6 +308,28 @@ def build_map(
     grid = minimum_curvature(
         ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing, crs=frame.crs
     )
+    micro = None
+    if s.microlevel:
+        micro = microlevel_lines(
+            lines,
+            grid,
+            heading,
+            spacing,
+            s.microlevel_wavelength_m,
+            s.microlevel_along_m,
+            s.microlevel_clip_nT,
+        )
+        for ln in lines:
+            if ln.kind == "survey" and ln.line_id in micro.corrections:
+                ln.value_nT = ln.value_nT - micro.corrections[ln.line_id]
+        gv = np.concatenate([ln.value_nT for ln in lines])
+        regrid = minimum_curvature(
+            ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing, crs=frame.crs
+        )
+        change = regrid.values - grid.values
+        change = change[np.isfinite(change)]
+        micro.grid_change_rms_nT = float(np.sqrt(np.mean(change**2))) if change.size else 0.0
+        grid = regrid
     # ARIMA + Kalman along the flight lines
     along_north = abs(along[1]) >= abs(along[0])
     sensor = float(
@@ -323,4 +358,5 @@ def build_map(
         source,
         s.direction,
         tests,
+        micro,
     )
