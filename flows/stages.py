@@ -601,13 +601,20 @@ def quality_recording(
 # --------------------------------------------------------------------------------------------
 # audit
 def audit_recording(
-    src: Path, json_path: Path, report_dir: Path, settings, out: Path | None = None, progress=None
+    src: Path,
+    json_path: Path,
+    report_dir: Path,
+    settings,
+    out: Path | None = None,
+    progress=None,
+    cfg: Config | None = None,
 ) -> dict[str, Any]:
-    """``aeromag audit``: baseline, candidate effects, extended model, gain, report."""
+    """``aeromag audit``: baseline, candidate effects, extended model, gain, report (the
+    scalar despiked first when the configuration's ``despike.enabled``, as ``process``)."""
     from pipeline.audit import run_audit
     from pipeline.audit.report import figures, finding_channel, jsonable, log_lines, markdown
 
-    flight = read_flight(src)
+    flight, despiked, dlines = read_despiked(src, cfg)
     seg, why = try_segment(flight)
     if seg is None:
         raise AeromagError(
@@ -623,6 +630,8 @@ def audit_recording(
     j = res.to_json()
     j["input"] = flight_summary(flight)
     j["aeromag_version"] = __version__
+    if despiked is not None:
+        j["despike"] = despiked.summary()
     text = markdown(res, Path(src).name, images)
     write_text_atomic(report_dir / "report.md", text)
     j["report"] = {
@@ -631,7 +640,7 @@ def audit_recording(
     }
     if out is not None:
         present = set(flight.all_topics)
-        lines = ingest_lines(flight) + log_lines(res)
+        lines = ingest_lines(flight) + dlines + log_lines(res)
         channels = [log_channel(flight, lines, "audit"), finding_channel(flight, res)]
         for topic, comp, model in (
             ("/mag/compensated", res.compensated["extended"], "+".join(res.extended.spec.label())),

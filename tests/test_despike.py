@@ -151,6 +151,19 @@ def test_compensation_fom_with_spikes_and_despiking_matches_the_clean_fom(uav_fl
         assert np.setdiff1d(r.spike_index, pos).size == 0
         s = r.summary()
         assert s["spikes"] == pos.size and s["fraction"] == pytest.approx(pos.size / x0.size)
+    # the summary block reaches the log and both reports
+    from flows.stages import despike_lines, report_markdown
+    from pipeline.html_report import render_html
+
+    doc = {
+        "aeromag_version": "test",
+        "config": {"hash": "0" * 64, "version": 1, "source": "defaults"},
+        "input": {"epochs": 1, "duration_s": 1.0, "sha256": "0" * 64},
+        "despike": s,
+    }
+    assert f"{pos.size} spikes" in report_markdown("x", doc, {})
+    assert "Despiking" in render_html("x", doc, {})
+    assert despike_lines(r)[0][1].startswith(f"despike: {pos.size} spikes")
 
 
 def test_configuration_drives_the_despike_settings():

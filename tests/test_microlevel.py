@@ -235,6 +235,20 @@ def test_map_stage_micro_levels_a_simulated_survey_when_asked(tmp_path):
     assert 0 < s["grid_change_rms_nT"] < 0.5
     assert s["wavelength_m"] == pytest.approx(4 * mr.spacing_m)
     assert errors[False] < 0.08 and errors[False] < errors[True] <= 0.35, errors
+    # both reports show the corrugation removed
+    from flows.stages import map_lines, report_markdown
+    from pipeline.html_report import render_html
+
+    doc = {
+        "aeromag_version": "test",
+        "config": {"hash": "0" * 64, "version": 1, "source": "defaults"},
+        "input": {"epochs": 1, "duration_s": 1.0, "sha256": "0" * 64},
+        "map": mr.summary(),
+    }
+    removed = f"{s['correction_rms_nT']:.3f}"
+    assert f"corrugation removed {removed} nT RMS" in report_markdown("x", doc, {})
+    assert "Micro-levelling" in render_html("x", doc, {}) and removed in render_html("x", doc, {})
+    assert any("micro-levelling removed" in text for _, text in map_lines(mr))
 
 
 def test_configuration_checks_the_microlevel_keys():
