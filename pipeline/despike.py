@@ -6,11 +6,12 @@ deviation sigma gives d4 a standard deviation sqrt(70) sigma, and the smooth sig
 manoeuvre interference at fractions of a Hz) hardly any. The Hampel identifier flags d4 where
 it departs from its running median by more than ``threshold_sigma`` robust standard deviations
 (1.4826 x the running median absolute deviation over ``window_samples``). Each cluster of
-flagged d4 values is then attributed: a spike when the local d4 pattern fits the spike
-template (1, -4, 6, -4, 1) better than a step (1, -3, 3, -1), which a current switching on or
-off leaves and which is signal, not a spike. The spike sample is replaced by the cubic through
-its four neighbours, p = (-x[k-2] + 4 x[k-1] + 4 x[k+1] - x[k+2]) / 6 (then d4[k] = 0), and the
-search repeats on the repaired record so that adjacent spikes are found one by one.
+flagged differences is then explained on the record itself (FIT_MARGIN samples either side):
+a cubic plus the set of at most MAX_TERMS spikes (at a sample of the cluster) and steps
+(before one) that minimises RSS / sigma^2 + threshold_sigma^2 per term, sigma the noise from
+the running scale. Steps are signal (a current switching on or off) and stay; each spike is
+subtracted with its fitted amplitude. The search repeats on the repaired record (at most
+MAX_ROUNDS), so a spike that a larger one hid is found next.
 
 Everything runs per contiguous block of finite, regularly sampled epochs: a 4th difference is
 never taken across a gap.
@@ -19,6 +20,7 @@ never taken across a gap.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -32,13 +34,16 @@ from pipeline.flight import Flight
 # the running robust scale never drops below this fraction of the block's global one, so a
 # quiet stretch whose MAD happens to be small does not turn noise into spikes
 SCALE_FLOOR_FRACTION = 0.75
-# search rounds: each finds at most one spike per cluster of flagged differences
+# search rounds: the repaired record is searched again (a spike that a larger one hid)
 MAX_ROUNDS = 5
+# a cluster is explained on this many samples either side of it, by at most MAX_TERMS
+# spikes and steps on top of a cubic
+FIT_MARGIN = 3
+MAX_TERMS = 3
 # the 4th difference of white noise has sqrt(70) times the noise's standard deviation
 D4_NOISE_GAIN = float(np.sqrt(70.0))
 
 _SPIKE = np.array([1.0, -4.0, 6.0, -4.0, 1.0])
-_STEP = np.array([1.0, -3.0, 3.0, -1.0])
 
 
 @dataclass
@@ -118,11 +123,19 @@ def fourth_difference(x: np.ndarray) -> np.ndarray:
     return d
 
 
-def hampel_flags(d4: np.ndarray, window: int, threshold_sigma: float) -> np.ndarray:
+def hampel_flags(
+    d4: np.ndarray, window: int, threshold_sigma: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Hampel identifier on a finite sequence: |d - running median| > k x running scale.
 
     The running scale is 1.4826 x the running median absolute deviation, floored at
     SCALE_FLOOR_FRACTION of the global one.
+
+    Returns
+    -------
+    flags : ndarray of bool
+    scale : ndarray
+        The running robust standard deviation of ``d4``.
     """
     w = int(window) | 1  # odd
     med = median_filter(d4, size=w, mode="reflect")
@@ -130,31 +143,63 @@ def hampel_flags(d4: np.ndarray, window: int, threshold_sigma: float) -> np.ndar
     scale = 1.4826 * median_filter(dev, size=w, mode="reflect")
     floor = SCALE_FLOOR_FRACTION * 1.4826 * float(np.median(np.abs(d4 - np.median(d4))))
     scale = np.maximum(scale, max(floor, np.finfo(float).tiny))
-    return dev > threshold_sigma * scale
+    return dev > threshold_sigma * scale, scale
 
 
-def _is_spike(d4: np.ndarray, k: int) -> bool:
-    """Does d4 around k fit a spike at k better than a step next to it (least squares)?"""
-    lo, hi = max(k - 3, 0), min(k + 4, d4.size)
-    seg = d4[lo:hi]
-    ok = np.isfinite(seg)  # the block's ends have no centred difference
-    seg = np.where(ok, seg, 0.0)
+def explain_cluster(
+    x: np.ndarray, first: int, last: int, sigma_nT: float, t_min: float
+) -> list[tuple[str, int, float]]:
+    """Spikes and steps that explain a cluster of flagged 4th differences.
 
-    def misfit(template: np.ndarray, first: int) -> float:
-        t = np.zeros(hi - lo)
-        for j, v in enumerate(template):
-            if lo <= first + j < hi:
-                t[first + j - lo] = v
-        t[~ok] = 0.0
-        tt = float(t @ t)
-        a = float(t @ seg) / tt if tt else 0.0
-        r = seg - a * t
-        return float(r @ r)
+    The record around the cluster (FIT_MARGIN samples either side of ``first`` .. ``last``)
+    is fitted by least squares with a cubic plus terms chosen greedily from the candidates: a
+    spike at any sample of the cluster, or a step before any of them. A term is kept while it
+    lowers the residual sum of squares by more than (``t_min`` x ``sigma_nT``)^2 (its t
+    statistic exceeds ``t_min``), at most MAX_TERMS.
 
-    spike = misfit(_SPIKE, k - 2)
-    # a step between k and k+1 peaks at k (-3s) and k+1 (3s); between k-1 and k at k-1, k
-    steps = min(misfit(_STEP, k - 2), misfit(_STEP, k - 1))
-    return spike < steps
+    Returns
+    -------
+    list of (kind, index, amplitude nT)
+        ``kind`` is "spike" (index: the sample) or "step" (index: the first sample after it).
+    """
+    lo, hi = max(first - FIT_MARGIN, 0), min(last + FIT_MARGIN + 1, x.size)
+    seg = x[lo:hi]
+    m = seg.size
+    u = (np.arange(m) - (m - 1) / 2) / max(m / 2, 1.0)
+    base = np.vander(u, 4)
+    idx = np.arange(lo, hi)
+    candidates = [("spike", k) for k in range(first, last + 1)]
+    candidates += [("step", k) for k in range(max(first, lo + 1), min(last + 2, hi))]
+
+    cand = np.column_stack(
+        [(idx == k) if kind == "spike" else (idx >= k) for kind, k in candidates]
+    ).astype(float)
+    # project the cubic out of the record and of every candidate once; a subset's residual
+    # sum of squares is then rss0 - g_S' G_SS^-1 g_S
+    q, _ = np.linalg.qr(base)
+    y = seg - q @ (q.T @ seg)
+    c = cand - q @ (q.T @ cand)
+    gram, g = c.T @ c, c.T @ y
+    rss0 = float(y @ y)
+    # every subset of up to MAX_TERMS candidates; the best costs RSS / sigma^2 + t_min^2 per
+    # term (a term must lower the residual by t_min standard deviations to be worth it)
+    penalty = t_min**2
+    best: tuple[int, ...] = ()
+    best_amp = np.zeros(0)
+    best_cost = rss0 / sigma_nT**2
+    for size in range(1, MAX_TERMS + 1):
+        if size * penalty >= best_cost:
+            break  # no larger model can win
+        for sub in itertools.combinations(range(len(candidates)), size):
+            s_ = list(sub)
+            try:
+                amp = np.linalg.solve(gram[np.ix_(s_, s_)], g[s_])
+            except np.linalg.LinAlgError:
+                continue
+            cost = (rss0 - float(g[s_] @ amp)) / sigma_nT**2 + size * penalty
+            if cost < best_cost:
+                best, best_amp, best_cost = sub, amp, cost
+    return [(*candidates[j], float(a)) for j, a in zip(best, best_amp, strict=True)]
 
 
 def _despike_block(x: np.ndarray, s: DespikeSettings) -> tuple[list[int], list[float], int, int]:
@@ -166,9 +211,9 @@ def _despike_block(x: np.ndarray, s: DespikeSettings) -> tuple[list[int], list[f
         return found, amps, steps, rounds
     for rounds in range(1, MAX_ROUNDS + 1):  # noqa: B007 - reported
         d4 = fourth_difference(x)
-        core = d4[2:-2]
         flags = np.zeros(x.size, bool)
-        flags[2:-2] = hampel_flags(core, s.window_samples, s.threshold_sigma)
+        scale = np.full(x.size, np.nan)
+        flags[2:-2], scale[2:-2] = hampel_flags(d4[2:-2], s.window_samples, s.threshold_sigma)
         idx = np.flatnonzero(flags)
         if idx.size == 0:
             break
@@ -176,17 +221,16 @@ def _despike_block(x: np.ndarray, s: DespikeSettings) -> tuple[list[int], list[f
         new = 0
         steps = 0
         for c in clusters:
-            k = int(c[np.argmax(np.abs(d4[c]))])
-            if k < 2 or k > x.size - 3:
-                continue
-            if not _is_spike(d4, k):
-                steps += 1
-                continue
-            p = (-x[k - 2] + 4 * x[k - 1] + 4 * x[k + 1] - x[k + 2]) / 6.0
-            amps.append(float(x[k] - p))
-            found.append(k)
-            x[k] = p
-            new += 1
+            sigma = float(np.nanmax(scale[c])) / D4_NOISE_GAIN  # noise of x from d4's scale
+            terms = explain_cluster(x, int(c[0]), int(c[-1]), sigma, s.threshold_sigma)
+            for kind, k, a in terms:
+                if kind == "step":
+                    steps += 1
+                    continue
+                amps.append(a)
+                found.append(k)
+                x[k] -= a
+                new += 1
         if new == 0:
             break
     return found, amps, steps, rounds

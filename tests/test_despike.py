@@ -92,6 +92,27 @@ def test_detection_and_false_alarms_against_injected_spikes():
     assert np.concatenate(repair).max() < 3 * NOISE_NT * np.sqrt(70) / 6 * 3
 
 
+def test_bursts_of_adjacent_spikes():
+    """300 bursts of 1-3 spikes 1-3 samples apart (1-100 nT each, log-uniform, random sign)
+    on a realistic record: each cluster of flags is explained jointly (cubic plus the best
+    set of spikes and steps), so at most 2 % of the spikes are missed and at most 2 % as many
+    false ones appear (4 seeds: 21 missed, 17 false of 2400, 30 clusters taken for steps)."""
+    t, x = record(0)
+    rng = np.random.default_rng(50)
+    starts = np.sort(rng.choice(np.arange(20, x.size - 20, 30), size=300, replace=False))
+    y, pos = x.copy(), []
+    for j, s0 in enumerate(starts):
+        for w in range(1 + j % 3):
+            k = s0 + w * (1 + (j // 3) % 3)
+            y[k] += rng.choice([-1, 1]) * 10 ** rng.uniform(0, 2)
+            pos.append(k)
+    pos = np.array(pos)
+    r = despike(y, t)
+    missed = int((~np.isin(pos, r.spike_index)).sum())
+    false = np.setdiff1d(r.spike_index, pos).size
+    assert missed <= 0.02 * pos.size and false <= 0.02 * pos.size, (missed, false, pos.size)
+
+
 def test_step_is_not_a_spike_and_gaps_are_not_joined():
     """A 5 nT level step (a current switched on) is left alone; a sampling gap across which
     the field jumps 50 nT gives no spike; a spike next to the gap is still found."""
