@@ -595,6 +595,7 @@ def audit(
             settings,
             out_path,
             progress=lambda m: status.update(f"auditing {recording.name}: {m}"),
+            cfg=cfg,
         )
     _print_audit(j)
     if out_path:

@@ -24,6 +24,7 @@ from pipeline.maps.arima import (
 )
 from pipeline.maps.grid import Grid, minimum_curvature
 from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, Leveling, Line, level_lines
+from pipeline.maps.microlevel import MicroLevel, microlevel_lines
 from pipeline.maps.reduce import Reduction, reduce_to_anomaly
 from pipeline.segment import Segmentation
 
@@ -64,6 +65,12 @@ class MapSettings:
     # dem_clearance_m above it by equivalent sources ("" = on the flight surface)
     dem_path: str = default_field("map", "dem_path")
     dem_clearance_m: float = default_field("map", "dem_clearance_m")
+    # micro-levelling of the grid (pipeline.maps.microlevel); lengths 0: multiples of the
+    # line spacing
+    microlevel: bool = default_field("map", "microlevel")
+    microlevel_wavelength_m: float = default_field("map", "microlevel_wavelength_m")
+    microlevel_along_m: float = default_field("map", "microlevel_along_m")
+    microlevel_clip_nT: float = default_field("map", "microlevel_clip_nT")
 
 
 def noise_4th_difference_nT(x: np.ndarray) -> float:
@@ -203,6 +210,7 @@ class MapRun:
     main_field: tuple[float, float, float] = (float("nan"),) * 3
     # the gridder used and its cross-validation scores (pipeline.maps.gridders)
     gridder: dict[str, Any] = field(default_factory=lambda: {"method": "minimum_curvature"})
+    microlevel: MicroLevel | None = None
 
     def summary(self) -> dict[str, Any]:
         ny, nx = self.grid.shape
@@ -233,6 +241,11 @@ class MapRun:
             },
             "leveling": self.leveling.to_dict(),
             "gridder": self.gridder,
+            "microlevel": (
+                {"enabled": True, **self.microlevel.summary()}
+                if self.microlevel is not None
+                else {"enabled": False}
+            ),
             "arima_order": list(self.model.order),
             "arima_coefficients": {
                 "ar": [float(v) for v in self.model.ar],
@@ -314,6 +327,28 @@ def build_map(
     grid = minimum_curvature(
         ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing, crs=frame.crs
     )
+    micro = None
+    if s.microlevel:
+        micro = microlevel_lines(
+            lines,
+            grid,
+            heading,
+            spacing,
+            s.microlevel_wavelength_m,
+            s.microlevel_along_m,
+            s.microlevel_clip_nT,
+        )
+        for ln in lines:
+            if ln.kind == "survey" and ln.line_id in micro.corrections:
+                ln.value_nT = ln.value_nT - micro.corrections[ln.line_id]
+        gv = np.concatenate([ln.value_nT for ln in lines])
+        regrid = minimum_curvature(
+            ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing, crs=frame.crs
+        )
+        change = regrid.values - grid.values
+        change = change[np.isfinite(change)]
+        micro.grid_change_rms_nT = float(np.sqrt(np.mean(change**2))) if change.size else 0.0
+        grid = regrid
     grid, gridder = _regrid(flight, lines, up, grid, frame, spacing, s)
     # ARIMA + Kalman along the flight lines
     along_north = abs(along[1]) >= abs(along[0])
@@ -347,6 +382,7 @@ def build_map(
         tests,
         (total, incl, decl),
         gridder,
+        micro,
     )
 
 
