@@ -212,10 +212,12 @@ def choose_gridder(
         raise ValueError(f"map.gridder {method!r}: use {', '.join(GRIDDERS)}")
 
     def mc():
-        return MinimumCurvatureGridder(cell_m, mask_distance_m)
+        # unmasked: a held-out line lies two spacings from the nearest kept one, and a masked
+        # cell there would drop out of the score instead of counting against it
+        return MinimumCurvatureGridder(cell_m, np.inf)
 
     if method == "minimum_curvature":
-        return GridderChoice(mc())
+        return GridderChoice(MinimumCurvatureGridder(cell_m, mask_distance_m))
     block = max(cell_m / 2.0, 1.0)
     candidates: dict[str, Any] = {}
     for ds in depths_spacings:
@@ -237,12 +239,12 @@ def grid_on(
     height_m: np.ndarray | float = 0.0,
 ) -> Grid:
     """The chosen gridder's values on ``template``'s cells (its mask kept), at ``height_m``
-    (local up, m; a scalar or one per cell: e.g. a DEM plus a clearance)."""
+    (local up, m; a scalar or one per cell: e.g. a DEM plus a clearance). ``template`` is
+    the minimum-curvature grid of ``data``: returned as it is when that gridder was chosen."""
     g = choice.gridder
     if isinstance(g, MinimumCurvatureGridder):
-        if g.grid_ is None:
-            g.fit(data)
-        return g.grid_
+        # the template is the minimum-curvature grid of the same data, with its mask
+        return template
     if g.model_ is None:
         g.fit(data)
     gx, gy = np.meshgrid(*template.coordinates())
