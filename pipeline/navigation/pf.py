@@ -1,0 +1,139 @@
+"""Marginalised (Rao-Blackwellised) particle filter for large initial position errors.
+
+Particles carry the two horizontal position errors (the only states the map measurement is
+non-linear in); every other error state is linear and Gaussian given a particle's path and is
+estimated by a Kalman filter per particle (Schön, Gustafsson & Nordlund, "Marginalized particle
+filters for mixed linear/nonlinear state-space models", IEEE TSP 2005; MagNav.jl's ``mpf`` in
+``src/mpf.jl`` follows the same paper). Because the linear part's measurement row (the bias
+state) and its dynamics do not depend on the particle, all particles share one Kalman
+covariance and differ only in their means: the cost per epoch is one 16-state Riccati step
+plus vectorised per-particle means.
+
+Resampling is systematic when the effective sample size drops below half the particles. It is
+not regularised: a kernel jitter scaled to the cloud (Musso et al. 2001, even with Liu & West's
+shrinkage) blurred away what earlier epochs had learnt whenever the likelihood is a narrow
+ridge along a map contour, and the cloud diffused (tried; the estimate walked hundreds of metres
+away from the importance-sampling posterior in a few epochs). Diversity comes from a floor on
+the position process noise instead.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.navigation.ekf import FilterResult
+from pipeline.navigation.map_model import MapModel
+
+# Floor on the position process noise, m^2 per second of flight: the INS model's own is ~0
+# (position errors only integrate velocity errors), which leaves resampled particles no
+# diversity; the cloud then collapses onto one particle whose velocity error is wrong and
+# walks away (tried: 1e-2 m^2/s lost 2 of 3 large-error starts on a synthetic map, 1 m^2/s
+# none; the price is a position spread of a few metres where the EKF reaches ~1 m).
+POSITION_DIFFUSION_M2_PER_S = 1.0
+
+
+def _systematic(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    n = weights.size
+    u = (rng.random() + np.arange(n)) / n
+    idx = np.searchsorted(np.cumsum(weights), u)
+    return np.minimum(idx, n - 1)
+
+
+def particle_filter(
+    phi: np.ndarray,
+    qd: np.ndarray,
+    p0: np.ndarray,
+    z_nT: np.ndarray,
+    ins_east_m: np.ndarray,
+    ins_north_m: np.ndarray,
+    map_model: MapModel,
+    r_nT2: float,
+    seed: int,
+    particles: int = 1000,
+    update: np.ndarray | None = None,
+    times_s: np.ndarray | None = None,
+) -> FilterResult:
+    """Run the marginalised particle filter (arguments as :func:`pipeline.navigation.ekf.ekf`;
+    ``seed`` seeds the particles, ``times_s`` (N,) the epochs, default 10 Hz).
+
+    The reported position covariance is the weighted particle spread; the state is the
+    weighted mean of the particles (position) and of their Kalman means (the rest).
+    """
+    rng = np.random.default_rng(seed)
+    N, n = qd.shape
+    nl = n - 2
+    xn = rng.multivariate_normal(np.zeros(2), p0[:2, :2], size=particles)
+    xl = np.zeros((particles, nl))
+    Pl = np.array(p0[2:, 2:], float)
+    logw = np.zeros(particles)
+    allow = np.ones(N, bool) if update is None else np.asarray(update, bool)
+    z = np.asarray(z_nT, float)
+    dt = np.diff(times_s, prepend=times_s[0]) if times_s is not None else np.full(N, 0.1)
+    out_x = np.empty((N, n))
+    out_p = np.empty((N, 2, 2))
+    innov = np.full(N, np.nan)
+    svar = np.full(N, np.nan)
+    used = np.zeros(N, bool)
+    min_eig, max_asym = np.inf, 0.0
+    for k in range(N):
+        if k:  # time update k-1 -> k
+            F = phi[k]
+            An, Anl, Aln, Al = F[:2, :2], F[:2, 2:], F[2:, :2], F[2:, 2:]
+            qn = np.maximum(qd[k, :2], POSITION_DIFFUSION_M2_PER_S * dt[k])
+            ql = qd[k, 2:]
+            mean_n = xn @ An.T + xl @ Anl.T
+            Nn = Anl @ Pl @ Anl.T + np.diag(qn)
+            Nn = 0.5 * (Nn + Nn.T)
+            L = Al @ Pl @ Anl.T @ np.linalg.inv(Nn)
+            new_n = mean_n + rng.standard_normal((particles, 2)) @ np.linalg.cholesky(Nn).T
+            xl = xl @ Al.T + xn @ Aln.T + (new_n - mean_n) @ L.T
+            xn = new_n
+            Pl = Al @ Pl @ Al.T - L @ Nn @ L.T
+            Pl[np.diag_indices(nl)] += ql
+            Pl = 0.5 * (Pl + Pl.T)
+        if allow[k] and np.isfinite(z[k]):
+            m, gx, gy = map_model.value_and_gradient(
+                ins_east_m[k] - xn[:, 1], ins_north_m[k] - xn[:, 0]
+            )
+            on = np.isfinite(m)
+            if on.mean() > 0.5:
+                s = Pl[-1, -1] + r_nT2
+                y = np.where(on, z[k] - m - xl[:, -1], 0.0)
+                # A particle stands for its share of the cloud, a patch of covariance ~ 4 C / n
+                # (C the cloud's covariance, n particles); the map varies across that patch by
+                # the gradient times its size, which is added to the particle's likelihood
+                # variance (the likelihood averaged over the patch, to first order). Without it
+                # a wide cloud on a sharp map collapses onto the few particles that happen to
+                # sit on the measured contour, usually the wrong ones; as the cloud shrinks the
+                # term vanishes and the exact marginalised likelihood remains.
+                wn = np.exp(logw - logw.max())
+                cloud = np.cov(xn.T, aweights=wn) * 4.0 / particles
+                g = np.stack([np.nan_to_num(gy), np.nan_to_num(gx)], axis=1)  # d/dN, d/dE
+                s_i = s + np.einsum("pi,ij,pj->p", g, cloud, g)
+                logw = logw - 0.5 * y * y / s_i - 0.5 * np.log(s_i)
+                logw[~on] = -np.inf
+                K = Pl[:, -1] / s
+                xl = xl + np.outer(y, K)
+                Pl = Pl - np.outer(K, K) * s
+                Pl = 0.5 * (Pl + Pl.T)
+                w = np.exp(logw - logw.max())
+                w /= w.sum()
+                innov[k] = float(w @ y)
+                svar[k] = s
+                used[k] = True
+                if 1.0 / float(w @ w) < particles / 2:
+                    idx = _systematic(w, rng)
+                    xn = xn[idx]
+                    xl = xl[idx]
+                    logw = np.zeros(particles)
+        w = np.exp(logw - logw.max())
+        w /= w.sum()
+        mn = w @ xn
+        d = xn - mn
+        out_x[k, :2] = mn
+        out_x[k, 2:] = w @ xl
+        out_p[k] = (d * w[:, None]).T @ d
+        if k % 100 == 0:
+            min_eig = min(min_eig, float(np.linalg.eigvalsh(Pl)[0]))
+            max_asym = max(max_asym, float(np.abs(Pl - Pl.T).max()))
+    return FilterResult(out_x, out_p, innov, svar, used, min_eig, max_asym)
