@@ -1179,7 +1179,7 @@ def navigate_recording(
     """
     from pipeline.audit.report import jsonable
     from pipeline.navigation.map_io import read_map
-    from pipeline.navigation.stage import run_navigation
+    from pipeline.navigation.stage import run_navigation, track_coverage
     from pipeline.outputs import navigation_channels
 
     cfg = cfg or Config.load()
@@ -1203,6 +1203,7 @@ def navigate_recording(
             file=src,
             channel="/gnss/fix",
         )
+    track_coverage(flight, seg, geomap, settings)  # fail before compensating
     lines = ingest_lines(flight) + ([(LOG_INFO, why)] if why else [])
     comp, more, channels, comp_summary = final_compensation(flight, seg, cfg, "navigate")
     lines += more

@@ -202,6 +202,7 @@ class MapRun:
                 "north_m": self.grid.north0_m,
                 "latitude_deg": self.frame.lat0_deg,
                 "longitude_deg": self.frame.lon0_deg,
+                "altitude_m": self.frame.alt0_m,
                 "crs": self.frame.crs,
             },
             "line_spacing_m": self.spacing_m,

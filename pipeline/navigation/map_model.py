@@ -153,10 +153,9 @@ class MapModel:
         cols = (i + 1)[:, None] + np.arange(4)
         blk = self._coef[rows[:, :, None], cols[:, None, :]]
         wx, dx, wy, dy = (np.stack(w, axis=1) for w in (wx, dx, wy, dy))
-        val = np.einsum("ma,mab,mb->m", wy, blk, wx)
-        gx = np.einsum("ma,mab,mb->m", wy, blk, dx)
-        gy = np.einsum("ma,mab,mb->m", dy, blk, wx)
-        return val, gx, gy
+        bx = (blk @ wx[:, :, None])[:, :, 0]
+        bdx = (blk @ dx[:, :, None])[:, :, 0]
+        return (wy * bx).sum(axis=1), (wy * bdx).sum(axis=1), (dy * bx).sum(axis=1)
 
     def at(self, east_m: float, north_m: float) -> tuple[float, float, float]:
         """Value and gradient (d/d east, d/d north, nT/m) at one point; NaN value off the

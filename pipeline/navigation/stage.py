@@ -217,6 +217,34 @@ def select_window(
     return win, chosen[win], ids[win]
 
 
+def check_coverage(
+    geomap: GeoMap, east_m: np.ndarray, north_m: np.ndarray, settings: NavigationSettings
+) -> float:
+    """The fraction of the points (true positions of the scored epochs) on the map; raises a
+    one-line error naming the uncovered fraction above ``settings.max_uncovered``."""
+    on = MapModel(geomap.grid).inside(east_m, north_m)
+    uncovered = 1.0 - float(on.mean()) if on.size else 1.0
+    if uncovered > settings.max_uncovered:
+        raise AeromagError(
+            f"the map does not cover the track: {uncovered:.0%} of the {settings.segments} "
+            f"epochs ({int((~on).sum())} of {on.size}) are off the map (at most "
+            f"{settings.max_uncovered:.0%} allowed)",
+            file=geomap.source,
+        )
+    return 1.0 - uncovered
+
+
+def track_coverage(
+    flight: Flight, seg: Segmentation | None, geomap: GeoMap, settings: NavigationSettings
+) -> float:
+    """:func:`check_coverage` on a flight's scored epochs (before any compensation is run)."""
+    win, selected, _ = select_window(flight, seg, settings.segments)
+    lat = flight.data["lat_deg"].to_numpy(float)[win][selected]
+    lon = flight.data["lon_deg"].to_numpy(float)[win][selected]
+    e, n = geomap.to_local(lat, lon)
+    return check_coverage(geomap, np.asarray(e, float), np.asarray(n, float), settings)
+
+
 def run_navigation(
     flight: Flight,
     seg: Segmentation | None,
@@ -250,17 +278,8 @@ def run_navigation(
     e_all, n_all = geomap.to_local(lat[win], lon[win])
     e_all, n_all = np.asarray(e_all, float), np.asarray(n_all, float)
     notes = list(geomap.notes)
-    # coverage of the selected epochs by the map (true positions)
+    coverage = check_coverage(geomap, e_all[selected], n_all[selected], s)
     mm = MapModel(geomap.grid, 0.0, geomap.altitude_m)
-    on = mm.inside(e_all[selected], n_all[selected])
-    uncovered = 1.0 - float(on.mean())
-    if uncovered > s.max_uncovered:
-        raise AeromagError(
-            f"the map does not cover the track: {uncovered:.0%} of the {s.segments} epochs "
-            f"({int((~on).sum())} of {on.size}) are off the map (at most "
-            f"{s.max_uncovered:.0%} allowed)",
-            file=geomap.source,
-        )
     # map at the flight's altitude
     flight_alt = float(np.mean(alt[win][selected]))
     mm, how = mm.continued_to(flight_alt)
@@ -347,7 +366,7 @@ def run_navigation(
         s,
         geomap,
         mm,
-        1.0 - uncovered,
+        coverage,
         notes,
         timings,
     )
