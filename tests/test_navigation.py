@@ -342,3 +342,34 @@ def test_demo_flight_meets_the_issue_targets(tmp_path):
     d = json.loads(nav.read_text())["navigation"]["drms_m"]
     assert d["map_aided"] <= d["ins_only"] / 5
     assert d["map_aided"] <= 2 * d["crlb"]
+
+
+def test_recording_map_is_placed_by_its_metadata_or_the_summary_beside_it(box_path, tmp_path):
+    from pipeline.errors import AeromagError
+    from pipeline.geo.local import LocalFrame
+    from pipeline.io.writer import write_with_new_channels
+    from pipeline.navigation.map_io import MAP_METADATA, map_metadata, read_map
+    from pipeline.outputs import grid_channel
+
+    lat0, lon0 = _box_frame(box_path)
+    frame = LocalFrame(lat0, lon0, 420.0)
+    g = random_field_map(8, size_m=1000.0, cell_m=25.0, origin_m=(-500.0, -500.0))
+    ch = grid_channel("/map/anomaly_filtered", 1_781_485_200_000_000_000, g)
+    with_meta = tmp_path / "with.mcap"
+    write_with_new_channels(
+        box_path, with_meta, [ch], metadata={MAP_METADATA: map_metadata(frame, g)}
+    )
+    m = read_map(with_meta)
+    assert m.altitude_m == 420.0 and "metadata" in m.notes[0]
+    e, n = m.to_local(np.array([lat0]), np.array([lon0]))
+    assert abs(e[0]) < 1e-6 and abs(n[0]) < 1e-6
+    assert np.allclose(m.grid.values, g.values.astype("float32"))
+    assert m.grid.east0_m == pytest.approx(-500.0) and m.grid.north0_m == pytest.approx(-500.0)
+    bare = tmp_path / "old.processed.mcap"
+    write_with_new_channels(box_path, bare, [ch])
+    with pytest.raises(AeromagError, match="cannot be placed"):
+        read_map(bare)
+    origin = {"latitude_deg": lat0, "longitude_deg": lon0}
+    (tmp_path / "old.summary.json").write_text(json.dumps({"map": {"origin": origin}}))
+    m = read_map(bare)
+    assert "old.summary.json" in m.notes[0] and m.altitude_m is None

@@ -27,9 +27,12 @@ from pipeline.navigation.map_model import MapModel
 # Floor on the position process noise, m^2 per second of flight: the INS model's own is ~0
 # (position errors only integrate velocity errors), which leaves resampled particles no
 # diversity; the cloud then collapses onto one particle whose velocity error is wrong and
-# walks away (tried: 1e-2 m^2/s lost 2 of 3 large-error starts on a synthetic map, 1 m^2/s
-# none; the price is a position spread of a few metres where the EKF reaches ~1 m).
-POSITION_DIFFUSION_M2_PER_S = 1.0
+# walks away. Too large a floor swamps what the particles' motion tells the Kalman part about
+# the velocity errors, and the cloud lags the INS drift. Measured (benchmarks/bench_navigate.py
+# map, 1000 particles, 500 m initial sigma, 4 seeds; demo flight validation lines, seed 0):
+# 1e-3: 3 of 4 lost; 1e-2: 2 of 4 lost; 0.1: 3 of 4 recover to ~2 m, demo 4.7 m DRMS;
+# 1.0: 4 of 4 recover (one to 23 m) but demo 25 m DRMS (CRLB 2.3 m).
+POSITION_DIFFUSION_M2_PER_S = 0.1
 
 
 def _systematic(weights: np.ndarray, rng: np.random.Generator) -> np.ndarray:
