@@ -204,6 +204,12 @@ def test_particle_filter_recovers_a_large_initial_error(field_map):
     ekf_res = ekf(phi, qd, p0, z, ins_e, ins_n, field_map, sigma**2)
     ekf_err = _drms(x[late, :2] - ekf_res.state[late, :2])
     assert pf_err < ekf_err  # the EKF's linearisation fails this far from the truth
+    # the particle filter handing over to the EKF once settled recovers as well
+    both = particle_filter(
+        phi, qd, p0, z, ins_e, ins_n, field_map, sigma**2, seed=1, times_s=t, handover_m=5.0
+    )
+    assert both.handover_epoch is not None and both.handover_epoch < t.size // 2
+    assert _drms(x[late, :2] - both.state[late, :2]) < 10.0
 
 
 # ------------------------------------------------------------------------------- command

@@ -31,6 +31,7 @@ class FilterResult:
     updated : (N,) bool, a map measurement was used
     min_eigenvalue : smallest eigenvalue of the covariance over the run (SPD check)
     max_asymmetry : largest |P - P^T| over the run
+    handover_epoch : epoch at which a particle filter handed over to the EKF (None: never)
     """
 
     state: np.ndarray
@@ -40,6 +41,7 @@ class FilterResult:
     updated: np.ndarray
     min_eigenvalue: float
     max_asymmetry: float
+    handover_epoch: int | None = None  # particle filter -> EKF (see pf.particle_filter)
 
 
 def ekf(

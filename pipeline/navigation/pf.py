@@ -55,12 +55,20 @@ def particle_filter(
     particles: int = 1000,
     update: np.ndarray | None = None,
     times_s: np.ndarray | None = None,
+    handover_m: float | None = None,
+    handover_s: float = 10.0,
 ) -> FilterResult:
     """Run the marginalised particle filter (arguments as :func:`pipeline.navigation.ekf.ekf`;
     ``seed`` seeds the particles, ``times_s`` (N,) the epochs, default 10 Hz).
 
     The reported position covariance is the weighted particle spread; the state is the
     weighted mean of the particles (position) and of their Kalman means (the rest).
+
+    ``handover_m``: once the cloud's DRMS has stayed below this for ``handover_s`` of map
+    updates, the particles' mean and full covariance (spread of the positions and of the
+    Kalman means, plus the shared Kalman covariance) start the EKF, which runs the rest: the
+    particle filter finds the position from a large initial error, the EKF then tracks it
+    without the particles' position diffusion (``FilterResult.handover_epoch``).
     """
     rng = np.random.default_rng(seed)
     N, n = qd.shape
@@ -78,6 +86,8 @@ def particle_filter(
     svar = np.full(N, np.nan)
     used = np.zeros(N, bool)
     min_eig, max_asym = np.inf, 0.0
+    settled = 0
+    step_s = float(np.median(dt[1:])) if N > 1 else 0.1
     for k in range(N):
         if k:  # time update k-1 -> k
             F = phi[k]
@@ -136,7 +146,57 @@ def particle_filter(
         out_x[k, :2] = mn
         out_x[k, 2:] = w @ xl
         out_p[k] = (d * w[:, None]).T @ d
+        if handover_m is not None:
+            settled = settled + 1 if used[k] and np.trace(out_p[k]) < handover_m**2 else 0
+            if settled * step_s >= handover_s and k < N - 1:
+                return _hand_over(
+                    k,
+                    w,
+                    xn,
+                    xl,
+                    Pl,
+                    out_x,
+                    out_p,
+                    innov,
+                    svar,
+                    used,
+                    min_eig,
+                    max_asym,
+                    (phi, qd, z, ins_east_m, ins_north_m, map_model, r_nT2, allow),
+                )
         if k % 100 == 0:
             min_eig = min(min_eig, float(np.linalg.eigvalsh(Pl)[0]))
             max_asym = max(max_asym, float(np.abs(Pl - Pl.T).max()))
     return FilterResult(out_x, out_p, innov, svar, used, min_eig, max_asym)
+
+
+def _hand_over(k, w, xn, xl, Pl, out_x, out_p, innov, svar, used, min_eig, max_asym, rest):
+    """Continue with the EKF from epoch ``k``'s particle posterior (see ``handover_m``)."""
+    from pipeline.navigation.ekf import ekf
+
+    phi, qd, z, ins_e, ins_n, map_model, r_nT2, allow = rest
+    full = np.hstack([xn, xl])
+    mean = w @ full
+    d = full - mean
+    P = (d * w[:, None]).T @ d
+    P[2:, 2:] += Pl
+    P = 0.5 * (P + P.T)
+    later = allow[k:].copy()
+    later[0] = False  # epoch k's measurement is already in the particles
+    tail = ekf(phi[k:], qd[k:], P, z[k:], ins_e[k:], ins_n[k:], map_model, r_nT2, later, mean)
+    out_x[k:] = tail.state
+    out_p[k:] = tail.pos_cov_m2
+    innov[k + 1 :] = tail.innovation_nT[1:]
+    svar[k + 1 :] = tail.innovation_var_nT2[1:]
+    used[k + 1 :] = tail.updated[1:]
+    res = FilterResult(
+        out_x,
+        out_p,
+        innov,
+        svar,
+        used,
+        min(min_eig, tail.min_eigenvalue),
+        max(max_asym, tail.max_asymmetry),
+    )
+    res.handover_epoch = int(k)
+    return res

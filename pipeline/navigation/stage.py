@@ -45,6 +45,9 @@ class NavigationSettings:
     segments: str = "validation"
     seed: int = 0
     particles: int = 1000
+    # the particle filter hands over to the EKF once its cloud stays within this DRMS, m
+    # (None: particles to the end)
+    pf_handover_m: float | None = 5.0
     mag_bias_nT: float = 1.0
     mag_bias_tau_s: float = 600.0
     map_sigma_nT: float | None = None
@@ -337,8 +340,27 @@ def run_navigation(
         res = ekf(phi, qd, p0, z, ins_e, ins_n, mm, r, update)
     else:
         res = particle_filter(
-            phi, qd, p0, z, ins_e, ins_n, mm, r, s.seed + 1, s.particles, update, t
+            phi,
+            qd,
+            p0,
+            z,
+            ins_e,
+            ins_n,
+            mm,
+            r,
+            s.seed + 1,
+            s.particles,
+            update,
+            t,
+            handover_m=s.pf_handover_m,
         )
+        if res.handover_epoch is not None:
+            notes.append(
+                f"particle filter handed over to the EKF after {t[res.handover_epoch] - t[0]:.1f} s"
+                f" (cloud DRMS below {s.pf_handover_m:g} m for 10 s)"
+            )
+        else:
+            notes.append("particle filter to the end (its cloud never settled for a handover)")
     clock["filter"] = time.perf_counter()
     bound = crlb(phi, qd, p0, e_all, n_all, mm, r, update)
     free = crlb(phi, qd, p0, e_all, n_all, mm, r, np.zeros(t.size, bool))
