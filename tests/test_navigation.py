@@ -276,18 +276,33 @@ def _utm_map(box_path, tmp_path, shift_m=0.0, crs=True) -> Path:
     return _geotiff(tmp_path / "map.tif", g, epsg if crs else None)
 
 
-def test_command_runs_on_a_raw_recording_and_writes_valid_channels(box_path, tmp_path):
+@pytest.mark.parametrize("filter_", ["ekf", "pf"])
+def test_command_runs_on_a_raw_recording_and_writes_valid_channels(box_path, tmp_path, filter_):
     from tests.test_schemas import validate_every_message
 
     tif = _utm_map(box_path, tmp_path)
     out, nav = tmp_path / "nav.mcap", tmp_path / "nav.json"
     code, text = _cli(
-        "navigate", box_path, "--map", tif, "--json", nav, "--out", out, "--segments", "all"
+        "navigate",
+        box_path,
+        "--map",
+        tif,
+        "--json",
+        nav,
+        "--out",
+        out,
+        "--segments",
+        "all",
+        "--filter",
+        filter_,
+        "--seed",
+        3,
     )
     assert code == 0, text
     doc = json.loads(nav.read_text())["navigation"]
     assert set(doc["drms_m"]) == {"ins_only", "map_aided", "crlb"}
-    assert doc["settings"]["filter"] == "ekf" and doc["map"]["crs"].startswith("EPSG:")
+    assert doc["settings"]["filter"] == filter_ and doc["settings"]["seed"] == 3
+    assert doc["map"]["crs"].startswith("EPSG:")
     assert doc["cep50_m"]["ins_only"] > 0 and doc["segments"]
     topics = {"/nav/ins", "/nav/map_aided", "/nav/error", "/nav/innovation"}
     assert validate_every_message(out, topics) > 100
@@ -379,3 +394,27 @@ def test_recording_map_is_placed_by_its_metadata_or_the_summary_beside_it(box_pa
     (tmp_path / "old.summary.json").write_text(json.dumps({"map": {"origin": origin}}))
     m = read_map(bare)
     assert "old.summary.json" in m.notes[0] and m.altitude_m is None
+
+
+def test_netcdf_lon_lat_grid_is_placed_without_a_crs(tmp_path):
+    import xarray as xr
+
+    from pipeline.navigation.map_io import read_map
+
+    g = random_field_map(9, size_m=2000.0, cell_m=50.0)
+    ny, nx = g.shape
+    lon = np.linspace(108.90, 108.92, nx)
+    lat = np.linspace(34.27, 34.25, ny)  # north-up rows, as many grids store them
+    da = xr.DataArray(g.values, coords={"lat": lat, "lon": lon}, dims=("lat", "lon"))
+    da.attrs["altitude_m"] = 650.0
+    path = tmp_path / "map.nc"
+    da.to_dataset(name="anomaly").to_netcdf(path)
+    m = read_map(path)
+    assert m.altitude_m == 650.0
+    mm = MapModel(m.grid)
+    # stored cells (row 0 is the north edge) at their coordinates, inside the span of the
+    # resampled nodes (which may stop short of the edges by less than a cell); the unequal steps
+    # were resampled onto square cells, so agreement is to the field's smoothness
+    for r, c in ((1, 2), (3, 5), (ny - 3, nx - 3)):
+        e, n = m.to_local(np.array([lat[r]]), np.array([lon[c]]))
+        assert mm.value(e, n)[0] == pytest.approx(g.values[r, c], abs=1.0)

@@ -193,8 +193,9 @@ def _square_grid(values: np.ndarray, x_m: np.ndarray, y_m: np.ndarray) -> Grid:
     from scipy.interpolate import RegularGridInterpolator
 
     cell = min(dx, dy)
-    xs = np.arange(x_m[0], x_m[-1] + cell / 2, cell)
-    ys = np.arange(y_m[0], y_m[-1] + cell / 2, cell)
+    # nodes inside the data's span only (one beyond it would interpolate to NaN)
+    xs = x_m[0] + cell * np.arange(int(np.floor((x_m[-1] - x_m[0]) / cell + 1e-9)) + 1)
+    ys = y_m[0] + cell * np.arange(int(np.floor((y_m[-1] - y_m[0]) / cell + 1e-9)) + 1)
     itp = RegularGridInterpolator((y_m, x_m), values, bounds_error=False, fill_value=np.nan)
     yy, xx = np.meshgrid(ys, xs, indexing="ij")
     return Grid(itp((yy, xx)), float(xs[0]), float(ys[0]), cell)
