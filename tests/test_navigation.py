@@ -213,22 +213,23 @@ def test_particle_filter_recovers_a_large_initial_error(field_map):
 
 
 # ------------------------------------------------------------------------------- command
-REPO = Path(__file__).resolve().parent.parent
+@pytest.fixture
+def cli(capsys, monkeypatch):
+    """The real entry point (``flows.cli.main``: one-line errors, exit codes) run in-process
+    (a subprocess per call would re-import the stack for seconds)."""
+    from flows.cli import main
 
+    def run(*args):
+        monkeypatch.setattr("sys.argv", ["aeromag", *[str(a) for a in args]])
+        try:
+            main()
+            code = 0
+        except SystemExit as exc:
+            code = exc.code if isinstance(exc.code, int) else 1
+        cap = capsys.readouterr()
+        return code, (cap.out + cap.err).strip()
 
-def _cli(*args):
-    """The real entry point (``main``: one-line errors), in a subprocess."""
-    import subprocess
-    import sys
-
-    res = subprocess.run(
-        [sys.executable, "-m", "flows.cli", *[str(a) for a in args]],
-        cwd=REPO,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
-    return res.returncode, (res.stdout + res.stderr).strip()
+    return run
 
 
 def _one_line_error(code, text):
@@ -277,12 +278,14 @@ def _utm_map(box_path, tmp_path, shift_m=0.0, crs=True) -> Path:
 
 
 @pytest.mark.parametrize("filter_", ["ekf", "pf"])
-def test_command_runs_on_a_raw_recording_and_writes_valid_channels(box_path, tmp_path, filter_):
+def test_command_runs_on_a_raw_recording_and_writes_valid_channels(
+    box_path, tmp_path, filter_, cli
+):
     from tests.test_schemas import validate_every_message
 
     tif = _utm_map(box_path, tmp_path)
     out, nav = tmp_path / "nav.mcap", tmp_path / "nav.json"
-    code, text = _cli(
+    code, text = cli(
         "navigate",
         box_path,
         "--map",
@@ -308,24 +311,24 @@ def test_command_runs_on_a_raw_recording_and_writes_valid_channels(box_path, tmp
     assert validate_every_message(out, topics) > 100
 
 
-def test_map_that_does_not_cover_the_track_is_one_line(box_path, tmp_path):
+def test_map_that_does_not_cover_the_track_is_one_line(box_path, tmp_path, cli):
     tif = _utm_map(box_path, tmp_path, shift_m=50_000.0)
-    code, text = _cli(
+    code, text = cli(
         "navigate", box_path, "--map", tif, "--json", tmp_path / "n.json", "--segments", "all"
     )
     line = _one_line_error(code, text)
     assert "does not cover the track: 100%" in line
 
 
-def test_map_without_a_crs_is_one_line(box_path, tmp_path):
+def test_map_without_a_crs_is_one_line(box_path, tmp_path, cli):
     tif = _utm_map(box_path, tmp_path, crs=False)
-    code, text = _cli("navigate", box_path, "--map", tif, "--json", tmp_path / "n.json")
+    code, text = cli("navigate", box_path, "--map", tif, "--json", tmp_path / "n.json")
     line = _one_line_error(code, text)
     assert "cannot be placed" in line
 
 
-def test_recording_without_the_map_channel_is_one_line(box_path, tmp_path):
-    code, text = _cli("navigate", box_path, "--map", box_path, "--json", tmp_path / "n.json")
+def test_recording_without_the_map_channel_is_one_line(box_path, tmp_path, cli):
+    code, text = cli("navigate", box_path, "--map", box_path, "--json", tmp_path / "n.json")
     line = _one_line_error(code, text)
     assert "/map/anomaly_filtered" in line and "no such channel" in line
 
@@ -353,12 +356,12 @@ def test_magnav_hdf5_map_is_read_in_radians_and_degrees(tmp_path):
 
 
 @pytest.mark.slow
-def test_demo_flight_meets_the_issue_targets(tmp_path):
+def test_demo_flight_meets_the_issue_targets(tmp_path, cli):
     demo = Path("/work/demo-out/demo_flight.processed.mcap")
     if not demo.is_file():
         pytest.skip("demo output not present")
     nav = tmp_path / "nav.json"
-    code, text = _cli("navigate", demo, "--map", demo, "--json", nav)
+    code, text = cli("navigate", demo, "--map", demo, "--json", nav)
     assert code == 0, text
     d = json.loads(nav.read_text())["navigation"]["drms_m"]
     assert d["map_aided"] <= d["ins_only"] / 5
