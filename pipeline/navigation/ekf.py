@@ -32,6 +32,7 @@ class FilterResult:
     min_eigenvalue : smallest eigenvalue of the covariance over the run (SPD check)
     max_asymmetry : largest |P - P^T| over the run
     handover_epoch : epoch at which a particle filter handed over to the EKF (None: never)
+    rejected : map measurements refused by the innovation gate
     """
 
     state: np.ndarray
@@ -42,6 +43,7 @@ class FilterResult:
     min_eigenvalue: float
     max_asymmetry: float
     handover_epoch: int | None = None  # particle filter -> EKF (see pf.particle_filter)
+    rejected: int = 0  # measurements refused by the innovation gate
 
 
 def ekf(
@@ -56,6 +58,7 @@ def ekf(
     update: np.ndarray | None = None,
     x0: np.ndarray | None = None,
     check_every: int = 100,
+    gate_sigma: float | None = None,
 ) -> FilterResult:
     """Run the EKF.
 
@@ -71,6 +74,11 @@ def ekf(
     update : (N,) bool, epochs allowed to use the map (default: all)
     x0 : (n,) initial state (default zero)
     check_every : the covariance's eigenvalues are checked every this many epochs
+    gate_sigma : innovations beyond this many predicted sigmas are rejected (None, the
+        default: none are). Measured on the demo flight's validation lines: a 5-sigma gate
+        changes nothing for the navigation grade (0-1 rejections in 6071 updates) and stops the
+        tactical grade's re-acquisition after the dead-reckoned turn (DRMS 110 -> 1335 m and
+        50 -> 567 m on seeds 1 and 2), so it is off unless asked for.
     """
     N, n = qd.shape
     x = np.zeros(n) if x0 is None else np.array(x0, float)
@@ -84,6 +92,7 @@ def ekf(
     z = np.asarray(z_nT, float)
     eye = np.eye(n)
     min_eig, max_asym = np.inf, 0.0
+    rejected = 0
     for k in range(N):
         if k:
             F = phi[k]
@@ -99,6 +108,10 @@ def ekf(
                 s = float(H @ PH) + r_nT2
                 K = PH / s
                 r = z[k] - (m + x[-1])
+                if gate_sigma is not None and r * r > gate_sigma**2 * s:
+                    rejected += 1
+                    m = np.nan
+            if np.isfinite(m):
                 x = x + K * r
                 A = eye - np.outer(K, H)
                 P = A @ P @ A.T + np.outer(K, K) * r_nT2
@@ -109,4 +122,4 @@ def ekf(
             min_eig = min(min_eig, float(np.linalg.eigvalsh(P)[0]))
         out_x[k] = x
         out_p[k] = P[:2, :2]
-    return FilterResult(out_x, out_p, innov, svar, used, min_eig, max_asym)
+    return FilterResult(out_x, out_p, innov, svar, used, min_eig, max_asym, rejected=rejected)

@@ -197,6 +197,7 @@ def _hand_over(k, w, xn, xl, Pl, out_x, out_p, innov, svar, used, min_eig, max_a
         used,
         min(min_eig, tail.min_eigenvalue),
         max(max_asym, tail.max_asymmetry),
+        rejected=tail.rejected,
     )
     res.handover_epoch = int(k)
     return res

@@ -161,6 +161,7 @@ class NavigationRun:
             "measurement": {
                 "sensor_sigma_nT": self.sensor_sigma_nT,
                 "map_sigma_nT": self.map_sigma_nT,
+                "rejected_by_gate": int(self.result.rejected),
                 "r_nT2": self.r_nT2,
                 "mag_bias_sigma_nT": self.settings.mag_bias_nT,
                 "mag_bias_tau_s": self.settings.mag_bias_tau_s,
