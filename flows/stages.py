@@ -400,6 +400,48 @@ def configured_models(flight: Flight, cfg: Config) -> list[str]:
     ]
 
 
+def final_compensation(
+    flight: Flight, seg: Segmentation, cfg: Config, stage: str
+) -> tuple[np.ndarray, list[tuple[int, str]], list[OutputChannel], dict | None]:
+    """The compensated field of a recording, the way the single-stage commands get it: its
+    own ``/mag/compensated`` (an earlier run), else the configuration's final model this flight
+    can fit, fitted with its settings as ``aeromag process`` does (no audit).
+
+    Returns
+    -------
+    compensated_nT : ndarray
+        Per epoch, nT.
+    lines : list of (int, str)
+        Log lines.
+    channels : list of OutputChannel
+        ``/mag/compensated`` and ``/compensation/model`` when fitted here (else empty).
+    summary : dict or None
+        The compensation summary when fitted here.
+    """
+    earlier = existing_compensated(flight)
+    if earlier:
+        return (
+            list(earlier.values())[-1],
+            [(LOG_INFO, f"{stage}: using /mag/compensated from the recording")],
+            [],
+            None,
+        )
+    models = configured_models(flight, cfg)
+    if not models:
+        raise AeromagError(
+            "no configured compensation model fits this flight (agg-tl needs positions)",
+            file=flight.source,
+            channel="/gnss/fix",
+        )
+    run = run_compensation(flight, seg, cfg.fit_settings(models[-1]))
+    return (
+        run.compensated_nT,
+        compensation_lines(run),
+        [compensated_channel(flight, run), model_message(flight, run)],
+        run.summary(),
+    )
+
+
 def map_recording(
     src: Path, dst: Path, summary_path: Path, settings: MapSettings, cfg: Config | None = None
 ) -> dict:
@@ -411,28 +453,15 @@ def map_recording(
     if seg is None:
         raise AeromagError(f"mapping needs the flight lines: {why}", file=src, channel="/gnss/fix")
     present = set(flight.all_topics)
-    channels: list[OutputChannel] = []
     lines = ingest_lines(flight)
-    earlier = existing_compensated(flight)
-    comp = list(earlier.values())[-1] if earlier else None
     summary: dict[str, Any] = {"aeromag_version": __version__, "input": flight_summary(flight)}
-    if comp is None:
-        models = configured_models(flight, cfg)
-        if not models:
-            raise AeromagError(
-                "no configured compensation model fits this flight (agg-tl needs positions)",
-                file=src,
-                channel="/gnss/fix",
-            )
-        run = run_compensation(flight, seg, cfg.fit_settings(models[-1]))
-        comp = run.compensated_nT
-        lines += dlines + compensation_lines(run)
+    comp, more, channels, comp_summary = final_compensation(flight, seg, cfg, "map")
+    if comp_summary is not None:  # compensated here, from the despiked record
+        lines += dlines
         if despiked is not None:
             summary["despike"] = despiked.summary()
-        channels += [compensated_channel(flight, run), model_message(flight, run)]
-        summary["compensation"] = run.summary()
-    else:
-        lines.append((LOG_INFO, "map: using /mag/compensated from the recording"))
+        summary["compensation"] = comp_summary
+    lines += more
     mr = build_map(flight, seg, comp, settings)
     lines += map_lines(mr)
     channels += [segment_channel(flight, seg), *map_channels(flight, seg, mr)]
@@ -443,7 +472,12 @@ def map_recording(
         figures[name] = str(
             save_figure(fig, summary_path.with_name(f"{summary_path.stem}.{name}.png"))
         )
-    write_with_new_channels(src, dst, channels, metadata={"aeromag.run": run_metadata()})
+    write_with_new_channels(
+        src,
+        dst,
+        channels,
+        metadata={"aeromag.run": run_metadata()},
+    )
     summary.update(
         {
             "map": mr.summary(),
@@ -1345,3 +1379,84 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
     if images:
         out += ["## Figures", ""] + [f"![{k}]({p})" for k, p in images.items()] + [""]
     return "\n".join(out)
+
+
+# --------------------------------------------------------------------------------------------
+# navigation
+def navigate_recording(
+    src: Path,
+    map_path: Path,
+    json_out: Path,
+    settings,
+    out_path: Path | None = None,
+    map_channel: str = "/map/anomaly_filtered",
+    cfg: Config | None = None,
+) -> dict[str, Any]:
+    """``aeromag navigate``: re-fly the recording with a simulated INS aided by the map.
+
+    A raw recording is compensated first (:func:`final_compensation`, as ``aeromag map``);
+    a processed one uses its ``/mag/compensated``.
+    """
+    from pipeline.audit.report import jsonable
+    from pipeline.navigation.map_io import read_map
+    from pipeline.navigation.stage import run_navigation, track_coverage
+    from pipeline.outputs import navigation_channels
+
+    cfg = cfg or Config.load()
+    settings.check()
+    geomap = read_map(map_path, map_channel)
+    flight = read_flight(src)
+    flight.require("lat_deg", "lon_deg", "alt_m", purpose="navigation (the reference track)")
+    seg, why = try_segment(flight)
+    present = set(flight.all_topics)
+    nav_topics = ("/nav/ins", "/nav/map_aided", "/nav/error", "/nav/innovation")
+    if out_path is not None:
+        _refuse_existing(
+            src,
+            [OutputChannel(t, "") for t in nav_topics],
+            present,
+            "navigate the original recording",
+        )
+    if seg is None and settings.segments != "all":
+        raise AeromagError(
+            f"--segments {settings.segments} needs the flight lines: {why}; use --segments all",
+            file=src,
+            channel="/gnss/fix",
+        )
+    track_coverage(flight, seg, geomap, settings)  # fail before compensating
+    lines = ingest_lines(flight) + ([(LOG_INFO, why)] if why else [])
+    comp, more, channels, comp_summary = final_compensation(flight, seg, cfg, "navigate")
+    lines += more
+    run = run_navigation(flight, seg, comp, geomap, settings)
+    nav = run.summary()
+    d = nav["drms_m"]
+    lines.append(
+        (
+            LOG_INFO,
+            f"navigate: {settings.filter} on {settings.segments} with a {settings.ins}-grade INS: "
+            f"DRMS INS-only {d['ins_only']:.1f} m, map-aided {d['map_aided']:.2f} m, "
+            f"CRLB {d['crlb']:.2f} m",
+        )
+    )
+    lines += [(LOG_INFO, f"navigate: {n}") for n in run.notes]
+    summary: dict[str, Any] = {
+        "aeromag_version": __version__,
+        "input": flight_summary(flight),
+        "navigation": nav,
+        "log": [text for _, text in lines],
+    }
+    if comp_summary is not None:
+        summary["compensation"] = comp_summary
+    if out_path is not None:
+        out_channels = navigation_channels(run)
+        if "/aeromag/log" not in present:  # a processed input keeps its own log (one channel)
+            out_channels.insert(0, log_channel(flight, lines, "navigate"))
+        if seg is not None and "/flight/segment" not in present:
+            out_channels.append(segment_channel(flight, seg))
+        out_channels += [c for c in channels if c.topic not in present]
+        write_with_new_channels(
+            src, out_path, out_channels, metadata={"aeromag.run": run_metadata()}
+        )
+    summary["outputs"] = {"summary": str(json_out), **({"mcap": str(out_path)} if out_path else {})}
+    write_json_atomic(json_out, jsonable(summary))
+    return summary

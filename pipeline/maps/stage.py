@@ -222,8 +222,8 @@ class MapRun:
                 "north_m": self.grid.north0_m,
                 "latitude_deg": self.frame.lat0_deg,
                 "longitude_deg": self.frame.lon0_deg,
-                "crs": self.frame.crs,
                 "altitude_m": self.frame.alt0_m,
+                "crs": self.frame.crs,
             },
             "main_field": {
                 "total_nT": self.main_field[0],
