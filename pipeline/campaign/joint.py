@@ -131,9 +131,7 @@ def constraints(keys: list[str], n_flights: int, trend: bool) -> sp.csr_matrix:
     f0 = nl * (2 if trend else 1)
     rows = [flight_of(k) for k in keys] + [n_flights] * n_flights
     cols = list(range(nl)) + [f0 + f for f in range(n_flights)]
-    return sp.csr_matrix(
-        (np.ones(len(cols)), (rows, cols)), shape=(n_flights + 1, f0 + n_flights)
-    )
+    return sp.csr_matrix((np.ones(len(cols)), (rows, cols)), shape=(n_flights + 1, f0 + n_flights))
 
 
 def level_jointly(

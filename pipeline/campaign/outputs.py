@@ -217,17 +217,13 @@ def summary(
             }
             for s in run.sorties
         ],
-        "flight_offsets_nT": {
-            s.name: float(lev.flight_offsets_nT[s.index]) for s in run.sorties
-        },
+        "flight_offsets_nT": {s.name: float(lev.flight_offsets_nT[s.index]) for s in run.sorties},
         "crossovers": {
             "within_flight": int(np.sum(~lev.between)),
             "between_flights": int(np.sum(lev.between)),
         },
         "crossover_rms_nT": rms,
-        "between_over_within_after": (
-            between / within if within and between is not None else None
-        ),
+        "between_over_within_after": (between / within if within and between is not None else None),
         "leveling": {
             "unknowns": "one offset per line"
             + (" and a slope in time" if lev.trend else "")
@@ -280,7 +276,8 @@ def report_markdown(doc: dict[str, Any], figures: dict[str, str]) -> str:
         "",
         "| crossovers | before (each flight levelled on its own) | after (joint) |",
         "|---|---|---|",
-        f"| within flights | {f(r['within_flight']['before'])} | {f(r['within_flight']['after'])} |",
+        f"| within flights | {f(r['within_flight']['before'])} | "
+        f"{f(r['within_flight']['after'])} |",
         f"| between flights | {f(r['between_flights']['before'])} | "
         f"{f(r['between_flights']['after'])} |",
         "",

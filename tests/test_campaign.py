@@ -1,0 +1,358 @@
+"""Campaigns: sorties of one area levelled jointly on every crossover, gridded once.
+
+Three uav-small sorties over the same geology (``anomaly.seed``) on three days, each with its
+own diurnal level (``effects.diurnal.offset_nT``: what the base station's mean does not
+remove) and its lines shifted across track (``survey.line_offset_m``), processed cheaply (one
+model, no audit, no vector stage, no exports) once for the module.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.interpolate import RegularGridInterpolator
+
+from pipeline.campaign.joint import level_jointly
+from pipeline.campaign.sorties import campaign_frame, read_sortie, validate_campaign
+from pipeline.campaign.stage import run_campaign
+from pipeline.errors import AeromagError
+from pipeline.geo.local import LocalFrame
+from pipeline.maps.level import Crossover, Line
+from tests.conftest import REPO, run_sim
+from tests.test_schemas import validate_every_message
+
+# name, seed, start, diurnal level (nT), line shift (m)
+SORTIES = (
+    ("day1", 1, "2026-06-15T01:00:00Z", 6.0, 0.0),
+    ("day2", 2, "2026-06-17T03:00:00Z", -4.0, 25.0),
+    ("day3", 3, "2026-06-20T02:00:00Z", 1.5, 12.5),
+)
+CONFIG = """config_version = 1
+[compensation]
+models = ["agg-tl"]
+[audit]
+enabled = false
+[vector]
+enabled = false
+[map]
+arima = "1,1,1"
+[export]
+formats = []
+"""
+
+
+def simulate_campaign(folder: Path, sorties=SORTIES, extra: list[str] | None = None) -> Path:
+    """Simulate and process the sorties into ``folder/proc`` (truth beside the recordings)."""
+    from flows.postflight import run_plain
+    from pipeline.simulate import write_simulation
+
+    cfg = folder / "process.toml"
+    cfg.write_text(CONFIG)
+    for name, seed, start, level, shift in sorties:
+        sim = run_sim(
+            "uav-small",
+            seed,
+            [
+                "anomaly.seed=7",
+                f"start_time='{start}'",
+                "effects.diurnal.enabled=true",
+                "effects.diurnal.amplitude_nT=0.0",
+                "effects.diurnal.random_walk_nT_per_sqrt_s=0.0",
+                f"effects.diurnal.offset_nT={level}",
+                f"survey.line_offset_m={shift}",
+                "survey.validation=false",
+                *(extra or []),
+            ],
+        )
+        src = write_simulation(sim, folder / f"{name}.mcap", folder / f"{name}.truth.json")
+        run_plain(str(src), str(folder / "proc"), str(cfg))
+    return folder / "proc"
+
+
+@pytest.fixture(scope="module")
+def flights(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("campaign")
+    return folder, simulate_campaign(folder)
+
+
+@pytest.fixture(scope="module")
+def merged(flights):
+    """The campaign through its plain steps (the flow's, without Prefect), with exports."""
+    from flows.campaign import run_plain
+
+    folder, proc = flights
+    cfg = folder / "campaign.toml"
+    cfg.write_text('config_version = 1\n[export]\nformats = ["geotiff", "netcdf"]\n')
+    return folder / "out", run_plain(proc, folder / "out", str(cfg))
+
+
+class Truth:
+    """The simulator's true anomaly at any WGS-84 position."""
+
+    def __init__(self, path: Path):
+        truth = json.loads(path.read_text())
+        tg, site = truth["anomaly"]["grid"], truth["site"]
+        v = np.array(tg["values_nT"])
+        self.site = LocalFrame(site["latitude_deg"], site["longitude_deg"])
+        self.interp = RegularGridInterpolator(
+            (
+                tg["north0_m"] + tg["cell_m"] * np.arange(v.shape[0]),
+                tg["east0_m"] + tg["cell_m"] * np.arange(v.shape[1]),
+            ),
+            v,
+            bounds_error=False,
+        )
+        self.survey = truth["scenario"]["survey"]
+
+    def at(self, frame: LocalFrame, east_m, north_m, inside_m: float = 25.0) -> np.ndarray:
+        """Truth at campaign-frame points; NaN outside the block shrunk by ``inside_m``."""
+        lat, lon, _ = frame.to_geodetic(east_m, north_m)
+        e, n, _ = self.site.to_enu(lat, lon)
+        out = self.interp(np.stack([n, e], -1))
+        s = self.survey
+        inside = (
+            (e > s["east_m"] + inside_m)
+            & (e < s["east_m"] + s["width_m"] - inside_m)
+            & (n > s["north_m"] + inside_m)
+            & (n < s["north_m"] + s["length_m"] - inside_m)
+        )
+        return np.where(inside, out, np.nan)
+
+
+def _sorties(proc: Path):
+    infos = validate_campaign(proc)
+    frame = campaign_frame(infos)
+    return frame, [read_sortie(k, info, frame) for k, info in enumerate(infos)]
+
+
+def _grid_rmse(grid, truth: Truth, frame: LocalFrame) -> float:
+    """RMS of grid - truth over the scored block, after one common offset (the datum)."""
+    ge, gn = np.meshgrid(*grid.coordinates())
+    t = truth.at(frame, ge, gn)
+    ok = np.isfinite(t) & np.isfinite(grid.values)
+    d = grid.values[ok] - t[ok]
+    return float(np.sqrt(np.mean((d - d.mean()) ** 2)))
+
+
+# --------------------------------------------------------------------------------------------
+def test_design_recovers_flight_and_line_offsets_exactly():
+    """Noise-free crossovers of a synthetic campaign: two flights of two survey lines and a
+    tie each; the solution is the injected offsets minus their means (the constraints)."""
+    rng = np.random.default_rng(1)
+    flight = np.array([3.0, -1.0])
+    line = {"0:L1": 0.5, "0:L2": -0.2, "0:T1": -0.3, "1:L1": 0.1, "1:L2": 0.4, "1:T1": -0.5}
+    keys = sorted(line)
+    xs, between = [], []
+    for a in keys:
+        for b in keys:
+            if a < b and (a[0] != b[0] or "T" in a + b) and a[2] != b[2]:
+                va = flight[int(a[0])] + line[a]
+                vb = flight[int(b[0])] + line[b]
+                xs.append(Crossover(a, b, 0.0, 0.0, va, vb, 10.0, 20.0))
+                between.append(a[0] != b[0])
+    times = {k: rng.uniform(0, 100, 20) for k in keys}
+    lev = level_jointly(times, 2, xs, np.array(between))
+    np.testing.assert_allclose(lev.flight_offsets_nT, flight - flight.mean(), atol=1e-9)
+    for f in "01":
+        mine = [k for k in keys if k[0] == f]
+        want = np.array([line[k] for k in mine]) - np.mean([line[k] for k in mine])
+        np.testing.assert_allclose([lev.line_offsets[k][0] for k in mine], want, atol=1e-9)
+    assert np.max(np.abs(lev.after_nT)) < 1e-9
+    rms = lev.rms_nT()
+    assert rms["between_flights"]["before"] > 1.0 and rms["between_flights"]["after"] < 1e-9
+
+
+def test_line_trends_fit_drifting_lines():
+    """Slopes in time on two survey lines crossed by three ties: offsets alone leave the
+    drift in the crossovers, offsets and trends fit them exactly (with trends a line's
+    corrections are not unique; the ridge takes the smallest)."""
+    from pipeline.maps.level import crossovers
+
+    t = np.linspace(0, 100, 101)
+    n = np.arange(101)
+    survey = [
+        Line("0:L1", "survey", np.zeros(101), t, t, 0.05 * (t - 50.0) + 1.0, n),
+        Line("0:L2", "survey", np.full(101, 30.0), t, t + 120, -0.02 * (t - 50.0), n),
+    ]
+    ties = [
+        Line(f"0:T{k}", "tie", t - 50, np.full(101, y), t + 300 + 200 * k, np.full(101, c), n)
+        for k, (y, c) in enumerate(((20.0, 0.3), (50.0, -0.2), (80.0, 0.0)))
+    ]
+    xs = crossovers(survey, ties)
+    assert len(xs) == 6
+    times = {ln.line_id: ln.time_s for ln in survey + ties}
+    dc = level_jointly(times, 1, xs, np.zeros(6, bool), trend=False)
+    tr = level_jointly(times, 1, xs, np.zeros(6, bool), trend=True)
+    assert np.sqrt(np.mean(dc.after_nT**2)) > 0.5
+    assert np.max(np.abs(tr.after_nT)) < 1e-6
+    assert abs(sum(v[0] for v in tr.line_offsets.values())) < 1e-9  # the flight's level
+
+
+def test_joint_levelling_against_the_truth(flights, merged):
+    """Per-flight offsets recover the sorties' levels (up to the common datum), the merged
+    grid beats merging the flights as each levelled itself, and between-flight crossovers end
+    within 1.2x the within-flight RMS."""
+    folder, proc = flights
+    _, doc = merged
+    frame, sorties = _sorties(proc)
+    truth = Truth(folder / "day1.truth.json")
+    # the level each flight really has: its line data minus the truth (the injected diurnal
+    # level plus what its own compensation left as a constant)
+    level = []
+    for s in sorties:
+        e = np.concatenate([ln.east_m for ln in s.lines])
+        n = np.concatenate([ln.north_m for ln in s.lines])
+        v = np.concatenate([ln.value_nT for ln in s.lines])
+        t = truth.at(frame, e, n, inside_m=-25.0)
+        level.append(float(np.nanmean(v - t)))
+    level = np.array(level) - np.mean(level)
+    offsets = np.array([doc["flight_offsets_nT"][name] for name, *_ in SORTIES])
+    injected = np.array([lv for *_, lv, _ in SORTIES])
+    np.testing.assert_allclose(offsets, level, atol=0.15)
+    np.testing.assert_allclose(offsets, injected - injected.mean(), atol=0.6)
+    assert abs(offsets.sum()) < 1e-9
+    rms = doc["crossover_rms_nT"]
+    assert rms["between_flights"]["before"] > 3.0
+    assert rms["between_flights"]["after"] <= 1.2 * rms["within_flight"]["after"]
+    assert doc["between_over_within_after"] <= 1.2
+    # the merged grid against the truth: joint levelling vs each flight levelled alone
+    from flows.campaign import _crossovers
+
+    xs, between = [], []
+    for i, a in enumerate(sorties):
+        for b in [None, *sorties[i + 1 :]]:
+            part = _crossovers(a, b, 30.0)
+            xs += part
+            between += [b is not None] * len(part)
+    run = run_campaign(sorties, frame, xs, np.array(between), per_flight_grid=True)
+    joint, alone = _grid_rmse(run.grid, truth, frame), _grid_rmse(run.per_flight_grid, truth, frame)
+    assert joint < 0.5 * alone and joint < 0.3, (joint, alone)
+    assert doc["grid"]["cell_m"] == pytest.approx(12.5, abs=0.1)  # a quarter of 50 m
+
+
+def test_outputs_validate_and_exports_place_the_grid(merged):
+    out, doc = merged
+    mcap = out / "campaign.mcap"
+    topics = {"/map/anomaly", "/map/frame", "/campaign/flight_offset", "/campaign/crossovers"}
+    n = validate_every_message(mcap)
+    assert n == 2 + 3 + sum(doc["crossovers"].values())
+    from pipeline.export.source import read_map_products
+
+    mp = read_map_products(mcap)
+    assert [g.name for g in mp.grids] == ["anomaly"]
+    assert abs(mp.frame.latitude_deg - doc["grid"]["origin"]["latitude_deg"]) < 1e-12
+    from pipeline.io.reader import read_topics
+
+    assert set(read_topics(mcap).topics) == topics
+    assert sorted(Path(p).name for ps in doc["exports"].values() for p in ps) == [
+        "campaign.anomaly.tif",
+        "campaign.maps.nc",
+    ]
+    import rasterio
+
+    with rasterio.open(out / "campaign.anomaly.tif") as ds:
+        assert ds.crs.to_epsg() == mp.frame.utm_epsg and ds.tags(1)["units"] == "nT"
+    for name in ("campaign.report.md", "campaign.map.png", "campaign.crossovers.png"):
+        assert (out / name).stat().st_size > 500, name
+    assert "between flights" in (out / "campaign.report.md").read_text()
+    assert [f["flight"] for f in doc["flights"]] == ["day1", "day2", "day3"]
+    assert set(doc["crossover_rms_nT"]) == {"within_flight", "between_flights"}
+    assert not [p for p in out.iterdir() if ".partial" in p.name]
+
+
+# --------------------------------------------------------------------------------------------
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, "-m", "flows.cli", "campaign", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=REPO,
+    )
+
+
+def _synthetic(path: Path, dlat_deg: float = 0.0) -> Path:
+    """A tiny processed recording with map channels (tests/mapfile.py), moved north by
+    ``dlat_deg``."""
+    from pipeline.io.reader import read_topics
+    from pipeline.io.writer import McapOutput, encode
+    from tests.mapfile import write_processed
+
+    src, _ = write_processed(path.with_name("." + path.name))
+    rec = read_topics(src)
+    with McapOutput(path) as out:
+        for topic, raw in rec.topics.items():
+            cid = out.channel(topic, raw.schema_name)
+            for t, data in zip(raw.log_time_ns, raw.data, strict=True):
+                p = json.loads(data)
+                if topic == "/map/frame":
+                    p["latitude"] += dlat_deg
+                out.write(cid, t, encode(p))
+    src.unlink()
+    return path
+
+
+def test_bad_input_is_one_line_naming_what_is_missing(tmp_path):
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(AeromagError) as exc:
+        validate_campaign(empty)
+    assert "no processed recordings" in str(exc.value) and "aeromag process" in str(exc.value)
+    # a recording without map channels (the calibration box fixture, renamed)
+    nomap = tmp_path / "nomap"
+    nomap.mkdir()
+    _synthetic(nomap / "a.processed.mcap")
+    (nomap / "b.processed.mcap").write_bytes((REPO / "fixtures" / "box_uav.mcap").read_bytes())
+    with pytest.raises(AeromagError) as exc:
+        validate_campaign(nomap)
+    msg = str(exc.value)
+    assert "b.processed.mcap" in msg and "/map/frame" in msg and "aeromag process" in msg
+    assert "\n" not in msg
+    (nomap / "b.processed.mcap").unlink()
+    with pytest.raises(AeromagError, match="2 or more processed recordings"):
+        validate_campaign(nomap)
+
+
+def test_cli_refuses_disjoint_areas_in_one_line_before_any_flow(tmp_path, monkeypatch, capsys):
+    """Three flights, one of them 11 km north of the others (the console entry point, in
+    process: what `aeromag campaign` prints)."""
+    from flows.cli import main
+
+    _synthetic(tmp_path / "a.processed.mcap")
+    _synthetic(tmp_path / "b.processed.mcap")
+    _synthetic(tmp_path / "c.processed.mcap", dlat_deg=0.1)
+    argv = ["aeromag", "campaign", str(tmp_path), "--out", str(tmp_path / "o")]
+    monkeypatch.setattr(sys, "argv", argv)
+    with pytest.raises(SystemExit) as exc:
+        main()
+    err = capsys.readouterr().err
+    assert exc.value.code == 2 and "Traceback" not in err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and "disjoint areas" in lines[0] and "a, b | c" in lines[0], err
+    assert not (tmp_path / "o").exists()
+
+
+def test_disjoint_groups_are_named(tmp_path):
+    for name, dlat in (("n1", 0.1), ("n2", 0.1), ("s1", 0.0), ("s2", 0.0)):
+        _synthetic(tmp_path / f"{name}.processed.mcap", dlat)
+    with pytest.raises(AeromagError, match=r"n1, n2 \| s1, s2"):
+        validate_campaign(tmp_path)
+    (tmp_path / "n1.processed.mcap").unlink()
+    (tmp_path / "n2.processed.mcap").unlink()
+    assert [i.name for i in validate_campaign(tmp_path)] == ["s1", "s2"]
+
+
+@pytest.mark.slow
+def test_cli_campaign_on_a_dask_cluster(flights, tmp_path):
+    """`aeromag campaign` end to end: its own Prefect server, a 2-worker Dask cluster."""
+    _, proc = flights
+    res = _cli(str(proc), "--out", str(tmp_path / "out"), "--workers", "2")
+    assert res.returncode == 0, res.stderr[-3000:]
+    doc = json.loads((tmp_path / "out" / "campaign.summary.json").read_text())
+    assert "between flights" in res.stdout and doc["between_over_within_after"] <= 1.2
+    assert (tmp_path / "out" / "campaign.anomaly.tif").is_file()
