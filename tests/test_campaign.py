@@ -1,9 +1,7 @@
 """Campaigns: sorties of one area levelled jointly on every crossover, gridded once.
 
-Three uav-small sorties over the same geology (``anomaly.seed``) on three days, each with its
-own diurnal level (``effects.diurnal.offset_nT``: what the base station's mean does not
-remove) and its lines shifted across track (``survey.line_offset_m``), processed cheaply (one
-model, no audit, no vector stage, no exports) once for the module.
+Three uav-small sorties over one geology on three days, each with its own diurnal level and
+line positions (tests/campaign_sim.py), simulated and processed once for the module.
 """
 
 from __future__ import annotations
@@ -15,63 +13,23 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.interpolate import RegularGridInterpolator
 
 from pipeline.campaign.joint import level_jointly
-from pipeline.campaign.sorties import campaign_frame, read_sortie, validate_campaign
+from pipeline.campaign.sorties import validate_campaign
 from pipeline.campaign.stage import run_campaign
 from pipeline.errors import AeromagError
-from pipeline.geo.local import LocalFrame
 from pipeline.maps.level import Crossover, Line
-from tests.conftest import REPO, run_sim
-from tests.test_schemas import validate_every_message
-
-# name, seed, start, diurnal level (nT), line shift (m)
-SORTIES = (
-    ("day1", 1, "2026-06-15T01:00:00Z", 6.0, 0.0),
-    ("day2", 2, "2026-06-17T03:00:00Z", -4.0, 25.0),
-    ("day3", 3, "2026-06-20T02:00:00Z", 1.5, 12.5),
+from tests.campaign_sim import (
+    SORTIES,
+    Truth,
+    all_crossovers,
+    grid_rmse_nT,
+    simulate_campaign,
+    sorties_and_frame,
+    true_levels_nT,
 )
-CONFIG = """config_version = 1
-[compensation]
-models = ["agg-tl"]
-[audit]
-enabled = false
-[vector]
-enabled = false
-[map]
-arima = "1,1,1"
-[export]
-formats = []
-"""
-
-
-def simulate_campaign(folder: Path, sorties=SORTIES, extra: list[str] | None = None) -> Path:
-    """Simulate and process the sorties into ``folder/proc`` (truth beside the recordings)."""
-    from flows.postflight import run_plain
-    from pipeline.simulate import write_simulation
-
-    cfg = folder / "process.toml"
-    cfg.write_text(CONFIG)
-    for name, seed, start, level, shift in sorties:
-        sim = run_sim(
-            "uav-small",
-            seed,
-            [
-                "anomaly.seed=7",
-                f"start_time='{start}'",
-                "effects.diurnal.enabled=true",
-                "effects.diurnal.amplitude_nT=0.0",
-                "effects.diurnal.random_walk_nT_per_sqrt_s=0.0",
-                f"effects.diurnal.offset_nT={level}",
-                f"survey.line_offset_m={shift}",
-                "survey.validation=false",
-                *(extra or []),
-            ],
-        )
-        src = write_simulation(sim, folder / f"{name}.mcap", folder / f"{name}.truth.json")
-        run_plain(str(src), str(folder / "proc"), str(cfg))
-    return folder / "proc"
+from tests.conftest import REPO
+from tests.test_schemas import validate_every_message
 
 
 @pytest.fixture(scope="module")
@@ -89,54 +47,6 @@ def merged(flights):
     cfg = folder / "campaign.toml"
     cfg.write_text('config_version = 1\n[export]\nformats = ["geotiff", "netcdf"]\n')
     return folder / "out", run_plain(proc, folder / "out", str(cfg))
-
-
-class Truth:
-    """The simulator's true anomaly at any WGS-84 position."""
-
-    def __init__(self, path: Path):
-        truth = json.loads(path.read_text())
-        tg, site = truth["anomaly"]["grid"], truth["site"]
-        v = np.array(tg["values_nT"])
-        self.site = LocalFrame(site["latitude_deg"], site["longitude_deg"])
-        self.interp = RegularGridInterpolator(
-            (
-                tg["north0_m"] + tg["cell_m"] * np.arange(v.shape[0]),
-                tg["east0_m"] + tg["cell_m"] * np.arange(v.shape[1]),
-            ),
-            v,
-            bounds_error=False,
-        )
-        self.survey = truth["scenario"]["survey"]
-
-    def at(self, frame: LocalFrame, east_m, north_m, inside_m: float = 25.0) -> np.ndarray:
-        """Truth at campaign-frame points; NaN outside the block shrunk by ``inside_m``."""
-        lat, lon, _ = frame.to_geodetic(east_m, north_m)
-        e, n, _ = self.site.to_enu(lat, lon)
-        out = self.interp(np.stack([n, e], -1))
-        s = self.survey
-        inside = (
-            (e > s["east_m"] + inside_m)
-            & (e < s["east_m"] + s["width_m"] - inside_m)
-            & (n > s["north_m"] + inside_m)
-            & (n < s["north_m"] + s["length_m"] - inside_m)
-        )
-        return np.where(inside, out, np.nan)
-
-
-def _sorties(proc: Path):
-    infos = validate_campaign(proc)
-    frame = campaign_frame(infos)
-    return frame, [read_sortie(k, info, frame) for k, info in enumerate(infos)]
-
-
-def _grid_rmse(grid, truth: Truth, frame: LocalFrame) -> float:
-    """RMS of grid - truth over the scored block, after one common offset (the datum)."""
-    ge, gn = np.meshgrid(*grid.coordinates())
-    t = truth.at(frame, ge, gn)
-    ok = np.isfinite(t) & np.isfinite(grid.values)
-    d = grid.values[ok] - t[ok]
-    return float(np.sqrt(np.mean((d - d.mean()) ** 2)))
 
 
 # --------------------------------------------------------------------------------------------
@@ -199,18 +109,9 @@ def test_joint_levelling_against_the_truth(flights, merged):
     within 1.2x the within-flight RMS."""
     folder, proc = flights
     _, doc = merged
-    frame, sorties = _sorties(proc)
+    frame, sorties = sorties_and_frame(proc)
     truth = Truth(folder / "day1.truth.json")
-    # the level each flight really has: its line data minus the truth (the injected diurnal
-    # level plus what its own compensation left as a constant)
-    level = []
-    for s in sorties:
-        e = np.concatenate([ln.east_m for ln in s.lines])
-        n = np.concatenate([ln.north_m for ln in s.lines])
-        v = np.concatenate([ln.value_nT for ln in s.lines])
-        t = truth.at(frame, e, n, inside_m=-25.0)
-        level.append(float(np.nanmean(v - t)))
-    level = np.array(level) - np.mean(level)
+    level = true_levels_nT(sorties, truth, frame)
     offsets = np.array([doc["flight_offsets_nT"][name] for name, *_ in SORTIES])
     injected = np.array([lv for *_, lv, _ in SORTIES])
     np.testing.assert_allclose(offsets, level, atol=0.15)
@@ -221,16 +122,10 @@ def test_joint_levelling_against_the_truth(flights, merged):
     assert rms["between_flights"]["after"] <= 1.2 * rms["within_flight"]["after"]
     assert doc["between_over_within_after"] <= 1.2
     # the merged grid against the truth: joint levelling vs each flight levelled alone
-    from flows.campaign import _crossovers
-
-    xs, between = [], []
-    for i, a in enumerate(sorties):
-        for b in [None, *sorties[i + 1 :]]:
-            part = _crossovers(a, b, 30.0)
-            xs += part
-            between += [b is not None] * len(part)
-    run = run_campaign(sorties, frame, xs, np.array(between), per_flight_grid=True)
-    joint, alone = _grid_rmse(run.grid, truth, frame), _grid_rmse(run.per_flight_grid, truth, frame)
+    xs, between = all_crossovers(sorties)
+    run = run_campaign(sorties, frame, xs, between, per_flight_grid=True)
+    joint = grid_rmse_nT(run.grid, truth, frame)
+    alone = grid_rmse_nT(run.per_flight_grid, truth, frame)
     assert joint < 0.5 * alone and joint < 0.3, (joint, alone)
     assert doc["grid"]["cell_m"] == pytest.approx(12.5, abs=0.1)  # a quarter of 50 m
 
