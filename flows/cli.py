@@ -837,6 +837,8 @@ def campaign(
         f"between flights {f(r['between_flights']['before'])} -> "
         f"{f(r['between_flights']['after'])} nT ({doc['crossovers']['between_flights']})"
     )
+    for w in doc["warnings"]:
+        say(f"warning: {w}")
     g = doc["grid"]
     say(f"grid: {g['shape'][0]} x {g['shape'][1]} cells of {g['cell_m']:.2f} m")
     o = doc["outputs"]

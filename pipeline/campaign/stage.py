@@ -40,12 +40,35 @@ class CampaignRun:
     main_field: tuple[float, float, float] = (float("nan"),) * 3
     time_ns: int = 0  # the first sample of the campaign (the grids' log time)
     per_flight_grid: Grid | None = field(default=None, repr=False)
+    warnings: list[str] = field(default_factory=list)
 
     def levelled_lines(self):
         """(sortie, line, levelled values nT) of every line after the joint corrections."""
         for s in self.sorties:
             for ln in s.lines:
                 yield s, ln, ln.value_nT - self.leveling.correction(ln.line_id, ln.time_s)
+
+
+def untied_groups(n_flights: int, xs: list[Crossover], between: np.ndarray) -> list[list[int]]:
+    """The flights grouped by the between-flight crossovers that tie them (connected
+    components); more than one group leaves the groups' relative levels undetermined."""
+    from pipeline.campaign.joint import flight_of
+
+    parent = list(range(n_flights))
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    for c, b in zip(xs, between, strict=True):
+        if b:
+            parent[root(flight_of(c.line_a))] = root(flight_of(c.line_b))
+    groups: dict[int, list[int]] = {}
+    for k in range(n_flights):
+        groups.setdefault(root(k), []).append(k)
+    return sorted(groups.values())
 
 
 def _grid(points, cell_m: float, spacing_m: float, mask_spacings: float, crs: str) -> Grid:
@@ -113,6 +136,23 @@ def run_campaign(
     t1 = max(so.time_range_s[1] for so in sorties)
     when = datetime.fromtimestamp((t0 + t1) / 2, tz=UTC)
     _, total, incl, decl = main_field_direction(frame.lat0_deg, frame.lon0_deg, frame.alt0_m, when)
+    warnings = []
+    groups = untied_groups(len(sorties), xs, between)
+    if len(groups) > 1:
+        text = " | ".join(", ".join(sorties[k].name for k in g) for g in groups)
+        warnings.append(
+            f"no crossover ties these groups of flights to each other: {text}; their relative "
+            "levels are not determined (the ridge keeps their offsets near 0): fly a tie line "
+            "across the flights"
+        )
     return CampaignRun(
-        frame, sorties, lev, spacing, grid, (total, incl, decl), int(round(t0 * 1e9)), before
+        frame,
+        sorties,
+        lev,
+        spacing,
+        grid,
+        (total, incl, decl),
+        int(round(t0 * 1e9)),
+        before,
+        warnings,
     )
