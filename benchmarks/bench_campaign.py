@@ -30,24 +30,14 @@ import numpy as np  # noqa: E402
 from report import finish  # noqa: E402
 
 from tests.campaign_sim import (  # noqa: E402
-    SORTIES,
     Truth,
     all_crossovers,
+    campaign_plan,
     grid_rmse_nT,
     simulate_campaign,
     sorties_and_frame,
     true_levels_nT,
 )
-
-
-def sorties(n: int) -> list[tuple]:
-    """The tests' three sorties, then more: day 2k+1, a level from N(0, 5) nT (seeded)."""
-    rng = np.random.default_rng(19)
-    out = list(SORTIES[:n])
-    for k in range(len(out), n):
-        start = f"2026-07-{1 + 2 * k:02d}T02:00:00Z"
-        out.append((f"day{k + 1}", k + 1, start, round(float(rng.normal(0, 5)), 2), 12.5 * k % 50))
-    return out
 
 
 def main() -> int:
@@ -62,7 +52,7 @@ def main() -> int:
     errors: list[str] = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        plan = sorties(args.flights)
+        plan = campaign_plan(args.flights)
         t0 = time.perf_counter()
         proc = simulate_campaign(folder, plan)
         rows.append(

@@ -24,6 +24,19 @@ SORTIES = (
     ("day2", 2, "2026-06-17T03:00:00Z", -4.0, 25.0),
     ("day3", 3, "2026-06-20T02:00:00Z", 1.5, 12.5),
 )
+
+
+def campaign_plan(n: int) -> list[tuple]:
+    """``SORTIES``, then more up to ``n``: day 2k + 1 of July, a diurnal level drawn from
+    N(0, 5) nT (seeded), lines shifted by 12.5 k m modulo the 50 m spacing."""
+    rng = np.random.default_rng(19)
+    out = list(SORTIES[:n])
+    for k in range(len(out), n):
+        start = f"2026-07-{1 + 2 * k:02d}T02:00:00Z"
+        out.append((f"day{k + 1}", k + 1, start, round(float(rng.normal(0, 5)), 2), 12.5 * k % 50))
+    return out
+
+
 CONFIG = """config_version = 1
 [compensation]
 models = ["agg-tl"]

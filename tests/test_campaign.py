@@ -23,6 +23,7 @@ from tests.campaign_sim import (
     SORTIES,
     Truth,
     all_crossovers,
+    campaign_plan,
     grid_rmse_nT,
     simulate_campaign,
     sorties_and_frame,
@@ -260,3 +261,24 @@ def test_cli_campaign_on_a_dask_cluster(flights, tmp_path):
     doc = json.loads((tmp_path / "out" / "campaign.summary.json").read_text())
     assert "between flights" in res.stdout and doc["between_over_within_after"] <= 1.2
     assert (tmp_path / "out" / "campaign.anomaly.tif").is_file()
+
+
+@pytest.mark.slow
+def test_six_sorties_against_the_truth(tmp_path):
+    """Six sorties (levels drawn from N(0, 5) nT, lines shifted by 12.5 m steps): offsets
+    within 0.15 nT of the true levels, the between-flight target, the grid against truth."""
+    from flows.campaign import run_plain
+
+    plan = campaign_plan(6)
+    proc = simulate_campaign(tmp_path, plan)
+    doc = run_plain(proc, tmp_path / "out")
+    frame, sorties = sorties_and_frame(proc)
+    truth = Truth(tmp_path / "day1.truth.json")
+    level = true_levels_nT(sorties, truth, frame)
+    offsets = np.array([doc["flight_offsets_nT"][s.name] for s in sorties])
+    np.testing.assert_allclose(offsets, level, atol=0.15)
+    assert doc["between_over_within_after"] <= 1.2 and doc["crossovers"]["between_flights"] > 300
+    xs, between = all_crossovers(sorties)
+    run = run_campaign(sorties, frame, xs, between, per_flight_grid=True)
+    joint = grid_rmse_nT(run.grid, truth, frame)
+    assert joint < 0.5 * grid_rmse_nT(run.per_flight_grid, truth, frame) and joint < 0.3

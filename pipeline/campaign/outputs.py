@@ -157,7 +157,7 @@ def map_figure(run: CampaignRun):
     ax.set_xlabel("east (m)")
     ax.set_ylabel("north (m)")
     ax.set_title("campaign: merged anomaly and flight lines")
-    ax.legend(fontsize=7, loc="upper right")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3)
     fig.tight_layout()
     return fig
 
