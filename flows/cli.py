@@ -819,9 +819,14 @@ def campaign(
         console.status(f"campaign of {len(infos)} flights (Prefect flow 'campaign' on Dask)"),
     ):
         runner = arch.dask_runner(workers, dask_address)
-        doc = campaign_flow.with_options(task_runner=runner)(
-            str(folder), str(out_dir), str(config) if config else None
-        )
+        try:
+            doc = campaign_flow.with_options(task_runner=runner)(
+                str(folder), str(out_dir), str(config) if config else None
+            )
+        finally:  # a failed run's logs reach the server before it stops (no "Error logging")
+            from prefect.logging.handlers import APILogWorker
+
+            APILogWorker.drain_all(timeout=5)
     r = doc["crossover_rms_nT"]
 
     def f(x) -> str:

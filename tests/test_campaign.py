@@ -282,3 +282,30 @@ def test_six_sorties_against_the_truth(tmp_path):
     run = run_campaign(sorties, frame, xs, between, per_flight_grid=True)
     joint = grid_rmse_nT(run.grid, truth, frame)
     assert joint < 0.5 * grid_rmse_nT(run.per_flight_grid, truth, frame) and joint < 0.3
+
+
+@pytest.mark.slow
+def test_cli_a_sortie_failing_on_a_dask_worker_is_one_line(tmp_path):
+    """Line samples without their anomaly pass the checks and fail when read on a worker:
+    Prefect's task and flow logs and the CLI each say it in one line, nothing is written."""
+    from pipeline.io.reader import read_topics
+    from pipeline.io.writer import McapOutput, encode
+
+    _synthetic(tmp_path / "a.processed.mcap")
+    src = _synthetic(tmp_path / ".b.mcap")
+    rec = read_topics(src)
+    with McapOutput(tmp_path / "b.processed.mcap") as out:
+        for topic, raw in rec.topics.items():
+            cid = out.channel(topic, raw.schema_name)
+            for t, data in zip(raw.log_time_ns, raw.data, strict=True):
+                p = json.loads(data)
+                if topic == "/map/lines":
+                    p.pop("anomaly_nT")
+                out.write(cid, t, encode(p))
+    src.unlink()
+    res = _cli(str(tmp_path), "--out", str(tmp_path / "o"), "--workers", "1")
+    assert res.returncode == 2 and "Traceback" not in res.stderr, res.stderr[-3000:]
+    assert "Error logging" not in res.stderr
+    want = "b.processed.mcap: /map/lines: unreadable line samples (KeyError: 'anomaly_nT')"
+    assert res.stderr.strip().splitlines()[-1] == f"aeromag: error: {tmp_path}/{want}"
+    assert not (tmp_path / "o" / "campaign.summary.json").exists()
