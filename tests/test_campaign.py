@@ -140,15 +140,40 @@ def test_joint_levelling_against_the_truth(flights, merged):
     assert doc["grid"]["cell_m"] == pytest.approx(12.5, abs=0.1)  # a quarter of 50 m
 
 
-def test_outputs_validate_and_exports_place_the_grid(merged):
+def test_outputs_validate_and_exports_place_the_grid(merged, flights):
     out, doc = merged
     mcap = out / "campaign.mcap"
-    topics = {"/map/anomaly", "/map/frame", "/campaign/flight_offset", "/campaign/crossovers"}
+    topics = {
+        "/map/anomaly",
+        "/map/frame",
+        "/map/lines",
+        "/campaign/flight_offset",
+        "/campaign/crossovers",
+    }
     n = validate_every_message(mcap)
-    assert n == 2 + 3 + sum(doc["crossovers"].values())
+    samples = sum(f["samples"] for f in doc["flights"])
+    assert n == 2 + samples + 3 + sum(doc["crossovers"].values())
+    from pipeline.export import export_recording
     from pipeline.export.source import read_map_products
 
-    mp = read_map_products(mcap)
+    mp = read_map_products(mcap, lines=True)
+    assert len(mp.lines) == samples
+    # the line data carry the joint correction: per flight, flight offset + line offsets
+    # (zero mean over the flight's lines) below each flight's own levelled anomaly
+    _, proc = flights
+    for f in doc["flights"]:
+        own = read_map_products(proc / f"{f['flight']}.processed.mcap", lines=True).lines
+        mine = [p for _, p in mp.lines if p["line_id"].startswith(f["flight"] + ".")]
+        lines = {p["line_id"].split(".", 1)[1] for p in mine}
+        ours = {(p["line_id"], p["fiducial"]): p["anomaly_nT"] for _, p in own}
+        d = {}
+        for p in mine:
+            line = p["line_id"].split(".", 1)[1]
+            d.setdefault(line, []).append(ours[(line, p["fiducial"])] - p["anomaly_nT"])
+        per_line = np.array([np.mean(v) for v in d.values()])
+        assert len(lines) == f["lines"] and np.ptp([np.ptp(v) for v in d.values()]) < 1e-6
+        assert abs(per_line.mean() - f["offset_nT"]) < 1e-6
+    assert sorted(export_recording(mcap, out / "lines", ["csv", "xyz"])) == ["csv", "xyz"]
     assert [g.name for g in mp.grids] == ["anomaly"]
     assert abs(mp.frame.latitude_deg - doc["grid"]["origin"]["latitude_deg"]) < 1e-12
     from pipeline.io.reader import read_topics

@@ -2,8 +2,9 @@
 
 ``campaign.mcap`` is a new recording (the flights' records stay in their own files) holding
 ``/map/anomaly`` (the merged grid, ``foxglove.Grid``), ``/map/frame`` (the campaign frame),
-``/campaign/flight_offset`` and ``/campaign/crossovers``; the exports read it back like any
-processed recording's (:func:`pipeline.export.export_recording`). Every file is written
+``/map/lines`` (every flight's line samples, jointly levelled), ``/campaign/flight_offset``
+and ``/campaign/crossovers``; the exports read it back like any processed recording's
+(:func:`pipeline.export.export_recording`). Every file is written
 atomically and the summary last: a folder with ``campaign.summary.json`` is complete.
 """
 
@@ -20,8 +21,6 @@ from pipeline.campaign.joint import flight_of, line_of
 from pipeline.campaign.stage import CampaignRun
 from pipeline.io.writer import McapOutput, OutputChannel, encode, write_json_atomic
 from pipeline.outputs import grid_channel, map_frame_channel
-
-GRID_EXPORTS = ("geotiff", "netcdf", "magnav")  # what a campaign (grids, no line channel) gives
 
 
 def _iso(t_s: float) -> str:
@@ -92,17 +91,68 @@ def crossovers_channel(run: CampaignRun) -> OutputChannel:
     return ch
 
 
+def campaign_line_id(flight: str, line: str) -> str:
+    """A line's id in the campaign's line data: ``<flight>.<line>`` (``day1.L0010``)."""
+    return f"{flight}.{line}"
+
+
+def line_samples_channel(run: CampaignRun) -> OutputChannel:
+    """``/map/lines``: every sample of every flight's lines, jointly levelled (what the grid
+    was made from), in time order; ``line_id`` is :func:`campaign_line_id`, ``fiducial`` the
+    sample's epoch index in its own flight's recording. ``levelled_nT`` and ``anomaly_nT``
+    carry the joint correction; ``raw_nT`` and ``compensated_nT`` are the flight's."""
+    parts = []
+    for s, ln, value in run.levelled_lines():
+        cols = s.columns[ln.line_id]
+        corr = ln.value_nT - value
+        parts.append(
+            {
+                "line_id": np.full(ln.index.size, campaign_line_id(s.name, line_of(ln.line_id))),
+                "kind": np.full(ln.index.size, ln.kind),
+                "fiducial": ln.index,
+                "east_m": ln.east_m,
+                "north_m": ln.north_m,
+                "anomaly_nT": value,
+                **{k: v for k, v in cols.items() if k != "levelled_nT"},
+                "levelled_nT": cols["levelled_nT"] - corr,
+            }
+        )
+    col = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    order = np.argsort(col["time_ns"], kind="stable")
+    col = {k: v[order] for k, v in col.items()}
+
+    def payload(k: int) -> dict:  # made when written (one message per sample)
+        raw = col["raw_nT"][k]
+        return {
+            "line_id": str(col["line_id"][k]),
+            "kind": str(col["kind"][k]),
+            "fiducial": int(col["fiducial"][k]),
+            "latitude": float(col["latitude"][k]),
+            "longitude": float(col["longitude"][k]),
+            "altitude_m": float(col["altitude_m"][k]),
+            "east_m": round(float(col["east_m"][k]), 3),
+            "north_m": round(float(col["north_m"][k]), 3),
+            "raw_nT": float(raw) if np.isfinite(raw) else None,
+            "compensated_nT": float(col["compensated_nT"][k]),
+            "levelled_nT": float(col["levelled_nT"][k]),
+            "anomaly_nT": float(col["anomaly_nT"][k]),
+        }
+
+    return OutputChannel.rows("/map/lines", "aeromag.LineSample", col["time_ns"], payload)
+
+
 def write_campaign_mcap(path: str | Path, run: CampaignRun, config_hash: str) -> Path:
     """``campaign.mcap``: the merged grid, its frame, the flight offsets and the crossovers
     (messages in log-time order), written atomically."""
     channels = [
         grid_channel("/map/anomaly", run.time_ns, run.grid),
         map_frame_channel(run, run.time_ns),
+        line_samples_channel(run),
         flight_offset_channel(run),
         crossovers_channel(run),
     ]
     rows = sorted(
-        ((t, k, i) for k, ch in enumerate(channels) for i, (t, _) in enumerate(ch.messages)),
+        (int(t), k, i) for k, ch in enumerate(channels) for i, t in enumerate(ch.log_times_ns())
     )
     with McapOutput(path) as w:
         ids = [w.channel(ch.topic, ch.schema_name) for ch in channels]
@@ -308,8 +358,8 @@ def write_campaign(
     formats=(),
     timings: dict[str, float] | None = None,
 ) -> dict[str, Any]:
-    """Every output of a campaign into ``out_dir``: ``campaign.mcap``, the exports (the grid
-    formats among ``formats``), ``campaign.report.md`` with its PNGs, and last
+    """Every output of a campaign into ``out_dir``: ``campaign.mcap``, the exports
+    (``formats``, as ``[export] formats``), ``campaign.report.md`` with its PNGs, and last
     ``campaign.summary.json``.
 
     Returns
@@ -326,8 +376,7 @@ def write_campaign(
     out.mkdir(parents=True, exist_ok=True)
     timings = dict(timings or {})
     mcap = write_campaign_mcap(out / "campaign.mcap", run, config_hash)
-    grid_formats = [f for f in formats if f in GRID_EXPORTS]
-    exports = export_recording(mcap, out, grid_formats) if grid_formats else {}
+    exports = export_recording(mcap, out, list(formats)) if formats else {}
     figures = {
         "Campaign map": ("campaign.map.png", map_figure),
         "Crossovers before and after": ("campaign.crossovers.png", crossover_figure),

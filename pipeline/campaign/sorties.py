@@ -59,9 +59,10 @@ class Sortie:
     spacing_m: float  # median spacing of the survey lines
     time_range_s: tuple[float, float]
     samples: int
-    latitude_deg: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
-    longitude_deg: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
-    altitude_m: np.ndarray = field(repr=False, default_factory=lambda: np.zeros(0))
+    # line key -> the other /map/lines columns of its samples, in the line's order: time_ns
+    # (the messages' log times), latitude, longitude, altitude_m, raw_nT (NaN: none),
+    # compensated_nT, levelled_nT (as the flight levelled itself)
+    columns: dict[str, dict[str, np.ndarray]] = field(repr=False, default_factory=dict)
 
     def survey_box_m(self) -> tuple[float, float, float, float]:
         """(east min, east max, north min, north max) of the survey and tie samples, m."""
@@ -295,15 +296,19 @@ def read_sortie(index: int, info: SortieInfo, frame: LocalFrame) -> Sortie:
         lon = np.array([p["longitude"] for _, p in samples], float)
         alt = np.array([p.get("altitude_m", np.nan) for _, p in samples], float)
         val = np.array([p["anomaly_nT"] for _, p in samples], float)
+        comp = np.array([p["compensated_nT"] for _, p in samples], float)
+        lev = np.array([p["levelled_nT"] for _, p in samples], float)
+        raw = np.array([np.nan if p.get("raw_nT") is None else p["raw_nT"] for _, p in samples])
     except (KeyError, TypeError, ValueError) as exc:
         raise AeromagError(
             f"unreadable line samples ({type(exc).__name__}: {exc})",
             file=info.path,
             channel=LINES_TOPIC,
         ) from None
-    t = np.array([tn for tn, _ in samples], np.int64) / 1e9
+    t_ns = np.array([tn for tn, _ in samples], np.int64)
+    t = t_ns / 1e9
     e, n, _ = frame.to_enu(lat, lon)
-    lines, kinds = [], {}
+    lines, kinds, columns = [], {}, {}
     for line in sorted(set(lid)):
         ix = np.flatnonzero((lid == line) & np.isfinite(val) & np.isfinite(e))
         if ix.size < 10:
@@ -312,6 +317,15 @@ def read_sortie(index: int, info: SortieInfo, frame: LocalFrame) -> Sortie:
         key = f"{index}:{line}"
         kinds[key] = str(kind[ix[0]])
         lines.append(Line(key, kinds[key], e[ix], n[ix], t[ix], val[ix], fid[ix]))
+        columns[key] = {
+            "time_ns": t_ns[ix],
+            "latitude": lat[ix],
+            "longitude": lon[ix],
+            "altitude_m": alt[ix],
+            "raw_nT": raw[ix].astype(float),
+            "compensated_nT": comp[ix],
+            "levelled_nT": lev[ix],
+        }
     if not lines:
         raise AeromagError("no line with 10 or more samples", file=info.path, channel=LINES_TOPIC)
     heading, spacing = line_spacing_m(lines, kinds)
@@ -325,7 +339,5 @@ def read_sortie(index: int, info: SortieInfo, frame: LocalFrame) -> Sortie:
         spacing,
         (float(t.min()), float(t.max())),
         int(sum(ln.east_m.size for ln in lines)),
-        lat,
-        lon,
-        alt,
+        columns,
     )
