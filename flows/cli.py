@@ -595,6 +595,7 @@ def audit(
             settings,
             out_path,
             progress=lambda m: status.update(f"auditing {recording.name}: {m}"),
+            cfg=cfg,
         )
     _print_audit(j)
     if out_path:
@@ -693,6 +694,67 @@ def vector(
         if isinstance(val, dict) and "before" in val and not isinstance(val["before"], list):
             say(f"{k}: {val['before']:.2f} -> {val['after']:.2f} nT")
     say(f"{v['output_topic']} written to {out_path}")
+    say(f"summary: {json_out}")
+
+
+@app.command()
+def navigate(
+    recording: Annotated[
+        Path, typer.Argument(help="Flight recording (.mcap), raw or processed: the true track.")
+    ],
+    map_path: Annotated[
+        Path,
+        typer.Option(
+            "--map",
+            help="Map: a processed recording (.mcap), a GeoTIFF / netCDF grid, or a MagNav "
+            "HDF5 map (.h5).",
+        ),
+    ],
+    json_out: Annotated[Path, typer.Option("--json", help="Navigation summary JSON to write.")],
+    out_path: Annotated[
+        Path | None,
+        typer.Option("--out", help="Also write a copy of the recording with the /nav channels."),
+    ] = None,
+    filter_: Annotated[
+        str, typer.Option("--filter", help="ekf, or pf (marginalised particle filter).")
+    ] = "ekf",
+    ins: Annotated[str, typer.Option(help="INS grade: navigation (~1 nmi/h) or tactical.")] = (
+        "navigation"
+    ),
+    segments: Annotated[
+        str,
+        typer.Option(help="Segments navigated and scored: validation, survey (with ties) or all."),
+    ] = "validation",
+    seed: Annotated[int, typer.Option(help="Seed of the INS errors (and particles).")] = 0,
+    map_channel: Annotated[
+        str, typer.Option("--map-channel", help="Grid channel of a recording map.")
+    ] = "/map/anomaly_filtered",
+    config: ConfigOption = None,
+) -> None:
+    """Magnetic anomaly navigation on a map: simulate an INS along the recorded track, aid it
+    with the map (EKF or particle filter), and score both against /gnss/fix and the CRLB."""
+    from flows.stages import navigate_recording, require_readable
+    from pipeline.navigation.stage import NavigationSettings
+
+    require_readable(recording)
+    require_readable(map_path)
+    cfg = _stage_config(config, {})
+    settings = NavigationSettings(filter=filter_, ins=ins, segments=segments, seed=seed)
+    with console.status(f"navigating {recording.name} on {map_path.name} ({filter_})"):
+        summary = navigate_recording(
+            recording, map_path, json_out, settings, out_path, map_channel, cfg
+        )
+    nav = summary["navigation"]
+    d, c = nav["drms_m"], nav["cep50_m"]
+    say(
+        f"{filter_} on {segments} ({nav['epochs']['selected']} epochs, {ins}-grade INS, "
+        f"seed {seed}): DRMS INS-only {d['ins_only']:.1f} m, map-aided {d['map_aided']:.2f} m, "
+        f"CRLB {d['crlb']:.2f} m; CEP50 {c['ins_only']:.1f} -> {c['map_aided']:.2f} m"
+    )
+    for note in nav["notes"]:
+        say(f"note: {note}")
+    if out_path:
+        say(f"output recording: {out_path}")
     say(f"summary: {json_out}")
 
 

@@ -1,8 +1,9 @@
 """The post-flight flow.
 
-ingest -> segment -> compensate (each configured T-L model and AGG-TL) -> audit -> extended
-model -> vector stage (when a fluxgate exists) -> anomaly reduction, leveling, gridding,
-ARIMA-Kalman filter -> quality -> write (output MCAP, summary JSON, report, figures).
+ingest -> despike (the scalar magnetometer) -> segment -> compensate (each configured T-L
+model and AGG-TL) -> audit -> extended model -> vector stage (when a fluxgate exists) ->
+anomaly reduction, leveling, gridding, ARIMA-Kalman filter -> quality -> write (output MCAP,
+summary JSON, report, figures).
 
 The order lives in :func:`postflight_steps`, a plain function that calls each stage through a
 ``call`` hook: the Prefect flow passes tasks (results persisted in Prefect's local result
@@ -49,6 +50,9 @@ def postflight_steps(
 
     flight = call("ingest", recording)
     timings["ingest"] += stages.validated_read_s()  # read before the flow started
+    despiked = None
+    if cfg["despike"]["enabled"]:  # every later stage sees the despiked scalar
+        flight, despiked = call("despike", flight, cfg)
     seg, why = call("segment", flight)
     runs: dict[str, Any] = {}
     audit = vector = map_run = quality = None
@@ -82,6 +86,7 @@ def postflight_steps(
         map_run,
         quality,
         timings,
+        despiked,
     )
 
 
@@ -90,6 +95,7 @@ install_one_line_errors()
 
 STAGE_FUNCTIONS: dict[str, Callable[..., Any]] = {
     "ingest": stages.ingest_stage,
+    "despike": stages.despike_stage,
     "segment": stages.try_segment,
     "compensate": stages.compensate_stage,
     "audit": stages.audit_stage,

@@ -17,6 +17,7 @@ from pipeline import __version__
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import CompensationRun, run_compensation
 from pipeline.config import Config
+from pipeline.despike import DespikeResult, despike_flight
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.html_report import render_html
@@ -84,6 +85,20 @@ def save_figure(fig, path: Path) -> Path:
     return path
 
 
+def read_despiked(
+    src: Path, cfg: Config | None, **read_options: Any
+) -> tuple[Flight, DespikeResult | None, list[tuple[int, str]]]:
+    """A single-stage command's flight, despiked as ``aeromag process`` does when the
+    configuration's ``despike.enabled`` (the result and its log line; None and none when not).
+    """
+    cfg = cfg or Config.load()
+    flight = read_flight(src, **read_options)
+    if not cfg["despike"]["enabled"]:
+        return flight, None, []
+    flight, res = despike_stage(flight, cfg)
+    return flight, res, despike_lines(res)
+
+
 def compensation_lines(run: CompensationRun) -> list[tuple[int, str]]:
     """Log lines of a compensation run: terms, lambda, fit residual and FOM (nT), the
     AGG-TL gradient (nT/m, east / north / up) and the calibration warnings.
@@ -131,15 +146,18 @@ def compensate_recording(
     """``aeromag compensate``: fit one model and write the output recording and summary.
     ``settings`` None: the configuration's final model this flight can fit (as ``aeromag
     process``), with its settings."""
-    flight = read_flight(src, scalar_topic=scalar_topic, vector_topic=vector_topic)
+    cfg = cfg or Config.load()
+    flight, despiked, dlines = read_despiked(
+        src, cfg, scalar_topic=scalar_topic, vector_topic=vector_topic
+    )
     flight.require("vector_x_nT", purpose="compensation")
     if settings is None:
-        cfg = cfg or Config.load()
         models = configured_models(flight, cfg) or cfg["compensation"]["models"]
         settings = cfg.fit_settings(models[-1])
     seg, why = try_segment(flight)
     run = run_compensation(flight, seg, settings, calibration)
-    lines = ingest_lines(flight) + ([(LOG_INFO, why)] if why else []) + compensation_lines(run)
+    lines = ingest_lines(flight) + dlines + ([(LOG_INFO, why)] if why else [])
+    lines += compensation_lines(run)
     channels: list[OutputChannel] = [log_channel(flight, lines, "compensate")]
     if seg is not None:
         channels.append(segment_channel(flight, seg))
@@ -152,6 +170,8 @@ def compensate_recording(
         "vector_topic": flight.topic_of.get("vector"),
         "input": flight_summary(flight),
     }
+    if despiked is not None:
+        summary["despike"] = despiked.summary()
     if run.model.lcurve is not None:
         png = summary_path.with_name(summary_path.stem + ".lcurve.png")
         save_figure(lcurve_figure(run.model.lcurve, f"L-curve, {run.model.model}"), png)
@@ -264,6 +284,28 @@ def map_lines(mr) -> list[tuple[int, str]]:
             f"ma {np.round(s['arima_coefficients']['ma'], 4).tolist()}; "
             f"Kalman measurement noise {s['kalman']['measurement_noise_nT']:.3f} nT",
         ),
+    ] + microlevel_lines(s["microlevel"])
+
+
+def microlevel_lines(m: dict[str, Any]) -> list[tuple[int, str]]:
+    """Log line of the micro-levelling (the map summary's ``microlevel`` block): the
+    corrugation removed (RMS of the correction, nT), its largest value and the grid change.
+
+    Returns
+    -------
+    list of (int, str)
+        One ``(level, text)`` pair, none when micro-levelling was off.
+    """
+    if not m.get("enabled"):
+        return []
+    return [
+        (
+            LOG_INFO,
+            f"map: micro-levelling removed {m['correction_rms_nT']:.3f} nT RMS of corrugation "
+            f"(max {m['correction_max_abs_nT']:.3f} nT, {100 * m['clipped_fraction']:.1f} % "
+            f"clipped at {m['clip_nT']:g} nT; cut-off {m['wavelength_m']:.0f} m across, "
+            f"{m['along_m']:.0f} m along); grid changed {m['grid_change_rms_nT']:.3f} nT RMS",
+        )
     ]
 
 
@@ -358,37 +400,68 @@ def configured_models(flight: Flight, cfg: Config) -> list[str]:
     ]
 
 
+def final_compensation(
+    flight: Flight, seg: Segmentation, cfg: Config, stage: str
+) -> tuple[np.ndarray, list[tuple[int, str]], list[OutputChannel], dict | None]:
+    """The compensated field of a recording, the way the single-stage commands get it: its
+    own ``/mag/compensated`` (an earlier run), else the configuration's final model this flight
+    can fit, fitted with its settings as ``aeromag process`` does (no audit).
+
+    Returns
+    -------
+    compensated_nT : ndarray
+        Per epoch, nT.
+    lines : list of (int, str)
+        Log lines.
+    channels : list of OutputChannel
+        ``/mag/compensated`` and ``/compensation/model`` when fitted here (else empty).
+    summary : dict or None
+        The compensation summary when fitted here.
+    """
+    earlier = existing_compensated(flight)
+    if earlier:
+        return (
+            list(earlier.values())[-1],
+            [(LOG_INFO, f"{stage}: using /mag/compensated from the recording")],
+            [],
+            None,
+        )
+    models = configured_models(flight, cfg)
+    if not models:
+        raise AeromagError(
+            "no configured compensation model fits this flight (agg-tl needs positions)",
+            file=flight.source,
+            channel="/gnss/fix",
+        )
+    run = run_compensation(flight, seg, cfg.fit_settings(models[-1]))
+    return (
+        run.compensated_nT,
+        compensation_lines(run),
+        [compensated_channel(flight, run), model_message(flight, run)],
+        run.summary(),
+    )
+
+
 def map_recording(
     src: Path, dst: Path, summary_path: Path, settings: MapSettings, cfg: Config | None = None
 ) -> dict:
     """``aeromag map``: segment and compensate when needed (the configuration's final model,
     with its settings, as ``aeromag process``), then grid, level and filter."""
     cfg = cfg or Config.load()
-    flight = read_flight(src)
+    flight, despiked, dlines = read_despiked(src, cfg)
     seg, why = try_segment(flight)
     if seg is None:
         raise AeromagError(f"mapping needs the flight lines: {why}", file=src, channel="/gnss/fix")
     present = set(flight.all_topics)
-    channels: list[OutputChannel] = []
     lines = ingest_lines(flight)
-    earlier = existing_compensated(flight)
-    comp = list(earlier.values())[-1] if earlier else None
     summary: dict[str, Any] = {"aeromag_version": __version__, "input": flight_summary(flight)}
-    if comp is None:
-        models = configured_models(flight, cfg)
-        if not models:
-            raise AeromagError(
-                "no configured compensation model fits this flight (agg-tl needs positions)",
-                file=src,
-                channel="/gnss/fix",
-            )
-        run = run_compensation(flight, seg, cfg.fit_settings(models[-1]))
-        comp = run.compensated_nT
-        lines += compensation_lines(run)
-        channels += [compensated_channel(flight, run), model_message(flight, run)]
-        summary["compensation"] = run.summary()
-    else:
-        lines.append((LOG_INFO, "map: using /mag/compensated from the recording"))
+    comp, more, channels, comp_summary = final_compensation(flight, seg, cfg, "map")
+    if comp_summary is not None:  # compensated here, from the despiked record
+        lines += dlines
+        if despiked is not None:
+            summary["despike"] = despiked.summary()
+        summary["compensation"] = comp_summary
+    lines += more
     mr = build_map(flight, seg, comp, settings)
     lines += map_lines(mr)
     channels += [segment_channel(flight, seg), *map_channels(flight, seg, mr)]
@@ -399,7 +472,12 @@ def map_recording(
         figures[name] = str(
             save_figure(fig, summary_path.with_name(f"{summary_path.stem}.{name}.png"))
         )
-    write_with_new_channels(src, dst, channels, metadata={"aeromag.run": run_metadata()})
+    write_with_new_channels(
+        src,
+        dst,
+        channels,
+        metadata={"aeromag.run": run_metadata()},
+    )
     summary.update(
         {
             "map": mr.summary(),
@@ -593,7 +671,7 @@ def quality_recording(
     """``aeromag quality``: every stage it needs (with the configuration's settings), then
     the quality figures, plots, summary."""
     cfg = cfg or Config.load()
-    flight = read_flight(src)
+    flight, despiked, dlines = read_despiked(src, cfg)
     seg, why = try_segment(flight)
     if seg is None:
         raise AeromagError(
@@ -615,7 +693,7 @@ def quality_recording(
     q = run_quality(
         flight, seg, fields, tl_alias(fields, cfg["compensation"]["agg_base"]), fom, settings
     )
-    lines = ingest_lines(flight) + lines + quality_lines(q)
+    lines = ingest_lines(flight) + dlines + lines + quality_lines(q)
     figures = {
         name: str(save_figure(fig, summary_path.with_name(f"{summary_path.stem}.{name}.png")))
         for name, fig in quality_figures(q).items()
@@ -627,6 +705,8 @@ def quality_recording(
         "figures": figures,
         "outputs": {"summary": str(summary_path)},
     }
+    if despiked is not None:
+        summary["despike"] = despiked.summary()
     if out is not None:
         present = set(flight.all_topics)
         channels = [log_channel(flight, lines, "quality"), *quality_channels(flight, q)]
@@ -644,13 +724,20 @@ def quality_recording(
 # --------------------------------------------------------------------------------------------
 # audit
 def audit_recording(
-    src: Path, json_path: Path, report_dir: Path, settings, out: Path | None = None, progress=None
+    src: Path,
+    json_path: Path,
+    report_dir: Path,
+    settings,
+    out: Path | None = None,
+    progress=None,
+    cfg: Config | None = None,
 ) -> dict[str, Any]:
-    """``aeromag audit``: baseline, candidate effects, extended model, gain, report."""
+    """``aeromag audit``: baseline, candidate effects, extended model, gain, report (the
+    scalar despiked first when the configuration's ``despike.enabled``, as ``process``)."""
     from pipeline.audit import run_audit
     from pipeline.audit.report import figures, finding_channel, jsonable, log_lines, markdown
 
-    flight = read_flight(src)
+    flight, despiked, dlines = read_despiked(src, cfg)
     seg, why = try_segment(flight)
     if seg is None:
         raise AeromagError(
@@ -666,6 +753,8 @@ def audit_recording(
     j = res.to_json()
     j["input"] = flight_summary(flight)
     j["aeromag_version"] = __version__
+    if despiked is not None:
+        j["despike"] = despiked.summary()
     text = markdown(res, Path(src).name, images)
     write_text_atomic(report_dir / "report.md", text)
     j["report"] = {
@@ -674,7 +763,7 @@ def audit_recording(
     }
     if out is not None:
         present = set(flight.all_topics)
-        lines = ingest_lines(flight) + log_lines(res)
+        lines = ingest_lines(flight) + dlines + log_lines(res)
         channels = [log_channel(flight, lines, "audit"), finding_channel(flight, res)]
         for topic, comp, model in (
             ("/mag/compensated", res.compensated["extended"], "+".join(res.extended.spec.label())),
@@ -806,6 +895,35 @@ def validated_read_s() -> float:
     :func:`ingest_stage` call took over (0 when it read the recording itself): the ingest
     time of a run checked before its flow started."""
     return _Validated.handed_read_s
+
+
+def despike_stage(flight: Flight, cfg) -> tuple[Flight, DespikeResult]:
+    """Despike the primary scalar magnetometer (Hampel test on its 4th difference) with the
+    configuration's ``[despike]`` settings.
+
+    Returns
+    -------
+    Flight
+        The flight with the spike samples replaced (the same object when none was found).
+    DespikeResult
+    """
+    return despike_flight(flight, cfg.despike_settings())
+
+
+def despike_lines(res: DespikeResult | None) -> list[tuple[int, str]]:
+    """Log line of the despike step: spikes found (count, fraction, largest, nT)."""
+    if res is None:
+        return []
+    s = res.summary()
+    text = (
+        f"despike: {s['spikes']} spikes ({100 * s['fraction']:.3f} % of samples) above "
+        f"{s['threshold_sigma']:g} sigma of the 4th difference; noise {s['noise_nT']:.4f} nT"
+    )
+    if s["spikes"]:
+        text += f", largest {s['max_abs_amplitude_nT']:.2f} nT"
+    if s["steps_left"]:
+        text += f"; {s['steps_left']} level steps left alone"
+    return [(LOG_WARNING if s["fraction"] > 0.01 else LOG_INFO, text)]
 
 
 def compensate_stage(flight: Flight, seg: Segmentation, model: str, cfg) -> CompensationRun:
@@ -964,6 +1082,7 @@ def write_stage(
     map_run,
     quality,
     timings: dict[str, float] | None = None,
+    despiked: DespikeResult | None = None,
 ) -> dict[str, Any]:
     """Every output of the post-flight flow, each written atomically; the summary last (its
     presence marks the recording as done).
@@ -989,6 +1108,9 @@ def write_stage(
     }
     channels: list[OutputChannel] = []
     figures: dict[str, Any] = {}
+    if despiked is not None:
+        lines += despike_lines(despiked)
+        summary["despike"] = despiked.summary()
     if seg is not None:
         channels.append(segment_channel(flight, seg))
         if (
@@ -1154,6 +1276,17 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
         f"{s['input'].get('sha256', '')[:16]}",
         "",
     ]
+    d = s.get("despike")
+    if d:
+        out += [
+            "## Despiking",
+            "",
+            f"{d['spikes']} spikes ({100 * d['fraction']:.3f} % of samples) replaced before "
+            f"compensation: Hampel test at {d['threshold_sigma']:g} sigma on the 4th "
+            f"difference (window {d['window_samples']} samples); noise {f(d['noise_nT'], '.4f')} "
+            f"nT, largest spike {f(d['max_abs_amplitude_nT'], '.2f')} nT",
+            "",
+        ]
     comp = s.get("compensation")
     if comp:
         out += [
@@ -1232,9 +1365,98 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             f"{m['cell_m']:.2f} m; ARIMA{tuple(m['arima_order'])} + Kalman",
             "",
         ]
+        ml = m.get("microlevel") or {}
+        if ml.get("enabled"):
+            out += [
+                f"Micro-levelling: corrugation removed {f(ml['correction_rms_nT'])} nT RMS "
+                f"(max {f(ml['correction_max_abs_nT'])} nT, clip {ml['clip_nT']:g} nT); grid "
+                f"changed {f(ml['grid_change_rms_nT'])} nT RMS",
+                "",
+            ]
     v = s.get("vector")
     if v:
         out += ["## Vector magnetometer", "", f"{v['method']} -> `{v['output_topic']}`", ""]
     if images:
         out += ["## Figures", ""] + [f"![{k}]({p})" for k, p in images.items()] + [""]
     return "\n".join(out)
+
+
+# --------------------------------------------------------------------------------------------
+# navigation
+def navigate_recording(
+    src: Path,
+    map_path: Path,
+    json_out: Path,
+    settings,
+    out_path: Path | None = None,
+    map_channel: str = "/map/anomaly_filtered",
+    cfg: Config | None = None,
+) -> dict[str, Any]:
+    """``aeromag navigate``: re-fly the recording with a simulated INS aided by the map.
+
+    A raw recording is compensated first (:func:`final_compensation`, as ``aeromag map``);
+    a processed one uses its ``/mag/compensated``.
+    """
+    from pipeline.audit.report import jsonable
+    from pipeline.navigation.map_io import read_map
+    from pipeline.navigation.stage import run_navigation, track_coverage
+    from pipeline.outputs import navigation_channels
+
+    cfg = cfg or Config.load()
+    settings.check()
+    geomap = read_map(map_path, map_channel)
+    flight = read_flight(src)
+    flight.require("lat_deg", "lon_deg", "alt_m", purpose="navigation (the reference track)")
+    seg, why = try_segment(flight)
+    present = set(flight.all_topics)
+    nav_topics = ("/nav/ins", "/nav/map_aided", "/nav/error", "/nav/innovation")
+    if out_path is not None:
+        _refuse_existing(
+            src,
+            [OutputChannel(t, "") for t in nav_topics],
+            present,
+            "navigate the original recording",
+        )
+    if seg is None and settings.segments != "all":
+        raise AeromagError(
+            f"--segments {settings.segments} needs the flight lines: {why}; use --segments all",
+            file=src,
+            channel="/gnss/fix",
+        )
+    track_coverage(flight, seg, geomap, settings)  # fail before compensating
+    lines = ingest_lines(flight) + ([(LOG_INFO, why)] if why else [])
+    comp, more, channels, comp_summary = final_compensation(flight, seg, cfg, "navigate")
+    lines += more
+    run = run_navigation(flight, seg, comp, geomap, settings)
+    nav = run.summary()
+    d = nav["drms_m"]
+    lines.append(
+        (
+            LOG_INFO,
+            f"navigate: {settings.filter} on {settings.segments} with a {settings.ins}-grade INS: "
+            f"DRMS INS-only {d['ins_only']:.1f} m, map-aided {d['map_aided']:.2f} m, "
+            f"CRLB {d['crlb']:.2f} m",
+        )
+    )
+    lines += [(LOG_INFO, f"navigate: {n}") for n in run.notes]
+    summary: dict[str, Any] = {
+        "aeromag_version": __version__,
+        "input": flight_summary(flight),
+        "navigation": nav,
+        "log": [text for _, text in lines],
+    }
+    if comp_summary is not None:
+        summary["compensation"] = comp_summary
+    if out_path is not None:
+        out_channels = navigation_channels(run)
+        if "/aeromag/log" not in present:  # a processed input keeps its own log (one channel)
+            out_channels.insert(0, log_channel(flight, lines, "navigate"))
+        if seg is not None and "/flight/segment" not in present:
+            out_channels.append(segment_channel(flight, seg))
+        out_channels += [c for c in channels if c.topic not in present]
+        write_with_new_channels(
+            src, out_path, out_channels, metadata={"aeromag.run": run_metadata()}
+        )
+    summary["outputs"] = {"summary": str(json_out), **({"mcap": str(out_path)} if out_path else {})}
+    write_json_atomic(json_out, jsonable(summary))
+    return summary

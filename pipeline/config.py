@@ -124,6 +124,13 @@ class Config:
             level_trend=m["level_trend"],
             direction=m["direction"],
             min_crossing_angle_deg=m["min_crossing_angle_deg"],
+            gridder=m["gridder"],
+            dem_path=m["dem_path"],
+            dem_clearance_m=m["dem_clearance_m"],
+            microlevel=m["microlevel"],
+            microlevel_wavelength_m=m["microlevel_wavelength_m"],
+            microlevel_along_m=m["microlevel_along_m"],
+            microlevel_clip_nT=m["microlevel_clip_nT"],
         )
 
     def campaign_settings(self):
@@ -142,6 +149,11 @@ class Config:
 
         e = self.values["enhance"]
         return EnhanceSettings(products=parse_products(e["products"]), source=e["source"])
+
+    def despike_settings(self):
+        from pipeline.despike import DespikeSettings
+
+        return DespikeSettings(**self.values["despike"])
 
     def quality_settings(self):
         from pipeline.quality import QualitySettings
@@ -179,6 +191,10 @@ class Config:
         if self.values["map"]["direction"] not in ("smooth", "both", "forward"):
             raise AeromagError(
                 "map.direction: use smooth (both is its old name) or forward", file=self.source
+            )
+        if self.values["map"]["gridder"] not in ("minimum_curvature", "equivalent_sources", "auto"):
+            raise AeromagError(
+                "map.gridder: use minimum_curvature, equivalent_sources or auto", file=self.source
             )
         if not 0.0 <= self.values["map"]["min_crossing_angle_deg"] <= 90.0:
             raise AeromagError("map.min_crossing_angle_deg: use 0 to 90 degrees", file=self.source)
@@ -225,10 +241,20 @@ class Config:
             parse_products(e["products"])
         except ValueError as exc:
             raise AeromagError(f"enhance.products: {exc}", file=self.source) from None
+        m = self.values["map"]
+        if min(m["microlevel_wavelength_m"], m["microlevel_along_m"]) < 0:
+            raise AeromagError(
+                "map.microlevel_wavelength_m and microlevel_along_m: must be >= 0 m "
+                "(0: a multiple of the line spacing)",
+                file=self.source,
+            )
+        if m["microlevel_clip_nT"] <= 0:
+            raise AeromagError("map.microlevel_clip_nT: must be > 0 nT", file=self.source)
         if self.values["quality"]["overlap_m"] <= 0:
             raise AeromagError("quality.overlap_m: must be > 0 m", file=self.source)
         try:
             self.fit_settings(c["models"][-1])
             self.map_settings()
+            self.despike_settings()
         except ValueError as exc:
             raise AeromagError(str(exc), file=self.source) from None

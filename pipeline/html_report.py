@@ -177,6 +177,37 @@ def _segments_section(s: dict, figs: _Figures) -> list[str]:
     ]
 
 
+def _despike_section(s: dict) -> list[str]:
+    d = s.get("despike")
+    if not d:
+        return []
+    return [
+        "<h2>Despiking</h2>",
+        _table(
+            [
+                "spikes",
+                "fraction %",
+                "threshold sigma",
+                "window samples",
+                "noise nT",
+                "largest spike nT",
+                "level steps left",
+            ],
+            [
+                [
+                    d["spikes"],
+                    _f(100 * d["fraction"], ".3f"),
+                    _f(d["threshold_sigma"], "g"),
+                    d["window_samples"],
+                    _f(d["noise_nT"], ".4f"),
+                    _f(d.get("max_abs_amplitude_nT"), ".2f"),
+                    d.get("steps_left", 0),
+                ]
+            ],
+        ),
+    ]
+
+
 def _compensation_section(s: dict, figs: _Figures) -> list[str]:
     comp = s.get("compensation")
     if not comp:
@@ -420,6 +451,7 @@ def _map_section(s: dict, figs: _Figures) -> list[str]:
                 ]
             ],
         ),
+        _microlevel_row(m.get("microlevel") or {}),
         "<h3>Before and after ARIMA-Kalman filtering</h3>",
         figs.take("anomaly", "anomaly_filtered", pair=True),
         figs.take("crossovers"),
@@ -439,6 +471,33 @@ def _enhancements(m: dict, figs: _Figures) -> list[str]:
         f"declination {_f((m.get('main_field') or {}).get('declination_deg'), '.2f')}°).</p>",
         figs.take(*names, pair=True),
     ]
+
+
+def _microlevel_row(ml: dict) -> str:
+    if not ml.get("enabled"):
+        return ""
+    return "<h3>Micro-levelling</h3>\n" + _table(
+        [
+            "corrugation removed nT RMS",
+            "max nT",
+            "clipped %",
+            "clip nT",
+            "cut-off across m",
+            "low-pass along m",
+            "grid change nT RMS",
+        ],
+        [
+            [
+                _f(ml["correction_rms_nT"]),
+                _f(ml["correction_max_abs_nT"]),
+                _f(100 * ml["clipped_fraction"], ".1f"),
+                _f(ml["clip_nT"], "g"),
+                _f(ml["wavelength_m"], ".0f"),
+                _f(ml["along_m"], ".0f"),
+                _f(ml["grid_change_rms_nT"]),
+            ]
+        ],
+    )
 
 
 def _qc_section(s: dict) -> list[str]:
@@ -572,6 +631,7 @@ def render_html(stem: str, summary: dict, images: Mapping[str, str | Path]) -> s
     ]
     body += _input_section(s)
     body += _segments_section(s, figs)
+    body += _despike_section(s)
     body += _compensation_section(s, figs)
     body += _quality_section(s, figs)
     body += _audit_section(s, figs)

@@ -352,3 +352,100 @@ def crossover_channel(flight: Flight, q) -> OutputChannel:
         )
     ch.messages.sort(key=lambda m: m[0])
     return ch
+
+
+# --------------------------------------------------------------------------------------------
+# navigation
+NAV_FRAME = "nav"
+
+
+def location_channel(
+    topic: str,
+    time_ns: np.ndarray,
+    lat_deg: np.ndarray,
+    lon_deg: np.ndarray,
+    alt_m: np.ndarray,
+    cov_ne_m2: np.ndarray,
+    var_up_m2: float,
+) -> OutputChannel:
+    """A ``foxglove.LocationFix`` channel; the covariance comes as (N, 2, 2) north/east blocks
+    and is written in LocationFix's east-north-up order (type 3, known)."""
+    lat, lon, alt = (np.asarray(a, float) for a in (lat_deg, lon_deg, alt_m))
+    c = np.asarray(cov_ne_m2, float)
+
+    def payload(k: int) -> dict:  # made when written (one message per epoch)
+        pnn, pne, pee = float(c[k, 0, 0]), float(c[k, 0, 1]), float(c[k, 1, 1])
+        return {
+            "frame_id": NAV_FRAME,
+            "latitude": float(lat[k]),
+            "longitude": float(lon[k]),
+            "altitude": float(alt[k]),
+            "position_covariance": [pee, pne, 0.0, pne, pnn, 0.0, 0.0, 0.0, float(var_up_m2)],
+            "position_covariance_type": 3,
+        }
+
+    return OutputChannel.rows(topic, "foxglove.LocationFix", np.asarray(time_ns), payload)
+
+
+def navigation_channels(run) -> list[OutputChannel]:
+    """``/nav/ins``, ``/nav/map_aided`` (``foxglove.LocationFix``), ``/nav/error``
+    (``aeromag.NavigationError``) and ``/nav/innovation`` (``aeromag.NavigationInnovation``)
+    of a :class:`pipeline.navigation.stage.NavigationRun`, one message per epoch of its window
+    (innovations: per map update)."""
+    gm = run.geomap
+    t = run.time_ns
+    ins_en, aid_en = run.ins_en(), run.aided_en()
+    ins_lat, ins_lon = gm.to_geodetic(ins_en[:, 0], ins_en[:, 1])
+    aid_lat, aid_lon = gm.to_geodetic(aid_en[:, 0], aid_en[:, 1])
+    alt_ins = run.true_alt_m + run.ins_error[:, 2]
+    alt_aid = alt_ins - run.result.state[:, 2]
+    # the altitude is barometer-aided: its variance is the INS grade's barometer bias
+    var_up = float(run.settings_grade().baro_sigma_m ** 2)
+    chans = [
+        location_channel("/nav/ins", t, ins_lat, ins_lon, alt_ins, run.ins_cov_m2, var_up),
+        location_channel(
+            "/nav/map_aided", t, aid_lat, aid_lon, alt_aid, run.result.pos_cov_m2, var_up
+        ),
+    ]
+    ei, ea = run.ins_error_ne(), run.aided_error_ne()
+    fp, cp = run.result.pos_cov_m2, run.crlb_cov_m2
+    f_drms = np.sqrt(np.maximum(fp[:, 0, 0] + fp[:, 1, 1], 0.0))
+    c_drms = np.sqrt(np.maximum(cp[:, 0, 0] + cp[:, 1, 1], 0.0))
+    seg, sel, upd = run.segment_id, run.selected, run.result.updated
+
+    def err(k: int) -> dict:
+        return {
+            "segment": str(seg[k]),
+            "selected": bool(sel[k]),
+            "map_update": bool(upd[k]),
+            "ins_north_m": float(ei[k, 0]),
+            "ins_east_m": float(ei[k, 1]),
+            "ins_horizontal_m": float(np.hypot(*ei[k])),
+            "map_aided_north_m": float(ea[k, 0]),
+            "map_aided_east_m": float(ea[k, 1]),
+            "map_aided_horizontal_m": float(np.hypot(*ea[k])),
+            "filter_drms_m": float(f_drms[k]),
+            "crlb_drms_m": float(c_drms[k]),
+        }
+
+    chans.append(OutputChannel.rows("/nav/error", "aeromag.NavigationError", t, err))
+    ix = np.flatnonzero(np.isfinite(run.result.innovation_nT))
+    inn, var = run.result.innovation_nT[ix], run.result.innovation_var_nT2[ix]
+    z = run.anomaly_nT[ix]
+    name = run.settings.filter
+
+    def innovation(k: int) -> dict:
+        sd = float(np.sqrt(var[k]))
+        return {
+            "segment": str(seg[ix[k]]),
+            "filter": name,
+            "measured_nT": float(z[k]),
+            "innovation_nT": float(inn[k]),
+            "innovation_sigma_nT": sd,
+            "normalised": float(inn[k] / sd) if sd > 0 else 0.0,
+        }
+
+    chans.append(
+        OutputChannel.rows("/nav/innovation", "aeromag.NavigationInnovation", t[ix], innovation)
+    )
+    return chans

@@ -63,6 +63,10 @@ def test_settings_defaults_are_the_shipped_configuration():
         m.direction,
         m.arima,
         m.min_crossing_angle_deg,
+        m.microlevel,
+        m.microlevel_wavelength_m,
+        m.microlevel_along_m,
+        m.microlevel_clip_nT,
     ) == (
         d["map"]["cell_m"],
         d["map"]["noise_nT"],
@@ -70,6 +74,10 @@ def test_settings_defaults_are_the_shipped_configuration():
         d["map"]["direction"],
         d["map"]["arima"],
         d["map"]["min_crossing_angle_deg"],
+        d["map"]["microlevel"],
+        d["map"]["microlevel_wavelength_m"],
+        d["map"]["microlevel_along_m"],
+        d["map"]["microlevel_clip_nT"],
     )
     # the configuration's settings are the dataclasses' defaults: nothing re-typed between them
     assert cfg.fit_settings("tl16") == FitSettings()
@@ -89,6 +97,11 @@ def test_settings_defaults_are_the_shipped_configuration():
 
     assert cfg.enhance_settings() == EnhanceSettings()
     assert EnhanceSettings().products == parse_products(d["enhance"]["products"])
+    from pipeline.despike import DespikeSettings
+
+    ds = DespikeSettings()
+    assert {k: getattr(ds, k) for k in d["despike"]} == d["despike"]
+    assert cfg.despike_settings() == ds
 
 
 def test_no_processing_default_is_retyped_in_the_code():

@@ -116,6 +116,7 @@ def test_summary_records_stage_timings_and_peak_memory(demo_output):
     t = summary["timings_s"]
     assert list(t) == [
         "ingest",
+        "despike",
         "segment",
         "compensate",
         "audit",

@@ -105,6 +105,7 @@ def test_a_failed_flow_resumes_from_its_last_finished_task(prefect_harness, tmp_
     cached = {k for k, v in states.items() if v == "Cached"}
     assert {
         "ingest",
+        "despike",
         "segment",
         "compensate-tl16",
         "compensate-tl18",

@@ -382,7 +382,8 @@ class Auditor:
         if main is not None:
             for axis, v in zip(("east", "north", "up"), main, strict=True):
                 ev.estimate[f"main_field_{axis}_nT_per_m"] = float(v)
-                ev.ci95[f"main_field_{axis}_nT_per_m"] = None
+                # computed, not estimated: its interval is the value itself
+                ev.ci95[f"main_field_{axis}_nT_per_m"] = [float(v), float(v)]
         return ev
 
     def _main_field_gradient(self) -> np.ndarray | None:

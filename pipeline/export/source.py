@@ -141,7 +141,7 @@ def decode_grid(topic: str, payload: dict, time_ns: int, crs: str = "") -> MapGr
     return MapGrid(topic, grid, str(fields[0]["name"]), int(time_ns))
 
 
-def _map_topics(path: Path) -> list[str] | None:
+def map_topics(path: Path) -> list[str] | None:
     """The ``/map/*`` topics listed in the recording's summary section (None: no readable
     summary; then every record is scanned). Reading only these keeps a long flight's millions
     of other messages out of memory."""
@@ -170,7 +170,7 @@ def read_map_products(path: str | Path, lines: bool = False) -> MapProducts:
     from pipeline.io.reader import read_topics
 
     path = Path(path)
-    rec = read_topics(path, _map_topics(path))
+    rec = read_topics(path, map_topics(path))
     grid_topics = sorted(
         t for t, r in rec.topics.items() if t.startswith("/map/") and r.schema_name == GRID_SCHEMA
     )

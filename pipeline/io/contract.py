@@ -239,6 +239,34 @@ OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
         ("effect", "accepted", "estimate", "message"),
         description="model-audit findings (effects the baseline misses)",
     ),
+    TopicRule(
+        "/nav/ins",
+        "foxglove.LocationFix",
+        "output",
+        ("latitude", "longitude", "altitude", "position_covariance"),
+        description="simulated INS-only position (aeromag navigate)",
+    ),
+    TopicRule(
+        "/nav/map_aided",
+        "foxglove.LocationFix",
+        "output",
+        ("latitude", "longitude", "altitude", "position_covariance"),
+        description="map-aided navigation position (aeromag navigate)",
+    ),
+    TopicRule(
+        "/nav/error",
+        "aeromag.NavigationError",
+        "output",
+        ("ins_north_m", "ins_east_m", "map_aided_north_m", "map_aided_east_m", "crlb_drms_m"),
+        description="navigation errors against /gnss/fix and the CRLB",
+    ),
+    TopicRule(
+        "/nav/innovation",
+        "aeromag.NavigationInnovation",
+        "output",
+        ("innovation_nT", "innovation_sigma_nT"),
+        description="map measurements used by the navigation filter",
+    ),
 )
 
 # Roles each processing stage needs; a stage must not demand more than it uses.

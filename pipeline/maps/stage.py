@@ -24,6 +24,7 @@ from pipeline.maps.arima import (
 )
 from pipeline.maps.grid import Grid, minimum_curvature
 from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, Leveling, Line, level_lines
+from pipeline.maps.microlevel import MicroLevel, microlevel_lines
 from pipeline.maps.reduce import Reduction, reduce_to_anomaly
 from pipeline.segment import Segmentation
 
@@ -58,6 +59,18 @@ class MapSettings:
     # smooth (Rauch-Tung-Striebel, zero phase: the map product) | forward (paper 004)
     direction: str = default_field("map", "direction")
     min_crossing_angle_deg: float = MIN_CROSSING_ANGLE_DEG  # shallower: no crossover
+    # minimum_curvature | equivalent_sources | auto (by line-held-out cross-validation)
+    gridder: str = default_field("map", "gridder")
+    # a DEM (GeoTIFF, heights above the WGS-84 ellipsoid): the map is predicted draped at
+    # dem_clearance_m above it by equivalent sources ("" = on the flight surface)
+    dem_path: str = default_field("map", "dem_path")
+    dem_clearance_m: float = default_field("map", "dem_clearance_m")
+    # micro-levelling of the grid (pipeline.maps.microlevel); lengths 0: multiples of the
+    # line spacing
+    microlevel: bool = default_field("map", "microlevel")
+    microlevel_wavelength_m: float = default_field("map", "microlevel_wavelength_m")
+    microlevel_along_m: float = default_field("map", "microlevel_along_m")
+    microlevel_clip_nT: float = default_field("map", "microlevel_clip_nT")
 
 
 def noise_4th_difference_nT(x: np.ndarray) -> float:
@@ -195,6 +208,9 @@ class MapRun:
     sequence_tests: dict[str, Any] = field(default_factory=dict)
     # IGRF at the frame origin on the survey's mid date: (total nT, inclination, declination deg)
     main_field: tuple[float, float, float] = (float("nan"),) * 3
+    # the gridder used and its cross-validation scores (pipeline.maps.gridders)
+    gridder: dict[str, Any] = field(default_factory=lambda: {"method": "minimum_curvature"})
+    microlevel: MicroLevel | None = None
 
     def summary(self) -> dict[str, Any]:
         ny, nx = self.grid.shape
@@ -206,8 +222,8 @@ class MapRun:
                 "north_m": self.grid.north0_m,
                 "latitude_deg": self.frame.lat0_deg,
                 "longitude_deg": self.frame.lon0_deg,
-                "crs": self.frame.crs,
                 "altitude_m": self.frame.alt0_m,
+                "crs": self.frame.crs,
             },
             "main_field": {
                 "total_nT": self.main_field[0],
@@ -224,6 +240,12 @@ class MapRun:
                 "after": self.leveling.rms_after_nT,
             },
             "leveling": self.leveling.to_dict(),
+            "gridder": self.gridder,
+            "microlevel": (
+                {"enabled": True, **self.microlevel.summary()}
+                if self.microlevel is not None
+                else {"enabled": False}
+            ),
             "arima_order": list(self.model.order),
             "arima_coefficients": {
                 "ar": [float(v) for v in self.model.ar],
@@ -279,7 +301,7 @@ def build_map(
     frame = LocalFrame(
         float(np.mean(lat[surv])), float(np.mean(lon[surv])), float(np.mean(alt[surv]))
     )
-    e, n, _u = frame.to_enu(lat, lon, alt)
+    e, n, up = frame.to_enu(lat, lon, alt)
     base = d["base_nT"].to_numpy(float) if flight.has("base_nT") else None
     red = reduce_to_anomaly(flight.time_ns, compensated_nT, lat, lon, alt, base, s.lag_s)
     t = d["time_s"].to_numpy(float)
@@ -305,6 +327,29 @@ def build_map(
     grid = minimum_curvature(
         ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing, crs=frame.crs
     )
+    micro = None
+    if s.microlevel:
+        micro = microlevel_lines(
+            lines,
+            grid,
+            heading,
+            spacing,
+            s.microlevel_wavelength_m,
+            s.microlevel_along_m,
+            s.microlevel_clip_nT,
+        )
+        for ln in lines:
+            if ln.kind == "survey" and ln.line_id in micro.corrections:
+                ln.value_nT = ln.value_nT - micro.corrections[ln.line_id]
+        gv = np.concatenate([ln.value_nT for ln in lines])
+        regrid = minimum_curvature(
+            ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing, crs=frame.crs
+        )
+        change = regrid.values - grid.values
+        change = change[np.isfinite(change)]
+        micro.grid_change_rms_nT = float(np.sqrt(np.mean(change**2))) if change.size else 0.0
+        grid = regrid
+    grid, gridder = _regrid(flight, lines, up, grid, frame, spacing, s)
     # ARIMA + Kalman along the flight lines
     along_north = abs(along[1]) >= abs(along[0])
     sensor = float(
@@ -336,4 +381,50 @@ def build_map(
         s.direction,
         tests,
         (total, incl, decl),
+        gridder,
+        micro,
     )
+
+
+def _regrid(
+    flight: Flight,
+    lines: list[Line],
+    up_m: np.ndarray,
+    grid: Grid,
+    frame: LocalFrame,
+    spacing_m: float,
+    s: MapSettings,
+) -> tuple[Grid, dict[str, Any]]:
+    """The configured gridder's map on the minimum-curvature grid's cells (and mask):
+    unchanged for ``minimum_curvature`` on the flight surface; with a DEM, draped at the
+    clearance above it by equivalent sources."""
+    from pipeline.maps.gridders import GRIDDERS, LineData, choose_gridder, grid_on
+
+    method = s.gridder
+    if method not in GRIDDERS:
+        raise AeromagError(f"map.gridder {method!r}: use {', '.join(GRIDDERS)}", file=flight.source)
+    if method == "minimum_curvature" and not s.dem_path:
+        return grid, {"method": method}
+    height: np.ndarray | float = 0.0  # the frame's origin: the mean survey altitude
+    if s.dem_path:
+        from pipeline.maps.dem import dem_heights_m
+
+        gx, gy = np.meshgrid(*grid.coordinates())
+        lat, lon, _ = frame.to_geodetic(gx, gy)
+        height = dem_heights_m(s.dem_path, lat, lon) + s.dem_clearance_m - frame.alt0_m
+        if method != "equivalent_sources":  # minimum curvature cannot continue a field
+            method = "equivalent_sources"
+    data = LineData(
+        np.concatenate([ln.east_m for ln in lines]),
+        np.concatenate([ln.north_m for ln in lines]),
+        np.concatenate([up_m[ln.index] for ln in lines]),
+        np.concatenate([ln.value_nT for ln in lines]),
+        np.concatenate([np.full(ln.index.size, ln.line_id, dtype=object) for ln in lines]),
+        np.concatenate([np.full(ln.index.size, ln.kind, dtype=object) for ln in lines]),
+    )
+    choice = choose_gridder(data, method, grid.cell_m, spacing_m, s.mask_spacings * spacing_m)
+    out = grid_on(choice, data, grid, height)
+    info = choice.describe()
+    if s.dem_path:
+        info["dem"] = {"path": str(s.dem_path), "clearance_m": float(s.dem_clearance_m)}
+    return out, info

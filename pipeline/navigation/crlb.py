@@ -1,0 +1,51 @@
+"""Posterior Cramér-Rao lower bound on the position error along the track.
+
+For linear Gaussian dynamics and a measurement ``z = map(p) + b + v`` with Gaussian ``v``, the
+posterior information obeys Tichavský et al.'s recursion (IEEE TSP 1998)
+``J_k = (Q + Phi J_{k-1}^-1 Phi^T)^-1 + H_k^T R^-1 H_k``, with the Jacobian taken at the *true*
+position (its expectation over the state replaced by the value on the true track, as MagNav.jl's
+``crlb`` in ``src/ekf_&_crlb.jl`` does). In covariance form this is a Kalman covariance
+recursion linearised on the truth, which is how it is computed here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.navigation.map_model import MapModel
+
+
+def crlb(
+    phi: np.ndarray,
+    qd: np.ndarray,
+    p0: np.ndarray,
+    true_east_m: np.ndarray,
+    true_north_m: np.ndarray,
+    map_model: MapModel,
+    r_nT2: float,
+    update: np.ndarray | None = None,
+) -> np.ndarray:
+    """Lower bound on the (north, east) position error covariance, (N, 2, 2) m^2.
+
+    ``update`` (N,) marks the epochs with a map measurement (default: where the true position
+    is on the map).
+    """
+    N, n = qd.shape
+    gx, gy = map_model.gradient(true_east_m, true_north_m)
+    on = map_model.inside(true_east_m, true_north_m)
+    allow = on if update is None else (np.asarray(update, bool) & on)
+    P = np.array(p0, float)
+    out = np.empty((N, 2, 2))
+    for k in range(N):
+        if k:
+            F = phi[k]
+            P = F @ P @ F.T
+            P[np.diag_indices(n)] += qd[k]
+        if allow[k]:
+            H = np.zeros(n)
+            H[0], H[1], H[-1] = -gy[k], -gx[k], 1.0
+            PH = P @ H
+            P = P - np.outer(PH, PH) / (float(H @ PH) + r_nT2)
+            P = 0.5 * (P + P.T)
+        out[k] = P[:2, :2]
+    return out

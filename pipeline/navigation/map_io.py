@@ -1,0 +1,300 @@
+"""Reading a navigation map and placing it on the Earth.
+
+Three sources:
+
+* a processed aeromag recording: the ``foxglove.Grid`` on ``/map/anomaly_filtered`` (or
+  another channel), in the ``local_enu`` frame whose origin the recording's ``/map/frame``
+  channel gives (:func:`pipeline.export.source.read_map_products`, the one reader of the map
+  channels; any other reader can georeference the grid the same way).
+* a GeoTIFF or netCDF grid (rioxarray / xarray) with a CRS, or longitude/latitude coordinates.
+* a MagNav.jl HDF5 map (``get_map`` fields ``map`` (ny x nx), ``xx`` (longitudes), ``yy``
+  (latitudes), ``alt``, optional ``mask``). MagNav writes ``xx``/``yy`` in degrees by default and
+  uses radians internally (``get_map``'s ``file_units``); both are accepted (radians when every
+  value is within +-2 pi). Arrays written by Julia read transposed in h5py: a ``map`` of shape
+  (nx, ny) is transposed.
+
+Every map becomes a :class:`~pipeline.maps.grid.Grid` on square cells in a local metric frame
+with the functions that take a track into that frame and back.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.errors import AeromagError
+from pipeline.geo.local import LocalFrame
+from pipeline.maps.grid import Grid
+
+DEFAULT_CHANNEL = "/map/anomaly_filtered"
+
+
+@dataclass
+class GeoMap:
+    """A map in a local metric frame and how to get there from geodetic coordinates."""
+
+    grid: Grid
+    to_local: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+    to_geodetic: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+    altitude_m: float | None
+    source: str
+    kind: str
+    crs: str
+    notes: list[str] = field(default_factory=list)
+
+    def describe(self) -> dict:
+        ny, nx = self.grid.shape
+        return {
+            "file": self.source,
+            "kind": self.kind,
+            "crs": self.crs,
+            "grid_shape": [ny, nx],
+            "cell_m": self.grid.cell_m,
+            "altitude_m": self.altitude_m,
+            "notes": self.notes,
+        }
+
+
+def _local(frame: LocalFrame):
+    def to_local(lat, lon):
+        e, n, _ = frame.to_enu(lat, lon)
+        return e, n
+
+    def to_geodetic(e, n):
+        lat, lon, _ = frame.to_geodetic(e, n)
+        return lat, lon
+
+    return to_local, to_geodetic
+
+
+def read_map(path: str | Path, channel: str = DEFAULT_CHANNEL) -> GeoMap:
+    """Read a map file by its kind (``.mcap``, ``.tif``/``.tiff``, ``.nc``, ``.h5``/``.hdf5``)."""
+    path = Path(path)
+    if not path.is_file():
+        raise AeromagError("map file not found", file=path)
+    suffix = path.suffix.lower()
+    if suffix == ".mcap":
+        return read_recording_map(path, channel)
+    if suffix in (".tif", ".tiff", ".nc", ".nc4", ".grd"):
+        return read_raster_map(path)
+    if suffix in (".h5", ".hdf5"):
+        return read_magnav_map(path)
+    raise AeromagError(
+        f"unknown map format {suffix!r} (use a processed .mcap, GeoTIFF, netCDF or MagNav .h5)",
+        file=path,
+    )
+
+
+# ------------------------------------------------------------------------------- recording
+def read_recording_map(path: Path, channel: str = DEFAULT_CHANNEL) -> GeoMap:
+    """The grid on ``channel`` of a processed recording, placed by its ``/map/frame``."""
+    from pipeline.export.source import map_topics, read_map_products
+
+    topics = map_topics(path)
+    products = None if topics is not None and channel not in topics else read_map_products(path)
+    found = (
+        None if products is None else next((g for g in products.grids if g.topic == channel), None)
+    )
+    if found is None:
+        raise AeromagError(
+            "the map recording has no such channel (run `aeromag map` or `process` on "
+            "it first, or pick another with --map-channel)",
+            file=path,
+            channel=channel,
+        )
+    fr = products.frame
+    frame = LocalFrame(fr.latitude_deg, fr.longitude_deg, fr.altitude_m)
+    grid = found.grid
+    grid.crs = frame.crs
+    to_local, to_geo = _local(frame)
+    return GeoMap(
+        grid,
+        to_local,
+        to_geo,
+        fr.altitude_m,
+        str(path),
+        f"recording {channel}",
+        frame.crs,
+        ["origin from the recording's /map/frame"],
+    )
+
+
+# ------------------------------------------------------------------------------- rasters
+def _square_grid(values: np.ndarray, x_m: np.ndarray, y_m: np.ndarray) -> Grid:
+    """A grid on square cells from values on ascending regular axes x (columns), y (rows),
+    resampled (bilinear, NaN-aware) when the axes' steps differ."""
+    dx = float(np.median(np.diff(x_m)))
+    dy = float(np.median(np.diff(y_m)))
+    if abs(dx - dy) <= 1e-6 * max(dx, dy):
+        return Grid(values, float(x_m[0]), float(y_m[0]), dx)
+    from scipy.interpolate import RegularGridInterpolator
+
+    cell = min(dx, dy)
+    # nodes inside the data's span only (one beyond it would interpolate to NaN)
+    xs = x_m[0] + cell * np.arange(int(np.floor((x_m[-1] - x_m[0]) / cell + 1e-9)) + 1)
+    ys = y_m[0] + cell * np.arange(int(np.floor((y_m[-1] - y_m[0]) / cell + 1e-9)) + 1)
+    itp = RegularGridInterpolator((y_m, x_m), values, bounds_error=False, fill_value=np.nan)
+    yy, xx = np.meshgrid(ys, xs, indexing="ij")
+    return Grid(itp((yy, xx)), float(xs[0]), float(ys[0]), cell)
+
+
+def _geographic(values, lon_deg, lat_deg, source, kind, alt, notes) -> GeoMap:
+    """A longitude/latitude grid placed in a local metric frame about its centre: on survey
+    scales the regular lon/lat axes map linearly to east/north metres (local radii of
+    curvature), so the grid stays regular there."""
+    lat0 = float(np.mean(lat_deg))
+    lon0 = float(np.mean(lon_deg))
+    a, f = 6_378_137.0, 1 / 298.257223563
+    e2 = f * (2 - f)
+    s = np.sin(np.radians(lat0))
+    m_rad = a * (1 - e2) / (1 - e2 * s * s) ** 1.5  # meridian radius
+    n_rad = a / np.sqrt(1 - e2 * s * s)  # prime vertical radius
+    kx = np.radians(1.0) * n_rad * np.cos(np.radians(lat0))
+    ky = np.radians(1.0) * m_rad
+    grid = _square_grid(values, (lon_deg - lon0) * kx, (lat_deg - lat0) * ky)
+    grid.crs = f"lon/lat about {lat0:.6f}, {lon0:.6f} (local linear metres)"
+
+    def to_local(lat, lon):
+        return (np.asarray(lon, float) - lon0) * kx, (np.asarray(lat, float) - lat0) * ky
+
+    def to_geodetic(e, n):
+        return np.asarray(n, float) / ky + lat0, np.asarray(e, float) / kx + lon0
+
+    return GeoMap(grid, to_local, to_geodetic, alt, source, kind, "EPSG:4326", notes)
+
+
+def read_raster_map(path: Path) -> GeoMap:
+    """A GeoTIFF / netCDF anomaly grid (first 2-D variable), nT."""
+    import rioxarray  # noqa: F401  (registers the .rio accessor)
+    import xarray as xr
+
+    try:
+        if path.suffix.lower() in (".tif", ".tiff"):
+            da = xr.open_dataarray(path, engine="rasterio").squeeze(drop=True)
+        else:
+            ds = xr.open_dataset(path)
+            names = [v for v in ds.data_vars if ds[v].ndim == 2]
+            if not names:
+                raise AeromagError("no 2-D variable in the netCDF map", file=path)
+            da = ds[names[0]]
+    except AeromagError:
+        raise
+    except Exception as exc:
+        raise AeromagError(f"cannot read the map: {exc}", file=path) from None
+    if da.ndim != 2:
+        raise AeromagError(f"the map is not a 2-D grid (dims {da.dims})", file=path)
+    ydim, xdim = da.dims
+    x = np.asarray(da[xdim].values, float)
+    y = np.asarray(da[ydim].values, float)
+    vals = np.asarray(da.values, float)
+    nodata = da.attrs.get("_FillValue", da.rio.nodata if hasattr(da, "rio") else None)
+    if nodata is not None and np.isfinite(nodata):
+        vals = np.where(vals == nodata, np.nan, vals)
+    if x[0] > x[-1]:
+        x, vals = x[::-1], vals[:, ::-1]
+    if y[0] > y[-1]:
+        y, vals = y[::-1], vals[::-1]
+    alt = next(
+        (float(da.attrs[k]) for k in ("altitude_m", "alt", "height_m") if k in da.attrs), None
+    )
+    notes = [] if alt is not None else ["map altitude not in the file's attributes"]
+    crs = None
+    try:
+        crs = da.rio.crs
+    except Exception:
+        crs = None
+    geographic_names = {"lon", "longitude", "x"} >= {xdim.lower()} and ydim.lower() in (
+        "lat",
+        "latitude",
+    )
+    if crs is None:
+        if geographic_names:
+            return _geographic(vals, x, y, str(path), "raster lon/lat", alt, notes)
+        raise AeromagError(
+            "the map has no CRS and no longitude/latitude coordinates: it cannot be placed",
+            file=path,
+        )
+    from pyproj import CRS, Transformer
+
+    try:
+        crs = CRS.from_user_input(crs)
+        if crs.is_geographic:
+            return _geographic(vals, x, y, str(path), f"raster {crs.name}", alt, notes)
+        if not crs.is_projected or crs.axis_info[0].unit_name not in ("metre", "meter"):
+            raise ValueError(f"{crs.name} is not a projected CRS in metres")
+        fwd = Transformer.from_crs("EPSG:4326", crs, always_xy=True)
+        inv = Transformer.from_crs(crs, "EPSG:4326", always_xy=True)
+        fwd.transform(0.0, 0.0, errcheck=True)
+    except Exception as exc:
+        raise AeromagError(f"the map's CRS cannot be placed: {exc}", file=path) from None
+    grid = _square_grid(vals, x, y)
+    grid.crs = crs.to_string()
+
+    def to_local(lat, lon):
+        e, n = fwd.transform(np.asarray(lon, float), np.asarray(lat, float))
+        return np.asarray(e), np.asarray(n)
+
+    def to_geodetic(e, n):
+        lon, lat = inv.transform(np.asarray(e, float), np.asarray(n, float))
+        return np.asarray(lat), np.asarray(lon)
+
+    return GeoMap(grid, to_local, to_geodetic, alt, str(path), "raster", crs.to_string(), notes)
+
+
+# ------------------------------------------------------------------------------- MagNav
+def read_magnav_map(path: Path) -> GeoMap:
+    """A MagNav.jl scalar map (HDF5 fields of ``get_map``)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as h5:
+            if "map" not in h5:
+                raise AeromagError(
+                    "no scalar 'map' field (MagNav get_map layout: map, xx, yy, alt)", file=path
+                )
+            vals = np.asarray(h5["map"][()], float)
+            xx = np.ravel(np.asarray(h5["xx"][()], float))
+            yy = np.ravel(np.asarray(h5["yy"][()], float))
+            alt = np.asarray(h5["alt"][()], float) if "alt" in h5 else None
+            mask = np.asarray(h5["mask"][()]) if "mask" in h5 else None
+    except AeromagError:
+        raise
+    except Exception as exc:
+        raise AeromagError(f"cannot read the MagNav map: {exc}", file=path) from None
+    notes = []
+    if vals.ndim != 2:
+        raise AeromagError(f"only 2-D scalar maps are supported (shape {vals.shape})", file=path)
+    ny, nx = yy.size, xx.size
+    if vals.shape == (nx, ny):  # written by Julia (column-major): h5py sees it transposed
+        vals = vals.T
+        mask = mask.T if mask is not None and mask.shape == (nx, ny) else mask
+    if vals.shape != (ny, nx):
+        raise AeromagError(
+            f"map shape {vals.shape} does not match yy ({ny}) x xx ({nx})", file=path
+        )
+    if mask is not None and mask.shape == vals.shape and mask.any():
+        vals = np.where(mask.astype(bool), vals, np.nan)
+    if max(np.abs(xx).max(), np.abs(yy).max()) <= 2 * np.pi:
+        xx, yy = np.degrees(xx), np.degrees(yy)
+        notes.append("xx/yy read as radians")
+    else:
+        notes.append("xx/yy read as degrees")
+    if np.abs(yy).max() > 90 or np.abs(xx).max() > 360:
+        raise AeromagError(
+            "xx/yy are not longitudes/latitudes (a map in metres has no CRS here): "
+            "it cannot be placed",
+            file=path,
+        )
+    alt_m = None
+    if alt is not None and alt.size:
+        alt_m = float(np.nanmean(alt))
+        if alt.size > 1:
+            notes.append(f"drape or 3-D map: altitude taken as its mean {alt_m:.1f} m")
+    if xx[0] > xx[-1]:
+        xx, vals = xx[::-1], vals[:, ::-1]
+    if yy[0] > yy[-1]:
+        yy, vals = yy[::-1], vals[::-1]
+    return _geographic(vals, xx, yy, str(path), "MagNav HDF5", alt_m, notes)

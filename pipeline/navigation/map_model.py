@@ -1,0 +1,203 @@
+"""The anomaly map as a navigation measurement model: a smooth interpolant with its gradient.
+
+A cubic B-spline through the grid nodes gives the map value and its horizontal gradient (the
+EKF's Jacobian, nT/m) anywhere inside it; masked cells are filled for the fit only and stay
+invalid for the filters. Upward continuation to the flight's altitude
+uses harmonica's FFT operator on an xarray grid.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.ndimage import distance_transform_edt
+
+from pipeline.maps.grid import Grid
+
+
+def _fill_nearest(values: np.ndarray) -> np.ndarray:
+    """Masked (NaN) cells take their nearest valid cell's value (for FFTs and spline fits)."""
+    bad = ~np.isfinite(values)
+    if not bad.any():
+        return values
+    _, (iy, ix) = distance_transform_edt(bad, return_indices=True)
+    return values[iy, ix]
+
+
+def upward_continue(grid: Grid, height_m: float) -> Grid:
+    """The grid continued upward by ``height_m`` (> 0) with harmonica.
+
+    The FFT assumes a periodic grid: masked cells are filled with their nearest neighbour and
+    the grid is padded by reflection on every side (half its size) before the transform, then
+    cropped and re-masked.
+    """
+    import harmonica as hm
+    import xarray as xr
+
+    if height_m <= 0:
+        raise ValueError("upward continuation needs a positive height")
+    vals = _fill_nearest(grid.values.astype(float))
+    ny, nx = vals.shape
+    py, px = ny // 2, nx // 2
+    padded = np.pad(vals, ((py, py), (px, px)), mode="reflect")
+    ee = grid.east0_m + grid.cell_m * np.arange(-px, nx + px)
+    nn = grid.north0_m + grid.cell_m * np.arange(-py, ny + py)
+    da = xr.DataArray(padded, coords={"northing": nn, "easting": ee}, dims=("northing", "easting"))
+    up = hm.upward_continuation(da, height_displacement=float(height_m)).values
+    out = up[py : py + ny, px : px + nx]
+    out[~np.isfinite(grid.values)] = np.nan
+    return grid.with_values(out)
+
+
+def _weights(t: float | np.ndarray) -> tuple:
+    """Uniform cubic B-spline weights of the four nodes around ``t`` in [0, 1) and of their
+    derivatives (per cell)."""
+    u = 1.0 - t
+    t2, t3 = t * t, t * t * t
+    w = (
+        u * u * u / 6.0,
+        (3 * t3 - 6 * t2 + 4) / 6.0,
+        (-3 * t3 + 3 * t2 + 3 * t + 1) / 6.0,
+        t3 / 6.0,
+    )
+    d = (-u * u / 2.0, (3 * t2 - 4 * t) / 2.0, (-3 * t2 + 2 * t + 1) / 2.0, t2 / 2.0)
+    return w, d
+
+
+@dataclass
+class MapModel:
+    """Map value and gradient at local east/north metres (the grid's frame).
+
+    The interpolant is the cubic B-spline through the grid nodes (coefficients from
+    ``scipy.ndimage.spline_filter``, mirror boundary: ``map_coordinates(order=3,
+    mode="mirror")`` gives the same values). Its evaluation is written out here (16 weighted
+    coefficients, and their derivative weights for the gradient) because the filters call it
+    once per epoch and per particle: scipy's per-call overhead (~70 us for a spline ``ev``,
+    three calls for value and gradient) made a one-hour EKF take 20 s.
+
+    Parameters
+    ----------
+    grid : Grid
+        The anomaly map, nT, in a local metric frame (east, north).
+    sigma_nT : float
+        One-sigma uncertainty of the map value (added to the measurement noise).
+    altitude_m : float or None
+        Height of the map above the ellipsoid (None: unknown).
+    """
+
+    grid: Grid
+    sigma_nT: float = 0.0
+    altitude_m: float | None = None
+    _coef: np.ndarray = field(init=False, repr=False)
+    _valid: np.ndarray = field(init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        from scipy.ndimage import spline_filter
+
+        vals = _fill_nearest(self.grid.values.astype(float))
+        # one node of mirror padding on each side (and one more for the upper neighbour)
+        self._coef = np.pad(spline_filter(vals, order=3, mode="mirror"), 2, mode="reflect")
+        ok = np.isfinite(self.grid.values)
+        # a point is on the map when the four cells around it are unmasked
+        self._valid = np.pad(ok, ((0, 1), (0, 1)), constant_values=False)
+        self._ny, self._nx = vals.shape
+
+    def _frac(self, east_m, north_m):
+        fx = (np.asarray(east_m, float) - self.grid.east0_m) / self.grid.cell_m
+        fy = (np.asarray(north_m, float) - self.grid.north0_m) / self.grid.cell_m
+        return fx, fy
+
+    def inside(self, east_m, north_m) -> np.ndarray:
+        """True where the point is within the grid and the cells around it are unmasked."""
+        fx, fy = self._frac(east_m, north_m)
+        box = (fx >= 0) & (fy >= 0) & (fx <= self._nx - 1) & (fy <= self._ny - 1)
+        out = np.zeros(np.shape(fx), bool)
+        if box.any():
+            i = np.floor(fx[box]).astype(int)
+            j = np.floor(fy[box]).astype(int)
+            v = self._valid
+            out[box] = v[j, i] & v[j, np.minimum(i + 1, self._nx - 1)]
+            out[box] &= v[np.minimum(j + 1, self._ny - 1), i]
+            out[box] &= v[np.minimum(j + 1, self._ny - 1), np.minimum(i + 1, self._nx - 1)]
+        return out
+
+    def value(self, east_m, north_m) -> np.ndarray:
+        """Map value, nT (NaN outside the valid map); any array shape."""
+        return self.value_and_gradient(east_m, north_m)[0]
+
+    def gradient(self, east_m, north_m) -> tuple[np.ndarray, np.ndarray]:
+        """Horizontal gradient (d/d east, d/d north), nT/m; any array shape."""
+        return self.value_and_gradient(east_m, north_m)[1:]
+
+    def value_and_gradient(self, east_m, north_m):
+        """Value (NaN off the map) and gradient (d/d east, d/d north, nT/m) at many points."""
+        shape = np.shape(east_m)
+        e = np.ravel(np.asarray(east_m, float))
+        n = np.ravel(np.asarray(north_m, float))
+        fx, fy = self._frac(e, n)
+        v, gx, gy = self._evaluate_many(fx, fy)
+        v = np.where(self.inside(e, n), v, np.nan)
+        c = self.grid.cell_m
+        return v.reshape(shape), (gx / c).reshape(shape), (gy / c).reshape(shape)
+
+    def _evaluate_many(self, fx: np.ndarray, fy: np.ndarray):
+        fx = np.clip(fx, 0.0, self._nx - 1.0)
+        fy = np.clip(fy, 0.0, self._ny - 1.0)
+        i = np.minimum(np.floor(fx).astype(int), self._nx - 2)
+        j = np.minimum(np.floor(fy).astype(int), self._ny - 2)
+        wx, dx = _weights(fx - i)
+        wy, dy = _weights(fy - j)
+        # 4 x 4 coefficient blocks around each point: (M, 4, 4)
+        rows = (j + 1)[:, None] + np.arange(4)
+        cols = (i + 1)[:, None] + np.arange(4)
+        blk = self._coef[rows[:, :, None], cols[:, None, :]]
+        wx, dx, wy, dy = (np.stack(w, axis=1) for w in (wx, dx, wy, dy))
+        bx = (blk @ wx[:, :, None])[:, :, 0]
+        bdx = (blk @ dx[:, :, None])[:, :, 0]
+        return (wy * bx).sum(axis=1), (wy * bdx).sum(axis=1), (dy * bx).sum(axis=1)
+
+    def at(self, east_m: float, north_m: float) -> tuple[float, float, float]:
+        """Value and gradient (d/d east, d/d north, nT/m) at one point; NaN value off the
+        valid map. Scalar arithmetic: the sequential filters' per-epoch call."""
+        fx = (east_m - self.grid.east0_m) / self.grid.cell_m
+        fy = (north_m - self.grid.north0_m) / self.grid.cell_m
+        if not (0.0 <= fx <= self._nx - 1 and 0.0 <= fy <= self._ny - 1):
+            return np.nan, 0.0, 0.0
+        i = min(int(fx), self._nx - 2)
+        j = min(int(fy), self._ny - 2)
+        v = self._valid
+        if not (v[j, i] and v[j, i + 1] and v[j + 1, i] and v[j + 1, i + 1]):
+            return np.nan, 0.0, 0.0
+        wx, dx = _weights(fx - i)
+        wy, dy = _weights(fy - j)
+        blk = self._coef[j + 1 : j + 5, i + 1 : i + 5]
+        wx, dx, wy, dy = (np.array(w) for w in (wx, dx, wy, dy))
+        bx = blk @ wx
+        cell = self.grid.cell_m
+        return float(wy @ bx), float(wy @ (blk @ dx)) / cell, float(dy @ bx) / cell
+
+    def coverage(self, east_m, north_m) -> float:
+        """Fraction of the points inside the valid map."""
+        e = np.asarray(east_m, float)
+        return float(self.inside(e, north_m).mean()) if e.size else 0.0
+
+    def continued_to(self, altitude_m: float, tolerance_m: float = 1.0) -> tuple[MapModel, str]:
+        """The map at ``altitude_m`` (upward continuation when the flight is higher), and a
+        note of what was done. Downward continuation amplifies noise without bound and is not
+        done: the map is then used as is, and the note says so."""
+        if self.altitude_m is None:
+            return self, "map altitude unknown: used as is (no continuation)"
+        dh = float(altitude_m) - self.altitude_m
+        if abs(dh) <= tolerance_m:
+            return self, f"map altitude {self.altitude_m:.1f} m: flight within {tolerance_m} m"
+        if dh < 0:
+            return self, (
+                f"flight {-dh:.1f} m below the map: no downward continuation (unstable); "
+                "map used as is"
+            )
+        up = upward_continue(self.grid, dh)
+        return (
+            MapModel(up, self.sigma_nT, float(altitude_m)),
+            f"map continued upward by {dh:.1f} m (harmonica) to {altitude_m:.1f} m",
+        )

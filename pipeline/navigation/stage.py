@@ -1,0 +1,395 @@
+"""Navigation re-flown on a recording: INS errors simulated along the true track, corrected by
+the map-aided filter, checked against ``/gnss/fix`` (the reference) and the CRLB.
+
+The INS starts at the first epoch of the selected segments (validation lines by default) and
+runs without a break to the last one; the map is used on the selected segments' epochs whose
+indicated position is on the map (turns between lines are dead reckoning). Errors are
+reported on the selected epochs. The measured anomaly is the compensated field reduced as the
+map was (IGRF and the smoothed base-station diurnal, :func:`pipeline.maps.reduce.reduce_to_anomaly`)
+with the IGRF taken at the INS-indicated position (the true one is what navigation lacks).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pipeline.errors import AeromagError
+from pipeline.flight import Flight
+from pipeline.maps.reduce import reduce_to_anomaly
+from pipeline.maps.stage import noise_4th_difference_nT
+from pipeline.navigation.crlb import crlb
+from pipeline.navigation.ekf import FilterResult, ekf
+from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory, simulate_ins_errors
+from pipeline.navigation.map_io import GeoMap
+from pipeline.navigation.map_model import MapModel
+from pipeline.navigation.pf import particle_filter
+from pipeline.segment import Segmentation
+
+SEGMENT_LABELS = {"validation": ("validation",), "survey": ("survey", "tie"), "all": ()}
+
+
+@dataclass
+class NavigationSettings:
+    """Settings of a navigation run.
+
+    ``max_uncovered`` is the largest fraction of the selected epochs whose true position may be
+    off the map; ``map_sigma_nT`` / ``sensor_sigma_nT`` None: estimated (the grid's and the
+    track's 4th-difference noise).
+    """
+
+    filter: str = "ekf"
+    ins: str = "navigation"
+    segments: str = "validation"
+    seed: int = 0
+    particles: int = 1000
+    # the particle filter hands over to the EKF once its cloud stays within this DRMS, m
+    # (None: particles to the end)
+    pf_handover_m: float | None = 5.0
+    mag_bias_nT: float = 1.0
+    mag_bias_tau_s: float = 600.0
+    map_sigma_nT: float | None = None
+    sensor_sigma_nT: float | None = None
+    max_uncovered: float = 0.5
+
+    def check(self) -> None:
+        if self.filter not in ("ekf", "pf"):
+            raise AeromagError(f"--filter {self.filter!r}: use ekf or pf")
+        if self.ins not in GRADES:
+            raise AeromagError(f"--ins {self.ins!r}: use {' or '.join(GRADES)}")
+        if self.segments not in SEGMENT_LABELS:
+            raise AeromagError(f"--segments {self.segments!r}: use validation, survey or all")
+
+
+def _metrics(dn: np.ndarray, de: np.ndarray) -> dict[str, float]:
+    r = np.hypot(dn, de)
+    return {
+        "drms_m": float(np.sqrt(np.mean(r * r))),
+        "cep50_m": float(np.median(r)),
+        "max_m": float(r.max()),
+        "final_m": float(r[-1]),
+    }
+
+
+@dataclass
+class NavigationRun:
+    """A navigation run over the window ``index`` (flight epochs)."""
+
+    index: np.ndarray
+    selected: np.ndarray  # (N,) bool: the chosen segments' epochs within the window
+    segment_id: np.ndarray  # (N,) line id (or label) per epoch
+    time_ns: np.ndarray
+    true_en: np.ndarray  # (N, 2) east, north in the map frame, m
+    true_alt_m: np.ndarray
+    ins_error: np.ndarray  # (N, 17) simulated INS error states
+    result: FilterResult
+    crlb_cov_m2: np.ndarray  # (N, 2, 2) north/east bound
+    ins_cov_m2: np.ndarray  # (N, 2, 2) INS-only covariance (no map)
+    anomaly_nT: np.ndarray
+    r_nT2: float
+    sensor_sigma_nT: float
+    map_sigma_nT: float
+    settings: NavigationSettings
+    geomap: GeoMap
+    map_model: MapModel
+    coverage: float
+    notes: list[str] = field(default_factory=list)
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+    def settings_grade(self):
+        """The INS grade's error budget (:class:`pipeline.navigation.ins.InsGrade`)."""
+        return GRADES[self.settings.ins]
+
+    # positions ----------------------------------------------------------------------
+    def ins_en(self) -> np.ndarray:
+        return self.true_en + self.ins_error[:, [1, 0]]
+
+    def aided_en(self) -> np.ndarray:
+        return self.ins_en() - self.result.state[:, [1, 0]]
+
+    def ins_error_ne(self) -> np.ndarray:
+        return self.ins_error[:, :2]
+
+    def aided_error_ne(self) -> np.ndarray:
+        return self.ins_error[:, :2] - self.result.state[:, :2]
+
+    # statistics ---------------------------------------------------------------------
+    def summary(self) -> dict[str, Any]:
+        sel = self.selected
+        ins = self.ins_error_ne()[sel]
+        aid = self.aided_error_ne()[sel]
+        c = self.crlb_cov_m2[sel]
+        crlb_drms = float(np.sqrt(np.mean(c[:, 0, 0] + c[:, 1, 1])))
+        p = self.result.pos_cov_m2[sel]
+        m_ins, m_aid = _metrics(*ins.T), _metrics(*aid.T)
+        per: dict[str, Any] = {}
+        for sid in dict.fromkeys(self.segment_id[sel]):
+            k = sel & (self.segment_id == sid)
+            cc = self.crlb_cov_m2[k]
+            per[str(sid)] = {
+                "epochs": int(k.sum()),
+                "ins_only": _metrics(*self.ins_error_ne()[k].T),
+                "map_aided": _metrics(*self.aided_error_ne()[k].T),
+                "crlb_drms_m": float(np.sqrt(np.mean(cc[:, 0, 0] + cc[:, 1, 1]))),
+            }
+        innov = self.result.innovation_nT
+        ok = np.isfinite(innov)
+        nis = innov[ok] ** 2 / self.result.innovation_var_nT2[ok]
+        t = (self.time_ns - self.time_ns[0]) / 1e9
+        return {
+            "drms_m": {
+                "ins_only": m_ins["drms_m"],
+                "map_aided": m_aid["drms_m"],
+                "crlb": crlb_drms,
+            },
+            "cep50_m": {"ins_only": m_ins["cep50_m"], "map_aided": m_aid["cep50_m"]},
+            "max_m": {"ins_only": m_ins["max_m"], "map_aided": m_aid["max_m"]},
+            "filter_drms_m": float(np.sqrt(np.mean(p[:, 0, 0] + p[:, 1, 1]))),
+            "ratio_map_aided_to_ins_only": m_aid["drms_m"] / max(m_ins["drms_m"], 1e-12),
+            "ratio_map_aided_to_crlb": m_aid["drms_m"] / max(crlb_drms, 1e-12),
+            "segments": per,
+            "epochs": {
+                "window": int(self.index.size),
+                "selected": int(sel.sum()),
+                "map_updates": int(self.result.updated.sum()),
+                "duration_s": float(t[-1]),
+                "start_ns": int(self.time_ns[0]),
+            },
+            "coverage": self.coverage,
+            "measurement": {
+                "sensor_sigma_nT": self.sensor_sigma_nT,
+                "map_sigma_nT": self.map_sigma_nT,
+                "rejected_by_gate": int(self.result.rejected),
+                "r_nT2": self.r_nT2,
+                "mag_bias_sigma_nT": self.settings.mag_bias_nT,
+                "mag_bias_tau_s": self.settings.mag_bias_tau_s,
+                "innovation_rms_nT": float(np.sqrt(np.mean(innov[ok] ** 2))) if ok.any() else None,
+                "normalised_innovation_mean": float(np.mean(nis)) if ok.any() else None,
+            },
+            "covariance": {
+                "min_eigenvalue": self.result.min_eigenvalue,
+                "max_asymmetry": self.result.max_asymmetry,
+            },
+            "ins": {"grade": self.settings.ins, **_grade_dict(self.settings.ins)},
+            "map": {**self.geomap.describe(), "used_altitude_m": self.map_model.altitude_m},
+            "settings": asdict(self.settings),
+            "reference": "/gnss/fix",
+            "notes": self.notes,
+            "timings_s": self.timings_s,
+        }
+
+
+def _grade_dict(name: str) -> dict[str, float]:
+    g = GRADES[name]
+    return {k: (float(v) if not isinstance(v, str) else v) for k, v in asdict(g).items()}
+
+
+def select_window(
+    flight: Flight, seg: Segmentation | None, segments: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The navigation window (epoch indices), the selected epochs in it, and each epoch's
+    segment id (line id on lines, else the label)."""
+    d = flight.data
+    ok = np.ones(flight.time_ns.size, bool)
+    for c in ("lat_deg", "lon_deg", "alt_m"):
+        ok &= np.isfinite(d[c].to_numpy(float))
+    labels = SEGMENT_LABELS[segments]
+    if labels:
+        if seg is None:
+            raise AeromagError(
+                f"--segments {segments} needs the flight's segmentation (none found); "
+                "use --segments all",
+                file=flight.source,
+                channel="/flight/segment",
+            )
+        chosen = seg.mask(*labels) & ok
+        ids = np.where(seg.line_id != "", seg.line_id, seg.label).astype(str)
+    else:
+        chosen = ok
+        ids = np.full(ok.size, "all")
+    if chosen.sum() < 10:
+        raise AeromagError(
+            f"no {segments} epochs with a position to navigate on",
+            file=flight.source,
+            channel="/flight/segment" if labels else "/gnss/fix",
+        )
+    ix = np.flatnonzero(chosen)
+    win = np.arange(ix[0], ix[-1] + 1)
+    win = win[ok[win]]
+    return win, chosen[win], ids[win]
+
+
+def check_coverage(
+    geomap: GeoMap, east_m: np.ndarray, north_m: np.ndarray, settings: NavigationSettings
+) -> float:
+    """The fraction of the points (true positions of the scored epochs) on the map; raises a
+    one-line error naming the uncovered fraction above ``settings.max_uncovered``."""
+    on = MapModel(geomap.grid).inside(east_m, north_m)
+    uncovered = 1.0 - float(on.mean()) if on.size else 1.0
+    if uncovered > settings.max_uncovered:
+        raise AeromagError(
+            f"the map does not cover the track: {uncovered:.0%} of the {settings.segments} "
+            f"epochs ({int((~on).sum())} of {on.size}) are off the map (at most "
+            f"{settings.max_uncovered:.0%} allowed)",
+            file=geomap.source,
+        )
+    return 1.0 - uncovered
+
+
+def track_coverage(
+    flight: Flight, seg: Segmentation | None, geomap: GeoMap, settings: NavigationSettings
+) -> float:
+    """:func:`check_coverage` on a flight's scored epochs (before any compensation is run)."""
+    win, selected, _ = select_window(flight, seg, settings.segments)
+    lat = flight.data["lat_deg"].to_numpy(float)[win][selected]
+    lon = flight.data["lon_deg"].to_numpy(float)[win][selected]
+    e, n = geomap.to_local(lat, lon)
+    return check_coverage(geomap, np.asarray(e, float), np.asarray(n, float), settings)
+
+
+def run_navigation(
+    flight: Flight,
+    seg: Segmentation | None,
+    compensated_nT: np.ndarray,
+    geomap: GeoMap,
+    settings: NavigationSettings | None = None,
+) -> NavigationRun:
+    """Simulate the INS along the flight, run the map-aided filter and the CRLB.
+
+    Parameters
+    ----------
+    flight : Flight
+        The recording (true track from ``/gnss/fix`` and ``/ins/attitude``).
+    seg : Segmentation or None
+        Its segmentation (needed unless ``settings.segments == "all"``).
+    compensated_nT : (epochs,) ndarray
+        The compensated total field on the flight's epochs, nT.
+    geomap : GeoMap
+        The map and its placement.
+    """
+    import time
+
+    s = settings or NavigationSettings()
+    s.check()
+    clock = {"start": time.perf_counter()}
+    d = flight.data
+    win, selected, ids = select_window(flight, seg, s.segments)
+    lat = d["lat_deg"].to_numpy(float)
+    lon = d["lon_deg"].to_numpy(float)
+    alt = d["alt_m"].to_numpy(float)
+    e_all, n_all = geomap.to_local(lat[win], lon[win])
+    e_all, n_all = np.asarray(e_all, float), np.asarray(n_all, float)
+    notes = list(geomap.notes)
+    coverage = check_coverage(geomap, e_all[selected], n_all[selected], s)
+    mm = MapModel(geomap.grid, 0.0, geomap.altitude_m)
+    # map at the flight's altitude
+    flight_alt = float(np.mean(alt[win][selected]))
+    mm, how = mm.continued_to(flight_alt)
+    notes.append(how)
+    # true track and INS errors
+    t = d["time_s"].to_numpy(float)[win]
+    att = (
+        [d[c].to_numpy(float)[win] for c in ("roll_deg", "pitch_deg", "yaw_deg")]
+        if flight.has("roll_deg", "pitch_deg", "yaw_deg")
+        else [None, None, None]
+    )
+    if att[0] is not None and not all(np.isfinite(a).all() for a in att):
+        att = [None, None, None]
+        notes.append("attitude incomplete in the window: body axes taken along the track")
+    traj = Trajectory.from_track(t, n_all, e_all, alt[win] - flight_alt, lat[win], *att)
+    model = InsErrorModel(GRADES[s.ins], s.mag_bias_nT, s.mag_bias_tau_s)
+    phi = model.transitions(traj)
+    qd = model.process_noise(np.diff(t, prepend=t[0]))
+    x_ins = simulate_ins_errors(model, traj, s.seed, phi)
+    clock["ins"] = time.perf_counter()
+    # measured anomaly, reduced as the map: IGRF at the INS-indicated position
+    ins_e, ins_n = e_all + x_ins[:, 1], n_all + x_ins[:, 0]
+    ins_lat, ins_lon = geomap.to_geodetic(ins_e, ins_n)
+    lat_r, lon_r, alt_r = lat.copy(), lon.copy(), alt.copy()
+    lat_r[win], lon_r[win], alt_r[win] = ins_lat, ins_lon, alt[win] + x_ins[:, 2]
+    base = d["base_nT"].to_numpy(float) if flight.has("base_nT") else None
+    red = reduce_to_anomaly(flight.time_ns, compensated_nT, lat_r, lon_r, alt_r, base)
+    z = red.anomaly_nT[win]
+    if not np.isfinite(z[selected]).any():
+        raise AeromagError(
+            "no compensated field on the selected epochs",
+            file=flight.source,
+            channel="/mag/compensated",
+        )
+    if base is None:
+        notes.append("no base station: diurnal not removed (the mapping did the same)")
+    # measurement noise: sensor (track) and map (grid), 4th-difference estimates
+    sensor = s.sensor_sigma_nT
+    if sensor is None:
+        sensor = noise_4th_difference_nT(z[selected])
+    map_sigma = s.map_sigma_nT
+    if map_sigma is None:
+        g = mm.grid.values
+        map_sigma = float(
+            np.nanmedian([noise_4th_difference_nT(g.ravel()), noise_4th_difference_nT(g.T.ravel())])
+        )
+    sensor = float(sensor) if np.isfinite(sensor) else 0.1
+    map_sigma = float(map_sigma) if np.isfinite(map_sigma) else 0.0
+    mm.sigma_nT = map_sigma
+    r = sensor**2 + map_sigma**2
+    # filter and bound
+    p0 = model.initial_covariance()
+    update = selected & np.isfinite(z)
+    if s.filter == "ekf":
+        res = ekf(phi, qd, p0, z, ins_e, ins_n, mm, r, update)
+    else:
+        res = particle_filter(
+            phi,
+            qd,
+            p0,
+            z,
+            ins_e,
+            ins_n,
+            mm,
+            r,
+            s.seed + 1,
+            s.particles,
+            update,
+            t,
+            handover_m=s.pf_handover_m,
+        )
+        if res.handover_epoch is not None:
+            notes.append(
+                f"particle filter handed over to the EKF after {t[res.handover_epoch] - t[0]:.1f} s"
+                f" (cloud DRMS below {s.pf_handover_m:g} m for 10 s)"
+            )
+        else:
+            notes.append("particle filter to the end (its cloud never settled for a handover)")
+    clock["filter"] = time.perf_counter()
+    bound = crlb(phi, qd, p0, e_all, n_all, mm, r, update)
+    free = crlb(phi, qd, p0, e_all, n_all, mm, r, np.zeros(t.size, bool))
+    clock["crlb"] = time.perf_counter()
+    timings = {
+        "ins_s": clock["ins"] - clock["start"],
+        "filter_s": clock["filter"] - clock["ins"],
+        "crlb_s": clock["crlb"] - clock["filter"],
+    }
+    return NavigationRun(
+        win,
+        selected,
+        ids,
+        flight.time_ns[win],
+        np.stack([e_all, n_all], axis=1),
+        alt[win],
+        x_ins,
+        res,
+        bound,
+        free,
+        z,
+        r,
+        sensor,
+        map_sigma,
+        s,
+        geomap,
+        mm,
+        coverage,
+        notes,
+        timings,
+    )
