@@ -849,6 +849,74 @@ def reprocess(
 
 
 @app.command()
+def campaign(
+    folder: Annotated[
+        Path, typer.Argument(help="Folder of processed recordings (*.processed.mcap), searched.")
+    ],
+    out_dir: Annotated[
+        Path,
+        typer.Option("--out", help="Output folder (campaign.mcap, exports, report, summary)."),
+    ],
+    workers: Annotated[int, typer.Option(help="Dask worker processes of the local cluster.")] = 2,
+    dask_address: Annotated[
+        str | None, typer.Option(help="Use an existing Dask cluster, e.g. tcp://HOST:8786.")
+    ] = None,
+    config: ConfigOption = None,
+) -> None:
+    """Merge the processed flights of one area (several days, base stations): level them
+    jointly on every crossover within and between flights, grid once, export."""
+    from flows import archive as arch
+    from pipeline.campaign.sorties import validate_campaign
+
+    if workers < 1:
+        _fail(f"--workers {workers}: must be >= 1")
+    _check_config(config)
+    # bad input fails here, in one line, before Prefect starts a server or a cluster
+    with console.status(f"checking {folder}"):
+        infos = validate_campaign(folder)
+    from flows.campaign import campaign as campaign_flow
+
+    with (
+        arch.prefect_api(),
+        console.status(f"campaign of {len(infos)} flights (Prefect flow 'campaign' on Dask)"),
+    ):
+        runner = arch.dask_runner(workers, dask_address)
+        try:
+            doc = campaign_flow.with_options(task_runner=runner)(
+                str(folder), str(out_dir), str(config) if config else None
+            )
+        finally:  # a failed run's logs reach the server before it stops (no "Error logging")
+            from prefect.logging.handlers import APILogWorker
+
+            APILogWorker.drain_all(timeout=5)
+    r = doc["crossover_rms_nT"]
+
+    def f(x) -> str:
+        return "-" if x is None else f"{x:.3f}"
+
+    say(
+        f"{len(doc['flights'])} flights: "
+        + ", ".join(f"{k} {v:+.3f} nT" for k, v in doc["flight_offsets_nT"].items())
+    )
+    say(
+        f"crossover RMS within flights {f(r['within_flight']['before'])} -> "
+        f"{f(r['within_flight']['after'])} nT ({doc['crossovers']['within_flight']}), "
+        f"between flights {f(r['between_flights']['before'])} -> "
+        f"{f(r['between_flights']['after'])} nT ({doc['crossovers']['between_flights']})"
+    )
+    for w in doc["warnings"]:
+        say(f"warning: {w}")
+    g = doc["grid"]
+    say(f"grid: {g['shape'][0]} x {g['shape'][1]} cells of {g['cell_m']:.2f} m")
+    o = doc["outputs"]
+    say(f"output recording: {o['mcap']}")
+    say(f"summary: {o['summary']}")
+    say(f"report: {o['report']}")
+    for fmt, paths in (doc.get("exports") or {}).items():
+        say(f"export ({fmt}): {', '.join(paths)}")
+
+
+@app.command()
 def serve(
     watch: Annotated[Path, typer.Option("--watch", help="Folder new recordings appear in.")],
     out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")],

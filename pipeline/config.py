@@ -133,6 +133,17 @@ class Config:
             microlevel_clip_nT=m["microlevel_clip_nT"],
         )
 
+    def campaign_settings(self):
+        """The campaign's settings: the map stage's cell, trend and crossing angle."""
+        from pipeline.campaign.stage import CampaignSettings
+
+        m = self.values["map"]
+        return CampaignSettings(
+            cell_m=m["cell_m"] or None,
+            level_trend=m["level_trend"],
+            min_crossing_angle_deg=m["min_crossing_angle_deg"],
+        )
+
     def enhance_settings(self):
         from pipeline.maps.enhance import EnhanceSettings, parse_products
 

@@ -84,6 +84,15 @@ def test_settings_defaults_are_the_shipped_configuration():
     assert cfg.audit_settings() == AuditSettings()
     assert cfg.map_settings() == MapSettings()
     assert cfg.quality_settings() == QualitySettings()
+    from pipeline.campaign.stage import CampaignSettings
+
+    cs = CampaignSettings()
+    assert cfg.campaign_settings() == cs
+    assert (cs.cell_m, cs.level_trend, cs.min_crossing_angle_deg) == (
+        m.cell_m,
+        m.level_trend,
+        m.min_crossing_angle_deg,
+    )
     from pipeline.maps.enhance import EnhanceSettings, parse_products
 
     assert cfg.enhance_settings() == EnhanceSettings()

@@ -219,6 +219,20 @@ OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
         description="survey-tie crossover differences before and after leveling",
     ),
     TopicRule(
+        "/campaign/flight_offset",
+        "aeromag.FlightOffset",
+        "output",
+        ("flight", "offset_nT", "lines", "crossovers_within", "crossovers_between"),
+        description="per-flight level correction of a campaign's joint levelling",
+    ),
+    TopicRule(
+        "/campaign/crossovers",
+        "aeromag.CampaignCrossover",
+        "output",
+        ("kind", "flight_a", "line_a", "flight_b", "line_b", "difference_before_nT"),
+        description="crossovers within and between a campaign's flights, before and after",
+    ),
+    TopicRule(
         "/audit/finding",
         "aeromag.AuditFinding",
         "output",

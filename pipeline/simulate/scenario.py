@@ -209,7 +209,21 @@ _OPTIONAL: dict[str, Any] = {
         "temperature_rise_K": 3.0,
         "temperature_time_s": 900.0,
     },
+    "anomaly": {
+        # >= 0: the crustal sources come from a generator of their own seeded with this, not
+        # from the flight's seed: sorties of one campaign (different seeds) fly over the same
+        # geology. -1: drawn from the flight's generator (as before).
+        "seed": -1,
+    },
+    "survey": {
+        # flight lines (survey, tie, validation) shifted across the survey lines by this (m);
+        # the block (its crustal sources, the truth grid) stays: a re-flight with other lines
+        "line_offset_m": 0.0,
+    },
     "effects": {
+        # a constant added to the diurnal variation (nT): the day's level, which the base
+        # station's mean does not remove (the level a campaign's per-flight offset recovers)
+        "diurnal": {"offset_nT": 0.0},
         # "delay": the scalar reads the field lag_s late; "first_order": the scalar passes
         # through a first-order low-pass with time constant lag_s (group delay lag_s at low
         # frequency, and an amplitude loss 1/sqrt(1 + (w lag_s)^2))

@@ -378,7 +378,11 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
         or [np.zeros(0)]
     )
     cal_st = traj.state(cal_t)
-    dipoles = _draw_dipoles(sc, rng, b_hat, np.column_stack([cal_st["east_m"], cal_st["north_m"]]))
+    anomaly_seed = int(sc["anomaly"]["seed"])
+    dip_rng = np.random.default_rng([anomaly_seed, 19, 4]) if anomaly_seed >= 0 else rng
+    dipoles = _draw_dipoles(
+        sc, dip_rng, b_hat, np.column_stack([cal_st["east_m"], cal_st["north_m"]])
+    )
     grad = sc.effect("geomagnetic_gradient")
     gvec = (
         np.array([grad["east_nT_per_m"], grad["north_nT_per_m"], grad["up_nT_per_m"]])
@@ -393,6 +397,7 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
         phase = rng.uniform(0, 2 * np.pi)
         walk = np.cumsum(rng.normal(0, diu["random_walk_nT_per_sqrt_s"], t_d.size))
         d_nT = diu["amplitude_nT"] * np.sin(2 * np.pi * t_d / diu["period_s"] + phase) + walk
+        d_nT = d_nT + float(diu["offset_nT"])
     else:
         d_nT = np.zeros(t_d.size)
     field_model = EarthField(frame, when, dipoles, t_main, main_ned, b_hat, gvec, ref, t_d, d_nT)

@@ -229,7 +229,8 @@ def survey_legs(sc: Scenario, here: np.ndarray) -> list[Leg]:
     """Serpentine survey lines, then tie lines across them, then the "X" validation lines."""
     s = sc["survey"]
     along, across = _unit(s["line_heading_deg"])
-    corner = np.array([s["east_m"], s["north_m"]])
+    # the flight lines, shifted across them by line_offset_m (the block itself stays)
+    corner = np.array([s["east_m"], s["north_m"]]) + float(s["line_offset_m"]) * across
     L, W = s["length_m"], s["width_m"]
     n_lines = int(np.floor(W / s["line_spacing_m"] + 1e-9)) + 1
     lines = [
