@@ -6,7 +6,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.audit.survey import CrossoverSet, survey_coupling, survey_events, survey_lag
+from pipeline.audit.survey import (
+    CrossoverSet,
+    survey_coupling,
+    survey_events,
+    survey_heading,
+    survey_lag,
+)
 
 
 def crossings(seed: int, n: int = 40):
@@ -50,3 +56,27 @@ def test_a_step_is_located_and_a_clean_survey_has_none(t_step):
     ev = survey_events(CrossoverSet(stepped, ta, tb, ha, hb), 0.01, 0.3)
     assert [e.kind for e in ev] == ["step"]
     assert ev[0].start_s <= t_step <= ev[0].end_s
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_heading_levels_and_their_change_across_the_survey(seed):
+    """Heading levels (0, 0.3, -0.2, 0.1 nT) are recovered from the crossings' differences
+    alone; levels that grow across a 2 km survey are told apart from constant ones; equal
+    levels give no evidence."""
+    rng, ha, hb, ta, tb, d = crossings(seed, 60)
+    east_km = rng.uniform(0.0, 2.0, ha.size)
+    north_km = rng.uniform(0.0, 2.0, ha.size)
+    h = survey_heading(CrossoverSet(d, ta, tb, ha, hb), east_km, north_km)
+    truth = np.array([0.0, 0.3, -0.2, 0.1]) - 0.05
+    got = np.array([h.levels_nT[k] for k in ("N", "E", "S", "W")])
+    assert np.max(np.abs(got - truth)) < 0.03
+    assert h.spread_nT == pytest.approx(0.5, abs=0.04)
+    assert h.p_value < 1e-6 and h.position_p_value > 0.001
+    # the east level grows by 0.3 nT per km across the survey
+    grow = 0.3 * east_km * ((ha == 1).astype(float) - (hb == 1))
+    g = survey_heading(CrossoverSet(d + grow, ta, tb, ha, hb), east_km, north_km)
+    assert g.position_p_value < 1e-6
+    flat = survey_heading(
+        CrossoverSet(rng.normal(0, 0.03, ha.size), ta, tb, ha, hb), east_km, north_km
+    )
+    assert flat.p_value > 0.001 and flat.spread_nT < 0.05

@@ -61,9 +61,11 @@ from pipeline.audit.noise import white_noise_nT
 from pipeline.audit.survey import (
     CrossoverSet,
     SurveyCoupling,
+    SurveyHeading,
     SurveyLag,
     survey_coupling,
     survey_events,
+    survey_heading,
     survey_lag,
 )
 from pipeline.audit.vector_cal import fit_vector_calibration
@@ -377,6 +379,19 @@ class Auditor:
         ev = Evaluation(
             "geomagnetic_gradient", key, est, test, held, ext, ci95=jackknife_ci95(est, folds)
         )
+        # independent evidence: a gradient during calibration biases the heading terms, which
+        # the survey's crossovers show as heading levels (and levels that change across the
+        # survey); the extended model should flatten them
+        before, after = self.survey_heading(current), self.survey_heading(ext)
+        if before is not None and after is not None:
+            survey = {
+                "survey_heading_spread_before_nT": before.spread_nT,
+                "survey_heading_spread_after_nT": after.spread_nT,
+                "survey_heading_p_value": before.p_value,
+                "survey_heading_position_p_value": before.position_p_value,
+            }
+            ev.estimate.update(survey)
+            ev.ci95.update({k: None for k in survey})
         # the fitted gradient is the total field's: the main field's own (IGRF) is part of it
         main = self._main_field_gradient()
         if main is not None:
@@ -721,6 +736,8 @@ class Auditor:
             np.array([c.time_b_s for c in xs]),
             np.array([heading[c.line_a] for c in xs]),
             np.array([heading[c.line_b] for c in xs]),
+            np.array([c.east_m for c in xs]),
+            np.array([c.north_m for c in xs]),
         )
         return cs, red
 
@@ -767,6 +784,15 @@ class Auditor:
         rate = np.full(t.size, np.nan)
         rate[ok] = np.gradient(red[ok], t[ok])
         return survey_lag(cs, np.interp(cs.time_a_s, t, rate), np.interp(cs.time_b_s, t, rate))
+
+    def survey_heading(self, spec: ModelSpec) -> SurveyHeading | None:
+        """``spec``'s heading error seen at the survey's crossovers, and whether it changes
+        across the survey (:func:`pipeline.audit.survey.survey_heading`)."""
+        got = self._survey_crossovers(spec)
+        if got is None:
+            return None
+        cs = got[0]
+        return survey_heading(cs, cs.east_m / 1000.0, cs.north_m / 1000.0)
 
     def survey_coupling(self, spec: ModelSpec, name: str) -> SurveyCoupling | None:
         """Channel ``name``'s coupling seen at the survey's crossovers

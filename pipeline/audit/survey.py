@@ -30,13 +30,15 @@ from scipy import stats
 @dataclass
 class CrossoverSet:
     """Crossover differences with the times and heading classes (0..3: N, E, S, W) of the
-    two readings."""
+    two readings, and where the lines cross (m)."""
 
     difference_nT: np.ndarray
     time_a_s: np.ndarray
     time_b_s: np.ndarray
     heading_a: np.ndarray
     heading_b: np.ndarray
+    east_m: np.ndarray | None = None  # where the lines cross (the survey's local frame)
+    north_m: np.ndarray | None = None
 
     @property
     def size(self) -> int:
@@ -244,3 +246,67 @@ def _regress_on(
     half = float(stats.t.ppf(0.975, n - k)) * se
     p = float(2 * stats.t.sf(abs(c) / se, n - k)) if se > 0 else 1.0
     return c, (c - half, c + half), p, int(n)
+
+
+@dataclass
+class SurveyHeading:
+    """Heading-dependent levels of a compensated field, from the survey's crossovers.
+
+    ``levels_nT``: the level of each heading class present (N, E, S, W; mean zero), nT;
+    ``spread_nT``: their largest minus smallest; ``p_value``: F-test of the levels against
+    none; ``position_p_value``: F-test of levels that also change linearly across the
+    survey (heading x east/north) against constant levels (None: too few crossovers).
+    """
+
+    levels_nT: dict[str, float]
+    spread_nT: float
+    p_value: float
+    position_p_value: float | None
+    crossovers: int
+
+
+HEADINGS = ("N", "E", "S", "W")
+
+
+def survey_heading(
+    x: CrossoverSet, east_km: np.ndarray | None = None, north_km: np.ndarray | None = None
+) -> SurveyHeading | None:
+    """Heading error seen at the survey's crossovers, independent of the calibration fit.
+
+    A compensation biased by a geomagnetic gradient during calibration (or any heading
+    term it got wrong) leaves each heading its own level: two crossing lines then disagree by
+    the difference of their headings' levels. When the error also grows across the survey
+    (the induced interference scales with the field, which a gradient changes over the
+    area), the levels change with the crossover's position (``east_km``, ``north_km``: where
+    the lines cross, km).
+    """
+    y = np.asarray(x.difference_nT, float)
+    lv = _levels(x)
+    ok = np.isfinite(y)
+    n = int(ok.sum())
+    if lv.shape[1] == 0 or n < lv.shape[1] + 4:
+        return None
+    rss0, k0, _ = _rss(np.zeros((n, 0)), y[ok])
+    rss1, k1, coef = _rss(lv[ok], y[ok])
+    p = _f_test(rss0, k0, rss1, k1, n)
+    classes = sorted(set(x.heading_a.tolist()) | set(x.heading_b.tolist()))
+    levels = np.r_[0.0, coef]
+    levels = levels - levels.mean()
+    pos_p = None
+    if east_km is not None and north_km is not None:
+        inter = np.column_stack(
+            [lv * np.asarray(east_km, float)[:, None], lv * np.asarray(north_km, float)[:, None]]
+        )
+        a = np.column_stack([lv, inter])
+        good = ok & np.all(np.isfinite(a), axis=1)
+        if good.sum() > a.shape[1] + 4:
+            r0, q0, _ = _rss(lv[good], y[good])
+            r1, q1, _ = _rss(a[good], y[good])
+            pos_p = _f_test(r0, q0, r1, q1, int(good.sum()))
+    return SurveyHeading(
+        {HEADINGS[c]: float(v) for c, v in zip(classes, levels, strict=True)},
+        float(np.ptp(levels)),
+        p,
+        pos_p,
+        n,
+    )
