@@ -199,6 +199,22 @@ def test_magnav_file_has_the_fields_get_map_reads(exported):
     np.testing.assert_allclose(m[j, i], field_nT(e, n), atol=0.2)
 
 
+def test_magnav_file_reads_back_through_the_navigation_map_reader(exported):
+    """The exported MagNav map, read by ``aeromag navigate``'s MagNav reader (written
+    separately from get_map.jl), gives the field at the right places."""
+    from pipeline.navigation.map_io import read_map
+
+    out, _, _, _ = exported
+    m = read_map(out / "flight.anomaly.magnav.h5")
+    assert m.altitude_m == pytest.approx(ALT0)
+    gx, gy = np.meshgrid(*m.grid.coordinates())
+    lat, lon = m.to_geodetic(gx, gy)
+    e, n, _ = LocalFrame(LAT0, LON0, ALT0).to_enu(lat, lon)
+    ok = np.isfinite(m.grid.values) & (m.grid.values != 0)
+    assert ok.sum() > 100
+    np.testing.assert_allclose(m.grid.values[ok], field_nT(e[ok], n[ok]), atol=0.3)
+
+
 def test_a_recording_without_maps_is_one_line_naming_what_is_missing(tmp_path):
     src, _ = write_processed(tmp_path / "raw.mcap", frame=False, lines=False, grids=False)
     with pytest.raises(AeromagError) as exc:
