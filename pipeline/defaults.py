@@ -21,6 +21,7 @@ from pipeline.errors import AeromagError
 
 
 def default_text() -> str:
+    """The shipped configuration file (``pipeline/default_config.toml``) as text."""
     return resources.files("pipeline").joinpath("default_config.toml").read_text()
 
 

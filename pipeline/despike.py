@@ -89,6 +89,7 @@ class DespikeResult:
 
     @property
     def spikes(self) -> int:
+        """Number of samples replaced as spikes."""
         return int(self.spike_index.size)
 
     @property

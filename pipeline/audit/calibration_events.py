@@ -30,12 +30,38 @@ import numpy as np
 
 @dataclass
 class CalibrationStep:
+    """A step in the compensated field inside one calibration leg (:func:`calibration_steps`).
+
+    Attributes
+    ----------
+    start_s, end_s : float
+        The 1 s bins either side of the step, s from the flight's first epoch.
+    size_nT : float
+        Step size (magnitude), nT.
+    p_value : float
+        Two-sided p of the step on the prewhitened data, Bonferroni-corrected over the
+        scanned positions.
+    """
+
     start_s: float  # the 1 s bins either side of the step
     end_s: float
     size_nT: float
     p_value: float  # Bonferroni over the scanned positions
 
     def to_dict(self, t0_ns: int) -> dict:
+        """The step as an unexplained-event record, with absolute times.
+
+        Parameters
+        ----------
+        t0_ns : int
+            The flight's first epoch, ns (the recording's time base); ``start_s`` and ``end_s``
+            are counted from it.
+
+        Returns
+        -------
+        dict
+            ``kind`` ("step"), ``start_ns``, ``end_ns``, ``size_nT``, ``p_value`` and ``evidence``.
+        """
         return {
             "kind": "step",
             "start_ns": int(t0_ns + round(self.start_s * 1e9)),

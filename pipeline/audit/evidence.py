@@ -21,11 +21,41 @@ from pipeline.compensate.filters import bandpass_sos
 
 
 def thinning_step(rate_hz: float, band_hz: tuple[float, float]) -> int:
+    """Sample step leaving about one sample per correlation time 1 / (2 B) of a band-passed series.
+
+    Parameters
+    ----------
+    rate_hz : float
+        Sample rate, Hz.
+    band_hz : tuple of float
+        Pass band (low, high), Hz; the bandwidth B is high - low.
+
+    Returns
+    -------
+    int
+        k = round(rate / (2 B)), at least 1: use every k-th sample.
+    """
     return max(1, int(round(rate_hz / (2.0 * (band_hz[1] - band_hz[0])))))
 
 
 @dataclass
 class NestedTest:
+    """Nested-model comparison of an extended design against its base (:func:`nested_test`).
+
+    Attributes
+    ----------
+    f : float
+        F statistic of the extension.
+    p_value : float
+        p of the F-test (on the thinned samples).
+    df : int
+        Numerator degrees of freedom (the number of added columns).
+    delta_bic : float
+        BIC(extended) - BIC(base); negative favours the extension.
+    samples : int
+        Rows used after thinning.
+    """
+
     f: float
     p_value: float
     df: int
@@ -33,6 +63,7 @@ class NestedTest:
     samples: int
 
     def to_dict(self) -> dict:
+        """JSON-ready fields."""
         return {
             "f": self.f,
             "p_value": self.p_value,
@@ -60,6 +91,19 @@ def nested_test(y: np.ndarray, x_base: np.ndarray, x_ext: np.ndarray, step: int)
 
 @dataclass
 class HeldOut:
+    """Held-out comparison of two models' residuals on the same samples.
+
+    Attributes
+    ----------
+    rms_before_nT, rms_after_nT : float
+        Held-out residual RMS of the base and the extended model, nT.
+    p_value : float
+        One-sided p that the extended model's residual is smaller (Wilcoxon signed-rank over
+        the paired blocks or points); 1 when too few.
+    blocks : int
+        Blocks (or points) in the paired test.
+    """
+
     rms_before_nT: float
     rms_after_nT: float
     p_value: float
@@ -67,9 +111,11 @@ class HeldOut:
 
     @property
     def reduction(self) -> float:
+        """Fractional held-out RMS reduction, 1 - after / before (0 when before is 0)."""
         return 1.0 - self.rms_after_nT / self.rms_before_nT if self.rms_before_nT > 0 else 0.0
 
     def to_dict(self) -> dict:
+        """JSON-ready fields, with the reduction in percent (``reduction_pct``)."""
         return {
             "rms_before_nT": self.rms_before_nT,
             "rms_after_nT": self.rms_after_nT,

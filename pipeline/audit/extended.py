@@ -55,6 +55,28 @@ class AuditData:
 
     @classmethod
     def from_flight(cls, flight: Flight, calibration_mask: np.ndarray) -> AuditData:
+        """The audit's inputs from a flight, on its scalar epochs.
+
+        Positions, when the flight has them, become local east/north/up metres about the mean
+        position of the calibration epochs; every ``aux_*`` column becomes an auxiliary channel
+        (keyed without the prefix) with its unit.
+
+        Parameters
+        ----------
+        flight : Flight
+            Needs the vector channels (body frame: x forward, y right, z down; nT).
+        calibration_mask : ndarray of bool
+            The calibration epochs (they place the local frame's origin).
+
+        Returns
+        -------
+        AuditData
+
+        Raises
+        ------
+        AeromagError
+            The flight has no vector channel.
+        """
         flight.require("vector_x_nT", "vector_y_nT", "vector_z_nT", purpose="the model audit")
         d = flight.data
         enu = None
@@ -78,6 +100,7 @@ class AuditData:
 
     @property
     def rate_hz(self) -> float:
+        """Sample rate, Hz (from the median sample interval)."""
         return 1.0 / float(np.median(np.diff(self.time_s)))
 
 
@@ -104,9 +127,14 @@ class ModelSpec:
     permanent_step_s: float | None = None
 
     def with_(self, **kw) -> ModelSpec:
+        """A copy with the given fields replaced."""
         return replace(self, **kw)
 
     def label(self) -> list[str]:
+        """Names of the model's parts for reports: the base term set, then whichever of
+        ``geomagnetic_gradient``, ``sensor_lag``, ``electrical_current``, ``vector_calibration`` and
+        ``diurnal`` are switched on.
+        """
         out = [self.base]
         if self.gradient:
             out.append("geomagnetic_gradient")
@@ -123,6 +151,21 @@ class ModelSpec:
 
 @dataclass
 class Design:
+    """A model's design on every epoch, before band-passing (:func:`design`).
+
+    Attributes
+    ----------
+    columns : ndarray, shape (n, p)
+        Regressor columns, unfiltered.
+    names : list of str
+        Column names.
+    subtract : ndarray of bool, shape (p,)
+        True for compensating columns (carrier interference, subtracted); False for columns
+        that are fitted only (the position columns: geology).
+    y : ndarray, shape (n,)
+        The scalar field, nT, corrected for the sensor lag when the model has one.
+    """
+
     columns: np.ndarray  # (n, p) unfiltered
     names: list[str]
     subtract: np.ndarray  # (p,) bool: compensating columns
@@ -158,6 +201,27 @@ def scalar_series(data: AuditData, lag_s: float, response: str = "delay") -> np.
 
 
 def design(data: AuditData, spec: ModelSpec) -> Design:
+    """The design matrix of ``spec`` on ``data``.
+
+    T-L columns (``tl18`` or ``tl16``) from the body-frame vector field (recalibrated with
+    ``spec.vector_cal`` when set), then, as switched on: auxiliary-current couplings, eddy-rate,
+    second-order induced and permanent-step columns (all compensating), and the position
+    columns of the gradient (local east/north/up m; fitted, not subtracted).
+
+    Parameters
+    ----------
+    data : AuditData
+    spec : ModelSpec
+
+    Returns
+    -------
+    Design
+
+    Raises
+    ------
+    ValueError
+        ``spec.gradient`` is set but ``data`` has no positions.
+    """
     v = data.vector_nT if spec.vector_cal is None else spec.vector_cal.apply(data.vector_nT)
     k, names = (tl18_terms if spec.base == "tl18" else tl16_terms)(v, data.time_s)
     sub = [True] * k.shape[1]
@@ -231,6 +295,25 @@ def bandpassed_rows(
 
 @dataclass
 class FittedModel:
+    """A :class:`ModelSpec` fitted by ridge regression on band-passed calibration data.
+
+    Attributes
+    ----------
+    spec : ModelSpec
+    names : list of str
+        Column names, one per coefficient.
+    subtract : ndarray of bool
+        Compensating columns (see :class:`Design`).
+    theta : ndarray
+        Coefficients, in the columns' order.
+    lambda_ : float
+        Ridge parameter used.
+    n_fit : int
+        Band-passed rows fitted.
+    fit_residual_nT : float
+        RMS fit residual, nT.
+    """
+
     spec: ModelSpec
     names: list[str]
     subtract: np.ndarray
@@ -240,6 +323,7 @@ class FittedModel:
     fit_residual_nT: float
 
     def coefficient(self, prefix: str) -> np.ndarray:
+        """The coefficients of the columns whose names start with ``prefix``, in column order."""
         return np.array(
             [c for n, c in zip(self.names, self.theta, strict=True) if n.startswith(prefix)]
         )

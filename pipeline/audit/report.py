@@ -12,6 +12,7 @@ from pipeline.io.writer import OutputChannel
 
 
 def labels(res: AuditResult) -> dict[str, str]:
+    """Legend labels of the two models: ``{"baseline": ..., "extended": ...}``."""
     return {
         "baseline": f"baseline ({res.baseline.spec.base})",
         "extended": "extended (" + " + ".join(res.extended.spec.label()) + ")",
@@ -19,6 +20,20 @@ def labels(res: AuditResult) -> dict[str, str]:
 
 
 def figures(res: AuditResult, flight: Flight) -> dict[str, Any]:
+    """The audit's figures (built by :mod:`pipeline.plots`).
+
+    Parameters
+    ----------
+    res : AuditResult
+    flight : Flight
+        The audited flight; its ``yaw_deg`` (when present) gives the residual-vs-heading figure.
+
+    Returns
+    -------
+    dict
+        Figure name -> figure: ``residual_time``, ``residual_position`` (with positions),
+        ``residual_heading`` (with a heading) and ``gain``.
+    """
     from pipeline.plots import (
         audit_gain_figure,
         audit_heading_figure,
@@ -60,6 +75,10 @@ def _estimate(est: dict) -> str:
 
 
 def log_lines(res: AuditResult) -> list[tuple[int, str]]:
+    """The audit's run-log lines as (level, text): the baseline's held-out residual and the noise
+    floor, each finding (warning), the extended model's residual, unexplained structure
+    (warning) and the gains.
+    """
     from pipeline.report import LOG_INFO, LOG_WARNING
 
     j = res.to_json()
@@ -165,6 +184,20 @@ def finding_channel(flight: Flight, res: AuditResult) -> OutputChannel:
 
 
 def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
+    """The audit report as Markdown.
+
+    Parameters
+    ----------
+    res : AuditResult
+    source : str
+        Name of the audited recording (the title).
+    images : dict of str to str
+        Figure name (as from :func:`figures`) -> path of its image, linked in the report.
+
+    Returns
+    -------
+    str
+    """
     j = res.to_json()
     lines = [
         f"# Model audit: {source}",

@@ -90,6 +90,33 @@ EFFECTS = (
 
 @dataclass
 class AuditSettings:
+    """Settings of the model audit (``[audit]``).
+
+    Attributes
+    ----------
+    baseline : str
+        Baseline T-L term set (``tl18`` or ``tl16``).
+    alpha : float
+        Significance level: family-wise per round for the F-tests (Holm), and of the held-out
+        test.
+    min_gain : float
+        Smallest held-out RMS reduction (fraction) worth a model term.
+    band : BandSettings
+        Band-pass of the fits and residuals.
+    block_s : float
+        Block length of the held-out comparison, s.
+    unexplained_factor : float
+        Held-out residual / noise floor above which leftover structure is reported.
+    max_lag_s : float
+        Largest sensor lag searched (either sign), s.
+    n_folds, block_s_cv : int, float
+        Held-out folds, and the length of their blocks (s).
+    max_generalization_gap : float
+        Held-out / fit residual above which a warning is given.
+    min_event_nT : float
+        Smallest step or drift in the survey worth an event, nT.
+    """
+
     # baseline, alpha, min_gain: the shipped configuration's [audit] values
     baseline: str = default_field("audit", "baseline")
     alpha: float = default_field("audit", "alpha")  # family-wise, per round (Holm)
@@ -123,6 +150,10 @@ class Evaluation:
     held_back: bool = False  # a competing explanation fits as well: never accepted
 
     def passes(self, s: AuditSettings) -> bool:
+        """Whether the candidate qualifies under ``s``: not held back, tested, Holm-adjusted
+        F-test p and held-out p below ``alpha``, BIC lower, held-out reduction at least
+        ``min_gain``.
+        """
         return (
             not self.held_back
             and self.test is not None
@@ -134,6 +165,7 @@ class Evaluation:
         )
 
     def why_not(self, s: AuditSettings) -> str:
+        """Why the candidate does not pass: its recorded reason, else the failed criteria ("; ")."""
         if self.reason:
             return self.reason
         out = []
@@ -150,6 +182,9 @@ class Evaluation:
         return "; ".join(out)
 
     def to_dict(self) -> dict[str, Any]:
+        """JSON-ready record of the candidate: estimates and 95 % intervals, test statistics,
+        held-out gain (nT) and the decision.
+        """
         return {
             "effect": self.effect,
             "key": self.key,
@@ -174,6 +209,15 @@ class Evaluation:
 
 @dataclass
 class AuditResult:
+    """Everything the audit produced for one flight.
+
+    The baseline and extended fits, the accepted findings and every round's candidates,
+    held-out residuals and noise floors (nT), unexplained structure, the gain per metric, the
+    compensated fields (``"baseline"``, ``"extended"``; nT per epoch), the measured-vs-simulated
+    residuals on the calibration epochs ``residual_epochs``, the quality summaries, the inputs
+    and the notes. Event times are absolute via ``t0_ns``.
+    """
+
     baseline: FittedModel
     extended: FittedModel
     findings: list[Evaluation]
@@ -336,6 +380,12 @@ class Auditor:
 
     # -- candidates -----------------------------------------------------------------------
     def candidates(self, current: ModelSpec) -> list[tuple[str, str]]:
+        """Candidate effects not yet in ``current``, as (effect, key) pairs.
+
+        The geomagnetic gradient (with positions), sensor lag, the diurnal (with a base station
+        and tie lines), each auxiliary channel with an electrical unit that varies over the
+        calibration (key ``electrical_current:<name>``) and the vector calibration.
+        """
         out = []
         if not current.gradient and self.data.enu_m is not None:
             out.append(("geomagnetic_gradient", "geomagnetic_gradient"))
@@ -354,6 +404,11 @@ class Auditor:
         return out
 
     def evaluate(self, current: ModelSpec, effect: str, key: str) -> Evaluation:
+        """Test candidate ``key`` of ``effect`` against ``current`` (``_eval_<effect>``).
+
+        A candidate whose fit fails (``ValueError``, ``LinAlgError``) comes back untested, with the
+        reason.
+        """
         try:
             return getattr(self, f"_eval_{effect}")(current, key)
         except (ValueError, np.linalg.LinAlgError) as exc:
@@ -842,6 +897,23 @@ class Auditor:
         return float(t_s)
 
     def run(self, progress=None) -> tuple[ModelSpec, list[Evaluation], list[list[Evaluation]]]:
+        """Forward-stepwise selection of the effects.
+
+        Starts from the baseline (with a permanent-field step where the survey shows one). Each
+        round tests every candidate, Holm-adjusts the F-test p-values of the tested ones and
+        accepts the passing candidate with the largest held-out reduction; it stops when none
+        passes. The accepted effects are then re-estimated together (:meth:`refine`).
+
+        Parameters
+        ----------
+        progress : callable, optional
+            Called with a message before each candidate's test.
+
+        Returns
+        -------
+        tuple
+            (final model spec, accepted findings in order, every round's evaluations).
+        """
         current = ModelSpec(base=self.s.baseline)
         current = current.with_(permanent_step_s=self.permanent_step(current))
         findings: list[Evaluation] = []

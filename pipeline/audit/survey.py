@@ -42,11 +42,29 @@ class CrossoverSet:
 
     @property
     def size(self) -> int:
+        """Number of crossovers."""
         return int(self.difference_nT.size)
 
 
 @dataclass
 class SurveyEvent:
+    """A step or drift in the compensated field that the survey's crossovers show.
+
+    Attributes
+    ----------
+    kind : str
+        ``step`` or ``drift``.
+    start_s, end_s : float
+        s from the flight's first epoch: for a step, the two crossover readings around it; for
+        a drift, the span of the readings.
+    size_nT : float
+        Step: the largest step over the headings; drift: the change over the survey (nT).
+    p_value : float
+        Corrected for the scan.
+    detail : dict
+        Extra report fields (step per heading, nT; drift rate, nT/h).
+    """
+
     kind: str  # step | drift
     start_s: float
     end_s: float
@@ -55,6 +73,13 @@ class SurveyEvent:
     detail: dict
 
     def to_dict(self, t0_ns: int) -> dict:
+        """The event as an unexplained-event record, with absolute times.
+
+        Parameters
+        ----------
+        t0_ns : int
+            The flight's first epoch, ns (the recording's time base).
+        """
         return {
             "kind": self.kind,
             "start_ns": int(t0_ns + round(self.start_s * 1e9)),
@@ -183,6 +208,10 @@ def survey_events(
 
 @dataclass
 class SurveyLag:
+    """Sensor lag estimated from the crossovers alone (:func:`survey_lag`): the lag and its 95 %
+    interval (s), the two-sided p against no lag and the crossovers used.
+    """
+
     lag_s: float
     ci95_s: tuple[float, float]
     p_value: float  # against no lag
@@ -210,6 +239,11 @@ def survey_lag(
 
 @dataclass
 class SurveyCoupling:
+    """A channel's coupling into the scalar reading estimated from the crossovers alone
+    (:func:`survey_coupling`): nT per unit of the channel and its 95 % interval, the two-sided
+    p against no coupling and the crossovers used.
+    """
+
     nT_per_unit: float
     ci95: tuple[float, float]
     p_value: float  # against no coupling

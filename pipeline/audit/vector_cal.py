@@ -34,6 +34,7 @@ class VectorCalibration:
     samples: int = 0
 
     def apply(self, m_nT: np.ndarray) -> np.ndarray:
+        """Calibrated body-frame field b = M (m - o), nT, for measured vectors ``m_nT`` (n, 3)."""
         return (np.asarray(m_nT, float) - np.asarray(self.offset_nT)) @ np.asarray(self.matrix).T
 
     def sensor_errors(self) -> dict[str, list[float]]:
@@ -51,6 +52,9 @@ class VectorCalibration:
         }
 
     def to_dict(self) -> dict:
+        """JSON-ready: the equivalent sensor errors, the matrix, the residuals before and after (nT)
+        and the samples fitted.
+        """
         return {
             **self.sensor_errors(),
             "matrix": [list(r) for r in self.matrix],

@@ -58,9 +58,11 @@ class CalibrationCheck:
 
     @property
     def ok(self) -> bool:
+        """True when no guard raised a warning."""
         return not self.warnings
 
     def to_dict(self) -> dict[str, Any]:
+        """JSON-ready fields; an infinite condition number becomes None."""
         cond = self.condition_number
         return {
             "ok": self.ok,

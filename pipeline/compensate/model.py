@@ -44,6 +44,16 @@ class Measurements:
 
     @classmethod
     def from_flight(cls, flight: Flight) -> Measurements:
+        """The compensation inputs of a flight.
+
+        Time (s), scalar field (nT) and body-frame vector field (x forward, y right, z down; nT);
+        latitude/longitude (deg) and ellipsoidal altitude (m) when the flight has all three.
+
+        Raises
+        ------
+        AeromagError
+            The flight has no vector channel.
+        """
         flight.require("vector_x_nT", "vector_y_nT", "vector_z_nT", purpose="compensation")
         d = flight.data
         pos = flight.has("lat_deg", "lon_deg", "alt_m")
@@ -58,10 +68,12 @@ class Measurements:
 
     @property
     def has_position(self) -> bool:
+        """Whether positions are present (AGG-TL needs them)."""
         return self.lat_deg is not None
 
     @property
     def rate_hz(self) -> float:
+        """Sample rate, Hz (from the median sample interval)."""
         return 1.0 / float(np.median(np.diff(self.time_s)))
 
 
@@ -118,6 +130,7 @@ class CompensationModel:
 
     @property
     def model(self) -> str:
+        """The model name (``tl16``, ``tl18`` or ``agg-tl``), from the settings."""
         return self.settings.model
 
     def interference_nT(self, meas: Measurements) -> np.ndarray:
@@ -138,6 +151,9 @@ class CompensationModel:
         return {"east": float(c["pos_e"]), "north": float(c["pos_n"]), "up": float(c["pos_up"])}
 
     def to_dict(self) -> dict[str, Any]:
+        """JSON-ready description: settings, terms and coefficients, ridge lambda, fit residual
+        (nT), calibration windows (s), AGG-TL's gradient (nT/m) and position reference.
+        """
         s = self.settings
         return {
             "model": s.model,
@@ -239,6 +255,9 @@ class FigureOfMerit:
         return {"uncompensated": best["uncompensated_nT"], "compensated": best["compensated_nT"]}
 
     def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: the total FOM (uncompensated and compensated, nT) with the per-pass and
+        per-box values.
+        """
         return {**self.total, "passes": self.passes, "boxes": self.boxes}
 
 

@@ -23,6 +23,7 @@ class LCurve:
 
     @property
     def lambda_corner(self) -> float:
+        """The lambda at the L-curve corner."""
         return float(self.lambdas[self.corner])
 
 
@@ -36,6 +37,7 @@ class RidgeSVD:
         self.outside2 = max(float(y @ y - self.beta @ self.beta), 0.0)  # part K cannot reach
 
     def solve(self, lam: float) -> np.ndarray:
+        """The ridge solution theta = (K'K + lam I)^-1 K'y for ``lam``."""
         return self.vt.T @ (self.s / (self.s**2 + lam) * self.beta)
 
     def solve_for(self, y: np.ndarray, lam: float) -> np.ndarray:
@@ -43,6 +45,9 @@ class RidgeSVD:
         return self.vt.T @ (self.s / (self.s**2 + lam) * (self.u.T @ np.asarray(y, float)))
 
     def norms(self, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residual norm |K theta - y| and solution norm |theta| of the ridge solution for each
+        lambda of ``lam`` (two arrays of its length).
+        """
         lam = np.asarray(lam, float)[:, None]
         s2 = self.s**2
         res = np.sqrt(np.sum((lam / (s2 + lam) * self.beta) ** 2, axis=1) + self.outside2)
@@ -68,4 +73,5 @@ class RidgeSVD:
 
 
 def ridge_solve(k: np.ndarray, y: np.ndarray, lam: float) -> np.ndarray:
+    """The ridge solution theta = (K'K + lam I)^-1 K'y (one lambda; :class:`RidgeSVD` for many)."""
     return RidgeSVD(k, y).solve(lam)

@@ -51,6 +51,9 @@ TL18_TERMS = ("permanent", "induced", "eddy")  # MagNav's default
 
 
 def direction_cosines(b_nT: np.ndarray) -> np.ndarray:
+    """Direction cosines u = B / |B| of each row of ``b_nT`` (n, 3), body frame (x forward,
+    y right, z down); dimensionless.
+    """
     b = np.asarray(b_nT, float)
     return b / np.linalg.norm(b, axis=1, keepdims=True)
 

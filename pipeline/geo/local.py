@@ -31,14 +31,43 @@ class LocalFrame:
 
     @property
     def crs(self) -> str:
+        """PROJ string of the frame's azimuthal equidistant projection (WGS84, metres)."""
         return f"+proj=aeqd +lat_0={self.lat0_deg} +lon_0={self.lon0_deg} +datum=WGS84 +units=m"
 
     def to_enu(self, lat_deg, lon_deg, alt_m=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Local east/north/up metres of geodetic positions.
+
+        Parameters
+        ----------
+        lat_deg, lon_deg : array_like
+            Latitude and longitude, deg (WGS84).
+        alt_m : array_like, optional
+            Ellipsoidal height, m; up is 0 when omitted.
+
+        Returns
+        -------
+        east_m, north_m, up_m : ndarray
+            Metres about the reference point (up relative to ``alt0_m``).
+        """
         e, n = self._fwd.transform(np.asarray(lon_deg, float), np.asarray(lat_deg, float))
         u = (np.asarray(alt_m, float) - self.alt0_m) if alt_m is not None else np.zeros_like(e)
         return np.asarray(e), np.asarray(n), np.asarray(u)
 
     def to_geodetic(self, east_m, north_m, up_m=None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Geodetic positions of local east/north/up metres (the inverse of :meth:`to_enu`).
+
+        Parameters
+        ----------
+        east_m, north_m : array_like
+            Metres about the reference point.
+        up_m : array_like, optional
+            Metres above ``alt0_m``; the altitude is 0 when omitted.
+
+        Returns
+        -------
+        lat_deg, lon_deg, alt_m : ndarray
+            Latitude and longitude (deg, WGS84) and ellipsoidal height (m).
+        """
         lon, lat = self._fwd.transform(
             np.asarray(east_m, float), np.asarray(north_m, float), direction="INVERSE"
         )

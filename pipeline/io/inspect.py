@@ -14,6 +14,11 @@ from pipeline.io.schemas import validate
 
 @dataclass
 class TopicReport:
+    """What ``inspect`` found on one topic: schema, message encoding, message count, its role in
+    the channel contract (None: outside it), rate (Hz), first and last log times (ns) and the
+    gaps.
+    """
+
     topic: str
     schema_name: str
     message_encoding: str
@@ -27,6 +32,10 @@ class TopicReport:
 
 @dataclass
 class InspectReport:
+    """``aeromag inspect`` on one recording: the per-topic reports, contract violations (non-zero
+    exit), warnings, and whether the file has a summary section.
+    """
+
     path: Path
     topics: list[TopicReport]
     violations: list[str]  # contract violations: ``inspect`` exits non-zero

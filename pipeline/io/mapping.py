@@ -45,6 +45,27 @@ _FLU_TO_FRD = np.diag([1.0, -1.0, -1.0])
 
 @dataclass
 class TopicMap:
+    """How one recorder topic maps to a pipeline role (a ``[topics."<topic>"]`` table).
+
+    Attributes
+    ----------
+    topic, role : str
+        The recorder's topic and its role (see ``ROLES``).
+    fields : list of str
+        Paths of the values in the decoded message.
+    quaternion : str or None
+        Path of an (x, y, z, w) orientation (attitude).
+    scale : float
+        Factor applied to the values (e.g. 1e9: tesla -> nT).
+    frame : str
+        ``frd`` (body x forward, y right, z down; NED world) or ``flu`` (ROS REP-103 body FLU,
+        ENU world).
+    unit : str
+        Unit label of the values (auxiliary channels).
+    name : str
+        Sensor id or auxiliary name (default: from the topic).
+    """
+
     topic: str
     role: str
     fields: list[str] = field(default_factory=list)
@@ -57,6 +78,8 @@ class TopicMap:
 
 @dataclass
 class Mapping:
+    """A topic-mapping file: the :class:`TopicMap` of each mapped topic and the file's path."""
+
     topics: dict[str, TopicMap]
     source: str
 

@@ -55,6 +55,10 @@ class RawTopic:
 
 @dataclass
 class RawRecording:
+    """The raw pass over a recording: the messages of each topic, whether the file has a summary
+    section, and the damage salvaged around (``losses``).
+    """
+
     path: Path
     topics: dict[str, RawTopic]
     has_summary: bool

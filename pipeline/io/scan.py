@@ -62,6 +62,10 @@ class Loss:
 
 @dataclass
 class ChannelData:
+    """One MCAP channel as scanned: topic, schema id, message encoding, channel metadata, and the
+    log time (ns) and payload of each message (its whole record with ``whole_records``).
+    """
+
     topic: str
     schema_id: int
     message_encoding: str

@@ -35,6 +35,7 @@ class ReverseArrangements:
     segments: int
 
     def to_dict(self) -> dict:
+        """JSON-ready: A, its expectation and variance, u, the verdict and the segment count."""
         return {
             "A": self.arrangements,
             "E_A": self.expected,
@@ -89,6 +90,7 @@ class ArimaModel:
 
     @property
     def order(self) -> tuple[int, int, int]:
+        """The order (p, d, q)."""
         return (self.p, self.d, self.q)
 
     def integrated_ar(self) -> np.ndarray:
@@ -131,6 +133,9 @@ class ArimaModel:
         return t, rr, z
 
     def to_dict(self) -> dict:
+        """JSON-ready: order, AR and MA coefficients, innovation variance, the integrated AR
+        coefficients, BIC and the test results.
+        """
         return {
             "order": list(self.order),
             "ar": [float(v) for v in self.ar],

@@ -46,6 +46,7 @@ class LineData:
     kind: np.ndarray
 
     def subset(self, keep: np.ndarray) -> LineData:
+        """The samples selected by ``keep`` (boolean mask or indices)."""
         return LineData(*(getattr(self, f)[keep] for f in self.__dataclass_fields__))
 
 
@@ -67,6 +68,9 @@ class MinimumCurvatureGridder:
         self.grid_: Grid | None = None
 
     def fit(self, data: LineData) -> MinimumCurvatureGridder:
+        """Grid the values (nT) at their local east/north positions (m; heights are not used).
+        Returns self, with ``grid_`` set.
+        """
         self.grid_ = minimum_curvature(
             data.east_m, data.north_m, data.value_nT, self.cell_m, self.mask_distance_m
         )
@@ -78,6 +82,7 @@ class MinimumCurvatureGridder:
         return self.grid_.interpolate(east_m, north_m)
 
     def describe(self) -> dict[str, Any]:
+        """The method's name."""
         return {"method": self.name}
 
 
@@ -104,6 +109,10 @@ class EquivalentSourceGridder:
         self.model_ = None
 
     def fit(self, data: LineData) -> EquivalentSourceGridder:
+        """Fit equivalent sources to block medians of the samples with a finite value, east and
+        up (local east/north/up m, nT). Above ``DENSE_LIMIT`` blocks the gradient-boosted
+        version is fitted. Returns self, with ``model_`` set.
+        """
         import harmonica as hm
         import verde as vd
 
@@ -131,6 +140,7 @@ class EquivalentSourceGridder:
         return np.asarray(self.model_.predict((e, n, u)), float).reshape(e.shape)
 
     def describe(self) -> dict[str, Any]:
+        """The method and its parameters (depth m, damping, block m)."""
         return {
             "method": self.name,
             "depth_m": self.depth_m,
@@ -189,6 +199,7 @@ class GridderChoice:
     scores_nT: dict[str, float] = field(default_factory=dict)
 
     def describe(self) -> dict[str, Any]:
+        """The chosen gridder's description with every candidate's cross-validated RMS (nT)."""
         return {**self.gridder.describe(), "cv_rms_nT": self.scores_nT}
 
 

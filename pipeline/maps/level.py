@@ -47,6 +47,7 @@ class Line:
         self.along_m = np.r_[0.0, np.cumsum(d)]
 
     def geometry(self) -> LineString:
+        """The track as a shapely LineString in local east/north metres."""
         return LineString(np.column_stack([self.east_m, self.north_m]))
 
     def at(self, distance_m: float) -> tuple[float, float]:
@@ -73,6 +74,7 @@ class Crossover:
 
     @property
     def difference_nT(self) -> float:
+        """Line a's value minus line b's at the crossing, nT."""
         return self.value_a_nT - self.value_b_nT
 
 
@@ -235,10 +237,16 @@ class Leveling:
     residuals_nT: np.ndarray | None = None
 
     def correction(self, line_id: str, time_s: np.ndarray) -> np.ndarray:
+        """Correction (nT) of line ``line_id`` at times ``time_s`` (s): dc + slope (t - t_ref); zero
+        for a line without an adjustment.
+        """
         dc, slope, t0 = self.offsets.get(line_id, (0.0, 0.0, 0.0))
         return dc + slope * (np.asarray(time_s) - t0)
 
     def to_dict(self) -> dict:
+        """JSON-ready summary: crossover count, RMS before and after, mean and standard deviation of
+        the crossover differences before (nT), per-line offsets (nT) and slopes (nT/s).
+        """
         diffs = np.array([c.difference_nT for c in self.crossovers])
         return {
             "crossovers": len(self.crossovers),

@@ -12,6 +12,20 @@ from pipeline.geo.igrf import igrf_ned_nT
 
 @dataclass
 class Reduction:
+    """The reduced field (:func:`reduce_to_anomaly`), per sample.
+
+    Attributes
+    ----------
+    anomaly_nT : ndarray
+        Compensated field - IGRF - diurnal, nT.
+    igrf_nT : ndarray
+        IGRF total field, nT.
+    diurnal_nT : ndarray or None
+        Smoothed base-station reading minus its mean, nT (None without a base station).
+    lag_s : float
+        Sensor lag the compensated stream was shifted by, s.
+    """
+
     anomaly_nT: np.ndarray
     igrf_nT: np.ndarray
     diurnal_nT: np.ndarray | None

@@ -39,6 +39,7 @@ class CarrierInterference:
 
     @classmethod
     def none(cls) -> CarrierInterference:
+        """No interference (every term zero)."""
         return cls()
 
     def vector_nT(self, b_body_nT: np.ndarray, db_dt_body_nT_s: np.ndarray) -> np.ndarray:
@@ -56,6 +57,7 @@ class CarrierInterference:
         return np.einsum("ij,ij->i", u, self.vector_nT(b, db_dt_body_nT_s))
 
     def to_dict(self) -> dict[str, list]:
+        """JSON-ready: permanent field (nT, body frame), induced matrix and eddy matrix (s)."""
         return {
             "permanent_nT": self.permanent_nT.tolist(),
             "induced": self.induced.tolist(),

@@ -46,6 +46,7 @@ class FluxgateErrors:
         return np.asarray(b_body_nT, float) @ self.matrix().T + self.offset_nT
 
     def to_dict(self) -> dict[str, list]:
+        """JSON-ready: scale errors, non-orthogonality angles (deg) and offsets (nT)."""
         return {
             "scale_error": self.scale_error.tolist(),
             "nonorthogonality_deg": self.nonorthogonality_deg.tolist(),

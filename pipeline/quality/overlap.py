@@ -46,6 +46,7 @@ class Track:
         self.along_m = np.r_[0.0, np.cumsum(np.hypot(np.diff(self.east_m), np.diff(self.north_m)))]
 
     def geometry(self) -> LineString:
+        """The track as a shapely LineString in local east/north metres."""
         return LineString(np.column_stack([self.east_m, self.north_m]))
 
     def bracket(self, distance_m: float) -> tuple[int, int, float]:
@@ -81,6 +82,7 @@ class OverlapSet:
 
     @property
     def count(self) -> int:
+        """Number of overlap points."""
         return int(self.a0.size)
 
     def values(self, field: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -46,11 +46,37 @@ RAW = "raw"
 
 
 def state_key(name: str) -> str:
+    """Summary (JSON) key of a processing state: model ids use "-", keys "_"."""
     return name.replace("-", "_")
 
 
 @dataclass
 class QualitySettings:
+    """Settings of the quality stage (``[quality]``).
+
+    Attributes
+    ----------
+    overlap_m : float
+        Validation and map samples closer than this (m) form a pair.
+    noise_threshold_nT : float
+        4th-difference noise above which a line is flagged, nT.
+    height_tolerance_m : float
+        Allowed deviation of a line's height from the survey's median, m.
+    spacing_tolerance_fraction, speed_tolerance_fraction : float
+        Allowed deviation of the line spacing and of the ground speed, as fractions of their
+        nominal (median) values.
+    diurnal_chord_s, diurnal_tolerance_nT : float
+        The base-station chord test: window (s) and allowed departure from the chord (nT).
+    cell_fraction : float
+        Grid cell as a fraction of the line spacing.
+    subtract_base : bool
+        Remove the base-station diurnal in the reduction.
+    min_crossing_angle_deg : float
+        Tracks meeting at a shallower angle (deg) form no intersection or crossover.
+    min_overlap_pairs : int
+        Pairs needed for the headline heading error to use them (else the intersections).
+    """
+
     # the keys of [quality] default to the shipped configuration's values
     overlap_m: float = default_field("quality", "overlap_m")  # pair threshold (paper 002: 0.5 m)
     # 4th-difference noise above which a line is flagged
@@ -81,6 +107,14 @@ class Profile:
 
 @dataclass
 class QualityRun:
+    """What the quality stage computed for one flight.
+
+    The processing states compared (raw first), the local frame (east/north/up m) and tracks,
+    the validation-vs-map overlap points (intersections and pairs) with each state's
+    differences (nT), the interpolated-map statistics, profiles, grids, the final field's
+    leveling, the QC checks, the calibration FOM table, the settings and the notes.
+    """
+
     states: list[str]  # processing states compared, raw first
     tl_alias: str | None  # the T-L model reported under "tl"
     frame: LocalFrame
@@ -104,6 +138,9 @@ class QualityRun:
         return out
 
     def heading_error_rms_nT(self, kind: str = "intersection") -> dict[str, float | None]:
+        """RMS (nT; None without differences) of the validation-minus-map differences of ``kind``
+        (``"intersection"`` or ``"pair"``), per state key (and ``"tl"`` for the T-L alias).
+        """
         return self._keyed(
             {s: difference_stats(self.differences[kind][s])["rms_nT"] for s in self.states}
         )
@@ -141,6 +178,9 @@ class QualityRun:
         return float(sigma * np.sqrt(np.mean(w)))
 
     def crossover_stats(self) -> dict[str, Any]:
+        """Tie-line crossover differences before and after leveling (RMS, mean, standard deviation;
+        nT) and their count; ``before``/``after`` are None without leveling or crossovers.
+        """
         lev = self.leveling
         if lev is None or not lev.crossovers:
             return {"count": 0, "before": None, "after": None}

@@ -20,6 +20,20 @@ MAIN_FIELD_NED_NT = np.array([20_000.0, 0.0, 45_000.0])  # inclination ~66 deg
 
 @dataclass
 class MapSurvey:
+    """A simulated gridded line survey with its truth (:func:`line_survey`).
+
+    Attributes
+    ----------
+    grid : Grid
+        Minimum-curvature grid of the noisy lines (local east/north m, nT).
+    truth_nT : ndarray
+        The anomaly at the cell centres (nT), NaN outside the surveyed block.
+    sensor_nT, line_nT : float
+        White noise per sample and the per-line offset/drift standard deviation, nT.
+    spacing_m : float
+        Line spacing, m.
+    """
+
     grid: Grid
     truth_nT: np.ndarray  # the anomaly at the cell centres, NaN outside the surveyed block
     sensor_nT: float

@@ -171,6 +171,23 @@ class EarthField:
 
 @dataclass
 class SimulatedFlight:
+    """One simulated flight (:func:`simulate`), ready for :func:`write_simulation`.
+
+    Attributes
+    ----------
+    scenario : Scenario
+    seed : int
+    start_ns : int
+        Start time, ns since 1970 (UTC).
+    streams : dict
+        Topic -> its schema, sample times ``t`` (s from the start) and payload columns.
+    truth : dict
+        The simulation's truth (written as the truth JSON).
+    trajectory : Trajectory
+    series : dict of str to ndarray
+        Per-sample truth at the scalar epochs (in memory only).
+    """
+
     scenario: Scenario
     seed: int
     start_ns: int

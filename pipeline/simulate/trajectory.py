@@ -43,6 +43,22 @@ KINDS = ("roll", "pitch", "yaw")
 
 @dataclass
 class Manoeuvre:
+    """An attitude manoeuvre within a leg: a tapered sinusoid of one attitude angle.
+
+    Attributes
+    ----------
+    kind : str
+        ``roll``, ``pitch`` or ``yaw``.
+    start_s : float
+        Start, s from the start of its leg.
+    period_s : float
+        Period, s.
+    amplitude_deg : float
+        Amplitude, deg.
+    cycles : float
+        Number of cycles (whole by default; a randomised block may end mid-cycle).
+    """
+
     kind: str  # roll | pitch | yaw
     start_s: float  # from the start of its leg
     period_s: float

@@ -40,11 +40,15 @@ class ComponentParameters:
 
     @classmethod
     def from_state(cls, x: np.ndarray, scaled: bool) -> ComponentParameters:
+        """Parameters from a 21-element state [T_p, A row-major, B row-major]; with ``scaled`` the
+        state's T_p is in uT (converted to nT).
+        """
         x = np.asarray(x, float)
         s = UT_SCALE if scaled else 1.0
         return cls(x[:3] * s, x[3:12].reshape(3, 3), x[12:21].reshape(3, 3))
 
     def state(self, scaled: bool) -> np.ndarray:
+        """The 21-element state [T_p, A row-major, B row-major]; T_p in uT if ``scaled``."""
         s = UT_SCALE if scaled else 1.0
         return np.r_[
             np.asarray(self.permanent_nT) / s, np.ravel(self.induced), np.ravel(self.eddy_s)
@@ -65,6 +69,7 @@ class ComponentParameters:
         return np.linalg.solve(np.eye(3) + np.asarray(self.induced), rhs.T).T
 
     def to_dict(self) -> dict:
+        """JSON-ready: permanent field (nT, body frame), induced matrix and eddy matrix (s)."""
         return {
             "permanent_nT": [float(v) for v in self.permanent_nT],
             "induced": np.asarray(self.induced).tolist(),
@@ -201,6 +206,23 @@ class ComponentKF:
         return self
 
     def run(self, t_nT: np.ndarray, dt_nT_s: np.ndarray, m_nT: np.ndarray) -> ComponentParameters:
+        """Filter the samples in order and return the final parameters.
+
+        Parameters
+        ----------
+        t_nT : ndarray, shape (n, 3)
+            Earth field T, body frame (x forward, y right, z down), nT.
+        dt_nT_s : ndarray, shape (n, 3)
+            Its time derivative dT/dt, body frame, nT/s.
+        m_nT : ndarray, shape (n, 3)
+            Measured field T_m, body frame, nT. Samples with a non-finite value get the time
+            update only (state carried).
+
+        Returns
+        -------
+        ComponentParameters
+            The state after the last sample; every step is kept in ``history``.
+        """
         h_all = design(t_nT, dt_nT_s, self.scaled)
         y_all = np.asarray(m_nT, float) - np.asarray(t_nT, float)
         n = y_all.shape[0]

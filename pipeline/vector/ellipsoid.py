@@ -25,6 +25,7 @@ from scipy.linalg import sqrtm
 
 
 def quadric_rows(m: np.ndarray) -> np.ndarray:
+    """Measurement rows h(m) = [x^2, y^2, z^2, xy, xz, yz, x, y, z], one per row of ``m`` (n, 3)."""
     m = np.asarray(m, float)
     x, y, z = m[:, 0], m[:, 1], m[:, 2]
     return np.column_stack([x * x, y * y, z * z, x * y, x * z, y * z, x, y, z])
@@ -40,6 +41,7 @@ class Ellipsoid:
 
     @property
     def matrix(self) -> np.ndarray:
+        """The symmetric 3x3 matrix A of the quadric's quadratic part."""
         a, b, c, d, e, g = self.theta[:6]
         return np.array([[a, d / 2, e / 2], [d / 2, b, g / 2], [e / 2, g / 2, c]])
 
@@ -57,15 +59,20 @@ class Ellipsoid:
         return 0.5 * (w + w.T)
 
     def valid(self) -> bool:
+        """Whether A is positive definite (the quadric is an ellipsoid)."""
         try:
             return bool(np.all(np.linalg.eigvalsh(self.matrix) > 0))
         except np.linalg.LinAlgError:
             return False
 
     def calibrate(self, m: np.ndarray) -> np.ndarray:
+        """Calibrated vectors b = W (m - o) for measured vectors ``m`` (n, 3), body frame, in the
+        measurements' unit (|b| close to ``field``).
+        """
         return (np.asarray(m, float) - self.centre) @ self.soft_iron_inverse.T
 
     def to_dict(self) -> dict:
+        """JSON-ready: hard iron (centre), soft-iron inverse W, field magnitude and theta."""
         return {
             "hard_iron": [float(v) for v in self.centre],
             "soft_iron_inverse": self.soft_iron_inverse.tolist(),
@@ -160,6 +167,7 @@ class EllipsoidKF:
         return out
 
     def ellipsoid(self) -> Ellipsoid:
+        """The current state as an :class:`Ellipsoid`, with the filter's covariance."""
         return Ellipsoid(self.theta.copy(), self.start.field, self.p.copy())
 
 
@@ -216,4 +224,5 @@ def roll_from_radial(b_body: np.ndarray, b_unrolled: np.ndarray) -> np.ndarray:
 
 
 def angle_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angle differences a - b, deg, wrapped to [-180, 180)."""
     return (np.asarray(a) - np.asarray(b) + 180.0) % 360.0 - 180.0

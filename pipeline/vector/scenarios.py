@@ -26,6 +26,21 @@ EARTH_NED_NT = np.array([33_000.0, -3_000.0, 40_000.0])
 
 @dataclass
 class ComponentFlight:
+    """A simulated carrier for component compensation (paper 000).
+
+    Attributes
+    ----------
+    time_s : ndarray
+        Sample times, s.
+    earth_nT, earth_rate_nT_s : ndarray, shape (n, 3)
+        Earth field T (nT) and dT/dt (nT/s), body frame (x forward, y right, z down).
+    measured_nT : ndarray, shape (n, 3)
+        Measured T_m with noise, nT.
+    noise_nT : ndarray
+        Per-sample noise standard deviation, nT.
+    truth : ComponentParameters
+    """
+
     time_s: np.ndarray
     earth_nT: np.ndarray  # T, body frame
     earth_rate_nT_s: np.ndarray  # dT/dt, body frame
@@ -72,6 +87,23 @@ PAPER_003_FIELD_G = 0.5267
 
 @dataclass
 class SpinFlight:
+    """Paper 003's spinning carrier (:func:`spinning_carrier`); fields in gauss (G).
+
+    Attributes
+    ----------
+    time_s : ndarray
+    roll_deg, pitch_deg : ndarray
+        Spin angle about body x and pitch, deg.
+    field_body_G : ndarray, shape (n, 3)
+        True field, body frame (x forward, y right, z down).
+    measured_G : ndarray, shape (n, 3)
+        soft_iron @ true + hard_iron + noise.
+    hard_iron_G : ndarray, shape (3,)
+    soft_iron : ndarray, shape (3, 3)
+    field_ned_G : ndarray, shape (3,)
+        The field in NED.
+    """
+
     time_s: np.ndarray
     roll_deg: np.ndarray  # spin angle about body x
     pitch_deg: np.ndarray

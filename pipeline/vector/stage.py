@@ -65,6 +65,24 @@ def reference_field_body_nT(flight: Flight, every: int = 10) -> tuple[np.ndarray
 
 @dataclass
 class VectorRun:
+    """The vector stage's output.
+
+    Attributes
+    ----------
+    method : str
+        ``ellipsoid-kf``, ``component-kf`` or ``batch``.
+    output_topic : str
+        Topic the vectors are written to.
+    vectors_nT : ndarray, shape (n, 3)
+        Calibrated or compensated field, body frame (x forward, y right, z down), nT.
+    parameters : dict
+        The fitted parameters.
+    figures : dict
+        Figures of merit (RMS against the reference field, nT; filter diagnostics).
+    converged_s : float or None
+        Convergence time, s, when known.
+    """
+
     method: str
     output_topic: str
     vectors_nT: np.ndarray  # (n, 3) calibrated / compensated, body frame
@@ -73,6 +91,7 @@ class VectorRun:
     converged_s: float | None = None
 
     def summary(self) -> dict[str, Any]:
+        """JSON-ready summary: method, output topic, parameters, figures and convergence time."""
         return {
             "method": self.method,
             "output_topic": self.output_topic,
@@ -96,6 +115,33 @@ def _fit_mask(flight: Flight, seg: Segmentation | None) -> np.ndarray:
 def run_vector(
     flight: Flight, seg: Segmentation | None, method: str, settings: dict[str, Any] | None = None
 ) -> VectorRun:
+    """Calibrate or compensate a flight's vector magnetometer.
+
+    Parameters
+    ----------
+    flight : Flight
+        Needs the vector channels (body frame, nT); ``component-kf`` and ``batch`` also need
+        position and attitude for the IGRF reference (NED rotated into the body frame).
+    seg : Segmentation or None
+        Its calibration passes are the fitted (or filter-updated) epochs; without passes, the
+        first fifth of the flight (at least 100 epochs).
+    method : str
+        ``ellipsoid-kf``, ``component-kf`` or ``batch``.
+    settings : dict, optional
+        The ``[vector]`` table (fuzzy-R settings of ``component-kf``).
+
+    Returns
+    -------
+    VectorRun
+
+    Raises
+    ------
+    ValueError
+        Unknown method.
+    AeromagError
+        A needed channel is missing, there is no valid position (component methods), or
+        fewer than 200 calibration epochs have vector, attitude and position.
+    """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r} (use {', '.join(METHODS)})")
     flight.require("vector_x_nT", "vector_y_nT", "vector_z_nT", purpose="the vector stage")
