@@ -191,7 +191,7 @@ class SimulatedFlight:
     scenario: Scenario
     seed: int
     start_ns: int
-    streams: dict[str, dict[str, Any]]  # topic -> {schema, time_ns, payload columns}
+    streams: dict[str, dict[str, Any]]  # topic -> {schema, t (s from the start), columns}
     truth: dict[str, Any]
     trajectory: Trajectory = field(repr=False)
     # per-sample truth at the scalar epochs (in memory only: tests compare against it)
