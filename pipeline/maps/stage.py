@@ -47,6 +47,9 @@ def parse_arima(value: str | tuple[int, int, int]) -> str | tuple[int, int, int]
 
 @dataclass
 class MapSettings:
+    """How the map stage grids, levels and filters (the ``[map]`` keys of the configuration;
+    lengths in m, noise in nT)."""
+
     # the keys of [map] default to the shipped configuration's values (0 there: None here)
     cell_m: float | None = default_field("map", "cell_m", lambda v: v or None)  # None: spacing/4
     arima: str | tuple[int, int, int] = default_field("map", "arima", parse_arima)
@@ -193,6 +196,11 @@ def filter_grid(
 
 @dataclass
 class MapRun:
+    """One map stage's results: the local frame (east/north/up m about the survey's mean
+    position), the reduction to anomaly, the levelled lines, the line spacing (m), the
+    anomaly grid and its ARIMA-Kalman-filtered version (nT), the filter's model and run, and
+    what the gridder and micro-levelling did."""
+
     frame: LocalFrame
     reduction: Reduction
     lines: list[Line]
@@ -213,6 +221,8 @@ class MapRun:
     microlevel: MicroLevel | None = None
 
     def summary(self) -> dict[str, Any]:
+        """The ``map`` block of the summary JSON (shapes, origin, crossovers, levelling,
+        gridder, ARIMA model, Kalman settings, anomaly range)."""
         ny, nx = self.grid.shape
         return {
             "grid_shape": [ny, nx],
