@@ -1024,6 +1024,8 @@ def navigate_stage(flight: Flight, seg: Segmentation | None, comp: np.ndarray, m
         return run_navigation(flight, seg, comp, geomap, cfg.navigation_settings())
     except AeromagError as exc:
         return exc.problem
+    except (ValueError, np.linalg.LinAlgError) as exc:  # reported; the other outputs go on
+        return f"{type(exc).__name__}: {exc}"
 
 
 def navigation_lines(nav) -> list[tuple[int, str]]:
