@@ -2,8 +2,9 @@
 
 ingest -> despike (the scalar magnetometer) -> segment -> compensate (each configured T-L
 model and AGG-TL) -> audit -> extended model -> vector stage (when a fluxgate exists) ->
-anomaly reduction, leveling, gridding, ARIMA-Kalman filter -> quality -> write (output MCAP,
-summary JSON, report, figures).
+anomaly reduction, leveling, gridding, ARIMA-Kalman filter -> quality -> navigation on the
+flight's own map (validation lines, ``[navigate]``) -> write (output MCAP, summary JSON,
+report, figures).
 
 The order lives in :func:`postflight_steps`, a plain function that calls each stage through a
 ``call`` hook: the Prefect flow passes tasks (results persisted in Prefect's local result
@@ -72,6 +73,13 @@ def postflight_steps(
     ):
         map_run = call("map", flight, seg, final[1], cfg)
         quality = call("quality", flight, seg, runs, audit, cfg)
+    nav = None
+    if cfg["navigate"]["enabled"]:  # skipped (one log line) without validation lines or map
+        nav = (
+            call("navigate", flight, seg, final[1], map_run, cfg)
+            if map_run is not None
+            else "no map"
+        )
     return call(
         "write",
         recording,
@@ -87,6 +95,7 @@ def postflight_steps(
         quality,
         timings,
         despiked,
+        nav,
     )
 
 
@@ -102,6 +111,7 @@ STAGE_FUNCTIONS: dict[str, Callable[..., Any]] = {
     "vector": stages.vector_stage,
     "map": stages.map_stage,
     "quality": stages.quality_stage,
+    "navigate": stages.navigate_stage,
     "write": stages.write_stage,
 }
 

@@ -1000,6 +1000,60 @@ def map_stage(flight: Flight, seg: Segmentation, comp: np.ndarray, cfg):
     return build_map(flight, seg, comp, cfg.map_settings())
 
 
+def navigate_stage(flight: Flight, seg: Segmentation | None, comp: np.ndarray, map_run, cfg):
+    """Navigation on the flight's own map (``[navigate]``): the validation lines flown with a
+    simulated INS aided by the map (``navigate.map``), as ``aeromag navigate`` does.
+
+    Returns
+    -------
+    NavigationRun or str
+        The run, or why navigation was skipped (no validation lines, no map, the map not
+        covering them): one log line, never an error.
+    """
+    from pipeline.navigation.map_io import frame_map
+    from pipeline.navigation.stage import run_navigation
+
+    if map_run is None:
+        return "no map"
+    if seg is None or seg.mask("validation").sum() < 10:
+        return "no validation lines"
+    which = cfg["navigate"]["map"]
+    grid = map_run.filtered if which == "anomaly_filtered" else map_run.grid
+    geomap = frame_map(grid, map_run.frame, f"/map/{which}", f"this flight's /map/{which}")
+    try:
+        return run_navigation(flight, seg, comp, geomap, cfg.navigation_settings())
+    except AeromagError as exc:
+        return exc.problem
+    except (ValueError, np.linalg.LinAlgError) as exc:  # reported; the other outputs go on
+        return f"{type(exc).__name__}: {exc}"
+
+
+def navigation_lines(nav) -> list[tuple[int, str]]:
+    """Log lines of :func:`navigate_stage`'s result."""
+    if isinstance(nav, str):
+        return [(LOG_INFO, f"navigate: skipped: {nav}")]
+    d, st = nav.summary()["drms_m"], nav.settings
+    return [
+        (
+            LOG_INFO,
+            f"navigate: {st.filter} on validation with a {st.ins}-grade INS (seed {st.seed}): "
+            f"DRMS INS-only {d['ins_only']:.1f} m, map-aided {d['map_aided']:.2f} m, "
+            f"CRLB {d['crlb']:.2f} m",
+        )
+    ] + [(LOG_INFO, f"navigate: {n}") for n in nav.notes]
+
+
+def navigation_figures(nav) -> dict[str, object]:
+    """The track plot (reference, INS, map-aided over the map) and error against time with
+    the CRLB."""
+    from pipeline.plots import navigation_error_figure, navigation_track_figure
+
+    return {
+        "navigation_track": navigation_track_figure(nav),
+        "navigation_error": navigation_error_figure(nav),
+    }
+
+
 def quality_stage(flight: Flight, seg: Segmentation, runs: dict, audit, cfg) -> QualityRun:
     """Quality: every processing state (raw, each model, the extended model) compared at
     the validation lines, with the 12-box FOM table when the calibration boxes were found.
@@ -1083,9 +1137,12 @@ def write_stage(
     quality,
     timings: dict[str, float] | None = None,
     despiked: DespikeResult | None = None,
+    nav=None,
 ) -> dict[str, Any]:
     """Every output of the post-flight flow, each written atomically; the summary last (its
     presence marks the recording as done).
+
+    ``nav`` is :func:`navigate_stage`'s result (a run, a skip reason, or None: not enabled).
 
     ``timings`` (stage -> seconds of the stages before) goes into the summary as
     ``timings_s`` with this stage's own time (``write``, up to the summary itself), with the
@@ -1186,6 +1243,16 @@ def write_stage(
             figures.update(enhancement_figures(grids, cfg.enhance_settings(), map_run.lines))
             summary["map"]["enhancements"] = sorted(grids)
             lines.append((LOG_INFO, f"enhance: {', '.join(grids)}"))
+    if nav is not None:
+        from pipeline.outputs import navigation_channels
+
+        lines += navigation_lines(nav)
+        if isinstance(nav, str):
+            summary["navigation"] = {"skipped": nav}
+        else:
+            channels += navigation_channels(nav)
+            summary["navigation"] = nav.summary()
+            figures.update(navigation_figures(nav))
     if quality is not None:
         lines += quality_lines(quality)
         channels += quality_channels(flight, quality)
@@ -1373,6 +1440,33 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
                 f"changed {f(ml['grid_change_rms_nT'])} nT RMS",
                 "",
             ]
+    nv = s.get("navigation")
+    if nv:
+        out += ["## Navigation on the map", ""]
+        if "skipped" in nv:
+            out += [f"Skipped: {nv['skipped']}.", ""]
+        else:
+            st, d, c = nv["settings"], nv["drms_m"], nv["cep50_m"]
+            out += [
+                f"Validation lines flown with a simulated {st['ins']}-grade INS (seed "
+                f"{st['seed']}), {st['filter']} aided by {nv['map']['file']}; reference "
+                f"{nv['reference']}",
+                "",
+                "| segment | epochs | DRMS m: INS only | map-aided | CRLB | CEP50 m: INS only "
+                "| map-aided |",
+                "|---|---|---|---|---|---|---|",
+                f"| all | {nv['epochs']['selected']} | {f(d['ins_only'], '.1f')} | "
+                f"{f(d['map_aided'], '.2f')} | {f(d['crlb'], '.2f')} | "
+                f"{f(c['ins_only'], '.1f')} | {f(c['map_aided'], '.2f')} |",
+            ]
+            for sid, g in nv["segments"].items():
+                out.append(
+                    f"| {sid} | {g['epochs']} | {f(g['ins_only']['drms_m'], '.1f')} | "
+                    f"{f(g['map_aided']['drms_m'], '.2f')} | {f(g['crlb_drms_m'], '.2f')} | "
+                    f"{f(g['ins_only']['cep50_m'], '.1f')} | "
+                    f"{f(g['map_aided']['cep50_m'], '.2f')} |"
+                )
+            out.append("")
     v = s.get("vector")
     if v:
         out += ["## Vector magnetometer", "", f"{v['method']} -> `{v['output_topic']}`", ""]

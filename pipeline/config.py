@@ -150,6 +150,13 @@ class Config:
         e = self.values["enhance"]
         return EnhanceSettings(products=parse_products(e["products"]), source=e["source"])
 
+    def navigation_settings(self):
+        """The post-flight flow's navigation settings (``[navigate]``; validation lines)."""
+        from pipeline.navigation.stage import NavigationSettings
+
+        n = self.values["navigate"]
+        return NavigationSettings(filter=n["filter"], ins=n["ins"], seed=n["seed"])
+
     def despike_settings(self):
         from pipeline.despike import DespikeSettings
 
@@ -227,6 +234,15 @@ class Config:
             raise AeromagError(
                 "map.cell_m: must be > 0 m (0: a quarter of the line spacing)", file=self.source
             )
+        nav = self.values["navigate"]
+        try:
+            self.navigation_settings().check()
+        except AeromagError as exc:
+            raise AeromagError(
+                f"navigate: {exc.problem.removeprefix('--')}", file=self.source
+            ) from None
+        if nav["map"] not in ("anomaly", "anomaly_filtered"):
+            raise AeromagError("navigate.map: use anomaly_filtered or anomaly", file=self.source)
         from pipeline.export import check_formats
         from pipeline.maps.enhance import parse_products
 

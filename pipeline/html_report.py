@@ -31,6 +31,11 @@ CAPTIONS = {
     "anomaly": "Anomaly map before ARIMA-Kalman filtering (levelled, gridded).",
     "anomaly_filtered": "Anomaly map after ARIMA-Kalman filtering.",
     "crossovers": "Tie-line crossover differences before and after leveling.",
+    "navigation_track": "Navigation on the validation lines: the reference track (/gnss/fix), "
+    "the simulated INS alone and the map-aided track over the map (dotted: unscored turns).",
+    "navigation_error": "Horizontal position error against time, INS only and map-aided, with "
+    "the posterior CRLB (DRMS); below, the map-aided north/east errors within ± CRLB "
+    "(grey: unscored epochs).",
 }
 
 CSS = """
@@ -459,6 +464,62 @@ def _map_section(s: dict, figs: _Figures) -> list[str]:
     ]
 
 
+def _navigation_section(s: dict, figs: _Figures) -> list[str]:
+    nv = s.get("navigation")
+    if not nv:
+        return []
+    if "skipped" in nv:
+        return [
+            "<h2>Navigation on the map</h2>",
+            f"<p>Skipped: {html.escape(str(nv['skipped']))}.</p>",
+        ]
+    st, d, c = nv["settings"], nv["drms_m"], nv["cep50_m"]
+    rows = [
+        [
+            "all",
+            str(nv["epochs"]["selected"]),
+            _f(d["ins_only"], ".1f"),
+            _f(d["map_aided"], ".2f"),
+            _f(d["crlb"], ".2f"),
+            _f(c["ins_only"], ".1f"),
+            _f(c["map_aided"], ".2f"),
+        ]
+    ]
+    for sid, g in nv["segments"].items():
+        rows.append(
+            [
+                html.escape(str(sid)),
+                str(g["epochs"]),
+                _f(g["ins_only"]["drms_m"], ".1f"),
+                _f(g["map_aided"]["drms_m"], ".2f"),
+                _f(g["crlb_drms_m"], ".2f"),
+                _f(g["ins_only"]["cep50_m"], ".1f"),
+                _f(g["map_aided"]["cep50_m"], ".2f"),
+            ]
+        )
+    return [
+        "<h2>Navigation on the map</h2>",
+        f"<p>The validation lines flown with a simulated {html.escape(str(st['ins']))}-grade "
+        f"INS (seed {st['seed']}) and the {html.escape(str(st['filter']))} aided by "
+        f"{html.escape(str(nv['map']['file']))}; errors against "
+        f"{html.escape(str(nv['reference']))}.</p>",
+        _table(
+            [
+                "segment",
+                "epochs",
+                "DRMS m: INS only",
+                "map-aided",
+                "CRLB",
+                "CEP50 m: INS only",
+                "map-aided",
+            ],
+            rows,
+        ),
+        figs.take("navigation_track"),
+        figs.take("navigation_error"),
+    ]
+
+
 def _enhancements(m: dict, figs: _Figures) -> list[str]:
     names = [f"enhance_{t.removeprefix('/map/')}" for t in m.get("enhancements") or []]
     if not names:
@@ -636,6 +697,7 @@ def render_html(stem: str, summary: dict, images: Mapping[str, str | Path]) -> s
     body += _quality_section(s, figs)
     body += _audit_section(s, figs)
     body += _map_section(s, figs)
+    body += _navigation_section(s, figs)
     body += _qc_section(s)
     body += _vector_section(s)
     rest = figs.rest()

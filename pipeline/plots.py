@@ -443,3 +443,82 @@ def flight_map_figure(
     ax.grid(alpha=0.3)
     fig.tight_layout()
     return fig
+
+
+# --------------------------------------------------------------------------------------------
+# navigation (issue 18, item 6)
+def navigation_track_figure(run, title: str = "navigation on the validation lines") -> plt.Figure:
+    """The reference track (``/gnss/fix``), the INS alone and the map-aided track over the map
+    (local east/north metres of the map's frame), scored epochs only (NaN elsewhere).
+
+    ``run`` is a :class:`pipeline.navigation.stage.NavigationRun`.
+    """
+    grid = run.geomap.grid
+    e, n = grid.coordinates()
+    half = grid.cell_m / 2
+    extent = (e[0] - half, e[-1] + half, n[0] - half, n[-1] + half)
+    aspect = (extent[3] - extent[2]) / max(extent[1] - extent[0], 1e-9)
+    fig, ax = plt.subplots(figsize=(7.0, min(max(4.5, 6.0 * aspect), 11)))
+    im = ax.imshow(
+        grid.values,
+        origin="lower",
+        extent=extent,
+        cmap="Greys",
+        alpha=0.6,
+        interpolation="nearest",
+    )
+    fig.colorbar(im, ax=ax, shrink=0.8).set_label("map anomaly (nT)")
+    sel = run.selected
+    d = run.summary()["drms_m"]
+    for xy, colour, label in (
+        (run.true_en, "tab:blue", "reference (/gnss/fix)"),
+        (run.ins_en(), "tab:orange", f"INS only (DRMS {d['ins_only']:.1f} m)"),
+        (run.aided_en(), "tab:green", f"map-aided (DRMS {d['map_aided']:.2f} m)"),
+    ):
+        e_sel, n_sel = np.where(sel, xy[:, 0], np.nan), np.where(sel, xy[:, 1], np.nan)
+        ax.plot(e_sel, n_sel, "-", lw=1.2, color=colour, label=label)
+        ax.plot(xy[~sel, 0], xy[~sel, 1], ":", lw=0.6, color=colour)
+    ax.set_xlabel("east (m)")
+    ax.set_ylabel("north (m)")
+    ax.set_title(title)
+    ax.set_aspect("equal")
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    return fig
+
+
+def navigation_error_figure(run, title: str = "horizontal position error") -> plt.Figure:
+    """Horizontal error against time: INS only and map-aided, with the posterior CRLB's and
+    the filter's DRMS (±) as bands; unscored epochs (turns) shaded.
+
+    ``run`` is a :class:`pipeline.navigation.stage.NavigationRun`.
+    """
+    t = (run.time_ns - run.time_ns[0]) / 1e9
+    ins = np.hypot(*run.ins_error_ne().T)
+    aid = np.hypot(*run.aided_error_ne().T)
+    c = run.crlb_cov_m2
+    bound = np.sqrt(np.maximum(c[:, 0, 0] + c[:, 1, 1], 0.0))
+    fig, (ax, ax2) = plt.subplots(2, 1, figsize=(10, 6.5), sharex=True)
+    ax.semilogy(t, ins, color="tab:orange", lw=1.0, label="INS only")
+    ax.semilogy(t, np.maximum(aid, 1e-3), color="tab:green", lw=1.0, label="map-aided")
+    ax.semilogy(t, bound, "k--", lw=0.8, label="CRLB (DRMS)")
+    ax.set_ylabel("horizontal error (m)")
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    ax.grid(True, which="both", alpha=0.3)
+    ea = run.aided_error_ne()
+    for k, (comp, colour) in enumerate((("north", "tab:green"), ("east", "tab:olive"))):
+        ax2.plot(t, ea[:, k], color=colour, lw=0.9, label=f"map-aided {comp} error")
+    ax2.fill_between(t, -bound, bound, color="0.6", alpha=0.35, label="± CRLB (DRMS)")
+    ax2.set_xlabel("time since the window's start (s)")
+    ax2.set_ylabel("error (m)")
+    ax2.legend(loc="best", fontsize=8)
+    ax2.grid(True, alpha=0.3)
+    for a in (ax, ax2):
+        off = ~run.selected
+        if off.any():
+            a.fill_between(
+                t, 0, 1, where=off, color="0.9", transform=a.get_xaxis_transform(), zorder=0
+            )
+    fig.tight_layout()
+    return fig

@@ -8,10 +8,12 @@ holds: a recording without a vector stage or audit simply gets no such panel.
 
 What it shows (top to bottom, left to right):
 
-- Map: the GNSS track (``foxglove.LocationFix``) and the flight lines (``/map/tracks``, GeoJSON).
+- Map: the GNSS track (``foxglove.LocationFix``) and the flight lines (``/map/tracks``, GeoJSON);
+  with navigation, the simulated INS (``/nav/ins``) and map-aided (``/nav/map_aided``) tracks.
 - 3D: the anomaly grid before and after ARIMA-Kalman filtering (``foxglove.Grid``, frame
   ``local_enu``: x east, y north, metres about the map origin), seen from above.
-- Plots: recorded (raw), T-L and AGG-TL total field; the interference each model removed.
+- Plots: recorded (raw), T-L and AGG-TL total field; the interference each model removed;
+  the navigation error (INS only, map-aided, CRLB) when ``/nav/error`` exists.
 - State transitions: segment label, line and manoeuvre (``/flight/segment``).
 - Log (``/aeromag/log``) and the audit findings (``/audit/finding``).
 """
@@ -33,6 +35,8 @@ MODEL_LABELS = {
     "agg-tl": "AGG-TL",
     "extended": "extended model",
 }
+# the Map panel's tracks: the reference, the simulated INS and the map-aided navigation
+TRACK_COLOURS = {"/gnss/fix": "#1f77b4", "/nav/ins": "#ff7f0e", "/nav/map_aided": "#2ca02c"}
 COLOURS = ["#7f7f7f", "#1f77b4", "#2ca02c", "#d62728", "#9467bd", "#ff7f0e", "#8c564b"]
 
 
@@ -164,13 +168,14 @@ def foxglove_layout(
     geojson = topics_of("foxglove.GeoJSON")
     map_panel = None
     if fixes or geojson:
+        colours = {t: TRACK_COLOURS.get(t, "#1f77b4") for t in fixes}
         cfg["map!aeromag-track"] = {
             "layer": "map",
             "zoomLevel": 15,
             "maxNativeZoom": 18,
             "disabledTopics": [],
-            "followTopic": fixes[0] if fixes else "",
-            "topicColors": {**{t: "#1f77b4" for t in fixes}, **{t: "#d62728" for t in geojson}},
+            "followTopic": "/gnss/fix" if "/gnss/fix" in fixes else (fixes[0] if fixes else ""),
+            "topicColors": {**colours, **{t: "#d62728" for t in geojson}},
         }
         map_panel = "map!aeromag-track"
 
@@ -211,6 +216,17 @@ def foxglove_layout(
             "platform interference removed", interference, "interference (nT)"
         )
         plots.append("Plot!aeromag-interference")
+    if channels.get("/nav/error") == "aeromag.NavigationError":
+        cfg["Plot!aeromag-navigation"] = _plot(
+            "navigation: horizontal error",
+            [
+                (message_path("/nav/error", "ins_horizontal_m"), "INS only"),
+                (message_path("/nav/error", "map_aided_horizontal_m"), "map-aided"),
+                (message_path("/nav/error", "crlb_drms_m"), "CRLB (DRMS)"),
+            ],
+            "error (m)",
+        )
+        plots.append("Plot!aeromag-navigation")
     if channels.get("/flight/segment") == "aeromag.Segment":
         cfg["StateTransitions!aeromag-segments"] = {
             "paths": [

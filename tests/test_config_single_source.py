@@ -102,6 +102,13 @@ def test_settings_defaults_are_the_shipped_configuration():
     ds = DespikeSettings()
     assert {k: getattr(ds, k) for k in d["despike"]} == d["despike"]
     assert cfg.despike_settings() == ds
+    from pipeline.navigation.stage import NavigationSettings
+
+    nav = NavigationSettings()
+    assert cfg.navigation_settings() == nav
+    assert (nav.filter, nav.ins, nav.seed) == tuple(
+        d["navigate"][k] for k in ("filter", "ins", "seed")
+    )
 
 
 def test_no_processing_default_is_retyped_in_the_code():
@@ -266,3 +273,18 @@ def test_the_audit_measures_its_fom_in_the_configured_band(monkeypatch):
     with pytest.raises(Caught):
         audit_stage.run_audit(flight, segment_flight(flight), cfg.audit_settings())
     assert seen == [(tuple(BAND), 3)]
+
+
+def test_navigate_section_is_checked_when_the_configuration_is_validated(tmp_path):
+    f = tmp_path / "c.toml"
+    for bad, msg in (
+        ('filter = "kf"', "navigate: filter 'kf': use ekf or pf"),
+        ('ins = "consumer"', "navigate: ins 'consumer'"),
+        ('map = "truth"', "navigate.map: use anomaly_filtered or anomaly"),
+    ):
+        f.write_text(f"[navigate]\n{bad}\n")
+        with pytest.raises(AeromagError, match=re.escape(msg)):
+            Config.load(f).validate()
+    f.write_text('[navigate]\nfilter = "pf"\nseed = 3\n')
+    st = Config.load(f).navigation_settings()
+    assert (st.filter, st.seed, st.segments) == ("pf", 3, "validation")

@@ -45,6 +45,10 @@ def test_postflight_flow_writes_input_plus_new_channels(demo_output):
         "/map/tracks",
         "/quality/heading_error",
         "/quality/crossovers",
+        "/nav/ins",
+        "/nav/map_aided",
+        "/nav/error",
+        "/nav/innovation",
     }
     assert set(summary["channels_written"]) == new
     # exports on by default, read back from the processed MCAP: GeoTIFF + netCDF
@@ -123,6 +127,7 @@ def test_summary_records_stage_timings_and_peak_memory(demo_output):
         "vector",
         "map",
         "quality",
+        "navigate",
         "write",
     ]
     assert all(isinstance(v, float) and 0 <= v < 600 for v in t.values())
@@ -159,3 +164,69 @@ def test_process_command_runs_the_flow_without_a_server(box_path, tmp_path):
         timeout=300,
     )
     assert insp.returncode == 0 and "/mag/compensated" in insp.stdout
+    # a calibration box alone: no map, so navigation is skipped in one log line, no error
+    import json
+
+    summary = json.loads((tmp_path / "out" / "box_uav.summary.json").read_text())
+    assert summary["navigation"] == {"skipped": "no map"}
+    assert not any(t.startswith("/nav/") for t in summary["channels_written"])
+
+
+def test_postflight_navigates_the_validation_lines_on_its_own_map(demo_output):
+    """Issue 18, item 6: the flow flies the demo's two validation lines with a simulated
+    navigation-grade INS aided by the flight's filtered map. The errors are against the
+    simulator's own track (/gnss/fix is the truth plus GNSS noise), the map-aided DRMS well
+    below the INS alone's and within a few CRLBs; channels valid (every channel is checked in
+    tests/test_viewing.py), figures, report sections and the Map panel's three tracks."""
+    import json
+
+    out_dir, summary = demo_output
+    nav = summary["navigation"]
+    d = nav["drms_m"]
+    assert set(d) == {"ins_only", "map_aided", "crlb"} and set(nav["cep50_m"]) == {
+        "ins_only",
+        "map_aided",
+    }
+    assert set(nav["segments"]) == {"V0010", "V0020"}
+    assert nav["settings"]["segments"] == "validation" and nav["settings"]["seed"] == 0
+    assert nav["map"]["file"] == "/map/anomaly_filtered"
+    assert d["map_aided"] < d["ins_only"] / 5 and d["map_aided"] < 3 * d["crlb"]
+    assert summary["timings_s"]["navigate"] < 60
+    for png in ("navigation_track", "navigation_error"):
+        assert (out_dir / f"demo_flight.{png}.png").stat().st_size > 10000
+    report = (out_dir / "demo_flight.report.md").read_text()
+    assert "## Navigation on the map" in report and "demo_flight.navigation_track.png" in report
+    page = (out_dir / "demo_flight.report.html").read_text()
+    assert "Navigation on the map" in page and 'id="fig-navigation_error"' in page
+    layout = json.loads((out_dir / "demo_flight.layout.json").read_text())["configById"]
+    colours = layout["map!aeromag-track"]["topicColors"]
+    assert {"/gnss/fix", "/nav/ins", "/nav/map_aided"} <= set(colours)
+    assert len({colours[t] for t in ("/gnss/fix", "/nav/ins", "/nav/map_aided")}) == 3
+    assert layout["map!aeromag-track"]["followTopic"] == "/gnss/fix"
+    plot = [p["value"] for p in layout["Plot!aeromag-navigation"]["paths"]]
+    assert "/nav/error.map_aided_horizontal_m" in plot and "/nav/error.crlb_drms_m" in plot
+    log = [
+        json.loads(m[2])["message"]
+        for m in _messages(out_dir / "demo_flight.processed.mcap")
+        if m[0] == "/aeromag/log"
+    ]
+    assert any(ln.startswith("navigate: ekf on validation with a navigation-grade") for ln in log)
+
+
+def test_navigation_is_skipped_without_validation_lines_or_a_map():
+    """One log line, never an error: no map, no validation lines."""
+    import numpy as np
+
+    from flows.stages import navigate_stage, navigation_lines
+    from pipeline.config import Config
+
+    class NoValidation:  # a segmentation whose flight has no validation epochs
+        def mask(self, *labels):
+            return np.zeros(100, bool)
+
+    cfg = Config.load()
+    assert navigate_stage(None, None, None, None, cfg) == "no map"
+    assert navigate_stage(None, NoValidation(), None, object(), cfg) == "no validation lines"
+    assert navigation_lines("no validation lines") == [
+        (navigation_lines("x")[0][0], "navigate: skipped: no validation lines")
+    ]

@@ -116,7 +116,7 @@ def test_demo_layout_refers_to_real_channels_and_fields(demo_output, tmp_path):
     assert kinds == {
         "map": 1,
         "3D": 2,
-        "Plot": 2,
+        "Plot": 3,
         "StateTransitions": 1,
         "RosOut": 1,
         "RawMessages": 1,
@@ -132,7 +132,12 @@ def test_demo_layout_refers_to_real_channels_and_fields(demo_output, tmp_path):
             props = json.loads(schema_path(channels[topic]).read_text())["properties"]
             assert field in props, p
     cfg = doc["configById"]
-    assert set(cfg["map!aeromag-track"]["topicColors"]) == {"/gnss/fix", "/map/tracks"}
+    assert set(cfg["map!aeromag-track"]["topicColors"]) == {
+        "/gnss/fix",
+        "/nav/ins",
+        "/nav/map_aided",
+        "/map/tracks",
+    }
     field_plot = [p["value"] for p in cfg["Plot!aeromag-field"]["paths"]]
     assert field_plot[0] == "/mag/scalar.total_nT"
     assert "/mag/compensated/tl18.total_nT" in field_plot

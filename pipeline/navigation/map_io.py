@@ -122,6 +122,24 @@ def read_recording_map(path: Path, channel: str = DEFAULT_CHANNEL) -> GeoMap:
     )
 
 
+def frame_map(grid: Grid, frame: LocalFrame, source: str, kind: str) -> GeoMap:
+    """A grid in the ``local_enu`` frame ``frame`` (an in-memory map, e.g. a
+    :class:`pipeline.maps.stage.MapRun`'s), placed as a recording's ``/map/frame`` places it.
+
+    Parameters
+    ----------
+    grid : Grid
+        Values on cells in east/north metres of ``frame``, nT (copied; ``crs`` set).
+    frame : LocalFrame
+        Origin latitude, longitude (deg) and altitude (m; the map's altitude).
+    source, kind : str
+        What the map is, for the summary (``map.file``, ``map.kind``).
+    """
+    g = Grid(grid.values, grid.east0_m, grid.north0_m, grid.cell_m, frame.crs)
+    to_local, to_geo = _local(frame)
+    return GeoMap(g, to_local, to_geo, frame.alt0_m, source, kind, frame.crs, [])
+
+
 # ------------------------------------------------------------------------------- rasters
 def _square_grid(values: np.ndarray, x_m: np.ndarray, y_m: np.ndarray) -> Grid:
     """A grid on square cells from values on ascending regular axes x (columns), y (rows),

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.maps.reduce import reduce_to_anomaly
@@ -40,10 +41,10 @@ class NavigationSettings:
     track's 4th-difference noise).
     """
 
-    filter: str = "ekf"
-    ins: str = "navigation"
+    filter: str = default_field("navigate", "filter")
+    ins: str = default_field("navigate", "ins")
     segments: str = "validation"
-    seed: int = 0
+    seed: int = default_field("navigate", "seed")
     particles: int = 1000
     # the particle filter hands over to the EKF once its cloud stays within this DRMS, m
     # (None: particles to the end)
