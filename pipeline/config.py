@@ -56,11 +56,23 @@ def _merge(base: dict, over: dict, source: str, prefix: str = "") -> dict:
 
 @dataclass(frozen=True)
 class Config:
+    """The resolved configuration: the shipped defaults (``default_config.toml``) merged with
+    a user's TOML file, and where it came from (``source``: ``defaults``, a path, or the
+    command line). Each stage's settings dataclass is built from it (``*_settings``)."""
+
     values: dict[str, Any]
     source: str
 
     @classmethod
     def load(cls, path: str | Path | None = None) -> Config:
+        """The defaults, merged with the TOML file at ``path`` when given.
+
+        Raises
+        ------
+        AeromagError
+            An unreadable file, an unknown key, a wrong type or an unsupported
+            ``config_version`` (one line naming the file).
+        """
         base = tomllib.loads(default_text())
         if path is None:
             return cls(base, "defaults")
@@ -93,6 +105,7 @@ class Config:
 
     @property
     def hash(self) -> str:
+        """SHA-256 of the resolved values (canonical JSON): tags every output of a run."""
         canon = json.dumps(self.values, sort_keys=True, separators=(",", ":"))
         return hashlib.sha256(canon.encode()).hexdigest()
 
@@ -101,6 +114,7 @@ class Config:
 
     # -- stage settings -----------------------------------------------------------------------
     def fit_settings(self, model: str):
+        """:class:`pipeline.compensate.FitSettings` of ``model`` from ``[compensation]``."""
         from pipeline.compensate import FitSettings
 
         c = self.values["compensation"]
@@ -114,6 +128,7 @@ class Config:
         )
 
     def map_settings(self):
+        """:class:`pipeline.maps.stage.MapSettings` from ``[map]``."""
         from pipeline.maps.stage import MapSettings, parse_arima
 
         m = self.values["map"]
@@ -145,6 +160,7 @@ class Config:
         )
 
     def enhance_settings(self):
+        """:class:`pipeline.maps.enhance.EnhanceSettings` from ``[enhance]``."""
         from pipeline.maps.enhance import EnhanceSettings, parse_products
 
         e = self.values["enhance"]
@@ -158,11 +174,14 @@ class Config:
         return NavigationSettings(filter=n["filter"], ins=n["ins"], seed=n["seed"])
 
     def despike_settings(self):
+        """:class:`pipeline.despike.DespikeSettings` from ``[despike]``."""
         from pipeline.despike import DespikeSettings
 
         return DespikeSettings(**self.values["despike"])
 
     def quality_settings(self):
+        """:class:`pipeline.quality.QualitySettings` from ``[quality]`` (and the map's
+        crossing angle)."""
         from pipeline.quality import QualitySettings
 
         return QualitySettings(
@@ -171,6 +190,7 @@ class Config:
         )
 
     def audit_settings(self):
+        """:class:`pipeline.audit.AuditSettings` from ``[audit]`` and the compensation band."""
         from pipeline.audit import AuditSettings
         from pipeline.audit.extended import BandSettings
 

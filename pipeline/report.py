@@ -18,6 +18,7 @@ LOG_INFO, LOG_WARNING = 2, 3  # foxglove.Log levels
 
 
 def sha256_file(path: str | Path, block: int = 1 << 20) -> str:
+    """Hex SHA-256 of a file, read in ``block``-byte pieces."""
     h = hashlib.sha256()
     with Path(path).open("rb") as f:
         while chunk := f.read(block):
@@ -119,4 +120,5 @@ def flight_summary(flight: Flight) -> dict[str, Any]:
 
 
 def run_metadata() -> dict[str, str]:
+    """The ``aeromag.run`` MCAP metadata record's fields (the aeromag version)."""
     return {"aeromag_version": __version__}

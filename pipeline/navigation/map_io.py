@@ -46,6 +46,7 @@ class GeoMap:
     notes: list[str] = field(default_factory=list)
 
     def describe(self) -> dict:
+        """The map as NAV.json reports it: file, kind, CRS, shape, cell (m), altitude (m)."""
         ny, nx = self.grid.shape
         return {
             "file": self.source,

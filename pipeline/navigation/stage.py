@@ -56,6 +56,8 @@ class NavigationSettings:
     max_uncovered: float = 0.5
 
     def check(self) -> None:
+        """Raise :class:`AeromagError` (one line) for an unknown filter, INS grade or segment
+        choice."""
         if self.filter not in ("ekf", "pf"):
             raise AeromagError(f"--filter {self.filter!r}: use ekf or pf")
         if self.ins not in GRADES:
@@ -105,19 +107,26 @@ class NavigationRun:
 
     # positions ----------------------------------------------------------------------
     def ins_en(self) -> np.ndarray:
+        """INS-indicated positions, (n, 2) east/north m in the map's frame."""
         return self.true_en + self.ins_error[:, [1, 0]]
 
     def aided_en(self) -> np.ndarray:
+        """Map-aided positions (INS corrected by the filter's error estimate), (n, 2) east/north
+        m in the map's frame."""
         return self.ins_en() - self.result.state[:, [1, 0]]
 
     def ins_error_ne(self) -> np.ndarray:
+        """INS position error (indicated minus true), (n, 2) north/east m."""
         return self.ins_error[:, :2]
 
     def aided_error_ne(self) -> np.ndarray:
+        """Map-aided position error (indicated minus true), (n, 2) north/east m."""
         return self.ins_error[:, :2] - self.result.state[:, :2]
 
     # statistics ---------------------------------------------------------------------
     def summary(self) -> dict[str, Any]:
+        """NAV.json's ``navigation`` block: DRMS (INS-only, map-aided, CRLB) and CEP50 in m
+        over the selected epochs, errors per segment, the map and the settings used."""
         sel = self.selected
         ins = self.ins_error_ne()[sel]
         aid = self.aided_error_ne()[sel]
