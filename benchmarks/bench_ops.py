@@ -67,10 +67,10 @@ def long_flight(
     t_sim = time.perf_counter() - t0
     stage_s: dict[str, float] = {}
 
-    def call(stage, *args):
+    def call(step, *args):
         t = time.perf_counter()
-        out = pf.STAGE_FUNCTIONS[stage](*args)
-        stage_s[stage] = stage_s.get(stage, 0.0) + time.perf_counter() - t
+        out = step.function(*args)
+        stage_s[step.name] = stage_s.get(step.name, 0.0) + time.perf_counter() - t
         return out
 
     cfg = Config.load()

@@ -20,6 +20,7 @@ import hashlib
 import shutil
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -32,88 +33,81 @@ from pipeline.config import Config
 from pipeline.report import sha256_file
 
 
+@dataclass(frozen=True)
+class Step:
+    """One stage of the post-flight flow: its name (the Prefect task's name and cache key)
+    and the ``flows.stages`` function that runs it."""
+
+    name: str
+    function: Callable[..., Any]
+
+
+INGEST = Step("ingest", stages.ingest_stage)
+DESPIKE = Step("despike", stages.despike_stage)
+SEGMENT = Step("segment", stages.try_segment)
+COMPENSATE = Step("compensate", stages.compensate_stage)
+AUDIT = Step("audit", stages.audit_stage)
+VECTOR = Step("vector", stages.vector_stage)
+MAP = Step("map", stages.map_stage)
+QUALITY = Step("quality", stages.quality_stage)
+NAVIGATE = Step("navigate", stages.navigate_stage)
+WRITE = Step("write", stages.write_stage)
+STEPS = (INGEST, DESPIKE, SEGMENT, COMPENSATE, AUDIT, VECTOR, MAP, QUALITY, NAVIGATE, WRITE)
+STEP_BY_NAME = {s.name: s for s in STEPS}
+
+
 def postflight_steps(
     recording: str, out_dir: str, cfg: Config, call: Callable[..., Any]
 ) -> dict[str, Any]:
-    """Every stage in order; ``call(stage, *args)`` runs one (see the module docstring).
+    """Every stage in order; ``call(step, *args)`` runs one :class:`Step` (see the module
+    docstring): ``step.function(*args)``, or a Prefect task around it.
 
     The seconds of each stage (summed over calls: ``compensate`` covers every model) go to
     the write stage, which puts them in the summary (``timings_s``)."""
     timings: dict[str, float] = {}
     plain_call = call
 
-    def call(stage: str, *args):
+    def call(step: Step, *args):
         t0 = time.perf_counter()
         try:
-            return plain_call(stage, *args)
+            return plain_call(step, *args)
         finally:
-            timings[stage] = timings.get(stage, 0.0) + time.perf_counter() - t0
+            timings[step.name] = timings.get(step.name, 0.0) + time.perf_counter() - t0
 
-    flight = call("ingest", recording)
+    flight = call(INGEST, recording)
     timings["ingest"] += stages.validated_read_s()  # read before the flow started
     despiked = None
     if cfg["despike"]["enabled"]:  # every later stage sees the despiked scalar
-        flight, despiked = call("despike", flight, cfg)
-    seg, why = call("segment", flight)
-    runs: dict[str, Any] = {}
-    audit = vector = map_run = quality = None
+        flight, despiked = call(DESPIKE, flight, cfg)
+    seg, why = call(SEGMENT, flight)
+    res = stages.FlightResults(flight, seg, why, despiked=despiked)
     if seg is not None and flight.has("vector_x_nT") and seg.passes():
         for m in stages.configured_models(flight, cfg):
-            runs[m] = call("compensate", flight, seg, m, cfg)
+            res.runs[m] = call(COMPENSATE, flight, seg, m, cfg)
         if cfg["audit"]["enabled"]:
-            audit = call("audit", flight, seg, cfg)
+            res.audit = call(AUDIT, flight, seg, cfg)
     if cfg["vector"]["enabled"] and flight.has("vector_x_nT", "roll_deg"):
-        vector = call("vector", flight, seg, cfg)
-    final = stages.final_field(runs, audit)
+        res.vector = call(VECTOR, flight, seg, cfg)
+    final = stages.final_field(res.runs, res.audit)
     if (
         final is not None
         and seg is not None
         and seg.mask("survey").sum() > 100
         and flight.has("lat_deg", "alt_m")
     ):
-        map_run = call("map", flight, seg, final[1], cfg)
-        quality = call("quality", flight, seg, runs, audit, cfg)
-    nav = None
+        res.map_run = call(MAP, flight, seg, final[1], cfg)
+        res.quality = call(QUALITY, flight, seg, res.runs, res.audit, cfg)
     if cfg["navigate"]["enabled"]:  # skipped (one log line) without validation lines or map
-        nav = (
-            call("navigate", flight, seg, final[1], map_run, cfg)
-            if map_run is not None
+        res.nav = (
+            call(NAVIGATE, flight, seg, final[1], res.map_run, cfg)
+            if res.map_run is not None
             else "no map"
         )
-    return call(
-        "write",
-        recording,
-        out_dir,
-        cfg,
-        flight,
-        seg,
-        why,
-        runs,
-        audit,
-        vector,
-        map_run,
-        quality,
-        timings,
-        despiked,
-        nav,
-    )
+    return call(WRITE, recording, out_dir, cfg, res, timings)
 
 
 # --------------------------------------------------------------------------------------------
 install_one_line_errors()
-
-STAGE_FUNCTIONS: dict[str, Callable[..., Any]] = {
-    "ingest": stages.ingest_stage,
-    "despike": stages.despike_stage,
-    "segment": stages.try_segment,
-    "compensate": stages.compensate_stage,
-    "audit": stages.audit_stage,
-    "vector": stages.vector_stage,
-    "map": stages.map_stage,
-    "quality": stages.quality_stage,
-    "navigate": stages.navigate_stage,
-    "write": stages.write_stage,
-}
 
 
 def _cache_key(context, parameters) -> str:
@@ -148,7 +142,7 @@ def cache_folder(key: str) -> Path:
 
 @task(name="stage", cache_key_fn=_cache_key, persist_result=True)
 def _stage(stage: str, key: str, variant: str, args: tuple) -> Any:
-    return STAGE_FUNCTIONS[stage](*args)
+    return STEP_BY_NAME[stage].function(*args)
 
 
 @task(name="write-outputs")
@@ -164,14 +158,14 @@ def postflight(recording: str, out_dir: str, config_path: str | None = None) -> 
     cfg.validate()
     key = run_key(recording, cfg)
 
-    def call(stage: str, *args):
-        if stage == "write":
+    def call(step: Step, *args):
+        if step is WRITE:
             return _write(args)
-        variant = args[2] if stage == "compensate" else ""
+        variant = args[2] if step is COMPENSATE else ""
         t = _stage.with_options(
-            name=stage, task_run_name=f"{stage}{'-' + variant if variant else ''}"
+            name=step.name, task_run_name=f"{step.name}{'-' + variant if variant else ''}"
         )
-        return t(stage, key, variant, args)
+        return t(step.name, key, variant, args)
 
     result = postflight_steps(recording, out_dir, cfg, call)
     shutil.rmtree(cache_folder(key), ignore_errors=True)  # finished: nothing to resume
@@ -183,5 +177,5 @@ def run_plain(recording: str, out_dir: str, config_path: str | None = None) -> d
     cfg = Config.load(config_path)
     cfg.validate()
     return postflight_steps(
-        str(recording), str(out_dir), cfg, lambda stage, *args: STAGE_FUNCTIONS[stage](*args)
+        str(recording), str(out_dir), cfg, lambda step, *args: step.function(*args)
     )

@@ -7,6 +7,7 @@ hold no processing logic of their own.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -1123,31 +1124,46 @@ def output_paths(recording: str | Path, out_dir: str | Path) -> dict[str, Path]:
 DOCUMENTS = ("mcap", "summary", "report", "report_html", "layout")
 
 
+@dataclass
+class FlightResults:
+    """What the post-flight steps made of one flight, handed to :func:`write_stage`.
+
+    ``runs``: each configured model's compensation (model name -> run); ``audit``, ``vector``,
+    ``map_run``, ``quality``: the stages' results (None: not run); ``despiked``: the despike
+    step's result; ``nav``: :func:`navigate_stage`'s result (a run, a skip reason, or None:
+    not enabled); ``why``: why segmentation failed ("" when it did not).
+    """
+
+    flight: Flight
+    seg: Any = None  # pipeline.segment.Segmentation
+    why: str = ""
+    runs: dict[str, CompensationRun] = field(default_factory=dict)
+    audit: Any = None  # pipeline.audit.AuditResult
+    vector: Any = None  # pipeline.vector.stage.VectorRun
+    map_run: Any = None  # pipeline.maps.stage.MapRun
+    quality: Any = None  # pipeline.quality.QualityRun
+    despiked: DespikeResult | None = None
+    nav: Any = None  # pipeline.navigation.stage.NavigationRun | str
+
+
 def write_stage(
     recording: str,
     out_dir: str,
     cfg,
-    flight: Flight,
-    seg,
-    why: str,
-    runs: dict,
-    audit,
-    vector,
-    map_run,
-    quality,
+    results: FlightResults,
     timings: dict[str, float] | None = None,
-    despiked: DespikeResult | None = None,
-    nav=None,
 ) -> dict[str, Any]:
     """Every output of the post-flight flow, each written atomically; the summary last (its
     presence marks the recording as done).
-
-    ``nav`` is :func:`navigate_stage`'s result (a run, a skip reason, or None: not enabled).
 
     ``timings`` (stage -> seconds of the stages before) goes into the summary as
     ``timings_s`` with this stage's own time (``write``, up to the summary itself), with the
     process's peak resident memory so far (``peak_memory_mb``)."""
     t_start = time.perf_counter()
+    r = results
+    flight, seg, why, runs = r.flight, r.seg, r.why, r.runs
+    audit, vector, map_run, quality = r.audit, r.vector, r.map_run, r.quality
+    despiked, nav = r.despiked, r.nav
     from pipeline.audit.report import figures as audit_figures
     from pipeline.audit.report import finding_channel, jsonable
     from pipeline.audit.report import log_lines as audit_log_lines

@@ -70,9 +70,9 @@ def test_a_failed_flow_resumes_from_its_last_finished_task(prefect_harness, tmp_
 
     src = tmp_path / "f.mcap"
     shutil.copy(BOX, src)
-    real = pf.STAGE_FUNCTIONS["vector"]
+    real = pf.STEP_BY_NAME["vector"]
     calls = {"ingest": 0}
-    real_ingest = pf.STAGE_FUNCTIONS["ingest"]
+    real_ingest = pf.INGEST.function
 
     def counting_ingest(*a):
         calls["ingest"] += 1
@@ -81,12 +81,13 @@ def test_a_failed_flow_resumes_from_its_last_finished_task(prefect_harness, tmp_
     def broken(*a):
         raise RuntimeError("simulated crash in the vector stage")
 
-    monkeypatch.setitem(pf.STAGE_FUNCTIONS, "ingest", counting_ingest)
-    monkeypatch.setitem(pf.STAGE_FUNCTIONS, "vector", broken)
+    # the flow's tasks run the step of their name (STEP_BY_NAME)
+    monkeypatch.setitem(pf.STEP_BY_NAME, "ingest", pf.Step("ingest", counting_ingest))
+    monkeypatch.setitem(pf.STEP_BY_NAME, "vector", pf.Step("vector", broken))
     state = pf.postflight(str(src), str(tmp_path / "out"), return_state=True)
     assert state.is_failed()
     assert not (tmp_path / "out" / "f.summary.json").exists()
-    monkeypatch.setitem(pf.STAGE_FUNCTIONS, "vector", real)
+    monkeypatch.setitem(pf.STEP_BY_NAME, "vector", real)
     state2 = pf.postflight(str(src), str(tmp_path / "out"), return_state=True)
     assert state2.is_completed()
     assert calls["ingest"] == 1  # not run again: its persisted result was used
