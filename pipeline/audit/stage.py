@@ -79,14 +79,6 @@ from pipeline.flight import Flight
 from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
 from pipeline.segment import Segmentation
 
-EFFECTS = (
-    "geomagnetic_gradient",
-    "sensor_lag",
-    "diurnal",
-    "electrical_current",
-    "vector_calibration",
-)
-
 
 @dataclass
 class AuditSettings:

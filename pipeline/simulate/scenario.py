@@ -20,15 +20,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any
 
+from pipeline.effects import EFFECTS
 from pipeline.errors import AeromagError
-
-EFFECTS = (
-    "geomagnetic_gradient",
-    "sensor_lag",
-    "diurnal",
-    "electrical_current",
-    "vector_calibration",
-)
 
 _COMMON: dict[str, Any] = {
     "name": "custom",
