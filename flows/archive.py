@@ -347,6 +347,27 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+def start_prefect_server(env: dict[str, str] | None = None) -> tuple[str, subprocess.Popen]:
+    """Start ``prefect server`` on a free 127.0.0.1 port (analytics off) in its own session;
+    returns its API URL and the process (the caller waits for it: :func:`wait_healthy`, and
+    terminates it). ``env``: the server's environment (default: this process's)."""
+    port = _free_port()
+    env = {
+        **(os.environ if env is None else env),
+        "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+        "DO_NOT_TRACK": "1",
+    }
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "prefect", "server", "start"]
+        + ["--host", "127.0.0.1", "--port", str(port)],
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    return f"http://127.0.0.1:{port}/api", proc
+
+
 @contextlib.contextmanager
 def prefect_api(timeout_s: float = 90.0) -> Iterator[str]:
     """A Prefect API for flows whose tasks run in other processes (Dask workers, served
@@ -357,26 +378,7 @@ def prefect_api(timeout_s: float = 90.0) -> Iterator[str]:
     if url:
         yield url
         return
-    port = _free_port()
-    url = f"http://127.0.0.1:{port}/api"
-    env = {**os.environ, "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1"}
-    proc = subprocess.Popen(
-        [
-            sys.executable,
-            "-m",
-            "prefect",
-            "server",
-            "start",
-            "--host",
-            "127.0.0.1",
-            "--port",
-            str(port),
-        ],
-        env=env,
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-        start_new_session=True,
-    )
+    url, proc = start_prefect_server()
     try:
         wait_healthy(url, timeout_s, proc)
         os.environ["PREFECT_API_URL"] = url
