@@ -248,22 +248,27 @@ def test_minimum_curvature_reproduces_a_smooth_field():
 
 
 # ------------------------------------------------------------------------------------------
+# two induced sources 300-500 m deep under the uav-small block (a negative margin keeps them
+# inside it): geology the 50 m lines resolve, the largest anomaly an interior peak
+MAPPED_SURVEY = (
+    "uav-small",
+    7,
+    [
+        "anomaly.depth_m=[300.0, 500.0]",
+        "anomaly.dipoles=2",
+        "anomaly.moment_A_m2=[2.0e7, 5.0e7]",
+        "anomaly.margin_m=-100.0",
+        "anomaly.remanent_fraction=0.0",
+    ],
+)
+
+
 @pytest.fixture(scope="module")
 def mapped(tmp_path_factory):
     """A UAV survey over geology the 50 m lines resolve: two induced sources 300-500 m deep
     under the block (a negative margin keeps them inside it), so the largest anomaly is an
     interior peak."""
-    sim = run_sim(
-        "uav-small",
-        7,
-        [
-            "anomaly.depth_m=[300.0, 500.0]",
-            "anomaly.dipoles=2",
-            "anomaly.moment_A_m2=[2.0e7, 5.0e7]",
-            "anomaly.margin_m=-100.0",
-            "anomaly.remanent_fraction=0.0",
-        ],
-    )
+    sim = run_sim(*MAPPED_SURVEY)
     path = write_simulation(sim, tmp_path_factory.mktemp("m") / "m.mcap")
     flight = read_flight(path)
     seg = segment_flight(flight)

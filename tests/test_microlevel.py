@@ -207,19 +207,9 @@ def test_map_stage_micro_levels_a_simulated_survey_when_asked(tmp_path):
     from pipeline.segment import segment_flight
     from pipeline.simulate import write_simulation
     from tests.conftest import run_sim
-    from tests.test_maps import truth_on
+    from tests.test_maps import MAPPED_SURVEY, truth_on
 
-    sim = run_sim(
-        "uav-small",
-        7,
-        [
-            "anomaly.depth_m=[300.0, 500.0]",
-            "anomaly.dipoles=2",
-            "anomaly.moment_A_m2=[2.0e7, 5.0e7]",
-            "anomaly.margin_m=-100.0",
-            "anomaly.remanent_fraction=0.0",
-        ],
-    )
+    sim = run_sim(*MAPPED_SURVEY)
     flight = read_flight(write_simulation(sim, tmp_path / "m.mcap"))
     seg = segment_flight(flight)
     comp = run_compensation(flight, seg, FitSettings(model="agg-tl")).compensated_nT
