@@ -23,7 +23,7 @@ from report import finish
 from pipeline.io.inspect import inspect_recording
 from pipeline.io.reader import read_flight
 from pipeline.io.writer import write_with_new_channels
-from pipeline.report import ingest_lines, log_channel
+from pipeline.products.log import ingest_lines, log_channel
 from pipeline.simulate import Scenario, simulate, write_simulation
 
 

@@ -31,7 +31,7 @@ from flows.errors import install_one_line_errors
 from pipeline.config import Config
 from pipeline.errors import AeromagError
 from pipeline.io.writer import write_json_atomic, write_text_atomic
-from pipeline.report import sha256_file
+from pipeline.products.summary import sha256_file
 
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 INDEX_FIELDS = [

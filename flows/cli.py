@@ -199,6 +199,11 @@ def inspect(
     say("contract: ok")
 
 
+# the arguments and options several commands share, written once
+RecordingArg = Annotated[Path, typer.Argument(help="Flight recording (.mcap).")]
+ProcessedArg = Annotated[Path, typer.Argument(help="Processed recording (.processed.mcap).")]
+OutRecording = Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")]
+SummaryJson = Annotated[Path, typer.Option("--json", help="Summary JSON to write.")]
 ConfigOption = Annotated[
     Path | None,
     typer.Option(
@@ -244,9 +249,9 @@ def _stage_config(config: Path | None, options: dict[str, tuple[str, object]]):
 
 @app.command()
 def compensate(
-    recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
-    out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
-    json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write.")],
+    recording: RecordingArg,
+    out_path: OutRecording,
+    json_out: SummaryJson,
     model: Annotated[
         str | None,
         typer.Option(
@@ -324,9 +329,9 @@ def compensate(
 
 @app.command("map")
 def map_(
-    recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
-    out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
-    json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write.")],
+    recording: RecordingArg,
+    out_path: OutRecording,
+    json_out: SummaryJson,
     cell: Annotated[
         float | None, typer.Option(help="Cell size, m; 0: line spacing / 4 (config: map.cell_m).")
     ] = None,
@@ -383,7 +388,7 @@ def map_(
 
 @app.command()
 def export(
-    recording: Annotated[Path, typer.Argument(help="Processed recording (.processed.mcap).")],
+    recording: ProcessedArg,
     out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")],
     formats: Annotated[
         str,
@@ -410,8 +415,8 @@ def export(
 
 @app.command()
 def enhance(
-    recording: Annotated[Path, typer.Argument(help="Processed recording (.processed.mcap).")],
-    out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
+    recording: ProcessedArg,
+    out_path: OutRecording,
     products: Annotated[
         str | None,
         typer.Option(
@@ -541,7 +546,7 @@ def _print_quality(q: dict) -> None:
 
 @app.command()
 def audit(
-    recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
+    recording: RecordingArg,
     json_out: Annotated[Path, typer.Option("--json", help="AUDIT.json to write.")],
     report: Annotated[
         Path, typer.Option("--report", help="Folder for report.md and the PNG figures.")
@@ -666,9 +671,9 @@ def _print_audit(j: dict) -> None:
 
 @app.command()
 def vector(
-    recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
-    out_path: Annotated[Path, typer.Option("--out", help="Output recording (.mcap).")],
-    json_out: Annotated[Path, typer.Option("--json", help="Summary JSON to write.")],
+    recording: RecordingArg,
+    out_path: OutRecording,
+    json_out: SummaryJson,
     method: Annotated[
         str | None,
         typer.Option(
@@ -784,7 +789,7 @@ def config() -> None:
 
 @app.command()
 def process(
-    recording: Annotated[Path, typer.Argument(help="Flight recording (.mcap).")],
+    recording: RecordingArg,
     out_dir: Annotated[Path, typer.Option("--out", help="Output folder.")],
     config: ConfigOption = None,
 ) -> None:
@@ -962,7 +967,7 @@ def layout(
     Open the recording in Foxglove, then Layouts -> Import from file... -> this file.
     """
     from pipeline.io.writer import write_json_atomic
-    from pipeline.viewer_layout import layout_panels, recording_layout
+    from pipeline.products.layout import layout_panels, recording_layout
 
     doc = recording_layout(file)
     write_json_atomic(out_path, doc)

@@ -30,7 +30,7 @@ from prefect import flow, task
 from flows import stages
 from flows.errors import install_one_line_errors
 from pipeline.config import Config
-from pipeline.report import sha256_file
+from pipeline.products.summary import sha256_file
 
 
 @dataclass(frozen=True)

@@ -14,14 +14,12 @@ from typing import Any
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pipeline import __version__
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import CompensationRun, run_compensation
 from pipeline.config import Config
 from pipeline.despike import DespikeResult, despike_flight
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
-from pipeline.html_report import render_html
 from pipeline.io.reader import read_flight
 from pipeline.io.writer import (
     OutputChannel,
@@ -32,37 +30,41 @@ from pipeline.io.writer import (
 )
 from pipeline.maps.grid import Grid
 from pipeline.maps.stage import MapSettings, build_map
-from pipeline.outputs import (
+from pipeline.products.channels import (
     compensated_channel,
-    crossover_channel,
+    enhancement_channels,
     field_channel,
-    grid_channel,
-    heading_error_channel,
-    line_samples_channel,
-    map_frame_channel,
+    map_channels,
     model_message,
+    quality_channels,
     segment_channel,
-    tracks_channel,
     vector_channel,
 )
-from pipeline.plots import (
-    crossover_figure,
-    heading_error_figure,
+from pipeline.products.figures import (
+    enhancement_figures,
+    flight_map,
     lcurve_figure,
-    map_figure,
-    profile_figure,
+    map_figures,
+    navigation_figures,
+    quality_figures,
 )
-from pipeline.quality.stage import QualityRun, QualitySettings, fom_table, run_quality
-from pipeline.report import (
+from pipeline.products.html import render_html
+from pipeline.products.layout import recording_layout
+from pipeline.products.log import (
     LOG_INFO,
     LOG_WARNING,
-    flight_summary,
+    compensation_lines,
+    despike_lines,
     ingest_lines,
     log_channel,
-    run_metadata,
+    map_lines,
+    navigation_lines,
+    quality_lines,
 )
+from pipeline.products.markdown import report_markdown
+from pipeline.products.summary import build_summary, jsonable, run_metadata
+from pipeline.quality.stage import QualityRun, QualitySettings, fom_table, run_quality
 from pipeline.segment import Segmentation, segment_flight
-from pipeline.viewer_layout import recording_layout
 
 
 def try_segment(flight: Flight) -> tuple[Segmentation | None, str]:
@@ -100,40 +102,6 @@ def read_despiked(
     return flight, res, despike_lines(res)
 
 
-def compensation_lines(run: CompensationRun) -> list[tuple[int, str]]:
-    """Log lines of a compensation run: terms, lambda, fit residual and FOM (nT), the
-    AGG-TL gradient (nT/m, east / north / up) and the calibration warnings.
-
-    Returns
-    -------
-    list of (int, str)
-        ``(level, text)`` pairs.
-    """
-    m = run.model
-    fom = run.fom.total if run.fom else None
-    text = (
-        f"compensate: {m.model}: {len(m.terms)} terms, lambda {m.lambda_:.3g}, "
-        f"{m.n_fit} samples, fit residual {m.fit_residual_nT:.4f} nT"
-    )
-    if fom and fom["uncompensated"] is not None:
-        text += f", FOM {fom['uncompensated']:.2f} -> {fom['compensated']:.2f} nT"
-    lines = [(LOG_INFO, text)]
-    g = m.gradient_nT_per_m()
-    if g:
-        lines.append(
-            (
-                LOG_INFO,
-                f"compensate: {m.model}: gradient at the calibration site "
-                f"{g['east']:.3f} E, {g['north']:.3f} N, {g['up']:.3f} U nT/m",
-            )
-        )
-    if run.check is not None:
-        lines += [
-            (LOG_WARNING, f"compensate: calibration warning: {w}") for w in run.check.warnings
-        ]
-    return lines
-
-
 def compensate_recording(
     src: Path,
     dst: Path,
@@ -163,22 +131,22 @@ def compensate_recording(
     if seg is not None:
         channels.append(segment_channel(flight, seg))
     channels += [compensated_channel(flight, run), model_message(flight, run)]
-    summary = {
-        "aeromag_version": __version__,
-        **run.summary(),
-        "calibration": calibration,
-        "scalar_topic": flight.topic_of["scalar"],
-        "vector_topic": flight.topic_of.get("vector"),
-        "input": flight_summary(flight),
-    }
-    if despiked is not None:
-        summary["despike"] = despiked.summary()
+    extra: dict[str, Any] = {}
     if run.model.lcurve is not None:
         png = summary_path.with_name(summary_path.stem + ".lcurve.png")
         save_figure(lcurve_figure(run.model.lcurve, f"L-curve, {run.model.model}"), png)
-        summary["lcurve_png"] = str(png)
+        extra["lcurve_png"] = str(png)
     write_with_new_channels(src, dst, channels, metadata={"aeromag.run": run_metadata()})
-    summary["outputs"] = {"mcap": str(dst), "summary": str(summary_path)}
+    summary = build_summary(
+        flight,
+        despiked=despiked,
+        **run.summary(),
+        calibration=calibration,
+        scalar_topic=flight.topic_of["scalar"],
+        vector_topic=flight.topic_of.get("vector"),
+        **extra,
+        outputs={"mcap": dst, "summary": summary_path},
+    )
     write_json_atomic(summary_path, summary)
     return summary
 
@@ -220,123 +188,6 @@ def existing_compensated(flight: Flight) -> dict[str, np.ndarray]:
             left=np.nan,
             right=np.nan,
         )
-    return out
-
-
-def map_channels(flight: Flight, seg: Segmentation, mr) -> list[OutputChannel]:
-    """Output channels of a map run: ``/map/frame`` (the grids' georeference),
-    ``/map/anomaly``, ``/map/anomaly_filtered`` (``foxglove.Grid``), ``/map/lines`` (the
-    levelled line samples) and ``/map/tracks`` (``foxglove.GeoJSON``).
-    """
-    t0 = int(flight.time_ns[0])
-    return [
-        map_frame_channel(mr, t0),
-        grid_channel("/map/anomaly", t0, mr.grid),
-        grid_channel("/map/anomaly_filtered", t0, mr.filtered),
-        line_samples_channel(flight, mr),
-        tracks_channel(flight, seg, t0),
-    ]
-
-
-def map_figures(mr) -> dict[str, object]:
-    """Figures of a map run (levelled anomaly and ARIMA-Kalman filtered, one colour scale
-    from the 1st-99th percentile, nT).
-
-    Returns
-    -------
-    dict of str to Figure
-        ``anomaly``, ``anomaly_filtered``.
-    """
-    lo, hi = np.nanpercentile(mr.grid.values, [1, 99])
-    return {
-        "anomaly": map_figure(mr.grid, mr.lines, "levelled anomaly (nT)", lo, hi),
-        "anomaly_filtered": map_figure(
-            mr.filtered, mr.lines, f"ARIMA{tuple(mr.model.order)} + Kalman filtered", lo, hi
-        ),
-    }
-
-
-def map_lines(mr) -> list[tuple[int, str]]:
-    """Log lines of a map run: grid size and cell (m), crossover RMS before and after
-    leveling (nT), ARIMA order and coefficients, Kalman measurement noise (nT).
-
-    Returns
-    -------
-    list of (int, str)
-        ``(level, text)`` pairs.
-    """
-    s = mr.summary()
-    return [
-        (
-            LOG_INFO,
-            f"map: grid {s['grid_shape'][0]} x {s['grid_shape'][1]} cells of "
-            f"{s['cell_m']:.2f} m, line spacing {s['line_spacing_m']:.1f} m",
-        ),
-        (
-            LOG_INFO,
-            f"map: crossover RMS {s['crossover_rms_nT']['before']:.3f} -> "
-            f"{s['crossover_rms_nT']['after']:.3f} nT "
-            f"({s['leveling']['crossovers']} crossovers)",
-        ),
-        (
-            LOG_INFO,
-            f"map: ARIMA{tuple(s['arima_order'])} "
-            f"ar {np.round(s['arima_coefficients']['ar'], 4).tolist()} "
-            f"ma {np.round(s['arima_coefficients']['ma'], 4).tolist()}; "
-            f"Kalman measurement noise {s['kalman']['measurement_noise_nT']:.3f} nT",
-        ),
-    ] + microlevel_lines(s["microlevel"])
-
-
-def microlevel_lines(m: dict[str, Any]) -> list[tuple[int, str]]:
-    """Log line of the micro-levelling (the map summary's ``microlevel`` block): the
-    corrugation removed (RMS of the correction, nT), its largest value and the grid change.
-
-    Returns
-    -------
-    list of (int, str)
-        One ``(level, text)`` pair, none when micro-levelling was off.
-    """
-    if not m.get("enabled"):
-        return []
-    return [
-        (
-            LOG_INFO,
-            f"map: micro-levelling removed {m['correction_rms_nT']:.3f} nT RMS of corrugation "
-            f"(max {m['correction_max_abs_nT']:.3f} nT, {100 * m['clipped_fraction']:.1f} % "
-            f"clipped at {m['clip_nT']:g} nT; cut-off {m['wavelength_m']:.0f} m across, "
-            f"{m['along_m']:.0f} m along); grid changed {m['grid_change_rms_nT']:.3f} nT RMS",
-        )
-    ]
-
-
-ENHANCE_LABELS = {
-    "rtp_nT": "reduced to the pole (nT)",
-    "vertical_derivative_nT_per_m": "vertical derivative, upward (nT/m)",
-    "horizontal_derivative_nT_per_m": "total horizontal derivative (nT/m)",
-    "tilt_deg": "tilt angle (deg)",
-    "analytic_signal_nT_per_m": "analytic signal amplitude (nT/m)",
-}
-
-
-def enhancement_channels(grids: dict[str, Grid], settings, time_ns: int) -> list[OutputChannel]:
-    """``foxglove.Grid`` channels of enhancement grids (topic -> grid), field names from
-    the settings' products."""
-    names = {p.topic: p.field_name for p in settings.products}
-    return [grid_channel(t, time_ns, g, names[t]) for t, g in grids.items()]
-
-
-def enhancement_figures(grids: dict[str, Grid], settings, lines) -> dict[str, object]:
-    """One figure per enhancement grid (``enhance_<channel name>``; colour scale from the
-    1st-99th percentile)."""
-    names = {p.topic: p.field_name for p in settings.products}
-    out = {}
-    for topic, g in grids.items():
-        field_name = names[topic]
-        label = ENHANCE_LABELS.get(field_name, field_name.replace("_nT", " (nT)"))
-        lo, hi = np.nanpercentile(g.values, [1, 99])
-        name = topic.removeprefix("/map/")
-        out[f"enhance_{name}"] = map_figure(g, lines, name.replace("_", " "), lo, hi, label)
     return out
 
 
@@ -455,13 +306,11 @@ def map_recording(
         raise AeromagError(f"mapping needs the flight lines: {why}", file=src, channel="/gnss/fix")
     present = set(flight.all_topics)
     lines = ingest_lines(flight)
-    summary: dict[str, Any] = {"aeromag_version": __version__, "input": flight_summary(flight)}
     comp, more, channels, comp_summary = final_compensation(flight, seg, cfg, "map")
     if comp_summary is not None:  # compensated here, from the despiked record
         lines += dlines
-        if despiked is not None:
-            summary["despike"] = despiked.summary()
-        summary["compensation"] = comp_summary
+    else:
+        despiked = None  # the recording's own /mag/compensated was used
     lines += more
     mr = build_map(flight, seg, comp, settings)
     lines += map_lines(mr)
@@ -479,12 +328,13 @@ def map_recording(
         channels,
         metadata={"aeromag.run": run_metadata()},
     )
-    summary.update(
-        {
-            "map": mr.summary(),
-            "figures": figures,
-            "outputs": {"mcap": str(dst), "summary": str(summary_path)},
-        }
+    summary = build_summary(
+        flight,
+        despiked=despiked,
+        compensation=comp_summary,
+        map_run=mr,
+        figures=figures,
+        outputs={"mcap": dst, "summary": summary_path},
     )
     write_json_atomic(summary_path, summary)
     return summary
@@ -539,106 +389,6 @@ def tl_alias(fields: dict[str, np.ndarray], base: str | None = None) -> str | No
     shipped ``compensation.agg_base``)."""
     base = base or FitSettings(model="agg-tl").base
     return base if base in fields else next((m for m in ("tl18", "tl16") if m in fields), None)
-
-
-def quality_lines(q: QualityRun) -> list[tuple[int, str]]:
-    """Log lines of a quality run: heading-error RMS (nT) at intersections, overlap pairs
-    and against the interpolated map, crossover RMS, noise and QC checks out of tolerance.
-
-    Returns
-    -------
-    list of (int, str)
-        ``(level, text)`` pairs (warnings for failed checks).
-    """
-    s = q.summary()
-
-    def row(d):
-        return ", ".join(f"{k} {v:.3f}" if v is not None else f"{k} -" for k, v in d.items())
-
-    out = [
-        (
-            LOG_INFO,
-            f"quality: heading error RMS at {s['overlap_pairs']} pairs closer than "
-            f"{s['overlap_m']:g} m (paper 002's statistic, nT): "
-            f"{row(s['overlap_pair_rms_nT'])}",
-        ),
-        (
-            LOG_INFO,
-            f"quality: heading error RMS at {s['intersections']} track "
-            f"intersections (ours, nT): {row(s['intersection_rms_nT'])}",
-        ),
-        (LOG_INFO, f"quality: headline heading_error_rms_nT = {s['heading_error_method']}"),
-        (
-            LOG_INFO,
-            f"quality: validation vs interpolated map RMS (nT): {row(s['interpolated_rms_nT'])}",
-        ),
-    ]
-    xo = s["crossover_rms_nT"]
-    if xo["before"] is not None:
-        out.append(
-            (
-                LOG_INFO,
-                f"quality: crossover RMS {xo['before']:.3f} -> {xo['after']:.3f} "
-                f"nT ({s['crossovers']['count']} crossovers)",
-            )
-        )
-    qc = s["qc"]
-    noise = qc["noise"]
-    if noise.get("median_nT") is not None:
-        out.append(
-            (
-                LOG_WARNING if noise["lines_over"] else LOG_INFO,
-                f"quality: 4th-difference noise median {noise['median_nT']:.4f} nT, max "
-                f"{noise['max_nT']:.4f} nT; lines over {noise['threshold_nT']:g} nT: "
-                f"{', '.join(noise['lines_over']) or 'none'}",
-            )
-        )
-    for key, what in (
-        ("flight_height", "lines_over"),
-        ("line_spacing", "pairs_over"),
-        ("speed", "spans"),
-        ("diurnal", "spans_over"),
-    ):
-        bad = qc.get(key, {}).get(what) or []
-        if bad:
-            shown = ", ".join(
-                str(b if isinstance(b, str) else b.get("line_id", b)) for b in bad[:6]
-            )
-            out.append(
-                (
-                    LOG_WARNING,
-                    f"quality: {key.replace('_', ' ')} out of tolerance: "
-                    f"{shown}{' ...' if len(bad) > 6 else ''}",
-                )
-            )
-    out += [(LOG_WARNING, f"quality: {n}") for n in q.notes]
-    return out
-
-
-def quality_figures(q: QualityRun) -> dict[str, object]:
-    """Figures of a quality run.
-
-    Returns
-    -------
-    dict of str to Figure
-        ``heading_error``, ``validation_profiles``, ``crossovers``.
-    """
-    s = q.summary()
-    states = [st for st in q.states if st != "raw"] or q.states
-    return {
-        "heading_error": heading_error_figure(s),
-        "validation_profiles": profile_figure(q.profiles, states),
-        "crossovers": crossover_figure(
-            [t for t in q.tracks if t.kind != "validation"],
-            q.leveling,
-            f"tie-line crossovers ({s['qc']['field']})",
-        ),
-    }
-
-
-def quality_channels(flight: Flight, q: QualityRun) -> list[OutputChannel]:
-    """Output channels of a quality run: ``/quality/heading_error``, ``/quality/crossovers``."""
-    return [heading_error_channel(flight, q), crossover_channel(flight, q)]
 
 
 def _refuse_existing(
@@ -699,15 +449,7 @@ def quality_recording(
         name: str(save_figure(fig, summary_path.with_name(f"{summary_path.stem}.{name}.png")))
         for name, fig in quality_figures(q).items()
     }
-    summary: dict[str, Any] = {
-        "aeromag_version": __version__,
-        "input": flight_summary(flight),
-        "quality": q.summary(),
-        "figures": figures,
-        "outputs": {"summary": str(summary_path)},
-    }
-    if despiked is not None:
-        summary["despike"] = despiked.summary()
+    outputs = {"summary": summary_path}
     if out is not None:
         present = set(flight.all_topics)
         channels = [log_channel(flight, lines, "quality"), *quality_channels(flight, q)]
@@ -717,7 +459,8 @@ def quality_recording(
             channels += _model_channels(flight, fitted, None)[0]
         _refuse_existing(src, channels, present, "give an unprocessed recording")
         write_with_new_channels(src, out, channels, metadata={"aeromag.run": run_metadata()})
-        summary["outputs"]["mcap"] = str(out)
+        outputs["mcap"] = out
+    summary = build_summary(flight, despiked=despiked, quality=q, figures=figures, outputs=outputs)
     write_json_atomic(summary_path, summary)
     return summary
 
@@ -736,7 +479,7 @@ def audit_recording(
     """``aeromag audit``: baseline, candidate effects, extended model, gain, report (the
     scalar despiked first when the configuration's ``despike.enabled``, as ``process``)."""
     from pipeline.audit import run_audit
-    from pipeline.audit.report import figures, finding_channel, jsonable, log_lines, markdown
+    from pipeline.audit.report import figures, finding_channel, log_lines, markdown
 
     flight, despiked, dlines = read_despiked(src, cfg)
     seg, why = try_segment(flight)
@@ -751,17 +494,13 @@ def audit_recording(
         name: save_figure(fig, report_dir / f"audit_{name}.png").name
         for name, fig in figures(res, flight).items()
     }
-    j = res.to_json()
-    j["input"] = flight_summary(flight)
-    j["aeromag_version"] = __version__
-    if despiked is not None:
-        j["despike"] = despiked.summary()
     text = markdown(res, Path(src).name, images)
     write_text_atomic(report_dir / "report.md", text)
-    j["report"] = {
+    report = {
         "markdown": str(report_dir / "report.md"),
         "figures": {k: str(report_dir / v) for k, v in images.items()},
     }
+    outputs = None
     if out is not None:
         present = set(flight.all_topics)
         lines = ingest_lines(flight) + dlines + log_lines(res)
@@ -778,8 +517,11 @@ def audit_recording(
                 channels.append(field_channel(flight, topic, comp, None, model))
         _refuse_existing(src, channels, present, "audit the unprocessed recording")
         write_with_new_channels(src, out, channels, metadata={"aeromag.run": run_metadata()})
-        j["outputs"] = {"mcap": str(out)}
-    j = jsonable(j)  # NaN (an untestable candidate's figures) becomes null
+        outputs = {"mcap": out}
+    # NaN (an untestable candidate's figures) becomes null
+    j = build_summary(
+        flight, despiked=despiked, audit=res, audit_full=True, report=report, outputs=outputs
+    )
     write_json_atomic(json_path, j)
     return j
 
@@ -814,12 +556,7 @@ def vector_recording(src: Path, dst: Path, summary_path: Path, method: str) -> d
     channels = [log_channel(flight, lines, "vector"), ch]
     channels = [c for c in channels if c.topic not in present]
     write_with_new_channels(src, dst, channels, metadata={"aeromag.run": run_metadata()})
-    summary = {
-        "aeromag_version": __version__,
-        "input": flight_summary(flight),
-        "vector": s,
-        "outputs": {"mcap": str(dst), "summary": str(summary_path)},
-    }
+    summary = build_summary(flight, vector=run, outputs={"mcap": dst, "summary": summary_path})
     write_json_atomic(summary_path, summary)
     return summary
 
@@ -909,22 +646,6 @@ def despike_stage(flight: Flight, cfg) -> tuple[Flight, DespikeResult]:
     DespikeResult
     """
     return despike_flight(flight, cfg.despike_settings())
-
-
-def despike_lines(res: DespikeResult | None) -> list[tuple[int, str]]:
-    """Log line of the despike step: spikes found (count, fraction, largest, nT)."""
-    if res is None:
-        return []
-    s = res.summary()
-    text = (
-        f"despike: {s['spikes']} spikes ({100 * s['fraction']:.3f} % of samples) above "
-        f"{s['threshold_sigma']:g} sigma of the 4th difference; noise {s['noise_nT']:.4f} nT"
-    )
-    if s["spikes"]:
-        text += f", largest {s['max_abs_amplitude_nT']:.2f} nT"
-    if s["steps_left"]:
-        text += f"; {s['steps_left']} level steps left alone"
-    return [(LOG_WARNING if s["fraction"] > 0.01 else LOG_INFO, text)]
 
 
 def compensate_stage(flight: Flight, seg: Segmentation, model: str, cfg) -> CompensationRun:
@@ -1027,32 +748,6 @@ def navigate_stage(flight: Flight, seg: Segmentation | None, comp: np.ndarray, m
         return exc.problem
     except (ValueError, np.linalg.LinAlgError) as exc:  # reported; the other outputs go on
         return f"{type(exc).__name__}: {exc}"
-
-
-def navigation_lines(nav) -> list[tuple[int, str]]:
-    """Log lines of :func:`navigate_stage`'s result."""
-    if isinstance(nav, str):
-        return [(LOG_INFO, f"navigate: skipped: {nav}")]
-    d, st = nav.summary()["drms_m"], nav.settings
-    return [
-        (
-            LOG_INFO,
-            f"navigate: {st.filter} on validation with a {st.ins}-grade INS (seed {st.seed}): "
-            f"DRMS INS-only {d['ins_only']:.1f} m, map-aided {d['map_aided']:.2f} m, "
-            f"CRLB {d['crlb']:.2f} m",
-        )
-    ] + [(LOG_INFO, f"navigate: {n}") for n in nav.notes]
-
-
-def navigation_figures(nav) -> dict[str, object]:
-    """The track plot (reference, INS, map-aided over the map) and error against time with
-    the CRLB."""
-    from pipeline.plots import navigation_error_figure, navigation_track_figure
-
-    return {
-        "navigation_track": navigation_track_figure(nav),
-        "navigation_error": navigation_error_figure(nav),
-    }
 
 
 def quality_stage(flight: Flight, seg: Segmentation, runs: dict, audit, cfg) -> QualityRun:
@@ -1165,7 +860,7 @@ def write_stage(
     audit, vector, map_run, quality = r.audit, r.vector, r.map_run, r.quality
     despiked, nav = r.despiked, r.nav
     from pipeline.audit.report import figures as audit_figures
-    from pipeline.audit.report import finding_channel, jsonable
+    from pipeline.audit.report import finding_channel
     from pipeline.audit.report import log_lines as audit_log_lines
 
     stem = Path(recording).stem
@@ -1174,44 +869,29 @@ def write_stage(
     lines = ingest_lines(flight)
     if why:
         lines.append((LOG_INFO, why))
-    summary: dict[str, Any] = {
-        "aeromag_version": __version__,
-        "input": flight_summary(flight),
-        "config": {"version": cfg["config_version"], "hash": cfg.hash, "source": cfg.source},
-    }
     channels: list[OutputChannel] = []
     figures: dict[str, Any] = {}
-    if despiked is not None:
-        lines += despike_lines(despiked)
-        summary["despike"] = despiked.summary()
+    compensation, grids = None, {}
+    lines += despike_lines(despiked)
     if seg is not None:
         channels.append(segment_channel(flight, seg))
         if (
             flight.has("lat_deg", "lon_deg")
             and np.isfinite(flight.data[["lat_deg", "lon_deg"]].to_numpy(float)).all(axis=1).any()
         ):
-            figures["flight_map"] = _flight_map(flight, seg)
-        summary["segments"] = {
-            "source": seg.source,
-            "epochs": {
-                lab: int(seg.mask(lab).sum())
-                for lab in ("calibration", "survey", "tie", "validation", "turn", "transit")
-            },
-            "calibration_passes": len(seg.passes()),
-            "boxes": len(seg.boxes()),
-        }
+            figures["flight_map"] = flight_map(flight, seg)
     if runs:
         for run in runs.values():
             lines += compensation_lines(run)
         model_channels, final = _model_channels(flight, runs, audit)
         channels += model_channels
-        summary["compensation"] = {"final": final, **{m: r.summary() for m, r in runs.items()}}
+        compensation = {"final": final, **{m: r.summary() for m, r in runs.items()}}
         last = list(runs.values())[-1]
         if last.model.lcurve is not None:
             figures["lcurve"] = lcurve_figure(last.model.lcurve, f"L-curve, {last.model.model}")
         t = flight.data["time_s"].to_numpy()
         from pipeline.compensate import bandpassed
-        from pipeline.plots import compensation_figure
+        from pipeline.products.figures import compensation_figure
 
         band, poles = fom_settings(cfg)  # the configured band, as every FOM
         figures["compensation"] = compensation_figure(
@@ -1224,21 +904,6 @@ def write_stage(
     if audit is not None:
         lines += audit_log_lines(audit)
         channels.append(finding_channel(flight, audit))
-        aj = audit.to_json()
-        summary["audit"] = jsonable(
-            {
-                k: aj[k]
-                for k in (
-                    "baseline",
-                    "findings",
-                    "extended_model",
-                    "unexplained_rms_nT",
-                    "noise_floor_nT",
-                    "unexplained",
-                    "gain",
-                )
-            }
-        )
         figures.update({f"audit_{k}": v for k, v in audit_figures(audit, flight).items()})
     if isinstance(vector, str):
         lines.append((LOG_WARNING, f"vector: skipped: {vector}"))
@@ -1246,33 +911,26 @@ def write_stage(
         channels.append(
             vector_channel(flight, vector.output_topic, vector.vectors_nT, vector.method)
         )
-        summary["vector"] = jsonable(vector.summary())
         lines.append((LOG_INFO, f"vector: {vector.method} -> {vector.output_topic}"))
     if map_run is not None:
         lines += map_lines(map_run)
         channels += map_channels(flight, seg, map_run)
-        summary["map"] = map_run.summary()
         figures.update(map_figures(map_run))
         if cfg["enhance"]["enabled"]:
             grids = enhancement_grids(map_run, cfg)
             channels += enhancement_channels(grids, cfg.enhance_settings(), int(flight.time_ns[0]))
             figures.update(enhancement_figures(grids, cfg.enhance_settings(), map_run.lines))
-            summary["map"]["enhancements"] = sorted(grids)
             lines.append((LOG_INFO, f"enhance: {', '.join(grids)}"))
     if nav is not None:
-        from pipeline.outputs import navigation_channels
+        from pipeline.products.channels import navigation_channels
 
         lines += navigation_lines(nav)
-        if isinstance(nav, str):
-            summary["navigation"] = {"skipped": nav}
-        else:
+        if not isinstance(nav, str):
             channels += navigation_channels(nav)
-            summary["navigation"] = nav.summary()
             figures.update(navigation_figures(nav))
     if quality is not None:
         lines += quality_lines(quality)
         channels += quality_channels(flight, quality)
-        summary["quality"] = quality.summary()
         figures.update(quality_figures(quality))
     channels.insert(0, log_channel(flight, lines, "postflight"))
     for name, fig in figures.items():
@@ -1285,6 +943,19 @@ def write_stage(
         }
     }
     write_with_new_channels(recording, paths["mcap"], channels, metadata=meta)
+    summary = build_summary(
+        flight,
+        config=cfg,
+        despiked=despiked,
+        seg=seg,
+        compensation=compensation,
+        audit=audit,
+        vector=None if isinstance(vector, str) else vector,
+        map_run=map_run,
+        enhancements=list(grids),
+        navigation=nav,
+        quality=quality,
+    )
     images = {k: v for k, v in paths.items() if k not in DOCUMENTS}
     report = report_markdown(stem, summary, {k: v.name for k, v in images.items()})
     write_text_atomic(paths["report"], report)
@@ -1295,13 +966,13 @@ def write_stage(
         from pipeline.export import export_recording
 
         exports = export_recording(paths["mcap"], out, cfg["export"]["formats"])
-    summary = {
-        **summary,
-        "exports": exports,
-        "outputs": {k: str(v) for k, v in paths.items()},
-        "channels_written": sorted({c.topic for c in channels if c.messages}),
-    }
-    summary = jsonable(summary)
+    summary |= jsonable(
+        {
+            "exports": exports,
+            "outputs": paths,
+            "channels_written": sorted({c.topic for c in channels if c.messages}),
+        }
+    )
     summary["timings_s"] = {
         k: round(v, 3)
         for k, v in {**(timings or {}), "write": time.perf_counter() - t_start}.items()
@@ -1319,14 +990,6 @@ def peak_memory_mb() -> float:
     return round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1)
 
 
-def _flight_map(flight: Flight, seg):
-    from pipeline.geo.local import local_east_north
-    from pipeline.plots import flight_map_figure
-
-    e, n = local_east_north(flight.data["lat_deg"], flight.data["lon_deg"])
-    return flight_map_figure(e, n, seg.label)
-
-
 def publish_artifact(stem: str, markdown: str) -> None:
     """The report as a Prefect markdown artifact, when running inside a flow or task."""
     try:
@@ -1340,155 +1003,6 @@ def publish_artifact(stem: str, markdown: str) -> None:
 
     key = re.sub(r"[^a-z0-9-]", "-", f"aeromag-{stem}".lower())[:100]
     create_markdown_artifact(markdown=markdown, key=key, description="post-flight summary")
-
-
-def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
-    """The post-flight report: the tables people look at, and the figures."""
-
-    def f(x, fmt=".3f"):
-        return "-" if x is None else format(x, fmt)
-
-    out = [
-        f"# Post-flight report: {stem}",
-        "",
-        f"aeromag {s['aeromag_version']}, configuration {s['config']['hash'][:12]} "
-        f"(version {s['config']['version']}, {s['config']['source']})",
-        "",
-        f"Input: {s['input'].get('epochs', '-')} epochs, "
-        f"{f(s['input'].get('duration_s'), '.0f')} s, sha256 "
-        f"{s['input'].get('sha256', '')[:16]}",
-        "",
-    ]
-    d = s.get("despike")
-    if d:
-        out += [
-            "## Despiking",
-            "",
-            f"{d['spikes']} spikes ({100 * d['fraction']:.3f} % of samples) replaced before "
-            f"compensation: Hampel test at {d['threshold_sigma']:g} sigma on the 4th "
-            f"difference (window {d['window_samples']} samples); noise {f(d['noise_nT'], '.4f')} "
-            f"nT, largest spike {f(d['max_abs_amplitude_nT'], '.2f')} nT",
-            "",
-        ]
-    comp = s.get("compensation")
-    if comp:
-        out += [
-            "## Compensation",
-            "",
-            f"Final: **{comp['final']}**",
-            "",
-            "| model | FOM raw nT | FOM compensated nT | lambda | survey residual nT |",
-            "|---|---|---|---|---|",
-        ]
-        for m, r in comp.items():
-            if m == "final":
-                continue
-            out.append(
-                f"| {m} | {f(r['fom_nT']['uncompensated'], '.2f')} | "
-                f"{f(r['fom_nT']['compensated'], '.2f')} | {f(r['lambda'], '.3g')} | "
-                f"{f(r['residual_std_nT']['survey'])} |"
-            )
-        out.append("")
-    a = s.get("audit")
-    if a:
-        out += [
-            "## Model audit",
-            "",
-            f"Extended model: **{' + '.join(a['extended_model'])}**; held-out residual "
-            f"{f(a['baseline']['residual_rms_nT'], '.4f')} -> "
-            f"{f(a['unexplained_rms_nT'], '.4f')} nT (noise floor "
-            f"{f(a['noise_floor_nT'], '.4f')} nT)",
-            "",
-        ]
-        for fd in a["findings"]:
-            out.append(
-                f"- `{fd['effect']}`: "
-                + ", ".join(
-                    f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-                    for k, v in fd["estimate"].items()
-                    if k != "at_acceptance" and not isinstance(v, list | dict)
-                )
-            )
-        if (a.get("unexplained") or {}).get("note"):
-            out.append(f"- unexplained: {a['unexplained']['note']}")
-        out.append("")
-    q = s.get("quality")
-    if q:
-        out += [
-            "## Heading error and quality",
-            "",
-            f"{q['intersections']} intersections, {q['overlap_pairs']} pairs < "
-            f"{q['overlap_m']} m; headline heading_error_rms_nT = "
-            f"{q.get('heading_error_method', 'intersections')}",
-            "",
-            "| state | pairs RMS nT (paper 002) | intersections RMS nT (ours) | "
-            "interpolated map RMS nT (paper 002) |",
-            "|---|---|---|---|",
-        ]
-        inter = q.get("intersection_rms_nT", q["heading_error_rms_nT"])
-        for st in q["states"]:
-            out.append(
-                f"| {st} | {f(q['overlap_pair_rms_nT'][st])} | "
-                f"{f(inter[st])} | "
-                f"{f(q['interpolated_rms_nT'][st])} |"
-            )
-        xo = q["crossover_rms_nT"]
-        out += [
-            "",
-            f"Crossovers: RMS {f(xo['before'])} -> {f(xo['after'])} nT after "
-            f"leveling; 4th-difference noise {f(q['noise_4th_diff_nT'], '.4f')} nT",
-            "",
-        ]
-    m = s.get("map")
-    if m:
-        out += [
-            "## Map",
-            "",
-            f"{m['grid_shape'][0]} x {m['grid_shape'][1]} cells of "
-            f"{m['cell_m']:.2f} m; ARIMA{tuple(m['arima_order'])} + Kalman",
-            "",
-        ]
-        ml = m.get("microlevel") or {}
-        if ml.get("enabled"):
-            out += [
-                f"Micro-levelling: corrugation removed {f(ml['correction_rms_nT'])} nT RMS "
-                f"(max {f(ml['correction_max_abs_nT'])} nT, clip {ml['clip_nT']:g} nT); grid "
-                f"changed {f(ml['grid_change_rms_nT'])} nT RMS",
-                "",
-            ]
-    nv = s.get("navigation")
-    if nv:
-        out += ["## Navigation on the map", ""]
-        if "skipped" in nv:
-            out += [f"Skipped: {nv['skipped']}.", ""]
-        else:
-            st, d, c = nv["settings"], nv["drms_m"], nv["cep50_m"]
-            out += [
-                f"Validation lines flown with a simulated {st['ins']}-grade INS (seed "
-                f"{st['seed']}), {st['filter']} aided by {nv['map']['file']}; reference "
-                f"{nv['reference']}",
-                "",
-                "| segment | epochs | DRMS m: INS only | map-aided | CRLB | CEP50 m: INS only "
-                "| map-aided |",
-                "|---|---|---|---|---|---|---|",
-                f"| all | {nv['epochs']['selected']} | {f(d['ins_only'], '.1f')} | "
-                f"{f(d['map_aided'], '.2f')} | {f(d['crlb'], '.2f')} | "
-                f"{f(c['ins_only'], '.1f')} | {f(c['map_aided'], '.2f')} |",
-            ]
-            for sid, g in nv["segments"].items():
-                out.append(
-                    f"| {sid} | {g['epochs']} | {f(g['ins_only']['drms_m'], '.1f')} | "
-                    f"{f(g['map_aided']['drms_m'], '.2f')} | {f(g['crlb_drms_m'], '.2f')} | "
-                    f"{f(g['ins_only']['cep50_m'], '.1f')} | "
-                    f"{f(g['map_aided']['cep50_m'], '.2f')} |"
-                )
-            out.append("")
-    v = s.get("vector")
-    if v:
-        out += ["## Vector magnetometer", "", f"{v['method']} -> `{v['output_topic']}`", ""]
-    if images:
-        out += ["## Figures", ""] + [f"![{k}]({p})" for k, p in images.items()] + [""]
-    return "\n".join(out)
 
 
 # --------------------------------------------------------------------------------------------
@@ -1507,10 +1021,9 @@ def navigate_recording(
     A raw recording is compensated first (:func:`final_compensation`, as ``aeromag map``);
     a processed one uses its ``/mag/compensated``.
     """
-    from pipeline.audit.report import jsonable
     from pipeline.navigation.map_io import read_map
     from pipeline.navigation.stage import run_navigation, track_coverage
-    from pipeline.outputs import navigation_channels
+    from pipeline.products.channels import navigation_channels
 
     cfg = cfg or Config.load()
     settings.check()
@@ -1549,14 +1062,6 @@ def navigate_recording(
         )
     )
     lines += [(LOG_INFO, f"navigate: {n}") for n in run.notes]
-    summary: dict[str, Any] = {
-        "aeromag_version": __version__,
-        "input": flight_summary(flight),
-        "navigation": nav,
-        "log": [text for _, text in lines],
-    }
-    if comp_summary is not None:
-        summary["compensation"] = comp_summary
     if out_path is not None:
         out_channels = navigation_channels(run)
         if "/aeromag/log" not in present:  # a processed input keeps its own log (one channel)
@@ -1567,6 +1072,12 @@ def navigate_recording(
         write_with_new_channels(
             src, out_path, out_channels, metadata={"aeromag.run": run_metadata()}
         )
-    summary["outputs"] = {"summary": str(json_out), **({"mcap": str(out_path)} if out_path else {})}
-    write_json_atomic(json_out, jsonable(summary))
+    summary = build_summary(
+        flight,
+        compensation=comp_summary,
+        navigation=run,
+        log=[text for _, text in lines],
+        outputs={"summary": json_out, **({"mcap": out_path} if out_path else {})},
+    )
+    write_json_atomic(json_out, summary)
     return summary

@@ -13,7 +13,7 @@ import numpy as np
 from pipeline.geo.local import LocalFrame, utm_epsg
 from pipeline.io.writer import McapOutput, encode
 from pipeline.maps.grid import Grid
-from pipeline.outputs import MAP_FRAME, grid_channel
+from pipeline.products.channels import MAP_FRAME, grid_channel
 
 LAT0, LON0, ALT0 = 34.26, 108.9, 500.0
 T0 = 1_781_485_840_000_000_000

@@ -173,8 +173,9 @@ def test_compensation_fom_with_spikes_and_despiking_matches_the_clean_fom(uav_fl
         s = r.summary()
         assert s["spikes"] == pos.size and s["fraction"] == pytest.approx(pos.size / x0.size)
     # the summary block reaches the log and both reports
-    from flows.stages import despike_lines, report_markdown
-    from pipeline.html_report import render_html
+    from pipeline.products.html import render_html
+    from pipeline.products.log import despike_lines
+    from pipeline.products.markdown import report_markdown
 
     doc = {
         "aeromag_version": "test",

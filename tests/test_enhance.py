@@ -162,9 +162,11 @@ def test_post_flight_enhancements_channels_figures_and_report(dipole, tmp_path):
     """What the write stage adds with ``[enhance] enabled = true`` (without running a flow)."""
     from types import SimpleNamespace
 
-    from flows.stages import enhancement_channels, enhancement_figures, enhancement_grids
+    from flows.stages import enhancement_grids
     from pipeline.config import Config
-    from pipeline.html_report import render_html
+    from pipeline.products.channels import enhancement_channels
+    from pipeline.products.figures import enhancement_figures
+    from pipeline.products.html import render_html
 
     cfg = Config.load().with_values({"enhance.enabled": True, "enhance.products": ["rtp", "up:50"]})
     cfg.validate()

@@ -226,8 +226,9 @@ def test_map_stage_micro_levels_a_simulated_survey_when_asked(tmp_path):
     assert s["wavelength_m"] == pytest.approx(4 * mr.spacing_m)
     assert errors[False] < 0.08 and errors[False] < errors[True] <= 0.35, errors
     # both reports show the corrugation removed
-    from flows.stages import map_lines, report_markdown
-    from pipeline.html_report import render_html
+    from pipeline.products.html import render_html
+    from pipeline.products.log import map_lines
+    from pipeline.products.markdown import report_markdown
 
     doc = {
         "aeromag_version": "test",

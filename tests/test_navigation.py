@@ -375,7 +375,7 @@ def test_recording_map_is_placed_by_its_map_frame(box_path, tmp_path):
     from pipeline.geo.local import LocalFrame
     from pipeline.io.writer import write_with_new_channels
     from pipeline.navigation.map_io import read_map
-    from pipeline.outputs import grid_channel, map_frame_channel
+    from pipeline.products.channels import grid_channel, map_frame_channel
 
     lat0, lon0 = _box_frame(box_path)
     frame = LocalFrame(lat0, lon0, 420.0)

@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.errors import AeromagError
 from pipeline.io.reader import read_flight
-from pipeline.outputs import segment_channel
+from pipeline.products.channels import segment_channel
 from pipeline.segment import segment_flight
 from pipeline.simulate import write_simulation
 from tests.conftest import FIXTURES, run_sim

@@ -17,7 +17,7 @@ from typer.testing import CliRunner
 from flows.cli import app
 from pipeline.io.contract import rule_for_topic
 from pipeline.io.schemas import schema_dir, schema_path
-from pipeline.viewer_layout import layout_panels, layout_paths, path_topic_field
+from pipeline.products.layout import layout_panels, layout_paths, path_topic_field
 
 CHROMIUM_FLAGS = [
     "--no-sandbox",

@@ -4,11 +4,10 @@ from __future__ import annotations
 
 from typing import Any
 
-import numpy as np
-
 from pipeline.audit.stage import AuditResult
 from pipeline.flight import Flight
 from pipeline.io.writer import OutputChannel
+from pipeline.products.summary import jsonable
 
 
 def labels(res: AuditResult) -> dict[str, str]:
@@ -20,7 +19,7 @@ def labels(res: AuditResult) -> dict[str, str]:
 
 
 def figures(res: AuditResult, flight: Flight) -> dict[str, Any]:
-    """The audit's figures (built by :mod:`pipeline.plots`).
+    """The audit's figures (built by :mod:`pipeline.products.figures`).
 
     Parameters
     ----------
@@ -34,7 +33,7 @@ def figures(res: AuditResult, flight: Flight) -> dict[str, Any]:
         Figure name -> figure: ``residual_time``, ``residual_position`` (with positions),
         ``residual_heading`` (with a heading) and ``gain``.
     """
-    from pipeline.plots import (
+    from pipeline.products.figures import (
         audit_gain_figure,
         audit_heading_figure,
         audit_position_figure,
@@ -79,7 +78,7 @@ def log_lines(res: AuditResult) -> list[tuple[int, str]]:
     floor, each finding (warning), the extended model's residual, unexplained structure
     (warning) and the gains.
     """
-    from pipeline.report import LOG_INFO, LOG_WARNING
+    from pipeline.products.log import LOG_INFO, LOG_WARNING
 
     j = res.to_json()
     out = [
@@ -275,17 +274,3 @@ def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
     if res.notes:
         lines += ["## Notes", ""] + [f"- {n}" for n in res.notes] + [""]
     return "\n".join(lines)
-
-
-def jsonable(v: Any) -> Any:
-    """Plain JSON values (numpy scalars to float, NaN to null)."""
-    if isinstance(v, dict):
-        return {str(k): jsonable(x) for k, x in v.items()}
-    if isinstance(v, list | tuple):
-        return [jsonable(x) for x in v]
-    if isinstance(v, bool | str) or v is None:
-        return v
-    if isinstance(v, int | np.integer):
-        return int(v)
-    f = float(v)
-    return f if np.isfinite(f) else None

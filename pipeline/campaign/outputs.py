@@ -20,7 +20,7 @@ from pipeline import __version__
 from pipeline.campaign.joint import flight_of, line_of
 from pipeline.campaign.stage import CampaignRun
 from pipeline.io.writer import McapOutput, OutputChannel, encode, write_json_atomic
-from pipeline.outputs import grid_channel, map_frame_channel
+from pipeline.products.channels import grid_channel, map_frame_channel
 
 
 def _iso(t_s: float) -> str:

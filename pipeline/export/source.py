@@ -113,8 +113,9 @@ class MapProducts:
 
 
 def decode_grid(topic: str, payload: dict, time_ns: int, crs: str = "") -> MapGrid:
-    """A ``foxglove.Grid`` message (one FLOAT32 field, as :func:`pipeline.outputs.grid_channel`
-    writes) as a :class:`MapGrid`; the pose's position is the south-west corner of the grid.
+    """A ``foxglove.Grid`` message (one FLOAT32 field, as
+    :func:`pipeline.products.channels.grid_channel` writes) as a :class:`MapGrid`; the
+    pose's position is the south-west corner of the grid.
 
     Raises
     ------

@@ -3,6 +3,8 @@ save them."""
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import matplotlib
 
 matplotlib.use("Agg")
@@ -10,6 +12,11 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
 from pipeline.compensate.ridge import LCurve  # noqa: E402
+from pipeline.flight import Flight  # noqa: E402
+from pipeline.maps.grid import Grid  # noqa: E402
+
+if TYPE_CHECKING:
+    from pipeline.quality.stage import QualityRun
 
 
 def lcurve_figure(lc: LCurve, title: str = "L-curve") -> plt.Figure:
@@ -522,3 +529,84 @@ def navigation_error_figure(run, title: str = "horizontal position error") -> pl
             )
     fig.tight_layout()
     return fig
+
+
+ENHANCE_LABELS = {
+    "rtp_nT": "reduced to the pole (nT)",
+    "vertical_derivative_nT_per_m": "vertical derivative, upward (nT/m)",
+    "horizontal_derivative_nT_per_m": "total horizontal derivative (nT/m)",
+    "tilt_deg": "tilt angle (deg)",
+    "analytic_signal_nT_per_m": "analytic signal amplitude (nT/m)",
+}
+
+
+def map_figures(mr) -> dict[str, object]:
+    """Figures of a map run (levelled anomaly and ARIMA-Kalman filtered, one colour scale
+    from the 1st-99th percentile, nT).
+
+    Returns
+    -------
+    dict of str to Figure
+        ``anomaly``, ``anomaly_filtered``.
+    """
+    lo, hi = np.nanpercentile(mr.grid.values, [1, 99])
+    return {
+        "anomaly": map_figure(mr.grid, mr.lines, "levelled anomaly (nT)", lo, hi),
+        "anomaly_filtered": map_figure(
+            mr.filtered, mr.lines, f"ARIMA{tuple(mr.model.order)} + Kalman filtered", lo, hi
+        ),
+    }
+
+
+def enhancement_figures(grids: dict[str, Grid], settings, lines) -> dict[str, object]:
+    """One figure per enhancement grid (``enhance_<channel name>``; colour scale from the
+    1st-99th percentile)."""
+    names = {p.topic: p.field_name for p in settings.products}
+    out = {}
+    for topic, g in grids.items():
+        field_name = names[topic]
+        label = ENHANCE_LABELS.get(field_name, field_name.replace("_nT", " (nT)"))
+        lo, hi = np.nanpercentile(g.values, [1, 99])
+        name = topic.removeprefix("/map/")
+        out[f"enhance_{name}"] = map_figure(g, lines, name.replace("_", " "), lo, hi, label)
+    return out
+
+
+def quality_figures(q: QualityRun) -> dict[str, object]:
+    """Figures of a quality run.
+
+    Returns
+    -------
+    dict of str to Figure
+        ``heading_error``, ``validation_profiles``, ``crossovers``.
+    """
+    s = q.summary()
+    states = [st for st in q.states if st != "raw"] or q.states
+    return {
+        "heading_error": heading_error_figure(s),
+        "validation_profiles": profile_figure(q.profiles, states),
+        "crossovers": crossover_figure(
+            [t for t in q.tracks if t.kind != "validation"],
+            q.leveling,
+            f"tie-line crossovers ({s['qc']['field']})",
+        ),
+    }
+
+
+def navigation_figures(nav) -> dict[str, object]:
+    """The track plot (reference, INS, map-aided over the map) and error against time with
+    the CRLB."""
+    from pipeline.products.figures import navigation_error_figure, navigation_track_figure
+
+    return {
+        "navigation_track": navigation_track_figure(nav),
+        "navigation_error": navigation_error_figure(nav),
+    }
+
+
+def flight_map(flight: Flight, seg):
+    """The flight track over local east/north (m), coloured by segment label."""
+    from pipeline.geo.local import local_east_north
+
+    e, n = local_east_north(flight.data["lat_deg"], flight.data["lon_deg"])
+    return flight_map_figure(e, n, seg.label)

@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from pipeline.compensate.stage import CompensationRun
 from pipeline.flight import Flight
 from pipeline.io.writer import OutputChannel
+from pipeline.maps.grid import Grid
 from pipeline.segment import Segmentation
+
+if TYPE_CHECKING:
+    from pipeline.quality.stage import QualityRun
 
 
 def segment_channel(flight: Flight, seg: Segmentation) -> OutputChannel:
@@ -449,3 +455,30 @@ def navigation_channels(run) -> list[OutputChannel]:
         OutputChannel.rows("/nav/innovation", "aeromag.NavigationInnovation", t[ix], innovation)
     )
     return chans
+
+
+def map_channels(flight: Flight, seg: Segmentation, mr) -> list[OutputChannel]:
+    """Output channels of a map run: ``/map/frame`` (the grids' georeference),
+    ``/map/anomaly``, ``/map/anomaly_filtered`` (``foxglove.Grid``), ``/map/lines`` (the
+    levelled line samples) and ``/map/tracks`` (``foxglove.GeoJSON``).
+    """
+    t0 = int(flight.time_ns[0])
+    return [
+        map_frame_channel(mr, t0),
+        grid_channel("/map/anomaly", t0, mr.grid),
+        grid_channel("/map/anomaly_filtered", t0, mr.filtered),
+        line_samples_channel(flight, mr),
+        tracks_channel(flight, seg, t0),
+    ]
+
+
+def enhancement_channels(grids: dict[str, Grid], settings, time_ns: int) -> list[OutputChannel]:
+    """``foxglove.Grid`` channels of enhancement grids (topic -> grid), field names from
+    the settings' products."""
+    names = {p.topic: p.field_name for p in settings.products}
+    return [grid_channel(t, time_ns, g, names[t]) for t, g in grids.items()]
+
+
+def quality_channels(flight: Flight, q: QualityRun) -> list[OutputChannel]:
+    """Output channels of a quality run: ``/quality/heading_error``, ``/quality/crossovers``."""
+    return [heading_error_channel(flight, q), crossover_channel(flight, q)]

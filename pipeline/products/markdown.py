@@ -1,0 +1,154 @@
+"""The post-flight report in Markdown, rendered from the summary document
+(:func:`pipeline.products.summary.build_summary`); the HTML report renders the same document
+(:mod:`pipeline.products.html`)."""
+
+from __future__ import annotations
+
+
+def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
+    """The post-flight report: the tables people look at, and the figures."""
+
+    def f(x, fmt=".3f"):
+        return "-" if x is None else format(x, fmt)
+
+    out = [
+        f"# Post-flight report: {stem}",
+        "",
+        f"aeromag {s['aeromag_version']}, configuration {s['config']['hash'][:12]} "
+        f"(version {s['config']['version']}, {s['config']['source']})",
+        "",
+        f"Input: {s['input'].get('epochs', '-')} epochs, "
+        f"{f(s['input'].get('duration_s'), '.0f')} s, sha256 "
+        f"{s['input'].get('sha256', '')[:16]}",
+        "",
+    ]
+    d = s.get("despike")
+    if d:
+        out += [
+            "## Despiking",
+            "",
+            f"{d['spikes']} spikes ({100 * d['fraction']:.3f} % of samples) replaced before "
+            f"compensation: Hampel test at {d['threshold_sigma']:g} sigma on the 4th "
+            f"difference (window {d['window_samples']} samples); noise {f(d['noise_nT'], '.4f')} "
+            f"nT, largest spike {f(d['max_abs_amplitude_nT'], '.2f')} nT",
+            "",
+        ]
+    comp = s.get("compensation")
+    if comp:
+        out += [
+            "## Compensation",
+            "",
+            f"Final: **{comp['final']}**",
+            "",
+            "| model | FOM raw nT | FOM compensated nT | lambda | survey residual nT |",
+            "|---|---|---|---|---|",
+        ]
+        for m, r in comp.items():
+            if m == "final":
+                continue
+            out.append(
+                f"| {m} | {f(r['fom_nT']['uncompensated'], '.2f')} | "
+                f"{f(r['fom_nT']['compensated'], '.2f')} | {f(r['lambda'], '.3g')} | "
+                f"{f(r['residual_std_nT']['survey'])} |"
+            )
+        out.append("")
+    a = s.get("audit")
+    if a:
+        out += [
+            "## Model audit",
+            "",
+            f"Extended model: **{' + '.join(a['extended_model'])}**; held-out residual "
+            f"{f(a['baseline']['residual_rms_nT'], '.4f')} -> "
+            f"{f(a['unexplained_rms_nT'], '.4f')} nT (noise floor "
+            f"{f(a['noise_floor_nT'], '.4f')} nT)",
+            "",
+        ]
+        for fd in a["findings"]:
+            out.append(
+                f"- `{fd['effect']}`: "
+                + ", ".join(
+                    f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
+                    for k, v in fd["estimate"].items()
+                    if k != "at_acceptance" and not isinstance(v, list | dict)
+                )
+            )
+        if (a.get("unexplained") or {}).get("note"):
+            out.append(f"- unexplained: {a['unexplained']['note']}")
+        out.append("")
+    q = s.get("quality")
+    if q:
+        out += [
+            "## Heading error and quality",
+            "",
+            f"{q['intersections']} intersections, {q['overlap_pairs']} pairs < "
+            f"{q['overlap_m']} m; headline heading_error_rms_nT = "
+            f"{q.get('heading_error_method', 'intersections')}",
+            "",
+            "| state | pairs RMS nT (paper 002) | intersections RMS nT (ours) | "
+            "interpolated map RMS nT (paper 002) |",
+            "|---|---|---|---|",
+        ]
+        inter = q.get("intersection_rms_nT", q["heading_error_rms_nT"])
+        for st in q["states"]:
+            out.append(
+                f"| {st} | {f(q['overlap_pair_rms_nT'][st])} | "
+                f"{f(inter[st])} | "
+                f"{f(q['interpolated_rms_nT'][st])} |"
+            )
+        xo = q["crossover_rms_nT"]
+        out += [
+            "",
+            f"Crossovers: RMS {f(xo['before'])} -> {f(xo['after'])} nT after "
+            f"leveling; 4th-difference noise {f(q['noise_4th_diff_nT'], '.4f')} nT",
+            "",
+        ]
+    m = s.get("map")
+    if m:
+        out += [
+            "## Map",
+            "",
+            f"{m['grid_shape'][0]} x {m['grid_shape'][1]} cells of "
+            f"{m['cell_m']:.2f} m; ARIMA{tuple(m['arima_order'])} + Kalman",
+            "",
+        ]
+        ml = m.get("microlevel") or {}
+        if ml.get("enabled"):
+            out += [
+                f"Micro-levelling: corrugation removed {f(ml['correction_rms_nT'])} nT RMS "
+                f"(max {f(ml['correction_max_abs_nT'])} nT, clip {ml['clip_nT']:g} nT); grid "
+                f"changed {f(ml['grid_change_rms_nT'])} nT RMS",
+                "",
+            ]
+    nv = s.get("navigation")
+    if nv:
+        out += ["## Navigation on the map", ""]
+        if "skipped" in nv:
+            out += [f"Skipped: {nv['skipped']}.", ""]
+        else:
+            st, d, c = nv["settings"], nv["drms_m"], nv["cep50_m"]
+            out += [
+                f"Validation lines flown with a simulated {st['ins']}-grade INS (seed "
+                f"{st['seed']}), {st['filter']} aided by {nv['map']['file']}; reference "
+                f"{nv['reference']}",
+                "",
+                "| segment | epochs | DRMS m: INS only | map-aided | CRLB | CEP50 m: INS only "
+                "| map-aided |",
+                "|---|---|---|---|---|---|---|",
+                f"| all | {nv['epochs']['selected']} | {f(d['ins_only'], '.1f')} | "
+                f"{f(d['map_aided'], '.2f')} | {f(d['crlb'], '.2f')} | "
+                f"{f(c['ins_only'], '.1f')} | {f(c['map_aided'], '.2f')} |",
+            ]
+            for sid, g in nv["segments"].items():
+                out.append(
+                    f"| {sid} | {g['epochs']} | {f(g['ins_only']['drms_m'], '.1f')} | "
+                    f"{f(g['map_aided']['drms_m'], '.2f')} | {f(g['crlb_drms_m'], '.2f')} | "
+                    f"{f(g['ins_only']['cep50_m'], '.1f')} | "
+                    f"{f(g['map_aided']['cep50_m'], '.2f')} |"
+                )
+            out.append("")
+    v = s.get("vector")
+    if v:
+        out += ["## Vector magnetometer", "", f"{v['method']} -> `{v['output_topic']}`", ""]
+    if images:
+        out += ["## Figures", ""] + [f"![{k}]({p})" for k, p in images.items()] + [""]
+    return "\n".join(out)
