@@ -125,6 +125,10 @@ class ModelSpec:
     # the carrier's permanent field changed at this time (s; an out-of-catalogue step the
     # survey showed between two calibration passes): permanent columns after it, u_i [t > t_s]
     permanent_step_s: float | None = None
+    # the field's gradient measured along the calibration legs (east, north, up; nT/m),
+    # taken out of the scalar before the fit and put back into the compensated field: the
+    # gradient extension without parameters to fit (pipeline.audit.legs)
+    known_gradient_nT_per_m: tuple[float, float, float] | None = None
 
     def with_(self, **kw) -> ModelSpec:
         """A copy with the given fields replaced."""
@@ -136,7 +140,7 @@ class ModelSpec:
         ``diurnal`` are switched on.
         """
         out = [self.base]
-        if self.gradient:
+        if self.gradient or self.known_gradient_nT_per_m is not None:
             out.append("geomagnetic_gradient")
         if self.lag_s:
             out.append("sensor_lag")
@@ -163,13 +167,18 @@ class Design:
         True for compensating columns (carrier interference, subtracted); False for columns
         that are fitted only (the position columns: geology).
     y : ndarray, shape (n,)
-        The scalar field, nT, corrected for the sensor lag when the model has one.
+        The scalar field, nT, corrected for the sensor lag when the model has one, less
+        ``field_nT``.
+    field_nT : ndarray or None, shape (n,)
+        Field taken out of ``y`` before the fit that belongs to the measured field (a known
+        gradient's change over position), added back when compensating; None: nothing.
     """
 
     columns: np.ndarray  # (n, p) unfiltered
     names: list[str]
     subtract: np.ndarray  # (p,) bool: compensating columns
     y: np.ndarray  # the (lag-corrected) scalar field
+    field_nT: np.ndarray | None = None
 
 
 LAG_RESPONSES = ("delay", "first_order")
@@ -265,12 +274,14 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
         cols.append(kp)
         names = names + pn
         sub += [False] * kp.shape[1]
-    return Design(
-        np.column_stack(cols),
-        names,
-        np.array(sub),
-        scalar_series(data, spec.lag_s, spec.lag_response),
-    )
+    y = scalar_series(data, spec.lag_s, spec.lag_response)
+    known = None
+    if spec.known_gradient_nT_per_m is not None:
+        if data.enu_m is None:
+            raise ValueError("a known gradient needs positions (/gnss/fix)")
+        known = data.enu_m @ np.asarray(spec.known_gradient_nT_per_m, float)
+        y = y - known
+    return Design(np.column_stack(cols), names, np.array(sub), y, known)
 
 
 @dataclass
@@ -332,7 +343,8 @@ class FittedModel:
         """(compensated field, interference) at every epoch, nT."""
         des = design(data, self.spec)
         interference = des.columns[:, self.subtract] @ self.theta[self.subtract]
-        return des.y - interference, interference
+        y = des.y if des.field_nT is None else des.y + des.field_nT
+        return y - interference, interference
 
     def residual_bp(
         self, data: AuditData, mask: np.ndarray, bs: BandSettings, keep: np.ndarray | None = None

@@ -57,6 +57,7 @@ from pipeline.audit.extended import (
     lag_cost,
     simulate_measurement,
 )
+from pipeline.audit.legs import LegGradient, fisher_combined, leg_gradient, leg_ids
 from pipeline.audit.noise import white_noise_nT
 from pipeline.audit.survey import (
     CrossoverSet,
@@ -107,6 +108,9 @@ class AuditSettings:
         Held-out / fit residual above which a warning is given.
     min_event_nT : float
         Smallest step or drift in the survey worth an event, nT.
+    min_leg_ramp_nT : float
+        Smallest field change along the calibration legs (RMS, nT) with which a gradient
+        seen there confirms a gradient candidate (:mod:`pipeline.audit.legs`).
     """
 
     # baseline, alpha, min_gain: the shipped configuration's [audit] values
@@ -122,6 +126,10 @@ class AuditSettings:
     block_s_cv: float = BLOCK_S
     max_generalization_gap: float = 2.0  # held-out / fit residual above this: a warning
     min_event_nT: float = 0.3  # smallest step or drift in the survey worth an event
+    # a gradient seen along the calibration legs confirms a gradient candidate when it is
+    # significant and changes the field along the legs by at least this much (RMS, nT): a
+    # real but negligible gradient (quiet ground, the main field's own) confirms nothing
+    min_leg_ramp_nT: float = 0.5
 
 
 @dataclass
@@ -140,6 +148,19 @@ class Evaluation:
     metric: str = "heldout_calibration_residual_rms"
     ci95: dict[str, Any] = field(default_factory=dict)  # same keys as estimate: [lo, hi]
     held_back: bool = False  # a competing explanation fits as well: never accepted
+    # p of independent evidence below the fit band (the calibration legs' gradient), combined
+    # with the held-out p (Fisher) when present
+    confirm_p: float | None = None
+
+    @property
+    def heldout_p(self) -> float:
+        """The held-out p-value the decision uses: the band-passed held-out test's, combined
+        (Fisher) with ``confirm_p`` when the candidate has independent evidence."""
+        if self.heldout is None:
+            return 1.0
+        if self.confirm_p is None:
+            return self.heldout.p_value
+        return fisher_combined(self.heldout.p_value, self.confirm_p)
 
     def passes(self, s: AuditSettings) -> bool:
         """Whether the candidate qualifies under ``s``: not held back, tested, Holm-adjusted
@@ -152,7 +173,7 @@ class Evaluation:
             and self.heldout is not None
             and self.p_adjusted < s.alpha
             and self.test.delta_bic < 0
-            and self.heldout.p_value < s.alpha
+            and self.heldout_p < s.alpha
             and self.heldout.reduction >= s.min_gain
         )
 
@@ -165,8 +186,14 @@ class Evaluation:
             out.append(f"F-test p {self.p_adjusted:.3g} (Holm) >= {s.alpha}")
         if self.test is not None and self.test.delta_bic >= 0:
             out.append(f"delta BIC {self.test.delta_bic:+.1f}")
-        if self.heldout is not None and self.heldout.p_value >= s.alpha:
-            out.append(f"held-out p {self.heldout.p_value:.3g} >= {s.alpha}")
+        if self.heldout is not None and self.heldout_p >= s.alpha:
+            if self.confirm_p is None:
+                out.append(f"held-out p {self.heldout.p_value:.3g} >= {s.alpha}")
+            else:
+                out.append(
+                    f"held-out p {self.heldout.p_value:.3g} with the independent evidence's "
+                    f"{self.confirm_p:.3g}: {self.heldout_p:.3g} >= {s.alpha}"
+                )
         if self.heldout is not None and self.heldout.reduction < s.min_gain:
             out.append(
                 f"held-out gain {100 * self.heldout.reduction:.1f} % < {100 * s.min_gain:.0f} %"
@@ -187,6 +214,7 @@ class Evaluation:
             "p_value_holm": self.p_adjusted,
             "f": None if self.test is None else self.test.f,
             "heldout": None if self.heldout is None else self.heldout.to_dict(),
+            "heldout_p_combined": None if self.confirm_p is None else self.heldout_p,
             "gain": None
             if self.heldout is None
             else {
@@ -251,6 +279,7 @@ class AuditResult:
                     "p_value": f.test.p_value if f.test else None,
                     "p_value_holm": f.p_adjusted,
                     "heldout_p_value": f.heldout.p_value if f.heldout else None,
+                    "heldout_p_combined": None if f.confirm_p is None else f.heldout_p,
                     "gain": {
                         "metric": f.metric,
                         "before_nT": f.heldout.rms_before_nT,
@@ -379,7 +408,11 @@ class Auditor:
         calibration (key ``electrical_current:<name>``) and the vector calibration.
         """
         out = []
-        if not current.gradient and self.data.enu_m is not None:
+        if (
+            not current.gradient
+            and current.known_gradient_nT_per_m is None
+            and self.data.enu_m is not None
+        ):
             out.append(("geomagnetic_gradient", "geomagnetic_gradient"))
         if not current.lag_s:
             out.append(("sensor_lag", "sensor_lag"))
@@ -426,10 +459,41 @@ class Auditor:
         ev = Evaluation(
             "geomagnetic_gradient", key, est, test, held, ext, ci95=jackknife_ci95(est, folds)
         )
+        # the direct evidence, below the fit band: the compensated field's ramps along the
+        # straight legs. Far more precise than the band-passed position terms (which see the
+        # gradient only through the manoeuvres' small moves), so it is the reported estimate;
+        # the fit's own values stay as fit_*
+        legs = self.leg_gradient(current)
+        if legs is not None:
+            for k in ("east_nT_per_m", "north_nT_per_m", "up_nT_per_m"):
+                ev.estimate[f"fit_{k}"] = ev.estimate.pop(k)
+                ev.ci95[f"fit_{k}"] = ev.ci95.pop(k)
+            ci = legs.ci95()
+            for i, k in enumerate(("east_nT_per_m", "north_nT_per_m", "up_nT_per_m")):
+                ev.estimate[k] = float(legs.gradient_nT_per_m[i])
+                ev.ci95[k] = [float(ci[i, 0]), float(ci[i, 1])]
+            ev.estimate["calibration_legs_p_value"] = legs.p_value
+            ev.estimate["calibration_legs_ramp_rms_nT"] = legs.ramp_rms_nT
+            ev.estimate["calibration_legs_blocks"] = legs.blocks
+            for k in ("p_value", "ramp_rms_nT", "blocks"):
+                ev.ci95[f"calibration_legs_{k}"] = None
+            # confirmation only: weak leg evidence must not strengthen a weak held-out test
+            if legs.p_value < self.s.alpha and legs.ramp_rms_nT >= self.s.min_leg_ramp_nT:
+                ev.confirm_p = legs.p_value
+                # the legs measured the gradient: it can also be taken out of the reading
+                # instead of fitted as position columns, which see it only through the
+                # manoeuvres' moves and may extrapolate between blocks; the form that
+                # lowers the held-out residual more is the extension
+                known = current.with_(
+                    known_gradient_nT_per_m=tuple(float(g) for g in legs.gradient_nT_per_m)
+                )
+                held_known = self.heldout(current, lambda train, k: known)
+                if held_known.reduction > held.reduction:
+                    ev.spec, ev.heldout = known, held_known
         # independent evidence: a gradient during calibration biases the heading terms, which
         # the survey's crossovers show as heading levels (and levels that change across the
         # survey); the extended model should flatten them
-        before, after = self.survey_heading(current), self.survey_heading(ext)
+        before, after = self.survey_heading(current), self.survey_heading(ev.spec)
         if before is not None and after is not None:
             survey = {
                 "survey_heading_spread_before_nT": before.spread_nT,
@@ -832,6 +896,19 @@ class Auditor:
         rate[ok] = np.gradient(red[ok], t[ok])
         return survey_lag(cs, np.interp(cs.time_a_s, t, rate), np.interp(cs.time_b_s, t, rate))
 
+    def leg_gradient(self, spec: ModelSpec) -> LegGradient | None:
+        """The total field's gradient along the calibration legs, from ``spec``'s compensated
+        field (the base station's smoothed reading taken out when the recording has one;
+        :func:`pipeline.audit.legs.leg_gradient`)."""
+        if self.data.enu_m is None:
+            return None
+        comp, _ = self.fit(spec, None, "all").compensate(self.data)
+        if self.flight.has("base_nT"):
+            base = self.flight.data["base_nT"].to_numpy(float)
+            comp = comp - time_window_mean(self.data.time_s, base, BASE_SMOOTHING_S)
+        legs = leg_ids(self.mask, self.seg.cardinal, self.data.time_s)
+        return leg_gradient(self.data.time_s, comp, self.data.enu_m, legs)
+
     def survey_heading(self, spec: ModelSpec) -> SurveyHeading | None:
         """``spec``'s heading error seen at the survey's crossovers, and whether it changes
         across the survey (:func:`pipeline.audit.survey.survey_heading`)."""
@@ -942,7 +1019,7 @@ class Auditor:
     def without(spec: ModelSpec, f: Evaluation) -> ModelSpec:
         """``spec`` with finding ``f``'s extension taken out."""
         if f.effect == "geomagnetic_gradient":
-            return spec.with_(gradient=False)
+            return spec.with_(gradient=False, known_gradient_nT_per_m=None)
         if f.effect == "sensor_lag":
             return spec.with_(lag_s=0.0, lag_response="delay")
         if f.effect == "diurnal":
@@ -966,7 +1043,12 @@ class Auditor:
             if not e.estimate:
                 continue
             f.estimate = {**e.estimate, "at_acceptance": f.estimate}
-            if f.effect in ("sensor_lag", "vector_calibration") and e.spec is not None:
+            # estimated values in the spec (a lag, a vector calibration, a measured
+            # gradient) take the re-estimate; switched-on columns are refitted anyway
+            if e.spec is not None and (
+                f.effect in ("sensor_lag", "vector_calibration")
+                or e.spec.known_gradient_nT_per_m is not None
+            ):
                 spec = e.spec
         return spec
 
@@ -1221,7 +1303,9 @@ def run_audit(
     sos = bandpass_sos(s.band.band_hz, data.rate_hz, s.band.poles)
     for name, fm, comp in (("baseline", baseline, comp_b), ("extended", extended, comp_e)):
         earth = time_window_mean(t, comp, 20.0)
-        resid = design(data, fm.spec).y - simulate_measurement(data, fm, earth)
+        des = design(data, fm.spec)
+        y = des.y if des.field_nT is None else des.y + des.field_nT  # the reading as measured
+        resid = y - simulate_measurement(data, fm, earth)
         valid = aud.mask & np.isfinite(resid)
         rr, ww = bandpass_blocks(resid, contiguous_blocks(valid, t), sos, s.band.trim)
         if where is None:
