@@ -16,6 +16,8 @@ import mmap
 import struct
 import zlib
 from array import array
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -144,13 +146,32 @@ def _decompress(compression: str, data, usize: int) -> bytes:
 
 
 class _Scanner:
-    def __init__(self, buf, wanted: set[str] | None, whole_records: bool = False):
+    """The record walk. ``mode`` says what each message on a known channel leaves:
+    ``payload`` (its payload, per channel), ``record`` (its whole record, per channel),
+    ``index`` (its channel id and log time, in file order, in :attr:`cids` and :attr:`times`)
+    or ``stream`` (its whole record in :attr:`pending`, in file order; :meth:`walk` yields
+    after each top-level record so that the caller can take them a chunk at a time)."""
+
+    def __init__(self, buf, wanted: set[str] | None, mode: str = "payload"):
         self.buf = buf
         self.wanted = wanted
-        self.whole = whole_records
+        self.mode = mode
+        self.whole = mode in ("record", "stream")
         self.out = Scan()
         self._sinks: dict[int, tuple] = {}  # channel id -> (append time, append payload)
         self._after_data_end = False
+        self.cids = array("H")  # index mode: channel id of each message, file order
+        self.times = array("Q")  # index and stream modes: log time (ns), file order
+        self.pending: list[bytes] = []  # stream mode: whole records not yet taken
+
+    def _sink(self, cid: int, ch: ChannelData) -> tuple:
+        """(append log time, append payload or record) for the messages of channel ``cid``."""
+        if self.mode == "index":
+            add_cid = self.cids.append
+            return self.times.append, lambda _record: add_cid(cid)
+        if self.mode == "stream":
+            return self.times.append, self.pending.append
+        return ch.log_time_ns.append, ch.data.append
 
     # -- records shared by the top level and chunks ------------------------------------------
     def record(self, buf, op: int, pos: int, end: int) -> None:
@@ -164,7 +185,7 @@ class _Scanner:
             if cid not in self.out.channels:
                 ch = self.out.channels[cid] = ChannelData(topic, sid, enc, meta)
                 if self.wanted is None or topic in self.wanted:
-                    self._sinks[cid] = (ch.log_time_ns.append, ch.data.append)
+                    self._sinks[cid] = self._sink(cid, ch)
         elif op == OP_SCHEMA:
             sid = _U16.unpack_from(buf, pos)[0]
             name, p = _string(buf, pos + 2, end)
@@ -206,10 +227,18 @@ class _Scanner:
         self.records(data, 0, len(data), inner=True, base=pos)
 
     def records(self, buf, pos: int, size: int, *, inner: bool, base: int = 0) -> None:
+        """Walk the records of ``buf[pos:size]`` (a chunk's content when ``inner``)."""
+        for _ in self.walk(buf, pos, size, inner=inner, base=base):
+            pass
+
+    def walk(self, buf, pos: int, size: int, *, inner: bool, base: int = 0) -> Iterator[None]:
+        """:meth:`records` as a generator: in stream mode it yields after each top-level
+        record (a chunk, or a message outside chunks), never inside a chunk."""
         u64 = _U64.unpack_from
         head = _MSG_HEAD.unpack_from
         sinks = self._sinks
         whole = self.whole
+        pause = self.mode == "stream" and not inner
         while pos < size:
             if pos + 9 > size:
                 self._truncated(pos, size, inner, base)
@@ -239,6 +268,8 @@ class _Scanner:
                     elif cid not in self.out.channels:
                         self.out.orphan_messages += 1
                 pos = end
+                if pause:
+                    yield
                 continue
             body = pos + 9
             try:
@@ -266,6 +297,8 @@ class _Scanner:
                     )
                 )
             pos = end
+            if pause:
+                yield
 
     def _truncated(self, pos: int, size: int, inner: bool, base: int) -> None:
         if inner:
@@ -296,6 +329,31 @@ def _close_map(mm: mmap.mmap) -> None:
             pass
 
 
+@contextmanager
+def _mapped(path: Path) -> Iterator[tuple[mmap.mmap, int]]:
+    """The file memory-mapped read-only, with its size, once its magic is checked."""
+    with path.open("rb") as f:
+        size = path.stat().st_size
+        if size == 0:
+            raise ScanError("empty file (0 bytes), not an MCAP recording")
+        head = f.read(len(MAGIC))
+        if head != MAGIC:
+            raise ScanError(
+                f"not a readable MCAP recording (starts with {head[:8]!r}, not the MCAP magic)"
+            )
+        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        try:
+            yield mm, size
+        finally:
+            _close_map(mm)
+
+
+def _finish(out: Scan, size: int) -> Scan:
+    if not out.footer_seen and not any("truncated" in x.reason for x in out.losses):
+        out.losses.append(Loss(size, "no footer: the recording was not closed (summary lost)"))
+    return out
+
+
 def scan_mcap(
     path: str | Path, topics: set[str] | None = None, *, whole_records: bool = False
 ) -> Scan:
@@ -317,22 +375,58 @@ def scan_mcap(
         Empty file or no MCAP magic.
     """
     path = Path(path)
-    with path.open("rb") as f:
-        size = path.stat().st_size
-        if size == 0:
-            raise ScanError("empty file (0 bytes), not an MCAP recording")
-        head = f.read(len(MAGIC))
-        if head != MAGIC:
-            raise ScanError(
-                f"not a readable MCAP recording (starts with {head[:8]!r}, not the MCAP magic)"
-            )
-        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-        try:
-            sc = _Scanner(mm, topics, whole_records)
-            sc.records(mm, len(MAGIC), size, inner=False)
-            out = sc.out
-        finally:
-            _close_map(mm)
-    if not out.footer_seen and not any("truncated" in x.reason for x in out.losses):
-        out.losses.append(Loss(size, "no footer: the recording was not closed (summary lost)"))
-    return out
+    with _mapped(path) as (mm, size):
+        sc = _Scanner(mm, topics, "record" if whole_records else "payload")
+        sc.records(mm, len(MAGIC), size, inner=False)
+    return _finish(sc.out, size)
+
+
+def scan_index(path: str | Path) -> tuple[Scan, array, array]:
+    """:func:`scan_mcap` without the messages' contents: schemas, channels (their ``data``
+    and ``log_time_ns`` left empty), metadata and attachment records, losses, and the
+    channel id and log time (ns) of every message on a known channel, in file order.
+
+    With :func:`iter_message_records` (the same messages, same order, as whole records) a
+    large recording is copied without holding its messages in memory.
+
+    Returns
+    -------
+    Scan
+    array of uint16
+        Channel id of each message, file order.
+    array of uint64
+        Log time of each message, ns since the Unix epoch, file order.
+
+    Raises
+    ------
+    ScanError
+        Empty file or no MCAP magic.
+    """
+    path = Path(path)
+    with _mapped(path) as (mm, size):
+        sc = _Scanner(mm, None, "index")
+        sc.records(mm, len(MAGIC), size, inner=False)
+    return _finish(sc.out, size), sc.cids, sc.times
+
+
+def iter_message_records(path: str | Path) -> Iterator[list[bytes]]:
+    """The whole serialised record of every message on a known channel, in file order, a
+    list per top-level record (a chunk's messages, or one message outside chunks): the
+    messages :func:`scan_index` indexes, in its order, salvaged around damage the same way.
+    Only the current list is held (and the file map, until the iterator ends or is closed).
+
+    Raises
+    ------
+    ScanError
+        Empty file or no MCAP magic.
+    """
+    path = Path(path)
+    with _mapped(path) as (mm, size):
+        sc = _Scanner(mm, None, "stream")
+        pending = sc.pending
+        for _ in sc.walk(mm, len(MAGIC), size, inner=False):
+            if pending:
+                batch = pending[:]
+                pending.clear()
+                del sc.times[:]
+                yield batch
