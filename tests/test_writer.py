@@ -133,12 +133,30 @@ def test_existing_output_channel_is_refused(tmp_path):
         write_with_new_channels(once, tmp_path / "twice.mcap", [ch])
 
 
-@pytest.mark.parametrize("chunk_size", [1 << 20, 300])
+def unchunked_copy(src: Path, dst: Path) -> Path:
+    """``src`` rewritten with every record outside chunks, messages in file order."""
+    from mcap.writer import Writer
+
+    with src.open("rb") as f, dst.open("wb") as g:
+        w = Writer(g, use_chunking=False)
+        w.start()
+        done = set()
+        for s, c, m in make_reader(f).iter_messages(log_time_order=False):
+            if c.id not in done:
+                w.register_schema(name=s.name, encoding=s.encoding, data=s.data)
+                w.register_channel(c.topic, c.message_encoding, s.id, dict(c.metadata))
+                done.add(c.id)
+            w.add_message(c.id, m.log_time, m.data, m.publish_time, m.sequence)
+        w.finish()
+    return dst
+
+
+@pytest.mark.parametrize("chunk_size", [1 << 20, 300, 0])
 def test_input_out_of_log_time_order_is_merged_like_a_stable_sort(tmp_path, chunk_size):
     """The writer reads the input's records again while writing (not held in memory): a file
-    out of log-time order, with equal times on different channels, across small chunks, still
-    comes out as the stable time sort of (input by channel, file order within; then the new
-    channel), every input record exactly once."""
+    out of log-time order, with equal times on different channels, across small chunks (or
+    none: ``chunk_size`` 0), still comes out as the stable time sort of (input by channel,
+    file order within; then the new channel), every input record exactly once."""
     rng = np.random.default_rng(3)
     msgs = []
     for i in rng.permutation(120).tolist():
@@ -147,7 +165,9 @@ def test_input_out_of_log_time_order_is_merged_like_a_stable_sort(tmp_path, chun
             ("/mag/vector", t, vector(t, 1.0 * i, 2.0, 3.0)),
             ("/mag/scalar", t, scalar(t, float(i))),
         ]
-    src = build(tmp_path / "in.mcap", msgs, chunk_size=chunk_size)
+    src = build(tmp_path / "in.mcap", msgs, chunk_size=chunk_size or 1 << 20)
+    if not chunk_size:
+        src = unchunked_copy(src, tmp_path / "unchunked.mcap")
     new = OutputChannel("/aeromag/log", "foxglove.Log")
     for k in (30, 0, 60):  # equal to input times, out of order
         new.add(

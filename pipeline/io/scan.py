@@ -106,6 +106,35 @@ class Scan:
         return name, enc
 
 
+@dataclass
+class MessageIndex:
+    """Where the messages of a recording are (:func:`scan_index`), one entry a message on a
+    known channel, in file order.
+
+    Attributes
+    ----------
+    scan : Scan
+        Schemas, channels (no messages in them), metadata, attachments, losses.
+    cid : array of uint16
+        Channel id.
+    time_ns : array of uint64
+        Log time, ns since the Unix epoch.
+    start, end : array of uint64
+        The whole record's byte span in its chunk's decompressed content (in the file for a
+        message outside chunks).
+    segments : list of (int, int, int)
+        Per intact chunk (and run of messages outside chunks): the chunk body's byte span
+        in the file (-1, -1 outside chunks) and the index of its first message.
+    """
+
+    scan: Scan
+    cid: array = field(default_factory=lambda: array("H"))
+    time_ns: array = field(default_factory=lambda: array("Q"))
+    start: array = field(default_factory=lambda: array("Q"))
+    end: array = field(default_factory=lambda: array("Q"))
+    segments: list[tuple[int, int, int]] = field(default_factory=list)
+
+
 def _string(buf, pos: int, end: int) -> tuple[str, int]:
     n = _U32.unpack_from(buf, pos)[0]
     pos += 4
@@ -147,30 +176,25 @@ def _decompress(compression: str, data, usize: int) -> bytes:
 
 class _Scanner:
     """The record walk. ``mode`` says what each message on a known channel leaves:
-    ``payload`` (its payload, per channel), ``record`` (its whole record, per channel),
-    ``index`` (its channel id and log time, in file order, in :attr:`cids` and :attr:`times`)
-    or ``stream`` (its whole record in :attr:`pending`, in file order; :meth:`walk` yields
-    after each top-level record so that the caller can take them a chunk at a time)."""
+    ``payload`` (its payload, per channel), ``record`` (its whole record, per channel) or
+    ``index`` (its channel id, log time and place, in file order: see :class:`MessageIndex`).
+    """
 
     def __init__(self, buf, wanted: set[str] | None, mode: str = "payload"):
         self.buf = buf
         self.wanted = wanted
         self.mode = mode
-        self.whole = mode in ("record", "stream")
+        self.whole = mode == "record"
         self.out = Scan()
         self._sinks: dict[int, tuple] = {}  # channel id -> (append time, append payload)
         self._after_data_end = False
-        self.cids = array("H")  # index mode: channel id of each message, file order
-        self.times = array("Q")  # index and stream modes: log time (ns), file order
-        self.pending: list[bytes] = []  # stream mode: whole records not yet taken
+        self.index = MessageIndex(self.out) if mode == "index" else None
 
     def _sink(self, cid: int, ch: ChannelData) -> tuple:
-        """(append log time, append payload or record) for the messages of channel ``cid``."""
-        if self.mode == "index":
-            add_cid = self.cids.append
-            return self.times.append, lambda _record: add_cid(cid)
-        if self.mode == "stream":
-            return self.times.append, self.pending.append
+        """(append log time, append payload or record) for the messages of channel ``cid``
+        (index mode: the rest is appended in :meth:`records`)."""
+        if self.index is not None:
+            return self.index.time_ns.append, None
         return ch.log_time_ns.append, ch.data.append
 
     # -- records shared by the top level and chunks ------------------------------------------
@@ -224,21 +248,19 @@ class _Scanner:
             self.out.losses.append(loss)
             return
         self.out.chunks += 1
+        if self.index is not None:
+            self.index.segments.append((pos, end, len(self.index.cid)))
         self.records(data, 0, len(data), inner=True, base=pos)
 
     def records(self, buf, pos: int, size: int, *, inner: bool, base: int = 0) -> None:
         """Walk the records of ``buf[pos:size]`` (a chunk's content when ``inner``)."""
-        for _ in self.walk(buf, pos, size, inner=inner, base=base):
-            pass
-
-    def walk(self, buf, pos: int, size: int, *, inner: bool, base: int = 0) -> Iterator[None]:
-        """:meth:`records` as a generator: in stream mode it yields after each top-level
-        record (a chunk, or a message outside chunks), never inside a chunk."""
         u64 = _U64.unpack_from
         head = _MSG_HEAD.unpack_from
         sinks = self._sinks
         whole = self.whole
-        pause = self.mode == "stream" and not inner
+        ix = self.index
+        if ix is not None:
+            add_cid, add_start, add_end = ix.cid.append, ix.start.append, ix.end.append
         while pos < size:
             if pos + 9 > size:
                 self._truncated(pos, size, inner, base)
@@ -262,14 +284,21 @@ class _Scanner:
                 else:
                     cid, lt = head(buf, pos + 9)
                     sink = sinks.get(cid)
-                    if sink is not None:
+                    if sink is None:
+                        pass
+                    elif ix is None:
                         sink[0](lt)
                         sink[1](buf[pos:end] if whole else buf[pos + 31 : end])
-                    elif cid not in self.out.channels:
+                    else:
+                        if not inner and (not ix.segments or ix.segments[-1][0] >= 0):
+                            ix.segments.append((-1, -1, len(ix.cid)))  # outside chunks
+                        sink[0](lt)
+                        add_cid(cid)
+                        add_start(pos)
+                        add_end(end)
+                    if sink is None and cid not in self.out.channels:
                         self.out.orphan_messages += 1
                 pos = end
-                if pause:
-                    yield
                 continue
             body = pos + 9
             try:
@@ -297,8 +326,6 @@ class _Scanner:
                     )
                 )
             pos = end
-            if pause:
-                yield
 
     def _truncated(self, pos: int, size: int, inner: bool, base: int) -> None:
         if inner:
@@ -381,21 +408,14 @@ def scan_mcap(
     return _finish(sc.out, size)
 
 
-def scan_index(path: str | Path) -> tuple[Scan, array, array]:
+def scan_index(path: str | Path) -> MessageIndex:
     """:func:`scan_mcap` without the messages' contents: schemas, channels (their ``data``
-    and ``log_time_ns`` left empty), metadata and attachment records, losses, and the
-    channel id and log time (ns) of every message on a known channel, in file order.
+    and ``log_time_ns`` left empty), metadata and attachment records and losses in
+    ``.scan``, and the channel id, log time and place of every message on a known channel,
+    in file order.
 
     With :func:`iter_message_records` (the same messages, same order, as whole records) a
     large recording is copied without holding its messages in memory.
-
-    Returns
-    -------
-    Scan
-    array of uint16
-        Channel id of each message, file order.
-    array of uint64
-        Log time of each message, ns since the Unix epoch, file order.
 
     Raises
     ------
@@ -406,27 +426,44 @@ def scan_index(path: str | Path) -> tuple[Scan, array, array]:
     with _mapped(path) as (mm, size):
         sc = _Scanner(mm, None, "index")
         sc.records(mm, len(MAGIC), size, inner=False)
-    return _finish(sc.out, size), sc.cids, sc.times
+    _finish(sc.out, size)
+    return sc.index
 
 
-def iter_message_records(path: str | Path) -> Iterator[list[bytes]]:
-    """The whole serialised record of every message on a known channel, in file order, a
-    list per top-level record (a chunk's messages, or one message outside chunks): the
-    messages :func:`scan_index` indexes, in its order, salvaged around damage the same way.
-    Only the current list is held (and the file map, until the iterator ends or is closed).
+def iter_message_records(path: str | Path, index: MessageIndex) -> Iterator[list[bytes]]:
+    """The whole serialised record of every message ``index`` (:func:`scan_index` of the
+    same file) lists, in its order: a list per chunk (or per run of messages outside chunks).
+    Only the current chunk is held (and the file map, until the iterator ends or is closed).
 
     Raises
     ------
     ScanError
-        Empty file or no MCAP magic.
+        The file is not the one indexed any more (a chunk no longer decompresses to what it
+        did).
     """
     path = Path(path)
-    with _mapped(path) as (mm, size):
-        sc = _Scanner(mm, None, "stream")
-        pending = sc.pending
-        for _ in sc.walk(mm, len(MAGIC), size, inner=False):
-            if pending:
-                batch = pending[:]
-                pending.clear()
-                del sc.times[:]
-                yield batch
+    bounds = [s[2] for s in index.segments[1:]] + [len(index.cid)]
+    with _mapped(path) as (mm, _):
+        for (pos, end, i0), i1 in zip(index.segments, bounds, strict=True):
+            if i1 == i0:
+                continue
+            data = mm if pos < 0 else _chunk_content(mm, pos, end)
+            yield [
+                data[a:b]
+                for a, b in zip(index.start[i0:i1].tolist(), index.end[i0:i1].tolist(), strict=True)
+            ]
+
+
+def _chunk_content(buf, pos: int, end: int) -> bytes:
+    """The decompressed content of the Chunk record whose body spans ``buf[pos:end]`` (one
+    the scan found intact)."""
+    _, _, usize, crc = _CHUNK_HEAD.unpack_from(buf, pos)
+    try:
+        compression, p = _string(buf, pos + 28, end)
+        dlen = _U64.unpack_from(buf, p)[0]
+        data = _decompress(compression, memoryview(buf)[p + 8 : p + 8 + dlen], usize)
+    except Exception as exc:  # noqa: BLE001
+        raise ScanError(f"a chunk at byte {pos - 9} changed since it was read ({exc})") from None
+    if len(data) != usize or (crc != 0 and zlib.crc32(data) != crc):
+        raise ScanError(f"a chunk at byte {pos - 9} changed since it was read")
+    return data

@@ -301,9 +301,10 @@ def write_with_new_channels(
     try:
         # pass 1: everything but the messages' contents (their channels and times, file
         # order); pass 2 (:func:`_input_records`) streams the records while writing
-        sc, f_cid, f_time = scan_index(src)
+        index = scan_index(src)
     except (ScanError, OSError) as exc:
         raise AeromagError(f"could not copy the input recording ({exc})", file=src) from None
+    sc = index.scan
     clash = sorted({c.topic for c in sc.channels.values()} & {c.topic for c in channels})
     if clash:
         raise AeromagError(
@@ -339,8 +340,8 @@ def write_with_new_channels(
         # new channel: (source, channel, time); a stable sort by time merges them (input
         # first at equal times) and records are produced in that order, input ones read
         # from the file again, new ones encoded as they go into a chunk
-        f_cid = np.asarray(f_cid, np.uint16)
-        f_time = np.asarray(f_time, np.uint64).astype(np.int64)
+        f_cid = np.asarray(index.cid, np.uint16)
+        f_time = np.asarray(index.time_ns, np.uint64).astype(np.int64)
         keep = np.isin(f_cid, np.fromiter(w.channels, np.int64, len(w.channels)))
         kept = np.flatnonzero(keep)
         grouped = kept[np.argsort(f_cid[kept], kind="stable")]  # file index, input order
@@ -385,7 +386,7 @@ def write_with_new_channels(
             # or the next message of new channel k (~k)
             take = np.where(owner < 0, 0, ~owner)
             take[:n_input] = pass2[grouped]
-            records = _input_records(src, keep)
+            records = _input_records(src, index, keep)
             try:
                 w.add_messages(_merged(records, sources, take[order]), c_all[order], t_all[order])
             finally:
@@ -422,20 +423,23 @@ def _encoded(messages, rank: np.ndarray, cid: int) -> Iterator[bytes]:
         yield message_record(cid, k, t, t, encode(p))
 
 
-def _input_records(src: Path, keep: np.ndarray) -> Iterator[bytes]:
-    """The message records :func:`~pipeline.io.scan.scan_index` indexed, read again in file
-    order, those of ``keep`` (a mask over that index) only."""
-    from pipeline.io.scan import iter_message_records
+def _input_records(src: Path, index, keep: np.ndarray) -> Iterator[bytes]:
+    """The message records of ``index`` (:func:`~pipeline.io.scan.scan_index`), read again in
+    file order, those of ``keep`` (a mask over that index) only."""
+    from pipeline.io.scan import ScanError, iter_message_records
 
     at = 0
     every = bool(keep.all())
-    for batch in iter_message_records(src):
-        if every:
-            yield from batch
-        else:
-            mine = keep[at : at + len(batch)].tolist()
-            yield from (r for r, k in zip(batch, mine, strict=True) if k)
-        at += len(batch)
+    try:
+        for batch in iter_message_records(src, index):
+            if every:
+                yield from batch
+            else:
+                mine = keep[at : at + len(batch)].tolist()
+                yield from (r for r, k in zip(batch, mine, strict=True) if k)
+            at += len(batch)
+    except ScanError as exc:
+        raise AeromagError(f"could not copy the input recording ({exc})", file=src) from None
 
 
 def _merged(
