@@ -28,6 +28,8 @@ OP_ATTACHMENT, OP_METADATA, OP_DATA_END = 0x09, 0x0C, 0x0F
 # A chunk larger than this is refused rather than decompressed: recorders write chunks of a few
 # MB; a declared size beyond this is damage or hostility, and believing it could exhaust memory.
 MAX_CHUNK_BYTES = 256 * 1024 * 1024
+# the file map's pages are given back every this many bytes walked (see :func:`release`)
+RELEASE_BYTES = 8 * 1024 * 1024
 
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 _CHUNK_HEAD = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed crc
@@ -188,6 +190,7 @@ class _Scanner:
         self.out = Scan()
         self._sinks: dict[int, tuple] = {}  # channel id -> (append time, append payload)
         self._after_data_end = False
+        self._kept = 0  # the file map's pages before this offset were given back
         self.index = MessageIndex(self.out) if mode == "index" else None
 
     def _sink(self, cid: int, ch: ChannelData) -> tuple:
@@ -326,6 +329,8 @@ class _Scanner:
                     )
                 )
             pos = end
+            if not inner and pos - self._kept >= RELEASE_BYTES:
+                self._kept = release(buf, self._kept, pos)
 
     def _truncated(self, pos: int, size: int, inner: bool, base: int) -> None:
         if inner:
@@ -336,6 +341,19 @@ class _Scanner:
             self.out.losses.append(
                 Loss(pos, "file truncated: the last record is incomplete", bytes_lost=size - pos)
             )
+
+
+def release(buf, start: int, stop: int) -> int:
+    """Give back the resident pages of the file map ``buf`` between ``start`` and ``stop``
+    (rounded down to a page) once they are read, so that walking a large file does not add
+    its size to the process's resident memory (pages mapped from a file count in it, and
+    in its peak, as long as they stay mapped); they are read again from the file if touched.
+    Returns the new start. Anything but a memory map is left alone."""
+    stop -= stop % mmap.PAGESIZE
+    if isinstance(buf, mmap.mmap) and stop > start and hasattr(mmap, "MADV_DONTNEED"):
+        buf.madvise(mmap.MADV_DONTNEED, start, stop - start)
+        return stop
+    return start
 
 
 def _close_map(mm: mmap.mmap) -> None:
@@ -443,15 +461,18 @@ def iter_message_records(path: str | Path, index: MessageIndex) -> Iterator[list
     """
     path = Path(path)
     bounds = [s[2] for s in index.segments[1:]] + [len(index.cid)]
+    kept = 0
     with _mapped(path) as (mm, _):
         for (pos, end, i0), i1 in zip(index.segments, bounds, strict=True):
             if i1 == i0:
                 continue
             data = mm if pos < 0 else _chunk_content(mm, pos, end)
-            yield [
+            batch = [
                 data[a:b]
                 for a, b in zip(index.start[i0:i1].tolist(), index.end[i0:i1].tolist(), strict=True)
             ]
+            kept = release(mm, kept, end if pos >= 0 else index.end[i1 - 1])
+            yield batch
 
 
 def _chunk_content(buf, pos: int, end: int) -> bytes:
