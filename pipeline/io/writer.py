@@ -285,6 +285,11 @@ def write_with_new_channels(
     Messages of the input and of the new channels are merged in log-time order (ties: input
     first), so a viewer streams the file without seeking back. New topics must not already
     exist in the input. Written atomically.
+
+    The input is read twice and its messages are never all in memory: an index pass (each
+    message's channel, time and place) and, while writing, a pass that decompresses one chunk
+    at a time (:func:`~pipeline.io.scan.scan_index`, :func:`~pipeline.io.scan.
+    iter_message_records`).
     """
     from mcap.data_stream import ReadDataStream
     from mcap.records import Attachment, AttachmentIndex, Channel, Metadata, Schema
