@@ -131,3 +131,65 @@ def test_existing_output_channel_is_refused(tmp_path):
     once = write_with_new_channels(src, tmp_path / "once.mcap", [ch])
     with pytest.raises(AeromagError, match="/aeromag/log: the input already has this output"):
         write_with_new_channels(once, tmp_path / "twice.mcap", [ch])
+
+
+def unchunked_copy(src: Path, dst: Path) -> Path:
+    """``src`` rewritten with every record outside chunks, messages in file order."""
+    from mcap.writer import Writer
+
+    with src.open("rb") as f, dst.open("wb") as g:
+        w = Writer(g, use_chunking=False)
+        w.start()
+        done = set()
+        for s, c, m in make_reader(f).iter_messages(log_time_order=False):
+            if c.id not in done:
+                w.register_schema(name=s.name, encoding=s.encoding, data=s.data)
+                w.register_channel(c.topic, c.message_encoding, s.id, dict(c.metadata))
+                done.add(c.id)
+            w.add_message(c.id, m.log_time, m.data, m.publish_time, m.sequence)
+        w.finish()
+    return dst
+
+
+@pytest.mark.parametrize("chunk_size", [1 << 20, 300, 0])
+def test_input_out_of_log_time_order_is_merged_like_a_stable_sort(tmp_path, chunk_size):
+    """The writer reads the input's records again while writing (not held in memory): a file
+    out of log-time order, with equal times on different channels, across small chunks (or
+    none: ``chunk_size`` 0), still comes out as the stable time sort of (input by channel,
+    file order within; then the new channel), every input record exactly once."""
+    rng = np.random.default_rng(3)
+    msgs = []
+    for i in rng.permutation(120).tolist():
+        t = T0 + int(i) * NS // 10
+        msgs += [
+            ("/mag/vector", t, vector(t, 1.0 * i, 2.0, 3.0)),
+            ("/mag/scalar", t, scalar(t, float(i))),
+        ]
+    src = build(tmp_path / "in.mcap", msgs, chunk_size=chunk_size or 1 << 20)
+    if not chunk_size:
+        src = unchunked_copy(src, tmp_path / "unchunked.mcap")
+    new = OutputChannel("/aeromag/log", "foxglove.Log")
+    for k in (30, 0, 60):  # equal to input times, out of order
+        new.add(
+            T0 + k * NS // 10, {"level": 2, "message": f"{k}", "name": "t", "file": "", "line": 0}
+        )
+    dst = write_with_new_channels(src, tmp_path / "out.mcap", [new])
+    with src.open("rb") as f:
+        r = make_reader(f)
+        inp = [
+            (c.id, c.topic, m.log_time, m.data) for _, c, m in r.iter_messages(log_time_order=False)
+        ]
+    grouped = sorted(enumerate(inp), key=lambda x: x[1][0])  # by channel id, file order within
+    expected = [
+        (topic, t, data) for _, (_, topic, t, data) in sorted(grouped, key=lambda x: x[1][2])
+    ]
+    got = [m for m in records(dst)[0]]
+    added = [(m[0], m[4]) for m in got if m[0] == "/aeromag/log"]
+    assert added == [("/aeromag/log", T0 + k * NS // 10) for k in (0, 30, 60)]
+    # input records at their places; each new message after the input ones of its time
+    assert [(m[0], m[4], m[7]) for m in got if m[0] != "/aeromag/log"] == expected
+    times = [m[4] for m in got]
+    assert times == sorted(times)
+    for k in (0, 30, 60):
+        at = [j for j, m in enumerate(got) if m[4] == T0 + k * NS // 10]
+        assert got[at[-1]][0] == "/aeromag/log"

@@ -305,6 +305,65 @@ def bandpassed_rows(
 
 
 @dataclass
+class CalibrationRows:
+    """A model's regression rows over the whole calibration (:func:`calibration_rows`): what
+    every fit and held-out residual of that model selects its rows from.
+
+    Attributes
+    ----------
+    names : list of str
+        Column names.
+    subtract : ndarray of bool, shape (p,)
+        Compensating columns (see :class:`Design`).
+    kf : ndarray, shape (m, p)
+        Band-passed design rows (nT), read-only.
+    yf : ndarray, shape (m,)
+        Band-passed (lag-corrected) scalar field, nT, read-only.
+    where : ndarray of int, shape (m,)
+        Epoch index of each row.
+    """
+
+    names: list[str]
+    subtract: np.ndarray
+    kf: np.ndarray
+    yf: np.ndarray
+    where: np.ndarray
+
+    def select(self, keep: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(K_bp, y_bp, epoch indices) of the rows of ``keep`` (epoch mask; all when None),
+        the rows :func:`bandpassed_rows` gives with the same ``keep``."""
+        if keep is None:
+            return self.kf, self.yf, self.where
+        rows = keep[self.where]
+        return self.kf[rows], self.yf[rows], self.where[rows]
+
+
+def calibration_rows(
+    data: AuditData, spec: ModelSpec, mask: np.ndarray, bs: BandSettings
+) -> CalibrationRows:
+    """``spec``'s design on ``data``, band-passed over the blocks of ``mask`` (arrays made
+    read-only: they are shared by every fit that selects rows from them).
+
+    Parameters
+    ----------
+    data : AuditData
+    spec : ModelSpec
+    mask : ndarray of bool
+        The calibration epochs.
+    bs : BandSettings
+
+    Returns
+    -------
+    CalibrationRows
+    """
+    des = design(data, spec)
+    kf, yf, where = bandpassed_rows(data, des, mask, bs)
+    for a in (kf, yf, where):
+        a.flags.writeable = False
+    return CalibrationRows(des.names, des.subtract, kf, yf, where)
+
+
+@dataclass
 class FittedModel:
     """A :class:`ModelSpec` fitted by ridge regression on band-passed calibration data.
 
@@ -347,11 +406,19 @@ class FittedModel:
         return y - interference, interference
 
     def residual_bp(
-        self, data: AuditData, mask: np.ndarray, bs: BandSettings, keep: np.ndarray | None = None
+        self,
+        data: AuditData,
+        mask: np.ndarray,
+        bs: BandSettings,
+        keep: np.ndarray | None = None,
+        rows: CalibrationRows | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """Band-passed measured minus model (all columns) over ``mask`` (rows of ``keep``
-        only, when given): (residual, epochs)."""
-        kf, yf, where = bandpassed_rows(data, design(data, self.spec), mask, bs, keep)
+        only, when given): (residual, epochs). ``rows``: this model's
+        :func:`calibration_rows` on the same ``data``, ``mask`` and ``bs``, when already
+        made (the audit's folds share them)."""
+        rows = rows or calibration_rows(data, self.spec, mask, bs)
+        kf, yf, where = rows.select(keep)
         return yf - kf @ self.theta, where
 
 
@@ -363,20 +430,23 @@ def fit_model(
     ridge: float | str = "auto",
     keep: np.ndarray | None = None,
     folds: np.ndarray | None = None,
+    rows: CalibrationRows | None = None,
 ) -> FittedModel:
     """Fit ``spec`` on the epochs of ``mask`` (only the rows of ``keep`` when given).
 
     ``ridge``: ``"auto"`` (L-curve corner), ``"cv"`` (inner cross-validation over the fold
     numbers ``folds`` of the fitted rows, see :mod:`pipeline.audit.crossval`) or a value.
+    ``rows``: ``spec``'s :func:`calibration_rows` on the same ``data``, ``mask`` and ``bs``,
+    when already made (the audit's fits of one model share them).
     """
     bs = bs or BandSettings()
-    des = design(data, spec)
-    kf, yf, where = bandpassed_rows(data, des, mask, bs, keep)
+    rows = rows or calibration_rows(data, spec, mask, bs)
+    kf, yf, where = rows.select(keep)
     fit = fit_ridge(kf, yf, ridge, None if folds is None else folds[where])
     return FittedModel(
         spec,
-        des.names,
-        des.subtract,
+        rows.names,
+        rows.subtract,
         fit.theta,
         fit.lambda_,
         fit.n_rows,

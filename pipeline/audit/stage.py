@@ -19,6 +19,7 @@
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from typing import Any
@@ -50,8 +51,10 @@ from pipeline.audit.extended import (
     LAG_RESPONSES,
     AuditData,
     BandSettings,
+    CalibrationRows,
     FittedModel,
     ModelSpec,
+    calibration_rows,
     design,
     fit_model,
     lag_cost,
@@ -79,6 +82,10 @@ from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
 from pipeline.segment import Segmentation
+
+# models whose band-passed calibration rows the auditor keeps (a fold loop uses two or three
+# at a time; each is the calibration's rows x the model's columns, a few MB)
+ROWS_CACHED = 8
 
 
 @dataclass
@@ -338,6 +345,25 @@ class Auditor:
         self.step = thinning_step(self.data.rate_hz, settings.band.band_hz)
         self.notes: list[str] = []
         self._fit_cache: dict[tuple, FittedModel] = {}
+        # each model's band-passed calibration rows, shared by its fits and residuals over
+        # the folds (the design spans the whole flight: building it once per fit made the
+        # audit grow with the survey); the last few models only
+        self._rows_cache: OrderedDict[ModelSpec, CalibrationRows] = OrderedDict()
+        self._crossover_cache: dict[tuple, tuple] = {}
+        self._geometry: tuple | None = None
+
+    def rows(self, spec: ModelSpec) -> CalibrationRows:
+        """``spec``'s band-passed calibration rows (:func:`calibration_rows`), kept for the
+        most recently used models."""
+        got = self._rows_cache.get(spec)
+        if got is None:
+            got = calibration_rows(self.data, spec, self.mask, self.s.band)
+            self._rows_cache[spec] = got
+            while len(self._rows_cache) > ROWS_CACHED:
+                self._rows_cache.popitem(last=False)
+        else:
+            self._rows_cache.move_to_end(spec)
+        return got
 
     # -- fitting helpers ------------------------------------------------------------------
     def fit(
@@ -353,7 +379,14 @@ class Auditor:
         ck = (spec, key, ridge)
         if ck not in self._fit_cache:
             self._fit_cache[ck] = fit_model(
-                self.data, spec, self.mask, self.s.band, ridge=ridge, keep=keep, folds=self.fold
+                self.data,
+                spec,
+                self.mask,
+                self.s.band,
+                ridge=ridge,
+                keep=keep,
+                folds=self.fold,
+                rows=self.rows(spec),
             )
         return self._fit_cache[ck]
 
@@ -365,8 +398,12 @@ class Auditor:
             mb = self.fit(before, train, f"fold{k}")
             spec_a = after_for_fold(train, k)
             ma = self.fit(spec_a, train, f"fold{k}")
-            r0, w0 = mb.residual_bp(self.data, self.mask, self.s.band, keep=test)
-            r1, w1 = ma.residual_bp(self.data, self.mask, self.s.band, keep=test)
+            r0, w0 = mb.residual_bp(
+                self.data, self.mask, self.s.band, keep=test, rows=self.rows(before)
+            )
+            r1, w1 = ma.residual_bp(
+                self.data, self.mask, self.s.band, keep=test, rows=self.rows(spec_a)
+            )
             common, i0, i1 = np.intersect1d(w0, w1, return_indices=True)
             rb.append(r0[i0])
             ra.append(r1[i1])
@@ -740,24 +777,44 @@ class Auditor:
         """Crossover and validation-overlap differences of ``spec``'s compensated field,
         reduced by IGRF only (and smoothed along track over ``smooth_s``), with the
         base-station difference at each; also the crossovers themselves and each line's
-        heading class (0..3: N, E, S, W)."""
-        from pipeline.geo.local import LocalFrame
-        from pipeline.maps.level import Line, crossovers
-        from pipeline.maps.reduce import igrf_total_nT
-        from pipeline.quality.overlap import track_intersections
-        from pipeline.quality.stage import flight_tracks
+        heading class (0..3: N, E, S, W). Kept per model and smoothing: the survey tests
+        of one round ask for the same model's several times."""
+        ck = (spec, smooth_s)
+        if ck not in self._crossover_cache:  # the same model's crossovers serve several tests
+            self._crossover_cache[ck] = self._crossover_data_of(spec, smooth_s)
+        return self._crossover_cache[ck]
 
-        d = self.flight.data
-        lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
+    def _survey_geometry(self) -> tuple[np.ndarray, np.ndarray, list]:
+        """What the crossovers of every model share, computed once: the IGRF total field
+        (nT) and the smoothed base station (nT) at each epoch, and the flight's tracks."""
+        if self._geometry is None:
+            from pipeline.geo.local import LocalFrame
+            from pipeline.maps.reduce import igrf_total_nT
+            from pipeline.quality.stage import flight_tracks
+
+            d = self.flight.data
+            lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
+            igrf = igrf_total_nT(self.flight.time_ns, lat, lon, alt)
+            base = time_window_mean(
+                self.data.time_s, d["base_nT"].to_numpy(float), BASE_SMOOTHING_S
+            )
+            sel = self.seg.mask("survey")
+            frame = LocalFrame(float(np.nanmean(lat[sel])), float(np.nanmean(lon[sel])))
+            e, n, _ = frame.to_enu(lat, lon)
+            igrf.flags.writeable = base.flags.writeable = False  # shared: never changed
+            self._geometry = igrf, base, flight_tracks(self.seg, e, n)
+        return self._geometry
+
+    def _crossover_data_of(self, spec: ModelSpec, smooth_s: float):
+        """:meth:`_crossover_data`, computed."""
+        from pipeline.maps.level import Line, crossovers
+        from pipeline.quality.overlap import track_intersections
+
+        igrf, base, tracks = self._survey_geometry()
         comp, _ = self.fit(spec, None, "all").compensate(self.data)
-        red = comp - igrf_total_nT(self.flight.time_ns, lat, lon, alt)
+        red = comp - igrf
         if smooth_s > 0:
             red = time_window_mean(self.data.time_s, red, smooth_s)
-        base = time_window_mean(self.data.time_s, d["base_nT"].to_numpy(float), BASE_SMOOTHING_S)
-        sel = self.seg.mask("survey")
-        frame = LocalFrame(float(np.nanmean(lat[sel])), float(np.nanmean(lon[sel])))
-        e, n, _ = frame.to_enu(lat, lon)
-        tracks = flight_tracks(self.seg, e, n)
         t = self.data.time_s
 
         def line(tr):
@@ -939,7 +996,9 @@ class Auditor:
         r, tt = [], []
         for k, (train, test) in enumerate(folds):
             m = self.fit(spec, train, f"{tag}{k}")
-            rr, w = m.residual_bp(self.data, self.mask, self.s.band, keep=test)
+            rr, w = m.residual_bp(
+                self.data, self.mask, self.s.band, keep=test, rows=self.rows(spec)
+            )
             r.append(rr)
             tt.append(w)
         rc, wc = np.concatenate(r), np.concatenate(tt)

@@ -37,7 +37,8 @@ from mcap.records import (
 )
 
 MAGIC = b"\x89MCAP0\r\n"
-_MSG = struct.Struct("<BQHIQQ")  # opcode, length, channel id, sequence, log time, publish time
+# a Message record's head: opcode, length, channel id, sequence, log time, publish time
+MESSAGE_HEAD = struct.Struct("<BQHIQQ")
 
 
 def message_record(
@@ -45,7 +46,7 @@ def message_record(
 ) -> bytes:
     """One serialised Message record."""
     return (
-        _MSG.pack(
+        MESSAGE_HEAD.pack(
             Opcode.MESSAGE,
             22 + len(data),
             channel_id,

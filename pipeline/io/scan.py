@@ -16,6 +16,8 @@ import mmap
 import struct
 import zlib
 from array import array
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -26,6 +28,8 @@ OP_ATTACHMENT, OP_METADATA, OP_DATA_END = 0x09, 0x0C, 0x0F
 # A chunk larger than this is refused rather than decompressed: recorders write chunks of a few
 # MB; a declared size beyond this is damage or hostility, and believing it could exhaust memory.
 MAX_CHUNK_BYTES = 256 * 1024 * 1024
+# the file map's pages are given back every this many bytes walked (see :func:`release`)
+RELEASE_BYTES = 8 * 1024 * 1024
 
 _U16, _U32, _U64 = struct.Struct("<H"), struct.Struct("<I"), struct.Struct("<Q")
 _CHUNK_HEAD = struct.Struct("<QQQI")  # start, end, uncompressed size, uncompressed crc
@@ -104,6 +108,35 @@ class Scan:
         return name, enc
 
 
+@dataclass
+class MessageIndex:
+    """Where the messages of a recording are (:func:`scan_index`), one entry a message on a
+    known channel, in file order.
+
+    Attributes
+    ----------
+    scan : Scan
+        Schemas, channels (no messages in them), metadata, attachments, losses.
+    cid : array of uint16
+        Channel id.
+    time_ns : array of uint64
+        Log time, ns since the Unix epoch.
+    start, end : array of uint64
+        The whole record's byte span in its chunk's decompressed content (in the file for a
+        message outside chunks).
+    segments : list of (int, int, int)
+        Per intact chunk (and run of messages outside chunks): the chunk body's byte span
+        in the file (-1, -1 outside chunks) and the index of its first message.
+    """
+
+    scan: Scan
+    cid: array = field(default_factory=lambda: array("H"))
+    time_ns: array = field(default_factory=lambda: array("Q"))
+    start: array = field(default_factory=lambda: array("Q"))
+    end: array = field(default_factory=lambda: array("Q"))
+    segments: list[tuple[int, int, int]] = field(default_factory=list)
+
+
 def _string(buf, pos: int, end: int) -> tuple[str, int]:
     n = _U32.unpack_from(buf, pos)[0]
     pos += 4
@@ -144,13 +177,28 @@ def _decompress(compression: str, data, usize: int) -> bytes:
 
 
 class _Scanner:
-    def __init__(self, buf, wanted: set[str] | None, whole_records: bool = False):
+    """The record walk. ``mode`` says what each message on a known channel leaves:
+    ``payload`` (its payload, per channel), ``record`` (its whole record, per channel) or
+    ``index`` (its channel id, log time and place, in file order: see :class:`MessageIndex`).
+    """
+
+    def __init__(self, buf, wanted: set[str] | None, mode: str = "payload"):
         self.buf = buf
         self.wanted = wanted
-        self.whole = whole_records
+        self.mode = mode
+        self.whole = mode == "record"
         self.out = Scan()
         self._sinks: dict[int, tuple] = {}  # channel id -> (append time, append payload)
         self._after_data_end = False
+        self._kept = 0  # the file map's pages before this offset were given back
+        self.index = MessageIndex(self.out) if mode == "index" else None
+
+    def _sink(self, cid: int, ch: ChannelData) -> tuple:
+        """(append log time, append payload or record) for the messages of channel ``cid``
+        (index mode: the rest is appended in :meth:`records`)."""
+        if self.index is not None:
+            return self.index.time_ns.append, None
+        return ch.log_time_ns.append, ch.data.append
 
     # -- records shared by the top level and chunks ------------------------------------------
     def record(self, buf, op: int, pos: int, end: int) -> None:
@@ -164,7 +212,7 @@ class _Scanner:
             if cid not in self.out.channels:
                 ch = self.out.channels[cid] = ChannelData(topic, sid, enc, meta)
                 if self.wanted is None or topic in self.wanted:
-                    self._sinks[cid] = (ch.log_time_ns.append, ch.data.append)
+                    self._sinks[cid] = self._sink(cid, ch)
         elif op == OP_SCHEMA:
             sid = _U16.unpack_from(buf, pos)[0]
             name, p = _string(buf, pos + 2, end)
@@ -203,13 +251,19 @@ class _Scanner:
             self.out.losses.append(loss)
             return
         self.out.chunks += 1
+        if self.index is not None:
+            self.index.segments.append((pos, end, len(self.index.cid)))
         self.records(data, 0, len(data), inner=True, base=pos)
 
     def records(self, buf, pos: int, size: int, *, inner: bool, base: int = 0) -> None:
+        """Walk the records of ``buf[pos:size]`` (a chunk's content when ``inner``)."""
         u64 = _U64.unpack_from
         head = _MSG_HEAD.unpack_from
         sinks = self._sinks
         whole = self.whole
+        ix = self.index
+        if ix is not None:
+            add_cid, add_start, add_end = ix.cid.append, ix.start.append, ix.end.append
         while pos < size:
             if pos + 9 > size:
                 self._truncated(pos, size, inner, base)
@@ -233,10 +287,19 @@ class _Scanner:
                 else:
                     cid, lt = head(buf, pos + 9)
                     sink = sinks.get(cid)
-                    if sink is not None:
+                    if sink is None:
+                        pass
+                    elif ix is None:
                         sink[0](lt)
                         sink[1](buf[pos:end] if whole else buf[pos + 31 : end])
-                    elif cid not in self.out.channels:
+                    else:
+                        if not inner and (not ix.segments or ix.segments[-1][0] >= 0):
+                            ix.segments.append((-1, -1, len(ix.cid)))  # outside chunks
+                        sink[0](lt)
+                        add_cid(cid)
+                        add_start(pos)
+                        add_end(end)
+                    if sink is None and cid not in self.out.channels:
                         self.out.orphan_messages += 1
                 pos = end
                 continue
@@ -266,6 +329,8 @@ class _Scanner:
                     )
                 )
             pos = end
+            if not inner and pos - self._kept >= RELEASE_BYTES:
+                self._kept = release(buf, self._kept, pos)
 
     def _truncated(self, pos: int, size: int, inner: bool, base: int) -> None:
         if inner:
@@ -276,6 +341,19 @@ class _Scanner:
             self.out.losses.append(
                 Loss(pos, "file truncated: the last record is incomplete", bytes_lost=size - pos)
             )
+
+
+def release(buf, start: int, stop: int) -> int:
+    """Give back the resident pages of the file map ``buf`` between ``start`` and ``stop``
+    (rounded down to a page) once they are read, so that walking a large file does not add
+    its size to the process's resident memory (pages mapped from a file count in it, and
+    in its peak, as long as they stay mapped); they are read again from the file if touched.
+    Returns the new start. Anything but a memory map is left alone."""
+    stop -= stop % mmap.PAGESIZE
+    if isinstance(buf, mmap.mmap) and stop > start and hasattr(mmap, "MADV_DONTNEED"):
+        buf.madvise(mmap.MADV_DONTNEED, start, stop - start)
+        return stop
+    return start
 
 
 def _close_map(mm: mmap.mmap) -> None:
@@ -294,6 +372,31 @@ def _close_map(mm: mmap.mmap) -> None:
             mm.close()
         except BufferError:
             pass
+
+
+@contextmanager
+def _mapped(path: Path) -> Iterator[tuple[mmap.mmap, int]]:
+    """The file memory-mapped read-only, with its size, once its magic is checked."""
+    with path.open("rb") as f:
+        size = path.stat().st_size
+        if size == 0:
+            raise ScanError("empty file (0 bytes), not an MCAP recording")
+        head = f.read(len(MAGIC))
+        if head != MAGIC:
+            raise ScanError(
+                f"not a readable MCAP recording (starts with {head[:8]!r}, not the MCAP magic)"
+            )
+        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
+        try:
+            yield mm, size
+        finally:
+            _close_map(mm)
+
+
+def _finish(out: Scan, size: int) -> Scan:
+    if not out.footer_seen and not any("truncated" in x.reason for x in out.losses):
+        out.losses.append(Loss(size, "no footer: the recording was not closed (summary lost)"))
+    return out
 
 
 def scan_mcap(
@@ -317,22 +420,71 @@ def scan_mcap(
         Empty file or no MCAP magic.
     """
     path = Path(path)
-    with path.open("rb") as f:
-        size = path.stat().st_size
-        if size == 0:
-            raise ScanError("empty file (0 bytes), not an MCAP recording")
-        head = f.read(len(MAGIC))
-        if head != MAGIC:
-            raise ScanError(
-                f"not a readable MCAP recording (starts with {head[:8]!r}, not the MCAP magic)"
-            )
-        mm = mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ)
-        try:
-            sc = _Scanner(mm, topics, whole_records)
-            sc.records(mm, len(MAGIC), size, inner=False)
-            out = sc.out
-        finally:
-            _close_map(mm)
-    if not out.footer_seen and not any("truncated" in x.reason for x in out.losses):
-        out.losses.append(Loss(size, "no footer: the recording was not closed (summary lost)"))
-    return out
+    with _mapped(path) as (mm, size):
+        sc = _Scanner(mm, topics, "record" if whole_records else "payload")
+        sc.records(mm, len(MAGIC), size, inner=False)
+    return _finish(sc.out, size)
+
+
+def scan_index(path: str | Path) -> MessageIndex:
+    """:func:`scan_mcap` without the messages' contents: schemas, channels (their ``data``
+    and ``log_time_ns`` left empty), metadata and attachment records and losses in
+    ``.scan``, and the channel id, log time and place of every message on a known channel,
+    in file order.
+
+    With :func:`iter_message_records` (the same messages, same order, as whole records) a
+    large recording is copied without holding its messages in memory.
+
+    Raises
+    ------
+    ScanError
+        Empty file or no MCAP magic.
+    """
+    path = Path(path)
+    with _mapped(path) as (mm, size):
+        sc = _Scanner(mm, None, "index")
+        sc.records(mm, len(MAGIC), size, inner=False)
+    _finish(sc.out, size)
+    return sc.index
+
+
+def iter_message_records(path: str | Path, index: MessageIndex) -> Iterator[list[bytes]]:
+    """The whole serialised record of every message ``index`` (:func:`scan_index` of the
+    same file) lists, in its order: a list per chunk (or per run of messages outside chunks).
+    Only the current chunk is held (and the file map, until the iterator ends or is closed).
+
+    Raises
+    ------
+    ScanError
+        The file is not the one indexed any more (a chunk no longer decompresses to what it
+        did).
+    """
+    path = Path(path)
+    bounds = [s[2] for s in index.segments[1:]] + [len(index.cid)]
+    kept = 0
+    with _mapped(path) as (mm, _):
+        for (pos, end, i0), i1 in zip(index.segments, bounds, strict=True):
+            if i1 == i0:
+                continue
+            data = mm if pos < 0 else _chunk_content(mm, pos, end)
+            batch = [
+                data[a:b]
+                for a, b in zip(index.start[i0:i1].tolist(), index.end[i0:i1].tolist(), strict=True)
+            ]
+            kept = release(mm, kept, end if pos >= 0 else index.end[i1 - 1])
+            yield batch
+
+
+def _chunk_content(buf, pos: int, end: int) -> bytes:
+    """The decompressed content of the Chunk record whose body spans ``buf[pos:end]`` (one
+    the scan found intact)."""
+    _, _, usize, crc = _CHUNK_HEAD.unpack_from(buf, pos)
+    try:
+        compression, p = _string(buf, pos + 28, end)
+        dlen = _U64.unpack_from(buf, p)[0]
+        data = _decompress(compression, memoryview(buf)[p + 8 : p + 8 + dlen], usize)
+    except Exception as exc:  # noqa: BLE001
+        raise ScanError(f"a chunk at byte {pos - 9} changed since it was read ({exc})") from None
+    if len(data) != usize or (crc != 0 and zlib.crc32(data) != crc):
+        raise ScanError(f"a chunk at byte {pos - 9} changed since it was read")
+    return data

@@ -285,12 +285,17 @@ def write_with_new_channels(
     Messages of the input and of the new channels are merged in log-time order (ties: input
     first), so a viewer streams the file without seeking back. New topics must not already
     exist in the input. Written atomically.
+
+    The input is read twice and its messages are never all in memory: an index pass (each
+    message's channel, time and place) and, while writing, a pass that decompresses one chunk
+    at a time (:func:`~pipeline.io.scan.scan_index`, :func:`~pipeline.io.scan.
+    iter_message_records`).
     """
     from mcap.data_stream import ReadDataStream
     from mcap.records import Attachment, AttachmentIndex, Channel, Metadata, Schema
 
     from pipeline.io.bulk import BulkWriter, serialise
-    from pipeline.io.scan import ScanError, scan_mcap
+    from pipeline.io.scan import ScanError, scan_index
 
     src, dst = Path(src), Path(dst)
     if _same_file(src, dst) or src.resolve() == dst.resolve():
@@ -299,9 +304,12 @@ def write_with_new_channels(
         )
     channels = [c for c in channels if c.messages]
     try:
-        sc = scan_mcap(src, whole_records=True)
+        # pass 1: everything but the messages' contents (their channels and times, file
+        # order); pass 2 (:func:`_input_records`) streams the records while writing
+        index = scan_index(src)
     except (ScanError, OSError) as exc:
         raise AeromagError(f"could not copy the input recording ({exc})", file=src) from None
+    sc = index.scan
     clash = sorted({c.topic for c in sc.channels.values()} & {c.topic for c in channels})
     if clash:
         raise AeromagError(
@@ -333,19 +341,20 @@ def write_with_new_channels(
         schema_ids = {(n, e, d): sid for sid, (n, e, d) in sc.schemas.items()}
         next_sid = max(sc.schemas, default=0) + 1
         next_cid = max(sc.channels, default=-1) + 1
-        # every message, input first, then each new channel: (record source, channel, time);
-        # a stable sort by time merges them (input first at equal times) and records are
-        # produced in that order, new ones encoded as they go into a chunk
-        records: list[bytes] = []
-        cids: list[np.ndarray] = []
-        times: list[np.ndarray] = []
-        for cid, ch in sorted(sc.channels.items()):
-            if cid in w.channels and ch.data:
-                records += ch.data
-                cids.append(np.full(len(ch.data), cid, np.uint16))
-                times.append(np.asarray(ch.log_time_ns, np.int64))
-        n_input = len(records)
-        sc.channels.clear()  # the record lists live on in ``records`` only
+        # every message, input first (grouped by channel id, file order within), then each
+        # new channel: (source, channel, time); a stable sort by time merges them (input
+        # first at equal times) and records are produced in that order, input ones read
+        # from the file again, new ones encoded as they go into a chunk
+        f_cid = np.asarray(index.cid, np.uint16)
+        f_time = np.asarray(index.time_ns, np.uint64).astype(np.int64)
+        keep = np.isin(f_cid, np.fromiter(w.channels, np.int64, len(w.channels)))
+        kept = np.flatnonzero(keep)
+        grouped = kept[np.argsort(f_cid[kept], kind="stable")]  # file index, input order
+        # rank of each input record among the kept ones in file order (what pass 2 yields)
+        pass2 = np.cumsum(keep) - 1
+        cids: list[np.ndarray] = [f_cid[grouped]]
+        times: list[np.ndarray] = [f_time[grouped]]
+        n_input = grouped.size
         sources = []
         for c in channels:
             key = (c.schema_name, SCHEMA_ENCODING, schema_bytes(c.schema_name))
@@ -369,7 +378,7 @@ def write_with_new_channels(
             sources.append(_encoded(c.messages, rank, cid))
             cids.append(np.full(t_c.size, cid, np.uint16))
             times.append(t_c[rank])
-        if cids:
+        if n_input or sources:
             t_all = np.concatenate(times)
             c_all = np.concatenate(cids)
             order = np.argsort(t_all, kind="stable")
@@ -378,10 +387,15 @@ def write_with_new_channels(
                 np.arange(-1, len(sources)),
                 [n_input] + [len(t) for t in times[len(times) - len(sources) :]],
             )
-            w.add_messages(
-                _merged(records, sources, order, owner[order]), c_all[order], t_all[order]
-            )
-            del records
+            # what each output position takes: an input record (its rank in pass 2, >= 0)
+            # or the next message of new channel k (~k)
+            take = np.where(owner < 0, 0, ~owner)
+            take[:n_input] = pass2[grouped]
+            records = _input_records(src, index, keep)
+            try:
+                w.add_messages(_merged(records, sources, take[order]), c_all[order], t_all[order])
+            finally:
+                records.close()
         for rec in sc.metadata_records:
             w.add_metadata_record(rec, parse(rec, Metadata).name)
         for name, data in (metadata or {}).items():
@@ -406,29 +420,87 @@ def write_with_new_channels(
 
 
 def _encoded(messages, rank: np.ndarray, cid: int) -> Iterator[bytes]:
-    """Message records of a new channel in time order (``rank``), sequence numbers 0, 1, ..."""
-    from pipeline.io.bulk import message_record
+    """Message records of a new channel in time order (``rank``), sequence numbers 0, 1, ...
 
-    for k, i in enumerate(rank.tolist()):
-        t, p = messages[i]
-        yield message_record(cid, k, t, t, encode(p))
+    A :class:`RowMessages` channel (up to a million messages at 5 h) is encoded here
+    directly, its times taken a block at a time: the same records as :meth:`RowMessages.
+    __getitem__` then :func:`~pipeline.io.bulk.message_record` make, without their calls."""
+    from mcap.opcode import Opcode
+
+    from pipeline.io.bulk import MESSAGE_HEAD, message_record
+
+    if not isinstance(messages, RowMessages):
+        for k, i in enumerate(rank.tolist()):
+            t, p = messages[i]
+            yield message_record(cid, k, t, t, encode(p))
+        return
+    payload, time_ns = messages.payload, messages.time_ns
+    pack, dumps, opt = MESSAGE_HEAD.pack, orjson.dumps, orjson.OPT_SERIALIZE_NUMPY
+    op = Opcode.MESSAGE
+    block = 1 << 14
+    for b in range(0, rank.size, block):
+        ix = rank[b : b + block]
+        for k, i, t in zip(range(b, b + ix.size), ix.tolist(), time_ns[ix].tolist(), strict=True):
+            p = payload(i)
+            p.setdefault("timestamp", stamp(t))
+            data = dumps(p, option=opt)
+            yield pack(op, 22 + len(data), cid, k & 0xFFFFFFFF, t, t) + data
+
+
+def _input_records(src: Path, index, keep: np.ndarray) -> Iterator[bytes]:
+    """The message records of ``index`` (:func:`~pipeline.io.scan.scan_index`), read again in
+    file order, those of ``keep`` (a mask over that index) only."""
+    from pipeline.io.scan import ScanError, iter_message_records
+
+    at = 0
+    every = bool(keep.all())
+    try:
+        for batch in iter_message_records(src, index):
+            if every:
+                yield from batch
+            else:
+                mine = keep[at : at + len(batch)].tolist()
+                yield from (r for r, k in zip(batch, mine, strict=True) if k)
+            at += len(batch)
+    except ScanError as exc:
+        raise AeromagError(f"could not copy the input recording ({exc})", file=src) from None
 
 
 def _merged(
-    records: list[bytes],
+    records: Iterator[bytes],
     sources: list[Iterator[bytes]],
-    order: np.ndarray,
-    owner: np.ndarray,
+    take: np.ndarray,
     block: int = 1 << 16,
 ) -> Iterator[bytes]:
-    """Input records (``records[order[j]]``) and new ones (the next of ``sources[owner[j]]``)
-    in merged order: a stable time sort keeps each new channel's own order."""
+    """Records in merged order: for ``take[j] >= 0`` the input record of that rank in
+    ``records`` (read in file order), for ``take[j] < 0`` the next of ``sources[~take[j]]``
+    (a stable time sort keeps each new channel's own order).
+
+    An input record is read when its turn comes; those read past on the way (a file not in
+    log-time order, or messages of equal times on different channels) wait in a dict until
+    theirs: a file in log-time order holds a few, the worst case all of them."""
     nexts = [s.__next__ for s in sources]
-    for b in range(0, order.size, block):
-        for j, src in zip(
-            order[b : b + block].tolist(), owner[b : b + block].tolist(), strict=True
-        ):
-            yield records[j] if src < 0 else nexts[src]()
+    read = records.__next__
+    waiting: dict[int, bytes] = {}
+    pos = 0  # rank of the next record to read
+    try:
+        for b in range(0, take.size, block):
+            for v in take[b : b + block].tolist():
+                if v < 0:
+                    yield nexts[~v]()
+                elif v == pos:
+                    pos += 1
+                    yield read()
+                elif v < pos:
+                    yield waiting.pop(v)
+                else:
+                    while pos < v:
+                        waiting[pos] = read()
+                        pos += 1
+                    pos += 1
+                    yield read()
+    except StopIteration:
+        raise AeromagError("the input recording changed while it was copied") from None
 
 
 def write_json_atomic(path: str | Path, obj: Any) -> Path:
