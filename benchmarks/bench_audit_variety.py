@@ -97,9 +97,12 @@ def within_ci(effect: str, f: dict, truth: dict) -> list[bool]:
             out.append(iv[0] - tol <= value <= iv[1] + tol)
 
     if effect == "geomagnetic_gradient":
+        # the estimate is the total field's gradient: the injected one plus the main field's
+        # own (IGRF), which the finding reports beside it
         g = truth["effective"]["gradient_nT_per_m"]
-        cover("east_nT_per_m", g[0])
-        cover("north_nT_per_m", g[1])
+        est = f.get("estimate") or {}
+        cover("east_nT_per_m", g[0] + est.get("main_field_east_nT_per_m", 0.0))
+        cover("north_nT_per_m", g[1] + est.get("main_field_north_nT_per_m", 0.0))
     elif effect == "sensor_lag":
         cover("lag_s", truth["effective"]["sensor_lag_s"])
     elif effect == "electrical_current":

@@ -43,9 +43,11 @@ def test_gradient_recovered_within_its_interval_over_seeds():
         z.append((est.gradient_nT_per_m - g) / est.se_nT_per_m)
         # the ramp along a 630 m leg of a 0.3 nT/m gradient is ~55 nT RMS
         assert 30.0 < est.ramp_rms_nT < 80.0
-    # three components, each within its 95 % interval: ~0.86 of flights all three
+    # three components, each within its 95 % interval: at least ~0.86 of flights all three
+    # (more: the intervals carry a scale uncertainty these flights do not have)
     assert inside >= 28
-    assert abs(float(np.mean(z))) < 0.5 and 0.6 < float(np.std(z)) < 1.6
+    # unbiased; the spread of the z-scores at most that of a standard normal
+    assert abs(float(np.mean(z))) < 0.5 and 0.2 < float(np.std(z)) < 1.3
 
 
 def test_no_gradient_gives_uniform_p_and_a_small_ramp():

@@ -12,10 +12,15 @@ The estimate: the baseline-compensated field (the day's variation taken out with
 station, when the recording has one) and the local east/north/up positions, averaged over
 blocks of ``block_s`` seconds (the manoeuvres' 3-10 s cycles average out; neighbouring
 block means are nearly independent), regressed on position with a level per leg (each
-leg's heading error and the day's level). An F-test asks whether the three gradient
-components are zero. This evidence lies below the fit band, so it is independent of the
-band-passed held-out test, and the two are combined (Fisher) when the audit weighs a
-gradient.
+leg's heading error and the day's level). An F-test asks whether the two horizontal
+components are zero. Only they are evidence: along a leg the carrier moves hundreds of
+metres horizontally at constant attitude, but its height changes with the pitch manoeuvres,
+so the vertical component shares its regressor with whatever attitude-driven interference
+the compensation left (an uncalibrated fluxgate made -2 nT/m of it on a flat field); it is
+estimated, so that it does not bias the others, and reported with that caveat.
+
+This evidence lies below the fit band, so it is independent of the band-passed held-out
+test, and the two are combined (Fisher) when the audit weighs a gradient.
 
 Hand-written: a block-averaged least-squares fit with per-leg levels, on numpy and
 scipy.stats; no library models calibration legs.
@@ -29,6 +34,10 @@ import numpy as np
 from scipy import stats
 
 MIN_BLOCK_FILL = 0.5  # share of a block's samples that must be present
+# relative uncertainty of a gradient from positions in a local tangent plane (projection and
+# datum scale, GNSS antenna offsets): with hundreds of nT of ramp the statistical error alone
+# is 1e-4 of the gradient and smaller than this
+SCALE_UNCERTAINTY = 1e-3
 
 
 @dataclass
@@ -40,14 +49,15 @@ class LegGradient:
     gradient_nT_per_m : ndarray
         East, north, up (nT/m), the change of the total field per metre.
     se_nT_per_m : ndarray
-        Their standard errors (nT/m).
+        Their standard errors (nT/m): the fit's, with :data:`SCALE_UNCERTAINTY` of the value
+        added in quadrature.
     p_value : float
-        F-test that all three are zero.
+        F-test that the horizontal (east, north) components are zero.
     blocks, legs : int
         Block means and legs used.
     ramp_rms_nT : float
-        RMS of the field change the gradient makes along the legs (each leg about its own
-        level), nT: the size of the evidence, beside its significance.
+        RMS of the field change the horizontal gradient makes along the legs (each leg
+        about its own level), nT: the size of the evidence, beside its significance.
     """
 
     gradient_nT_per_m: np.ndarray
@@ -146,19 +156,22 @@ def leg_gradient(
         return None
     coef, *_ = np.linalg.lstsq(x_full, a[:, 0], rcond=None)
     r_full = a[:, 0] - x_full @ coef
-    lev, *_ = np.linalg.lstsq(levels, a[:, 0], rcond=None)
-    r_base = a[:, 0] - levels @ lev
+    x_base = np.column_stack([a[:, 3], levels])  # height and the levels: no horizontal terms
+    cb, *_ = np.linalg.lstsq(x_base, a[:, 0], rcond=None)
+    r_base = a[:, 0] - x_base @ cb
     rss_f, rss_b = float(r_full @ r_full), float(r_base @ r_base)
     s2 = rss_f / dof
     cov = s2 * np.linalg.pinv(x_full.T @ x_full)
-    f = ((rss_b - rss_f) / 3.0) / s2 if s2 > 0 else np.inf
-    pv = float(stats.f.sf(f, 3, dof)) if np.isfinite(f) else 0.0
-    # the ramp about each leg's level: positions demeaned per leg
-    hat = levels @ np.linalg.lstsq(levels, a[:, 1:4], rcond=None)[0]
-    ramp = (a[:, 1:4] - hat) @ coef[:3]
+    f = ((rss_b - rss_f) / 2.0) / s2 if s2 > 0 else np.inf
+    pv = float(stats.f.sf(f, 2, dof)) if np.isfinite(f) else 0.0
+    # the horizontal ramp about each leg's level: positions demeaned per leg
+    hat = levels @ np.linalg.lstsq(levels, a[:, 1:3], rcond=None)[0]
+    ramp = (a[:, 1:3] - hat) @ coef[:2]
     return LegGradient(
         gradient_nT_per_m=coef[:3],
-        se_nT_per_m=np.sqrt(np.clip(np.diag(cov)[:3], 0.0, None)),
+        se_nT_per_m=np.sqrt(
+            np.clip(np.diag(cov)[:3], 0.0, None) + (SCALE_UNCERTAINTY * coef[:3]) ** 2
+        ),
         p_value=pv,
         blocks=int(a.shape[0]),
         legs=int(levels.shape[1]),

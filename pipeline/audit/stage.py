@@ -521,9 +521,9 @@ class Auditor:
                 # instead of fitted as position columns, which see it only through the
                 # manoeuvres' moves and may extrapolate between blocks; the form that
                 # lowers the held-out residual more is the extension
-                known = current.with_(
-                    known_gradient_nT_per_m=tuple(float(g) for g in legs.gradient_nT_per_m)
-                )
+                # horizontal only: the legs' vertical component is not evidence (legs.py)
+                g_e, g_n, _ = (float(g) for g in legs.gradient_nT_per_m)
+                known = current.with_(known_gradient_nT_per_m=(g_e, g_n, 0.0))
                 held_known = self.heldout(current, lambda train, k: known)
                 if held_known.reduction > held.reduction:
                     ev.spec, ev.heldout = known, held_known
