@@ -220,3 +220,18 @@ def test_an_error_raised_inside_a_flow_run_is_one_line(prefect_server):
     assert len(err) == 1 and err[0].endswith(
         "aeromag: error: f.mcap: /gnss/fix: no survey lines to grid"
     ), res.stderr
+
+
+def test_a_slow_worker_exit_at_cluster_close_is_no_stderr_line():
+    """On a busy machine the local cluster's idle workers may take over 4 s to exit at its
+    close; the nanny's "killing" warning must not add a line per worker to stderr."""
+    from flows.archive import dask_runner
+
+    dask_runner(2, None)  # configures the loggers; the cluster starts only with a flow
+    nanny = logging.getLogger("distributed.nanny")
+
+    def record(msg):
+        return logging.LogRecord(nanny.name, logging.WARNING, __file__, 1, msg, (), None)
+
+    assert not nanny.filter(record("Worker process still alive after 4.0 seconds, killing"))
+    assert nanny.filter(record("Worker exceeded 95% memory budget. Restarting..."))
