@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
+import tests.cli
 from pipeline.audit import AuditData, ModelSpec, fit_model, run_audit, simulate_measurement
 from pipeline.audit.extended import FittedModel
 from pipeline.compensate import FitSettings, tl18_truth_coefficients
@@ -206,23 +205,15 @@ def test_audit_command_writes_the_contract(tmp_path):
     sim = run_sim("uav-small", SEED, [*AUDIT, "effects.sensor_lag.enabled=true"])
     src = write_simulation(sim, tmp_path / "lag.mcap")
     before = sha256(src)
-    res = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "flows.cli",
-            "audit",
-            str(src),
-            "--json",
-            str(tmp_path / "audit.json"),
-            "--report",
-            str(tmp_path / "rep"),
-            "--out",
-            str(tmp_path / "out.mcap"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
+    res = tests.cli.run(
+        "audit",
+        str(src),
+        "--json",
+        str(tmp_path / "audit.json"),
+        "--report",
+        str(tmp_path / "rep"),
+        "--out",
+        str(tmp_path / "out.mcap"),
     )
     assert res.returncode == 0, res.stderr[-2000:]
     assert sha256(src) == before
