@@ -5,9 +5,9 @@ For commands that run no Prefect flow: each call spares a ~2 s interpreter start
 (numpy, scipy, matplotlib). What a separate process would show on stderr shows here too:
 warnings (under Python's default filters, not pytest's capture) and log records of WARNING
 and above that reach the root logger. The console script as a process of its own
-(``python -m flows.cli``) stays covered where it matters: tests/test_flow.py (``process``,
-``inspect``), tests/test_bad_input_flows.py, tests/test_operations.py.
-"""
+(``python -m flows.cli``) stays covered where flows run: tests/test_flow.py (``process``
+without a server), tests/test_bad_input_flows.py (``process``, ``reprocess``),
+tests/test_operations.py (``config``, ``reprocess``, ``serve``), tests/test_campaign.py."""
 
 from __future__ import annotations
 
