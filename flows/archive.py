@@ -300,6 +300,17 @@ def process_new(
     }
 
 
+class _SlowWorkerExit(logging.Filter):
+    """Drops the nanny's "Worker process still alive after 4.0 seconds, killing": when the
+    local cluster closes, every result is in; on a busy machine an idle worker may take longer
+    than that to exit and is killed, losing nothing. The warning, one line per worker, broke
+    the at-most-two-lines stderr of ``aeromag reprocess``; other nanny warnings (a worker
+    restarted for memory, say) still show."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return not str(record.msg).startswith("Worker process still alive after")
+
+
 def dask_runner(workers: int, address: str | None):
     """Prefect's Dask task runner: a cluster at ``address``, or a local one.
 
@@ -325,6 +336,9 @@ def dask_runner(workers: int, address: str | None):
         "distributed.http.proxy",
     ):
         logging.getLogger(name).setLevel(logging.WARNING)  # the scheduler's chatter
+    nanny = logging.getLogger("distributed.nanny")
+    if not any(isinstance(f, _SlowWorkerExit) for f in nanny.filters):
+        nanny.addFilter(_SlowWorkerExit())
 
     if address:
         return DaskTaskRunner(address=address)

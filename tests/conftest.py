@@ -67,12 +67,14 @@ def box_sim_file(tmp_path_factory):
 
 
 @pytest.fixture(scope="session")
-def prefect_harness():
-    """One Prefect test harness (temporary database and server) for the whole session."""
-    from prefect.testing.utilities import prefect_test_harness
+def prefect_harness(prefect_server):
+    """In-process flows (and the CLI called in-process) run against the session's Prefect
+    server: one server start-up per session (Prefect's own test harness would start a second
+    one, 10-20 s on a busy machine)."""
+    from prefect.settings import PREFECT_API_URL, temporary_settings
 
-    with prefect_test_harness(server_startup_timeout=90):
-        yield
+    with temporary_settings(updates={PREFECT_API_URL: prefect_server}):
+        yield prefect_server
 
 
 @pytest.fixture(scope="session")

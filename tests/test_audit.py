@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
+import tests.cli
 from pipeline.audit import AuditData, ModelSpec, fit_model, run_audit, simulate_measurement
 from pipeline.audit.extended import FittedModel
 from pipeline.compensate import FitSettings, tl18_truth_coefficients
@@ -25,13 +24,31 @@ AUDIT = ["calibration.passes=2", "anomaly.quiet_calibration_m=400.0"]
 SEED = 3
 
 
+# flights simulated and written once per session: (seed, effects) -> (simulation, recording);
+# the clean flight serves two tests, the sensor-lag one the in-process audit and the command
+_RECORDED: dict[tuple, tuple] = {}
+
+
+def recorded(tmp_path, effects=(), seed=SEED):
+    key = (seed, tuple(sorted(effects)))
+    if key not in _RECORDED:
+        sim = run_sim("uav-small", seed, [*AUDIT, *[f"effects.{e}.enabled=true" for e in effects]])
+        name = "-".join(key[1]) or "clean"
+        _RECORDED[key] = (sim, write_simulation(sim, tmp_path / f"{name}-{seed}.mcap"))
+    return _RECORDED[key]
+
+
 def audited(tmp_path, effects=(), extra=(), seed=SEED, mutate=None):
-    sim = run_sim(
-        "uav-small", seed, [*AUDIT, *[f"effects.{e}.enabled=true" for e in effects], *extra]
-    )
-    if mutate:
-        mutate(sim)
-    flight = read_flight(write_simulation(sim, tmp_path / "f.mcap"))
+    if mutate or extra:
+        sim = run_sim(
+            "uav-small", seed, [*AUDIT, *[f"effects.{e}.enabled=true" for e in effects], *extra]
+        )
+        if mutate:
+            mutate(sim)
+        path = write_simulation(sim, tmp_path / "f.mcap")
+    else:
+        sim, path = recorded(tmp_path, effects, seed)
+    flight = read_flight(path)
     seg = segment_flight(flight)
     return sim, flight, seg, run_audit(flight, seg)
 
@@ -162,8 +179,8 @@ def test_structure_outside_the_catalogue_is_reported_as_unexplained(tmp_path):
 
 
 def test_baseline_is_the_production_tl18_model(tmp_path):
-    sim = run_sim("uav-small", SEED, AUDIT)
-    flight = read_flight(write_simulation(sim, tmp_path / "f.mcap"))
+    sim, path = recorded(tmp_path)
+    flight = read_flight(path)
     seg = segment_flight(flight)
     mask = calibration_mask(flight, seg, "auto")
     ours = fit_model(AuditData.from_flight(flight, mask), ModelSpec("tl18"), mask)
@@ -203,26 +220,17 @@ def test_simulated_measurement_reproduces_the_simulator():
 
 
 def test_audit_command_writes_the_contract(tmp_path):
-    sim = run_sim("uav-small", SEED, [*AUDIT, "effects.sensor_lag.enabled=true"])
-    src = write_simulation(sim, tmp_path / "lag.mcap")
+    _, src = recorded(tmp_path, ["sensor_lag"])
     before = sha256(src)
-    res = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "flows.cli",
-            "audit",
-            str(src),
-            "--json",
-            str(tmp_path / "audit.json"),
-            "--report",
-            str(tmp_path / "rep"),
-            "--out",
-            str(tmp_path / "out.mcap"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
+    res = tests.cli.run(
+        "audit",
+        str(src),
+        "--json",
+        str(tmp_path / "audit.json"),
+        "--report",
+        str(tmp_path / "rep"),
+        "--out",
+        str(tmp_path / "out.mcap"),
     )
     assert res.returncode == 0, res.stderr[-2000:]
     assert sha256(src) == before

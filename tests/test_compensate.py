@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 
 import numpy as np
 import pytest
 from scipy.signal import butter, sosfiltfilt
 
+import tests.cli
 from pipeline.compensate import FitSettings, Measurements, RidgeSVD, fit_compensation
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.model import tl_terms
@@ -21,10 +21,9 @@ from tests.conftest import FIXTURES, run_sim
 from tests.test_schemas import validate_every_message
 
 
-def cli(*args):
-    return subprocess.run(
-        [sys.executable, "-m", "flows.cli", *args], capture_output=True, text=True, timeout=600
-    )
+def cli(*args: str) -> subprocess.CompletedProcess:
+    """The command in-process (tests/cli.py): no interpreter start-up per call."""
+    return tests.cli.run(*args)
 
 
 # ------------------------------------------------------------------------------------------

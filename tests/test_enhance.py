@@ -3,12 +3,10 @@
 
 from __future__ import annotations
 
-import subprocess
-import sys
-
 import numpy as np
 import pytest
 
+import tests.cli
 from pipeline.errors import AeromagError
 from pipeline.maps.enhance import enhance, fill_gaps, parse_products
 from pipeline.maps.grid import Grid
@@ -120,13 +118,7 @@ def test_cli_enhance_then_export(tmp_path):
 
     src, _ = write_processed(tmp_path / "f.processed.mcap")
     out = tmp_path / "f.enhanced.mcap"
-    cli = [sys.executable, "-m", "flows.cli"]
-    res = subprocess.run(
-        [*cli, "enhance", str(src), "--out", str(out), "--products", "rtp,tilt,up:100"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    res = tests.cli.run("enhance", str(src), "--out", str(out), "--products", "rtp,tilt,up:100")
     assert res.returncode == 0, res.stderr
     new = {"/map/rtp", "/map/tilt", "/map/upward_100m"}
     assert validate_every_message(out, new) == 3
@@ -140,10 +132,8 @@ def test_cli_enhance_then_export(tmp_path):
     with xr.open_dataset(tmp_path / "x" / "f.enhanced.maps.nc") as ds:
         assert ds["tilt"].attrs["units"] == "degree" and ds["rtp"].attrs["units"] == "nT"
     # enhancing twice refuses (the channels exist), in one line; so does a bad product
-    again = subprocess.run(
-        [*cli, "enhance", str(out), "--out", str(tmp_path / "g.mcap"), "--products", "rtp"],
-        capture_output=True,
-        text=True,
+    again = tests.cli.run(
+        "enhance", str(out), "--out", str(tmp_path / "g.mcap"), "--products", "rtp"
     )
     assert again.returncode == 2 and len(again.stderr.strip().splitlines()) == 1
     assert "/map/rtp" in again.stderr and not (tmp_path / "g.mcap").exists()

@@ -3,13 +3,12 @@
 from __future__ import annotations
 
 import csv
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 from pyproj import Transformer
 
+import tests.cli
 from pipeline.errors import AeromagError
 from pipeline.export import export_recording
 from pipeline.geo.local import LocalFrame, utm_epsg
@@ -235,22 +234,14 @@ def test_a_recording_without_maps_is_one_line_naming_what_is_missing(tmp_path):
 def test_cli_export_and_its_one_line_error(tmp_path):
     src, _ = write_processed(tmp_path / "f.processed.mcap")
     raw, _ = write_processed(tmp_path / "raw.mcap", frame=False, lines=False, grids=False)
-    cli = [sys.executable, "-m", "flows.cli", "export"]
-    res = subprocess.run(
-        [*cli, str(src), "--out", str(tmp_path / "o"), "--format", "geotiff,csv"],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    res = tests.cli.run("export", str(src), "--out", str(tmp_path / "o"), "--format", "geotiff,csv")
     assert res.returncode == 0, res.stderr
     assert sorted(p.name for p in (tmp_path / "o").iterdir()) == [
         "f.anomaly.tif",
         "f.anomaly_filtered.tif",
         "f.lines.csv",
     ]
-    bad = subprocess.run(
-        [*cli, str(raw), "--out", str(tmp_path / "o2")], capture_output=True, text=True
-    )
+    bad = tests.cli.run("export", str(raw), "--out", str(tmp_path / "o2"))
     assert bad.returncode == 2
     lines = bad.stderr.strip().splitlines()
     assert len(lines) == 1 and "aeromag process" in lines[0] and "Traceback" not in bad.stderr

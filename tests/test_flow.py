@@ -6,6 +6,7 @@ import os
 import subprocess
 import sys
 
+import tests.cli
 from pipeline.io.scan import scan_mcap
 from tests.conftest import sha256
 
@@ -157,12 +158,7 @@ def test_process_command_runs_the_flow_without_a_server(box_path, tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     out = tmp_path / "out" / "box_uav.processed.mcap"
     assert f"output recording: {out}" in res.stdout
-    insp = subprocess.run(
-        [sys.executable, "-m", "flows.cli", "inspect", str(out)],
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    insp = tests.cli.run("inspect", str(out))  # in-process: the process above was the script
     assert insp.returncode == 0 and "/mag/compensated" in insp.stdout
     # a calibration box alone: no map, so navigation is skipped in one log line, no error
     import json

@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from datetime import UTC, datetime
 
 import numpy as np
 import pytest
 from mcap.reader import make_reader
 
+import tests.cli
 from pipeline.errors import AeromagError
 from pipeline.io.reader import read_flight
 from pipeline.io.sgl import import_sgl
@@ -206,43 +205,15 @@ def test_imported_recording_reads_with_the_right_times_and_values(sgl, tmp_path)
 
 def test_line_selection_and_the_command(sgl, tmp_path):
     _, h5, _ = sgl
-    res = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "flows.cli",
-            "import",
-            "sgl",
-            str(h5),
-            "--out",
-            str(tmp_path / "c.mcap"),
-            "--lines",
-            "1002.20",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
+    res = tests.cli.run(
+        "import", "sgl", str(h5), "--out", str(tmp_path / "c.mcap"), "--lines", "1002.20"
     )
     assert res.returncode == 0, res.stderr
     m = messages(tmp_path / "c.mcap")
     assert len(m["/mag/scalar/1"]) == 300
     assert [p["line_id"] for _, p in m["/plan/line"]] == ["1002.20"]
-    bad = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "flows.cli",
-            "import",
-            "sgl",
-            str(h5),
-            "--out",
-            str(tmp_path / "d.mcap"),
-            "--lines",
-            "9999.01",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
+    bad = tests.cli.run(
+        "import", "sgl", str(h5), "--out", str(tmp_path / "d.mcap"), "--lines", "9999.01"
     )
     assert bad.returncode == 2 and "9999.01" in bad.stderr and "Traceback" not in bad.stderr
     assert not (tmp_path / "d.mcap").exists()
@@ -434,12 +405,7 @@ def test_ros2_recording_compensates_like_the_json_one(tmp_path):
     ros_path = tmp_path / "ros2.mcap"
     write_ros2(sim, ros_path)
     (tmp_path / "map.toml").write_text(MAPPING)
-    res = subprocess.run(
-        [sys.executable, "-m", "flows.cli", "inspect", str(ros_path), "--suggest-mapping"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    res = tests.cli.run("inspect", str(ros_path), "--suggest-mapping")
     assert res.returncode == 0, res.stderr
     assert '[topics."/imu/mag"]' in res.stdout and 'role = "attitude"' in res.stdout
     suggested = tmp_path / "suggested.toml"
@@ -490,22 +456,14 @@ def test_import_mapped_and_a_protobuf_location_fix(tmp_path):
     ros = tmp_path / "ros2.mcap"
     write_ros2(sim, ros)
     (tmp_path / "map.toml").write_text(MAPPING)
-    res = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "flows.cli",
-            "import",
-            "mapped",
-            str(ros),
-            "--mapping",
-            str(tmp_path / "map.toml"),
-            "--out",
-            str(tmp_path / "c.mcap"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=300,
+    res = tests.cli.run(
+        "import",
+        "mapped",
+        str(ros),
+        "--mapping",
+        str(tmp_path / "map.toml"),
+        "--out",
+        str(tmp_path / "c.mcap"),
     )
     assert res.returncode == 0, res.stderr
     assert "/imu/mag -> /mag/vector" in res.stdout
@@ -513,12 +471,7 @@ def test_import_mapped_and_a_protobuf_location_fix(tmp_path):
     converted = read_flight(tmp_path / "c.mcap")
     np.testing.assert_allclose(converted.data["vector_y_nT"], direct.data["vector_y_nT"])
     np.testing.assert_allclose(converted.data["yaw_deg"], direct.data["yaw_deg"])
-    ins = subprocess.run(
-        [sys.executable, "-m", "flows.cli", "inspect", str(tmp_path / "c.mcap")],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    ins = tests.cli.run("inspect", str(tmp_path / "c.mcap"))
     assert ins.returncode == 0 and "contract: ok" in ins.stdout
     # protobuf: a LocationFix channel next to the JSON contract channels
     pb = tmp_path / "pb.mcap"
@@ -536,12 +489,7 @@ def test_import_mapped_and_a_protobuf_location_fix(tmp_path):
             msg = LocationFix(latitude=la, longitude=lo, altitude=h)
             w.write_message("/gps/fix_pb", msg, log_time=t0 + int(round(t * 1e9)))
         w.finish()
-    sug = subprocess.run(
-        [sys.executable, "-m", "flows.cli", "inspect", str(pb), "--suggest-mapping"],
-        capture_output=True,
-        text=True,
-        timeout=120,
-    )
+    sug = tests.cli.run("inspect", str(pb), "--suggest-mapping")
     assert '[topics."/gps/fix_pb"]' in sug.stdout and 'role = "position"' in sug.stdout
     (tmp_path / "pb.toml").write_text(sug.stdout)
     series = __import__("pipeline.io.reader", fromlist=["_mapped_series"])._mapped_series(

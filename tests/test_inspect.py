@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import subprocess
-import sys
 
 import orjson
 import pytest
 
+import tests.cli
 from pipeline.io.inspect import inspect_recording
 from pipeline.simulate import write_simulation
 from tests.conftest import run_sim
@@ -15,9 +15,8 @@ from tests.mcap_builder import NS, T0, attitude, build, scalar, ts, vector
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "flows.cli", *args], capture_output=True, text=True, timeout=300
-    )
+    """The command in-process (tests/cli.py): no interpreter start-up per call."""
+    return tests.cli.run(*args)
 
 
 def test_clean_recording_has_no_violations(box_path):

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
+import tests.cli
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import run_compensation
 from pipeline.geo.local import LocalFrame
@@ -403,23 +402,15 @@ def test_forward_filter_lags_and_removes_less_noise(mapped):
 
 def test_map_cli_and_channels(mapped, tmp_path):
     _sim, path, *_ = mapped
-    res = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "flows.cli",
-            "map",
-            str(path),
-            "--out",
-            str(tmp_path / "o.mcap"),
-            "--json",
-            str(tmp_path / "s.json"),
-            "--arima",
-            "2,1,1",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
+    res = tests.cli.run(
+        "map",
+        str(path),
+        "--out",
+        str(tmp_path / "o.mcap"),
+        "--json",
+        str(tmp_path / "s.json"),
+        "--arima",
+        "2,1,1",
     )
     assert res.returncode == 0, res.stderr
     s = json.loads((tmp_path / "s.json").read_text())["map"]
@@ -462,22 +453,14 @@ def test_map_cli_and_channels(mapped, tmp_path):
     assert {f["properties"]["label"] for f in feats} >= {"survey", "tie", "calibration"}
     for png in ("anomaly", "anomaly_filtered"):
         assert (tmp_path / f"s.{png}.png").stat().st_size > 10000
-    bad = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "flows.cli",
-            "map",
-            str(path),
-            "--out",
-            str(tmp_path / "x.mcap"),
-            "--json",
-            str(tmp_path / "x.json"),
-            "--arima",
-            "two",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
+    bad = tests.cli.run(
+        "map",
+        str(path),
+        "--out",
+        str(tmp_path / "x.mcap"),
+        "--json",
+        str(tmp_path / "x.json"),
+        "--arima",
+        "two",
     )
     assert bad.returncode == 2 and "--arima 'two'" in bad.stderr

@@ -171,11 +171,13 @@ def test_archive_reprocessing_on_a_dask_cluster(prefect_server, tmp_path, monkey
     assert float(idx["flight_a.mcap"]["fom_nT"]) > 0
     assert json.loads((out / "index.json").read_text())["recordings"]
     assert {p: sha256(p) for p in arch.rglob("*.mcap")} == hashes
+    # the second run finds every output before it submits a task (plan), so it needs no
+    # cluster: the flow's default runner spares a Dask start-up (the CLI's re-run on Dask is
+    # test_reprocess_after_kill_9_does_only_the_missing_work)
     with temporary_settings(updates={PREFECT_API_URL: prefect_server}):
-        again = reprocess_archive.with_options(task_runner=dask_runner(2, None))(
-            str(arch), str(out)
-        )
-    assert again["processed"] == 0 and again["done"] == 3
+        again = reprocess_archive(str(arch), str(out))
+    assert again["processed"] == 0 and again["done"] == 3 and again["quarantined"] == 2
+    assert {p: sha256(p) for p in arch.rglob("*.mcap")} == hashes
 
 
 def test_reprocess_after_kill_9_does_only_the_missing_work(prefect_server, tmp_path):
@@ -231,7 +233,8 @@ def test_serve_processes_new_complete_recordings(prefect_server, tmp_path):
 
     watch, out = tmp_path / "incoming", tmp_path / "out"
     watch.mkdir()
-    shutil.copy(BOX, watch / "done.mcap")
+    # the scalar + vector box: processed in 0.2 s, where the full box takes ~6 s (its audit)
+    shutil.copy(FIXTURES / "box_scalar_vector_only.mcap", watch / "done.mcap")
     data = BOX.read_bytes()
     (watch / "writing.mcap").write_bytes(data[: len(data) // 2])  # no footer yet
     env = {**os.environ, "PREFECT_API_URL": prefect_server}

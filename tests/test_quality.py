@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
+import tests.cli
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import run_compensation
 from pipeline.io.reader import read_flight
@@ -357,23 +356,15 @@ def test_quality_command_writes_summary_plots_and_valid_channels(tmp_path):
     src = write_simulation(sim, tmp_path / "small.mcap")
     before = sha256(src)
     out, js = tmp_path / "q.mcap", tmp_path / "q.json"
-    res = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "flows.cli",
-            "quality",
-            str(src),
-            "--json",
-            str(js),
-            "--out",
-            str(out),
-            "--overlap-m",
-            "0.7",
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
+    res = tests.cli.run(
+        "quality",
+        str(src),
+        "--json",
+        str(js),
+        "--out",
+        str(out),
+        "--overlap-m",
+        "0.7",
     )
     assert res.returncode == 0, res.stderr[-2000:]
     assert sha256(src) == before
@@ -406,19 +397,11 @@ def test_quality_command_writes_summary_plots_and_valid_channels(tmp_path):
     topics = {m[0] for m in records(out)[0]}
     assert {"/quality/heading_error", "/quality/crossovers", "/aeromag/log"} <= topics
     # a processed recording is assessed with its own compensated channels
-    res = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "flows.cli",
-            "quality",
-            str(out),
-            "--json",
-            str(tmp_path / "again.json"),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
+    res = tests.cli.run(
+        "quality",
+        str(out),
+        "--json",
+        str(tmp_path / "again.json"),
     )
     assert res.returncode == 0, res.stderr[-2000:]
     again = json.loads((tmp_path / "again.json").read_text())["quality"]

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 
 import numpy as np
 import pytest
 
+import tests.cli
 from pipeline.geo.frames import ned_to_body
 from pipeline.vector.component import ComponentKF, batch_fit, convergence_sample
 from pipeline.vector.ellipsoid import (
@@ -192,23 +191,15 @@ def test_vector_command_on_a_flight(tmp_path, method, uncalibrated_flight):
     sim, src = uncalibrated_flight
     before = sha256(src)
     out, js = tmp_path / "o.mcap", tmp_path / "s.json"
-    res = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "flows.cli",
-            "vector",
-            str(src),
-            "--out",
-            str(out),
-            "--json",
-            str(js),
-            "--method",
-            method,
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
+    res = tests.cli.run(
+        "vector",
+        str(src),
+        "--out",
+        str(out),
+        "--json",
+        str(js),
+        "--method",
+        method,
     )
     assert res.returncode == 0, res.stderr[-2000:]
     assert sha256(src) == before
