@@ -58,6 +58,8 @@ class LegGradient:
     ramp_rms_nT : float
         RMS of the field change the horizontal gradient makes along the legs (each leg
         about its own level), nT: the size of the evidence, beside its significance.
+    offsets_m : ndarray
+        (blocks, 2) east/north block positions about their leg's mean (m).
     """
 
     gradient_nT_per_m: np.ndarray
@@ -66,6 +68,12 @@ class LegGradient:
     blocks: int
     legs: int
     ramp_rms_nT: float
+    offsets_m: np.ndarray
+
+    def ramp_rms_for(self, east_north_nT_per_m) -> float:
+        """RMS ramp (nT) another horizontal gradient (east, north; nT/m) would make along
+        the same legs (e.g. the estimate less the main field's own gradient)."""
+        return float(np.sqrt(np.mean((self.offsets_m @ np.asarray(east_north_nT_per_m)) ** 2)))
 
     def ci95(self) -> np.ndarray:
         """(3, 2) 95 % intervals, nT/m (normal approximation)."""
@@ -165,8 +173,8 @@ def leg_gradient(
     f = ((rss_b - rss_f) / 2.0) / s2 if s2 > 0 else np.inf
     pv = float(stats.f.sf(f, 2, dof)) if np.isfinite(f) else 0.0
     # the horizontal ramp about each leg's level: positions demeaned per leg
-    hat = levels @ np.linalg.lstsq(levels, a[:, 1:3], rcond=None)[0]
-    ramp = (a[:, 1:3] - hat) @ coef[:2]
+    offsets = a[:, 1:3] - levels @ np.linalg.lstsq(levels, a[:, 1:3], rcond=None)[0]
+    ramp = offsets @ coef[:2]
     return LegGradient(
         gradient_nT_per_m=coef[:3],
         se_nT_per_m=np.sqrt(
@@ -176,6 +184,7 @@ def leg_gradient(
         blocks=int(a.shape[0]),
         legs=int(levels.shape[1]),
         ramp_rms_nT=float(np.sqrt(np.mean(ramp**2))),
+        offsets_m=offsets,
     )
 
 

@@ -514,8 +514,20 @@ class Auditor:
             ev.estimate["calibration_legs_blocks"] = legs.blocks
             for k in ("p_value", "ramp_rms_nT", "blocks"):
                 ev.ci95[f"calibration_legs_{k}"] = None
-            # confirmation only: weak leg evidence must not strengthen a weak held-out test
-            if legs.p_value < self.s.alpha and legs.ramp_rms_nT >= self.s.min_leg_ramp_nT:
+            # confirmation only: weak leg evidence must not strengthen a weak held-out test,
+            # and a gradient that is the main field's own (IGRF: ~0.005 nT/m, 0.7 nT along
+            # a 500 m leg) is no effect to model; a recording made without it (a flat main
+            # field) shows none, so both the gradient and its excess over IGRF must ramp
+            main = self._main_field_gradient()
+            excess = legs.ramp_rms_for(
+                legs.gradient_nT_per_m[:2] - (main[:2] if main is not None else 0.0)
+            )
+            ev.estimate["calibration_legs_excess_ramp_rms_nT"] = excess
+            ev.ci95["calibration_legs_excess_ramp_rms_nT"] = None
+            if (
+                legs.p_value < self.s.alpha
+                and min(legs.ramp_rms_nT, excess) >= self.s.min_leg_ramp_nT
+            ):
                 ev.confirm_p = legs.p_value
                 # the legs measured the gradient: it can also be taken out of the reading
                 # instead of fitted as position columns, which see it only through the
