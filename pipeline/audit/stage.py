@@ -68,6 +68,7 @@ from pipeline.audit.survey import (
     SurveyHeading,
     SurveyLag,
     survey_coupling,
+    survey_coupling_gain,
     survey_events,
     survey_heading,
     survey_lag,
@@ -158,6 +159,10 @@ class Evaluation:
     # p of independent evidence below the fit band (the calibration legs' gradient), combined
     # with the held-out p (Fisher) when present
     confirm_p: float | None = None
+    # the survey's crossovers, predicted leave-one-out, show the extension's gain on their
+    # own (p < alpha, by min_gain): the calibration's held-out gain then only needs to be
+    # positive (a current that switches rarely during calibration)
+    confirmed_gain: bool = False
 
     @property
     def heldout_p(self) -> float:
@@ -181,8 +186,17 @@ class Evaluation:
             and self.p_adjusted < s.alpha
             and self.test.delta_bic < 0
             and self.heldout_p < s.alpha
-            and self.heldout.reduction >= s.min_gain
+            and self.gain_suffices(s)
         )
+
+    def gain_suffices(self, s: AuditSettings) -> bool:
+        """The held-out reduction reaches ``min_gain`` (or is positive where the survey
+        confirmed the gain, ``confirmed_gain``)."""
+        if self.heldout is None:
+            return False
+        if self.confirmed_gain:
+            return self.heldout.reduction > 0
+        return self.heldout.reduction >= s.min_gain
 
     def why_not(self, s: AuditSettings) -> str:
         """Why the candidate does not pass: its recorded reason, else the failed criteria ("; ")."""
@@ -201,7 +215,7 @@ class Evaluation:
                     f"held-out p {self.heldout.p_value:.3g} with the independent evidence's "
                     f"{self.confirm_p:.3g}: {self.heldout_p:.3g} >= {s.alpha}"
                 )
-        if self.heldout is not None and self.heldout.reduction < s.min_gain:
+        if self.heldout is not None and not self.gain_suffices(s):
             out.append(
                 f"held-out gain {100 * self.heldout.reduction:.1f} % < {100 * s.min_gain:.0f} %"
             )
@@ -524,6 +538,16 @@ class Auditor:
             )
             ev.estimate["calibration_legs_excess_ramp_rms_nT"] = excess
             ev.ci95["calibration_legs_excess_ramp_rms_nT"] = None
+            if min(legs.ramp_rms_nT, excess) < self.s.min_leg_ramp_nT:
+                # the legs measure a gradient far better than the position columns do; when
+                # they see none beyond the main field's, the columns' gain is something else
+                # they happen to fit (a current, second-order terms)
+                ev.held_back = True
+                ev.reason = (
+                    "the calibration legs show no gradient beyond the main field's (ramp "
+                    f"{min(legs.ramp_rms_nT, excess):.2f} nT RMS < "
+                    f"{self.s.min_leg_ramp_nT:g}): the position terms fit something else"
+                )
             if (
                 legs.p_value < self.s.alpha
                 and min(legs.ramp_rms_nT, excess) >= self.s.min_leg_ramp_nT
@@ -711,6 +735,16 @@ class Auditor:
                 }
             )
         ev = Evaluation("electrical_current", key, est, test, held, ext, ci95=ci)
+        sg = self.survey_coupling_gain(current, name)
+        if sc is not None and sg is not None:
+            ev.estimate["survey_heldout"] = sg.to_dict()
+            ev.ci95["survey_heldout"] = None
+            # the crossovers are survey data, independent of the calibration's: a coupling
+            # they show (p < alpha) and that predicts them leave-one-out by min_gain confirms
+            # the calibration's held-out test; its leave-one-out p joins the held-out p
+            # (Fisher), the two together must reach alpha
+            if sc.p_value < self.s.alpha and sg.reduction >= self.s.min_gain:
+                ev.confirm_p, ev.confirmed_gain = sg.p_value, True
         # a current that follows the manoeuvres (a motor's) can stand in for interference
         # that is not linear in the field: the coupling is named only when it explains
         # held-out data better than second-order induced terms do
@@ -731,7 +765,15 @@ class Auditor:
         beyond = self.heldout(alt, lambda train, k: both)
         ev.estimate["beyond_alternative"] = {"alternative": alt_name, **beyond.to_dict()}
         ev.ci95["beyond_alternative"] = None
-        if not (beyond.p_value < self.s.alpha and beyond.reduction >= self.s.min_gain):
+        # the survey's own confirmation already tells the two apart (its lines are flown
+        # steadily, where the alternative is a level per heading): the calibration then only
+        # has to agree in direction
+        holds = (
+            beyond.reduction > 0
+            if ev.confirmed_gain
+            else beyond.p_value < self.s.alpha and beyond.reduction >= self.s.min_gain
+        )
+        if not holds:
             ev.reason = (
                 f"{alt_name} explain the residual about as well: with them in the "
                 f"model it lowers held-out data by {100 * beyond.reduction:.1f} % "
@@ -997,6 +1039,19 @@ class Auditor:
         t = self.data.time_s
         aux = time_window_mean(t, self.data.aux[name], 1.0)  # as the crossovers are smoothed
         return survey_coupling(cs, np.interp(cs.time_a_s, t, aux), np.interp(cs.time_b_s, t, aux))
+
+    def survey_coupling_gain(self, spec: ModelSpec, name: str) -> HeldOut | None:
+        """Leave-one-out gain of channel ``name``'s coupling at the survey's crossovers
+        (:func:`pipeline.audit.survey.survey_coupling_gain`)."""
+        got = self._survey_crossovers(spec)
+        if got is None:
+            return None
+        cs = got[0]
+        t = self.data.time_s
+        aux = time_window_mean(t, self.data.aux[name], 1.0)  # as the crossovers are smoothed
+        return survey_coupling_gain(
+            cs, np.interp(cs.time_a_s, t, aux), np.interp(cs.time_b_s, t, aux)
+        )
 
     # -- the whole audit ------------------------------------------------------------------
     def cv_residual(

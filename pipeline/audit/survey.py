@@ -26,6 +26,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from pipeline.audit.evidence import HeldOut, paired_point_gain
+
 
 @dataclass
 class CrossoverSet:
@@ -257,6 +259,29 @@ def survey_coupling(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray) -> Su
     as the total field sees it, averaged over the headings)."""
     fit = _regress_on(x, np.asarray(aux_a, float) - np.asarray(aux_b, float))
     return None if fit is None else SurveyCoupling(*fit)
+
+
+def survey_coupling_gain(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray) -> HeldOut | None:
+    """Does the channel's coupling predict crossovers it was not fitted on? Leave-one-out
+    prediction errors of the crossover differences from the heading levels alone and from
+    the levels plus the coupling (each crossover predicted by the fit to the others: the
+    ordinary residual over one minus its leverage), compared pair by pair
+    (:func:`pipeline.audit.evidence.paired_point_gain`). None: too few crossovers."""
+    y = np.asarray(x.difference_nT, float)
+    g = np.asarray(aux_a, float) - np.asarray(aux_b, float)
+    full = np.column_stack([_levels(x), g])
+    ok = np.all(np.isfinite(full), axis=1) & np.isfinite(y)
+    full, y = full[ok], y[ok]
+    if full.shape[0] < full.shape[1] + 4 or np.std(full[:, -1]) == 0:
+        return None
+
+    def loo_errors(a: np.ndarray) -> np.ndarray:
+        q, _ = np.linalg.qr(a)
+        h = np.sum(q**2, axis=1)  # leverages
+        coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+        return (y - a @ coef) / np.clip(1.0 - h, 1e-9, None)
+
+    return paired_point_gain(loo_errors(full[:, :-1]), loo_errors(full))
 
 
 def _regress_on(
