@@ -1029,29 +1029,30 @@ class Auditor:
         cs = got[0]
         return survey_heading(cs, cs.east_m / 1000.0, cs.north_m / 1000.0)
 
-    def survey_coupling(self, spec: ModelSpec, name: str) -> SurveyCoupling | None:
-        """Channel ``name``'s coupling seen at the survey's crossovers
-        (:func:`pipeline.audit.survey.survey_coupling`)."""
+    def _crossover_channel(
+        self, spec: ModelSpec, name: str
+    ) -> tuple[CrossoverSet, np.ndarray, np.ndarray] | None:
+        """``spec``'s survey crossovers with channel ``name`` at their two readings (smoothed
+        over 1 s, as the crossovers are)."""
         got = self._survey_crossovers(spec)
         if got is None:
             return None
         cs = got[0]
         t = self.data.time_s
-        aux = time_window_mean(t, self.data.aux[name], 1.0)  # as the crossovers are smoothed
-        return survey_coupling(cs, np.interp(cs.time_a_s, t, aux), np.interp(cs.time_b_s, t, aux))
+        aux = time_window_mean(t, self.data.aux[name], 1.0)
+        return cs, np.interp(cs.time_a_s, t, aux), np.interp(cs.time_b_s, t, aux)
+
+    def survey_coupling(self, spec: ModelSpec, name: str) -> SurveyCoupling | None:
+        """Channel ``name``'s coupling seen at the survey's crossovers
+        (:func:`pipeline.audit.survey.survey_coupling`)."""
+        got = self._crossover_channel(spec, name)
+        return None if got is None else survey_coupling(*got)
 
     def survey_coupling_gain(self, spec: ModelSpec, name: str) -> HeldOut | None:
         """Leave-one-out gain of channel ``name``'s coupling at the survey's crossovers
         (:func:`pipeline.audit.survey.survey_coupling_gain`)."""
-        got = self._survey_crossovers(spec)
-        if got is None:
-            return None
-        cs = got[0]
-        t = self.data.time_s
-        aux = time_window_mean(t, self.data.aux[name], 1.0)  # as the crossovers are smoothed
-        return survey_coupling_gain(
-            cs, np.interp(cs.time_a_s, t, aux), np.interp(cs.time_b_s, t, aux)
-        )
+        got = self._crossover_channel(spec, name)
+        return None if got is None else survey_coupling_gain(*got)
 
     # -- the whole audit ------------------------------------------------------------------
     def cv_residual(
