@@ -972,8 +972,8 @@ def layout(
     doc = recording_layout(file)
     write_json_atomic(out_path, doc)
     say(
-        f"layout: {out_path} ({len(layout_panels(doc['layout']))} panels: "
-        + ", ".join(k.split("!", 1)[0] for k in layout_panels(doc["layout"]))
+        f"layout: {out_path} ({len(layout_panels(doc['layout'], doc['configById']))} panels: "
+        + ", ".join(k.split("!", 1)[0] for k in layout_panels(doc["layout"], doc["configById"]))
         + ")"
     )
 

@@ -131,6 +131,18 @@ def test_cli_enhance_then_export(tmp_path):
 
     with xr.open_dataset(tmp_path / "x" / "f.enhanced.maps.nc") as ds:
         assert ds["tilt"].attrs["units"] == "degree" and ds["rtp"].attrs["units"] == "nT"
+    # the Foxglove layout shows each enhancement grid in a tab, coloured by its own field
+    from pipeline.products.layout import layout_panels, recording_layout
+
+    doc = recording_layout(out)
+    cfg = doc["configById"]
+    tabs = cfg["Tab!aeromag-enhancements"]["tabs"]
+    assert [t["title"] for t in tabs] == ["rtp", "tilt", "upward 100m"]
+    for t, field in zip(tabs, ("rtp_nT", "tilt_deg", "upward_100m_nT"), strict=True):
+        (topic,) = cfg[t["layout"]]["topics"]
+        assert cfg[t["layout"]]["topics"][topic]["colorField"] == field
+    panels = layout_panels(doc["layout"], cfg)
+    assert sorted(panels) == sorted(cfg)  # every panel placed once, the tabs' included
     # enhancing twice refuses (the channels exist), in one line; so does a bad product
     again = tests.cli.run(
         "enhance", str(out), "--out", str(tmp_path / "g.mcap"), "--products", "rtp"

@@ -110,7 +110,7 @@ def test_demo_layout_refers_to_real_channels_and_fields(demo_output, tmp_path):
     assert json.loads((tmp_path / "layout.json").read_text()) == doc
 
     assert {"configById", "layout", "globalVariables", "userNodes", "playbackConfig"} <= set(doc)
-    panels = layout_panels(doc["layout"])
+    panels = layout_panels(doc["layout"], doc["configById"])
     assert sorted(panels) == sorted(doc["configById"])  # every panel placed exactly once
     kinds = Counter(p.split("!", 1)[0] for p in panels)
     assert kinds == {

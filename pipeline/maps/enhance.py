@@ -67,6 +67,18 @@ class Product:
         return KINDS[self.kind][1]
 
 
+def grid_field_of_topic(topic: str) -> str | None:
+    """The value field of an enhancement grid channel (``/map/tilt`` -> ``tilt_deg``,
+    ``/map/upward_100m`` -> ``upward_100m_nT``); None for any other topic."""
+    for t, f in KINDS.values():
+        if topic == t:
+            return f
+    name = topic.removeprefix("/map/")
+    if topic.startswith("/map/upward_") and name.endswith("m"):
+        return f"{name}_nT"
+    return None
+
+
 def _height_text(h: float) -> str:
     """100.0 -> "100", 12.5 -> "12.5", 1e7 -> "10000000" (no exponent: topic names)."""
     return np.format_float_positional(float(h), trim="-")

@@ -11,7 +11,9 @@ What it shows (top to bottom, left to right):
 - Map: the GNSS track (``foxglove.LocationFix``) and the flight lines (``/map/tracks``, GeoJSON);
   with navigation, the simulated INS (``/nav/ins``) and map-aided (``/nav/map_aided``) tracks.
 - 3D: the anomaly grid before and after ARIMA-Kalman filtering (``foxglove.Grid``, frame
-  ``local_enu``: x east, y north, metres about the map origin), seen from above.
+  ``local_enu``: x east, y north, metres about the map origin), seen from above; the
+  enhancement grids (``aeromag enhance``: RTP, derivatives, tilt, analytic signal, upward
+  continuation), when present, one tab each in a Tab panel beside them.
 - Plots: recorded (raw), T-L and AGG-TL total field; the interference each model removed;
   the navigation error (INS only, map-aided, CRLB) when ``/nav/error`` exists.
 - State transitions: segment label, line and manoeuvre (``/flight/segment``).
@@ -25,6 +27,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from pipeline.io.schemas import schema
+from pipeline.maps.enhance import grid_field_of_topic
 
 _PLAIN_TOPIC = re.compile(r"^[A-Za-z0-9_/]+$")
 
@@ -187,6 +190,18 @@ def foxglove_layout(
         key = f"3D!aeromag-{t.rsplit('/', 1)[-1].replace('_', '-')}"
         cfg[key] = _grid_view(t, "anomaly_nT", grid_centre_m, grid_span_m, grid_frame)
         grid_panels.append(key)
+    # enhancement grids: several of them, so one tab each rather than a row of small panels
+    tabs = []
+    for t in sorted(channels):
+        field = grid_field_of_topic(t) if channels[t] == "foxglove.Grid" else None
+        if field is None:
+            continue
+        key = f"3D!aeromag-{t.rsplit('/', 1)[-1].replace('_', '-')}"
+        cfg[key] = _grid_view(t, field, grid_centre_m, grid_span_m, grid_frame)
+        tabs.append({"title": t.removeprefix("/map/").replace("_", " "), "layout": key})
+    if tabs:
+        cfg["Tab!aeromag-enhancements"] = {"activeTabIdx": 0, "tabs": tabs}
+        grid_panels.append("Tab!aeromag-enhancements")
 
     raw = topics_of("aeromag.ScalarField", "/mag/scalar")
     compensated = topics_of("aeromag.CompensatedField", "/mag/compensated")
@@ -270,13 +285,18 @@ def foxglove_layout(
     }
 
 
-def layout_panels(layout: Any) -> list[str]:
-    """Panel keys in a mosaic tree, left to right (for checks)."""
+def layout_panels(layout: Any, config: Mapping[str, Any] | None = None) -> list[str]:
+    """Panel keys in a mosaic tree, left to right (for checks); with the layout's
+    ``configById``, the panels inside Tab panels too (after their Tab panel)."""
     if layout is None:
         return []
     if isinstance(layout, str):
-        return [layout]
-    return layout_panels(layout["first"]) + layout_panels(layout["second"])
+        inner = []
+        if config is not None and layout.startswith("Tab!"):
+            for tab in config[layout]["tabs"]:
+                inner += layout_panels(tab.get("layout"), config)
+        return [layout, *inner]
+    return layout_panels(layout["first"], config) + layout_panels(layout["second"], config)
 
 
 def layout_paths(config: Mapping[str, Any]) -> list[str]:
