@@ -106,7 +106,10 @@ def within_ci(effect: str, f: dict, truth: dict) -> list[bool]:
     elif effect == "sensor_lag":
         cover("lag_s", truth["effective"]["sensor_lag_s"])
     elif effect == "electrical_current":
-        cover("nT_per_unit", truth["effects"]["electrical_current"]["coupling_nT_per_A"])
+        # only a finding on the channel that carries the coupling has a truth to cover
+        cur = truth["effects"]["electrical_current"]
+        if str((f.get("estimate") or {}).get("channel", "")).endswith(cur["channel"]):
+            cover("nT_per_unit", cur["coupling_nT_per_A"])
     return out
 
 
