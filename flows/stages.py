@@ -32,6 +32,7 @@ from pipeline.maps.grid import Grid
 from pipeline.maps.stage import MapSettings, build_map
 from pipeline.products.channels import (
     compensated_channel,
+    despike_channel,
     enhancement_channels,
     field_channel,
     map_channels,
@@ -131,6 +132,8 @@ def compensate_recording(
     if seg is not None:
         channels.append(segment_channel(flight, seg))
     channels += [compensated_channel(flight, run), model_message(flight, run)]
+    if despiked is not None and despiked.spikes:
+        channels.append(despike_channel(flight, despiked))
     extra: dict[str, Any] = {}
     if run.model.lcurve is not None:
         png = summary_path.with_name(summary_path.stem + ".lcurve.png")
@@ -873,6 +876,8 @@ def write_stage(
     figures: dict[str, Any] = {}
     compensation, grids = None, {}
     lines += despike_lines(despiked)
+    if despiked is not None and despiked.spikes:
+        channels.append(despike_channel(flight, despiked))
     if seg is not None:
         channels.append(segment_channel(flight, seg))
         if (

@@ -172,6 +172,26 @@ def test_compensation_fom_with_spikes_and_despiking_matches_the_clean_fom(uav_fl
         assert np.setdiff1d(r.spike_index, pos).size == 0
         s = r.summary()
         assert s["spikes"] == pos.size and s["fraction"] == pytest.approx(pos.size / x0.size)
+    # every replaced sample is a /mag/despike message: what was measured, what replaced it
+    import json
+
+    import jsonschema
+
+    from pipeline.io.contract import rule_for_topic
+    from pipeline.io.schemas import schema
+    from pipeline.products.channels import despike_channel
+
+    ch = despike_channel(spiky, r)
+    assert rule_for_topic(ch.topic).schema_name == ch.schema_name == "aeromag.Spike"
+    validator = jsonschema.Draft202012Validator(schema("aeromag.Spike"))
+    assert len(ch.messages) == pos.size
+    for t_ns, payload in ch.messages:
+        msg = json.loads(json.dumps({"timestamp": {"sec": 0, "nsec": 0}, **payload}))
+        validator.validate(msg)
+        i = payload["fiducial"]
+        assert t_ns == int(flight.time_ns[i])
+        assert payload["measured_nT"] == pytest.approx(x[i], abs=1e-9)
+        assert payload["amplitude_nT"] == pytest.approx(x[i] - r.values_nT[i], abs=1e-9)
     # the summary block reaches the log and both reports
     from pipeline.products.html import render_html
     from pipeline.products.log import despike_lines

@@ -139,6 +139,13 @@ OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
         description="compensated scalar field (/mag/compensated/<model> for others)",
     ),
     TopicRule(
+        "/mag/despike",
+        "aeromag.Spike",
+        "output",
+        ("sensor_id", "fiducial", "measured_nT", "replaced_nT", "amplitude_nT"),
+        description="scalar samples the despike step replaced, one message per spike",
+    ),
+    TopicRule(
         "/compensation/model",
         "aeromag.CompensationModel",
         "output",

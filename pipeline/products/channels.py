@@ -13,6 +13,7 @@ from pipeline.maps.grid import Grid
 from pipeline.segment import Segmentation
 
 if TYPE_CHECKING:
+    from pipeline.despike import DespikeResult
     from pipeline.quality.stage import QualityRun
 
 
@@ -41,6 +42,25 @@ def compensated_channel(
 ) -> OutputChannel:
     """Compensated field at every epoch where it exists."""
     return field_channel(flight, topic, run.compensated_nT, run.interference_nT, run.model.model)
+
+
+def despike_channel(flight: Flight, res: DespikeResult) -> OutputChannel:
+    """``/mag/despike``: every scalar sample the despike step replaced (``flight`` is the
+    flight as recorded, before despiking), at the sample's instant."""
+    ch = OutputChannel("/mag/despike", "aeromag.Spike")
+    sensor = _sensor_id(flight)
+    for i, amp in zip(res.spike_index, res.amplitude_nT, strict=True):
+        ch.add(
+            int(flight.time_ns[i]),
+            {
+                "sensor_id": sensor,
+                "fiducial": int(i),
+                "measured_nT": float(res.values_nT[i] + amp),
+                "replaced_nT": float(res.values_nT[i]),
+                "amplitude_nT": float(amp),
+            },
+        )
+    return ch
 
 
 def field_channel(
