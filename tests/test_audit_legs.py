@@ -34,7 +34,7 @@ def test_gradient_recovered_within_its_interval_over_seeds():
     inside, z = 0, []
     for seed in range(40):
         t, y, enu, cls = box_flight(g, seed)
-        legs = leg_ids(np.ones(t.size, bool), cls, t)
+        legs = leg_ids(np.ones(t.size, bool), cls, np.ones(t.size, int), t)
         assert legs.max() == 3
         est = leg_gradient(t, y, enu, legs)
         assert est is not None and est.legs == 4 and est.p_value < 1e-10
@@ -54,7 +54,7 @@ def test_no_gradient_gives_uniform_p_and_a_small_ramp():
     ps = []
     for seed in range(40):
         t, y, enu, cls = box_flight([0.0, 0.0, 0.0], 100 + seed)
-        est = leg_gradient(t, y, enu, leg_ids(np.ones(t.size, bool), cls, t))
+        est = leg_gradient(t, y, enu, leg_ids(np.ones(t.size, bool), cls, np.ones(t.size, int), t))
         ps.append(est.p_value)
         assert est.ramp_rms_nT < 0.5
     assert 0.0 <= np.mean(np.array(ps) < 0.05) <= 0.2
@@ -64,7 +64,12 @@ def test_too_few_legs_gives_none():
     t, y, enu, cls = box_flight([0.1, 0.1, 0.0], 1)
     one = cls == "N"
     assert (
-        leg_gradient(t[one], y[one], enu[one], leg_ids(np.ones(one.sum(), bool), cls[one], t[one]))
+        leg_gradient(
+            t[one],
+            y[one],
+            enu[one],
+            leg_ids(np.ones(one.sum(), bool), cls[one], np.ones(one.sum(), int), t[one]),
+        )
         is None
     )
 

@@ -38,6 +38,27 @@ def thinning_step(rate_hz: float, band_hz: tuple[float, float]) -> int:
     return max(1, int(round(rate_hz / (2.0 * (band_hz[1] - band_hz[0])))))
 
 
+def least_squares_rss(a: np.ndarray, y: np.ndarray) -> tuple[float, int, np.ndarray]:
+    """Ordinary least squares of ``y`` on the columns of ``a``: (residual sum of squares,
+    rank of ``a``, coefficients); no columns: (y . y, 0, empty)."""
+    if a.shape[1] == 0:
+        return float(y @ y), 0, np.zeros(0)
+    coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+    r = y - a @ coef
+    return float(r @ r), int(np.linalg.matrix_rank(a)), coef
+
+
+def f_test_p(rss0: float, k0: int, rss1: float, k1: int, n: int) -> float:
+    """p of the F-test of a nested least-squares model (``k1`` columns, residual sum of
+    squares ``rss1``) against its base (``k0``, ``rss0``) on ``n`` rows; 1 when the test has
+    no degrees of freedom."""
+    df1, df2 = k1 - k0, n - k1
+    if df1 <= 0 or df2 <= 0 or rss1 <= 0:
+        return 1.0
+    f = ((rss0 - rss1) / df1) / (rss1 / df2)
+    return float(stats.f.sf(f, df1, df2))
+
+
 @dataclass
 class NestedTest:
     """Nested-model comparison of an extended design against its base (:func:`nested_test`).

@@ -180,6 +180,11 @@ class Design:
     y: np.ndarray  # the (lag-corrected) scalar field
     field_nT: np.ndarray | None = None
 
+    @property
+    def measured_nT(self) -> np.ndarray:
+        """The (lag-corrected) scalar reading with ``field_nT`` put back, nT."""
+        return self.y if self.field_nT is None else self.y + self.field_nT
+
 
 LAG_RESPONSES = ("delay", "first_order")
 
@@ -229,7 +234,8 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
     Raises
     ------
     ValueError
-        ``spec.gradient`` is set but ``data`` has no positions.
+        ``spec.gradient`` or ``spec.known_gradient_nT_per_m`` is set but ``data`` has no
+        positions.
     """
     v = data.vector_nT if spec.vector_cal is None else spec.vector_cal.apply(data.vector_nT)
     k, names = (tl18_terms if spec.base == "tl18" else tl16_terms)(v, data.time_s)
@@ -402,8 +408,7 @@ class FittedModel:
         """(compensated field, interference) at every epoch, nT."""
         des = design(data, self.spec)
         interference = des.columns[:, self.subtract] @ self.theta[self.subtract]
-        y = des.y if des.field_nT is None else des.y + des.field_nT
-        return y - interference, interference
+        return des.measured_nT - interference, interference
 
     def residual_bp(
         self,

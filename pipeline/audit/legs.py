@@ -33,6 +33,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
+from pipeline.audit.evidence import f_test_p, least_squares_rss
+from pipeline.compensate.filters import contiguous_blocks
+
 MIN_BLOCK_FILL = 0.5  # share of a block's samples that must be present
 # relative uncertainty of a gradient from positions in a local tangent plane (projection and
 # datum scale, GNSS antenna offsets): with hundreds of nT of ramp the statistical error alone
@@ -55,9 +58,6 @@ class LegGradient:
         F-test that the horizontal (east, north) components are zero.
     blocks, legs : int
         Block means and legs used.
-    ramp_rms_nT : float
-        RMS of the field change the horizontal gradient makes along the legs (each leg
-        about its own level), nT: the size of the evidence, beside its significance.
     offsets_m : ndarray
         (blocks, 2) east/north block positions about their leg's mean (m).
     """
@@ -67,8 +67,13 @@ class LegGradient:
     p_value: float
     blocks: int
     legs: int
-    ramp_rms_nT: float
     offsets_m: np.ndarray
+
+    @property
+    def ramp_rms_nT(self) -> float:
+        """RMS of the field change the horizontal gradient makes along the legs (each leg
+        about its own level), nT: the size of the evidence, beside its significance."""
+        return self.ramp_rms_for(self.gradient_nT_per_m[:2])
 
     def ramp_rms_for(self, east_north_nT_per_m) -> float:
         """RMS ramp (nT) another horizontal gradient (east, north; nT/m) would make along
@@ -81,9 +86,11 @@ class LegGradient:
         return np.column_stack([g - 1.96 * se, g + 1.96 * se])
 
 
-def leg_ids(mask: np.ndarray, heading_class: np.ndarray, time_s: np.ndarray) -> np.ndarray:
-    """Leg number per epoch (-1 outside the legs): a run of calibration epochs with one
-    heading class and no time gap longer than 2 s.
+def leg_ids(
+    mask: np.ndarray, heading_class: np.ndarray, calibration_pass: np.ndarray, time_s: np.ndarray
+) -> np.ndarray:
+    """Leg number per epoch (-1 outside the legs): a run of calibration epochs on one heading
+    of one pass, split where sampling has a gap.
 
     Parameters
     ----------
@@ -91,19 +98,20 @@ def leg_ids(mask: np.ndarray, heading_class: np.ndarray, time_s: np.ndarray) -> 
         Calibration epochs.
     heading_class : ndarray of str
         Cardinal direction per epoch (N/E/S/W on the legs, "" elsewhere).
+    calibration_pass : ndarray of int
+        Calibration pass per epoch.
     time_s : ndarray
         Epoch times (s).
     """
-    n = mask.size
-    ids = np.full(n, -1, int)
-    cls = np.asarray(heading_class).astype(str)
-    on = mask & (cls != "")
-    current, prev = -1, None
-    for i in np.flatnonzero(on):
-        if prev is None or cls[i] != cls[prev] or time_s[i] - time_s[prev] > 2.0:
-            current += 1
-        ids[i] = current
-        prev = i
+    ids = np.full(mask.size, -1, int)
+    card = np.asarray(heading_class).astype(str)
+    key = np.char.add(np.char.add(card, ":"), np.asarray(calibration_pass).astype(str))
+    n = 0
+    for b in contiguous_blocks(mask & (card != ""), np.asarray(time_s, float)):
+        # a block may hold several legs (a turn without a gap between them)
+        for part in np.split(b, np.flatnonzero(key[b][1:] != key[b][:-1]) + 1):
+            ids[part] = n
+            n += 1
     return ids
 
 
@@ -162,19 +170,13 @@ def leg_gradient(
     dof = a.shape[0] - x_full.shape[1]
     if dof < 3:
         return None
-    coef, *_ = np.linalg.lstsq(x_full, a[:, 0], rcond=None)
-    r_full = a[:, 0] - x_full @ coef
-    x_base = np.column_stack([a[:, 3], levels])  # height and the levels: no horizontal terms
-    cb, *_ = np.linalg.lstsq(x_base, a[:, 0], rcond=None)
-    r_base = a[:, 0] - x_base @ cb
-    rss_f, rss_b = float(r_full @ r_full), float(r_base @ r_base)
-    s2 = rss_f / dof
-    cov = s2 * np.linalg.pinv(x_full.T @ x_full)
-    f = ((rss_b - rss_f) / 2.0) / s2 if s2 > 0 else np.inf
-    pv = float(stats.f.sf(f, 2, dof)) if np.isfinite(f) else 0.0
-    # the horizontal ramp about each leg's level: positions demeaned per leg
+    rss_f, k_f, coef = least_squares_rss(x_full, a[:, 0])
+    # height and the levels: no horizontal terms
+    rss_b, k_b, _ = least_squares_rss(np.column_stack([a[:, 3], levels]), a[:, 0])
+    pv = f_test_p(rss_b, k_b, rss_f, k_f, a.shape[0])
+    cov = rss_f / dof * np.linalg.pinv(x_full.T @ x_full)
+    # positions about each leg's level: what a horizontal gradient's ramp is made of
     offsets = a[:, 1:3] - levels @ np.linalg.lstsq(levels, a[:, 1:3], rcond=None)[0]
-    ramp = offsets @ coef[:2]
     return LegGradient(
         gradient_nT_per_m=coef[:3],
         se_nT_per_m=np.sqrt(
@@ -183,7 +185,6 @@ def leg_gradient(
         p_value=pv,
         blocks=int(a.shape[0]),
         legs=int(levels.shape[1]),
-        ramp_rms_nT=float(np.sqrt(np.mean(ramp**2))),
         offsets_m=offsets,
     )
 

@@ -22,6 +22,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
+from functools import cached_property
 from typing import Any
 
 import numpy as np
@@ -364,7 +365,34 @@ class Auditor:
         # audit grow with the survey); the last few models only
         self._rows_cache: OrderedDict[ModelSpec, CalibrationRows] = OrderedDict()
         self._crossover_cache: dict[tuple, tuple] = {}
+        self._compensated: dict[ModelSpec, np.ndarray] = {}
         self._geometry: tuple | None = None
+
+    @cached_property
+    def legs(self) -> np.ndarray:
+        """Calibration leg of each epoch (one heading of one pass), -1 elsewhere
+        (:func:`pipeline.audit.legs.leg_ids`)."""
+        return leg_ids(self.mask, self.seg.cardinal, self.seg.calibration_pass, self.data.time_s)
+
+    @cached_property
+    def base_smoothed_nT(self) -> np.ndarray:
+        """The base station's reading on the scalar epochs, smoothed over
+        ``BASE_SMOOTHING_S`` (nT; read-only: shared)."""
+        base = time_window_mean(
+            self.data.time_s, self.flight.data["base_nT"].to_numpy(float), BASE_SMOOTHING_S
+        )
+        base.flags.writeable = False
+        return base
+
+    def compensated(self, spec: ModelSpec) -> np.ndarray:
+        """``spec``'s compensated field (fitted on all of the calibration) at every epoch,
+        nT; kept per model, read-only: the survey, leg and fluxgate tests of one round ask
+        for the same model's."""
+        if spec not in self._compensated:
+            comp, _ = self.fit(spec, None, "all").compensate(self.data)
+            comp.flags.writeable = False
+            self._compensated[spec] = comp
+        return self._compensated[spec]
 
     def rows(self, spec: ModelSpec) -> CalibrationRows:
         """``spec``'s band-passed calibration rows (:func:`calibration_rows`), kept for the
@@ -515,6 +543,7 @@ class Auditor:
         # gradient only through the manoeuvres' small moves), so it is the reported estimate;
         # the fit's own values stay as fit_*
         legs = self.leg_gradient(current)
+        main = self._main_field_gradient()  # IGRF's (east, north, up), nT/m, or None
         if legs is not None:
             for k in ("east_nT_per_m", "north_nT_per_m", "up_nT_per_m"):
                 ev.estimate[f"fit_{k}"] = ev.estimate.pop(k)
@@ -532,26 +561,23 @@ class Auditor:
             # and a gradient that is the main field's own (IGRF: ~0.005 nT/m, 0.7 nT along
             # a 500 m leg) is no effect to model; a recording made without it (a flat main
             # field) shows none, so both the gradient and its excess over IGRF must ramp
-            main = self._main_field_gradient()
             excess = legs.ramp_rms_for(
                 legs.gradient_nT_per_m[:2] - (main[:2] if main is not None else 0.0)
             )
             ev.estimate["calibration_legs_excess_ramp_rms_nT"] = excess
             ev.ci95["calibration_legs_excess_ramp_rms_nT"] = None
-            if min(legs.ramp_rms_nT, excess) < self.s.min_leg_ramp_nT:
+            ramp = min(legs.ramp_rms_nT, excess)
+            if ramp < self.s.min_leg_ramp_nT:
                 # the legs measure a gradient far better than the position columns do; when
                 # they see none beyond the main field's, the columns' gain is something else
                 # they happen to fit (a current, second-order terms)
                 ev.held_back = True
                 ev.reason = (
                     "the calibration legs show no gradient beyond the main field's (ramp "
-                    f"{min(legs.ramp_rms_nT, excess):.2f} nT RMS < "
+                    f"{ramp:.2f} nT RMS < "
                     f"{self.s.min_leg_ramp_nT:g}): the position terms fit something else"
                 )
-            if (
-                legs.p_value < self.s.alpha
-                and min(legs.ramp_rms_nT, excess) >= self.s.min_leg_ramp_nT
-            ):
+            if legs.p_value < self.s.alpha and ramp >= self.s.min_leg_ramp_nT:
                 ev.confirm_p = legs.p_value
                 # the legs measured the gradient: it can also be taken out of the reading
                 # instead of fitted as position columns, which see it only through the
@@ -577,7 +603,6 @@ class Auditor:
             ev.estimate.update(survey)
             ev.ci95.update({k: None for k in survey})
         # the fitted gradient is the total field's: the main field's own (IGRF) is part of it
-        main = self._main_field_gradient()
         if main is not None:
             for axis, v in zip(("east", "north", "up"), main, strict=True):
                 ev.estimate[f"main_field_{axis}_nT_per_m"] = float(v)
@@ -782,8 +807,7 @@ class Auditor:
             ev.held_back = True
 
     def _eval_vector_calibration(self, current: ModelSpec, key: str) -> Evaluation:
-        base = self.fit(current, None, "all")
-        comp, _ = base.compensate(self.data)
+        comp = self.compensated(current)
         ref = time_window_mean(self.data.time_s, comp, 2.0)  # the Earth field, noise smoothed
         m = self.data.vector_nT
         sel = self.mask & np.isfinite(ref) & np.all(np.isfinite(m), axis=1)
@@ -849,13 +873,11 @@ class Auditor:
             d = self.flight.data
             lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
             igrf = igrf_total_nT(self.flight.time_ns, lat, lon, alt)
-            base = time_window_mean(
-                self.data.time_s, d["base_nT"].to_numpy(float), BASE_SMOOTHING_S
-            )
+            base = self.base_smoothed_nT
             sel = self.seg.mask("survey")
             frame = LocalFrame(float(np.nanmean(lat[sel])), float(np.nanmean(lon[sel])))
             e, n, _ = frame.to_enu(lat, lon)
-            igrf.flags.writeable = base.flags.writeable = False  # shared: never changed
+            igrf.flags.writeable = False  # shared: never changed
             self._geometry = igrf, base, flight_tracks(self.seg, e, n)
         return self._geometry
 
@@ -865,8 +887,7 @@ class Auditor:
         from pipeline.quality.overlap import track_intersections
 
         igrf, base, tracks = self._survey_geometry()
-        comp, _ = self.fit(spec, None, "all").compensate(self.data)
-        red = comp - igrf
+        red = self.compensated(spec) - igrf
         if smooth_s > 0:
             red = time_window_mean(self.data.time_s, red, smooth_s)
         t = self.data.time_s
@@ -981,17 +1002,9 @@ class Auditor:
         fm = self.fit(spec, None, "all")
         des = design(self.data, spec)
         comp = des.y - des.columns @ fm.theta
-        leg = np.full(self.mask.size, -1)
-        card = np.asarray(self.seg.cardinal, dtype=object)
-        cpass = np.asarray(self.seg.calibration_pass)
-        on = self.mask & (card != "")
-        for k, b in enumerate(contiguous_blocks(on, self.data.time_s)):
-            # a leg is a run of one heading of one pass (a block may span a turn's gap)
-            key = card[b] + ":" + cpass[b].astype(str)
-            edges = np.flatnonzero(key[1:] != key[:-1]) + 1
-            for j, part in enumerate(np.split(b, edges)):
-                leg[part] = 1000 * k + j
-        steps = calibration_steps(self.data.time_s, comp, leg, self.s.alpha, self.s.min_event_nT)
+        steps = calibration_steps(
+            self.data.time_s, comp, self.legs, self.s.alpha, self.s.min_event_nT
+        )
         t0 = int(self.flight.time_ns[0])
         return [e.to_dict(t0) for e in steps]
 
@@ -1013,12 +1026,10 @@ class Auditor:
         :func:`pipeline.audit.legs.leg_gradient`)."""
         if self.data.enu_m is None:
             return None
-        comp, _ = self.fit(spec, None, "all").compensate(self.data)
+        comp = self.compensated(spec)
         if self.flight.has("base_nT"):
-            base = self.flight.data["base_nT"].to_numpy(float)
-            comp = comp - time_window_mean(self.data.time_s, base, BASE_SMOOTHING_S)
-        legs = leg_ids(self.mask, self.seg.cardinal, self.data.time_s)
-        return leg_gradient(self.data.time_s, comp, self.data.enu_m, legs)
+            comp = comp - self.base_smoothed_nT
+        return leg_gradient(self.data.time_s, comp, self.data.enu_m, self.legs)
 
     def survey_heading(self, spec: ModelSpec) -> SurveyHeading | None:
         """``spec``'s heading error seen at the survey's crossovers, and whether it changes
@@ -1324,7 +1335,7 @@ def run_audit(
     # the sensor's white noise: both the raw and the compensated record bound it from above
     # (compensation removes interference the sensor's jitter puts in, but adds the vector
     # sensor's noise through the regressors), so the smaller is the better bound
-    comp_e, _ = extended.compensate(data)
+    comp_e = aud.compensated(final_spec)
     sigma = float(
         np.nanmin(
             [
@@ -1385,7 +1396,7 @@ def run_audit(
                 f"{e['kind']} of {e['size_nT']:.2f} nT {where}, "
                 f"p {e['p_value']:.2g}); not a catalogue effect"
             )
-    comp_b, _ = baseline.compensate(data)
+    comp_b = aud.compensated(base_spec)
     t = data.time_s
     boxes = seg.boxes()
     fom_b = (
@@ -1430,9 +1441,7 @@ def run_audit(
     sos = bandpass_sos(s.band.band_hz, data.rate_hz, s.band.poles)
     for name, fm, comp in (("baseline", baseline, comp_b), ("extended", extended, comp_e)):
         earth = time_window_mean(t, comp, 20.0)
-        des = design(data, fm.spec)
-        y = des.y if des.field_nT is None else des.y + des.field_nT  # the reading as measured
-        resid = y - simulate_measurement(data, fm, earth)
+        resid = design(data, fm.spec).measured_nT - simulate_measurement(data, fm, earth)
         valid = aud.mask & np.isfinite(resid)
         rr, ww = bandpass_blocks(resid, contiguous_blocks(valid, t), sos, s.band.trim)
         if where is None:

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from pipeline.audit.evidence import HeldOut, paired_point_gain
+from pipeline.audit.evidence import HeldOut, f_test_p, least_squares_rss, paired_point_gain
 
 
 @dataclass
@@ -114,22 +114,6 @@ def _step_columns(x: CrossoverSet, t_s: float) -> np.ndarray:
     return np.column_stack(cols) if cols else np.zeros((x.size, 0))
 
 
-def _rss(a: np.ndarray, y: np.ndarray) -> tuple[float, int, np.ndarray]:
-    if a.shape[1] == 0:
-        return float(y @ y), 0, np.zeros(0)
-    coef, *_ = np.linalg.lstsq(a, y, rcond=None)
-    r = y - a @ coef
-    return float(r @ r), int(np.linalg.matrix_rank(a)), coef
-
-
-def _f_test(rss0: float, k0: int, rss1: float, k1: int, n: int) -> float:
-    df1, df2 = k1 - k0, n - k1
-    if df1 <= 0 or df2 <= 0 or rss1 <= 0:
-        return 1.0
-    f = ((rss0 - rss1) / df1) / (rss1 / df2)
-    return float(stats.f.sf(f, df1, df2))
-
-
 def survey_events(
     x: CrossoverSet, alpha: float = 0.01, min_size_nT: float = 0.0, min_each_side: int = 2
 ) -> list[SurveyEvent]:
@@ -155,7 +139,7 @@ def survey_events(
     base = _levels(x)
     if n < base.shape[1] + 6:
         return []
-    rss0, k0, _ = _rss(base, y)
+    rss0, k0, _ = least_squares_rss(base, y)
     out: list[SurveyEvent] = []
     # candidate change points: between consecutive crossover readings (in time)
     times = np.unique(np.r_[x.time_a_s, x.time_b_s])
@@ -169,8 +153,8 @@ def survey_events(
     for lo, hi in gaps:
         t_s = 0.5 * (lo + hi)
         a1 = np.column_stack([base, _step_columns(x, t_s)])
-        rss1, k1, coef = _rss(a1, y)
-        p = _f_test(rss0, k0, rss1, k1, n)
+        rss1, k1, coef = least_squares_rss(a1, y)
+        p = f_test_p(rss0, k0, rss1, k1, n)
         if best is None or p < best[0]:
             best = (p, lo, hi, coef[base.shape[1] :], k1 - k0)
     if best is not None and best[4] > 0:
@@ -189,8 +173,8 @@ def survey_events(
             )
     if not out:  # a drift only when no step explains the trend
         drift = (x.time_a_s - x.time_b_s)[:, None]
-        rss1, k1, coef = _rss(np.column_stack([base, drift]), y)
-        p = _f_test(rss0, k0, rss1, k1, n)
+        rss1, k1, coef = least_squares_rss(np.column_stack([base, drift]), y)
+        p = f_test_p(rss0, k0, rss1, k1, n)
         t_all = np.r_[x.time_a_s, x.time_b_s]
         span = float(t_all.max() - t_all.min())
         size = abs(float(coef[-1])) * span
@@ -345,9 +329,9 @@ def survey_heading(
     n = int(ok.sum())
     if lv.shape[1] == 0 or n < lv.shape[1] + 4:
         return None
-    rss0, k0, _ = _rss(np.zeros((n, 0)), y[ok])
-    rss1, k1, coef = _rss(lv[ok], y[ok])
-    p = _f_test(rss0, k0, rss1, k1, n)
+    rss0, k0, _ = least_squares_rss(np.zeros((n, 0)), y[ok])
+    rss1, k1, coef = least_squares_rss(lv[ok], y[ok])
+    p = f_test_p(rss0, k0, rss1, k1, n)
     classes = sorted(set(x.heading_a.tolist()) | set(x.heading_b.tolist()))
     levels = np.r_[0.0, coef]
     levels = levels - levels.mean()
@@ -359,9 +343,9 @@ def survey_heading(
         a = np.column_stack([lv, inter])
         good = ok & np.all(np.isfinite(a), axis=1)
         if good.sum() > a.shape[1] + 4:
-            r0, q0, _ = _rss(lv[good], y[good])
-            r1, q1, _ = _rss(a[good], y[good])
-            pos_p = _f_test(r0, q0, r1, q1, int(good.sum()))
+            r0, q0, _ = least_squares_rss(lv[good], y[good])
+            r1, q1, _ = least_squares_rss(a[good], y[good])
+            pos_p = f_test_p(r0, q0, r1, q1, int(good.sum()))
     return SurveyHeading(
         {HEADINGS[c]: float(v) for c, v in zip(classes, levels, strict=True)},
         float(np.ptp(levels)),
