@@ -32,11 +32,12 @@ from pipeline.maps.grid import Grid
 from pipeline.maps.stage import MapSettings, build_map
 from pipeline.products.channels import (
     compensated_channel,
-    despike_channel,
+    despike_channels,
     enhancement_channels,
     field_channel,
     map_channels,
     model_message,
+    navigation_channels,
     quality_channels,
     segment_channel,
     vector_channel,
@@ -132,8 +133,7 @@ def compensate_recording(
     if seg is not None:
         channels.append(segment_channel(flight, seg))
     channels += [compensated_channel(flight, run), model_message(flight, run)]
-    if despiked is not None and despiked.spikes:
-        channels.append(despike_channel(flight, despiked))
+    channels += despike_channels(flight, despiked)
     extra: dict[str, Any] = {}
     if run.model.lcurve is not None:
         png = summary_path.with_name(summary_path.stem + ".lcurve.png")
@@ -876,8 +876,7 @@ def write_stage(
     figures: dict[str, Any] = {}
     compensation, grids = None, {}
     lines += despike_lines(despiked)
-    if despiked is not None and despiked.spikes:
-        channels.append(despike_channel(flight, despiked))
+    channels += despike_channels(flight, despiked)
     if seg is not None:
         channels.append(segment_channel(flight, seg))
         if (
@@ -927,8 +926,6 @@ def write_stage(
             figures.update(enhancement_figures(grids, cfg.enhance_settings(), map_run.lines))
             lines.append((LOG_INFO, f"enhance: {', '.join(grids)}"))
     if nav is not None:
-        from pipeline.products.channels import navigation_channels
-
         lines += navigation_lines(nav)
         if not isinstance(nav, str):
             channels += navigation_channels(nav)
@@ -1028,7 +1025,6 @@ def navigate_recording(
     """
     from pipeline.navigation.map_io import read_map
     from pipeline.navigation.stage import run_navigation, track_coverage
-    from pipeline.products.channels import navigation_channels
 
     cfg = cfg or Config.load()
     settings.check()

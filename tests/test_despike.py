@@ -179,9 +179,10 @@ def test_compensation_fom_with_spikes_and_despiking_matches_the_clean_fom(uav_fl
 
     from pipeline.io.contract import rule_for_topic
     from pipeline.io.schemas import schema
-    from pipeline.products.channels import despike_channel
+    from pipeline.products.channels import despike_channels
 
-    ch = despike_channel(spiky, r)
+    assert despike_channels(flight, res) == [] and despike_channels(flight, None) == []
+    (ch,) = despike_channels(spiky, r)
     assert rule_for_topic(ch.topic).schema_name == ch.schema_name == "aeromag.Spike"
     validator = jsonschema.Draft202012Validator(schema("aeromag.Spike"))
     assert len(ch.messages) == pos.size

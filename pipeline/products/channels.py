@@ -44,9 +44,11 @@ def compensated_channel(
     return field_channel(flight, topic, run.compensated_nT, run.interference_nT, run.model.model)
 
 
-def despike_channel(flight: Flight, res: DespikeResult) -> OutputChannel:
-    """``/mag/despike``: every scalar sample the despike step replaced (``flight`` is the
-    flight as recorded, before despiking), at the sample's instant."""
+def despike_channels(flight: Flight, res: DespikeResult | None) -> list[OutputChannel]:
+    """``/mag/despike``: every scalar sample the despike step replaced, at the sample's
+    instant; no channel when despiking was off (``res`` None) or found no spike."""
+    if res is None or not res.spikes:
+        return []
     ch = OutputChannel("/mag/despike", "aeromag.Spike")
     sensor = _sensor_id(flight)
     for i, amp in zip(res.spike_index, res.amplitude_nT, strict=True):
@@ -60,7 +62,7 @@ def despike_channel(flight: Flight, res: DespikeResult) -> OutputChannel:
                 "amplitude_nT": float(amp),
             },
         )
-    return ch
+    return [ch]
 
 
 def field_channel(

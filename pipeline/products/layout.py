@@ -185,20 +185,21 @@ def foxglove_layout(
     grids = [
         t for t in ("/map/anomaly", "/map/anomaly_filtered") if channels.get(t) == "foxglove.Grid"
     ]
-    grid_panels = []
-    for t in grids:
-        key = f"3D!aeromag-{t.rsplit('/', 1)[-1].replace('_', '-')}"
-        cfg[key] = _grid_view(t, "anomaly_nT", grid_centre_m, grid_span_m, grid_frame)
-        grid_panels.append(key)
+
+    def grid_panel(topic: str, field: str) -> str:
+        """A 3D panel of the grid ``topic`` coloured by ``field``; its key."""
+        key = f"3D!aeromag-{topic.rsplit('/', 1)[-1].replace('_', '-')}"
+        cfg[key] = _grid_view(topic, field, grid_centre_m, grid_span_m, grid_frame)
+        return key
+
+    grid_panels = [grid_panel(t, "anomaly_nT") for t in grids]
     # enhancement grids: several of them, so one tab each rather than a row of small panels
     tabs = []
     for t in sorted(channels):
         field = grid_field_of_topic(t) if channels[t] == "foxglove.Grid" else None
-        if field is None:
-            continue
-        key = f"3D!aeromag-{t.rsplit('/', 1)[-1].replace('_', '-')}"
-        cfg[key] = _grid_view(t, field, grid_centre_m, grid_span_m, grid_frame)
-        tabs.append({"title": t.removeprefix("/map/").replace("_", " "), "layout": key})
+        if field is not None:
+            title = t.removeprefix("/map/").replace("_", " ")
+            tabs.append({"title": title, "layout": grid_panel(t, field)})
     if tabs:
         cfg["Tab!aeromag-enhancements"] = {"activeTabIdx": 0, "tabs": tabs}
         grid_panels.append("Tab!aeromag-enhancements")
