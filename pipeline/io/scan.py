@@ -419,10 +419,7 @@ def scan_mcap(
     ScanError
         Empty file or no MCAP magic.
     """
-    path = Path(path)
-    with _mapped(path) as (mm, size):
-        sc = _Scanner(mm, topics, "record" if whole_records else "payload")
-        sc.records(mm, len(MAGIC), size, inner=False)
+    sc, size = _walk(path, topics, "record" if whole_records else "payload")
     return _finish(sc.out, size)
 
 
@@ -440,12 +437,18 @@ def scan_index(path: str | Path) -> MessageIndex:
     ScanError
         Empty file or no MCAP magic.
     """
-    path = Path(path)
-    with _mapped(path) as (mm, size):
-        sc = _Scanner(mm, None, "index")
-        sc.records(mm, len(MAGIC), size, inner=False)
+    sc, size = _walk(path, None, "index")
     _finish(sc.out, size)
     return sc.index
+
+
+def _walk(path: str | Path, topics, mode: str) -> tuple[_Scanner, int]:
+    """Every top-level record of the file at ``path`` through a :class:`_Scanner` in
+    ``mode`` (payload, record or index); the scanner and the file size (bytes)."""
+    with _mapped(Path(path)) as (mm, size):
+        sc = _Scanner(mm, topics, mode)
+        sc.records(mm, len(MAGIC), size, inner=False)
+    return sc, size
 
 
 def iter_message_records(path: str | Path, index: MessageIndex) -> Iterator[list[bytes]]:
