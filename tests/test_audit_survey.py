@@ -79,6 +79,28 @@ def test_a_step_is_located_and_a_clean_survey_has_none(t_step):
 
 
 @pytest.mark.parametrize("seed", [1, 2, 3])
+def test_a_step_before_the_ties_is_sized_on_the_headings_read_both_sides(seed):
+    """Tie lines flown after the step (as crews fly them, after the lines): their headings'
+    steps are their levels, only the survey lines' (N, S) are measured, and those are the
+    truth; the event spans the step and its likeliest gap lies inside the span."""
+    rng, ha, hb, ta, _, d = crossings(seed)
+    tb = rng.uniform(3000, 3600, ha.size)  # every tie after the lines
+    t_step = 1500.0
+    size = np.array([1.5, -1.0, 0.8, 1.2])  # the step as each heading sees it, nT
+    stepped = d + size[ha] * (ta > t_step) - size[hb] * (tb > t_step)
+    ev = survey_events(CrossoverSet(stepped, ta, tb, ha, hb), 0.01, 0.3)
+    assert [e.kind for e in ev] == ["step"]
+    by_heading = ev[0].detail["step_by_heading_nT"]
+    assert set(by_heading) == {"N", "S"}
+    assert by_heading["N"] == pytest.approx(size[0], abs=0.1)
+    assert by_heading["S"] == pytest.approx(size[2], abs=0.1)
+    assert ev[0].size_nT == pytest.approx(size[0], abs=0.1)
+    assert ev[0].start_s <= t_step <= ev[0].end_s
+    assert ev[0].start_s <= ev[0].detail["likeliest_start_s"]
+    assert ev[0].detail["likeliest_end_s"] <= ev[0].end_s
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
 def test_heading_levels_and_their_change_across_the_survey(seed):
     """Heading levels (0, 0.3, -0.2, 0.1 nT) are recovered from the crossings' differences
     alone; levels that grow across a 2 km survey are told apart from constant ones; equal
