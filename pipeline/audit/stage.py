@@ -70,6 +70,7 @@ from pipeline.audit.survey import (
     SurveyLag,
     survey_coupling,
     survey_coupling_gain,
+    survey_diurnal,
     survey_events,
     survey_heading,
     survey_lag,
@@ -903,60 +904,62 @@ class Auditor:
         heading = {tr.line_id: int(round(tr.heading_deg / 90.0)) % 4 for tr in tracks}
         dx = np.array([c.difference_nT for c in xs])
         db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base) for c in xs])
-        groups = [f"{heading[c.line_a]}{heading[c.line_b]}" for c in xs]
-        tie_of = [c.line_b for c in xs]
         val = [tr for tr in tracks if tr.kind == "validation"]
         ov = track_intersections(val, [tr for tr in tracks if tr.kind in ("survey", "tie")])
-        return dx, db, groups, tie_of, ov, red, base, xs, heading
+        return dx, db, ov, red, base, xs, heading
 
     def _eval_diurnal(self, current: ModelSpec, key: str) -> Evaluation:
-        import statsmodels.api as sm
-
+        """The diurnal seen where the survey's lines cross: the crossover differences of
+        ``current``'s compensated field against the base station's difference between the two
+        readings of each crossover (:func:`pipeline.audit.survey.survey_diurnal`); with enough
+        validation overlaps (8) those are the held-out points, else the crossovers predicted
+        leave-one-out."""
         # a second along track averages the sensor noise out of each crossover reading (the
         # diurnal changes over minutes), as for the survey-side events
-        dx, db, groups, tie_of, ov, red, base, _, _ = self._crossover_data(current, smooth_s=1.0)
+        dx, db, ov, red, base, xs, heading = self._crossover_data(current, smooth_s=1.0)
         if dx.size < 8:
             return Evaluation(
                 "diurnal", key, {}, None, None, None, reason=f"only {dx.size} survey-tie crossovers"
             )
-        labels = sorted(set(groups))
-        dummies = np.array([[g == lab for lab in labels] for g in groups], float)
-        test = nested_test(dx, dummies, np.column_stack([dummies, db]), 1)
-        beta = float(sm.OLS(dx, np.column_stack([dummies, db])).fit().params[-1])
+        cs = CrossoverSet(
+            dx,
+            np.array([c.time_a_s for c in xs]),
+            np.array([c.time_b_s for c in xs]),
+            np.array([heading[c.line_a] for c in xs]),
+            np.array([heading[c.line_b] for c in xs]),
+        )
+        sd = survey_diurnal(cs, db)
+        if sd is None:
+            return Evaluation(
+                "diurnal",
+                key,
+                {},
+                None,
+                None,
+                None,
+                reason="too few crossovers, or no base-station variation between their readings",
+            )
+        held, metric = sd.heldout, "heldout_crossover_rms"
         if ov.count >= 8:
             held = paired_point_gain(ov.differences(red), ov.differences(red - base))
             metric = "heldout_validation_overlap_rms"
-        else:  # leave one tie line out: its crossovers predicted from the other ties'
-            held = self._leave_one_tie_out(dx, db, dummies, np.asarray(tie_of))
-            metric = "heldout_crossover_rms"
-        est = {"base_coefficient": beta, **_diurnal_shape(self.data.time_s, base)}
-        ev = Evaluation("diurnal", key, est, test, held, current.with_(diurnal=True))
+        est = {
+            "base_coefficient": sd.coefficient,
+            "crossovers": sd.crossovers,
+            "crossovers_screened_out": sd.screened_out,
+            **_diurnal_shape(self.data.time_s, base),
+        }
+        ev = Evaluation(
+            "diurnal",
+            key,
+            est,
+            sd.test,
+            held,
+            current.with_(diurnal=True),
+            ci95={"base_coefficient": list(sd.ci95)},
+        )
         ev.metric = metric
         return ev
-
-    @staticmethod
-    def _leave_one_tie_out(
-        dx: np.ndarray, db: np.ndarray, dummies: np.ndarray, tie_of: np.ndarray
-    ) -> HeldOut:
-        """Crossover residuals of each tie line, the base coefficient fitted on the other
-        tie lines' crossovers; each heading pair's level is removed within the held-out tie
-        (a tie's own heading level cannot be learnt from ties flown the other way)."""
-        before, after = np.full(dx.size, np.nan), np.full(dx.size, np.nan)
-        x1 = np.column_stack([dummies, db])
-        for tie in sorted(set(tie_of.tolist())):
-            test = tie_of == tie
-            train = ~test
-            if train.sum() < dummies[train].any(axis=0).sum() + 3:
-                continue
-            beta = float(np.linalg.lstsq(x1[train], dx[train], rcond=None)[0][-1])
-            for g in np.flatnonzero(dummies[test].any(axis=0)):
-                sel = test & (dummies[:, g] > 0)
-                if sel.sum() < 2:
-                    continue
-                before[sel] = dx[sel] - dx[sel].mean()
-                corr = dx[sel] - beta * db[sel]
-                after[sel] = corr - corr.mean()
-        return paired_point_gain(before, after)
 
     def _survey_crossovers(self, spec: ModelSpec) -> tuple[CrossoverSet, np.ndarray] | None:
         """The survey's crossover differences of ``spec``'s compensated field, smoothed over
@@ -970,7 +973,7 @@ class Auditor:
             and self.seg.mask("survey").any()
         ):
             return None
-        dx, db, _, _, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
+        dx, db, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
         if dx.size < 8:
             return None
         cs = CrossoverSet(
