@@ -38,6 +38,7 @@ from pipeline.audit.crossval import (
     passwise_folds,
     stratified_block_folds,
 )
+from pipeline.audit.diurnal import DiurnalSet, diurnal_evidence
 from pipeline.audit.evidence import (
     HeldOut,
     NestedTest,
@@ -61,16 +62,22 @@ from pipeline.audit.extended import (
     lag_cost,
     simulate_measurement,
 )
-from pipeline.audit.legs import LegGradient, fisher_combined, leg_gradient, leg_ids
+from pipeline.audit.legs import (
+    LegGradient,
+    fisher_combined,
+    leg_block_means,
+    leg_gradient,
+    leg_ids,
+)
 from pipeline.audit.noise import white_noise_nT
 from pipeline.audit.survey import (
     CrossoverSet,
     SurveyCoupling,
     SurveyHeading,
     SurveyLag,
+    heading_levels,
     survey_coupling,
     survey_coupling_gain,
-    survey_diurnal,
     survey_events,
     survey_heading,
     survey_lag,
@@ -483,8 +490,8 @@ class Auditor:
     def candidates(self, current: ModelSpec) -> list[tuple[str, str]]:
         """Candidate effects not yet in ``current``, as (effect, key) pairs.
 
-        The geomagnetic gradient (with positions), sensor lag, the diurnal (with a base station
-        and tie lines), each auxiliary channel with an electrical unit that varies over the
+        The geomagnetic gradient (with positions), sensor lag, the diurnal (with a base station),
+        each auxiliary channel with an electrical unit that varies over the
         calibration (key ``electrical_current:<name>``) and the vector calibration.
         """
         out = []
@@ -496,7 +503,7 @@ class Auditor:
             out.append(("geomagnetic_gradient", "geomagnetic_gradient"))
         if not current.lag_s:
             out.append(("sensor_lag", "sensor_lag"))
-        if not current.diurnal and self.flight.has("base_nT") and self.seg.mask("tie").any():
+        if not current.diurnal and self.flight.has("base_nT"):
             out.append(("diurnal", "diurnal"))
         for name, x in self.data.aux.items():
             if name in current.aux or not _electrical(self.data.aux_units.get(name, "")):
@@ -909,27 +916,13 @@ class Auditor:
         return dx, db, ov, red, base, xs, heading
 
     def _eval_diurnal(self, current: ModelSpec, key: str) -> Evaluation:
-        """The diurnal seen where the survey's lines cross: the crossover differences of
-        ``current``'s compensated field against the base station's difference between the two
-        readings of each crossover (:func:`pipeline.audit.survey.survey_diurnal`); with enough
-        validation overlaps (8) those are the held-out points, else the crossovers predicted
-        leave-one-out."""
-        # a second along track averages the sensor noise out of each crossover reading (the
-        # diurnal changes over minutes), as for the survey-side events
-        dx, db, ov, red, base, xs, heading = self._crossover_data(current, smooth_s=1.0)
-        if dx.size < 8:
-            return Evaluation(
-                "diurnal", key, {}, None, None, None, reason=f"only {dx.size} survey-tie crossovers"
-            )
-        cs = CrossoverSet(
-            dx,
-            np.array([c.time_a_s for c in xs]),
-            np.array([c.time_b_s for c in xs]),
-            np.array([heading[c.line_a] for c in xs]),
-            np.array([heading[c.line_b] for c in xs]),
-        )
-        sd = survey_diurnal(cs, db)
-        if sd is None:
+        """The diurnal: does ``current``'s compensated field follow the base station where the
+        survey's lines cross and along the calibration legs
+        (:func:`pipeline.audit.diurnal.diurnal_evidence`)? With enough validation overlaps
+        (8) those are the held-out points instead."""
+        sets = [s for s in (self._diurnal_crossovers(current), self._diurnal_legs(current)) if s]
+        ev_d = diurnal_evidence(sets)
+        if ev_d is None:
             return Evaluation(
                 "diurnal",
                 key,
@@ -937,29 +930,68 @@ class Auditor:
                 None,
                 None,
                 None,
-                reason="too few crossovers, or no base-station variation between their readings",
+                reason="no survey crossovers or calibration legs with base-station variation",
             )
-        held, metric = sd.heldout, "heldout_crossover_rms"
-        if ov.count >= 8:
-            held = paired_point_gain(ov.differences(red), ov.differences(red - base))
-            metric = "heldout_validation_overlap_rms"
+        held, metric = ev_d.heldout, "heldout_crossover_and_leg_rms"
+        if self.flight.has("lat_deg", "lon_deg", "alt_m") and self.seg.mask("validation").any():
+            _, _, ov, red, base, _, _ = self._crossover_data(current, smooth_s=1.0)
+            if ov.count >= 8:
+                held = paired_point_gain(ov.differences(red), ov.differences(red - base))
+                metric = "heldout_validation_overlap_rms"
         est = {
-            "base_coefficient": sd.coefficient,
-            "crossovers": sd.crossovers,
-            "crossovers_screened_out": sd.screened_out,
-            **_diurnal_shape(self.data.time_s, base),
+            "base_coefficient": ev_d.coefficient,
+            "points": ev_d.used,
+            "screened_out": ev_d.screened_out,
+            **_diurnal_shape(self.data.time_s, self.base_smoothed_nT),
         }
         ev = Evaluation(
             "diurnal",
             key,
             est,
-            sd.test,
+            ev_d.test,
             held,
             current.with_(diurnal=True),
-            ci95={"base_coefficient": list(sd.ci95)},
+            ci95={"base_coefficient": list(ev_d.ci95)},
         )
         ev.metric = metric
         return ev
+
+    def _diurnal_crossovers(self, spec: ModelSpec) -> DiurnalSet | None:
+        """The survey's crossovers as a diurnal data set: ``spec``'s crossover differences
+        (smoothed over 1 s along track: a second averages the sensor noise out of each
+        reading, the diurnal changes over minutes), a level per heading, the base station's
+        difference between the two readings."""
+        if not (self.flight.has("lat_deg", "lon_deg", "alt_m") and self.seg.mask("tie").any()):
+            return None
+        dx, db, _, _, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
+        if dx.size == 0:
+            return None
+        cs = CrossoverSet(
+            dx,
+            np.array([c.time_a_s for c in xs]),
+            np.array([c.time_b_s for c in xs]),
+            np.array([heading[c.line_a] for c in xs]),
+            np.array([heading[c.line_b] for c in xs]),
+        )
+        return DiurnalSet("crossovers", dx, heading_levels(cs), db)
+
+    def _diurnal_legs(self, spec: ModelSpec) -> DiurnalSet | None:
+        """The calibration legs as a diurnal data set: 10 s block means of ``spec``'s
+        compensated field along each leg (the manoeuvres' cycles average out), a level per
+        leg and the east/north/up position (the ground's gradient), the base station's block
+        mean (:func:`pipeline.audit.legs.leg_block_means`)."""
+        if self.data.enu_m is None:
+            return None
+        a, leg_of = leg_block_means(
+            self.data.time_s,
+            np.column_stack([self.compensated(spec), self.base_smoothed_nT, self.data.enu_m]),
+            self.legs,
+            self.s.block_s,
+        )
+        if leg_of.size == 0:
+            return None
+        levels = (leg_of[:, None] == np.unique(leg_of)[None, :]).astype(float)
+        return DiurnalSet("legs", a[:, 0], np.column_stack([levels, a[:, 2:5]]), a[:, 1])
 
     def _survey_crossovers(self, spec: ModelSpec) -> tuple[CrossoverSet, np.ndarray] | None:
         """The survey's crossover differences of ``spec``'s compensated field, smoothed over

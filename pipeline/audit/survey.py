@@ -21,20 +21,12 @@ Times are seconds from the flight's first epoch; sizes nT.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats
 
-from pipeline.audit.evidence import (
-    HeldOut,
-    NestedTest,
-    f_test_p,
-    least_squares_rss,
-    nested_test,
-    paired_point_gain,
-    paired_rank_gain,
-)
+from pipeline.audit.evidence import HeldOut, f_test_p, least_squares_rss, paired_point_gain
 
 
 @dataclass
@@ -101,7 +93,7 @@ class SurveyEvent:
         }
 
 
-def _levels(x: CrossoverSet) -> np.ndarray:
+def heading_levels(x: CrossoverSet) -> np.ndarray:
     """Design columns of mu_h: one per heading class present, the first dropped (only
     differences are observed)."""
     classes = sorted(set(x.heading_a.tolist()) | set(x.heading_b.tolist()))
@@ -144,7 +136,7 @@ def survey_events(
     """
     y = np.asarray(x.difference_nT, float)
     n = y.size
-    base = _levels(x)
+    base = heading_levels(x)
     if n < base.shape[1] + 6:
         return []
     rss0, k0, _ = least_squares_rss(base, y)
@@ -261,121 +253,19 @@ def survey_coupling_gain(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray) 
     (:func:`pipeline.audit.evidence.paired_point_gain`). None: too few crossovers."""
     y = np.asarray(x.difference_nT, float)
     g = np.asarray(aux_a, float) - np.asarray(aux_b, float)
-    full = np.column_stack([_levels(x), g])
+    full = np.column_stack([heading_levels(x), g])
     ok = np.all(np.isfinite(full), axis=1) & np.isfinite(y)
     full, y = full[ok], y[ok]
     if full.shape[0] < full.shape[1] + 4 or np.std(full[:, -1]) == 0:
         return None
 
-    return paired_point_gain(_loo_errors(full[:, :-1], y), _loo_errors(full, y))
+    def loo_errors(a: np.ndarray) -> np.ndarray:
+        q, _ = np.linalg.qr(a)
+        h = np.sum(q**2, axis=1)  # leverages
+        coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+        return (y - a @ coef) / np.clip(1.0 - h, 1e-9, None)
 
-
-def _loo_errors(a: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """Leave-one-out prediction errors of the least-squares fit of ``y`` on ``a``: each row
-    predicted by the fit to the others (the ordinary residual over one minus its leverage)."""
-    q, _ = np.linalg.qr(a)
-    h = np.sum(q**2, axis=1)  # leverages
-    coef, *_ = np.linalg.lstsq(a, y, rcond=None)
-    return (y - a @ coef) / np.clip(1.0 - h, 1e-9, None)
-
-
-@dataclass
-class SurveyDiurnal:
-    """The day's variation seen at the survey's crossovers against the base station
-    (:func:`survey_diurnal`).
-
-    Attributes
-    ----------
-    coefficient : float
-        Fitted coefficient of the base-station difference (1 when the airborne field varies
-        as the base station does), dimensionless.
-    ci95 : tuple of float
-        Its 95 % interval.
-    test : NestedTest
-        Heading levels plus the base-station difference against the levels alone; the p is
-        one-sided (a positive coefficient).
-    heldout : HeldOut
-        Leave-one-out crossover errors (nT) without and with the base-station correction at
-        coefficient 1, compared by a rank test.
-    crossovers : int
-        Crossovers used.
-    screened_out : int
-        Crossovers left out as gross errors.
-    """
-
-    coefficient: float
-    ci95: tuple[float, float]
-    test: NestedTest
-    heldout: HeldOut
-    crossovers: int
-    screened_out: int
-
-
-def survey_diurnal(x: CrossoverSet, base_difference_nT: np.ndarray) -> SurveyDiurnal | None:
-    """Do the crossovers follow the base station? A diurnal variation D(t) makes two crossing
-    lines disagree by D(t_a) - D(t_b) besides their heading levels, and a base station
-    records the same D: the base-station difference between the two readings of each
-    crossover is then what a base-station correction (coefficient 1, as the reduction applies
-    it) removes from the crossover differences.
-
-    Two questions, as a survey's diurnal correction is checked: does the crossover difference
-    grow with the base-station difference (one-sided F-test of the coefficient, the heading
-    levels fitted beside it), and does the correction at coefficient 1 predict crossovers
-    better (leave-one-out crossover errors of the heading levels fitted to the others, without
-    and with the correction, compared crossover by crossover by a rank test)? Nothing is
-    fitted to the crossovers for the correction itself, so the second is a held-out check.
-
-    Gross crossover errors (a crossing read in a turn, a mislocated tie) would decide a
-    least-squares test on a dozen points: crossovers that a biweight fit of the same model
-    gives no weight (beyond 4.685 robust standard deviations) are left out first.
-
-    Parameters
-    ----------
-    x
-        Crossover differences (compensated field reduced for the main field, nT), with times
-        (s) and heading classes.
-    base_difference_nT
-        The base station's (smoothed) reading at each crossover's first reading less that at
-        its second, nT.
-
-    Returns
-    -------
-    SurveyDiurnal or None
-        None with a single heading class, with fewer crossovers than the heading levels and
-        the coefficient need (4 more than the columns) or without any base-station variation.
-    """
-    import statsmodels.api as sm
-
-    y = np.asarray(x.difference_nT, float)
-    g = np.asarray(base_difference_nT, float)
-    lv = _levels(x)
-    a = np.column_stack([lv, g])
-    ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
-    n0 = int(ok.sum())
-    if lv.shape[1] == 0 or n0 < a.shape[1] + 4 or np.std(g[ok]) == 0:
-        return None
-    keep = ok.copy()
-    try:
-        robust = sm.RLM(y[ok], a[ok], M=sm.robust.norms.TukeyBiweight()).fit()
-        keep[ok] = robust.weights > 0
-    except (ValueError, np.linalg.LinAlgError):  # singular levels: no screening
-        pass
-    y, g, lv, a = y[keep], g[keep], lv[keep], a[keep]
-    n, k = a.shape
-    if n < k + 4 or np.std(g) == 0:
-        return None
-    test = nested_test(y, lv, a, 1)
-    coef, *_ = np.linalg.lstsq(a, y, rcond=None)
-    r = y - a @ coef
-    cov = float(r @ r) / (n - k) * np.linalg.pinv(a.T @ a)
-    c, se = float(coef[-1]), float(np.sqrt(max(cov[-1, -1], 0.0)))
-    half = float(stats.t.ppf(0.975, n - k)) * se
-    # the diurnal's sign is known (the base station sees the same field): one-sided, from the
-    # two-sided F-test of one column (F = t^2)
-    one_sided = 0.5 * test.p_value if c > 0 else 1.0 - 0.5 * test.p_value
-    test = replace(test, p_value=one_sided)
-    held = paired_rank_gain(_loo_errors(lv, y), _loo_errors(lv, y - g))
-    return SurveyDiurnal(c, (c - half, c + half), test, held, n, n0 - n)
+    return paired_point_gain(loo_errors(full[:, :-1]), loo_errors(full))
 
 
 def _regress_on(
@@ -384,7 +274,7 @@ def _regress_on(
     """Coefficient of ``g`` in crossover differences ~ heading levels + c g: estimate,
     95 % interval, two-sided p against 0, crossovers used."""
     y = np.asarray(x.difference_nT, float)
-    a = np.column_stack([_levels(x), g])
+    a = np.column_stack([heading_levels(x), g])
     ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
     a, y = a[ok], y[ok]
     n, k = a.shape
@@ -434,7 +324,7 @@ def survey_heading(
     the lines cross, km).
     """
     y = np.asarray(x.difference_nT, float)
-    lv = _levels(x)
+    lv = heading_levels(x)
     ok = np.isfinite(y)
     n = int(ok.sum())
     if lv.shape[1] == 0 or n < lv.shape[1] + 4:
