@@ -20,7 +20,8 @@ standard deviation; a level, position or heading column belongs to one set, the 
 coefficient is shared): a one-sided F-test of the coefficient (the variation's sign is known),
 and a held-out check of the correction itself, which fits nothing: each crossover and each
 leg block predicted from the others (leave-one-out) without and with the base station
-subtracted at coefficient 1, compared point by point by a rank test. Gross errors (a crossing
+subtracted at coefficient 1, compared point by point by a rank test within each set, the
+sets' p-values combined (Fisher: independent data). Gross errors (a crossing
 read in a turn) would decide a least-squares fit of a dozen points: each set is screened first
 by a biweight fit of the same model, and the points it gives no weight are left out.
 
@@ -35,6 +36,7 @@ import numpy as np
 from scipy import stats
 
 from pipeline.audit.evidence import HeldOut, NestedTest, nested_test, paired_rank_gain
+from pipeline.audit.legs import fisher_combined
 
 
 @dataclass
@@ -64,8 +66,8 @@ class DiurnalEvidence:
         The sets' nuisance columns plus the base-station term against the nuisance columns
         alone (weighted); p one-sided (a positive coefficient).
     heldout : HeldOut
-        Leave-one-out errors (nT) without and with the correction at coefficient 1; its p
-        from a rank test of the errors in units of each set's residual standard deviation.
+        Leave-one-out errors (nT) without and with the correction at coefficient 1, over all
+        points; its p each set's rank test, combined over the sets (Fisher).
     used : dict
         Points used per set.
     screened_out : dict
@@ -171,12 +173,20 @@ def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
     # the variation's sign is known (the base station sees the same field): one-sided, from
     # the two-sided F-test of one column (F = t^2)
     test = replace(test, p_value=0.5 * test.p_value if c > 0 else 1.0 - 0.5 * test.p_value)
-    before, after = _loo_errors(x0, y), _loo_errors(x0, y - g)
-    ranked = paired_rank_gain(before, after)
+    # the nuisance columns are block-diagonal: the stacked leave-one-out errors are each
+    # set's own; each set's comparison gets its own rank test (a set whose points the
+    # correction barely changes would only dilute the other's in one ranking) and the sets'
+    # p-values, from independent data, are combined (Fisher)
+    before, after = _loo_errors(x0, y) * sig, _loo_errors(x0, y - g) * sig
+    ps, row = [], 0
+    for t, _ in kept:
+        sel = slice(row, row + t.y.size)
+        ps.append(paired_rank_gain(before[sel], after[sel]).p_value)
+        row += t.y.size
     held = HeldOut(
-        float(np.sqrt(np.mean((before * sig) ** 2))),
-        float(np.sqrt(np.mean((after * sig) ** 2))),
-        ranked.p_value,
-        ranked.blocks,
+        float(np.sqrt(np.mean(before**2))),
+        float(np.sqrt(np.mean(after**2))),
+        fisher_combined(*ps),
+        int(before.size),
     )
     return DiurnalEvidence(c, (c - half, c + half), test, held, used, screened)
