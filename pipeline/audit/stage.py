@@ -6,12 +6,14 @@
    lines (crossovers, validation overlaps) are what the model gets wrong.
 2. Candidate effects, each a physical extension with its own regressors or test, are tried
    forward-stepwise: in each round every remaining candidate gets a nested-model test
-   (F-test and BIC on the thinned band-passed calibration data; Holm correction over the
+   (F-test and BIC on the thinned band-passed calibration data; for the diurnal on the
+   survey's crossovers and the calibration legs' block means; Holm correction over the
    round's candidates) **and** a held-out test: fitted without the held-out samples (other
-   calibration pass, or alternate chunks of a single pass; validation overlaps for the
-   diurnal), it must lower the held-out residual significantly (one-sided paired test over
-   10 s blocks or points) and by at least ``min_gain``. The best passing candidate joins the
-   model; the round repeats until none passes.
+   calibration pass, or alternate chunks of a single pass; for the diurnal, whose
+   correction fits nothing, validation overlaps or each crossover and leg block predicted
+   from the others), it must lower the held-out residual significantly (one-sided paired
+   test over 10 s blocks or points) and by at least ``min_gain``. The best passing
+   candidate joins the model; the round repeats until none passes.
 3. The extended model re-runs compensation, reduction and the quality figures, and the gain
    is measured: held-out residual, FOM, heading error at validation intersections, crossovers.
 4. Structure left above the noise floor that no candidate explains is reported as such.
@@ -940,8 +942,11 @@ class Auditor:
                 metric = "heldout_validation_overlap_rms"
         est = {
             "base_coefficient": ev_d.coefficient,
-            "points": ev_d.used,
-            "screened_out": ev_d.screened_out,
+            # the evidence's size: crossovers and calibration-leg blocks used, and left out
+            # as gross errors
+            "crossovers": ev_d.used.get("crossovers", 0),
+            "leg_blocks": ev_d.used.get("legs", 0),
+            "screened_out": sum(ev_d.screened_out.values()),
             **_diurnal_shape(self.data.time_s, self.base_smoothed_nT),
         }
         ev = Evaluation(
