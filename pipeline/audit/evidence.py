@@ -180,21 +180,6 @@ def paired_point_gain(d_before: np.ndarray, d_after: np.ndarray) -> HeldOut:
     return HeldOut(float(np.sqrt(np.mean(a**2))), float(np.sqrt(np.mean(b**2))), p, int(a.size))
 
 
-def paired_rank_gain(d_before: np.ndarray, d_after: np.ndarray) -> HeldOut:
-    """:func:`paired_point_gain` with a rank test: one-sided Wilcoxon signed-rank test of the
-    points' squared-error differences, for a few tens of points (crossovers), where those
-    differences are too heavy-tailed for the t-test's normal approximation (a few large
-    crossover errors decide its mean and its spread alike)."""
-    a, b = np.asarray(d_before, float), np.asarray(d_after, float)
-    ok = np.isfinite(a) & np.isfinite(b)
-    a, b = a[ok], b[ok]
-    if a.size < 6:
-        return HeldOut(float("nan"), float("nan"), 1.0, int(a.size))
-    d = a**2 - b**2
-    p = float(stats.wilcoxon(d, alternative="greater").pvalue) if np.any(d != 0) else 1.0
-    return HeldOut(float(np.sqrt(np.mean(a**2))), float(np.sqrt(np.mean(b**2))), p, int(a.size))
-
-
 def band_noise_gain(rate_hz: float, band_hz: tuple[float, float], poles: int) -> float:
     """RMS of unit white noise after the zero-phase band-pass (deterministic, seeded)."""
     x = np.random.default_rng(0).normal(size=200_000)
