@@ -6,10 +6,11 @@ the hidden catalogue effect named alone, nothing on a clean flight, and a step i
 carrier's permanent field (outside the catalogue) as an unexplained event within +-120 s.
 The full benchmark (30 flights per class, wider ranges, fixed-wing too) is in docs.
 
-Runs by default (about 2 minutes: BLAS on one thread, see tests/conftest.py). 13 of 14 are
-right; the exception is marked a strict expected failure, so that it fails the run the day it
-comes right: the diurnal of seed 12 (three short tie lines, 13 crossovers) is held out at
-p 0.06 (0.135 -> 0.025 nT) against the required 0.01."""
+Runs by default (about 2 minutes: BLAS on one thread, see tests/conftest.py). A flight
+known to come out wrong would be listed in ``KNOWN_WRONG`` and marked a strict expected
+failure, so that it fails the run the day it comes right; none is (the diurnal of seed 12,
+three short tie lines and 13 crossovers, was until the calibration legs joined the diurnal's
+evidence)."""
 
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ MILD = {"profiles": ("uav",), "noise_nT": (0.02, 0.1), "outside_basis_nT": (0.0,
 SEEDS = (11, 12)
 
 
-KNOWN_WRONG = {("diurnal", 12): "diurnal held out at p 0.06 on 13 crossovers (needs 0.01)"}
+KNOWN_WRONG: dict[tuple[str, int], str] = {}
 
 
 @pytest.mark.parametrize(

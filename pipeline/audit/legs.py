@@ -115,6 +115,54 @@ def leg_ids(
     return ids
 
 
+def leg_block_means(
+    time_s: np.ndarray,
+    values: np.ndarray,
+    legs: np.ndarray,
+    block_s: float = 10.0,
+    min_leg_blocks: int = 3,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Means of ``values`` over blocks of ``block_s`` seconds along each calibration leg.
+
+    Parameters
+    ----------
+    time_s : ndarray
+        Epoch times (s).
+    values : ndarray
+        (n, m) columns to average (a field in nT, positions in m ...); an epoch counts only
+        where all are finite.
+    legs : ndarray of int
+        Leg number per epoch (:func:`leg_ids`), -1 outside.
+    block_s : float
+        Averaging block (s).
+    min_leg_blocks : int
+        Legs with fewer blocks filled to :data:`MIN_BLOCK_FILL` are left out.
+
+    Returns
+    -------
+    means : ndarray
+        (blocks, m) block means.
+    leg_of : ndarray of int
+        Leg of each block.
+    """
+    t, v = np.asarray(time_s, float), np.asarray(values, float)
+    rows, leg_of = [], []
+    for leg in np.unique(legs[legs >= 0]):
+        sel = np.flatnonzero(legs == leg)
+        key = np.floor((t[sel] - t[sel[0]]) / block_s).astype(int)
+        expected = block_s / max(np.median(np.diff(t[sel])) if sel.size > 1 else block_s, 1e-9)
+        found = []
+        for k in np.unique(key):
+            s = sel[key == k]
+            ok = s[np.all(np.isfinite(v[s]), axis=1)]
+            if ok.size >= MIN_BLOCK_FILL * expected:
+                found.append(v[ok].mean(axis=0))
+        if len(found) >= min_leg_blocks:
+            rows += found
+            leg_of += [leg] * len(found)
+    return np.asarray(rows).reshape(len(rows), v.shape[1]), np.asarray(leg_of, int)
+
+
 def leg_gradient(
     time_s: np.ndarray,
     field_nT: np.ndarray,
@@ -145,26 +193,11 @@ def leg_gradient(
     LegGradient or None
         None when fewer than two legs or too few blocks remain for the test.
     """
-    t, y = np.asarray(time_s, float), np.asarray(field_nT, float)
-    p = np.asarray(enu_m, float)
-    rows, leg_of = [], []
-    for leg in np.unique(legs[legs >= 0]):
-        sel = np.flatnonzero(legs == leg)
-        key = np.floor((t[sel] - t[sel[0]]) / block_s).astype(int)
-        expected = block_s / max(np.median(np.diff(t[sel])) if sel.size > 1 else block_s, 1e-9)
-        found = []
-        for k in np.unique(key):
-            s = sel[key == k]
-            ok = s[np.isfinite(y[s]) & np.all(np.isfinite(p[s]), axis=1)]
-            if ok.size >= MIN_BLOCK_FILL * expected:
-                found.append([y[ok].mean(), *p[ok].mean(axis=0)])
-        if len(found) >= min_leg_blocks:
-            rows += found
-            leg_of += [leg] * len(found)
-    if len(set(leg_of)) < 2:
+    a, leg_of = leg_block_means(
+        time_s, np.column_stack([field_nT, enu_m]), legs, block_s, min_leg_blocks
+    )
+    if len(set(leg_of.tolist())) < 2:
         return None
-    a = np.asarray(rows)
-    leg_of = np.asarray(leg_of)
     levels = (leg_of[:, None] == np.unique(leg_of)[None, :]).astype(float)
     x_full = np.column_stack([a[:, 1:4], levels])
     dof = a.shape[0] - x_full.shape[1]

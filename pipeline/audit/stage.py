@@ -6,14 +6,17 @@
    lines (crossovers, validation overlaps) are what the model gets wrong.
 2. Candidate effects, each a physical extension with its own regressors or test, are tried
    forward-stepwise: in each round every remaining candidate gets a nested-model test
-   (F-test and BIC on the thinned band-passed calibration data; Holm correction over the
+   (F-test and BIC on the thinned band-passed calibration data; for the diurnal on the
+   survey's crossovers and the calibration legs' block means; Holm correction over the
    round's candidates) **and** a held-out test: fitted without the held-out samples (other
-   calibration pass, or alternate chunks of a single pass; validation overlaps for the
-   diurnal), it must lower the held-out residual significantly (one-sided paired test over
-   10 s blocks or points) and by at least ``min_gain``. The vector calibration is judged on
-   the fluxgate itself (its held-out magnitude mismatch, beyond a tolerance). Evidence the
-   band-pass hardly sees can confirm a candidate: the calibration legs' ramps (a gradient),
-   the survey's crossovers and a channel's switches (a current coupling). The best passing
+   calibration pass, or alternate chunks of a single pass; for the diurnal, whose
+   correction fits nothing, validation overlaps or each crossover and leg block predicted
+   from the others), it must lower the held-out residual significantly (one-sided paired
+   test over 10 s blocks or points) and by at least ``min_gain``. The vector calibration is
+   judged on the fluxgate itself (its held-out magnitude mismatch, beyond a tolerance).
+   Evidence the band-pass hardly sees can confirm a candidate: the calibration legs' ramps
+   (a gradient), the survey's crossovers and a channel's switches (a current coupling), the
+   fluxgate's record along the lines (a lag). The best passing
    candidate joins the model; the round repeats until none passes.
 3. The extended model re-runs compensation, reduction and the quality figures, and the gain
    is measured: held-out residual, FOM, heading error at validation intersections, crossovers.
@@ -41,6 +44,7 @@ from pipeline.audit.crossval import (
     passwise_folds,
     stratified_block_folds,
 )
+from pipeline.audit.diurnal import DiurnalSet, diurnal_evidence
 from pipeline.audit.evidence import (
     HeldOut,
     NestedTest,
@@ -64,13 +68,20 @@ from pipeline.audit.extended import (
     lag_cost,
     simulate_measurement,
 )
-from pipeline.audit.legs import LegGradient, fisher_combined, leg_gradient, leg_ids
+from pipeline.audit.legs import (
+    LegGradient,
+    fisher_combined,
+    leg_block_means,
+    leg_gradient,
+    leg_ids,
+)
 from pipeline.audit.noise import white_noise_nT
 from pipeline.audit.survey import (
     CrossoverSet,
     SurveyCoupling,
     SurveyHeading,
     SurveyLag,
+    heading_levels,
     survey_coupling,
     survey_coupling_gain,
     survey_events,
@@ -532,8 +543,8 @@ class Auditor:
     def candidates(self, current: ModelSpec) -> list[tuple[str, str]]:
         """Candidate effects not yet in ``current``, as (effect, key) pairs.
 
-        The geomagnetic gradient (with positions), sensor lag, the diurnal (with a base station
-        and tie lines), each auxiliary channel with an electrical unit that varies over the
+        The geomagnetic gradient (with positions), sensor lag, the diurnal (with a base station),
+        each auxiliary channel with an electrical unit that varies over the
         calibration (key ``electrical_current:<name>``) and the vector calibration.
         """
         out = []
@@ -545,7 +556,7 @@ class Auditor:
             out.append(("geomagnetic_gradient", "geomagnetic_gradient"))
         if not current.lag_s:
             out.append(("sensor_lag", "sensor_lag"))
-        if not current.diurnal and self.flight.has("base_nT") and self.seg.mask("tie").any():
+        if not current.diurnal and self.flight.has("base_nT"):
             out.append(("diurnal", "diurnal"))
         for name, x in self.data.aux.items():
             if name in current.aux or not _electrical(self.data.aux_units.get(name, "")):
@@ -1049,60 +1060,90 @@ class Auditor:
         heading = {tr.line_id: int(round(tr.heading_deg / 90.0)) % 4 for tr in tracks}
         dx = np.array([c.difference_nT for c in xs])
         db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base) for c in xs])
-        groups = [f"{heading[c.line_a]}{heading[c.line_b]}" for c in xs]
-        tie_of = [c.line_b for c in xs]
         val = [tr for tr in tracks if tr.kind == "validation"]
         ov = track_intersections(val, [tr for tr in tracks if tr.kind in ("survey", "tie")])
-        return dx, db, groups, tie_of, ov, red, base, xs, heading
+        return dx, db, ov, red, base, xs, heading
 
     def _eval_diurnal(self, current: ModelSpec, key: str) -> Evaluation:
-        import statsmodels.api as sm
-
-        # a second along track averages the sensor noise out of each crossover reading (the
-        # diurnal changes over minutes), as for the survey-side events
-        dx, db, groups, tie_of, ov, red, base, _, _ = self._crossover_data(current, smooth_s=1.0)
-        if dx.size < 8:
+        """The diurnal: does ``current``'s compensated field follow the base station where the
+        survey's lines cross and along the calibration legs
+        (:func:`pipeline.audit.diurnal.diurnal_evidence`)? With enough validation overlaps
+        (8) those are the held-out points instead."""
+        sets = [s for s in (self._diurnal_crossovers(current), self._diurnal_legs(current)) if s]
+        ev_d = diurnal_evidence(sets)
+        if ev_d is None:
             return Evaluation(
-                "diurnal", key, {}, None, None, None, reason=f"only {dx.size} survey-tie crossovers"
+                "diurnal",
+                key,
+                {},
+                None,
+                None,
+                None,
+                reason="no survey crossovers or calibration legs with base-station variation",
             )
-        labels = sorted(set(groups))
-        dummies = np.array([[g == lab for lab in labels] for g in groups], float)
-        test = nested_test(dx, dummies, np.column_stack([dummies, db]), 1)
-        beta = float(sm.OLS(dx, np.column_stack([dummies, db])).fit().params[-1])
-        if ov.count >= 8:
-            held = paired_point_gain(ov.differences(red), ov.differences(red - base))
-            metric = "heldout_validation_overlap_rms"
-        else:  # leave one tie line out: its crossovers predicted from the other ties'
-            held = self._leave_one_tie_out(dx, db, dummies, np.asarray(tie_of))
-            metric = "heldout_crossover_rms"
-        est = {"base_coefficient": beta, **_diurnal_shape(self.data.time_s, base)}
-        ev = Evaluation("diurnal", key, est, test, held, current.with_(diurnal=True))
+        held, metric = ev_d.heldout, "heldout_crossover_and_leg_rms"
+        if self.flight.has("lat_deg", "lon_deg", "alt_m") and self.seg.mask("validation").any():
+            _, _, ov, red, base, _, _ = self._crossover_data(current, smooth_s=1.0)
+            if ov.count >= 8:
+                held = paired_point_gain(ov.differences(red), ov.differences(red - base))
+                metric = "heldout_validation_overlap_rms"
+        est = {
+            "base_coefficient": ev_d.coefficient,
+            # the evidence's size: crossovers and calibration-leg blocks used, and left out
+            # as gross errors
+            "crossovers": ev_d.used.get("crossovers", 0),
+            "leg_blocks": ev_d.used.get("legs", 0),
+            "screened_out": sum(ev_d.screened_out.values()),
+            **_diurnal_shape(self.data.time_s, self.base_smoothed_nT),
+        }
+        ev = Evaluation(
+            "diurnal",
+            key,
+            est,
+            ev_d.test,
+            held,
+            current.with_(diurnal=True),
+            ci95={"base_coefficient": list(ev_d.ci95)},
+        )
         ev.metric = metric
         return ev
 
-    @staticmethod
-    def _leave_one_tie_out(
-        dx: np.ndarray, db: np.ndarray, dummies: np.ndarray, tie_of: np.ndarray
-    ) -> HeldOut:
-        """Crossover residuals of each tie line, the base coefficient fitted on the other
-        tie lines' crossovers; each heading pair's level is removed within the held-out tie
-        (a tie's own heading level cannot be learnt from ties flown the other way)."""
-        before, after = np.full(dx.size, np.nan), np.full(dx.size, np.nan)
-        x1 = np.column_stack([dummies, db])
-        for tie in sorted(set(tie_of.tolist())):
-            test = tie_of == tie
-            train = ~test
-            if train.sum() < dummies[train].any(axis=0).sum() + 3:
-                continue
-            beta = float(np.linalg.lstsq(x1[train], dx[train], rcond=None)[0][-1])
-            for g in np.flatnonzero(dummies[test].any(axis=0)):
-                sel = test & (dummies[:, g] > 0)
-                if sel.sum() < 2:
-                    continue
-                before[sel] = dx[sel] - dx[sel].mean()
-                corr = dx[sel] - beta * db[sel]
-                after[sel] = corr - corr.mean()
-        return paired_point_gain(before, after)
+    def _diurnal_crossovers(self, spec: ModelSpec) -> DiurnalSet | None:
+        """The survey's crossovers as a diurnal data set: ``spec``'s crossover differences
+        (smoothed over 1 s along track: a second averages the sensor noise out of each
+        reading, the diurnal changes over minutes), a level per heading, the base station's
+        difference between the two readings."""
+        if not (self.flight.has("lat_deg", "lon_deg", "alt_m") and self.seg.mask("tie").any()):
+            return None
+        dx, db, _, _, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
+        if dx.size == 0:
+            return None
+        cs = CrossoverSet(
+            dx,
+            np.array([c.time_a_s for c in xs]),
+            np.array([c.time_b_s for c in xs]),
+            np.array([heading[c.line_a] for c in xs]),
+            np.array([heading[c.line_b] for c in xs]),
+        )
+        return DiurnalSet("crossovers", dx, heading_levels(cs), db)
+
+    def _diurnal_legs(self, spec: ModelSpec) -> DiurnalSet | None:
+        """The calibration legs as a diurnal data set: 10 s block means of ``spec``'s
+        compensated field along each leg (the manoeuvres' cycles average out), a level per
+        leg and the east/north/up position (the ground's gradient), the base station's block
+        mean (:func:`pipeline.audit.legs.leg_block_means`)."""
+        if self.data.enu_m is None:
+            return None
+        a, leg_of = leg_block_means(
+            self.data.time_s,
+            np.column_stack([self.compensated(spec), self.base_smoothed_nT, self.data.enu_m]),
+            self.legs,
+            self.s.block_s,
+        )
+        if leg_of.size == 0:
+            return None
+        levels = (leg_of[:, None] == np.unique(leg_of)[None, :]).astype(float)
+        return DiurnalSet("legs", a[:, 0], np.column_stack([levels, a[:, 2:5]]), a[:, 1])
 
     def _survey_crossovers(self, spec: ModelSpec) -> tuple[CrossoverSet, np.ndarray] | None:
         """The survey's crossover differences of ``spec``'s compensated field, smoothed over
@@ -1116,7 +1157,7 @@ class Auditor:
             and self.seg.mask("survey").any()
         ):
             return None
-        dx, db, _, _, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
+        dx, db, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
         if dx.size < 8:
             return None
         cs = CrossoverSet(

@@ -100,7 +100,7 @@ class SurveyEvent:
         }
 
 
-def _levels(x: CrossoverSet) -> np.ndarray:
+def heading_levels(x: CrossoverSet) -> np.ndarray:
     """Design columns of mu_h: one per heading class present, the first dropped (only
     differences are observed)."""
     classes = sorted(set(x.heading_a.tolist()) | set(x.heading_b.tolist()))
@@ -169,7 +169,7 @@ def survey_events(
     """
     y = np.asarray(x.difference_nT, float)
     n = y.size
-    base = _levels(x)
+    base = heading_levels(x)
     if n < base.shape[1] + 6:
         return []
     rss0, k0, _ = least_squares_rss(base, y)
@@ -288,7 +288,7 @@ def survey_coupling_gain(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray) 
     (:func:`pipeline.audit.evidence.paired_point_gain`). None: too few crossovers."""
     y = np.asarray(x.difference_nT, float)
     g = np.asarray(aux_a, float) - np.asarray(aux_b, float)
-    full = np.column_stack([_levels(x), g])
+    full = np.column_stack([heading_levels(x), g])
     ok = np.all(np.isfinite(full), axis=1) & np.isfinite(y)
     full, y = full[ok], y[ok]
     if full.shape[0] < full.shape[1] + 4 or np.std(full[:, -1]) == 0:
@@ -309,7 +309,7 @@ def _regress_on(
     """Coefficient of ``g`` in crossover differences ~ heading levels + c g: estimate,
     95 % interval, two-sided p against 0, crossovers used."""
     y = np.asarray(x.difference_nT, float)
-    a = np.column_stack([_levels(x), g])
+    a = np.column_stack([heading_levels(x), g])
     ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
     a, y = a[ok], y[ok]
     n, k = a.shape
@@ -356,7 +356,7 @@ def survey_heading(
     the lines cross, km).
     """
     y = np.asarray(x.difference_nT, float)
-    lv = _levels(x)
+    lv = heading_levels(x)
     ok = np.isfinite(y)
     n = int(ok.sum())
     if lv.shape[1] == 0 or n < lv.shape[1] + 4:

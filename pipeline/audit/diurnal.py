@@ -1,0 +1,213 @@
+"""The day's variation (diurnal) seen against the base station, on the lines and on the legs.
+
+A diurnal variation D(t) adds the same field to the airborne reading and to the base station's
+(the survey's few kilometres are small against the variation's scale), so a base-station
+correction subtracts the base station's reading at coefficient 1. Whether the airborne field
+follows the base station is seen wherever the carrier's other contributions can be levelled
+out:
+
+* where the survey's lines cross, the same ground is read twice: the crossover difference is
+  the two headings' level difference plus D(t_a) - D(t_b), and the base station's difference
+  between the two readings is the regressor;
+* along each calibration leg (straight, constant heading, over a few hundred metres), block
+  means of the compensated field are the leg's level (heading error, day's level) plus the
+  ground's gradient times position plus D(t), and the base station's block mean is the
+  regressor. Its legs are flown minutes away from the survey: on a short survey near a turning
+  point of the variation the crossovers see little of it, the calibration more.
+
+Both data sets are fitted together by weighted least squares (each scaled by its own residual
+standard deviation; a level, position or heading column belongs to one set, the base-station
+coefficient is shared): a one-sided F-test of the coefficient (the variation's sign is known),
+and a held-out check of the correction itself, which fits nothing: each crossover and each
+leg block predicted from the others (leave-one-out) without and with the base station
+subtracted at coefficient 1; the p is a permutation test within each set (does the
+correction lower the held-out sum of squares more than the same corrections dealt to the
+points at random, i.e. does the base station's reading belong to the times it was taken
+at?), the sets' p-values combined (Fisher: independent data). Gross errors (a crossing
+read in a turn) would decide a least-squares fit of a dozen points: each set is screened first
+by a biweight fit of the same model, and the points it gives no weight are left out.
+
+Sizes in nT, times in s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy import stats
+
+from pipeline.audit.evidence import HeldOut, NestedTest, nested_test
+from pipeline.audit.legs import fisher_combined
+
+SHUFFLES = 4999  # random deals of the permutation test: p resolved to 2e-4
+
+
+@dataclass
+class DiurnalSet:
+    """One data set of the diurnal test: observations ``y`` (nT), the nuisance columns
+    ``nuisance`` fitted beside the base station (levels, positions), and the base-station
+    term ``base_nT`` (what the base station says the variation adds to each observation)."""
+
+    name: str  # "crossovers" or "legs"
+    y: np.ndarray
+    nuisance: np.ndarray
+    base_nT: np.ndarray
+
+
+@dataclass
+class DiurnalEvidence:
+    """The base station's coefficient in the airborne field (:func:`diurnal_evidence`).
+
+    Attributes
+    ----------
+    coefficient : float
+        Fitted coefficient of the base-station term (1 when the airborne field varies as the
+        base station does), dimensionless.
+    ci95 : tuple of float
+        Its 95 % interval.
+    test : NestedTest
+        The sets' nuisance columns plus the base-station term against the nuisance columns
+        alone (weighted); p one-sided (a positive coefficient).
+    heldout : HeldOut
+        Leave-one-out errors (nT) without and with the correction at coefficient 1, over all
+        points; its p each set's permutation test, combined over the sets (Fisher).
+    used : dict
+        Points used per set.
+    screened_out : dict
+        Points left out as gross errors per set.
+    """
+
+    coefficient: float
+    ci95: tuple[float, float]
+    test: NestedTest
+    heldout: HeldOut
+    used: dict[str, int]
+    screened_out: dict[str, int]
+
+
+def _screen(s: DiurnalSet) -> np.ndarray:
+    """Rows of ``s`` a biweight fit of its model (nuisance + base term) gives weight."""
+    import statsmodels.api as sm
+
+    a = np.column_stack([s.nuisance, s.base_nT])
+    try:
+        return sm.RLM(s.y, a, M=sm.robust.norms.TukeyBiweight()).fit().weights > 0
+    except (ValueError, np.linalg.LinAlgError):  # a singular design: no screening
+        return np.ones(s.y.size, bool)
+
+
+def _loo(a: np.ndarray):
+    """The leave-one-out error map of least squares on ``a``: a function of ``v`` ((n,) or
+    (n, m)) returning each row's error predicted by the fit to the other rows (the ordinary
+    residual over one minus its leverage)."""
+    u, sv, _ = np.linalg.svd(a, full_matrices=False)
+    q = u[:, sv > (sv.max() if sv.size else 0.0) * 1e-10]  # a basis of the column space
+    w = 1.0 / np.clip(1.0 - np.sum(q**2, axis=1), 1e-9, None)  # 1 / (1 - leverage)
+
+    def errors(v: np.ndarray) -> np.ndarray:
+        r = v - q @ (q.T @ v)
+        return r * (w if r.ndim == 1 else w[:, None])
+
+    return errors
+
+
+def _matched_p(a: np.ndarray, y: np.ndarray, g: np.ndarray, rng: np.random.Generator) -> float:
+    """One-sided p that the correction ``g`` lowers the leave-one-out misfit of ``y`` (levels
+    ``a`` refitted) more than the same corrections dealt to the points at random: a
+    permutation test of the held-out sum of squares (:data:`SHUFFLES` deals). It asks whether
+    the base station's reading belongs to the times it was taken at, at the size the
+    correction applies; unlike a point-by-point sign or rank test it is not diluted by the
+    points the correction barely changes."""
+    loo = _loo(a)
+    e_y = loo(y)
+    observed = float(np.sum((e_y - loo(g)) ** 2))
+    dealt = loo(np.stack([rng.permutation(g) for _ in range(SHUFFLES)], axis=1))
+    shuffled = np.sum((e_y[:, None] - dealt) ** 2, axis=0)
+    return float((1 + np.sum(shuffled <= observed)) / (SHUFFLES + 1))
+
+
+def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
+    """Does the airborne field follow the base station? (module docstring)
+
+    Parameters
+    ----------
+    sets
+        The data sets (crossovers, calibration legs); a set with non-finite rows has them
+        dropped, one with fewer points than its columns need (4 more) or without any
+        base-station variation is left out.
+
+    Returns
+    -------
+    DiurnalEvidence or None
+        None when no set is usable.
+    """
+    kept, used, screened = [], {}, {}
+    for s in sets:
+        ok = np.isfinite(s.y) & np.isfinite(s.base_nT) & np.all(np.isfinite(s.nuisance), axis=1)
+        s = DiurnalSet(s.name, s.y[ok], s.nuisance[ok], s.base_nT[ok])
+        k = s.nuisance.shape[1] + 1
+        if s.y.size < k + 4 or np.std(s.base_nT) == 0:
+            continue
+        keep = _screen(s)
+        if keep.sum() < k + 4:
+            continue
+        t = DiurnalSet(s.name, s.y[keep], s.nuisance[keep], s.base_nT[keep])
+        if np.std(t.base_nT) == 0:
+            continue
+        # the base term less its part in the nuisance columns' span (a leg's level absorbs
+        # the base station's tens of thousands of nT): the same fit, well conditioned, and
+        # the same leave-one-out errors for the correction at coefficient 1
+        g_c = t.base_nT - t.nuisance @ np.linalg.lstsq(t.nuisance, t.base_nT, rcond=None)[0]
+        t = DiurnalSet(t.name, t.y, t.nuisance, g_c)
+        a = np.column_stack([t.nuisance, t.base_nT])
+        coef, *_ = np.linalg.lstsq(a, t.y, rcond=None)
+        r = t.y - a @ coef
+        sigma = float(np.sqrt(r @ r / (t.y.size - k)))
+        if not sigma > 0:
+            continue
+        kept.append((t, sigma))
+        used[s.name] = int(t.y.size)
+        screened[s.name] = int(s.y.size - t.y.size)
+    if not kept:
+        return None
+    # stacked, each set in units of its own residual standard deviation; the nuisance
+    # columns block-diagonal (each set has its own levels), the base term shared
+    n_cols = [t.nuisance.shape[1] for t, _ in kept]
+    x0 = np.zeros((sum(t.y.size for t, _ in kept), sum(n_cols)))
+    y, g, sig = [], [], []
+    row = col = 0
+    for (t, sigma), m in zip(kept, n_cols, strict=True):
+        x0[row : row + t.y.size, col : col + m] = t.nuisance / sigma
+        y.append(t.y / sigma)
+        g.append(t.base_nT / sigma)
+        sig.append(np.full(t.y.size, sigma))
+        row += t.y.size
+        col += m
+    y, g, sig = np.concatenate(y), np.concatenate(g), np.concatenate(sig)
+    x1 = np.column_stack([x0, g])
+    test = nested_test(y, x0, x1, 1)
+    n, k = x1.shape
+    coef, *_ = np.linalg.lstsq(x1, y, rcond=None)
+    r = y - x1 @ coef
+    cov = float(r @ r) / (n - k) * np.linalg.pinv(x1.T @ x1)
+    c, se = float(coef[-1]), float(np.sqrt(max(cov[-1, -1], 0.0)))
+    half = float(stats.t.ppf(0.975, n - k)) * se
+    # the variation's sign is known (the base station sees the same field): one-sided, from
+    # the two-sided F-test of one column (F = t^2)
+    test = replace(test, p_value=0.5 * test.p_value if c > 0 else 1.0 - 0.5 * test.p_value)
+    # the nuisance columns are block-diagonal: the stacked leave-one-out errors are each
+    # set's own; each set gets its own permutation test (deals within a set only) and the
+    # sets' p-values, from independent data, are combined (Fisher); a fixed seed keeps the
+    # audit reproducible
+    loo = _loo(x0)
+    before, after = loo(y) * sig, loo(y - g) * sig
+    rng = np.random.default_rng(0)
+    ps = [_matched_p(t.nuisance, t.y, t.base_nT, rng) for t, _ in kept]
+    held = HeldOut(
+        float(np.sqrt(np.mean(before**2))),
+        float(np.sqrt(np.mean(after**2))),
+        fisher_combined(*ps),
+        int(before.size),
+    )
+    return DiurnalEvidence(c, (c - half, c + half), test, held, used, screened)
