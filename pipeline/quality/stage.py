@@ -41,6 +41,8 @@ from pipeline.quality.overlap import (
 )
 from pipeline.segment import Segmentation
 
+MAX_GRID_NODES = 250_000  # 500 x 500: a survey block's grid is thousands of nodes
+
 # summary keys of the processing states (model names are ids with "-"; JSON keys use "_")
 RAW = "raw"
 
@@ -361,13 +363,25 @@ def run_quality(
     heading = _circmean_deg(np.mod(np.array([tr.heading_deg for tr in survey]), 180.0) * 2) / 2
     spacing = qc.line_spacing(survey, heading, s.spacing_tolerance_fraction)
     spacing_m = spacing["nominal_m"] or 50.0
+    # a spacing measured from mislabelled tracks (a transit taken for a line beside one it
+    # crosses) can come out at millimetres: a grid of that cell over the block would never
+    # be solved, so the cell keeps the grid under MAX_GRID_NODES and the note says so
+    ge_all = np.concatenate([tr.east_m for tr in mapped])
+    gn_all = np.concatenate([tr.north_m for tr in mapped])
+    area_m2 = float(np.ptp(ge_all) * np.ptp(gn_all))
+    cell_m = s.cell_fraction * spacing_m
+    if area_m2 / cell_m**2 > MAX_GRID_NODES:
+        cell_m = float(np.sqrt(area_m2 / MAX_GRID_NODES))
+        notes.append(
+            f"line spacing {spacing_m:.3g} m is implausible for a {np.sqrt(area_m2):.0f} m "
+            f"block: the quality grids use {cell_m:.1f} m cells"
+        )
+        spacing_m = cell_m / s.cell_fraction
     grids, interp, profiles = {}, {}, {}
     for name, v in reduced.items():
         pts = [(tr.east_m, tr.north_m, v[tr.index]) for tr in mapped]
         ge, gn, gv = (np.concatenate([p[k] for p in pts]) for k in range(3))
-        grid = minimum_curvature(
-            ge, gn, gv, s.cell_fraction * spacing_m, mask_distance_m=spacing_m, crs=frame.crs
-        )
+        grid = minimum_curvature(ge, gn, gv, cell_m, mask_distance_m=spacing_m, crs=frame.crs)
         grids[name] = grid
         diff, per_line = _interpolated(grid, validation, v, east, north)
         st = difference_stats(diff)
