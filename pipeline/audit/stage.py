@@ -1118,14 +1118,7 @@ class Auditor:
         dx, db, _, _, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
         if dx.size == 0:
             return None
-        cs = CrossoverSet(
-            dx,
-            np.array([c.time_a_s for c in xs]),
-            np.array([c.time_b_s for c in xs]),
-            np.array([heading[c.line_a] for c in xs]),
-            np.array([heading[c.line_b] for c in xs]),
-        )
-        return DiurnalSet("crossovers", dx, heading_levels(cs), db)
+        return DiurnalSet("crossovers", dx, heading_levels(_crossover_set(dx, xs, heading)), db)
 
     def _diurnal_legs(self, spec: ModelSpec) -> DiurnalSet | None:
         """The calibration legs as a diurnal data set: 10 s block means of ``spec``'s
@@ -1160,16 +1153,7 @@ class Auditor:
         dx, db, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
         if dx.size < 8:
             return None
-        cs = CrossoverSet(
-            dx - db,
-            np.array([c.time_a_s for c in xs]),
-            np.array([c.time_b_s for c in xs]),
-            np.array([heading[c.line_a] for c in xs]),
-            np.array([heading[c.line_b] for c in xs]),
-            np.array([c.east_m for c in xs]),
-            np.array([c.north_m for c in xs]),
-        )
-        return cs, red
+        return _crossover_set(dx - db, xs, heading), red
 
     def survey_evidence(self, spec: ModelSpec) -> list[dict[str, Any]]:
         """Steps and drifts in ``spec``'s compensated field seen at survey/tie crossovers
@@ -1472,6 +1456,20 @@ class Auditor:
             ):
                 spec = e.spec
         return spec
+
+
+def _crossover_set(difference_nT: np.ndarray, xs: list, heading: dict) -> CrossoverSet:
+    """The crossovers ``xs`` with their differences ``difference_nT`` (nT), reading times,
+    heading classes (``heading``: line id -> 0..3) and where the lines cross (m)."""
+    return CrossoverSet(
+        difference_nT,
+        np.array([c.time_a_s for c in xs]),
+        np.array([c.time_b_s for c in xs]),
+        np.array([heading[c.line_a] for c in xs]),
+        np.array([heading[c.line_b] for c in xs]),
+        np.array([c.east_m for c in xs]),
+        np.array([c.north_m for c in xs]),
+    )
 
 
 def _electrical(unit: str) -> bool:

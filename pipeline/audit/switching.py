@@ -72,7 +72,7 @@ def switch_instants(
     ok = np.isfinite(d)
     if ok.sum() < 10:
         return np.array([])
-    sigma = 1.4826 * float(np.median(np.abs(d[ok] - np.median(d[ok]))))
+    sigma = float(stats.median_abs_deviation(d[ok], scale="normal"))
     span = float(np.nanpercentile(x, 99) - np.nanpercentile(x, 1))
     if span <= 0:
         return np.array([])

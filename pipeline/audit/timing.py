@@ -145,8 +145,7 @@ def timing_lag(
     fine = lag0 + np.arange(-5 * COARSE_STEP_S, 5 * COARSE_STEP_S + 1e-9, FINE_STEP_S)
     per_line = np.array([_line_rss(*ln, fine, trim) for ln in lines])
     total = per_line.sum(axis=0)
-    lag = _argmin_parabola(fine, total)
-    if abs(lag) >= max_lag_s - COARSE_STEP_S:
+    if abs(_argmin_parabola(fine, total)) >= max_lag_s - COARSE_STEP_S:
         return None  # no minimum inside the search: the records do not fix a delay
     # the fluxgate must explain most of the scalar's variation along the lines, else there
     # is too little geology (or too much interference) to time one against the other
