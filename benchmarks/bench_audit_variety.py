@@ -146,6 +146,11 @@ def one_flight(kind: str, seed: int, folder: Path, **ranges) -> dict:
         "hit": hit,
         "event_kinds": [e["kind"] for e in events],
         "estimates": {f["effect"]: f["estimate"] for f in res["findings"]},
+        "ci95": {f["effect"]: f.get("estimate_ci95") for f in res["findings"]},
+        "truth": {
+            "effects": {k: sim.truth["effects"][k] for k in sim.truth["enabled_effects"]},
+            "effective": sim.truth.get("effective"),
+        },
         "covered": cover,
         "audit_s": time.perf_counter() - t,
         "gap": res["baseline"]["generalization_gap"],

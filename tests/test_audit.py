@@ -260,3 +260,22 @@ def test_audit_command_writes_the_contract(tmp_path):
 
     msgs = [m for m in records(out)[0] if m[0] == "/audit/finding"]
     assert len(msgs) == 1
+
+
+def test_decaying_eddy_columns_follow_a_first_order_response_per_block():
+    """Analytic: a unit step in an eddy column seen through the decay rises as
+    1 - exp(-t / tau); a gap restarts the response (steady state on the block's first
+    sample)."""
+    from pipeline.audit.extended import eddy_decay
+
+    t = np.r_[np.arange(0.0, 20.0, 0.1), np.arange(30.0, 40.0, 0.1)]
+    col = np.where((t >= 5.0) & (t < 30.0), 1.0, 0.0)
+    out = eddy_decay(col[:, None], t, tau_s=0.5)[:, 0]
+    after = (t >= 5.0) & (t < 20.0)
+    # the filter is exact for a signal linear between samples: the sampled step is a ramp
+    # from 4.9 s to 5.0 s, whose response is the step's delayed by half an interval
+    want = 1.0 - np.exp(-(t[after] - 4.95) / 0.5)
+    assert np.max(np.abs(out[after] - want)) < 0.01
+    assert np.allclose(out[after][-10:], 1.0, atol=1e-6)
+    assert np.allclose(out[t >= 30.0], 0.0)  # the second block starts at rest, stays there
+    assert np.allclose(out[t < 5.0], 0.0)

@@ -50,6 +50,23 @@ def test_gradient_recovered_within_its_interval_over_seeds():
     assert abs(float(np.mean(z))) < 0.5 and 0.2 < float(np.std(z)) < 1.3
 
 
+def test_a_soft_iron_scale_is_inside_the_interval_when_declared():
+    """A carrier whose isotropic soft iron scales the whole reading by 1.005 reads a
+    gradient 0.5 % too large; no fit can tell, so only the declared scale uncertainty
+    keeps the truth inside the interval."""
+    g = np.array([0.3, -0.3, 0.0])
+    t, y, enu, cls = box_flight(g, 7, noise_nT=0.02)
+    legs = leg_ids(np.ones(t.size, bool), cls, np.ones(t.size, int), t)
+    scaled = 1.005 * y
+    plain = leg_gradient(t, scaled, enu, legs).ci95()
+    declared = leg_gradient(t, scaled, enu, legs, scale_uncertainty=0.005).ci95()
+    inside = lambda ci: (ci[:2, 0] <= g[:2]) & (g[:2] <= ci[:2, 1])  # noqa: E731
+    assert not inside(plain).any()
+    assert inside(declared).all()
+    # half-width ~1.96 x 0.005 x 0.3 nT/m
+    assert np.allclose(np.diff(declared[:2], axis=1).ravel() / 2, 1.96 * 0.005 * 0.3, rtol=0.1)
+
+
 def test_no_gradient_gives_uniform_p_and_a_small_ramp():
     ps = []
     for seed in range(40):

@@ -40,6 +40,7 @@ from pipeline.defaults import default_field
 from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
 from pipeline.physics.interference import CarrierInterference, scalar_reading_nT
+from pipeline.physics.outside_basis import first_order_lowpass
 
 
 @dataclass
@@ -118,6 +119,10 @@ class ModelSpec:
     # eddy currents that decay with a time constant: E (dB/dt - tau d2B/dt2) adds the
     # columns u_i d2B_j/dt2; the competing explanation of a lag-like residual
     eddy_rate: bool = False
+    # eddy currents that decay with this time constant (s): the T-L eddy columns seen
+    # through a first-order response, which the rate columns above only approximate to
+    # first order in w tau (poor at tau ~ 0.5 s against 3-10 s manoeuvres)
+    eddy_tau_s: float = 0.0
     # induced magnetisation that is not linear in the field: u_i B_j B_k / s^2; the
     # competing explanation of a residual that follows the attitude (as a motor's current
     # does during manoeuvres)
@@ -214,6 +219,19 @@ def scalar_series(data: AuditData, lag_s: float, response: str = "delay") -> np.
     )
 
 
+def eddy_decay(columns: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
+    """Eddy columns passed through a first-order response of time constant ``tau_s`` (s),
+    per contiguous block of finite samples: eddy currents in a conductor whose circuit's
+    L/R is not short against the manoeuvres lag dB/dt instead of following it at once.
+    """
+    out = np.full(columns.shape, np.nan)
+    ok = np.all(np.isfinite(columns), axis=1)
+    dt = float(np.median(np.diff(time_s)))
+    for b in contiguous_blocks(ok, time_s):
+        out[b] = first_order_lowpass(columns[b], dt, tau_s)
+    return out
+
+
 def design(data: AuditData, spec: ModelSpec) -> Design:
     """The design matrix of ``spec`` on ``data``.
 
@@ -241,6 +259,11 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
     k, names = (tl18_terms if spec.base == "tl18" else tl16_terms)(v, data.time_s)
     sub = [True] * k.shape[1]
     cols = [k]
+    if spec.eddy_tau_s > 0:
+        eddy = [i for i, n in enumerate(names) if n.startswith("eddy_")]
+        cols.append(eddy_decay(k[:, eddy], data.time_s, spec.eddy_tau_s))
+        names = names + [f"{names[i]}_decay" for i in eddy]
+        sub += [True] * len(eddy)
     if spec.aux:
         u = direction_cosines(v)
         for name in spec.aux:

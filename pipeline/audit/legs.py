@@ -37,9 +37,10 @@ from pipeline.audit.evidence import f_test_p, least_squares_rss
 from pipeline.compensate.filters import contiguous_blocks
 
 MIN_BLOCK_FILL = 0.5  # share of a block's samples that must be present
-# relative uncertainty of a gradient from positions in a local tangent plane (projection and
-# datum scale, GNSS antenna offsets): with hundreds of nT of ramp the statistical error alone
-# is 1e-4 of the gradient and smaller than this
+# least relative uncertainty of a gradient from positions in a local tangent plane (projection
+# and datum scale, GNSS antenna offsets): with hundreds of nT of ramp the statistical error
+# alone is 1e-4 of the gradient and smaller than this. The carrier's soft iron usually adds
+# more (see :func:`leg_gradient`'s ``scale_uncertainty``)
 SCALE_UNCERTAINTY = 1e-3
 
 
@@ -52,8 +53,8 @@ class LegGradient:
     gradient_nT_per_m : ndarray
         East, north, up (nT/m), the change of the total field per metre.
     se_nT_per_m : ndarray
-        Their standard errors (nT/m): the fit's, with :data:`SCALE_UNCERTAINTY` of the value
-        added in quadrature.
+        Their standard errors (nT/m): the fit's, with the field's relative scale uncertainty
+        times the value added in quadrature.
     p_value : float
         F-test that the horizontal (east, north) components are zero.
     blocks, legs : int
@@ -170,6 +171,7 @@ def leg_gradient(
     legs: np.ndarray,
     block_s: float = 10.0,
     min_leg_blocks: int = 3,
+    scale_uncertainty: float = SCALE_UNCERTAINTY,
 ) -> LegGradient | None:
     """Fit the total field's gradient to block means along the calibration legs.
 
@@ -187,6 +189,12 @@ def leg_gradient(
         Averaging block (s).
     min_leg_blocks : int
         Legs with fewer full blocks are left out (a level per leg costs one of them).
+    scale_uncertainty : float
+        Relative uncertainty of the field's scale, added in quadrature to the standard
+        errors (at least :data:`SCALE_UNCERTAINTY`). A carrier's isotropic soft iron
+        multiplies the whole reading by ``1 + a`` (0.3-1 % on small aircraft), so a
+        gradient is read ``1 + a`` times too large; compensation cannot undo it, since the
+        isotropic term is the one the induced columns cannot hold (``ux^2 + uy^2 + uz^2 = 1``).
 
     Returns
     -------
@@ -213,7 +221,8 @@ def leg_gradient(
     return LegGradient(
         gradient_nT_per_m=coef[:3],
         se_nT_per_m=np.sqrt(
-            np.clip(np.diag(cov)[:3], 0.0, None) + (SCALE_UNCERTAINTY * coef[:3]) ** 2
+            np.clip(np.diag(cov)[:3], 0.0, None)
+            + (max(scale_uncertainty, SCALE_UNCERTAINTY) * coef[:3]) ** 2
         ),
         p_value=pv,
         blocks=int(a.shape[0]),
