@@ -227,3 +227,79 @@ def fisher_combined(*p_values: float) -> float:
     freedom); ``scipy.stats.combine_pvalues``."""
     ps = np.clip(np.asarray(p_values, float), 1e-300, 1.0)
     return float(stats.combine_pvalues(ps, method="fisher").pvalue)
+
+
+@dataclass
+class LegLevels:
+    """Each calibration leg's level of a field, the ground's horizontal gradient taken out
+    (:func:`leg_levels`).
+
+    Attributes
+    ----------
+    level_nT : ndarray
+        Level of each leg at the local frame's origin (nT).
+    time_s : ndarray
+        Each leg's mid-time (s).
+    leg : ndarray of int
+        Leg numbers (:func:`leg_ids`).
+    """
+
+    level_nT: np.ndarray
+    time_s: np.ndarray
+    leg: np.ndarray
+
+
+def leg_levels(
+    time_s: np.ndarray,
+    field_nT: np.ndarray,
+    enu_m: np.ndarray,
+    legs: np.ndarray,
+    block_s: float = 10.0,
+    min_leg_blocks: int = 3,
+) -> LegLevels | None:
+    """Levels of ``field_nT`` per calibration leg, with a horizontal gradient fitted jointly.
+
+    The legs of a box lie hundreds of metres apart: a gradient over the box would otherwise
+    make each leg's level differ by ``g . offset``, which reads as a heading error. Each
+    horizontal component is fixed by the ramps along the legs flown in its direction, so a
+    level per leg and the gradient are fitted together on the legs' block means (as
+    :func:`leg_gradient`) and the levels taken at the frame's origin.
+
+    Parameters
+    ----------
+    time_s : ndarray
+        Epoch times (s).
+    field_nT : ndarray
+        Compensated total field less the main field and the day's variation (nT); NaN:
+        missing.
+    enu_m : ndarray
+        (n, 3) local east, north, up positions (m).
+    legs : ndarray of int
+        Leg number per epoch (:func:`leg_ids`), -1 outside.
+    block_s : float
+        Averaging block (s).
+    min_leg_blocks : int
+        Legs with fewer full blocks are left out.
+
+    Returns
+    -------
+    LegLevels or None
+        None with fewer than two legs or no degrees of freedom left.
+    """
+    a, leg_of = leg_block_means(
+        time_s,
+        np.column_stack([field_nT, enu_m[:, :2], time_s]),
+        legs,
+        block_s,
+        min_leg_blocks,
+    )
+    ids = np.unique(leg_of)
+    if ids.size < 2:
+        return None
+    levels = (leg_of[:, None] == ids[None, :]).astype(float)
+    x = np.column_stack([levels, a[:, 1:3]])
+    if a.shape[0] <= x.shape[1] or np.linalg.matrix_rank(x) < x.shape[1]:
+        return None
+    coef, *_ = np.linalg.lstsq(x, a[:, 0], rcond=None)
+    mid_s = np.array([a[leg_of == g, 3].mean() for g in ids])
+    return LegLevels(coef[: ids.size], mid_s, ids)

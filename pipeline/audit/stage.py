@@ -74,9 +74,11 @@ from pipeline.audit.legs import (
     leg_block_means,
     leg_gradient,
     leg_ids,
+    leg_levels,
 )
 from pipeline.audit.noise import white_noise_nT
 from pipeline.audit.survey import (
+    HEADINGS,
     CrossoverSet,
     SurveyCoupling,
     SurveyHeading,
@@ -104,6 +106,9 @@ from pipeline.segment import Segmentation
 # models whose band-passed calibration rows the auditor keeps (a fold loop uses two or three
 # at a time; each is the calibration's rows x the model's columns, a few MB)
 ROWS_CACHED = 8
+# span (s) over which a crossing reading's course over ground is taken: a few samples at
+# any rate, short against a turn's 10-30 s
+COURSE_WINDOW_S = 2.0
 
 
 @dataclass
@@ -1157,13 +1162,92 @@ class Auditor:
 
     def survey_evidence(self, spec: ModelSpec) -> list[dict[str, Any]]:
         """Steps and drifts in ``spec``'s compensated field seen at survey/tie crossovers
-        (:mod:`pipeline.audit.survey`), as ``unexplained.events`` entries."""
+        (:mod:`pipeline.audit.survey`), as ``unexplained.events`` entries.
+
+        Two things change the crossovers here. Crossings not read on the same ground the
+        same way are left out (:meth:`_straight_crossings`: in a turn, or on a climbing
+        transit labelled a tie): such readings are tens of nT off, and a few of them made
+        a spurious 60 nT step that displaced the real one. And the calibration legs'
+        heading levels (:meth:`_leg_contrasts`) anchor each heading's level before the
+        survey: crews fly the tie lines after the survey lines, so after a step inside
+        the survey every tie reading lies after it and the ties' level absorbs their
+        headings' step; the survey lines' headings alone often see too little of it (a
+        permanent-field change along the wing is near zero on north-south lines) to stand
+        out of the crossovers' scatter.
+        """
         got = self._survey_crossovers(spec)
         if got is None:
             return []
-        events = survey_events(got[0], self.s.alpha, self.s.min_event_nT)
+        x = got[0]
+        _, _, _, _, _, xs, _ = self._crossover_data(spec, smooth_s=1.0)
+        keep = self._straight_crossings(xs)
+        x = x.subset(keep)
+        legs = self._leg_contrasts(spec)
+        if legs is not None:
+            x = x.joined(legs)
+        events = survey_events(x, self.s.alpha, self.s.min_event_nT)
         t0 = int(self.flight.time_ns[0])
         return [e.to_dict(t0) for e in events]
+
+    def _straight_crossings(
+        self, xs: list, max_turn_deg: float = 15.0, max_height_m: float = 20.0
+    ) -> np.ndarray:
+        """Which crossovers ``xs`` read the same ground the same way: both lines flying
+        straight (the course over ground within ``COURSE_WINDOW_S`` of the reading within
+        ``max_turn_deg`` of the line's mean heading) and at heights within
+        ``max_height_m`` of each other. A line's ends can run into its turns, and a track
+        labelled a tie can be a climbing transit (seen: a return to the calibration box
+        climbing 1 km, crossing the block 50-100 nT off); the ground's anomalies change by
+        0.02-0.1 nT per metre of height, so 20 m keeps the error near the crossovers'
+        own scatter."""
+        alt = self.flight.data["alt_m"].to_numpy(float)
+        t_all = self.data.time_s
+        height_ok = np.array(
+            [
+                abs(np.interp(c.time_a_s, t_all, alt) - np.interp(c.time_b_s, t_all, alt))
+                <= max_height_m
+                for c in xs
+            ],
+            bool,
+        ).reshape(len(xs))
+        _, _, tracks = self._survey_geometry()
+        by_id = {tr.line_id: tr for tr in tracks}
+        half = max(1, int(round(0.5 * COURSE_WINDOW_S * self.data.rate_hz)))
+
+        def straight(line_id: str, time_s: float) -> bool:
+            tr = by_id[line_id]
+            tt = t_all[tr.index]
+            i = int(np.clip(np.searchsorted(tt, time_s), 0, tt.size - 1))
+            lo, hi = max(0, i - half), min(tt.size - 1, i + half)
+            de, dn = tr.east_m[hi] - tr.east_m[lo], tr.north_m[hi] - tr.north_m[lo]
+            if hi == lo or np.hypot(de, dn) == 0:
+                return True
+            course = np.degrees(np.arctan2(de, dn))
+            return abs((course - tr.heading_deg + 180.0) % 360.0 - 180.0) <= max_turn_deg
+
+        return height_ok & np.array(
+            [straight(c.line_a, c.time_a_s) and straight(c.line_b, c.time_b_s) for c in xs],
+            bool,
+        ).reshape(len(xs))
+
+    def _leg_contrasts(self, spec: ModelSpec) -> CrossoverSet | None:
+        """The calibration legs' heading levels of ``spec``'s compensated field, as
+        crossover-like differences of consecutive legs (:func:`pipeline.audit.legs.leg_levels`:
+        the main field, the day's variation and the box's gradient taken out), each read at
+        its leg's mid-time on the leg's heading class. None without positions, a base
+        station or two legs."""
+        if self.data.enu_m is None or not self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT"):
+            return None
+        igrf, _, _ = self._survey_geometry()
+        red = self.compensated(spec) - igrf - self.base_smoothed_nT
+        got = leg_levels(self.data.time_s, red, self.data.enu_m, self.legs, self.s.block_s)
+        if got is None:
+            return None
+        first = [int(np.flatnonzero(self.legs == g)[0]) for g in got.leg]
+        heading = np.array([HEADINGS.index(str(self.seg.cardinal[i])) for i in first])
+        o = np.argsort(got.time_s)
+        lv, tm, hd = got.level_nT[o], got.time_s[o], heading[o]
+        return CrossoverSet(lv[1:] - lv[:-1], tm[1:], tm[:-1], hd[1:], hd[:-1])
 
     def calibration_events(self, spec: ModelSpec) -> list[dict[str, Any]]:
         """A step in ``spec``'s compensated field inside a calibration leg

@@ -49,6 +49,22 @@ class CrossoverSet:
         """Number of crossovers."""
         return int(self.difference_nT.size)
 
+    def subset(self, keep: np.ndarray) -> CrossoverSet:
+        """The crossovers where ``keep`` (bool per crossover) holds."""
+        pos = (None if v is None else np.asarray(v)[keep] for v in (self.east_m, self.north_m))
+        return CrossoverSet(
+            *(np.asarray(getattr(self, k))[keep] for k in _READING_FIELDS),
+            *pos,
+        )
+
+    def joined(self, other: CrossoverSet) -> CrossoverSet:
+        """These crossovers followed by ``other``'s (differences read elsewhere, e.g. the
+        calibration legs' heading contrasts); without positions, which not every set has."""
+        return CrossoverSet(*(np.r_[getattr(self, k), getattr(other, k)] for k in _READING_FIELDS))
+
+
+_READING_FIELDS = ("difference_nT", "time_a_s", "time_b_s", "heading_a", "heading_b")
+
 
 @dataclass
 class SurveyEvent:
