@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.audit.legs import fisher_combined, leg_gradient, leg_ids, leg_levels
+from pipeline.audit.legs import fisher_combined, leg_gradient, leg_ids
 
 
 def box_flight(g, seed, noise_nT=0.2, speed_m_s=7.0, leg_s=90.0, rate_hz=10.0):
@@ -77,22 +77,3 @@ def test_too_few_legs_gives_none():
 def test_fisher_combination():
     assert fisher_combined(0.5, 0.5) > 0.5
     assert fisher_combined(0.04, 1e-10) < 1e-9
-
-
-def test_leg_levels_take_the_gradient_out():
-    """Each leg's level (the heading error) comes back at the box's origin, the 0.3 nT/m
-    gradient's 0-190 nT along and across the legs taken out; the legs' plain means are
-    tens of nT off."""
-    g = np.array([0.3, -0.12, 0.0])
-    for seed in range(5):
-        t, y, enu, cls = box_flight(g, seed)
-        # the same legs' levels without gradient or noise: the truth
-        _, y0, _, _ = box_flight([0.0, 0.0, 0.0], seed, noise_nT=0.0)
-        legs = leg_ids(np.ones(t.size, bool), cls, np.ones(t.size, int), t)
-        truth = np.array([y0[legs == k].mean() for k in range(4)])
-        got = leg_levels(t, y, enu, legs)
-        assert got is not None and list(got.leg) == [0, 1, 2, 3]
-        assert np.all(np.diff(got.time_s) > 0)
-        assert np.allclose(got.level_nT, truth, atol=0.3)
-        plain = np.array([y[legs == k].mean() for k in range(4)])
-        assert np.max(np.abs(plain - truth)) > 20.0

@@ -74,11 +74,9 @@ from pipeline.audit.legs import (
     leg_block_means,
     leg_gradient,
     leg_ids,
-    leg_levels,
 )
 from pipeline.audit.noise import white_noise_nT
 from pipeline.audit.survey import (
-    HEADINGS,
     CrossoverSet,
     SurveyCoupling,
     SurveyHeading,
@@ -1164,16 +1162,13 @@ class Auditor:
         """Steps and drifts in ``spec``'s compensated field seen at survey/tie crossovers
         (:mod:`pipeline.audit.survey`), as ``unexplained.events`` entries.
 
-        Two things change the crossovers here. Crossings not read on the same ground the
-        same way are left out (:meth:`_straight_crossings`: in a turn, or on a climbing
-        transit labelled a tie): such readings are tens of nT off, and a few of them made
-        a spurious 60 nT step that displaced the real one. And the calibration legs'
-        heading levels (:meth:`_leg_contrasts`) anchor each heading's level before the
-        survey: crews fly the tie lines after the survey lines, so after a step inside
-        the survey every tie reading lies after it and the ties' level absorbs their
-        headings' step; the survey lines' headings alone often see too little of it (a
-        permanent-field change along the wing is near zero on north-south lines) to stand
-        out of the crossovers' scatter.
+        Crossings not read on the same ground the same way are left out
+        (:meth:`_straight_crossings`: in a turn, or on a climbing transit labelled a tie):
+        such readings are tens of nT off, and a few of them made a spurious 60 nT step
+        that displaced the real one. The calibration legs' heading levels do not join: a
+        box's geology is not linear over a leg (0.3-1 nT of residual about a fitted
+        gradient on simulated boxes), and the legs' levels then differed from the survey's
+        by 3-6 nT on clean flights, as much as a real step shows.
         """
         got = self._survey_crossovers(spec)
         if got is None:
@@ -1182,9 +1177,6 @@ class Auditor:
         _, _, _, _, _, xs, _ = self._crossover_data(spec, smooth_s=1.0)
         keep = self._straight_crossings(xs)
         x = x.subset(keep)
-        legs = self._leg_contrasts(spec)
-        if legs is not None:
-            x = x.joined(legs)
         events = survey_events(x, self.s.alpha, self.s.min_event_nT)
         t0 = int(self.flight.time_ns[0])
         return [e.to_dict(t0) for e in events]
@@ -1229,25 +1221,6 @@ class Auditor:
             [straight(c.line_a, c.time_a_s) and straight(c.line_b, c.time_b_s) for c in xs],
             bool,
         ).reshape(len(xs))
-
-    def _leg_contrasts(self, spec: ModelSpec) -> CrossoverSet | None:
-        """The calibration legs' heading levels of ``spec``'s compensated field, as
-        crossover-like differences of consecutive legs (:func:`pipeline.audit.legs.leg_levels`:
-        the main field, the day's variation and the box's gradient taken out), each read at
-        its leg's mid-time on the leg's heading class. None without positions, a base
-        station or two legs."""
-        if self.data.enu_m is None or not self.flight.has("lat_deg", "lon_deg", "alt_m", "base_nT"):
-            return None
-        igrf, _, _ = self._survey_geometry()
-        red = self.compensated(spec) - igrf - self.base_smoothed_nT
-        got = leg_levels(self.data.time_s, red, self.data.enu_m, self.legs, self.s.block_s)
-        if got is None:
-            return None
-        first = [int(np.flatnonzero(self.legs == g)[0]) for g in got.leg]
-        heading = np.array([HEADINGS.index(str(self.seg.cardinal[i])) for i in first])
-        o = np.argsort(got.time_s)
-        lv, tm, hd = got.level_nT[o], got.time_s[o], heading[o]
-        return CrossoverSet(lv[1:] - lv[:-1], tm[1:], tm[:-1], hd[1:], hd[:-1])
 
     def calibration_events(self, spec: ModelSpec) -> list[dict[str, Any]]:
         """A step in ``spec``'s compensated field inside a calibration leg

@@ -58,11 +58,6 @@ class CrossoverSet:
             *pos,
         )
 
-    def joined(self, other: CrossoverSet) -> CrossoverSet:
-        """These crossovers followed by ``other``'s (differences read elsewhere, e.g. the
-        calibration legs' heading contrasts); without positions, which not every set has."""
-        return CrossoverSet(*(np.r_[getattr(self, k), getattr(other, k)] for k in _READING_FIELDS))
-
 
 _READING_FIELDS = ("difference_nT", "time_a_s", "time_b_s", "heading_a", "heading_b")
 
