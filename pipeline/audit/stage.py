@@ -107,6 +107,9 @@ ROWS_CACHED = 8
 # eddy currents' decay times tried (s): a carrier skin's L/R from a sample to well past
 # the manoeuvres' shortest periods
 EDDY_TAU_GRID_S = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5)
+# span (s) over which a crossing reading's course over ground is taken: a few samples at
+# any rate, short against a turn's 10-30 s
+COURSE_WINDOW_S = 2.0
 
 
 @dataclass
@@ -1239,13 +1242,67 @@ class Auditor:
 
     def survey_evidence(self, spec: ModelSpec) -> list[dict[str, Any]]:
         """Steps and drifts in ``spec``'s compensated field seen at survey/tie crossovers
-        (:mod:`pipeline.audit.survey`), as ``unexplained.events`` entries."""
+        (:mod:`pipeline.audit.survey`), as ``unexplained.events`` entries.
+
+        Crossings not read on the same ground the same way are left out
+        (:meth:`_straight_crossings`: in a turn, or on a climbing transit labelled a tie):
+        such readings are tens of nT off, and a few of them made a spurious 60 nT step
+        that displaced the real one. The calibration legs' heading levels do not join: a
+        box's geology is not linear over a leg (0.3-1 nT of residual about a fitted
+        gradient on simulated boxes), and the legs' levels then differed from the survey's
+        by 3-6 nT on clean flights, as much as a real step shows.
+        """
         got = self._survey_crossovers(spec)
         if got is None:
             return []
-        events = survey_events(got[0], self.s.alpha, self.s.min_event_nT)
+        x = got[0]
+        _, _, _, _, _, xs, _ = self._crossover_data(spec, smooth_s=1.0)
+        keep = self._straight_crossings(xs)
+        x = x.subset(keep)
+        events = survey_events(x, self.s.alpha, self.s.min_event_nT)
         t0 = int(self.flight.time_ns[0])
         return [e.to_dict(t0) for e in events]
+
+    def _straight_crossings(
+        self, xs: list, max_turn_deg: float = 15.0, max_height_m: float = 20.0
+    ) -> np.ndarray:
+        """Which crossovers ``xs`` read the same ground the same way: both lines flying
+        straight (the course over ground within ``COURSE_WINDOW_S`` of the reading within
+        ``max_turn_deg`` of the line's mean heading) and at heights within
+        ``max_height_m`` of each other. A line's ends can run into its turns, and a track
+        labelled a tie can be a climbing transit (seen: a return to the calibration box
+        climbing 1 km, crossing the block 50-100 nT off); the ground's anomalies change by
+        0.02-0.1 nT per metre of height, so 20 m keeps the error near the crossovers'
+        own scatter."""
+        alt = self.flight.data["alt_m"].to_numpy(float)
+        t_all = self.data.time_s
+        height_ok = np.array(
+            [
+                abs(np.interp(c.time_a_s, t_all, alt) - np.interp(c.time_b_s, t_all, alt))
+                <= max_height_m
+                for c in xs
+            ],
+            bool,
+        ).reshape(len(xs))
+        _, _, tracks = self._survey_geometry()
+        by_id = {tr.line_id: tr for tr in tracks}
+        half = max(1, int(round(0.5 * COURSE_WINDOW_S * self.data.rate_hz)))
+
+        def straight(line_id: str, time_s: float) -> bool:
+            tr = by_id[line_id]
+            tt = t_all[tr.index]
+            i = int(np.clip(np.searchsorted(tt, time_s), 0, tt.size - 1))
+            lo, hi = max(0, i - half), min(tt.size - 1, i + half)
+            de, dn = tr.east_m[hi] - tr.east_m[lo], tr.north_m[hi] - tr.north_m[lo]
+            if hi == lo or np.hypot(de, dn) == 0:
+                return True
+            course = np.degrees(np.arctan2(de, dn))
+            return abs((course - tr.heading_deg + 180.0) % 360.0 - 180.0) <= max_turn_deg
+
+        return height_ok & np.array(
+            [straight(c.line_a, c.time_a_s) and straight(c.line_b, c.time_b_s) for c in xs],
+            bool,
+        ).reshape(len(xs))
 
     def calibration_events(self, spec: ModelSpec) -> list[dict[str, Any]]:
         """A step in ``spec``'s compensated field inside a calibration leg
