@@ -918,7 +918,6 @@ class Auditor:
             ev.ci95["preferred_over"] = None
 
     def _eval_electrical_current(self, current: ModelSpec, key: str) -> Evaluation:
-
         name = key.split(":", 1)[1]
         ext = current.with_(aux=current.aux + (name,))
         test = self._nested(current, ext_spec=ext)
@@ -1292,14 +1291,9 @@ class Auditor:
         own scatter."""
         alt = self.flight.data["alt_m"].to_numpy(float)
         t_all = self.data.time_s
-        height_ok = np.array(
-            [
-                abs(np.interp(c.time_a_s, t_all, alt) - np.interp(c.time_b_s, t_all, alt))
-                <= max_height_m
-                for c in xs
-            ],
-            bool,
-        ).reshape(len(xs))
+        t_a = np.array([c.time_a_s for c in xs], float)
+        t_b = np.array([c.time_b_s for c in xs], float)
+        height_ok = np.abs(np.interp(t_a, t_all, alt) - np.interp(t_b, t_all, alt)) <= max_height_m
         _, _, tracks = self._survey_geometry()
         by_id = {tr.line_id: tr for tr in tracks}
         half = max(1, int(round(0.5 * COURSE_WINDOW_S * self.data.rate_hz)))
