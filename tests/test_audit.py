@@ -279,3 +279,40 @@ def test_decaying_eddy_columns_follow_a_first_order_response_per_block():
     assert np.allclose(out[after][-10:], 1.0, atol=1e-6)
     assert np.allclose(out[t >= 30.0], 0.0)  # the second block starts at rest, stays there
     assert np.allclose(out[t < 5.0], 0.0)
+
+
+def test_a_coupling_known_from_outside_the_calibration_is_taken_out_before_the_fit():
+    from pipeline.audit.extended import design
+
+    rng = np.random.default_rng(4)
+    n = 600
+    t = np.arange(n) * 0.1
+    vec = np.column_stack(
+        [18_000.0 + rng.normal(0, 300, n), rng.normal(0, 300, n), 47_000.0 + 0 * t]
+    )
+    current = np.where(t > 30.0, 1.9, 0.6)
+    scalar = np.linalg.norm(vec, axis=1) + 2.5 * current
+    data = AuditData(t, scalar, vec, None, {"payload": current}, {"payload": "A"})
+    plain = design(data, ModelSpec())
+    known = design(data, ModelSpec(known_aux=(("payload", 2.5),)))
+    # taken out as interference: the fit sees the field less k I, and it is not put back
+    assert np.allclose(plain.y - known.y, 2.5 * current)
+    assert np.allclose(known.measured_nT, known.y)
+    assert known.columns.shape == plain.columns.shape  # nothing left to fit for it
+    assert "electrical_current" in ModelSpec(known_aux=(("payload", 2.5),)).label()
+
+
+def test_evidence_outside_the_calibration_decides_unless_the_calibration_contradicts():
+    from pipeline.audit.evidence import HeldOut
+    from pipeline.audit.stage import AuditSettings, Evaluation
+
+    s = AuditSettings()
+    ev = Evaluation("electrical_current", "electrical_current:payload", {}, None, None, None)
+    ev.decided_outside = True
+    ev.heldout = HeldOut(1.0, 1.01, 0.9, 50)  # the calibration cannot see it: 1 % worse
+    assert ev.passes(s)  # no calibration F-test needed
+    ev.heldout = HeldOut(1.0, 1.2, 1.0, 50)  # 20 % worse: it contradicts
+    assert not ev.passes(s)
+    assert "contradicts" in ev.why_not(s)
+    ev.heldout, ev.held_back = HeldOut(1.0, 0.9, 0.01, 50), True
+    assert not ev.passes(s)

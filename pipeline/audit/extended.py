@@ -134,6 +134,11 @@ class ModelSpec:
     # taken out of the scalar before the fit and put back into the compensated field: the
     # gradient extension without parameters to fit (pipeline.audit.legs)
     known_gradient_nT_per_m: tuple[float, float, float] | None = None
+    # channels' couplings measured outside the calibration ((name, nT per unit) as the total
+    # field sees them: their switches, pipeline.audit.switching), taken out of the scalar
+    # before the fit as interference: a coupling the calibration cannot resolve is not fitted
+    # there (three free columns of a channel that hardly varies there fit other residual)
+    known_aux: tuple[tuple[str, float], ...] = ()
 
     def with_(self, **kw) -> ModelSpec:
         """A copy with the given fields replaced."""
@@ -149,7 +154,7 @@ class ModelSpec:
             out.append("geomagnetic_gradient")
         if self.lag_s:
             out.append("sensor_lag")
-        if self.aux:
+        if self.aux or self.known_aux:
             out.append("electrical_current")
         if self.vector_cal is not None:
             out.append("vector_calibration")
@@ -310,6 +315,8 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
             raise ValueError("a known gradient needs positions (/gnss/fix)")
         known = data.enu_m @ np.asarray(spec.known_gradient_nT_per_m, float)
         y = y - known
+    for name, k in spec.known_aux:
+        y = y - k * data.aux[name]
     return Design(np.column_stack(cols), names, np.array(sub), y, known)
 
 
@@ -593,4 +600,6 @@ def simulate_measurement(
     b_int = carrier.vector_nT(b_in, db)
     for name, coupling in aux.items():
         b_int = b_int + data.aux[name][:, None] * coupling[None, :]
+    for name, k in fitted.spec.known_aux:  # along the field: the total field's coupling
+        b_int = b_int + (k * data.aux[name])[:, None] * u
     return scalar_reading_nT(b, b_int)

@@ -223,6 +223,18 @@ def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
                 f"{f.p_adjusted:.2g} | {f.heldout.p_value:.2g} | {f.metric} | "
                 f"{f.heldout.rms_before_nT:.4f} | {f.heldout.rms_after_nT:.4f} |"
             )
+        for f in res.findings:
+            if f.decided_outside:
+                e = f.estimate.get("at_acceptance", f.estimate)
+                lines += [
+                    "",
+                    f"`{f.effect}` ({e.get('channel', '')}) was named on the channel's "
+                    f"{e.get('switches')} switches over the whole flight (steps "
+                    f"{e.get('switch_total_field_nT_per_unit', float('nan')):.3g} nT per unit, "
+                    f"p {e.get('switch_p_value', float('nan')):.2g}): the calibration's "
+                    "band-passed tests hardly see a load switched a few times; its held-out "
+                    "residual above only shows it does not contradict them.",
+                ]
     else:
         lines.append("No finding: no candidate effect improves held-out data beyond noise.")
     lines += [
