@@ -365,9 +365,13 @@ def scan_vector_reference(
     s2 = rss[i] / dof
     inside = rss <= rss[i] + stats.chi2.ppf(0.95, 1) * s2
     lo, hi = float(grid[inside].min()), float(grid[inside].max())
+    # a change between two scanned points is fitted at one of them, and a bin's mean holds
+    # either side of one inside it: the span reaches a scan step and half a bin further
+    # (on independent_step_permanent the set's points alone ended 3 s after the truth)
+    pad = scan_every_s + 0.5 * bin_s
     return VectorStep(
-        lo - 0.5 * scan_every_s,
-        hi + 0.5 * scan_every_s,
+        lo - pad,
+        hi + pad,
         float(grid[i]),
         float(np.linalg.norm(dp)),
         dp,
@@ -403,9 +407,9 @@ def vector_reference_step(
     min_f_ratio : float
         Smallest ratio of the scan's F statistic to the 95 % point of its null maximum. The
         null (Gaussian, whitened, weighted) is not the whole truth: interference outside the
-        model (unrecorded switched currents, lagging eddy fields in turns) reached 1.8-2.6
-        times that point on 5 of 30 simulated clean flights, at p <= 0.002; the 3-8 nT
-        steps of 30 step flights gave 3.8-43 times it.
+        model (lagging eddy fields in manoeuvres, unrecorded switched currents) reached
+        1.4-2.6 times that point on 8 of 30 simulated clean flights, at p <= 0.006; the 3-8
+        nT steps of 30 step flights gave 3.8-43 times it.
     **scan
         Further arguments of :func:`scan_vector_reference`.
 
