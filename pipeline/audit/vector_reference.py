@@ -27,8 +27,11 @@ see only the heading levels' change.
 The 1 s means are used (the fluxgate's noise, 0.5-1 nT a reading, averages down; the eddy
 terms of manoeuvres largely cancel), the model is prewhitened by an AR(2) of its own
 residual (the residual of 1 s means is strongly autocorrelated: turns, manoeuvre blocks,
-unmodelled interference), and the scan's maximum F statistic is compared with its own null
-distribution (standard normal draws through the same whitened designs, fixed seed).
+unmodelled interference), each whitened row is weighted by the residual's local RMS (it
+varies tenfold between manoeuvres and straight lines), the F statistics are divided by what
+correlation the whitening leaves at a minute's scale, and the scan's maximum F statistic is
+compared with its own null distribution (standard normal draws through the same whitened
+designs, fixed seed).
 
 Times are seconds from the flight's first epoch; fields nT; u in the body frame (x forward,
 y right, z down) as the fluxgate reads it.
@@ -295,7 +298,7 @@ def scan_vector_reference(
         step).
     guard_s : float
         Change points are scanned at least this far from the record's ends (s): the model's
-        12+ direction coefficients need data at varied attitudes on both sides.
+        30-odd direction coefficients need data at varied attitudes on both sides.
     scan_every_s : float
         Spacing of the scanned change points, s.
     bin_s : float
@@ -358,7 +361,8 @@ def scan_vector_reference(
     a = np.column_stack([base, steps[i]])
     coef, *_ = np.linalg.lstsq(a, y, rcond=None)
     dp = coef[-3:]
-    # 95 % profile-likelihood set of the change point: RSS within the chi2(1) bound
+    # 95 % profile-likelihood set of the change point: RSS within the chi2(1) bound, from
+    # the deflated F (a set as wide as the left-over slow correlation warrants)
     rss0 = float(np.sum((yw - q0 @ (q0.T @ yw)) ** 2))
     dof = nw - k0 - 3
     rss = rss0 - 3 * f * rss0 / (dof + 3 * f)  # from F = (gain/3) / ((rss0-gain)/dof)
