@@ -97,6 +97,7 @@ from pipeline.audit.switching import (
 )
 from pipeline.audit.timing import timing_lag
 from pipeline.audit.vector_cal import fit_vector_calibration
+from pipeline.audit.vector_reference import vector_reference_step
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.model import figure_of_merit
 from pipeline.compensate.stage import calibration_mask
@@ -145,6 +146,9 @@ class AuditSettings:
         Held-out / fit residual above which a warning is given.
     min_event_nT : float
         Smallest step or drift in the survey worth an event, nT.
+    min_vector_step_nT : float
+        Smallest change ``|dp|`` of the carrier's permanent field (body frame, nT) that the
+        scalar-minus-fluxgate test (:mod:`pipeline.audit.vector_reference`) reports.
     min_leg_ramp_nT : float
         Smallest field change along the calibration legs (RMS, nT) with which a gradient
         seen there confirms a gradient candidate (:mod:`pipeline.audit.legs`).
@@ -172,6 +176,8 @@ class AuditSettings:
     block_s_cv: float = BLOCK_S
     max_generalization_gap: float = 2.0  # held-out / fit residual above this: a warning
     min_event_nT: float = 0.3  # smallest step or drift in the survey worth an event
+    # smallest |dp| of a permanent-field step against the fluxgate worth an event (nT)
+    min_vector_step_nT: float = 1.0
     # a fluxgate reads the carrier's own field at it too (tens of nT on a UAV), which a
     # calibration absorbs as well; sensor errors worth naming are what a data sheet calls an
     # uncalibrated sensor: 0.05 % of the field (25 nT at 50 000 nT) is 0.03 deg of direction
@@ -1405,6 +1411,25 @@ class Auditor:
         t0 = int(self.flight.time_ns[0])
         return [e.to_dict(t0) for e in steps]
 
+    def vector_reference_events(self) -> list[dict[str, Any]]:
+        """A step in the carrier's permanent field against the fluxgate
+        (:mod:`pipeline.audit.vector_reference`), as ``unexplained.events`` entries.
+
+        The scalar-minus-fluxgate difference over the whole flight holds no Earth field, so
+        a step shows at its full size ``u . dp`` at every heading flown after it; the
+        crossovers see only the heading levels' change, which tie lines flown after the step
+        absorb (six of the 30 simulated step flights had no other event within 120 s). The
+        recorded auxiliary channels enter its model, so that a switched current is no step.
+        Independent of the calibration model: the raw readings only.
+        """
+        d = self.data
+        step = vector_reference_step(
+            d.time_s, d.scalar_nT, d.vector_nT, d.aux, self.s.alpha, self.s.min_vector_step_nT
+        )
+        if step is None:
+            return []
+        return [step.to_dict(int(self.flight.time_ns[0]))]
+
     def pass_steps(self, spec: ModelSpec) -> list[PassStep]:
         """Gaps between consecutive calibration passes across which ``spec``'s permanent
         field changed, each tested on its own (:class:`PassStep`).
@@ -1885,6 +1910,7 @@ def run_audit(
     # survey itself showed (which the extended model then absorbs)
     plain = final_spec.with_(permanent_step_s=None)
     events = aud.survey_evidence(plain) + aud.calibration_events(plain)
+    events += aud.vector_reference_events()
     events += aud.pass_step_events(plain, events)
     unexplained: dict[str, Any] = {
         "events": events,
@@ -1925,6 +1951,7 @@ def run_audit(
             where = {
                 "survey crossovers": "in the survey (crossovers",
                 "calibration passes": "between calibration passes (held-out calibration fit",
+                "vector reference": "against the fluxgate (scalar minus vector magnitude",
             }.get(e["evidence"], "during calibration (calibration residual")
             unexplained["note"] = (
                 f"{e['kind']} of {e['size_nT']:.2f} nT {where}, "
