@@ -27,6 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipeline.audit.prewhiten import ar_coefficients, ar_whitener
+
 
 @dataclass
 class CalibrationStep:
@@ -136,26 +138,9 @@ def calibration_steps(
     base = np.column_stack(base)
     coef0, *_ = np.linalg.lstsq(base, y_all, rcond=None)
     resid = y_all - base @ coef0
-    order = 2
-    # AR(2) of the residual by least squares on its own lags, within legs
-    lagged, target = [], []
-    for i in range(len(legs)):
-        ri = resid[which == i]
-        target.append(ri[order:])
-        lagged.append(np.column_stack([ri[order - 1 - j : ri.size - 1 - j] for j in range(order)]))
-    phi, *_ = np.linalg.lstsq(np.vstack(lagged), np.concatenate(target), rcond=None)
-
-    def whiten(x: np.ndarray) -> np.ndarray:
-        """Cochrane-Orcutt within each leg; each leg's first ``order`` bins are dropped."""
-        out = []
-        for i in range(len(legs)):
-            xi = x[which == i]
-            w = xi[order:].copy()
-            for j in range(order):
-                w = w - phi[j] * xi[order - 1 - j : xi.shape[0] - 1 - j]
-            out.append(w)
-        return np.concatenate(out)
-
+    # AR(2) of the residual by least squares on its own lags, and its filter, within legs
+    phi = ar_coefficients(resid, which, 2)
+    whiten = ar_whitener(phi, which)
     yw, bw = whiten(y_all), whiten(base)
     n, k = bw.shape
     candidates = []

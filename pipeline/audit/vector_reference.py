@@ -45,6 +45,8 @@ import numpy as np
 from scipy import stats
 from scipy.ndimage import uniform_filter1d
 
+from pipeline.audit.prewhiten import ar_coefficients, ar_whitener
+
 AR_ORDER = 2
 SCAN_SIMULATIONS = 500
 
@@ -208,43 +210,6 @@ def difference_design(
     return tb, means[:, 0], means[:, 1:-3], means[:, -3:], block
 
 
-def _ar_filter(phi: np.ndarray, block: np.ndarray):
-    """Cochrane-Orcutt filter with coefficients ``phi`` within each block (the first
-    ``len(phi)`` rows of each block dropped)."""
-    p = phi.size
-    starts = np.flatnonzero(np.r_[True, np.diff(block) != 0])
-    ends = np.r_[starts[1:], block.size]
-
-    def whiten(x: np.ndarray) -> np.ndarray:
-        out = []
-        for a, b in zip(starts, ends, strict=True):
-            xi = x[a:b]
-            if xi.shape[0] <= p:
-                continue
-            w = xi[p:].copy()
-            for j in range(p):
-                w = w - phi[j] * xi[p - 1 - j : xi.shape[0] - 1 - j]
-            out.append(w)
-        return np.concatenate(out)
-
-    return whiten
-
-
-def _ar_coefficients(resid: np.ndarray, block: np.ndarray, order: int) -> np.ndarray:
-    """AR(``order``) coefficients of ``resid`` by least squares on its lags within blocks."""
-    starts = np.flatnonzero(np.r_[True, np.diff(block) != 0])
-    ends = np.r_[starts[1:], block.size]
-    lagged, target = [], []
-    for a, b in zip(starts, ends, strict=True):
-        r = resid[a:b]
-        if r.size <= order:
-            continue
-        target.append(r[order:])
-        lagged.append(np.column_stack([r[order - 1 - j : r.size - 1 - j] for j in range(order)]))
-    phi, *_ = np.linalg.lstsq(np.vstack(lagged), np.concatenate(target), rcond=None)
-    return phi
-
-
 def _step_bases(q0: np.ndarray, steps_w: list[np.ndarray]) -> np.ndarray:
     """(n, 3 m) orthonormal bases of the m whitened step designs' parts orthogonal to the
     base's columns (``q0``, orthonormal); zeros for a design the base already spans."""
@@ -317,8 +282,8 @@ def scan_vector_reference(
     if n < 4 * (k0 + 3) or tb[-1] - tb[0] < 4 * guard_s:
         return None
     coef0, *_ = np.linalg.lstsq(base, y, rcond=None)
-    phi = _ar_coefficients(y - base @ coef0, block, AR_ORDER)
-    whiten = _ar_filter(phi, block)
+    phi = ar_coefficients(y - base @ coef0, block, AR_ORDER)
+    whiten = ar_whitener(phi, block)
     yw, bw = whiten(y), whiten(base)
     # the residual's size varies tenfold over a flight (manoeuvres and turns leave nT of
     # eddy and lagging-eddy field the columns do not hold, straight lines a few tenths): an
