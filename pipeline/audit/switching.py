@@ -208,15 +208,11 @@ def switch_coupling(steps: SwitchSteps) -> SwitchCoupling | None:
     n = y.size
     if n < 4 or not np.any(g):
         return None
-    w = 1.0 / se_y**2
-    wgg = float(np.sum(w * g * g))
-    k = float(np.sum(w * g * y) / wgg)
-    r = y - k * g
-    chi2 = float(np.sum(w * r * r)) / (n - 1)
-    se = float(np.sqrt(max(chi2, 1.0) / wgg))
+    coef, cov, r, h = _weighted_fit(g[:, None], y, se_y)
+    k, se = float(coef[0]), float(np.sqrt(cov[0, 0]))
     p = float(2 * stats.t.sf(abs(k) / se, n - 1)) if se > 0 else 0.0
-    h = w * g**2 / wgg  # leverages
     loo = r / np.clip(1.0 - h, 1e-9, None)
+    w = 1.0 / se_y**2
     z, wn = np.sqrt(w), w / np.sum(w)
     test = paired_point_gain(y * z, loo * z, rank=True)
     heldout = HeldOut(
@@ -229,6 +225,23 @@ def switch_coupling(steps: SwitchSteps) -> SwitchCoupling | None:
         switches=int(n),
         heldout=heldout,
     )
+
+
+def _weighted_fit(
+    a: np.ndarray, y: np.ndarray, se: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted least squares of ``y`` on the columns of ``a`` (weights 1 / se^2): the
+    coefficients, their covariance scaled by the reduced chi-square when it exceeds 1 (the
+    steps scatter more than their errors say), the residuals and the leverages. Raises
+    ``LinAlgError`` when the columns are singular."""
+    sw = 1.0 / se
+    aw = a * sw[:, None]
+    inv = np.linalg.inv(aw.T @ aw)
+    coef = inv @ aw.T @ (y * sw)
+    r = y - a @ coef
+    chi2 = float(np.sum((r * sw) ** 2)) / (y.size - a.shape[1])
+    leverage = np.einsum("ij,jk,ik->i", aw, inv, aw)
+    return coef, max(chi2, 1.0) * inv, r, leverage
 
 
 @dataclass(frozen=True)
@@ -257,18 +270,12 @@ def switch_body_coupling(steps: SwitchSteps, min_switches: int = 6) -> SwitchBod
     ok = np.all(np.isfinite(u), axis=1)
     if ok.sum() < max(min_switches, 4):
         return None
-    w = 1.0 / steps.step_se_nT[ok] ** 2
-    a = steps.change[ok, None] * u[ok]
     y = steps.step_nT[ok]
-    aw, yw = a * np.sqrt(w)[:, None], y * np.sqrt(w)
     try:
-        inv = np.linalg.inv(aw.T @ aw)
+        c, cov, _, _ = _weighted_fit(steps.change[ok, None] * u[ok], y, steps.step_se_nT[ok])
     except np.linalg.LinAlgError:
         return None
-    c = inv @ aw.T @ yw
     n = y.size
-    r = yw - aw @ c
-    cov = max(float(r @ r) / (n - 3), 1.0) * inv
     t = float(stats.t.ppf(0.975, n - 3))
     # the ellipsoid's surface: c + t L z for unit z (L L' = C), on a fixed set of directions
     z = _unit_directions()
