@@ -613,7 +613,8 @@ def _print_audit(j: dict) -> None:
     b = j["baseline"]
     say(
         f"baseline {b['model']}: held-out calibration residual {b['residual_rms_nT']:.4f} nT; "
-        f"noise floor {j['noise_floor_nT']:.4f} nT"
+        f"noise floor in the same band {j['band_noise_floor_nT']:.4f} nT; sensor noise "
+        f"{j['noise_floor_nT']:.4f} nT per sample"
     )
     table = Table(title="findings", title_justify="left")
     for col in (

@@ -54,3 +54,21 @@ def test_no_geology_no_timing():
 def test_too_few_lines():
     t, s, v, straight = _lines(np.random.default_rng(1), 0.1, n_lines=3)
     assert timing_lag(t, s, v, straight, RATE_HZ) is None
+
+
+def test_independent_estimates_combine_by_inverse_variance():
+    from types import SimpleNamespace
+
+    from pipeline.audit.timing import combined_interval
+
+    z = 1.959964
+    a = SimpleNamespace(lag_s=0.1, ci95_s=(0.1 - z * 0.1, 0.1 + z * 0.1))  # se 0.1
+    b = SimpleNamespace(lag_s=0.4, ci95_s=(0.4 - z * 0.2, 0.4 + z * 0.2))  # se 0.2
+    lag, lo, hi = combined_interval([a, b])
+    # weights 100 and 25: (10 + 10) / 125; se 1 / sqrt(125)
+    assert lag == pytest.approx(0.16)
+    assert hi - lag == pytest.approx(lag - lo) == pytest.approx(z / np.sqrt(125.0))
+    # a degenerate or missing estimate adds nothing
+    flat = SimpleNamespace(lag_s=5.0, ci95_s=(5.0, 5.0))
+    assert combined_interval([a, flat]) == pytest.approx((0.1, 0.1 - z * 0.1, 0.1 + z * 0.1))
+    assert combined_interval([]) is None

@@ -85,8 +85,8 @@ def log_lines(res: AuditResult) -> list[tuple[int, str]]:
         (
             LOG_INFO,
             f"audit: baseline {j['baseline']['model']}: held-out calibration "
-            f"residual {j['baseline']['residual_rms_nT']:.4f} nT, noise floor "
-            f"{j['noise_floor_nT']:.4f} nT",
+            f"residual {j['baseline']['residual_rms_nT']:.4f} nT, noise floor in the same band "
+            f"{j['band_noise_floor_nT']:.4f} nT",
         )
     ]
     for f in res.findings:
@@ -155,7 +155,7 @@ def finding_channel(flight: Flight, res: AuditResult) -> OutputChannel:
                 "p_value_holm": None,
                 "heldout_p_value": None,
                 "gain_metric": "heldout_calibration_residual_rms",
-                "before_nT": u.get("noise_floor_nT", res.noise_floor_nT),
+                "before_nT": u.get("band_noise_floor_nT", res.band_noise_floor_nT),
                 "after_nT": u.get("rms_nT", res.heldout_extended_nT),
                 "message": u["note"],
             },
@@ -205,8 +205,8 @@ def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
         "field during calibration, no lag, no diurnal, no auxiliary couplings, vector "
         "sensor taken as calibrated). Held-out calibration residual "
         f"{j['baseline']['residual_rms_nT']:.4f} nT; noise floor in the same band "
-        f"{j['noise_floor_nT']:.4f} nT (white sensor noise "
-        f"{j['sensor_noise_nT']:.4f} nT).",
+        f"{j['band_noise_floor_nT']:.4f} nT (the sensor's white noise, `noise_floor_nT`: "
+        f"{j['noise_floor_nT']:.4f} nT per sample).",
         "",
         "## Findings",
         "",

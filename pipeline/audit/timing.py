@@ -162,3 +162,32 @@ def timing_lag(
     tq = float(stats.t.ppf(0.975, k - 1))
     p = float(2 * stats.t.sf(abs(lag) / se, k - 1)) if se > 0 else 0.0
     return TimingLag(lag, (lag - tq * se, lag + tq * se), p, k)
+
+
+def combined_interval(estimates: list) -> tuple[float, float, float] | None:
+    """Inverse-variance combination of independent lag estimates.
+
+    Parameters
+    ----------
+    estimates : list
+        Objects with ``lag_s`` and a 95 % interval ``ci95_s`` (s), e.g. :class:`TimingLag`
+        and the crossovers' :class:`pipeline.audit.survey.SurveyLag`.
+
+    Returns
+    -------
+    tuple of float or None
+        (lag, low, high), s: the weighted mean and its 95 % interval, each estimate's
+        standard error read from its interval's width (normal approximation); None without a
+        finite, non-degenerate estimate.
+    """
+    w, x = [], []
+    for e in estimates:
+        se = (e.ci95_s[1] - e.ci95_s[0]) / (2 * 1.959964)
+        if np.isfinite(e.lag_s) and np.isfinite(se) and se > 0:
+            w.append(1.0 / se**2)
+            x.append(e.lag_s)
+    if not w:
+        return None
+    lag = float(np.average(x, weights=w))
+    half = 1.959964 / float(np.sqrt(np.sum(w)))
+    return lag, lag - half, lag + half

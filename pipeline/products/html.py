@@ -379,7 +379,8 @@ def _audit_section(s: dict, figs: _Figures) -> list[str]:
         f"<p>Baseline {html.escape(a['baseline']['model'])}; extended model <b>"
         f"{html.escape(' + '.join(a['extended_model']))}</b>. Held-out residual "
         f"{_f(a['baseline']['residual_rms_nT'], '.4f')} → {_f(a['unexplained_rms_nT'], '.4f')}"
-        f" nT (noise floor {_f(a['noise_floor_nT'], '.4f')} nT).</p>",
+        f" nT (noise floor in the same band {_f(a.get('band_noise_floor_nT'), '.4f')} nT;"
+        f" sensor noise {_f(a['noise_floor_nT'], '.4f')} nT per sample).</p>",
     ]
     rows = []
     for fd in a.get("findings", []):

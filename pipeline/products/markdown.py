@@ -60,7 +60,8 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             f"Extended model: **{' + '.join(a['extended_model'])}**; held-out residual "
             f"{f(a['baseline']['residual_rms_nT'], '.4f')} -> "
             f"{f(a['unexplained_rms_nT'], '.4f')} nT (noise floor "
-            f"{f(a['noise_floor_nT'], '.4f')} nT)",
+            f"{f(a.get('band_noise_floor_nT'), '.4f')} nT in the same band; sensor noise "
+            f"{f(a['noise_floor_nT'], '.4f')} nT per sample)",
             "",
         ]
         for fd in a["findings"]:

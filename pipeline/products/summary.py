@@ -27,6 +27,7 @@ AUDIT_KEYS = (
     "extended_model",
     "unexplained_rms_nT",
     "noise_floor_nT",
+    "band_noise_floor_nT",
     "unexplained",
     "gain",
 )
