@@ -31,6 +31,25 @@ SEGMENT_SAMPLES = 128  # Welch segment: 12.8 s at 10 Hz, 64 frequency bins
 UPPER_BAND = (0.5, 0.95)  # fractions of the Nyquist frequency holding the white level
 
 
+def _differenced_spectrum(
+    x_nT: np.ndarray, time_s: np.ndarray, rate_hz: float, order: int, segment: int
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """(f Hz, one-sided density nT^2/Hz) of the ``order``-th difference: Welch's median over
+    ``segment``-sample segments in each gap-free block, the blocks weighted by length; None
+    when no block holds two segments."""
+    x = np.asarray(x_nT, float)
+    spectra, weights = [], []
+    for b in contiguous_blocks(np.isfinite(x), np.asarray(time_s, float)):
+        if b.size < 2 * segment:
+            continue
+        f, p = welch(np.diff(x[b], order), fs=rate_hz, nperseg=segment, average="median")
+        spectra.append(p)
+        weights.append(b.size)
+    if not spectra:
+        return None
+    return f, np.average(spectra, axis=0, weights=weights)
+
+
 def white_noise_nT(x_nT: np.ndarray, time_s: np.ndarray, rate_hz: float) -> float:
     """White-noise standard deviation of a scalar magnetometer record.
 
@@ -55,17 +74,10 @@ def white_noise_nT(x_nT: np.ndarray, time_s: np.ndarray, rate_hz: float) -> floa
     faster than the sample rate resolves) is indistinguishable from sensor noise by its
     spectrum and raises the estimate; see ``docs`` of the audit.
     """
-    x = np.asarray(x_nT, float)
-    spectra, weights = [], []
-    for b in contiguous_blocks(np.isfinite(x), np.asarray(time_s, float)):
-        if b.size < 2 * SEGMENT_SAMPLES:
-            continue
-        f, p = welch(np.diff(x[b], 4), fs=rate_hz, nperseg=SEGMENT_SAMPLES, average="median")
-        spectra.append(p)
-        weights.append(b.size)
-    if not spectra:
+    got = _differenced_spectrum(x_nT, time_s, rate_hz, 4, SEGMENT_SAMPLES)
+    if got is None:
         return float("nan")
-    p = np.average(spectra, axis=0, weights=weights)
+    f, p = got
     gain = (2.0 * np.sin(np.pi * f / rate_hz)) ** 8
     nyq = rate_hz / 2.0
     sel = (f >= UPPER_BAND[0] * nyq) & (f <= UPPER_BAND[1] * nyq)
@@ -103,17 +115,10 @@ def quietest_band_noise_nT(x_nT: np.ndarray, time_s: np.ndarray, rate_hz: float)
         gain divided out (Welch median over 25.6 s segments); NaN when no block is long
         enough. On white noise it reads 3-4 % low (the least of ~40 band means).
     """
-    x = np.asarray(x_nT, float)
-    spectra, weights = [], []
-    for b in contiguous_blocks(np.isfinite(x), np.asarray(time_s, float)):
-        if b.size < 2 * QUIET_SEGMENT_SAMPLES:
-            continue
-        f, p = welch(np.diff(x[b], 2), fs=rate_hz, nperseg=QUIET_SEGMENT_SAMPLES, average="median")
-        spectra.append(p)
-        weights.append(b.size)
-    if not spectra:
+    got = _differenced_spectrum(x_nT, time_s, rate_hz, 2, QUIET_SEGMENT_SAMPLES)
+    if got is None:
         return float("nan")
-    p = np.average(spectra, axis=0, weights=weights)
+    f, p = got
     inside = (f >= QUIET_LOWEST_HZ) & (f <= UPPER_BAND[1] * rate_hz / 2.0)
     density = p[inside] / (2.0 * np.sin(np.pi * f[inside] / rate_hz)) ** 4
     k = max(1, int(round(QUIET_BAND_HZ / (f[1] - f[0]))))

@@ -965,21 +965,31 @@ class Auditor:
         marks the tie for the timing along the lines to break. The lag is refitted beside
         the decay because the decay's columns absorb part of it.
         """
+        alone, adds = self._weigh_eddy_decay(
+            ev,
+            current,
+            lambda decay: decay,
+            lambda decay, train, k: decay.with_(
+                lag_s=self._lag_estimate(decay, train, f"decay{k}")
+            ),
+            "lag_beyond_decay",
+        )
+        return alone.rms_after_nT <= held.rms_after_nT and not adds
+
+    def _weigh_eddy_decay(
+        self, ev: Evaluation, current: ModelSpec, before, after_for_fold, key: str
+    ) -> tuple[HeldOut, bool]:
+        """Eddy currents decaying with the best-fitting time constant against a lag: their
+        held-out gain alone, and whether ``after_for_fold(decay, train, k)`` adds to
+        ``before(decay)`` (p < alpha, by ``min_gain``); both go into
+        ``ev.estimate["eddy_decay"]`` (the second under ``key``)."""
         tau = self._eddy_decay_tau(current)
         decay = current.with_(eddy_tau_s=tau)
         alone = self.heldout(current, lambda train, k: decay)
-        beyond = self.heldout(
-            decay,
-            lambda train, k: decay.with_(lag_s=self._lag_estimate(decay, train, f"decay{k}")),
-        )
-        adds = beyond.p_value < self.s.alpha and beyond.reduction >= self.s.min_gain
-        ev.estimate["eddy_decay"] = {
-            "tau_s": tau,
-            "alone": alone.to_dict(),
-            "lag_beyond_decay": beyond.to_dict(),
-        }
+        beyond = self.heldout(before(decay), lambda train, k: after_for_fold(decay, train, k))
+        ev.estimate["eddy_decay"] = {"tau_s": tau, "alone": alone.to_dict(), key: beyond.to_dict()}
         ev.ci95["eddy_decay"] = None
-        return alone.rms_after_nT <= held.rms_after_nT and not adds
+        return alone, beyond.p_value < self.s.alpha and beyond.reduction >= self.s.min_gain
 
     def _lag_over_eddy_decay(
         self,
@@ -1001,20 +1011,13 @@ class Auditor:
         nothing beyond the lag; on a clean flight with slowly decaying eddy currents (0.6 nT,
         0.58 s) they gave 0.312 nT where a lag gave 0.352 nT.
         """
-        tau = self._eddy_decay_tau(current)
-        decay = current.with_(eddy_tau_s=tau)
-        alone = self.heldout(current, lambda train, k: decay)
-        beyond = self.heldout(
-            current.with_(lag_s=lag),
-            lambda train, k: decay.with_(lag_s=fold_lags[k]),
+        alone, adds = self._weigh_eddy_decay(
+            ev,
+            current,
+            lambda decay: current.with_(lag_s=lag),
+            lambda decay, train, k: decay.with_(lag_s=fold_lags[k]),
+            "beyond_lag",
         )
-        adds = beyond.p_value < self.s.alpha and beyond.reduction >= self.s.min_gain
-        ev.estimate["eddy_decay"] = {
-            "tau_s": tau,
-            "alone": alone.to_dict(),
-            "beyond_lag": beyond.to_dict(),
-        }
-        ev.ci95["eddy_decay"] = None
         if held.rms_after_nT < alone.rms_after_nT and not adds:
             ev.held_back = False
             ev.reason = ""
