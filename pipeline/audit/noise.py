@@ -16,6 +16,10 @@ each difference:
 
 ``sigma = sqrt(P_white * fs / 2)`` for a one-sided density ``P_white`` in nT^2/Hz.
 
+Interference that is broadband at the sample rate (attitude jitter faster than it resolves)
+passes all three. It rises with frequency, though, so the quietest 0.5 Hz band of a
+compensated record (:func:`quietest_band_noise_nT`) is a second, often tighter upper bound.
+
 Hand-written because no library offers a line- and step-robust white-noise level;
 :func:`scipy.signal.welch` does the spectral work.
 """
