@@ -669,26 +669,11 @@ class Auditor:
             ev.estimate["calibration_legs_blocks"] = legs.blocks
             for k in ("p_value", "ramp_rms_nT", "blocks"):
                 ev.ci95[f"calibration_legs_{k}"] = None
-            excess, ramp, size = self._leg_gradient_size(legs, main)
+            excess, why_not = self._leg_gradient_verdict(legs, main)
             ev.estimate["calibration_legs_excess_ramp_rms_nT"] = excess
             ev.ci95["calibration_legs_excess_ramp_rms_nT"] = None
-            if size < self.s.min_excess_gradient_nT_per_m:
-                ev.held_back = True
-                ev.reason = (
-                    f"the calibration legs' gradient beyond the main field's, {1e3 * size:.2f} "
-                    f"nT/km, is a regional one (< {1e3 * self.s.min_excess_gradient_nT_per_m:g}"
-                    " nT/km): not a gradient effect to model"
-                )
-            elif ramp < self.s.min_leg_ramp_nT:
-                # the legs measure a gradient far better than the position columns do; when
-                # they see none beyond the main field's, the columns' gain is something else
-                # they happen to fit (a current, second-order terms)
-                ev.held_back = True
-                ev.reason = (
-                    "the calibration legs show no gradient beyond the main field's (ramp "
-                    f"{ramp:.2f} nT RMS < "
-                    f"{self.s.min_leg_ramp_nT:g}): the position terms fit something else"
-                )
+            if why_not:
+                ev.held_back, ev.reason = True, why_not
             if not ev.held_back and legs.p_value < self.s.alpha:
                 ev.confirm_p = legs.p_value
                 # the legs measured a gradient that matters (beyond the regional, ramping
@@ -699,9 +684,7 @@ class Auditor:
                 # instead of fitted as position columns, which see it only through the
                 # manoeuvres' moves and may extrapolate between blocks; the form that
                 # lowers the held-out residual more is the extension
-                # horizontal only: the legs' vertical component is not evidence (legs.py)
-                g_e, g_n, _ = (float(g) for g in legs.gradient_nT_per_m)
-                known = current.with_(known_gradient_nT_per_m=(g_e, g_n, 0.0))
+                known = self._with_legs_gradient(current, legs)
                 held_known = self.heldout(current, lambda train, k: known)
                 if held_known.reduction > held.reduction:
                     ev.spec, ev.heldout = known, held_known
@@ -726,35 +709,56 @@ class Auditor:
                 ev.ci95[f"main_field_{axis}_nT_per_m"] = [float(v), float(v)]
         return ev
 
-    @staticmethod
-    def _leg_gradient_size(
-        legs: LegGradient, main: np.ndarray | None
-    ) -> tuple[float, float, float]:
-        """(excess ramp nT RMS, ramp nT RMS, horizontal size nT/m) of the legs' gradient
-        beyond the main field's.
+    def _leg_gradient_verdict(
+        self, legs: LegGradient, main: np.ndarray | None
+    ) -> tuple[float, str | None]:
+        """(ramp RMS of the legs' gradient beyond the main field's, nT; why it is no
+        gradient effect to model, or None).
 
         A gradient that is the main field's own (IGRF: ~0.005 nT/m, 0.7 nT along a 500 m
         leg) is no effect to model; a recording made without it (a flat main field) shows
-        none, so both the gradient and its excess over IGRF must ramp and be large.
+        none, so both the gradient and its excess over IGRF must be large and ramp.
         """
         igrf = main[:2] if main is not None else 0.0
         horizontal = legs.gradient_nT_per_m[:2]
         excess = legs.ramp_rms_for(horizontal - igrf)
         size = min(float(np.hypot(*horizontal)), float(np.hypot(*(horizontal - igrf))))
-        return excess, min(legs.ramp_rms_nT, excess), size
+        ramp = min(legs.ramp_rms_nT, excess)
+        if size < self.s.min_excess_gradient_nT_per_m:
+            return excess, (
+                f"the calibration legs' gradient beyond the main field's, {1e3 * size:.2f} "
+                f"nT/km, is a regional one (< {1e3 * self.s.min_excess_gradient_nT_per_m:g}"
+                " nT/km): not a gradient effect to model"
+            )
+        if ramp < self.s.min_leg_ramp_nT:
+            # the legs measure a gradient far better than the position columns do; when
+            # they see none beyond the main field's, the columns' gain is something else
+            # they happen to fit (a current, second-order terms)
+            return excess, (
+                "the calibration legs show no gradient beyond the main field's (ramp "
+                f"{ramp:.2f} nT RMS < "
+                f"{self.s.min_leg_ramp_nT:g}): the position terms fit something else"
+            )
+        return excess, None
+
+    @staticmethod
+    def _with_legs_gradient(spec: ModelSpec, legs: LegGradient) -> ModelSpec:
+        """``spec`` with the legs' horizontal gradient taken out of the reading (their
+        vertical component is not evidence, :mod:`pipeline.audit.legs`)."""
+        g_e, g_n, _ = (float(g) for g in legs.gradient_nT_per_m)
+        return spec.with_(known_gradient_nT_per_m=(g_e, g_n, 0.0))
 
     def gradient_from_legs(self, spec: ModelSpec) -> ModelSpec | None:
         """``spec`` with the horizontal gradient the calibration legs measure taken out of
-        the reading, when they measure one that matters (p < alpha, beyond the main field's
-        by ``min_excess_gradient_nT_per_m`` and ramping by ``min_leg_ramp_nT``); else None."""
+        the reading, when they measure one that matters (p < alpha and no reason against
+        it in :meth:`_leg_gradient_verdict`, as for the gradient's own candidate); else
+        None."""
         legs = self.leg_gradient(spec)
         if legs is None or legs.p_value >= self.s.alpha:
             return None
-        _, ramp, size = self._leg_gradient_size(legs, self._main_field_gradient())
-        if size < self.s.min_excess_gradient_nT_per_m or ramp < self.s.min_leg_ramp_nT:
+        if self._leg_gradient_verdict(legs, self._main_field_gradient())[1]:
             return None
-        g_e, g_n, _ = (float(g) for g in legs.gradient_nT_per_m)
-        return spec.with_(known_gradient_nT_per_m=(g_e, g_n, 0.0))
+        return self._with_legs_gradient(spec, legs)
 
     def _main_field_gradient(self) -> np.ndarray | None:
         """IGRF's total-field gradient (east, north, up; nT/m) at the calibration site."""
@@ -1022,13 +1026,13 @@ class Auditor:
             lambda decay, train, k: decay.with_(lag_s=fold_lags[k]),
             "beyond_lag",
         )
-        tie = held.rms_after_nT >= alone.rms_after_nT >= (1 - self.s.min_gain) * held.rms_after_nT
-        if (held.rms_after_nT < alone.rms_after_nT or tie) and not adds:
+        # the decay not better than the lag by min_gain: the lag wins, a tie if not outright
+        if alone.rms_after_nT >= (1 - self.s.min_gain) * held.rms_after_nT and not adds:
             ev.held_back = False
             ev.reason = ""
             ev.estimate["preferred_over"] = "eddy currents that decay with a time constant"
             ev.ci95["preferred_over"] = None
-            return tie
+            return alone.rms_after_nT <= held.rms_after_nT
         return False
 
     def _eval_electrical_current(self, current: ModelSpec, key: str) -> Evaluation:
