@@ -221,14 +221,15 @@ class Evaluation:
     confirm_p: float | None = None
     # evidence the band-passed calibration hardly sees shows the extension's gain on its
     # own (the survey's crossovers or a channel's switches predicted leave-one-out, p <
-    # alpha, by min_gain; the calibration legs' ramps): the calibration's held-out gain
-    # then only needs to be positive (a current that switches rarely during calibration)
+    # alpha, by min_gain): the calibration's held-out gain then only needs to be positive
+    # (a current that switches rarely during calibration)
     confirmed_gain: bool = False
     # the candidate's own evidence outside the calibration decides (a channel's switches over
-    # the whole flight: a nested test and a held-out test of their own, both at alpha); the
-    # calibration then only must not contradict it (its held-out residual not worse by
-    # min_gain): a load switched a few times during a calibration that band-passes its steps
-    # away leaves the calibration's tests blind to it
+    # the whole flight: a nested test and a held-out test of their own, both at alpha; the
+    # calibration legs' ramps for a gradient); the calibration then only must not contradict
+    # it (its held-out residual not worse by min_gain): a load switched a few times during a
+    # calibration that band-passes its steps away, or a gradient seen only through the
+    # manoeuvres' small moves, leaves the calibration's tests blind to it
     decided_outside: bool = False
 
     @property
@@ -683,7 +684,6 @@ class Auditor:
                 # manoeuvres' small moves, so it need only not contradict it (measured: a
                 # fixed-wing's 0.45 nT/m ramped 60 nT RMS along its legs, the position
                 # columns changed the held-out residual by -0.2 % and BIC by +20)
-                ev.confirmed_gain = True
                 ev.decided_outside = True
                 # the legs measured the gradient: it can also be taken out of the reading
                 # instead of fitted as position columns, which see it only through the
@@ -962,7 +962,8 @@ class Auditor:
         }
         return min(fits, key=lambda tau: fits[tau].fit_residual_nT)
 
-    def _same_response(self, tau_s: float, lag_s: float) -> bool:
+    @staticmethod
+    def _same_response(tau_s: float, lag_s: float) -> bool:
         """Whether eddy currents decaying with ``tau_s`` and a lag of ``lag_s`` are one
         first-order response: a sensor filter of tau and eddy currents decaying with tau
         differ in the calibration only beyond second order in w tau (the T-L eddy columns
@@ -1020,8 +1021,8 @@ class Auditor:
         better than eddy currents that decay with a time constant, or they better it by less
         than ``min_gain`` or with the lag's own time constant (:meth:`_same_response`; a tie
         goes to the one-parameter lag), and they add nothing beyond the lag. Returns whether
-        the release was such a tie (for the timing along the lines
-        to break, as in :meth:`_decay_explains_lag`).
+        the release was such a tie (for the timing along the lines to break, as in
+        :meth:`_decay_explains_lag`).
 
         The eddy-rate columns are the decay's first order in w tau; on a multicopter's brisk
         manoeuvres they mimic a true lag about as well as the lag itself (measured: a true
