@@ -27,7 +27,7 @@ browser:
 
 # ruff check and format check first: either fails CI before the (long) test run
 test: $(STAMP) lint format-check browser
-	$(BIN)/python -m pytest --durations=25
+	$(BIN)/python -m pytest -n 2 --dist loadfile --durations=25
 
 lint: $(STAMP)
 	$(BIN)/ruff check $(PY_PATHS)
