@@ -77,6 +77,66 @@ def test_no_gradient_gives_uniform_p_and_a_small_ramp():
     assert 0.0 <= np.mean(np.array(ps) < 0.05) <= 0.2
 
 
+def switching_current(t, cls, seed):
+    """A payload current switched between 0.6 and 1.9 A once on each leg, at a random time
+    in the leg's middle half (A)."""
+    rng = np.random.default_rng(seed)
+    out, level = np.empty(t.size), 0
+    for c in "NESW":
+        sel = np.flatnonzero(cls == c)
+        cut = sel[int(sel.size * rng.uniform(0.25, 0.75))]
+        out[sel] = np.where(t[sel] < t[cut], level, 1 - level)
+        level = 1 - level
+    return 0.6 + 1.3 * out
+
+
+def test_a_current_compensated_with_a_wrong_coupling_is_no_gradient():
+    """No gradient; a current switching within the legs, its coupling fitted wrong by dc
+    (nT/A, body frame): the compensated field keeps dc . u I, whose steps differ by heading.
+    Read without the current they look like ramps; with u_x I, u_y I, u_z I as nuisance
+    columns the p-values are uniform again and a true gradient stays inside its interval."""
+    g = np.array([0.05, -0.03, 0.0])
+    dc = np.array([12.0, -4.0, 2.0])
+    # the field's direction in the body on each heading (x forward, y right, z down; 60 deg
+    # inclination): north is forward heading north, to the left heading east
+    u_leg = {"N": (0.5, 0.0, 0.87), "E": (0.0, -0.5, 0.87), "S": (-0.5, 0.0, 0.87)}
+    u_leg["W"] = (0.0, 0.5, 0.87)
+    wrong, ok, cover = 0, 0, 0
+    for seed in range(30):
+        t, y, enu, cls = box_flight(np.zeros(3), 300 + seed, noise_nT=0.1)
+        legs = leg_ids(np.ones(t.size, bool), cls, np.ones(t.size, int), t)
+        current = switching_current(t, cls, seed)
+        u = np.array([u_leg[c] for c in cls])
+        y_left = y + (u @ dc) * current
+        columns = u * current[:, None]
+        wrong += int(leg_gradient(t, y_left, enu, legs).p_value < 0.01)
+        ok += int(leg_gradient(t, y_left, enu, legs, nuisance=columns).p_value >= 0.01)
+        real = leg_gradient(t, y_left + enu @ g, enu, legs, nuisance=columns)
+        ci = real.ci95()
+        cover += int(np.all((ci[:2, 0] <= g[:2]) & (g[:2] <= ci[:2, 1])))
+    assert wrong >= 25
+    assert ok >= 27
+    assert cover >= 27
+
+
+def test_the_main_fields_gradient_is_no_excess():
+    """Legs measure the main field's own gradient (~5 nT/km) at p ~ 0; the excess test
+    against it is uniform under the null and rejects a gradient 10 nT/km beyond it."""
+    main = np.array([-0.0015, 0.0045])
+    p_zero, p_null, p_beyond = [], [], []
+    for seed in range(40):
+        t, y, enu, cls = box_flight([*main, 0.0], 500 + seed, noise_nT=0.02, leg_s=120.0)
+        legs = leg_ids(np.ones(t.size, bool), cls, np.ones(t.size, int), t)
+        est = leg_gradient(t, y, enu, legs)
+        p_zero.append(est.p_value)
+        p_null.append(est.excess_p_value(main))
+        beyond = leg_gradient(t, y + enu[:, 0] * 0.01, enu, legs)
+        p_beyond.append(beyond.excess_p_value(main))
+    assert np.mean(np.array(p_zero) < 0.01) > 0.9
+    assert np.mean(np.array(p_null) < 0.05) <= 0.2
+    assert np.mean(np.array(p_beyond) < 0.01) > 0.9
+
+
 def test_too_few_legs_gives_none():
     t, y, enu, cls = box_flight([0.1, 0.1, 0.0], 1)
     one = cls == "N"

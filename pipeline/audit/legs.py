@@ -61,6 +61,11 @@ class LegGradient:
         Block means and legs used.
     offsets_m : ndarray
         (blocks, 2) east/north block positions about their leg's mean (m).
+    horizontal_cov : ndarray
+        (2, 2) covariance of the east and north components ((nT/m)^2), the scale
+        uncertainty included.
+    dof : int
+        Residual degrees of freedom of the fit.
     """
 
     gradient_nT_per_m: np.ndarray
@@ -69,6 +74,17 @@ class LegGradient:
     blocks: int
     legs: int
     offsets_m: np.ndarray
+    horizontal_cov: np.ndarray
+    dof: int
+
+    def excess_p_value(self, main_east_north_nT_per_m) -> float:
+        """p of the Wald test (F with 2 and :attr:`dof` degrees of freedom) that the
+        horizontal gradient equals ``main_east_north_nT_per_m`` (nT/m; the main field's
+        own, which long legs measure at p ~ 0 on any flight): whether the legs see a
+        gradient beyond it at all, the estimate's own uncertainty counted."""
+        d = self.gradient_nT_per_m[:2] - np.asarray(main_east_north_nT_per_m, float)
+        w = float(d @ np.linalg.pinv(self.horizontal_cov) @ d)
+        return float(stats.f.sf(w / 2.0, 2, max(self.dof, 1)))
 
     @property
     def ramp_rms_nT(self) -> float:
@@ -172,6 +188,7 @@ def leg_gradient(
     block_s: float = 10.0,
     min_leg_blocks: int = 3,
     scale_uncertainty: float = SCALE_UNCERTAINTY,
+    nuisance: np.ndarray | None = None,
 ) -> LegGradient | None:
     """Fit the total field's gradient to block means along the calibration legs.
 
@@ -195,39 +212,51 @@ def leg_gradient(
         multiplies the whole reading by ``1 + a`` (0.3-1 % on small aircraft), so a
         gradient is read ``1 + a`` times too large; compensation cannot undo it, since the
         isotropic term is the one the induced columns cannot hold (``ux^2 + uy^2 + uz^2 = 1``).
+    nuisance : ndarray, optional
+        (n, k) columns of interference the compensation may have taken out wrongly, each
+        with one coefficient in both models of the test (for a channel whose coupling was
+        fitted, ``u_x I, u_y I, u_z I``: a coupling wrong by ``dc`` leaves ``dc . u I``,
+        and a switch within a leg would otherwise read as a ramp; measured: a current's
+        coupling fitted at 12 nT/A for 3 nT/A read 12 nT/km north on a flight with none).
 
     Returns
     -------
     LegGradient or None
         None when fewer than two legs or too few blocks remain for the test.
     """
+    extra = np.empty((np.size(field_nT), 0)) if nuisance is None else np.asarray(nuisance, float)
     a, leg_of = leg_block_means(
-        time_s, np.column_stack([field_nT, enu_m]), legs, block_s, min_leg_blocks
+        time_s,
+        np.column_stack([field_nT, enu_m, extra.reshape(np.size(field_nT), -1)]),
+        legs,
+        block_s,
+        min_leg_blocks,
     )
     if len(set(leg_of.tolist())) < 2:
         return None
     levels = (leg_of[:, None] == np.unique(leg_of)[None, :]).astype(float)
-    x_full = np.column_stack([a[:, 1:4], levels])
-    dof = a.shape[0] - x_full.shape[1]
+    x_full = np.column_stack([a[:, 1:4], levels, a[:, 4:]])
+    x_base = np.column_stack([a[:, 3], levels, a[:, 4:]])
+    rss_f, k_f, coef = least_squares_rss(x_full, a[:, 0])
+    dof = a.shape[0] - k_f
     if dof < 3:
         return None
-    rss_f, k_f, coef = least_squares_rss(x_full, a[:, 0])
     # height and the levels: no horizontal terms
-    rss_b, k_b, _ = least_squares_rss(np.column_stack([a[:, 3], levels]), a[:, 0])
+    rss_b, k_b, _ = least_squares_rss(x_base, a[:, 0])
     pv = f_test_p(rss_b, k_b, rss_f, k_f, a.shape[0])
     cov = rss_f / dof * np.linalg.pinv(x_full.T @ x_full)
+    scale = max(scale_uncertainty, SCALE_UNCERTAINTY)
     # positions about each leg's level: what a horizontal gradient's ramp is made of
     offsets = a[:, 1:3] - levels @ np.linalg.lstsq(levels, a[:, 1:3], rcond=None)[0]
     return LegGradient(
         gradient_nT_per_m=coef[:3],
-        se_nT_per_m=np.sqrt(
-            np.clip(np.diag(cov)[:3], 0.0, None)
-            + (max(scale_uncertainty, SCALE_UNCERTAINTY) * coef[:3]) ** 2
-        ),
+        se_nT_per_m=np.sqrt(np.clip(np.diag(cov)[:3], 0.0, None) + (scale * coef[:3]) ** 2),
         p_value=pv,
         blocks=int(a.shape[0]),
         legs=int(levels.shape[1]),
         offsets_m=offsets,
+        horizontal_cov=cov[:2, :2] + np.diag((scale * coef[:2]) ** 2),
+        dof=int(dof),
     )
 
 

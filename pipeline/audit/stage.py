@@ -186,9 +186,12 @@ class AuditSettings:
     # or a 0.05 % scale, where low-cost fluxgates leave the factory at 0.5-2 % and 0.3-1 deg
     fluxgate_tolerance: float = 5e-4
     # the crust adds regional gradients of a few nT/km everywhere, which no main-field model
-    # holds: a calibration site's gradient is an effect to model from 2 nT/km on (long
-    # fixed-wing legs ramp measurably, 0.6 nT RMS along 3.6 km legs, on a 0.5 nT/km one)
-    min_excess_gradient_nT_per_m: float = 0.002
+    # holds (measured: the simulator's sources 2-3 km from the box put 1.8 nT/km beyond
+    # IGRF over it, and the legs read it, at p 0.001, as 2.3 nT/km), and long fixed-wing
+    # legs ramp measurably on them (0.6 nT RMS along 3.6 km legs on 0.5 nT/km); a calibration
+    # site's gradient is an effect to model above that, from 5 nT/km on (the manoeuvres'
+    # 10-50 m moves make 0.05-0.25 nT of it in the band, the noise floor's order)
+    min_excess_gradient_nT_per_m: float = 0.005
     # a gradient seen along the calibration legs confirms a gradient candidate when it is
     # significant and changes the field along the legs by at least this much (RMS, nT): a
     # real but negligible gradient (quiet ground, the main field's own) confirms nothing
@@ -673,12 +676,15 @@ class Auditor:
             for k in ("p_value", "ramp_rms_nT", "blocks"):
                 ev.ci95[f"calibration_legs_{k}"] = None
             excess, why_not = self._leg_gradient_verdict(legs, main)
+            p_excess = legs.excess_p_value(main[:2] if main is not None else np.zeros(2))
             ev.estimate["calibration_legs_excess_ramp_rms_nT"] = excess
+            ev.estimate["calibration_legs_excess_p_value"] = p_excess
             ev.ci95["calibration_legs_excess_ramp_rms_nT"] = None
+            ev.ci95["calibration_legs_excess_p_value"] = None
             if why_not:
                 ev.held_back, ev.reason = True, why_not
-            if not ev.held_back and legs.p_value < self.s.alpha:
-                ev.confirm_p = legs.p_value
+            if not ev.held_back:
+                ev.confirm_p = p_excess
                 # the legs measured a gradient that matters (beyond the regional, ramping
                 # along the legs); the band-passed calibration sees it only through the
                 # manoeuvres' small moves, so it need only not contradict it (measured: a
@@ -724,11 +730,20 @@ class Auditor:
         leg) is no effect to model; a recording made without it (a flat main field) shows
         none, so both the gradient and its excess over IGRF must be large and ramp.
         """
-        igrf = main[:2] if main is not None else 0.0
+        igrf = main[:2] if main is not None else np.zeros(2)
         horizontal = legs.gradient_nT_per_m[:2]
         excess = legs.ramp_rms_for(horizontal - igrf)
         size = min(float(np.hypot(*horizontal)), float(np.hypot(*(horizontal - igrf))))
         ramp = min(legs.ramp_rms_nT, excess)
+        p_excess = legs.excess_p_value(igrf)
+        if p_excess >= self.s.alpha:
+            # the size below is a point estimate: with a few blocks per leg, or nuisance
+            # columns that share the ramps, it can exceed the threshold by its error alone
+            # (measured: 6.3 nT/km +- 1.9 read beyond IGRF's on a flight with none)
+            return excess, (
+                "the calibration legs' gradient is not distinguishable from the main field's "
+                f"(p {p_excess:.2g} >= {self.s.alpha:g})"
+            )
         if size < self.s.min_excess_gradient_nT_per_m:
             return excess, (
                 f"the calibration legs' gradient beyond the main field's, {1e3 * size:.2f} "
@@ -759,7 +774,7 @@ class Auditor:
         it in :meth:`_leg_gradient_verdict`, as for the gradient's own candidate); else
         None."""
         legs = self.leg_gradient(spec)
-        if legs is None or legs.p_value >= self.s.alpha:
+        if legs is None:
             return None
         if self._leg_gradient_verdict(legs, self._main_field_gradient())[1]:
             return None
@@ -827,6 +842,14 @@ class Auditor:
                 forms[f"{r}_eddy_rate" if rate else r] = fit[0]
         return best, fits[best][0], forms
 
+    def _lag_beside_eddy_decay(self, current: ModelSpec) -> dict[str, float]:
+        """The lag (s) each response finds beside eddy currents decaying with the best time
+        constant (:meth:`_eddy_decay_tau`), on all calibration data, keyed by response."""
+        decay = current.with_(eddy_rate=False, eddy_tau_s=self._eddy_decay_tau(current))
+        return {
+            r: self._lag_estimate(decay.with_(lag_response=r), None, "all") for r in LAG_RESPONSES
+        }
+
     def _eval_sensor_lag(self, current: ModelSpec, key: str) -> Evaluation:
         # the response form is the flight's, chosen once on all calibration data
         response, lag, forms = self._lag_response(current)
@@ -863,11 +886,14 @@ class Auditor:
         # of every form (measured on simulated flights: 0.058-0.111 s for a true 0.100 s,
         # where the folds gave +-0.001 s)
         est["lag_by_model_form_s"] = forms
+        # and beside eddy currents that decay with their best time constant, which take part
+        # of a lag-like residual (measured on multicopters, a true 0.10 s: the forms above
+        # read 0.10-0.39 s, the lag beside the decay 0.03-0.08 s; the truth lay between)
+        beside_decay = self._lag_beside_eddy_decay(current)
+        est["lag_beside_eddy_decay_s"] = beside_decay
         if ci.get("lag_s") is not None:
-            ci["lag_s"] = [
-                min(ci["lag_s"][0], *forms.values()),
-                max(ci["lag_s"][1], *forms.values()),
-            ]
+            every = [*forms.values(), *beside_decay.values()]
+            ci["lag_s"] = [min(ci["lag_s"][0], *every), max(ci["lag_s"][1], *every)]
         ev = Evaluation(
             "sensor_lag",
             key,
@@ -1632,8 +1658,20 @@ class Auditor:
         fm = self.fit(spec, None, "all")
         induced = [abs(v) for n, v in zip(fm.names, fm.theta, strict=True) if n.startswith("ind_")]
         scale = max(induced, default=0.0) / BT_SCALE_NT
+        # the channels whose coupling the model fitted or took as measured: a coupling wrong
+        # by dc leaves dc . u times the channel, which a switch within a leg makes a ramp
+        channels = dict.fromkeys([*spec.aux, *(name for name, _ in spec.known_aux)])
+        u = direction_cosines(self.data.vector_nT)
+        nuisance = (
+            np.column_stack([u * self.data.aux[c][:, None] for c in channels]) if channels else None
+        )
         return leg_gradient(
-            self.data.time_s, comp, self.data.enu_m, self.legs, scale_uncertainty=scale
+            self.data.time_s,
+            comp,
+            self.data.enu_m,
+            self.legs,
+            scale_uncertainty=scale,
+            nuisance=nuisance,
         )
 
     def survey_heading(self, spec: ModelSpec) -> SurveyHeading | None:
