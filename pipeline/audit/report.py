@@ -228,10 +228,11 @@ def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
                 e = f.estimate
                 lines += [
                     "",
-                    f"`{f.effect}` was named on the calibration legs' ramps (p "
-                    f"{e.get('calibration_legs_p_value', float('nan')):.2g}, "
+                    f"`{f.effect}` was named on the calibration legs' ramps ("
                     f"{e.get('calibration_legs_excess_ramp_rms_nT', float('nan')):.3g} nT RMS "
-                    "beyond the main field's): the band-passed calibration sees a gradient only "
+                    "beyond the main field's, p "
+                    f"{e.get('calibration_legs_excess_p_value', float('nan')):.2g}): "
+                    "the band-passed calibration sees a gradient only "
                     "through the manoeuvres' small moves; its held-out residual above only "
                     "shows it does not contradict them.",
                 ]

@@ -728,7 +728,8 @@ class Auditor:
 
         A gradient that is the main field's own (IGRF: ~0.005 nT/m, 0.7 nT along a 500 m
         leg) is no effect to model; a recording made without it (a flat main field) shows
-        none, so both the gradient and its excess over IGRF must be large and ramp.
+        none, so both the gradient and its excess over IGRF must be large and ramp, and the
+        excess must be significant (:meth:`LegGradient.excess_p_value` < alpha).
         """
         igrf = main[:2] if main is not None else np.zeros(2)
         horizontal = legs.gradient_nT_per_m[:2]
@@ -771,8 +772,8 @@ class Auditor:
     def gradient_from_legs(self, spec: ModelSpec) -> ModelSpec | None:
         """``spec`` with the horizontal gradient the calibration legs measure taken out of
         the reading, when they measure one that matters (p < alpha and no reason against
-        it in :meth:`_leg_gradient_verdict`, as for the gradient's own candidate); else
-        None."""
+        it in :meth:`_leg_gradient_verdict`, which tests its excess over the main field's,
+        as for the gradient's own candidate); else None."""
         legs = self.leg_gradient(spec)
         if legs is None:
             return None
