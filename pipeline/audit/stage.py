@@ -675,8 +675,7 @@ class Auditor:
             ev.estimate["calibration_legs_blocks"] = legs.blocks
             for k in ("p_value", "ramp_rms_nT", "blocks"):
                 ev.ci95[f"calibration_legs_{k}"] = None
-            excess, why_not = self._leg_gradient_verdict(legs, main)
-            p_excess = legs.excess_p_value(main[:2] if main is not None else np.zeros(2))
+            excess, p_excess, why_not = self._leg_gradient_verdict(legs, main)
             ev.estimate["calibration_legs_excess_ramp_rms_nT"] = excess
             ev.estimate["calibration_legs_excess_p_value"] = p_excess
             ev.ci95["calibration_legs_excess_ramp_rms_nT"] = None
@@ -722,9 +721,9 @@ class Auditor:
 
     def _leg_gradient_verdict(
         self, legs: LegGradient, main: np.ndarray | None
-    ) -> tuple[float, str | None]:
-        """(ramp RMS of the legs' gradient beyond the main field's, nT; why it is no
-        gradient effect to model, or None).
+    ) -> tuple[float, float, str | None]:
+        """(ramp RMS of the legs' gradient beyond the main field's, nT; p of its excess over
+        the main field's; why it is no gradient effect to model, or None).
 
         A gradient that is the main field's own (IGRF: ~0.005 nT/m, 0.7 nT along a 500 m
         leg) is no effect to model; a recording made without it (a flat main field) shows
@@ -737,30 +736,31 @@ class Auditor:
         size = min(float(np.hypot(*horizontal)), float(np.hypot(*(horizontal - igrf))))
         ramp = min(legs.ramp_rms_nT, excess)
         p_excess = legs.excess_p_value(igrf)
+        why_not = None
         if p_excess >= self.s.alpha:
             # the size below is a point estimate: with a few blocks per leg, or nuisance
             # columns that share the ramps, it can exceed the threshold by its error alone
             # (measured: 6.3 nT/km +- 1.9 read beyond IGRF's on a flight with none)
-            return excess, (
+            why_not = (
                 "the calibration legs' gradient is not distinguishable from the main field's "
                 f"(p {p_excess:.2g} >= {self.s.alpha:g})"
             )
-        if size < self.s.min_excess_gradient_nT_per_m:
-            return excess, (
+        elif size < self.s.min_excess_gradient_nT_per_m:
+            why_not = (
                 f"the calibration legs' gradient beyond the main field's, {1e3 * size:.2f} "
                 f"nT/km, is a regional one (< {1e3 * self.s.min_excess_gradient_nT_per_m:g}"
                 " nT/km): not a gradient effect to model"
             )
-        if ramp < self.s.min_leg_ramp_nT:
+        elif ramp < self.s.min_leg_ramp_nT:
             # the legs measure a gradient far better than the position columns do; when
             # they see none beyond the main field's, the columns' gain is something else
             # they happen to fit (a current, second-order terms)
-            return excess, (
+            why_not = (
                 "the calibration legs show no gradient beyond the main field's (ramp "
                 f"{ramp:.2f} nT RMS < "
                 f"{self.s.min_leg_ramp_nT:g}): the position terms fit something else"
             )
-        return excess, None
+        return excess, p_excess, why_not
 
     @staticmethod
     def _with_legs_gradient(spec: ModelSpec, legs: LegGradient) -> ModelSpec:
@@ -777,7 +777,7 @@ class Auditor:
         legs = self.leg_gradient(spec)
         if legs is None:
             return None
-        if self._leg_gradient_verdict(legs, self._main_field_gradient())[1]:
+        if self._leg_gradient_verdict(legs, self._main_field_gradient())[2]:
             return None
         return self._with_legs_gradient(spec, legs)
 
