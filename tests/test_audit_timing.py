@@ -11,14 +11,23 @@ from pipeline.audit.timing import timing_lag
 RATE_HZ = 10.0
 
 
-def _lines(rng, lag_s, n_lines=8, line_s=120.0, turn_s=20.0, vector_noise_nT=1.0):
-    """Straight lines over smooth random geology (tens of nT, features of ~10 s), turns
-    between them; the scalar reads the field ``lag_s`` late, the fluxgate on time (its
+def _lines(
+    rng,
+    lag_s,
+    n_lines=8,
+    line_s=120.0,
+    turn_s=20.0,
+    vector_noise_nT=1.0,
+    feature_s=5.0,
+    geology_nT=400.0,
+):
+    """Straight lines over smooth random geology (tens of nT, features of ~2 ``feature_s``),
+    turns between them; the scalar reads the field ``lag_s`` late, the fluxgate on time (its
     magnitude: the field, an offset and a 1 % scale error, noisy)."""
     period = line_s + turn_s
     t = np.arange(0.0, n_lines * period, 1.0 / RATE_HZ)
     fine_t = np.arange(-5.0, t[-1] + 5.0, 0.01)
-    geology = gaussian_filter1d(rng.normal(0.0, 1.0, fine_t.size), 500.0) * 400.0
+    geology = gaussian_filter1d(rng.normal(0.0, 1.0, fine_t.size), 100 * feature_s) * geology_nT
     field = 50_000.0 + 0.05 * fine_t + geology
     scalar = np.interp(t - lag_s, fine_t, field) + rng.normal(0.0, 0.05, t.size)
     flux = 1.01 * np.interp(t, fine_t, field) + 120.0 + rng.normal(0.0, vector_noise_nT, t.size)
@@ -39,6 +48,26 @@ def test_the_delay_is_measured_with_an_interval(lag_s):
         if lag_s >= 0.1:
             assert got.p_value < 0.01
     assert covered >= 5  # 95 % intervals: at least 5 of 6 (P = 0.97)
+
+
+def test_lines_that_do_not_fix_a_delay_widen_the_interval_not_narrow_it():
+    # slow interference in the scalar alone (features of ~4 s, ~2 nT, beside broad geology)
+    # moves each short line's best delay by up to seconds. Each line's delay clipped to a
+    # window round the pooled minimum made the lines agree falsely: 10 of 30 intervals
+    # covered the truth. Lines whose own minimum lies at the search's edge fix no delay
+    rng = np.random.default_rng(2026)
+    covered = returned = 0
+    for _ in range(30):
+        t, s, v, straight = _lines(
+            rng, 0.1, n_lines=6, line_s=50.0, turn_s=20.0, feature_s=15.0, geology_nT=600.0
+        )
+        s = s + gaussian_filter1d(rng.normal(0.0, 1.0, t.size), 40.0) * 2.0
+        got = timing_lag(t, s, v, straight, RATE_HZ)
+        if got is not None:
+            returned += 1
+            covered += got.ci95_s[0] <= 0.1 <= got.ci95_s[1]
+    assert returned >= 15
+    assert covered >= 0.85 * returned
 
 
 def test_no_geology_no_timing():

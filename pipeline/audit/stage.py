@@ -921,6 +921,12 @@ class Auditor:
             decay_as_well = self._lag_over_eddy_decay(ev, current, held, lags, lag)
         elif not ev.held_back and not current.eddy_rate and not current.eddy_tau_s:
             decay_as_well = self._decay_explains_lag(ev, current, held)
+        # a decay no slower than the lag is the sensor's own first-order response, no rival
+        # cause: there is no tie for the timing along the lines to break (measured 2026-12-02,
+        # seed 7, a true 0.10 s lag tied with a 0.05 s decay; the crossovers alone, with no
+        # fluxgate timing, read -1.6 s [-2.6, -0.5] and vetoed it)
+        if decay_as_well and not self._slower_than_lag(ev.estimate["eddy_decay"]["tau_s"], lag):
+            decay_as_well = False
         tl = timing_lag(
             self.data.time_s,
             self.compensated(current),
@@ -962,14 +968,38 @@ class Auditor:
         # 0.5 s read a 0.097 s "lag"; the fluxgate said -0.26 s [-0.51, -0.01], the
         # crossovers -0.64 s [-1.31, 0.03]). Below the calibration's lag is not enough: on a
         # true 0.1 s lag the calibration read 0.15-0.21 s and the timing -0.09 [-0.29, 0.12]
+        # Nor is one timing's interval below zero enough while the other's holds the lag: the
+        # crossovers read -1.8 s [-2.7, -1.0] on a true 0.1 s lag, the fluxgate -0.02 s
+        # [-0.80, 0.76] (seed 7, lag #25)
         timing = combined_interval([o for o in (sl, tl) if o is not None])
-        if decay_as_well and timing is not None and timing[2] < 0.0:
+        holds_lag = any(o.ci95_s[0] <= lag <= o.ci95_s[1] for o in (sl, tl) if o is not None)
+        if decay_as_well and timing is not None and timing[2] < 0.0 and not holds_lag:
             ev.held_back = True
             ev.reason = (
                 f"eddy currents that decay with a time constant explain the calibration's "
                 f"residual as well as a lag, and the timing along the lines puts the lag at "
                 f"{timing[0]:.3f} s [{timing[1]:.3f}, {timing[2]:.3f}]: the scalar sensor is "
                 "not late"
+            )
+        # nor is it late when the decay leaves the lag, refitted beside it, nothing the
+        # sampling resolves, unless the timing along the lines says it is late (measured
+        # 2026-12-02, seed 7: two gradient flights read 0.076 and 0.236 s, -0.003 s beside
+        # decays of 1.0 and 0.7 s; true 0.1 s lags that tied with a slower decay kept
+        # 0.038-0.112 s beside it; one tied with a 0.2 s decay, its own response, and kept
+        # 0.014 s beside it, for a lag of 0.128 s)
+        beside_most = max(beside_decay.values())
+        if (
+            decay_as_well
+            and not ev.held_back
+            and beside_most < smallest
+            and not (timing is not None and timing[1] > 0.0)
+        ):
+            ev.held_back = True
+            ev.reason = (
+                f"eddy currents that decay over {ev.estimate['eddy_decay']['tau_s']:g} s "
+                f"explain the calibration's residual as well as a lag, and beside them the lag "
+                f"is {1e3 * beside_most:.1f} ms, under {self.s.min_lag_samples:g} of a "
+                "sample: the decay is the cause"
             )
         if abs(lag) < smallest:
             ev.held_back = True
@@ -997,6 +1027,15 @@ class Auditor:
         take the first order of either), while eddy currents that do decay read as a lag far
         shorter than their time constant (measured: 0.07-0.10 s for tau 0.5 s)."""
         return abs(np.log(tau_s / max(abs(lag_s), 1e-9))) <= np.log(SAME_RESPONSE_RATIO)
+
+    @staticmethod
+    def _slower_than_lag(tau_s: float, lag_s: float) -> bool:
+        """Whether a decay time constant ``tau_s`` from :data:`EDDY_TAU_GRID_S` is slower
+        than a lag of ``lag_s`` by more than the grid resolves: beyond the grid's first value
+        at or above the lag (a decay on the grid step next to the lag can be the sensor's own
+        first-order response)."""
+        above = [g for g in EDDY_TAU_GRID_S if g >= abs(lag_s)]
+        return bool(above) and tau_s > above[0]
 
     def _decay_explains_lag(self, ev: Evaluation, current: ModelSpec, held: HeldOut) -> bool:
         """Whether eddy currents decaying with a fitted time constant predict held-out

@@ -119,9 +119,10 @@ def timing_lag(
     Returns
     -------
     TimingLag or None
-        None with fewer than 4 straight runs of ``MIN_LINE_S``, when the best delay lies at
-        the search's edge, or when the fluxgate explains less than ``MIN_EXPLAINED`` of the
-        scalar's variation about a trend along the lines.
+        None with fewer than 4 straight runs of ``MIN_LINE_S`` whose own best delay lies
+        inside the search, when the lines' pooled best delay lies at the search's edge, or
+        when the fluxgate explains less than ``MIN_EXPLAINED`` of the scalar's variation
+        about a trend along the lines.
     """
     t = np.asarray(time_s, float)
     s = np.asarray(scalar_nT, float)
@@ -141,22 +142,35 @@ def timing_lag(
     if len(lines) < 4:
         return None
     coarse = np.arange(-max_lag_s, max_lag_s + 1e-9, COARSE_STEP_S)
+    edge = max_lag_s - COARSE_STEP_S
     lag0 = _argmin_parabola(coarse, sum(_line_rss(*ln, coarse, trim) for ln in lines))
-    fine = lag0 + np.arange(-5 * COARSE_STEP_S, 5 * COARSE_STEP_S + 1e-9, FINE_STEP_S)
-    per_line = np.array([_line_rss(*ln, fine, trim) for ln in lines])
-    total = per_line.sum(axis=0)
-    if abs(_argmin_parabola(fine, total)) >= max_lag_s - COARSE_STEP_S:
+    if abs(lag0) >= edge:
         return None  # no minimum inside the search: the records do not fix a delay
     # the fluxgate must explain most of the scalar's variation along the lines, else there
     # is too little geology (or too much interference) to time one against the other
+    fine0 = lag0 + np.arange(-5 * COARSE_STEP_S, 5 * COARSE_STEP_S + 1e-9, FINE_STEP_S)
+    total = sum(_line_rss(*ln, fine0, trim) for ln in lines)
     trend_only = sum(_trend_rss(tt, s_lp, trim) for tt, s_lp, _ in lines)
     if 1.0 - total.min() / trend_only < MIN_EXPLAINED:
         return None
-    # each line times the sensors on its own; lines are independent replicates, so the
-    # interval is Student's over the lines' delays (a jackknife of the pooled minimum is
-    # too narrow: the minimum of a sum is not a smooth statistic)
-    k = len(lines)
-    each = np.array([_argmin_parabola(fine, r) for r in per_line])
+    # each line times the sensors on its own, over the whole search (a window around the
+    # pooled minimum would clip a line's delay to its edge and make the lines agree
+    # falsely); a line whose own minimum lies at the search's edge fixes no delay
+    each = []
+    for ln in lines:
+        c = _line_rss(*ln, coarse, trim)
+        own = _argmin_parabola(coarse, c)
+        if abs(own) >= edge:
+            continue
+        fine = own + np.arange(-COARSE_STEP_S, COARSE_STEP_S + 1e-9, FINE_STEP_S)
+        each.append(_argmin_parabola(fine, _line_rss(*ln, fine, trim)))
+    k = len(each)
+    if k < 4:
+        return None
+    # lines are independent replicates, so the interval is Student's over the lines'
+    # delays (a jackknife of the pooled minimum is too narrow: the minimum of a sum is not
+    # a smooth statistic)
+    each = np.asarray(each)
     se = float(np.std(each, ddof=1) / np.sqrt(k))
     lag = float(np.mean(each))
     tq = float(stats.t.ppf(0.975, k - 1))

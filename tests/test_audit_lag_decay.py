@@ -1,0 +1,47 @@
+"""A late sensor against eddy currents that decay: the audit's tie-break on two flights of
+the full benchmark (benchmarks/bench_audit_variety.py, whose seeds they are), one each way.
+
+The calibration cannot tell a first-order sensor response from decaying eddy currents of
+the carrier: both read as a lag. The audit holds a lag back when a decay explains the
+calibration as well, leaves the lag nothing beside it, and is clearly slower than the lag
+(`Auditor._slower_than_lag`); a decay as quick as the lag is the sensor's own response.
+Both flights are multicopters with interference outside the tl18 basis. About 80 s.
+"""
+
+from __future__ import annotations
+
+import pytest
+
+from benchmarks.bench_audit_variety import correct, one_flight
+from pipeline.audit.stage import EDDY_TAU_GRID_S, Auditor
+
+
+@pytest.mark.parametrize(
+    ("kind", "seed", "why"),
+    [
+        # gradient, no lag; eddy currents of 0.5 nT decaying over 1.2 s. Until 2026-12-02
+        # it named a 0.076 s lag beside the gradient (-0.003 s beside a 1.0 s decay)
+        ("geomagnetic_gradient", 7110, "a slow decay is no late sensor"),
+        # a true 0.1 s first-order sensor lag and eddy currents decaying over 1.5 s: the
+        # best decay (0.2 s) takes the lag, being the sensor's own response
+        ("sensor_lag", 2026206, "a decay as quick as the lag is the sensor"),
+    ],
+)
+def test_lag_against_decaying_eddy_currents(kind, seed, why, tmp_path):
+    row = one_flight(kind, seed, tmp_path)
+    assert correct(row), (why, row["named"])
+    if kind == "sensor_lag":
+        lag = row["estimates"]["sensor_lag"]["lag_s"]
+        assert 0.05 < lag < 0.2
+
+
+def test_slower_than_lag_reads_the_time_constant_grid():
+    # the grid's first value at or above the lag is still the same response
+    assert EDDY_TAU_GRID_S[:4] == (0.05, 0.1, 0.2, 0.3)
+    assert not Auditor._slower_than_lag(0.2, 0.128)
+    assert not Auditor._slower_than_lag(0.1, 0.128)
+    assert Auditor._slower_than_lag(0.3, 0.128)
+    assert Auditor._slower_than_lag(0.7, 0.236)
+    assert Auditor._slower_than_lag(1.0, -0.076)
+    # a lag beyond the grid: no decay on it is slower
+    assert not Auditor._slower_than_lag(1.5, 2.0)
