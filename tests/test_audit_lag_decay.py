@@ -5,7 +5,9 @@ The calibration cannot tell a first-order sensor response from decaying eddy cur
 the carrier: both read as a lag. The audit holds a lag back when a decay explains the
 calibration as well, leaves the lag nothing beside it, and is clearly slower than the lag
 (`Auditor._slower_than_lag`); a decay as quick as the lag is the sensor's own response.
-Both flights are multicopters with interference outside the tl18 basis. About 80 s.
+Both flights are multicopters with interference outside the tl18 basis. About 80 s, so
+they run with ``-m slow`` (the default suite is at its 15-minute budget); the grid check runs
+by default.
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from benchmarks.bench_audit_variety import correct, one_flight
 from pipeline.audit.stage import EDDY_TAU_GRID_S, Auditor
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(
     ("kind", "seed", "why"),
     [
