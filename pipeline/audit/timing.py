@@ -143,7 +143,8 @@ def timing_lag(
         return None
     coarse = np.arange(-max_lag_s, max_lag_s + 1e-9, COARSE_STEP_S)
     edge = max_lag_s - COARSE_STEP_S
-    lag0 = _argmin_parabola(coarse, sum(_line_rss(*ln, coarse, trim) for ln in lines))
+    coarse_rss = [_line_rss(*ln, coarse, trim) for ln in lines]  # each line's, once
+    lag0 = _argmin_parabola(coarse, sum(coarse_rss))
     if abs(lag0) >= edge:
         return None  # no minimum inside the search: the records do not fix a delay
     # the fluxgate must explain most of the scalar's variation along the lines, else there
@@ -157,8 +158,7 @@ def timing_lag(
     # pooled minimum would clip a line's delay to its edge and make the lines agree
     # falsely); a line whose own minimum lies at the search's edge fixes no delay
     each = []
-    for ln in lines:
-        c = _line_rss(*ln, coarse, trim)
+    for ln, c in zip(lines, coarse_rss, strict=True):
         own = _argmin_parabola(coarse, c)
         if abs(own) >= edge:
             continue
