@@ -1,11 +1,12 @@
-"""A late sensor against eddy currents that decay: the audit's tie-break on two flights of
-the full benchmark (benchmarks/bench_audit_variety.py, whose seeds they are), one each way.
+"""A late sensor against eddy currents that decay: the audit's tie-break on three flights of
+the full benchmark (benchmarks/bench_audit_variety.py, whose seeds they are).
 
 The calibration cannot tell a first-order sensor response from decaying eddy currents of
 the carrier: both read as a lag. The audit holds a lag back when a decay explains the
 calibration as well, leaves the lag nothing beside it, and is clearly slower than the lag
 (`Auditor._slower_than_lag`); a decay as quick as the lag is the sensor's own response.
-Both flights are multicopters with interference outside the tl18 basis. About 80 s, so
+A lag the eddy-rate columns take up is weighed against the decay when the decay leaves it.
+All three flights are multicopters with interference outside the tl18 basis. About 2 minutes, so
 they run with ``-m slow`` (the default suite is at its 15-minute budget); the grid check runs
 by default.
 """
@@ -28,6 +29,10 @@ from pipeline.audit.stage import EDDY_TAU_GRID_S, Auditor
         # a true 0.1 s first-order sensor lag and eddy currents decaying over 1.5 s: the
         # best decay (0.2 s) takes the lag, being the sensor's own response
         ("sensor_lag", 2026206, "a decay as quick as the lag is the sensor"),
+        # a true 0.1 s delay, no decaying eddy currents: the eddy-rate columns took it
+        # (-0.005 s beside them) while the best decay left 0.056 s; until 2026-12-02 it
+        # named nothing
+        ("sensor_lag", 7213, "the rate columns take a lag the decay leaves"),
     ],
 )
 def test_lag_against_decaying_eddy_currents(kind, seed, why, tmp_path):
