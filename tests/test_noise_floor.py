@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.audit.noise import white_noise_nT
+from pipeline.audit.noise import sensor_noise_nT, white_noise_nT
 from pipeline.simulate import Scenario, random_flight_overrides, simulate
 
 RATE_HZ = 10.0
@@ -31,6 +31,30 @@ def test_white_noise_under_a_line_a_step_and_a_smooth_signal():
     x[5000:5100] = np.nan  # a gap
     est = white_noise_nT(x, t, RATE_HZ)
     assert est == pytest.approx(sigma, rel=0.10)
+
+
+@pytest.mark.parametrize("delay_s", [0.048, 0.142])
+def test_a_delay_model_does_not_average_the_noise_down(delay_s):
+    # a sensor that reports delay_s late: at epoch s it reads the field and the carrier's
+    # interference of s - delay_s, plus its own white noise. A delay model re-times the
+    # stream (read delay_s later, by linear interpolation), which averages neighbouring
+    # samples' noise: its compensated record reads low. The floor must not.
+    rng = np.random.default_rng(11)
+    t = np.arange(20_000) / RATE_HZ
+    sigma = 0.3
+
+    def field(tt):
+        return 40.0 * np.sin(2 * np.pi * tt / 250.0)
+
+    def interference(tt):  # manoeuvres
+        return 8.0 * np.sin(2 * np.pi * tt / 6.0) + 3.0 * np.sin(2 * np.pi * tt / 4.1)
+
+    raw = field(t - delay_s) + interference(t - delay_s) + rng.normal(0.0, sigma, t.size)
+    retimed = np.interp(t + delay_s, t, raw, right=np.nan)
+    compensated = retimed - interference(t)
+    assert white_noise_nT(compensated, t, RATE_HZ) < 0.9 * sigma  # the trap
+    est = sensor_noise_nT(raw, compensated, interference(t), t, RATE_HZ, delay_s=delay_s)
+    assert est == pytest.approx(sigma, rel=0.08)
 
 
 def test_too_short_records_give_nan():

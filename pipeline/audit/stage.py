@@ -75,7 +75,7 @@ from pipeline.audit.legs import (
     leg_gradient,
     leg_ids,
 )
-from pipeline.audit.noise import quietest_band_noise_nT, white_noise_nT
+from pipeline.audit.noise import sensor_noise_nT
 from pipeline.audit.survey import (
     CrossoverSet,
     SurveyCoupling,
@@ -2137,35 +2137,15 @@ def run_audit(
     passwise = (
         aud.cv_residual(base_spec, aud.pass_fold, "pass")[0] if aud.pass_fold is not None else None
     )
-    # the sensor's white noise: the raw and the compensated record bound it from above
-    # (compensation removes interference the sensor's jitter puts in, but adds the vector
-    # sensor's noise through the regressors), and so does the compensated record's quietest
-    # band (aliased jitter interference rises with frequency); the smallest is the best bound
     comp_e = aud.compensated(final_spec)
-    # from the sensor's own samples less the model's interference, not from a delay model's
-    # re-timed stream: re-timing by a fraction of a sample interpolates and averages the
-    # noise down (measured 2026-12-02: a 0.048 s delay read 0.14 nT for a 0.41 nT sensor);
-    # a first-order model's deconvolved stream amplifies it, an upper bound still
-    comp_own = comp_e
-    if final_spec.lag_s and final_spec.lag_response == "delay":
-        # the model's interference moved back to the sensor's own epochs instead
-        interference = extended.compensate(data)[1]
-        ok = np.isfinite(interference)
-        comp_own = data.scalar_nT - np.interp(
-            data.time_s - final_spec.lag_s,
-            data.time_s[ok],
-            interference[ok],
-            left=np.nan,
-            right=np.nan,
-        )
-    sigma = float(
-        np.nanmin(
-            [
-                white_noise_nT(data.scalar_nT, data.time_s, data.rate_hz),
-                white_noise_nT(comp_own, data.time_s, data.rate_hz),
-                quietest_band_noise_nT(comp_own, data.time_s, data.rate_hz),
-            ]
-        )
+    delay = final_spec.lag_s if final_spec.lag_response == "delay" else 0.0
+    sigma = sensor_noise_nT(
+        data.scalar_nT,
+        comp_e,
+        extended.compensate(data)[1],
+        data.time_s,
+        data.rate_hz,
+        delay_s=delay,
     )
     floor = sigma * band_noise_gain(data.rate_hz, s.band.band_hz, s.band.poles)
     if progress:
