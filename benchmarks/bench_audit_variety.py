@@ -33,7 +33,13 @@ import numpy as np
 from pipeline.audit import EFFECTS, run_audit
 from pipeline.io.reader import read_flight
 from pipeline.segment import segment_flight
-from pipeline.simulate import Scenario, random_flight_overrides, simulate, write_simulation
+from pipeline.simulate import (
+    Scenario,
+    override_value,
+    random_flight_overrides,
+    simulate,
+    write_simulation,
+)
 
 CLASSES = ("none", *EFFECTS, "step")
 # a survey as crews fly it: tie lines inside the block (the short flights' only ties lie on
@@ -56,8 +62,6 @@ SURVEY = {
     ],
 }
 EVENT_WINDOW_S = 120.0
-NOISE_OVERRIDE = "sensors.scalar_noise_nT="
-VIBRATION_OVERRIDE = "interference.outside_basis.vibration_nT="
 NOISE_TOLERANCE = 0.2  # issue 16, item 4: the noise floor within 20 % of the sensor's
 
 
@@ -123,7 +127,7 @@ def one_flight(kind: str, seed: int, folder: Path, **ranges) -> dict:
     :func:`random_flight_overrides`' draws (the CI subset flies milder flights)."""
     rng = np.random.default_rng(seed)
     overrides = random_flight_overrides(rng, **ranges) + hidden_overrides(kind, rng)
-    profile = next(o.split("=", 1)[1] for o in overrides if o.startswith("profile="))
+    profile = override_value(overrides, "profile")
     overrides += SURVEY[profile]
     sim = simulate(Scenario.load("uav-small", overrides), int(rng.integers(2**31)))
     step = add_permanent_step(sim, rng) if kind == "step" else None
@@ -160,10 +164,9 @@ def one_flight(kind: str, seed: int, folder: Path, **ranges) -> dict:
         "audit_s": time.perf_counter() - t,
         "gap": res["baseline"]["generalization_gap"],
         "noise_floor_nT": res["noise_floor_nT"],
-        "true_noise_nT": float(
-            next(o for o in overrides if o.startswith(NOISE_OVERRIDE)).split("=", 1)[1]
-        ),
-        "vibration": any(o.startswith(VIBRATION_OVERRIDE) for o in overrides),
+        "true_noise_nT": float(override_value(overrides, "sensors.scalar_noise_nT")),
+        "vibration": override_value(overrides, "interference.outside_basis.vibration_nT")
+        is not None,
         "overrides": overrides,
     }
 

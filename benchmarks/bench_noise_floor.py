@@ -22,7 +22,7 @@ import numpy as np
 
 from pipeline.audit.noise import white_noise_nT
 from pipeline.io.reader import read_flight
-from pipeline.simulate import Scenario, random_flight_overrides, simulate
+from pipeline.simulate import Scenario, override_value, random_flight_overrides, simulate
 
 
 def simulated(flights: int, seed: int) -> list[dict]:
@@ -30,11 +30,11 @@ def simulated(flights: int, seed: int) -> list[dict]:
     for i in range(flights):
         rng = np.random.default_rng(seed * 1000 + i)
         ov = random_flight_overrides(rng)
-        true = float(next(o for o in ov if o.startswith("sensors.scalar_noise_nT=")).split("=")[1])
+        true = float(override_value(ov, "sensors.scalar_noise_nT"))
         sim = simulate(Scenario.load("uav-small", ov), int(rng.integers(2**31)))
         s = sim.streams["/mag/scalar"]
         est = white_noise_nT(s["cols"]["total_nT"], s["t"], 10.0)
-        vib = any(o.startswith("interference.outside_basis.vibration_nT=") for o in ov)
+        vib = override_value(ov, "interference.outside_basis.vibration_nT") is not None
         rows.append(
             {
                 "source": f"simulated #{i}",

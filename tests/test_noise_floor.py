@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from pipeline.audit.noise import sensor_noise_nT, white_noise_nT
-from pipeline.simulate import Scenario, random_flight_overrides, simulate
+from pipeline.simulate import Scenario, override_value, random_flight_overrides, simulate
 
 RATE_HZ = 10.0
 
@@ -71,7 +71,7 @@ def _ratios(seeds) -> list[float]:
         ov = random_flight_overrides(
             rng, outside_terms=("second_order", "eddy_lag", "unrecorded_current")
         )
-        true = float(next(o for o in ov if o.startswith("sensors.scalar_noise_nT=")).split("=")[1])
+        true = float(override_value(ov, "sensors.scalar_noise_nT"))
         sim = simulate(Scenario.load("uav-small", ov), int(rng.integers(2**31)))
         s = sim.streams["/mag/scalar"]
         out.append(white_noise_nT(s["cols"]["total_nT"], s["t"], RATE_HZ) / true)

@@ -2,13 +2,14 @@
 
 from pipeline.simulate.scenario import EFFECTS, Scenario, builtin_scenarios
 from pipeline.simulate.simulator import SimulatedFlight, simulate, write_simulation
-from pipeline.simulate.variety import random_flight_overrides
+from pipeline.simulate.variety import override_value, random_flight_overrides
 
 __all__ = [
     "EFFECTS",
     "Scenario",
     "SimulatedFlight",
     "builtin_scenarios",
+    "override_value",
     "random_flight_overrides",
     "simulate",
     "write_simulation",

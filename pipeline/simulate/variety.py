@@ -57,6 +57,13 @@ def _fmt(x: float) -> str:
     return repr(float(x))
 
 
+def override_value(overrides: list[str], key: str) -> str | None:
+    """The value of ``key`` in ``key=value`` scenario overrides (the last one given), or
+    None when ``key`` is not among them: what :func:`random_flight_overrides` drew."""
+    values = [o.split("=", 1)[1] for o in overrides if o.split("=", 1)[0] == key]
+    return values[-1] if values else None
+
+
 def random_flight_overrides(
     rng: np.random.Generator,
     *,
