@@ -135,7 +135,7 @@ def quietest_band_noise_nT(x_nT: np.ndarray, time_s: np.ndarray, rate_hz: float)
 def sensor_noise_nT(
     raw_nT: np.ndarray,
     compensated_nT: np.ndarray,
-    interference_nT: np.ndarray,
+    interference_nT: np.ndarray | None,
     time_s: np.ndarray,
     rate_hz: float,
     delay_s: float = 0.0,
@@ -152,9 +152,11 @@ def sensor_noise_nT(
     ----------
     raw_nT : ndarray
         The scalar sensor's samples (nT) at ``time_s``.
-    compensated_nT, interference_nT : ndarray
-        The model's compensated field and interference (nT) at ``time_s``; with a delay,
-        the compensated field is the stream re-timed by ``delay_s`` less the interference.
+    compensated_nT : ndarray
+        The model's compensated field (nT) at ``time_s``; with a delay, the stream re-timed
+        by ``delay_s`` less the interference.
+    interference_nT : ndarray or None
+        The model's interference (nT) at ``time_s``; read only with a delay (None without).
     time_s : ndarray
         Epochs (s).
     rate_hz : float
@@ -173,6 +175,8 @@ def sensor_noise_nT(
     """
     own = np.asarray(compensated_nT, float)
     if delay_s:
+        if interference_nT is None:
+            raise ValueError("a delay model's noise floor needs its interference")
         t = np.asarray(time_s, float)
         i = np.asarray(interference_nT, float)
         ok = np.isfinite(i)

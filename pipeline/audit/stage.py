@@ -2142,7 +2142,7 @@ def run_audit(
     sigma = sensor_noise_nT(
         data.scalar_nT,
         comp_e,
-        extended.compensate(data)[1],
+        extended.compensate(data)[1] if delay else None,  # the design again: delays only
         data.time_s,
         data.rate_hz,
         delay_s=delay,
