@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.audit.noise import sensor_noise_nT, white_noise_nT
+from pipeline.audit.noise import noise_floor_bounds, white_noise_nT
 from pipeline.simulate import Scenario, override_value, random_flight_overrides, simulate
 
 RATE_HZ = 10.0
@@ -53,7 +53,9 @@ def test_a_delay_model_does_not_average_the_noise_down(delay_s):
     retimed = np.interp(t + delay_s, t, raw, right=np.nan)
     compensated = retimed - interference(t)
     assert white_noise_nT(compensated, t, RATE_HZ) < 0.9 * sigma  # the trap
-    est = sensor_noise_nT(raw, compensated, interference(t), t, RATE_HZ, delay_s=delay_s)
+    est = noise_floor_bounds(
+        raw, compensated, interference(t), t, RATE_HZ, delay_s=delay_s
+    ).sensor_nT
     assert est == pytest.approx(sigma, rel=0.08)
 
 
@@ -109,3 +111,24 @@ def test_quietest_band_under_interference_that_rises_with_frequency():
     # on white noise alone it reads a little low (the least of the band means)
     w = rng.normal(0.0, sigma, n)
     assert 0.9 * sigma < quietest_band_noise_nT(w, t, RATE_HZ) <= 1.01 * sigma
+
+
+def test_a_floor_over_interference_rising_with_frequency_is_called_an_upper_bound():
+    from pipeline.audit.stage import AuditSettings
+
+    rng = np.random.default_rng(12)
+    n = 30_000
+    t = np.arange(n) / RATE_HZ
+    sigma = 0.09
+    limit = AuditSettings().max_noise_rise
+    white = rng.normal(0.0, sigma, n)
+    b = noise_floor_bounds(white, white, None, t, RATE_HZ)
+    assert b.sensor_nT == pytest.approx(sigma, rel=0.10)
+    assert b.rise < limit  # white noise: flat
+    # broadband interference as aliased jitter leaves it: little below 1 Hz, 3x the noise
+    # at the top of the band (white noise differenced twice, density ~ f^4)
+    rising = np.diff(rng.normal(0.0, 1.0, n + 2), 2)
+    rising *= 3 * sigma / np.std(rising)
+    b = noise_floor_bounds(white + rising, white + rising, None, t, RATE_HZ)
+    assert b.rise > limit
+    assert b.sensor_nT == pytest.approx(sigma, rel=0.15)  # the quietest band still holds it

@@ -206,7 +206,8 @@ def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
         "sensor taken as calibrated). Held-out calibration residual "
         f"{j['baseline']['residual_rms_nT']:.4f} nT; noise floor in the same band "
         f"{j['band_noise_floor_nT']:.4f} nT (the sensor's white noise, `noise_floor_nT`: "
-        f"{j['noise_floor_nT']:.4f} nT per sample).",
+        f"{j['noise_floor_nT']:.4f} nT per sample"
+        + ("; an upper bound, see the notes)." if j["noise_floor_is_upper_bound"] else ")."),
         "",
         "## Findings",
         "",

@@ -75,7 +75,7 @@ from pipeline.audit.legs import (
     leg_gradient,
     leg_ids,
 )
-from pipeline.audit.noise import sensor_noise_nT
+from pipeline.audit.noise import noise_floor_bounds
 from pipeline.audit.survey import (
     CrossoverSet,
     SurveyCoupling,
@@ -146,6 +146,9 @@ class AuditSettings:
         Held-out folds, and the length of their blocks (s).
     max_generalization_gap : float
         Held-out / fit residual above which a warning is given.
+    max_noise_rise : float
+        The compensated record's white level in the upper half of the band over that in its
+        quietest band above which the noise floor is reported as an upper bound.
     min_event_nT : float
         Smallest step or drift in the survey worth an event, nT.
     min_vector_step_nT : float
@@ -177,6 +180,10 @@ class AuditSettings:
     n_folds: int = N_FOLDS  # held-out folds, each with blocks of every heading x manoeuvre
     block_s_cv: float = BLOCK_S
     max_generalization_gap: float = 2.0  # held-out / fit residual above this: a warning
+    # the compensated record's upper-band over quietest-band white level above which the
+    # noise floor is reported as an upper bound (white noise: 1.04; measured 2026-12-02 on
+    # the five independent recordings, whose airframe jitter aliases: 2.2-2.3)
+    max_noise_rise: float = 1.5
     min_event_nT: float = 0.3  # smallest step or drift in the survey worth an event
     # smallest |dp| of a permanent-field step against the fluxgate worth an event (nT)
     min_vector_step_nT: float = 1.0
@@ -362,6 +369,9 @@ class AuditResult:
     generalization_gap: float = float("nan")  # baseline held-out / fit residual
     passwise_heldout_nT: float | None = None  # leave-one-pass-out, with two or more passes
     t0_ns: int = 0  # the flight's first epoch (event times are absolute)
+    # the three upper bounds the noise floor is the least of (pipeline.audit.noise)
+    noise_floor_bounds_nT: dict[str, float] | None = None
+    noise_floor_is_upper_bound: bool = False  # the record's white level rises with frequency
 
     def to_json(self) -> dict[str, Any]:
         """AUDIT.json (issue 6 contract plus details)."""
@@ -401,6 +411,10 @@ class AuditResult:
             # band-passed, compare with band_noise_floor_nT
             "noise_floor_nT": self.sensor_noise_nT,
             "band_noise_floor_nT": self.band_noise_floor_nT,
+            "noise_floor_bounds_nT": self.noise_floor_bounds_nT,
+            # True: broadband interference rising with frequency lies under the floor, which
+            # then bounds the sensor's noise from above rather than measuring it
+            "noise_floor_is_upper_bound": self.noise_floor_is_upper_bound,
             "unexplained": self.unexplained,  # {"events": [...], "note", "spectrum", ...}
             "sensor_noise_nT": self.sensor_noise_nT,
             "gain": self.gain,
@@ -2139,7 +2153,7 @@ def run_audit(
     )
     comp_e = aud.compensated(final_spec)
     delay = final_spec.lag_s if final_spec.lag_response == "delay" else 0.0
-    sigma = sensor_noise_nT(
+    bounds = noise_floor_bounds(
         data.scalar_nT,
         comp_e,
         extended.compensate(data)[1] if delay else None,  # the design again: delays only
@@ -2147,6 +2161,8 @@ def run_audit(
         data.rate_hz,
         delay_s=delay,
     )
+    sigma = bounds.sensor_nT
+    floor_is_bound = bool(bounds.rise > s.max_noise_rise)
     floor = sigma * band_noise_gain(data.rate_hz, s.band.band_hz, s.band.poles)
     if progress:
         progress("survey-side evidence")
@@ -2264,6 +2280,15 @@ def run_audit(
             "interference the sample rate cannot resolve, not structure a model term "
             "could follow"
         )
+    if floor_is_bound:
+        notes.append(
+            f"the noise floor {sigma:.4f} nT is an upper bound on the sensor's own noise: "
+            f"the compensated record's white level rises from {bounds.quietest_band_nT:.4f} nT "
+            f"in its quietest band to {bounds.upper_band_nT:.4f} nT in the upper half of the "
+            "band, the mark of broadband interference faster than the sample rate resolves "
+            "(airframe jitter driving eddy currents), which adds to the sensor's noise at "
+            "every frequency and cannot be told apart from it"
+        )
     notes.append(
         f"held out: {len(aud.folds)} folds of {s.block_s_cv:g} s blocks, each "
         "holding every heading x manoeuvre; ridge lambda by inner cross-validation"
@@ -2296,4 +2321,6 @@ def run_audit(
         gap,
         passwise,
         int(flight.time_ns[0]),
+        bounds.to_dict(),
+        floor_is_bound,
     )
