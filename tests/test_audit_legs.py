@@ -36,7 +36,7 @@ def test_gradient_recovered_within_its_interval_over_seeds():
         t, y, enu, cls = box_flight(g, seed)
         legs = leg_ids(np.ones(t.size, bool), cls, np.ones(t.size, int), t)
         assert legs.max() == 3
-        est = leg_gradient(t, y, enu, legs)
+        est = leg_gradient(t, y, enu, legs, crust_se_nT_per_m=0.0)  # a field of g alone
         assert est is not None and est.legs == 4 and est.p_value < 1e-10
         ci = est.ci95()
         inside += int(np.all((ci[:, 0] <= g) & (g <= ci[:, 1])))
@@ -58,8 +58,10 @@ def test_a_soft_iron_scale_is_inside_the_interval_when_declared():
     t, y, enu, cls = box_flight(g, 7, noise_nT=0.02)
     legs = leg_ids(np.ones(t.size, bool), cls, np.ones(t.size, int), t)
     scaled = 1.005 * y
-    plain = leg_gradient(t, scaled, enu, legs).ci95()
-    declared = leg_gradient(t, scaled, enu, legs, scale_uncertainty=0.005).ci95()
+    plain = leg_gradient(t, scaled, enu, legs, crust_se_nT_per_m=0.0).ci95()
+    declared = leg_gradient(
+        t, scaled, enu, legs, scale_uncertainty=0.005, crust_se_nT_per_m=0.0
+    ).ci95()
     inside = lambda ci: (ci[:2, 0] <= g[:2]) & (g[:2] <= ci[:2, 1])  # noqa: E731
     assert not inside(plain).any()
     assert inside(declared).all()
@@ -154,3 +156,18 @@ def test_too_few_legs_gives_none():
 def test_fisher_combination():
     assert fisher_combined(0.5, 0.5) > 0.5
     assert fisher_combined(0.04, 1e-10) < 1e-9
+
+
+def test_the_crust_own_gradient_at_the_site_is_inside_the_interval():
+    """A small gradient effect over a site whose crust adds 0.3 nT/km of its own (measured
+    on the independent recordings' box: 0.2 nT/km): the legs read the sum, as they should,
+    and the interval still holds the effect alone."""
+    g = np.array([0.03, -0.04, 0.0])
+    crust = np.array([-0.2e-3, 0.2e-3, 0.0])
+    t, y, enu, cls = box_flight(g + crust, 3, noise_nT=0.02)
+    legs = leg_ids(np.ones(t.size, bool), cls, np.ones(t.size, int), t)
+    est = leg_gradient(t, y, enu, legs)
+    assert np.allclose(est.gradient_nT_per_m[:2], (g + crust)[:2], atol=1e-4)
+    inside = lambda ci: (ci[:2, 0] <= g[:2]) & (g[:2] <= ci[:2, 1])  # noqa: E731
+    assert inside(est.ci95()).all()
+    assert not inside(leg_gradient(t, y, enu, legs, crust_se_nT_per_m=0.0).ci95()).all()
