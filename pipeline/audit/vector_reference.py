@@ -393,7 +393,9 @@ def vector_reference_step(
         0.4-1.2 on the independent recordings, while the 3-8 nT steps of 30 simulated step
         flights gave 12-3700 times it (measured 2026-12-02, seed 2026 of the variety
         benchmark, with the second scan of :func:`scan_vector_reference`; with one scan
-        clean flights read up to 2.7 and steps from 3.8).
+        clean flights read up to 2.7 and steps from 3.8). Checked on seed 7: clean flights
+        up to 3.3, 29 of 30 steps from 8 (the 30th, 2 nT read 6 min early, was missed by one
+        scan too).
     **scan
         Further arguments of :func:`scan_vector_reference`.
 
