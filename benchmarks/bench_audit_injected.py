@@ -16,6 +16,11 @@ there, and audits the flight as ``aeromag audit`` does (:func:`pipeline.audit.ru
 - ``sensor_lag``: the scalar stream read whole samples late (a fraction of a sample would
   interpolate the recorded noise and jitter, which no late sensor does);
 - ``electrical_current``: ``k`` times the recorded ``/aux/cur_strobe`` current;
+- ``diurnal``: a slow variation of the external field (a sinusoid of a 2-4 h period at a drawn
+  phase, its range over the flight as given) in the scalar and, the same, at the base station;
+- ``vector_calibration``: the fluxgate's readings through scale errors, non-orthogonality
+  and offsets of one size class (a scale error of s, angles of about 0.5 s rad and offsets of
+  about 75000 s nT at drawn signs);
 - ``step``: a step of the carrier's permanent field at a drawn time in the survey's middle
   part (outside the catalogue: an ``unexplained`` event within +-120 s is right).
 
@@ -39,6 +44,7 @@ from pipeline.audit import run_audit
 from pipeline.audit.stage import AuditSettings
 from pipeline.geo.local import local_east_north
 from pipeline.io.reader import read_flight
+from pipeline.physics.vector_sensor import FluxgateErrors
 from pipeline.segment import segment_flight
 
 EVENT_WINDOW_S = 120.0  # issue 16, item 7
@@ -48,9 +54,19 @@ SWEEP = {
     "sensor_lag": [1, 2, 3],  # whole samples
     "electrical_current": [0.1, 0.3, 0.6, 1.2, 2.5],  # nT/A
     "step": [1.0, 3.0, 8.0],  # nT
+    "diurnal": [1.0, 3.0, 10.0, 30.0],  # nT, range over the flight
+    "vector_calibration": [0.002, 0.005, 0.01, 0.02],  # scale error (dimensionless)
 }
 CURRENT_CHANNEL = "aux_cur_strobe"
-KEYS = ("east_nT_per_m", "north_nT_per_m", "up_nT_per_m", "lag_s", "total_field_nT_per_unit")
+KEYS = (
+    "east_nT_per_m",
+    "north_nT_per_m",
+    "up_nT_per_m",
+    "lag_s",
+    "total_field_nT_per_unit",
+    "base_coefficient",
+)
+VECTOR = ["vector_x_nT", "vector_y_nT", "vector_z_nT"]
 
 
 def inject(flight, kind: str, value: float, rng: np.random.Generator) -> dict:
@@ -65,9 +81,9 @@ def inject(flight, kind: str, value: float, rng: np.random.Generator) -> dict:
         pos = np.column_stack([east_m, north_m, up_m])
         change = (pos - np.nanmean(pos, axis=0)) @ g
         d["scalar_nT"] = scalar + change
-        vec = d[["vector_x_nT", "vector_y_nT", "vector_z_nT"]].to_numpy(float)
+        vec = d[VECTOR].to_numpy(float)
         unit = vec / np.linalg.norm(vec, axis=1)[:, None]
-        d[["vector_x_nT", "vector_y_nT", "vector_z_nT"]] = vec + change[:, None] * unit
+        d[VECTOR] = vec + change[:, None] * unit
         return {"east_nT_per_m": g[0], "north_nT_per_m": g[1], "up_nT_per_m": g[2]}
     if kind == "sensor_lag":
         n = int(value)
@@ -79,6 +95,24 @@ def inject(flight, kind: str, value: float, rng: np.random.Generator) -> dict:
         d["scalar_nT"] = scalar + value * d[CURRENT_CHANNEL].to_numpy(float)
         # added to the total field, so the finding's projection on the field compares
         return {"total_field_nT_per_unit": value}
+    if kind == "diurnal":
+        t = d["time_s"].to_numpy(float)
+        period_s, phase = rng.uniform(7200.0, 14400.0), rng.uniform(0.0, 2.0 * np.pi)
+        wave = np.sin(2.0 * np.pi * (t - t[0]) / period_s + phase)
+        wave = value * (wave - wave.mean()) / np.ptp(wave)
+        d["scalar_nT"] = scalar + wave
+        d["base_nT"] = d["base_nT"].to_numpy(float) + wave
+        return {"base_coefficient": 1.0}
+    if kind == "vector_calibration":
+        errors = FluxgateErrors(
+            value * rng.choice([-1.0, 1.0], 3) * rng.uniform(0.7, 1.3, 3),
+            np.degrees(0.5 * value) * rng.choice([-1.0, 1.0], 3) * rng.uniform(0.7, 1.3, 3),
+            75000.0 * value * rng.choice([-1.0, 1.0], 3) * rng.uniform(0.7, 1.3, 3),
+        )
+        d[VECTOR] = errors.apply(d[VECTOR].to_numpy(float))
+        # not compared with the finding: the fluxgate's fitted errors include the carrier's
+        # own field at it, which the clean recording already holds
+        return {"scale_error_abs_max": float(np.max(np.abs(errors.scale_error)))}
     if kind == "step":
         t = d["time_s"].to_numpy(float)
         at = float(t[0] + rng.uniform(0.45, 0.75) * (t[-1] - t[0]))
@@ -108,13 +142,7 @@ def one_run(path: Path, kind: str, value: float, seed: int) -> dict:
     for f in res["findings"]:
         if f["effect"] != kind:
             continue
-        for key in (
-            "east_nT_per_m",
-            "north_nT_per_m",
-            "up_nT_per_m",
-            "lag_s",
-            "total_field_nT_per_unit",
-        ):
+        for key in KEYS:
             if key in truth and key in f["estimate"]:
                 estimate[key] = f["estimate"][key]
                 lo, hi = (f.get("estimate_ci95") or {}).get(key) or (np.nan, np.nan)

@@ -114,6 +114,9 @@ def within_ci(effect: str, f: dict, truth: dict) -> list[bool]:
         cover("north_nT_per_m", g[1] + est.get("main_field_north_nT_per_m", 0.0))
     elif effect == "sensor_lag":
         cover("lag_s", truth["effective"]["sensor_lag_s"])
+    elif effect == "diurnal":
+        # the simulator puts the same variation into the airborne and the base reading
+        cover("base_coefficient", 1.0)
     elif effect == "electrical_current":
         # only a finding on the channel that carries the coupling has a truth to cover
         cur = truth["effects"]["electrical_current"]

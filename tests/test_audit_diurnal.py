@@ -34,10 +34,11 @@ def crossover_set(rng, phase, follows=True, n=13, noise=0.5, t0=1200.0, span=500
     return DiurnalSet("crossovers", d, heading_levels(x), db)
 
 
-def leg_set(rng, phase, follows=True, legs=4, blocks=8, noise=0.2, t0=100.0):
+def leg_set(rng, phase, follows=True, legs=4, blocks=8, noise=0.2, t0=100.0, along_nT=0.0):
     """10 s block means along ``legs`` calibration legs (a level each, a small gradient over
-    positions along the leg), the base station's block means, the airborne following them or
-    not."""
+    positions along the leg, and ground the gradient does not describe: a ramp of
+    ``along_nT`` RMS along each leg, its own per leg), the base station's block means, the
+    airborne following them or not."""
     t = t0 + np.arange(legs * blocks) * 12.0
     leg_of = np.repeat(np.arange(legs), blocks)
     along = np.tile(np.linspace(-200.0, 200.0, blocks), legs)
@@ -52,10 +53,11 @@ def leg_set(rng, phase, follows=True, legs=4, blocks=8, noise=0.2, t0=100.0):
     )
     base = 50000.0 + day(t, phase) + rng.normal(0, 0.01, t.size)
     y = rng.normal(0, 3, legs)[leg_of] + enu @ [0.002, -0.001, 0.0] + rng.normal(0, noise, t.size)
+    y = y + rng.normal(0, along_nT, legs)[leg_of] * along / along.std()
     if follows:
         y = y + day(t, phase)
     levels = (leg_of[:, None] == np.arange(legs)[None, :]).astype(float)
-    return DiurnalSet("legs", y, np.column_stack([levels, enu]), base)
+    return DiurnalSet("legs", y, np.column_stack([levels, enu]), base, group=leg_of, drift_s=t)
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -112,3 +114,17 @@ def test_the_calibration_legs_see_what_a_short_survey_misses():
     both = diurnal_evidence([xo, leg_set(rng, phase, t0=100.0)])
     assert alone is None or alone.test.p_value > 0.01
     assert both.test.p_value < 1e-4 and both.ci95[0] <= 1.0 <= both.ci95[1]
+
+
+def test_the_interval_holds_when_a_legs_blocks_share_their_errors():
+    """Ground that a plane does not describe leaves a ramp along each leg that all its blocks
+    share: the blocks are not independent, and an interval that takes them as such is too
+    narrow (on these legs alone: 35 % of 200 flights covered). The jackknife over legs, with
+    the legs' count for its degrees of freedom, covers 88 %."""
+    covered = []
+    for seed in range(100):
+        rng = np.random.default_rng(500 + seed)
+        phase = rng.uniform(0, 2 * np.pi)
+        ev = diurnal_evidence([leg_set(rng, phase, legs=4, along_nT=0.6)])
+        covered.append(ev.ci95[0] <= 1.0 <= ev.ci95[1])
+    assert np.mean(covered) >= 0.8

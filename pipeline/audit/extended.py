@@ -123,9 +123,10 @@ class ModelSpec:
     # through a first-order response, which the rate columns above only approximate to
     # first order in w tau (poor at tau ~ 0.5 s against 3-10 s manoeuvres)
     eddy_tau_s: float = 0.0
-    # induced magnetisation that is not linear in the field: u_i B_j B_k / s^2; the
-    # competing explanation of a residual that follows the attitude (as a motor's current
-    # does during manoeuvres)
+    # what T-L's first order leaves out: induced magnetisation that is not linear in the
+    # field, u_i B_j B_k / s^2, and the magnitude's second-order term in the eddy field,
+    # |E dB_perp|^2 / 2|B|, quadratic in the rate of change (dB_j/dt dB_k/dt); the competing
+    # explanation of a residual that follows the manoeuvres' size (as a motor's current does)
     second_order: bool = False
     # the carrier's permanent field changed at this time (s; an out-of-catalogue step the
     # survey showed between two calibration passes): permanent columns after it, u_i [t > t_s]
@@ -197,6 +198,9 @@ class Design:
 
 
 LAG_RESPONSES = ("delay", "first_order")
+# a manoeuvre's typical rate of turn (rad/s: 10 deg at a 5 s period): the squared-rate columns
+# of the second-order terms in units of it, of the order of one like the others
+SECOND_ORDER_RATE_PER_S = 0.2
 
 
 def scalar_series(data: AuditData, lag_s: float, response: str = "delay") -> np.ndarray:
@@ -295,6 +299,14 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
             f"second_u{'xyz'[i]}B{'xyz'[j]}B{'xyz'[k]}" for i in range(3) for j, k in quad
         ]
         sub += [True] * 18
+        # an eddy field of E dB/dt ~ 0.02 s x 10^4 nT/s = 200 nT (a fixed-wing's) puts
+        # 0.4 nT of |E dB|^2 / 2|B| into the magnitude, following the squared rates: a
+        # motor current, whose size follows the manoeuvres', took it up (0.02-0.04 nT/A
+        # named on fixed-wing flights with no coupling)
+        rate = np.gradient(v, data.time_s, axis=0) / (BT_SCALE_NT * SECOND_ORDER_RATE_PER_S)
+        cols.append(np.column_stack([rate[:, j] * rate[:, k] for j, k in quad]))
+        names = names + [f"second_dB{'xyz'[j]}dB{'xyz'[k]}" for j, k in quad]
+        sub += [True] * 6
     if spec.permanent_step_s is not None:
         u = direction_cosines(v)
         after = (data.time_s > spec.permanent_step_s).astype(float)[:, None]

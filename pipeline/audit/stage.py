@@ -1291,13 +1291,13 @@ class Auditor:
                 if sw.p_value * max(1, n_channels) < self.s.alpha:
                     self._decide_by_switches(ev, current, name, sw)
         # a current that follows the manoeuvres (a motor's) can stand in for interference
-        # that is not linear in the field: the coupling is named only when it explains
-        # held-out data better than second-order induced terms do
+        # that is not linear in the field or in the rates: the coupling is named only when it
+        # explains held-out data better than the second-order terms do
         self._beyond(
             ev,
             current.with_(second_order=True),
             ext.with_(second_order=True),
-            "second-order induced terms",
+            "second-order induced and eddy terms",
             "a current coupling",
         )
         return ev
@@ -1538,7 +1538,13 @@ class Auditor:
         dx, db, _, _, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
         if dx.size == 0:
             return None
-        return DiurnalSet("crossovers", dx, heading_levels(_crossover_set(dx, xs, heading)), db)
+        return DiurnalSet(
+            "crossovers",
+            dx,
+            heading_levels(_crossover_set(dx, xs, heading)),
+            db,
+            drift_s=np.array([c.time_a_s - c.time_b_s for c in xs]),
+        )
 
     def _diurnal_legs(self, spec: ModelSpec) -> DiurnalSet | None:
         """The calibration legs as a diurnal data set: 10 s block means of ``spec``'s
@@ -1549,14 +1555,23 @@ class Auditor:
             return None
         a, leg_of = leg_block_means(
             self.data.time_s,
-            np.column_stack([self.compensated(spec), self.base_smoothed_nT, self.data.enu_m]),
+            np.column_stack(
+                [self.compensated(spec), self.base_smoothed_nT, self.data.enu_m, self.data.time_s]
+            ),
             self.legs,
             self.s.block_s,
         )
         if leg_of.size == 0:
             return None
         levels = (leg_of[:, None] == np.unique(leg_of)[None, :]).astype(float)
-        return DiurnalSet("legs", a[:, 0], np.column_stack([levels, a[:, 2:5]]), a[:, 1])
+        return DiurnalSet(
+            "legs",
+            a[:, 0],
+            np.column_stack([levels, a[:, 2:5]]),
+            a[:, 1],
+            group=leg_of,
+            drift_s=a[:, 5],
+        )
 
     def _survey_crossovers(self, spec: ModelSpec) -> tuple[CrossoverSet, np.ndarray] | None:
         """The survey's crossover differences of ``spec``'s compensated field, smoothed over
