@@ -39,7 +39,7 @@ def residual_after(columns: np.ndarray, y: np.ndarray) -> float:
 def test_the_second_order_terms_follow_the_square_of_a_large_eddy_field():
     t, b = manoeuvres()
     eddy_s = np.array([[0.02, 0.006, -0.004], [-0.003, 0.015, 0.007], [0.005, -0.008, 0.011]])
-    e = np.gradient(b, t, axis=0) @ eddy_s.T  # the eddy field, nT (a fixed-wing's: ~100 nT)
+    e = np.gradient(b, t, axis=0) @ eddy_s.T  # the eddy field, nT (a fixed-wing's: up to 200 nT)
     u = b / np.linalg.norm(b, axis=1, keepdims=True)
     # what the magnitude holds beyond T-L's first order: |b + e| - |b| - u . e
     rest = np.linalg.norm(b + e, axis=1) - np.linalg.norm(b, axis=1) - np.sum(u * e, axis=1)

@@ -71,13 +71,13 @@ class DiurnalSet:
     # crossover's time difference); None: no drift allowance
     drift_s: np.ndarray | None = None
 
-    def take(self, rows: np.ndarray, base_nT: np.ndarray | None = None) -> DiurnalSet:
-        """The set's ``rows`` (a boolean mask), optionally with another base-station term."""
+    def take(self, rows: np.ndarray) -> DiurnalSet:
+        """The set's ``rows`` (a boolean mask)."""
         return DiurnalSet(
             self.name,
             self.y[rows],
             self.nuisance[rows],
-            self.base_nT[rows] if base_nT is None else base_nT,
+            self.base_nT[rows],
             None if self.group is None else self.group[rows],
             None if self.drift_s is None else self.drift_s[rows],
         )
@@ -208,7 +208,7 @@ def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
         # the base station's tens of thousands of nT): the same fit, well conditioned, and
         # the same leave-one-out errors for the correction at coefficient 1
         g_c = t.base_nT - t.nuisance @ np.linalg.lstsq(t.nuisance, t.base_nT, rcond=None)[0]
-        t = t.take(np.ones(t.y.size, bool), base_nT=g_c)
+        t = replace(t, base_nT=g_c)
         a = np.column_stack([t.nuisance, t.base_nT])
         coef, *_ = np.linalg.lstsq(a, t.y, rcond=None)
         r = t.y - a @ coef
