@@ -105,6 +105,7 @@ from pipeline.compensate.terms import BT_SCALE_NT, direction_cosines
 from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
+from pipeline.geo.heading import heading_class, pattern_direction_deg
 from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
 from pipeline.segment import Segmentation
 
@@ -1432,8 +1433,9 @@ class Auditor:
         """Crossover and validation-overlap differences of ``spec``'s compensated field,
         reduced by IGRF only (and smoothed along track over ``smooth_s``), with the
         base-station difference at each; also the crossovers themselves and each line's
-        heading class (0..3: N, E, S, W). Kept per model and smoothing: the survey tests
-        of one round ask for the same model's several times."""
+        heading class (0..3, in steps of 90 deg from the survey's line direction). Kept per
+        model and smoothing: the survey tests of one round ask for the same model's several
+        times."""
         ck = (spec, smooth_s)
         if ck not in self._crossover_cache:  # the same model's crossovers serve several tests
             self._crossover_cache[ck] = self._crossover_data_of(spec, smooth_s)
@@ -1477,7 +1479,11 @@ class Auditor:
         survey = [line(tr) for tr in tracks if tr.kind == "survey"]
         ties = [line(tr) for tr in tracks if tr.kind == "tie"]
         xs = crossovers(survey, ties)
-        heading = {tr.line_id: int(round(tr.heading_deg / 90.0)) % 4 for tr in tracks}
+        # heading classes relative to the survey's own line direction, not to north
+        ref = pattern_direction_deg(
+            np.array([tr.heading_deg for tr in tracks if tr.kind in ("survey", "tie")])
+        )
+        heading = {tr.line_id: int(heading_class(tr.heading_deg, ref)) for tr in tracks}
         dx = np.array([c.difference_nT for c in xs])
         db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base) for c in xs])
         val = [tr for tr in tracks if tr.kind == "validation"]

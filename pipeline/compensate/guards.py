@@ -22,8 +22,9 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.geo.heading import CARDINALS, heading_class, pattern_direction_deg
+
 CONDITION_LIMITS = {"tl16": 1e3, "tl18": 1e5, "agg-tl": 1e5}
-CARDINALS = ("N", "E", "S", "W")
 MANOEUVRES = ("roll", "pitch", "yaw")
 
 
@@ -116,7 +117,9 @@ def check_calibration(
     if yaw_deg is not None:
         y = np.asarray(yaw_deg, float)[mask]
         y = y[np.isfinite(y)]
-        sector = ((np.mod(y, 360.0) + 45.0) // 90.0).astype(int) % 4
+        # sectors around the box's own direction: a box flown at 45 deg would otherwise put
+        # its legs on the boundaries of north-based sectors
+        sector = heading_class(y, pattern_direction_deg(y))
         headings = {c: round(float(np.sum(sector == k)) / rate, 2) for k, c in enumerate(CARDINALS)}
         missing = [c for c in CARDINALS if headings[c] < min_heading_s]
         if missing:

@@ -25,6 +25,7 @@ from scipy import stats
 from scipy.spatial import cKDTree
 from shapely import LineString
 
+from pipeline.geo.heading import heading_class, pattern_direction_deg
 from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, crossing_points
 
 
@@ -220,9 +221,13 @@ def difference_stats(diff: np.ndarray) -> dict[str, float | int | None]:
     }
 
 
-def heading_sector(heading_deg: np.ndarray, step_deg: float = 45.0) -> np.ndarray:
-    """Heading rounded to the nearest ``step_deg`` sector, as '000', '045', ... ."""
-    h = np.mod(np.round(np.asarray(heading_deg, float) / step_deg) * step_deg, 360.0)
+def heading_sector(
+    heading_deg: np.ndarray, step_deg: float = 45.0, reference_deg: float = 0.0
+) -> np.ndarray:
+    """Centre of each heading's ``step_deg`` sector around ``reference_deg``, as '000', '045',
+    ... (deg clockwise from north)."""
+    k = heading_class(heading_deg, reference_deg, step_deg)
+    h = np.mod(reference_deg + k * step_deg, 360.0)
     return np.array([f"{v:03.0f}" for v in h])
 
 
@@ -234,7 +239,11 @@ def group_stats(diff: np.ndarray, ov: OverlapSet, confidence: float = 0.95) -> l
     """
     if ov.count == 0:
         return []
-    va, vm = heading_sector(ov.validation_heading_deg), heading_sector(ov.map_heading_deg)
+    # sectors centred on the survey's own line direction (a survey flown at 22.5 deg would
+    # otherwise put its lines on north-based sector boundaries)
+    ref = pattern_direction_deg(ov.map_heading_deg)
+    va = heading_sector(ov.validation_heading_deg, reference_deg=ref)
+    vm = heading_sector(ov.map_heading_deg, reference_deg=ref)
     out = []
     for key in sorted(set(zip(va, vm, strict=True))):
         sel = (va == key[0]) & (vm == key[1]) & np.isfinite(diff)

@@ -30,11 +30,11 @@ from shapely import LineString
 
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
+from pipeline.geo.heading import cardinal_name, pattern_direction_deg
 from pipeline.geo.local import local_east_north
 
 LABELS = ("calibration", "survey", "tie", "validation", "turn", "transit")
 MANOEUVRES = ("roll", "pitch", "yaw")
-CARDINALS = ("N", "E", "S", "W")
 SURVEY_BLOCK = {"survey", "tie", "validation"}
 
 
@@ -158,6 +158,7 @@ class _Leg:
     offset: float = 0.0
     line_id: str = ""
     calibration_pass: int = 0
+    cardinal: str = ""  # heading class relative to the calibration pattern's direction
 
 
 def _straight_runs(e: np.ndarray, n: np.ndarray, t: np.ndarray, p: SegmentParams) -> list[_Leg]:
@@ -276,10 +277,6 @@ def _thresholds(p: SegmentParams) -> dict[str, float]:
     return {"roll": p.roll_active_deg, "pitch": p.pitch_active_deg, "yaw": p.yaw_active_deg}
 
 
-def _cardinal(heading: float) -> str:
-    return CARDINALS[int(round(heading / 90.0)) % 4]
-
-
 def _label_manoeuvres(act: dict[str, np.ndarray], p: SegmentParams, rate: float) -> np.ndarray:
     """roll / pitch / yaw / steady for each epoch of a calibration leg."""
     thr = _thresholds(p)
@@ -378,7 +375,7 @@ def segment_flight(
             heading[sl] = leg.heading_deg
         if leg.kind == "calibration":
             cpass[sl] = leg.calibration_pass
-            cardinal[sl] = _cardinal(leg.heading_deg)
+            cardinal[sl] = leg.cardinal
             if has_att:
                 manoeuvre[sl] = _label_manoeuvres(_activity(flight, leg, p, rate), p, rate)
     if source == "inferred":
@@ -406,10 +403,15 @@ def _local_en(flight: Flight) -> tuple[np.ndarray, np.ndarray]:
 
 
 def _assign_passes(cal: list[_Leg], t: np.ndarray, p: SegmentParams) -> None:
+    # the legs' classes are relative to the box's own direction (a box flown at 45 deg puts
+    # its legs on north-based sector boundaries)
+    ref = pattern_direction_deg(
+        np.array([lg.heading_deg for lg in cal]), np.array([t[lg.i1] - t[lg.i0] for lg in cal])
+    )
     npass = 0
     seen: set[str] = set()
     for k, leg in enumerate(cal):
-        card = _cardinal(leg.heading_deg)
+        card = leg.cardinal = cardinal_name(leg.heading_deg, ref)
         # a new pass after a long break, or when a heading comes round again
         if k == 0 or t[leg.i0] - t[cal[k - 1].i1] > p.pass_gap_s or card in seen:
             npass += 1
@@ -417,7 +419,7 @@ def _assign_passes(cal: list[_Leg], t: np.ndarray, p: SegmentParams) -> None:
         seen.add(card)
         leg.calibration_pass = npass
         if not leg.line_id:
-            leg.line_id = f"C{npass}{_cardinal(leg.heading_deg)}"
+            leg.line_id = f"C{npass}{card}"
 
 
 def _classify(
