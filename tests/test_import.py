@@ -498,3 +498,61 @@ def test_import_mapped_and_a_protobuf_location_fix(tmp_path):
     s = series["/gps/fix_pb"]
     np.testing.assert_allclose(s.values["latitude"], g["cols"]["latitude"])
     np.testing.assert_allclose(s.values["altitude"], g["cols"]["altitude"])
+
+
+PEER_XYZ = (
+    __import__("pathlib").Path(__file__).resolve().parents[1].parent
+    / "shared"
+    / "peer"
+    / "magnav"
+    / "Flt1003_sample.xyz"
+)
+
+
+def test_ins_solution_from_hdf5_in_radians_and_north_west_up(tmp_path):
+    f = sgl_table()
+    n = f["tt"].size
+    f["ins_lat"] = np.radians(f["lat"] + 3e-4)  # SGL: radians; an INS 33 m off the GNSS
+    f["ins_lon"] = np.radians(f["lon"])
+    f["ins_alt"] = f["utm_z"] - 1.0
+    f["ins_vn"], f["ins_vw"], f["ins_vu"] = np.full(n, 1.0), np.full(n, -60.0), np.full(n, 0.5)
+    import h5py
+
+    write_h5(tmp_path / "i.h5", f)
+    with h5py.File(tmp_path / "i.h5", "a") as h:
+        for k in ("ins_lat", "ins_lon", "ins_alt", "ins_vn", "ins_vw", "ins_vu"):
+            h.create_dataset(k, data=f[k])
+    r = import_sgl(tmp_path / "i.h5", tmp_path / "i.mcap")
+    assert r["channels"]["/ins/solution"] == n
+    assert validate_every_message(tmp_path / "i.mcap") > 0
+    fl = read_flight(tmp_path / "i.mcap")
+    assert fl.topic_of["ins"] == "/ins/solution"
+    np.testing.assert_allclose(fl.data["ins_latitude_deg"], f["lat"] + 3e-4, atol=1e-9)
+    np.testing.assert_allclose(fl.data["ins_longitude_deg"], f["lon"], atol=1e-9)
+    # north, east, down from north, west, up
+    np.testing.assert_allclose(fl.data["ins_velocity_east_m_s"], 60.0)
+    np.testing.assert_allclose(fl.data["ins_velocity_down_m_s"], -0.5)
+    np.testing.assert_allclose(fl.data["ins_yaw_deg"], f["ins_yaw"], atol=1e-9)
+    assert fl.units["ins_velocity_north_m_s"] == "m/s" and fl.units["ins_altitude_m"] == "m"
+
+
+def test_ins_solution_without_ins_columns_is_absent(sgl, tmp_path):
+    _, h5, _ = sgl
+    r = import_sgl(h5, tmp_path / "a.mcap")
+    assert "/ins/solution" not in r["channels"]
+
+
+@pytest.mark.skipif(not PEER_XYZ.is_file(), reason="shared/peer/magnav is not beside the repo")
+def test_ins_solution_of_the_real_sgl_sample(tmp_path):
+    r = import_sgl(PEER_XYZ, tmp_path / "s.mcap")
+    assert r["channels"]["/ins/solution"] == r["channels"]["/gnss/fix"] > 0
+    fl = read_flight(tmp_path / "s.mcap")
+    d = fl.data
+    # the INS position lies within a few hundred metres of the GNSS (it is in radians there)
+    assert np.all(np.abs(d["ins_latitude_deg"] - d["lat_deg"]) < 0.01)
+    assert np.all(np.abs(d["ins_longitude_deg"] - d["lon_deg"]) < 0.01)
+    # its velocity points along its heading, and its climb matches the GNSS height's change
+    course = np.degrees(np.arctan2(d["ins_velocity_east_m_s"], d["ins_velocity_north_m_s"]))
+    off = (course - d["ins_yaw_deg"] + 180.0) % 360.0 - 180.0
+    assert np.all(np.abs(off) < 20.0)
+    assert np.all(d["ins_velocity_down_m_s"][:3] < 0) and np.diff(d["alt_m"][:3]).min() > 0

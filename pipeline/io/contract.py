@@ -48,6 +48,20 @@ class TopicRule:
         return self.prefix and topic.startswith(self.topic + "/") and bool(sub)
 
 
+# /ins/solution's numeric fields and their units, in the order the reader keeps them
+INS_UNITS = {
+    "latitude_deg": "deg",
+    "longitude_deg": "deg",
+    "altitude_m": "m",
+    "velocity_north_m_s": "m/s",
+    "velocity_east_m_s": "m/s",
+    "velocity_down_m_s": "m/s",
+    "roll_deg": "deg",
+    "pitch_deg": "deg",
+    "yaw_deg": "deg",
+}
+INS_FIELDS = tuple(INS_UNITS)
+
 INPUT_CONTRACT: tuple[TopicRule, ...] = (
     TopicRule(
         "/mag/scalar",
@@ -72,6 +86,14 @@ INPUT_CONTRACT: tuple[TopicRule, ...] = (
         "attitude",
         ("roll_deg", "pitch_deg", "yaw_deg"),
         description="attitude, Z-Y-X Euler angles, yaw = true heading",
+    ),
+    TopicRule(
+        "/ins/solution",
+        "aeromag.InsSolution",
+        "ins",
+        INS_FIELDS,
+        description="the INS's own navigation solution (position, NED velocity, attitude), "
+        "used by navigate as the recorded INS",
     ),
     TopicRule(
         "/gnss/fix",

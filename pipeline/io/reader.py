@@ -25,7 +25,13 @@ import pandas as pd
 
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight  # moved to pipeline.flight; re-exported here
-from pipeline.io.contract import MESSAGE_ENCODING, TopicRule, rule_for_topic
+from pipeline.io.contract import (
+    INS_FIELDS,
+    INS_UNITS,
+    MESSAGE_ENCODING,
+    TopicRule,
+    rule_for_topic,
+)
 from pipeline.io.plausibility import check_degrees, check_units
 from pipeline.io.scan import Loss, ScanError, scan_mcap
 from pipeline.io.schemas import schema
@@ -490,7 +496,7 @@ def _check_plausible(series: dict[str, TopicSeries], path: Path) -> None:
         elif role == "vector":
             mag = np.sqrt(sum(s.values[f"{ax}_nT"] ** 2 for ax in "xyz"))
             check_units("the vector magnitude", mag, path, topic)
-        elif role == "attitude":
+        elif role in ("attitude", "ins"):
             check_degrees(
                 {f: s.values[f] for f in ("roll_deg", "pitch_deg", "yaw_deg")},
                 ("roll_deg", "pitch_deg", "yaw_deg"),
@@ -623,6 +629,11 @@ def read_flight(
             put("roll_deg", s.values["roll_deg"], "deg")
             put("pitch_deg", s.values["pitch_deg"], "deg")
             put("yaw_deg", s.values["yaw_deg"], "deg", angle=True)
+        elif role == "ins":
+            # the recorded INS, column ins_<field> (its own rate is kept in flight.series)
+            topic_of["ins"] = topic
+            for name in INS_FIELDS:
+                put(f"ins_{name}", s.values[name], INS_UNITS[name], angle=name == "yaw_deg")
         elif role == "position":
             topic_of["position"] = topic
             put("lat_deg", s.values["latitude"], "deg")

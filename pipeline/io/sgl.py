@@ -10,6 +10,7 @@ Field layout in ``shared/docs/sgl-layout.md``; the mapping (stated in ``schemas/
 | ``flux_a_x/y/z`` ... ``flux_d_*`` | ``/mag/vector/a`` ... | aeromag.VectorField |
 | ``ins_roll``, ``ins_pitch``, ``ins_yaw`` (deg) | ``/ins/attitude`` | aeromag.Attitude |
 | ``lat``, ``lon`` (deg), ``utm_z`` (GPS height, ellipsoid) | ``/gnss/fix`` | foxglove.LocationFix |
+| ``ins_lat``, ``ins_lon`` (rad), ``ins_alt``, ``ins_vn/vw/vu``, attitude | ``/ins/solution`` | |
 | ``diurnal``, ``igrf`` | ``/reference/diurnal``, ``/reference/igrf`` | aeromag.ScalarField |
 | ``cur_*`` (A), ``vol_*`` / ``v_*`` (V) | ``/aux/cur_*``, ``/aux/vol_*`` | aeromag.Scalar |
 | ``line`` | ``/plan/line`` at each change | aeromag.LineMarker |
@@ -62,6 +63,10 @@ XYZ_NAMES = {
     "OGS_MAG": "ogs_mag",
     "OGS_HGT": "ogs_alt",
     "IGRF": "igrf",
+    "INS_HGT": "ins_alt",
+    "INS_VEL_N": "ins_vn",
+    "INS_VEL_W": "ins_vw",
+    "INS_VEL_V": "ins_vu",
 }
 
 
@@ -215,6 +220,43 @@ def _times_ns(fields: dict[str, np.ndarray], path: Path) -> np.ndarray:
     return out
 
 
+INS_COLUMNS = ("ins_lat", "ins_lon", "ins_alt", "ins_vn", "ins_vw", "ins_vu")
+
+
+def ins_solution(f: dict[str, np.ndarray], path: Path) -> dict[str, np.ndarray] | None:
+    """The SGL INS columns as ``/ins/solution`` fields (deg, m, NED m/s, deg), or None when
+    the file lacks one of them.
+
+    SGL gives the INS position in radians and the velocity north, west and up; the contract
+    wants degrees and north, east, down. A file whose INS position is already in degrees is
+    recognised against the GNSS position (the unit that lies nearer to it), or, without one,
+    by values outside the radian range.
+    """
+    att = ("ins_roll", "ins_pitch", "ins_yaw")
+    if not all(k in f for k in (*INS_COLUMNS, *att)):
+        return None
+    lat, lon = f["ins_lat"], f["ins_lon"]
+    in_radians = bool(np.nanmax(np.abs(lat)) <= np.pi / 2 and np.nanmax(np.abs(lon)) <= np.pi)
+    if in_radians and "lat" in f and "lon" in f:
+        as_rad = np.nanmedian(np.abs(np.degrees(lat) - f["lat"]))
+        as_deg = np.nanmedian(np.abs(lat - f["lat"]))
+        in_radians = bool(as_rad <= as_deg)
+    if not np.isfinite(lat).any():
+        raise AeromagError("no finite INS latitude", file=path, channel="ins_lat")
+    scale = 180.0 / np.pi if in_radians else 1.0
+    return {
+        "latitude_deg": lat * scale,
+        "longitude_deg": lon * scale,
+        "altitude_m": f["ins_alt"],
+        "velocity_north_m_s": f["ins_vn"],
+        "velocity_east_m_s": -f["ins_vw"],
+        "velocity_down_m_s": -f["ins_vu"],
+        "roll_deg": f["ins_roll"],
+        "pitch_deg": f["ins_pitch"],
+        "yaw_deg": np.mod(f["ins_yaw"], 360.0),
+    }
+
+
 # --------------------------------------------------------------------------------------------
 def import_sgl(
     src: str | Path,
@@ -319,6 +361,17 @@ def import_sgl(
                     for tn, r, pp, y in zip(
                         t[ok], f["ins_roll"][ok], f["ins_pitch"][ok], f["ins_yaw"][ok], strict=True
                     )
+                ),
+            )
+        ins = ins_solution(f, p)
+        if ins is not None:
+            ok = np.all(np.isfinite(np.column_stack(list(ins.values()))), axis=1)
+            emit(
+                "/ins/solution",
+                "aeromag.InsSolution",
+                (
+                    (tn, {k: float(v[i]) for k, v in ins.items()})
+                    for i, tn in zip(np.flatnonzero(ok), t[ok], strict=True)
                 ),
             )
         alt = next((a for a in ("utm_z", "alt", "ins_alt") if a in f), None)
