@@ -11,7 +11,7 @@ leave transients) is tested against it:
 
 The errors are autocorrelated (manoeuvre-frequency residuals last several seconds: lag-one
 correlations of 0.7-0.8 between 1 s means), which a plain or Newey-West t ignores or
-under-corrects (measured: 26 of 40 clean synthetic calibrations gave a "step"). So the model
+under-corrects (clean calibrations then give "steps"). So the model
 is prewhitened first: an AR(2) fitted to the no-step residuals (least squares on its lags)
 filters y and every column within each leg (Cochrane-Orcutt), and the step's t statistic on
 the whitened data is Bonferroni-corrected over the scanned positions. The model (one step

@@ -4,8 +4,8 @@ A calibration pass is a handful of distinct situations: each cardinal heading fl
 with roll, pitch and yaw oscillations, and the turns between legs. Holding out whole 30-s
 chunks (or one manoeuvre block) asks the model to predict a heading x manoeuvre combination it
 never saw in training: the poorly determined directions of the T-L solution then dominate the
-"held-out" residual even on a flight with nothing hidden (measured: 0.7-1.1 nT held out
-against a 0.06-0.11 nT fit on clean independent flights). Here every fold holds short blocks
+"held-out" residual even on a flight with nothing hidden (ten times the fit residual and
+more). Here every fold holds short blocks
 from **every** stratum (heading x manoeuvre, turns by heading octant), so training always
 contains each situation and the held-out residual measures what the model gets wrong, not
 how it extrapolates.
@@ -144,8 +144,8 @@ def choose_lambda(
         )
     # Each training set's normal equations are the total minus the held-out group's, so one
     # pass over the rows and a p x p eigendecomposition per group replace an SVD of every
-    # training matrix (the audit chooses lambda ~100 times a flight; measured 74 % of its
-    # time in those SVDs). Squared singular values = eigenvalues of K'K.
+    # training matrix (the audit chooses lambda ~100 times a flight, and those SVDs were
+    # most of its time). Squared singular values = eigenvalues of K'K.
     gram = {
         g: (k[groups == g].T @ k[groups == g], k[groups == g].T @ y[groups == g]) for g in labels
     }

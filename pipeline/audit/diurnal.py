@@ -32,9 +32,8 @@ delete-one-group jackknife's (a group: one leg's blocks, one crossover; the leas
 takes the points as independent, which the blocks of one leg are not) and adds, in
 quadrature, what a slow drift of the airborne level that the base station does not see would
 do to the coefficient (:data:`DRIFT_ALLOWANCE_NT_PER_S`: a sensor's or the carrier's thermal
-drift). On another tool's clean recording with a diurnal of 1-30 nT added, the coefficient was
-off by about 0.4 nT of the variation whatever its size (1.41 for 1 nT, 1.014 for 30 nT) and
-the least-squares interval missed the truth on 2 of 4 flights.
+drift). A clean flight's crossovers and legs hold fixed structure that projects on a slow
+variation, so the coefficient is off by a fixed size in nT, whatever the variation's.
 
 Sizes in nT, times in s.
 """

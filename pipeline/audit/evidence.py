@@ -6,7 +6,7 @@ nominal p-values then hold approximately instead of being wildly optimistic. The
 comparison averages squared residuals over blocks of ``block_s`` seconds, which are close
 to independent, and tests the paired block differences with the one-sided Wilcoxon
 signed-rank test: block differences are heavy-tailed (a sensor lag shows mostly in the
-fastest manoeuvres), and a t-test then misses a 90 % reduction (measured: p = 0.15).
+fastest manoeuvres), and a t-test then misses even a large reduction.
 """
 
 from __future__ import annotations

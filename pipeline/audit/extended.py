@@ -301,8 +301,7 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
         sub += [True] * 18
         # an eddy field of E dB/dt ~ 0.02 s x 10^4 nT/s = 200 nT (a fixed-wing's) puts
         # 0.4 nT of |E dB|^2 / 2|B| into the magnitude, following the squared rates: a
-        # motor current, whose size follows the manoeuvres', took it up (0.02-0.04 nT/A
-        # named on fixed-wing flights with no coupling)
+        # motor current, whose size follows the manoeuvres', would take it up
         rate = np.gradient(v, data.time_s, axis=0) / (BT_SCALE_NT * SECOND_ORDER_RATE_PER_S)
         cols.append(np.column_stack([rate[:, j] * rate[:, k] for j, k in quad]))
         names = names + [f"second_dB{'xyz'[j]}dB{'xyz'[k]}" for j, k in quad]

@@ -44,11 +44,10 @@ MIN_BLOCK_FILL = 0.5  # share of a block's samples that must be present
 SCALE_UNCERTAINTY = 1e-3
 # the crust's own gradient at the calibration site is part of the field the legs measure, of
 # no carrier's making, and nothing in a recording tells it from a gradient effect over the same
-# box (a truth document states the effect without it). Measured: the independent recordings'
-# box reads 0.2 nT/km from their sources 0.6-2 km away (its 95 % interval was +-0.06 nT/km, so
-# a 0.02-0.2 nT/m effect's small components fell outside it), the simulator's 1.8 nT/km. The
-# interval carries 1 nT/km of it as a standard error; the tests of the gradient do not (the
-# crust's own is what min_excess_gradient_nT_per_m keeps from being named)
+# box (a truth document states the effect without it); sources a few km away put tenths to a
+# few nT/km over a box. The interval carries 1 nT/km of it as a standard error; the tests of
+# the gradient do not (the crust's own is what min_excess_gradient_nT_per_m keeps from being
+# named)
 CRUST_GRADIENT_SE_NT_PER_M = 1e-3
 
 
@@ -227,8 +226,7 @@ def leg_gradient(
         (n, k) columns of interference the compensation may have taken out wrongly, each
         with one coefficient in both models of the test (for a channel whose coupling was
         fitted, ``u_x I, u_y I, u_z I``: a coupling wrong by ``dc`` leaves ``dc . u I``,
-        and a switch within a leg would otherwise read as a ramp; measured: a current's
-        coupling fitted at 12 nT/A for 3 nT/A read 12 nT/km north on a flight with none).
+        and a switch within a leg would otherwise read as a ramp).
     crust_se_nT_per_m : float
         Standard error (nT/m) allowed in the intervals for the crust's own gradient at the
         site (:data:`CRUST_GRADIENT_SE_NT_PER_M`; 0 where the field is known to hold only the

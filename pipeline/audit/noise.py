@@ -102,8 +102,7 @@ def quietest_band_noise_nT(x_nT: np.ndarray, time_s: np.ndarray, rate_hz: float)
     after aliasing but not flat: eddy currents follow the rate of turn, so it rises with
     frequency, and in a compensated record its resolvable part is gone below ~1.5 Hz. The
     quietest band is then the tightest upper bound on the sensor's own white noise the
-    record offers (measured on ``independent_none``: 0.17 nT, against 0.38 nT from the
-    upper half of the band and a sensor's 0.0925 nT).
+    record offers.
 
     Parameters
     ----------
@@ -206,10 +205,9 @@ def noise_floor_bounds(
         Nominal sample rate (Hz).
     delay_s : float
         The model's pure delay of the scalar stream (s; 0: none). Re-timing by a fraction
-        of a sample interpolates between samples and averages their noise down (measured
-        2026-12-02: a 0.048 s delay read 0.14 nT for a 0.41 nT sensor), so the interference
-        is moved back to the sensor's own epochs instead. A deconvolved stream (a first-order
-        response) amplifies the noise: an upper bound still, used as it is.
+        of a sample interpolates between samples and averages their noise down, so the
+        interference is moved back to the sensor's own epochs instead. A deconvolved stream
+        (a first-order response) amplifies the noise: an upper bound still, used as it is.
 
     Returns
     -------

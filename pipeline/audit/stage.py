@@ -182,8 +182,8 @@ class AuditSettings:
     block_s_cv: float = BLOCK_S
     max_generalization_gap: float = 2.0  # held-out / fit residual above this: a warning
     # the compensated record's upper-band over quietest-band white level above which the
-    # noise floor is reported as an upper bound (white noise: 1.04; measured 2026-12-02 on
-    # the five independent recordings, whose airframe jitter aliases: 2.2-2.3)
+    # noise floor is reported as an upper bound (white noise reads 1.04; interference that
+    # rises with frequency, such as aliased airframe jitter, reads well above)
     max_noise_rise: float = 1.5
     min_event_nT: float = 0.3  # smallest step or drift in the survey worth an event
     # smallest |dp| of a permanent-field step against the fluxgate worth an event (nT)
@@ -194,19 +194,16 @@ class AuditSettings:
     # or a 0.05 % scale, where low-cost fluxgates leave the factory at 0.5-2 % and 0.3-1 deg
     fluxgate_tolerance: float = 5e-4
     # the crust adds regional gradients of a few nT/km everywhere, which no main-field model
-    # holds (measured: the simulator's sources 2-3 km from the box put 1.8 nT/km beyond
-    # IGRF over it, and the legs read it, at p 0.001, as 2.3 nT/km), and long fixed-wing
-    # legs ramp measurably on them (0.6 nT RMS along 3.6 km legs on 0.5 nT/km); a calibration
-    # site's gradient is an effect to model above that, from 5 nT/km on (the manoeuvres'
-    # 10-50 m moves make 0.05-0.25 nT of it in the band, the noise floor's order)
+    # holds and long legs measure; a calibration site's gradient is an effect to model above
+    # that, from 5 nT/km on (the manoeuvres' 10-50 m moves make 0.05-0.25 nT of it in the
+    # band, the noise floor's order)
     min_excess_gradient_nT_per_m: float = 0.005
     # a gradient seen along the calibration legs confirms a gradient candidate when it is
     # significant and changes the field along the legs by at least this much (RMS, nT): a
     # real but negligible gradient (quiet ground, the main field's own) confirms nothing
     min_leg_ramp_nT: float = 0.5
     # a lag estimate moves with the resampling and the eddy columns' per-sample differences
-    # by a few ms (0.099-0.101 s for a true 0.100 s; clean multicopter flights gained 5-6 %
-    # held out from 1.5-2.4 ms): a lag is an effect to model from a fifth of a sample on
+    # by a few ms: a lag under a fifth of a sample is within the resampling's own error
     # (20 ms at 10 Hz, 14 cm along track at 7 m/s)
     min_lag_samples: float = 0.2
 
@@ -701,9 +698,7 @@ class Auditor:
                 ev.confirm_p = p_excess
                 # the legs measured a gradient that matters (beyond the regional, ramping
                 # along the legs); the band-passed calibration sees it only through the
-                # manoeuvres' small moves, so it need only not contradict it (measured: a
-                # fixed-wing's 0.45 nT/m ramped 60 nT RMS along its legs, the position
-                # columns changed the held-out residual by -0.2 % and BIC by +20)
+                # manoeuvres' small moves, so it need only not contradict it
                 ev.decided_outside = True
                 # the legs measured the gradient: it can also be taken out of the reading
                 # instead of fitted as position columns, which see it only through the
@@ -755,7 +750,6 @@ class Auditor:
         if p_excess >= self.s.alpha:
             # the size below is a point estimate: with a few blocks per leg, or nuisance
             # columns that share the ramps, it can exceed the threshold by its error alone
-            # (measured: 6.3 nT/km +- 1.9 read beyond IGRF's on a flight with none)
             why_not = (
                 "the calibration legs' gradient is not distinguishable from the main field's "
                 f"(p {p_excess:.2g} >= {self.s.alpha:g})"
@@ -825,7 +819,7 @@ class Auditor:
         coefficients is biased low), then a bounded 1-D refinement. (0, inf) when the
         calibration is too short to refit."""
         # the L-curve's lambda even in a fold: with cross-validation's (often tiny) lambda
-        # the eddy terms absorb part of the lag (measured: 0.07 s found for 0.16 s)
+        # the eddy terms absorb part of the lag and bias it low
         lam = self.fit(current, keep, key, ridge="auto").lambda_
         try:
             cost = lag_cost(
@@ -899,12 +893,10 @@ class Auditor:
         # the folds' spread is the statistical error only. The calibration cannot tell the
         # model forms apart (a delay or a sensor filter; eddy currents that decay or not) and
         # each reads a lag-like residual as a different lag, so the interval spans the lags
-        # of every form (measured on simulated flights: 0.058-0.111 s for a true 0.100 s,
-        # where the folds gave +-0.001 s)
+        # of every form (their spread far exceeds the folds')
         est["lag_by_model_form_s"] = forms
         # and beside eddy currents that decay with their best time constant, which take part
-        # of a lag-like residual (measured on multicopters, a true 0.10 s: the forms above
-        # read 0.10-0.39 s, the lag beside the decay 0.03-0.08 s; the truth lay between)
+        # of a lag-like residual: the truth can lie between that lag and the forms' above
         beside_decay = self._lag_beside_eddy_decay(current)
         est["lag_beside_eddy_decay_s"] = beside_decay
         if ci.get("lag_s") is not None:
@@ -926,14 +918,11 @@ class Auditor:
             "eddy currents with a time constant",
             "a late sensor",
         )
-        # only a lag every model form agrees on, each at least what the sampling resolves:
-        # a clean flight's 1.5 ms "lag" was -33 ms with the eddy-rate columns in; a
-        # fixed-wing's 0.9 nT of decaying eddy currents read 23 ms as a delay, 0.02 ms as a
-        # delay beside the eddy-rate columns. Or a lag that eddy currents decaying with their
-        # best time constant, the rate columns' whole form, leave in one response at least:
-        # the rate columns' nine free coefficients also take up a true lag (measured
-        # 2026-12-02, seed 7: true 0.1 s lags read 0.115 s and 0.093 s alone, -0.005 s and
-        # 0.012 s beside the rate columns, 0.056 s and 0.035 s beside the decay)
+        # only a lag every model form agrees on, each at least what the sampling resolves
+        # (decaying eddy currents read as a small delay alone, as none beside the rate
+        # columns); or a lag that eddy currents decaying with their best time constant, the
+        # rate columns' whole form, leave in one response at least: the rate columns' nine
+        # free coefficients also take up a true lag
         smallest = self.s.min_lag_samples / self.data.rate_hz
         beside_most = max(beside_decay.values())
         decay_as_well = False
@@ -947,9 +936,7 @@ class Auditor:
         elif not ev.held_back and not current.eddy_rate and not current.eddy_tau_s:
             decay_as_well = self._decay_explains_lag(ev, current, held)
         # a decay no slower than the lag is the sensor's own first-order response, no rival
-        # cause: there is no tie for the timing along the lines to break (measured 2026-12-02,
-        # seed 7, a true 0.10 s lag tied with a 0.05 s decay; the crossovers alone, with no
-        # fluxgate timing, read -1.6 s [-2.6, -0.5] and vetoed it)
+        # cause: there is no tie for the timing along the lines to break
         if decay_as_well and not self._slower_than_lag(ev.estimate["eddy_decay"]["tau_s"], lag):
             decay_as_well = False
         beside_decay_least = min(beside_decay.values())
@@ -977,10 +964,8 @@ class Auditor:
                 fluxgate_lag_p_value=tl.p_value,
             )
             ev.ci95.update(fluxgate_lag_s=None, fluxgate_lag_ci95_s=None, fluxgate_lag_p_value=None)
-            # independent timing that disagrees with every calibration form (measured: on
-            # multicopters with slowly decaying eddy currents every form read 0.20-0.26 s for
-            # a true 0.10 s, the fluxgate 0.13-0.15 s): the truth may lie with either, so the
-            # interval spans both
+            # independent timing that disagrees with every calibration form: the truth may lie
+            # with either, so the interval spans both
             lo, hi = ev.ci95["lag_s"] or (lag, lag)
             if not lo <= tl.lag_s <= hi:
                 ev.ci95["lag_s"] = [min(lo, tl.ci95_s[0]), max(hi, tl.ci95_s[1])]
@@ -998,14 +983,10 @@ class Auditor:
                 ev.reason = ""
                 est["confirmed_by"] = name
         # the calibration cannot tell a late sensor from eddy currents that decay: the
-        # timing along the lines breaks the tie when it says the scalar is not late at all
-        # (measured 2026-12-02: a diurnal flight with 0.5 nT of eddy currents decaying over
-        # 0.5 s read a 0.097 s "lag"; the fluxgate said -0.26 s [-0.51, -0.01], the
-        # crossovers -0.64 s [-1.31, 0.03]). Below the calibration's lag is not enough: on a
-        # true 0.1 s lag the calibration read 0.15-0.21 s and the timing -0.09 [-0.29, 0.12]
-        # Nor is one timing's interval below zero enough while the other's holds the lag: the
-        # crossovers read -1.8 s [-2.7, -1.0] on a true 0.1 s lag, the fluxgate -0.02 s
-        # [-0.80, 0.76] (seed 7, lag #25)
+        # timing along the lines breaks the tie when it says the scalar is not late at all:
+        # below zero, not merely below the calibration's lag (whose forms can read a true
+        # lag high), and only when neither timing's interval holds the lag (one timing can be
+        # far off on a small survey)
         timing = combined_interval([o for o in (sl, tl) if o is not None])
         holds_lag = any(o.ci95_s[0] <= lag <= o.ci95_s[1] for o in (sl, tl) if o is not None)
         if (
@@ -1022,11 +1003,8 @@ class Auditor:
                 "not late"
             )
         # nor is it late when the decay leaves the lag, refitted beside it, nothing the
-        # sampling resolves, unless the timing along the lines says it is late (measured
-        # 2026-12-02, seed 7: two gradient flights read 0.076 and 0.236 s, -0.003 s beside
-        # decays of 1.0 and 0.7 s; true 0.1 s lags that tied with a slower decay kept
-        # 0.038-0.112 s beside it; one tied with a 0.2 s decay, its own response, and kept
-        # 0.014 s beside it, for a lag of 0.128 s)
+        # sampling resolves, unless the timing along the lines says it is late (a true lag
+        # keeps a resolvable part of itself beside a slower decay)
         if (
             decay_as_well
             and not ev.held_back
@@ -1064,7 +1042,7 @@ class Auditor:
         first-order response: a sensor filter of tau and eddy currents decaying with tau
         differ in the calibration only beyond second order in w tau (the T-L eddy columns
         take the first order of either), while eddy currents that do decay read as a lag far
-        shorter than their time constant (measured: 0.07-0.10 s for tau 0.5 s)."""
+        shorter than their time constant."""
         return abs(np.log(tau_s / max(abs(lag_s), 1e-9))) <= np.log(SAME_RESPONSE_RATIO)
 
     @staticmethod
@@ -1081,10 +1059,9 @@ class Auditor:
         calibration data at least as well as the lag, and the lag, refitted beside them in
         each fold, adds nothing (recorded in ``ev.estimate["eddy_decay"]``).
 
-        The eddy-rate columns are only the decay's first order in w tau: decaying eddy
-        currents of 0.4-0.5 nT with tau 0.5 s passed that test as a 0.07-0.10 s lag. The
-        calibration alone cannot settle it either way (true 0.1 s lags on multicopters: the
-        decay alone left 0.135-0.232 nT where the lag left 0.13-0.23 nT), so this only
+        The eddy-rate columns are only the decay's first order in w tau: a slow decay can
+        pass that test as a short lag. The calibration alone cannot settle it either way
+        (a true lag and a decay leave about the same held-out residual), so this only
         marks the tie for the timing along the lines to break. The lag is refitted beside
         the decay because the decay's columns absorb part of it.
         """
@@ -1131,11 +1108,8 @@ class Auditor:
         at least ``min_lag_samples`` in every response (the decay does not take it).
 
         The eddy-rate columns are nine free coefficients, the decay's first order in w tau,
-        and take up a true lag as well as the decay (measured 2026-12-02, seed 7: a true
-        0.1 s lag beside 0.52 nT of eddy currents decaying over 0.98 s read 0.179 s alone,
-        0.115 s beside the rate columns, 0.046-0.056 s beside the best decay); the decay's
-        columns with a fitted time constant are the alternative whole, and what the lag
-        adds to them is the sensor's. (On that flight it added 0.7 %, p 0.02: no release.)
+        and take up a true lag as well as the decay; the decay's columns with a fitted time
+        constant are the alternative whole, and what the lag adds to them is the sensor's.
         """
         adds = self._weigh_lag_beyond_eddy_decay(ev, current)[1]
         if adds:
@@ -1161,15 +1135,10 @@ class Auditor:
         :meth:`_decay_explains_lag`).
 
         The eddy-rate columns are the decay's first order in w tau; on a multicopter's brisk
-        manoeuvres they mimic a true lag about as well as the lag itself (measured: a true
-        0.100 s lag found at 0.098 s, held-out residual 0.106 nT with the lag, 0.110 nT with
-        the rate columns, 0.107 nT with both), so that test cannot decide. Decaying eddy
-        columns with a fitted time constant can: on that flight they gave 0.110 nT and
-        nothing beyond the lag; on a clean flight with slowly decaying eddy currents (0.6 nT,
-        0.58 s) they gave 0.312 nT where a lag gave 0.352 nT. A true 0.1 s sensor filter
-        (seed 7, lag #2) tied with decay at tau 0.1 s: 0.165 nT against the lag's 0.170 nT,
-        the decay adding 0.1 % beside the lag; another (seed 7, lag #9, fixed-wing) was
-        bettered by decay at tau 0.1 s, 0.305 nT against 0.332 nT: the same response.
+        manoeuvres they mimic a true lag about as well as the lag itself, so that test cannot
+        decide. Decaying eddy columns with a fitted time constant can: they add nothing
+        beyond a true lag, and predict slowly decaying eddy currents better than a lag does.
+        A sensor filter and a decay with about its time constant are one response.
         """
         alone, adds = self._weigh_eddy_decay(
             ev,
@@ -1242,8 +1211,8 @@ class Auditor:
         body = None if steps is None else switch_body_coupling(steps)
         if body is not None:
             # the calibration's three columns can take up other interference that follows
-            # the manoeuvres (seen: |c| 4.7 [3.7, 5.7] nT/A for a true 3.0), and the switches
-            # may be read at few headings: the interval of |c| spans both estimates'
+            # the manoeuvres, and the switches may be read at few headings: the interval of |c|
+            # spans both estimates'
             ev.estimate.update(
                 switch_nT_per_unit=body.nT_per_unit,
                 switch_vector_body_nT_per_unit=[float(v) for v in body.vector_nT_per_unit],
@@ -1285,9 +1254,7 @@ class Auditor:
                 ev.confirm_p = p if ev.confirm_p is None else min(1.0, 2 * min(ev.confirm_p, p))
                 ev.confirmed_gain = True
                 # the steps' own test, Bonferroni over the channels tested, decides alone:
-                # seen on simulated single-pass flights, a 2.5 nT/A payload current switched
-                # 17 times gave p 4e-8 and 70 % held out from its steps while the band-passed
-                # calibration saw F-test p 0.14 and -1 % held out
+                # the band-passed calibration is blind to a load it sees switch a few times
                 n_channels = sum(e == "electrical_current" for e, _ in self.candidates(current))
                 if sw.p_value * max(1, n_channels) < self.s.alpha:
                     self._decide_by_switches(ev, current, name, sw)
@@ -1312,10 +1279,9 @@ class Auditor:
         held-out residual more: the calibration's three body columns (``ev.spec``), or the
         switches' total-field coupling taken out as known (``ModelSpec.known_aux``), which
         has nothing to fit. Three free columns of a channel that the band-passed
-        calibration hardly sees fit other residual: on a simulated flight they added
-        0.2-0.4 nT of ramps to the calibration legs and a gradient was named beside the
-        current; where the calibration does see the current, its columns also hold the
-        coupling's components across the field, which the known total-field one lacks.
+        calibration hardly sees fit other residual (ramps along the calibration legs, which
+        a gradient then takes); where the calibration does see the current, its columns
+        also hold the coupling's components across the field, which the known one lacks.
         The calibration's fit of the coupling stays the reported estimate."""
         known = current.with_(known_aux=current.known_aux + ((name, sw.total_field_nT_per_unit),))
         held_known = self.heldout(current, lambda train, k: known)
@@ -1602,11 +1568,9 @@ class Auditor:
 
         Crossings not read on the same ground the same way are left out
         (:meth:`_straight_crossings`: in a turn, or on a climbing transit labelled a tie):
-        such readings are tens of nT off, and a few of them made a spurious 60 nT step
-        that displaced the real one. The calibration legs' heading levels do not join: a
-        box's geology is not linear over a leg (0.3-1 nT of residual about a fitted
-        gradient on simulated boxes), and the legs' levels then differed from the survey's
-        by 3-6 nT on clean flights, as much as a real step shows.
+        such readings are tens of nT off, enough to make or displace a step. The
+        calibration legs' heading levels do not join: a box's geology is not linear over a
+        leg, so the legs' levels differ from the survey's by as much as a real step shows.
         """
         got = self._survey_crossovers(spec)
         if got is None:
@@ -1626,8 +1590,7 @@ class Auditor:
         straight (the course over ground within ``COURSE_WINDOW_S`` of the reading within
         ``max_turn_deg`` of the line's mean heading) and at heights within
         ``max_height_m`` of each other. A line's ends can run into its turns, and a track
-        labelled a tie can be a climbing transit (seen: a return to the calibration box
-        climbing 1 km, crossing the block 50-100 nT off); the ground's anomalies change by
+        labelled a tie can be a climbing transit; the ground's anomalies change by
         0.02-0.1 nT per metre of height, so 20 m keeps the error near the crossovers'
         own scatter."""
         alt = self.flight.data["alt_m"].to_numpy(float)
@@ -1676,8 +1639,8 @@ class Auditor:
         The scalar-minus-fluxgate difference over the whole flight holds no Earth field, so
         a step shows at its full size ``u . dp`` at every heading flown after it; the
         crossovers see only the heading levels' change, which tie lines flown after the step
-        absorb (six of the 30 simulated step flights had no other event within 120 s). The
-        recorded auxiliary channels enter its model, so that a switched current is no step.
+        absorb. The recorded auxiliary channels enter its model, so that a switched current
+        is no step.
         Independent of the calibration model: the raw readings only.
         """
         d = self.data
@@ -1697,9 +1660,8 @@ class Auditor:
         permanent field after the gap's middle (three columns, u dp). It counts when its
         F-test (Bonferroni over the gaps), BIC and held-out test (the stratified folds: every
         fold trains on both passes) all favour it. The held-out test is the one that decides:
-        on clean two-pass flights the F-test alone gave p down to 1e-60 (the calibration
-        residual is autocorrelated and the passes' unmodelled interference differs a little)
-        while the held-out p stayed above 0.2; with a 3-8 nT step it fell to 1e-3-1e-5.
+        the F-test alone is far too optimistic (the calibration residual is autocorrelated
+        and the passes' unmodelled interference differs a little).
         Kept per model. Hand-written: the test is the audit's own nested and held-out pair,
         which no change-point library computes on a regression's coefficients.
         """
@@ -1784,7 +1746,7 @@ class Auditor:
         # the carrier's isotropic soft iron scales the reading and no fit can see it (it is
         # the induced columns' missing sum); its anisotropic part, which the fit does see, is
         # of the same order on real carriers, so the largest fitted induced coefficient
-        # stands for the scale's uncertainty (measured: fitted 0.006, isotropic part 0.0045)
+        # stands for the scale's uncertainty
         fm = self.fit(spec, None, "all")
         induced = [abs(v) for n, v in zip(fm.names, fm.theta, strict=True) if n.startswith("ind_")]
         scale = max(induced, default=0.0) / BT_SCALE_NT
@@ -1841,8 +1803,7 @@ class Auditor:
             self.data.aux[name],
             # compensation is weakest in turns, and in the calibration's manoeuvres a load
             # that follows them (a motor's current, the bus voltage) changes with the
-            # attitude: a lagged sensor's residual there gave a bus voltage 2.9 nT/V at p
-            # 2e-11 from 37 such "switches"
+            # attitude, so a residual there would pass for a coupling
             usable=~self.seg.mask("turn", "calibration"),
             direction=direction_cosines(self.data.vector_nT),
         )
@@ -1884,9 +1845,8 @@ class Auditor:
         known = self.gradient_from_legs(spec) if steps else None
         if known is not None and not any(e["kind"] == "step" for e in self.survey_evidence(known)):
             # a gradient mis-compensated in the heading terms moves the crossovers' levels
-            # as the lines move across it (measured: a 0.32 nT/m gradient on a fixed-wing
-            # gave a 10 nT "step" on the north lines, gone with the legs' gradient taken
-            # out); the gradient is a candidate of its own
+            # as the lines move across it, which reads as a step; the gradient is a candidate
+            # of its own
             self.notes.append(
                 "the survey's step goes with the gradient the calibration legs measure: "
                 "not taken for a change of the carrier's permanent field"
@@ -1990,10 +1950,8 @@ class Auditor:
         are these, with the others present. The acceptance statistics stay those of the
         round that accepted the effect. An effect that, with the others present, a
         competing explanation or its own direct evidence now rejects (``held_back``) is
-        dropped from ``findings`` (in place) and from the model: seen, a payload current's
-        steps inside the calibration legs ramped like a gradient, the gradient was named in
-        the first round, and with the current in the model the legs showed none beyond the
-        main field's.
+        dropped from ``findings`` (in place) and from the model (a current's steps inside the
+        calibration legs ramp like a gradient until the current is in the model).
         """
         order = sorted(findings, key=lambda f: f.effect != "sensor_lag")  # lag first
         for f in order:

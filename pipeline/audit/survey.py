@@ -162,8 +162,7 @@ def scan_p_value(
     """The smallest of a scan's F-test p-values (``p_min``), corrected for the scan.
 
     Neighbouring change points differ by one reading, so their F statistics are nearly the
-    same test: Bonferroni over the ``scanned`` positions (tens) is far too conservative
-    (single-pass flights' steps, raw p 1e-3 at the true gap, came out at 0.05-0.2). The
+    same test: Bonferroni over the ``scanned`` positions (tens) is far too conservative. The
     scan's own null distribution is exact and cheap instead: under no step with
     independent Gaussian errors every F statistic is free of the error scale and of the
     base model's coefficients, so the smallest p of the same scan over
@@ -237,9 +236,8 @@ def survey_events(
     likelihood set: n log(RSS(t) / RSS(t_best)) below the chi-square(1) quantile 3.84),
     ``likeliest_start_s``/``_end_s`` in ``detail`` the likeliest gap itself. A line holds
     2-5 crossovers whose differences scatter by about a nT (geology between the
-    interpolated readings, the heading error's change over the area): the likeliest gap
-    alone was 200 s off on simulated flights (inside the line before the step's), where a
-    line's readings either side of the step placed it right on others.
+    interpolated readings, the heading error's change over the area), so the likeliest gap
+    alone can lie a line away from the step.
     """
     y = np.asarray(x.difference_nT, float)
     n = y.size

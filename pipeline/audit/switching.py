@@ -12,12 +12,11 @@ on dI estimates the coupling from data the calibration fit never saw, and predic
 the others (leave-one-out) measures the gain.
 
 The steps are not equally good: a switch over rough ground (a fast carrier crosses an anomaly's
-flank within the window) leaves the line a poor model of the geology, and one such step of
--19 nT/A among steps of 2-3 nT/A took an ordinary least-squares coupling to 1.4 (p 0.28) on a
-fixed-wing flight whose true coupling was 2.5. Each step therefore carries the standard error
-of its window's fit (inflated for the residual's autocorrelation) and the coupling is their
-weighted mean, its spread scaled up by the steps' excess scatter when they scatter more than
-their errors say (the same flight: 2.47 +- 0.17, p 1e-11).
+flank within the window) leaves the line a poor model of the geology, and one such step can
+outweigh all the others in an ordinary least-squares coupling. Each step therefore carries the
+standard error of its window's fit (inflated for the residual's autocorrelation) and the
+coupling is their weighted mean, its spread scaled up by the steps' excess scatter when they
+scatter more than their errors say.
 
 Hand-written: no library fits steps at known instants (ruptures finds unknown ones).
 """

@@ -286,9 +286,8 @@ def scan_vector_reference(
     # the scan twice: the whitening and the weights below come from the model's residual,
     # and a large step left in it both pulls the AR(2) towards a random walk (which whitens
     # a step into one bin) and raises the local RMS around itself, so the step weighs itself
-    # down (measured: an 8 nT step in a transit of independent_none read 1.9x the null's
-    # 95 % point, a 1 nT one in a survey line 12.8x). The second scan takes both from the
-    # residual with the first scan's likeliest step in.
+    # down. The second scan takes both from the residual with the first scan's likeliest
+    # step in.
     with_step = None
     for _ in range(2):
         a0 = base if with_step is None else np.column_stack([base, with_step])
@@ -348,7 +347,6 @@ def scan_vector_reference(
     lo, hi = float(grid[inside].min()), float(grid[inside].max())
     # a change between two scanned points is fitted at one of them, and a bin's mean holds
     # either side of one inside it: the span reaches a scan step and half a bin further
-    # (on independent_step_permanent the set's points alone ended 3 s after the truth)
     pad = scan_every_s + 0.5 * bin_s
     return VectorStep(
         lo - pad,
@@ -388,14 +386,9 @@ def vector_reference_step(
     min_f_ratio : float
         Smallest ratio of the scan's F statistic to the 95 % point of its null maximum. The
         null (Gaussian, whitened, weighted) is not the whole truth: interference outside the
-        model (lagging eddy fields in manoeuvres, unrecorded switched currents) reached up to
-        5.0 times that point on 30 simulated clean flights (4 of them above 3, at p <= 0.002),
-        0.4-1.2 on the independent recordings, while the 3-8 nT steps of 30 simulated step
-        flights gave 12-3700 times it (measured 2026-12-02, seed 2026 of the variety
-        benchmark, with the second scan of :func:`scan_vector_reference`; with one scan
-        clean flights read up to 2.7 and steps from 3.8). Checked on seed 7: clean flights
-        up to 3.3, 29 of 30 steps from 8 (the 30th, 2 nT read 6 min early, was missed by one
-        scan too).
+        model (lagging eddy fields in manoeuvres, unrecorded switched currents) lifts a clean
+        flight's F a few times above that point, a step of a few nT lifts it by one to three
+        orders of magnitude: the ratio is a margin between the two.
     **scan
         Further arguments of :func:`scan_vector_reference`.
 
