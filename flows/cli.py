@@ -131,9 +131,9 @@ def import_mapped(
 ) -> None:
     """Add contract channels (nT, body FRD, NED) for a recorder's mapped topics; every
     aeromag command then reads the output."""
-    from flows.stages import require_readable
     from pipeline.io.mapping import Mapping
     from pipeline.io.mapping import import_mapped as run
+    from pipeline.run.outputs import require_readable
 
     require_readable(file)
     with console.status(f"importing {file.name}"):
@@ -172,8 +172,8 @@ def inspect(
     from pipeline.io.writer import write_json_atomic
 
     if suggest_mapping:
-        from flows.stages import require_readable
         from pipeline.io.mapping import suggest_mapping as suggest
+        from pipeline.run.outputs import require_readable
 
         require_readable(file)
         out.print(suggest(file), markup=False, highlight=False, end="")
@@ -289,7 +289,8 @@ def compensate(
     config: ConfigOption = None,
 ) -> None:
     """Fit a T-L / AGG-TL model, compensate the scalar field, write channels and a summary."""
-    from flows.stages import compensate_recording, require_readable
+    from pipeline.run.commands import compensate_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     lam: object = ridge
@@ -309,10 +310,9 @@ def compensate(
             "--ridge": ("compensation.ridge", lam),
         },
     )
-    settings = cfg.fit_settings(model) if model else None
     with console.status(f"compensating {recording.name}" + (f" ({model})" if model else "")):
         summary = compensate_recording(
-            recording, out_path, json_out, settings, calibration, scalar, vector, cfg
+            recording, out_path, json_out, cfg, calibration, scalar, vector
         )
     for w in (summary.get("calibration_guards") or {}).get("warnings", []):
         console.print(f"warning: {w}", markup=False, highlight=False, soft_wrap=True)
@@ -359,9 +359,8 @@ def map_(
 ) -> None:
     """Reduce, level, grid and ARIMA-Kalman-filter the anomaly map (runs the stages it needs,
     with the configuration's settings)."""
-    from dataclasses import replace
-
-    from flows.stages import map_recording, require_readable
+    from pipeline.run.commands import map_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     cfg = _stage_config(
@@ -373,9 +372,8 @@ def map_(
             "--level-trend": ("map.level_trend", level_trend),
         },
     )
-    settings = replace(cfg.map_settings(), lag_s=lag)
     with console.status(f"mapping {recording.name}"):
-        summary = map_recording(recording, out_path, json_out, settings, cfg)
+        summary = map_recording(recording, out_path, json_out, cfg, lag)
     m = summary["map"]
     say(
         f"grid {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.2f} m; "
@@ -401,8 +399,8 @@ def export(
 ) -> None:
     """Write the map grids and the levelled line data of a processed recording as GeoTIFF,
     netCDF, CSV, Geosoft XYZ and MagNav.jl HDF5 (georeference from its /map/frame)."""
-    from flows.stages import require_readable
     from pipeline.export import check_formats, export_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     chosen = check_formats([f for f in formats.split(",") if f.strip()], "--format")
@@ -432,7 +430,8 @@ def enhance(
 ) -> None:
     """Map enhancements (harmonica): reduction to the pole, vertical and total horizontal
     derivatives, tilt angle, analytic signal, upward continuation -> /map/* grid channels."""
-    from flows.stages import enhance_recording, require_readable
+    from pipeline.run.commands import enhance_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     cfg = _stage_config(
@@ -490,7 +489,8 @@ def quality(
 ) -> None:
     """Heading error at overlap points, interpolated-map comparison, crossovers and survey QC
     (runs segmentation, the configured compensation models and gridding itself when needed)."""
-    from flows.stages import quality_recording, require_readable
+    from pipeline.run.commands import quality_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     cfg = _stage_config(
@@ -501,9 +501,8 @@ def quality(
             "--height-tolerance": ("quality.height_tolerance_m", height_tolerance),
         },
     )
-    settings = cfg.quality_settings()
     with console.status(f"quality statistics of {recording.name}"):
-        summary = quality_recording(recording, json_out, settings, out_path, cfg)
+        summary = quality_recording(recording, json_out, cfg, out_path)
     _print_quality(summary["quality"])
     if out_path:
         say(f"output recording: {out_path}")
@@ -580,7 +579,8 @@ def audit(
 ) -> None:
     """Find what the baseline model gets wrong, name the cause, extend it, measure the gain
     (in the configured fit band)."""
-    from flows.stages import audit_recording, require_readable
+    from pipeline.run.commands import audit_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     cfg = _stage_config(
@@ -591,16 +591,14 @@ def audit(
             "--min-gain": ("audit.min_gain", min_gain),
         },
     )
-    settings = cfg.audit_settings()
     with console.status(f"auditing {recording.name}") as status:
         j = audit_recording(
             recording,
             json_out,
             report,
-            settings,
+            cfg,
             out_path,
             progress=lambda m: status.update(f"auditing {recording.name}: {m}"),
-            cfg=cfg,
         )
     _print_audit(j)
     if out_path:
@@ -688,13 +686,14 @@ def vector(
     config: ConfigOption = None,
 ) -> None:
     """Calibrate or compensate the vector magnetometer (papers 003 and 000)."""
-    from flows.stages import require_readable, vector_recording
+    from pipeline.run.commands import vector_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     cfg = _stage_config(config, {"--method": ("vector.method", method)})
     method = cfg["vector"]["method"]
     with console.status(f"vector stage ({method}) on {recording.name}"):
-        summary = vector_recording(recording, out_path, json_out, method)
+        summary = vector_recording(recording, out_path, json_out, cfg)
     v = summary["vector"]
     for k, val in v.items():
         if isinstance(val, dict) and "before" in val and not isinstance(val["before"], list):
@@ -722,39 +721,58 @@ def navigate(
         typer.Option("--out", help="Also write a copy of the recording with the /nav channels."),
     ] = None,
     filter_: Annotated[
-        str, typer.Option("--filter", help="ekf, or pf (marginalised particle filter).")
-    ] = "ekf",
-    ins: Annotated[str, typer.Option(help="INS grade: navigation (~1 nmi/h) or tactical.")] = (
-        "navigation"
-    ),
+        str | None,
+        typer.Option(
+            "--filter", help="ekf, or pf (marginalised particle filter) (config: navigate.filter)."
+        ),
+    ] = None,
+    ins: Annotated[
+        str | None,
+        typer.Option(help="INS grade: navigation (~1 nmi/h) or tactical (config: navigate.ins)."),
+    ] = None,
     segments: Annotated[
         str,
         typer.Option(help="Segments navigated and scored: validation, survey (with ties) or all."),
     ] = "validation",
-    seed: Annotated[int, typer.Option(help="Seed of the INS errors (and particles).")] = 0,
+    seed: Annotated[
+        int | None,
+        typer.Option(help="Seed of the INS errors (and particles) (config: navigate.seed)."),
+    ] = None,
     map_channel: Annotated[
-        str, typer.Option("--map-channel", help="Grid channel of a recording map.")
-    ] = "/map/anomaly_filtered",
+        str | None,
+        typer.Option(
+            "--map-channel", help="Grid channel of a recording map (config: /map/<navigate.map>)."
+        ),
+    ] = None,
     config: ConfigOption = None,
 ) -> None:
     """Magnetic anomaly navigation on a map: simulate an INS along the recorded track, aid it
     with the map (EKF or particle filter), and score both against /gnss/fix and the CRLB."""
-    from flows.stages import navigate_recording, require_readable
-    from pipeline.navigation.stage import NavigationSettings
+    from pipeline.run.commands import navigate_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     require_readable(map_path)
     cfg = _stage_config(config, {})
-    settings = NavigationSettings(filter=filter_, ins=ins, segments=segments, seed=seed)
-    with console.status(f"navigating {recording.name} on {map_path.name} ({filter_})"):
+    with console.status(f"navigating {recording.name} on {map_path.name}"):
         summary = navigate_recording(
-            recording, map_path, json_out, settings, out_path, map_channel, cfg
+            recording,
+            map_path,
+            json_out,
+            cfg,
+            out_path,
+            map_channel,
+            filter=filter_,
+            ins=ins,
+            segments=segments,
+            seed=seed,
         )
     nav = summary["navigation"]
-    d, c = nav["drms_m"], nav["cep50_m"]
+    d, c, st = nav["drms_m"], nav["cep50_m"], nav["settings"]
     say(
-        f"{filter_} on {segments} ({nav['epochs']['selected']} epochs, {ins}-grade INS, "
-        f"seed {seed}): DRMS INS-only {d['ins_only']:.1f} m, map-aided {d['map_aided']:.2f} m, "
+        f"{st['filter']} on {segments} ({nav['epochs']['selected']} epochs, {st['ins']}-grade "
+        f"INS, seed {st['seed']}): DRMS INS-only {d['ins_only']:.1f} m, map-aided "
+        f"{d['map_aided']:.2f} m, "
         f"CRLB {d['crlb']:.2f} m; CEP50 {c['ins_only']:.1f} -> {c['map_aided']:.2f} m"
     )
     for note in nav["notes"]:
@@ -765,19 +783,14 @@ def navigate(
 
 
 def _run_postflight(recording: Path, out_dir: Path, config: Path | None = None) -> dict:
-    from flows import stages
+    from flows import postflight as pf
 
     _check_config(config)
-    # bad input fails here, in one line, before Prefect starts a run (or a server)
-    with console.status(f"checking {recording.name}"):
-        stages.validate_recording(recording)
-    from flows.postflight import postflight
-
-    try:
-        with console.status(f"processing {recording.name} (Prefect flow 'postflight')"):
-            return postflight(str(recording), str(out_dir), str(config) if config else None)
-    finally:
-        stages.forget_validated()
+    # bad input fails here, in one line, before Prefect starts a run (or a server); the flow
+    # takes over the flight read for the check
+    with console.status(f"checking {recording.name}") as status, pf.checked(recording):
+        status.update(f"processing {recording.name} (Prefect flow 'postflight')")
+        return pf.postflight(str(recording), str(out_dir), str(config) if config else None)
 
 
 @app.command()
