@@ -48,6 +48,23 @@ def show(table: Table) -> None:
     Console(width=max(out.width, 150), highlight=False).print(table)
 
 
+def emit(command: str, result: dict) -> None:
+    """Print a command's result as :mod:`pipeline.products.console` words it (its
+    ``<command>_text``): lines as they are, tables at their natural width."""
+    from pipeline.products import console as text
+
+    for b in getattr(text, f"{command}_text")(result):
+        if not isinstance(b, text.TextTable):
+            say(b)
+            continue
+        table = Table(title=b.title, title_justify=b.title_justify)
+        for name, justify in b.columns:
+            table.add_column(name, justify=justify)
+        for row in b.rows:
+            table.add_row(*row)
+        show(table)
+
+
 def _fail(message: str, code: int = 2) -> None:
     console.print(f"aeromag: error: {message}", markup=False, highlight=False, soft_wrap=True)
     raise typer.Exit(code)
@@ -316,13 +333,7 @@ def compensate(
         )
     for w in (summary.get("calibration_guards") or {}).get("warnings", []):
         console.print(f"warning: {w}", markup=False, highlight=False, soft_wrap=True)
-    fom = summary["fom_nT"]
-    say(
-        f"{summary['model']}: lambda {summary['lambda']:.3g}, {summary['samples']} samples, "
-        f"fit residual {summary['fit_residual_nT']:.4f} nT"
-    )
-    if fom["uncompensated"] is not None:
-        say(f"FOM: {fom['uncompensated']:.2f} nT uncompensated -> {fom['compensated']:.2f} nT")
+    emit("compensate", summary)
     say(f"output recording: {out_path}")
     say(f"summary: {json_out}")
 
@@ -374,12 +385,7 @@ def map_(
     )
     with console.status(f"mapping {recording.name}"):
         summary = map_recording(recording, out_path, json_out, cfg, lag)
-    m = summary["map"]
-    say(
-        f"grid {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.2f} m; "
-        f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
-        f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])}"
-    )
+    emit("map", summary["map"])
     say(f"output recording: {out_path}")
     say(f"summary: {json_out}")
 
@@ -446,12 +452,7 @@ def enhance(
     )
     with console.status(f"enhancing {recording.name}"):
         result = enhance_recording(recording, out_path, cfg)
-    for topic in result["channels"]:
-        say(f"{topic}")
-    say(
-        f"from /map/{result['source']}; RTP with IGRF inclination "
-        f"{result['inclination_deg']:.2f} deg, declination {result['declination_deg']:.2f} deg"
-    )
+    emit("enhance", result)
     say(f"output recording: {out_path}")
 
 
@@ -503,44 +504,10 @@ def quality(
     )
     with console.status(f"quality statistics of {recording.name}"):
         summary = quality_recording(recording, json_out, cfg, out_path)
-    _print_quality(summary["quality"])
+    emit("quality", summary["quality"])
     if out_path:
         say(f"output recording: {out_path}")
     say(f"summary: {json_out}")
-
-
-def _print_quality(q: dict) -> None:
-    """The paper-002 table: heading error per processing state."""
-    floor = q["heading_error_noise_floor_nT"]
-    say(
-        f"heading error, validation X lines vs map lines: {q['intersections']} intersections, "
-        f"{q['overlap_pairs']} pairs < {q['overlap_m']:g} m; white-noise floor at the "
-        f"intersections {'-' if floor is None else f'{floor:.3f} nT'}; headline "
-        f"heading_error_rms_nT = {q.get('heading_error_method', 'intersections')}"
-    )
-    inter = q.get("intersection_rms_nT", q["heading_error_rms_nT"])
-    table = Table(
-        title="RMS of B_validation - B_map (pairs, interpolated map: paper 002's "
-        "statistics; intersections: ours)",
-        title_justify="left",
-    )
-    for col in ("state", "pairs RMS nT", "intersections RMS nT", "interpolated map RMS nT"):
-        table.add_column(col, justify="left" if col == "state" else "right")
-
-    def f(x):
-        return "-" if x is None else f"{x:.3f}"
-
-    for s in q["states"]:
-        name = s + (" (= tl)" if q.get("tl_alias") and s == q["tl_alias"].replace("-", "_") else "")
-        table.add_row(
-            name, f(q["overlap_pair_rms_nT"][s]), f(inter[s]), f(q["interpolated_rms_nT"][s])
-        )
-    show(table)
-    xo, n = q["crossover_rms_nT"], q["noise_4th_diff_nT"]
-    say(
-        f"crossovers: RMS {f(xo['before'])} -> {f(xo['after'])} nT after leveling; "
-        f"4th-difference noise {f(n)} nT"
-    )
 
 
 @app.command()
@@ -600,72 +567,11 @@ def audit(
             out_path,
             progress=lambda m: status.update(f"auditing {recording.name}: {m}"),
         )
-    _print_audit(j)
+    emit("audit", j)
     if out_path:
         say(f"output recording: {out_path}")
     say(f"report: {j['report']['markdown']}")
     say(f"audit: {json_out}")
-
-
-def _print_audit(j: dict) -> None:
-    b = j["baseline"]
-    say(
-        f"baseline {b['model']}: held-out calibration residual {b['residual_rms_nT']:.4f} nT; "
-        f"noise floor in the same band {j['band_noise_floor_nT']:.4f} nT; sensor noise "
-        f"{j['noise_floor_nT']:.4f} nT per sample"
-    )
-    table = Table(title="findings", title_justify="left")
-    for col in (
-        "effect",
-        "estimate",
-        "delta BIC",
-        "p (Holm)",
-        "gain metric",
-        "before nT",
-        "after nT",
-    ):
-        table.add_column(
-            col,
-            justify="right"
-            if col in ("delta BIC", "p (Holm)", "before nT", "after nT")
-            else "left",
-        )
-    for f in j["findings"]:
-        est = ", ".join(
-            f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-            for k, v in f["estimate"].items()
-            if k
-            not in (
-                "at_acceptance",
-                "lag_by_fold_s",
-                "direction_body",
-                "mismatch_rms_before_nT",
-                "mismatch_rms_after_nT",
-            )
-        )
-        g = f["gain"] or {}
-        table.add_row(
-            f["effect"],
-            est,
-            f"{f['delta_bic']:.1f}",
-            f"{f['p_value_holm']:.2g}",
-            g.get("metric", "-"),
-            f"{g.get('before_nT', 0):.4f}",
-            f"{g.get('after_nT', 0):.4f}",
-        )
-    if j["findings"]:
-        show(table)
-    else:
-        say("no finding: no candidate effect improves held-out data beyond noise")
-    say(
-        f"extended model: {' + '.join(j['extended_model'])}; unexplained (held-out) "
-        f"{j['unexplained_rms_nT']:.4f} nT"
-    )
-    if (j.get("unexplained") or {}).get("note"):
-        say(f"unexplained: {j['unexplained']['note']}")
-    for k, v in j["gain"].items():
-        if v["before"] is not None:
-            say(f"gain {k}: {v['before']:.4f} -> {v['after']:.4f}")
 
 
 @app.command()
@@ -694,11 +600,8 @@ def vector(
     method = cfg["vector"]["method"]
     with console.status(f"vector stage ({method}) on {recording.name}"):
         summary = vector_recording(recording, out_path, json_out, cfg)
-    v = summary["vector"]
-    for k, val in v.items():
-        if isinstance(val, dict) and "before" in val and not isinstance(val["before"], list):
-            say(f"{k}: {val['before']:.2f} -> {val['after']:.2f} nT")
-    say(f"{v['output_topic']} written to {out_path}")
+    emit("vector", summary["vector"])
+    say(f"{summary['vector']['output_topic']} written to {out_path}")
     say(f"summary: {json_out}")
 
 
@@ -767,16 +670,7 @@ def navigate(
             segments=segments,
             seed=seed,
         )
-    nav = summary["navigation"]
-    d, c, st = nav["drms_m"], nav["cep50_m"], nav["settings"]
-    say(
-        f"{st['filter']} on {segments} ({nav['epochs']['selected']} epochs, {st['ins']}-grade "
-        f"INS, seed {st['seed']}): DRMS INS-only {d['ins_only']:.1f} m, map-aided "
-        f"{d['map_aided']:.2f} m, "
-        f"CRLB {d['crlb']:.2f} m; CEP50 {c['ins_only']:.1f} -> {c['map_aided']:.2f} m"
-    )
-    for note in nav["notes"]:
-        say(f"note: {note}")
+    emit("navigate", summary["navigation"])
     if out_path:
         say(f"output recording: {out_path}")
     say(f"summary: {json_out}")
@@ -808,7 +702,7 @@ def process(
     config: ConfigOption = None,
 ) -> None:
     """Run the post-flight flow on one recording."""
-    _say_outputs(_run_postflight(recording, out_dir, config))
+    emit("outputs", _run_postflight(recording, out_dir, config))
 
 
 @app.command()
@@ -908,31 +802,7 @@ def campaign(
             from prefect.logging.handlers import APILogWorker
 
             APILogWorker.drain_all(timeout=5)
-    r = doc["crossover_rms_nT"]
-
-    def f(x) -> str:
-        return "-" if x is None else f"{x:.3f}"
-
-    say(
-        f"{len(doc['flights'])} flights: "
-        + ", ".join(f"{k} {v:+.3f} nT" for k, v in doc["flight_offsets_nT"].items())
-    )
-    say(
-        f"crossover RMS within flights {f(r['within_flight']['before'])} -> "
-        f"{f(r['within_flight']['after'])} nT ({doc['crossovers']['within_flight']}), "
-        f"between flights {f(r['between_flights']['before'])} -> "
-        f"{f(r['between_flights']['after'])} nT ({doc['crossovers']['between_flights']})"
-    )
-    for w in doc["warnings"]:
-        say(f"warning: {w}")
-    g = doc["grid"]
-    say(f"grid: {g['shape'][0]} x {g['shape'][1]} cells of {g['cell_m']:.2f} m")
-    o = doc["outputs"]
-    say(f"output recording: {o['mcap']}")
-    say(f"summary: {o['summary']}")
-    say(f"report: {o['report']}")
-    for fmt, paths in (doc.get("exports") or {}).items():
-        say(f"export ({fmt}): {', '.join(paths)}")
+    emit("campaign", doc)
 
 
 @app.command()
@@ -1012,87 +882,8 @@ def demo(
         f"simulated flight: {flight_path} ({sim.trajectory.duration_s / 60:.1f} min), "
         f"truth: {truth_path}"
     )
-    result = _run_postflight(flight_path, out_dir)
-    inp = result["input"]
-    say(
-        f"ingested {inp['epochs']} epochs, {len(inp['topics'])} channels, {inp['duration_s']:.0f} s"
-    )
-    _print_compensation(result)
-    m = result.get("map")
-    if m:
-        say(
-            f"map: {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.1f} m; "
-            f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
-            f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])} + "
-            f"Kalman; figures in {Path(result['outputs']['mcap']).parent}"
-        )
-    if result.get("audit"):
-        a = result["audit"]
-        say(
-            "audit: "
-            + ("; ".join(f"{f['effect']} found" for f in a["findings"]) or "no finding")
-            + f"; extended model {' + '.join(a['extended_model'])}"
-        )
-    if result.get("quality"):
-        _print_quality(result["quality"])
-    _say_outputs(result)
+    emit("demo", _run_postflight(flight_path, out_dir))
     say(f"done in {time.perf_counter() - t0:.1f} s")
-
-
-def _say_outputs(result: dict) -> None:
-    """Where the post-flight flow wrote its outputs."""
-    o = result["outputs"]
-    say(f"output recording: {o['mcap']}")
-    say(f"summary: {o['summary']}")
-    say(
-        f"report: {o['report_html']} (open in a browser; Markdown: {o['report']}); "
-        f"Foxglove layout: {o['layout']}"
-    )
-    for fmt, paths in (result.get("exports") or {}).items():
-        say(f"export ({fmt}): {', '.join(paths)}")
-
-
-def _print_compensation(result: dict) -> None:
-    comp = result.get("compensation")
-    if not comp:
-        return
-    table = Table(
-        title="compensation (calibration FOM: sum of 12 box peak-to-peaks)", title_justify="left"
-    )
-    for col in (
-        "model",
-        "FOM raw nT",
-        "FOM comp nT",
-        "lambda",
-        "fit resid nT",
-        "cal resid nT",
-        "survey resid nT",
-        "gradient E/N/U nT/m",
-    ):
-        table.add_column(col, justify="left" if col == "model" else "right")
-
-    def f(x, fmt=".3f"):
-        return "-" if x is None else format(x, fmt)
-
-    for m in ("tl16", "tl18", "agg-tl"):
-        if m not in comp:
-            continue
-        r = comp[m]
-        g = r.get("gradient_nT_per_m")
-        table.add_row(
-            m,
-            f(r["fom_nT"]["uncompensated"], ".2f"),
-            f(r["fom_nT"]["compensated"], ".2f"),
-            f(r["lambda"], ".3g"),
-            f(r["fit_residual_nT"], ".4f"),
-            f(r["residual_std_nT"]["calibration"]),
-            f(r["residual_std_nT"]["survey"]),
-            "-" if not g else f"{g['east']:.3f}/{g['north']:.3f}/{g['up']:.3f}",
-        )
-    show(table)
-    for m in ("tl16", "tl18", "agg-tl"):
-        for w in ((comp.get(m) or {}).get("calibration_guards") or {}).get("warnings", []):
-            say(f"warning: {w}")
 
 
 def main() -> None:
