@@ -19,6 +19,7 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable, Iterator
+from contextvars import ContextVar
 from pathlib import Path
 from typing import Any
 
@@ -30,8 +31,22 @@ from pipeline.errors import AeromagError
 from pipeline.run.archive import discover, is_complete, plan, process_one, write_index
 
 install_one_line_errors()
-# called with (done, total, row) after each recording when set (the CLI's progress bar)
-PROGRESS: Callable[[int, int, dict], None] | None = None
+# called with (done, total, row) after each recording, inside progress_to() only (the CLI's
+# progress bar)
+_PROGRESS: ContextVar[Callable[[int, int, dict], None] | None] = ContextVar(
+    "aeromag_progress", default=None
+)
+
+
+@contextlib.contextmanager
+def progress_to(callback: Callable[[int, int, dict], None]) -> Iterator[None]:
+    """Within the block, archive flows call ``callback(done, total, row)`` after each
+    recording."""
+    token = _PROGRESS.set(callback)
+    try:
+        yield
+    finally:
+        _PROGRESS.reset(token)
 
 
 @task(name="process-recording")
@@ -69,8 +84,8 @@ def _run_rows(recordings: list[Path], out: Path, config_path: str | None) -> lis
     for k, fut in enumerate(as_completed(futures), start=1):
         row = fut.result()
         rows.append(row)
-        if PROGRESS:
-            PROGRESS(len(rows), total, row)
+        if (progress := _PROGRESS.get()) is not None:
+            progress(len(rows), total, row)
         if k % 4 == 0:  # the index survives a crash with most of its rows
             write_index(
                 out,

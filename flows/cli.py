@@ -198,15 +198,7 @@ def inspect(
 
     rep = inspect_recording(file)
     d = rep.to_dict()
-    table = Table(title=f"{file}  ({d['duration_s']:.1f} s)", title_justify="left")
-    for col in ("topic", "schema", "messages", "rate Hz", "gaps"):
-        table.add_column(col, justify="right" if col in ("messages", "rate Hz", "gaps") else "left")
-    for t in d["topics"]:
-        rate = "" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
-        table.add_row(t["topic"], t["schema"], str(t["messages"]), rate, str(len(t["gaps"])))
-    show(table)
-    for w in rep.warnings:
-        say(f"warning: {w}")
+    emit("inspect", {**d, "file": str(file), "warnings": rep.warnings})
     if json_out:
         write_json_atomic(json_out, d)
     if rep.violations:
@@ -237,31 +229,14 @@ def _check_config(config: Path | None) -> None:
     Config.load(config).validate()
 
 
-def _shown(value) -> str:
-    return (
-        repr(value)
-        if isinstance(value, str)
-        else (" ".join(str(v) for v in value) if isinstance(value, list | tuple) else str(value))
-    )
-
-
 def _stage_config(config: Path | None, options: dict[str, tuple[str, object]]):
-    """The configuration of a single-stage command: ``--config FILE`` (else the shipped
-    defaults) with each option given (not None) overriding its key, ``{"--option": ("section.key",
-    value)}``; checked like a file, an error names the option."""
-    from pipeline.config import Config
+    """:func:`pipeline.run.commands.command_config`; a refused option exits 2 with one line."""
+    from pipeline.run.commands import OptionError, command_config
 
-    cfg = Config.load(config)
-    cfg.validate()
-    for option, (key, value) in options.items():
-        if value is None:
-            continue
-        try:
-            cfg = cfg.with_values({key: list(value) if isinstance(value, tuple) else value})
-            cfg.validate()
-        except AeromagError as exc:
-            _fail(f"{option} {_shown(value)}: {exc.problem}")
-    return cfg
+    try:
+        return command_config(config, options)
+    except OptionError as exc:
+        _fail(str(exc))
 
 
 @app.command()
@@ -748,12 +723,11 @@ def reprocess(
                 description=f"{Path(row['input']).name}: {row['status']}",
             )
 
-        arch.PROGRESS = progress
         runner = arch.dask_runner(workers, dask_address)
-        result = arch.reprocess_archive.with_options(task_runner=runner)(
-            str(archive), str(out_dir), str(config) if config else None
-        )
-        arch.PROGRESS = None
+        with arch.progress_to(progress):
+            result = arch.reprocess_archive.with_options(task_runner=runner)(
+                str(archive), str(out_dir), str(config) if config else None
+            )
     say(
         f"{result['recordings']} recordings: {result['processed']} processed, "
         f"{result['done']} already done, {result['quarantined']} quarantined"

@@ -294,3 +294,15 @@ def demo_text(result: dict) -> list[Block]:
     if result.get("quality"):
         out += quality_text(result["quality"])
     return out + outputs_text(result)
+
+
+def inspect_text(d: dict) -> list[Block]:
+    """``aeromag inspect`` (``d``: the report's dict with ``file`` and ``warnings``): one row
+    per topic (schema, messages, rate, gaps), then the warnings."""
+    table = TextTable(title=f"{d['file']}  ({d['duration_s']:.1f} s)")
+    for col in ("topic", "schema", "messages", "rate Hz", "gaps"):
+        table.add_column(col, justify="right" if col in ("messages", "rate Hz", "gaps") else "left")
+    for t in d["topics"]:
+        rate = "" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
+        table.add_row(t["topic"], t["schema"], str(t["messages"]), rate, str(len(t["gaps"])))
+    return [table, *(f"warning: {w}" for w in d["warnings"])]

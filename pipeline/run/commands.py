@@ -60,6 +60,42 @@ from pipeline.run.outputs import model_channels, refuse_existing, save_figure
 from pipeline.run.steps import despike_stage, vector_run
 
 
+class OptionError(AeromagError):
+    """A command-line option's value that the configuration refuses (the message names the
+    option)."""
+
+
+def _shown(value) -> str:
+    if isinstance(value, str):
+        return repr(value)
+    return " ".join(str(v) for v in value) if isinstance(value, list | tuple) else str(value)
+
+
+def command_config(config: Path | None, options: dict[str, tuple[str, object]]) -> Config:
+    """The configuration of a single-stage command: ``config`` (a TOML file; None: the
+    shipped defaults), checked, with each option given (value not None) overriding its key,
+    ``{"--option": ("section.key", value)}``, checked like a file.
+
+    Raises
+    ------
+    AeromagError
+        The file is invalid.
+    OptionError
+        An option's value is refused (``--option VALUE: section.key ...``).
+    """
+    cfg = Config.load(config)
+    cfg.validate()
+    for option, (key, value) in options.items():
+        if value is None:
+            continue
+        try:
+            cfg = cfg.with_values({key: list(value) if isinstance(value, tuple) else value})
+            cfg.validate()
+        except AeromagError as exc:
+            raise OptionError(f"{option} {_shown(value)}: {exc.problem}") from None
+    return cfg
+
+
 def read_despiked(
     src: Path, cfg: Config | None, **read_options: Any
 ) -> tuple[Flight, DespikeResult | None, list[tuple[int, str]]]:
