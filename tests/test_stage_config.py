@@ -186,3 +186,45 @@ def test_a_bad_section_value_is_one_line(tmp_path, section):
     assert isinstance(res.exception, AeromagError), res.output
     assert str(res.exception).startswith(f"{cfg}: {section}")
     assert not (tmp_path / "v.mcap").exists() and not (tmp_path / "n.json").exists()
+
+
+def test_navigate_and_map_compensate_a_raw_recording_alike(tmp_path, monkeypatch):
+    """One path: `navigate` despikes and compensates a raw recording as `map` does (it used
+    to skip the despiking), so both stages get the same field."""
+    import numpy as np
+
+    from tests.mapfile import write_processed
+
+    maps = write_processed(tmp_path / "maps.processed.mcap")[0]
+    monkeypatch.setattr("pipeline.run.commands.build_map", stop)
+    monkeypatch.setattr("pipeline.navigation.stage.track_coverage", lambda *a: None)
+    monkeypatch.setattr("pipeline.navigation.stage.run_navigation", stop)
+    toml = "[compensation]\nmodels = ['tl18']\n[despike]\nthreshold_sigma = 3.0\n"
+    mapped = invoke(
+        tmp_path, toml, "map", BOX, "--out", tmp_path / "m.mcap", "--json", tmp_path / "m.json"
+    )
+    navigated = invoke(
+        tmp_path, toml, "navigate", BOX, "--map", maps, "--json", tmp_path / "n.json"
+    )
+    assert np.array_equal(mapped.args_[2], navigated.args_[2], equal_nan=True)
+    assert np.array_equal(mapped.args_[0].data["scalar_nT"], navigated.args_[0].data["scalar_nT"])
+
+
+def test_the_checked_flight_is_handed_to_the_flow_only_inside_the_block(tmp_path):
+    """`aeromag process` reads a recording once: the flight read to check it reaches the flow
+    only within flows.postflight.checked() and only for the same, unchanged file."""
+    import shutil
+
+    from flows import postflight as pf
+
+    src = tmp_path / "f.mcap"
+    shutil.copy(BOX, src)
+    assert pf._take_checked(str(src)) == (None, 0.0)
+    with pf.checked(src) as flight:
+        got, read_s = pf._take_checked(str(src))
+        assert got is flight and read_s > 0
+        assert pf._take_checked(str(BOX))[0] is None  # another file
+    assert pf._take_checked(str(src)) == (None, 0.0)
+    with pf.checked(src):
+        src.write_bytes(src.read_bytes() + b"\0")  # changed since it was checked
+        assert pf._take_checked(str(src))[0] is None

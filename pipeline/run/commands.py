@@ -398,8 +398,8 @@ def navigate_recording(
     The settings are ``[navigate]``'s (filter, INS grade, seed) with each of ``options``
     given (not None: ``filter``, ``ins``, ``seed``, ``segments``, ...) in its place;
     ``map_channel`` None: ``/map/<navigate.map>`` of a recording map. A raw recording is
-    compensated first (:func:`final_compensation`, as ``aeromag map``); a processed one uses
-    its ``/mag/compensated``.
+    despiked (``despike.enabled``) and compensated first (:func:`final_compensation`, as
+    ``aeromag map``); a processed one uses its ``/mag/compensated``.
     """
     from pipeline.navigation.map_io import read_map
     from pipeline.navigation.stage import run_navigation, track_coverage
@@ -409,7 +409,7 @@ def navigate_recording(
     settings.check()
     map_channel = map_channel or f"/map/{cfg['navigate']['map']}"
     geomap = read_map(map_path, map_channel)
-    flight = read_flight(src)
+    flight, despiked, dlines = read_despiked(src, cfg)
     flight.require("lat_deg", "lon_deg", "alt_m", purpose="navigation (the reference track)")
     seg, why = try_segment(flight)
     present = set(flight.all_topics)
@@ -430,6 +430,10 @@ def navigate_recording(
     track_coverage(flight, seg, geomap, settings)  # fail before compensating
     lines = ingest_lines(flight) + ([(LOG_INFO, why)] if why else [])
     comp, more, channels, comp_summary = final_compensation(flight, seg, cfg, "navigate")
+    if comp_summary is not None:  # compensated here, from the despiked record (as `map`)
+        lines += dlines
+    else:
+        despiked = None  # the recording's own /mag/compensated was used
     lines += more
     run = run_navigation(flight, seg, comp, geomap, settings)
     nav = run.summary()
@@ -455,6 +459,7 @@ def navigate_recording(
         )
     summary = build_summary(
         flight,
+        despiked=despiked,
         compensation=comp_summary,
         navigation=run,
         log=[text for _, text in lines],
