@@ -48,6 +48,23 @@ def show(table: Table) -> None:
     Console(width=max(out.width, 150), highlight=False).print(table)
 
 
+def emit(command: str, result: dict) -> None:
+    """Print a command's result as :mod:`pipeline.products.console` words it (its
+    ``<command>_text``): lines as they are, tables at their natural width."""
+    from pipeline.products import console as text
+
+    for b in getattr(text, f"{command}_text")(result):
+        if not isinstance(b, text.TextTable):
+            say(b)
+            continue
+        table = Table(title=b.title, title_justify=b.title_justify)
+        for name, justify in b.columns:
+            table.add_column(name, justify=justify)
+        for row in b.rows:
+            table.add_row(*row)
+        show(table)
+
+
 def _fail(message: str, code: int = 2) -> None:
     console.print(f"aeromag: error: {message}", markup=False, highlight=False, soft_wrap=True)
     raise typer.Exit(code)
@@ -131,9 +148,9 @@ def import_mapped(
 ) -> None:
     """Add contract channels (nT, body FRD, NED) for a recorder's mapped topics; every
     aeromag command then reads the output."""
-    from flows.stages import require_readable
     from pipeline.io.mapping import Mapping
     from pipeline.io.mapping import import_mapped as run
+    from pipeline.run.outputs import require_readable
 
     require_readable(file)
     with console.status(f"importing {file.name}"):
@@ -172,8 +189,8 @@ def inspect(
     from pipeline.io.writer import write_json_atomic
 
     if suggest_mapping:
-        from flows.stages import require_readable
         from pipeline.io.mapping import suggest_mapping as suggest
+        from pipeline.run.outputs import require_readable
 
         require_readable(file)
         out.print(suggest(file), markup=False, highlight=False, end="")
@@ -181,15 +198,7 @@ def inspect(
 
     rep = inspect_recording(file)
     d = rep.to_dict()
-    table = Table(title=f"{file}  ({d['duration_s']:.1f} s)", title_justify="left")
-    for col in ("topic", "schema", "messages", "rate Hz", "gaps"):
-        table.add_column(col, justify="right" if col in ("messages", "rate Hz", "gaps") else "left")
-    for t in d["topics"]:
-        rate = "" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
-        table.add_row(t["topic"], t["schema"], str(t["messages"]), rate, str(len(t["gaps"])))
-    show(table)
-    for w in rep.warnings:
-        say(f"warning: {w}")
+    emit("inspect", {**d, "file": str(file), "warnings": rep.warnings})
     if json_out:
         write_json_atomic(json_out, d)
     if rep.violations:
@@ -220,31 +229,14 @@ def _check_config(config: Path | None) -> None:
     Config.load(config).validate()
 
 
-def _shown(value) -> str:
-    return (
-        repr(value)
-        if isinstance(value, str)
-        else (" ".join(str(v) for v in value) if isinstance(value, list | tuple) else str(value))
-    )
-
-
 def _stage_config(config: Path | None, options: dict[str, tuple[str, object]]):
-    """The configuration of a single-stage command: ``--config FILE`` (else the shipped
-    defaults) with each option given (not None) overriding its key, ``{"--option": ("section.key",
-    value)}``; checked like a file, an error names the option."""
-    from pipeline.config import Config
+    """:func:`pipeline.run.commands.command_config`; a refused option exits 2 with one line."""
+    from pipeline.run.commands import OptionError, command_config
 
-    cfg = Config.load(config)
-    cfg.validate()
-    for option, (key, value) in options.items():
-        if value is None:
-            continue
-        try:
-            cfg = cfg.with_values({key: list(value) if isinstance(value, tuple) else value})
-            cfg.validate()
-        except AeromagError as exc:
-            _fail(f"{option} {_shown(value)}: {exc.problem}")
-    return cfg
+    try:
+        return command_config(config, options)
+    except OptionError as exc:
+        _fail(str(exc))
 
 
 @app.command()
@@ -289,7 +281,8 @@ def compensate(
     config: ConfigOption = None,
 ) -> None:
     """Fit a T-L / AGG-TL model, compensate the scalar field, write channels and a summary."""
-    from flows.stages import compensate_recording, require_readable
+    from pipeline.run.commands import compensate_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     lam: object = ridge
@@ -309,20 +302,13 @@ def compensate(
             "--ridge": ("compensation.ridge", lam),
         },
     )
-    settings = cfg.fit_settings(model) if model else None
     with console.status(f"compensating {recording.name}" + (f" ({model})" if model else "")):
         summary = compensate_recording(
-            recording, out_path, json_out, settings, calibration, scalar, vector, cfg
+            recording, out_path, json_out, cfg, calibration, scalar, vector
         )
     for w in (summary.get("calibration_guards") or {}).get("warnings", []):
         console.print(f"warning: {w}", markup=False, highlight=False, soft_wrap=True)
-    fom = summary["fom_nT"]
-    say(
-        f"{summary['model']}: lambda {summary['lambda']:.3g}, {summary['samples']} samples, "
-        f"fit residual {summary['fit_residual_nT']:.4f} nT"
-    )
-    if fom["uncompensated"] is not None:
-        say(f"FOM: {fom['uncompensated']:.2f} nT uncompensated -> {fom['compensated']:.2f} nT")
+    emit("compensate", summary)
     say(f"output recording: {out_path}")
     say(f"summary: {json_out}")
 
@@ -359,9 +345,8 @@ def map_(
 ) -> None:
     """Reduce, level, grid and ARIMA-Kalman-filter the anomaly map (runs the stages it needs,
     with the configuration's settings)."""
-    from dataclasses import replace
-
-    from flows.stages import map_recording, require_readable
+    from pipeline.run.commands import map_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     cfg = _stage_config(
@@ -373,15 +358,9 @@ def map_(
             "--level-trend": ("map.level_trend", level_trend),
         },
     )
-    settings = replace(cfg.map_settings(), lag_s=lag)
     with console.status(f"mapping {recording.name}"):
-        summary = map_recording(recording, out_path, json_out, settings, cfg)
-    m = summary["map"]
-    say(
-        f"grid {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.2f} m; "
-        f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
-        f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])}"
-    )
+        summary = map_recording(recording, out_path, json_out, cfg, lag)
+    emit("map", summary["map"])
     say(f"output recording: {out_path}")
     say(f"summary: {json_out}")
 
@@ -401,8 +380,8 @@ def export(
 ) -> None:
     """Write the map grids and the levelled line data of a processed recording as GeoTIFF,
     netCDF, CSV, Geosoft XYZ and MagNav.jl HDF5 (georeference from its /map/frame)."""
-    from flows.stages import require_readable
     from pipeline.export import check_formats, export_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     chosen = check_formats([f for f in formats.split(",") if f.strip()], "--format")
@@ -432,7 +411,8 @@ def enhance(
 ) -> None:
     """Map enhancements (harmonica): reduction to the pole, vertical and total horizontal
     derivatives, tilt angle, analytic signal, upward continuation -> /map/* grid channels."""
-    from flows.stages import enhance_recording, require_readable
+    from pipeline.run.commands import enhance_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     cfg = _stage_config(
@@ -447,12 +427,7 @@ def enhance(
     )
     with console.status(f"enhancing {recording.name}"):
         result = enhance_recording(recording, out_path, cfg)
-    for topic in result["channels"]:
-        say(f"{topic}")
-    say(
-        f"from /map/{result['source']}; RTP with IGRF inclination "
-        f"{result['inclination_deg']:.2f} deg, declination {result['declination_deg']:.2f} deg"
-    )
+    emit("enhance", result)
     say(f"output recording: {out_path}")
 
 
@@ -490,7 +465,8 @@ def quality(
 ) -> None:
     """Heading error at overlap points, interpolated-map comparison, crossovers and survey QC
     (runs segmentation, the configured compensation models and gridding itself when needed)."""
-    from flows.stages import quality_recording, require_readable
+    from pipeline.run.commands import quality_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     cfg = _stage_config(
@@ -501,47 +477,12 @@ def quality(
             "--height-tolerance": ("quality.height_tolerance_m", height_tolerance),
         },
     )
-    settings = cfg.quality_settings()
     with console.status(f"quality statistics of {recording.name}"):
-        summary = quality_recording(recording, json_out, settings, out_path, cfg)
-    _print_quality(summary["quality"])
+        summary = quality_recording(recording, json_out, cfg, out_path)
+    emit("quality", summary["quality"])
     if out_path:
         say(f"output recording: {out_path}")
     say(f"summary: {json_out}")
-
-
-def _print_quality(q: dict) -> None:
-    """The paper-002 table: heading error per processing state."""
-    floor = q["heading_error_noise_floor_nT"]
-    say(
-        f"heading error, validation X lines vs map lines: {q['intersections']} intersections, "
-        f"{q['overlap_pairs']} pairs < {q['overlap_m']:g} m; white-noise floor at the "
-        f"intersections {'-' if floor is None else f'{floor:.3f} nT'}; headline "
-        f"heading_error_rms_nT = {q.get('heading_error_method', 'intersections')}"
-    )
-    inter = q.get("intersection_rms_nT", q["heading_error_rms_nT"])
-    table = Table(
-        title="RMS of B_validation - B_map (pairs, interpolated map: paper 002's "
-        "statistics; intersections: ours)",
-        title_justify="left",
-    )
-    for col in ("state", "pairs RMS nT", "intersections RMS nT", "interpolated map RMS nT"):
-        table.add_column(col, justify="left" if col == "state" else "right")
-
-    def f(x):
-        return "-" if x is None else f"{x:.3f}"
-
-    for s in q["states"]:
-        name = s + (" (= tl)" if q.get("tl_alias") and s == q["tl_alias"].replace("-", "_") else "")
-        table.add_row(
-            name, f(q["overlap_pair_rms_nT"][s]), f(inter[s]), f(q["interpolated_rms_nT"][s])
-        )
-    show(table)
-    xo, n = q["crossover_rms_nT"], q["noise_4th_diff_nT"]
-    say(
-        f"crossovers: RMS {f(xo['before'])} -> {f(xo['after'])} nT after leveling; "
-        f"4th-difference noise {f(n)} nT"
-    )
 
 
 @app.command()
@@ -580,7 +521,8 @@ def audit(
 ) -> None:
     """Find what the baseline model gets wrong, name the cause, extend it, measure the gain
     (in the configured fit band)."""
-    from flows.stages import audit_recording, require_readable
+    from pipeline.run.commands import audit_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     cfg = _stage_config(
@@ -591,83 +533,20 @@ def audit(
             "--min-gain": ("audit.min_gain", min_gain),
         },
     )
-    settings = cfg.audit_settings()
     with console.status(f"auditing {recording.name}") as status:
         j = audit_recording(
             recording,
             json_out,
             report,
-            settings,
+            cfg,
             out_path,
             progress=lambda m: status.update(f"auditing {recording.name}: {m}"),
-            cfg=cfg,
         )
-    _print_audit(j)
+    emit("audit", j)
     if out_path:
         say(f"output recording: {out_path}")
     say(f"report: {j['report']['markdown']}")
     say(f"audit: {json_out}")
-
-
-def _print_audit(j: dict) -> None:
-    b = j["baseline"]
-    say(
-        f"baseline {b['model']}: held-out calibration residual {b['residual_rms_nT']:.4f} nT; "
-        f"noise floor in the same band {j['band_noise_floor_nT']:.4f} nT; sensor noise "
-        f"{j['noise_floor_nT']:.4f} nT per sample"
-    )
-    table = Table(title="findings", title_justify="left")
-    for col in (
-        "effect",
-        "estimate",
-        "delta BIC",
-        "p (Holm)",
-        "gain metric",
-        "before nT",
-        "after nT",
-    ):
-        table.add_column(
-            col,
-            justify="right"
-            if col in ("delta BIC", "p (Holm)", "before nT", "after nT")
-            else "left",
-        )
-    for f in j["findings"]:
-        est = ", ".join(
-            f"{k} {v:.4g}" if isinstance(v, float) else f"{k} {v}"
-            for k, v in f["estimate"].items()
-            if k
-            not in (
-                "at_acceptance",
-                "lag_by_fold_s",
-                "direction_body",
-                "mismatch_rms_before_nT",
-                "mismatch_rms_after_nT",
-            )
-        )
-        g = f["gain"] or {}
-        table.add_row(
-            f["effect"],
-            est,
-            f"{f['delta_bic']:.1f}",
-            f"{f['p_value_holm']:.2g}",
-            g.get("metric", "-"),
-            f"{g.get('before_nT', 0):.4f}",
-            f"{g.get('after_nT', 0):.4f}",
-        )
-    if j["findings"]:
-        show(table)
-    else:
-        say("no finding: no candidate effect improves held-out data beyond noise")
-    say(
-        f"extended model: {' + '.join(j['extended_model'])}; unexplained (held-out) "
-        f"{j['unexplained_rms_nT']:.4f} nT"
-    )
-    if (j.get("unexplained") or {}).get("note"):
-        say(f"unexplained: {j['unexplained']['note']}")
-    for k, v in j["gain"].items():
-        if v["before"] is not None:
-            say(f"gain {k}: {v['before']:.4f} -> {v['after']:.4f}")
 
 
 @app.command()
@@ -688,18 +567,16 @@ def vector(
     config: ConfigOption = None,
 ) -> None:
     """Calibrate or compensate the vector magnetometer (papers 003 and 000)."""
-    from flows.stages import require_readable, vector_recording
+    from pipeline.run.commands import vector_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     cfg = _stage_config(config, {"--method": ("vector.method", method)})
     method = cfg["vector"]["method"]
     with console.status(f"vector stage ({method}) on {recording.name}"):
-        summary = vector_recording(recording, out_path, json_out, method)
-    v = summary["vector"]
-    for k, val in v.items():
-        if isinstance(val, dict) and "before" in val and not isinstance(val["before"], list):
-            say(f"{k}: {val['before']:.2f} -> {val['after']:.2f} nT")
-    say(f"{v['output_topic']} written to {out_path}")
+        summary = vector_recording(recording, out_path, json_out, cfg)
+    emit("vector", summary["vector"])
+    say(f"{summary['vector']['output_topic']} written to {out_path}")
     say(f"summary: {json_out}")
 
 
@@ -722,62 +599,67 @@ def navigate(
         typer.Option("--out", help="Also write a copy of the recording with the /nav channels."),
     ] = None,
     filter_: Annotated[
-        str, typer.Option("--filter", help="ekf, or pf (marginalised particle filter).")
-    ] = "ekf",
-    ins: Annotated[str, typer.Option(help="INS grade: navigation (~1 nmi/h) or tactical.")] = (
-        "navigation"
-    ),
+        str | None,
+        typer.Option(
+            "--filter", help="ekf, or pf (marginalised particle filter) (config: navigate.filter)."
+        ),
+    ] = None,
+    ins: Annotated[
+        str | None,
+        typer.Option(help="INS grade: navigation (~1 nmi/h) or tactical (config: navigate.ins)."),
+    ] = None,
     segments: Annotated[
         str,
         typer.Option(help="Segments navigated and scored: validation, survey (with ties) or all."),
     ] = "validation",
-    seed: Annotated[int, typer.Option(help="Seed of the INS errors (and particles).")] = 0,
+    seed: Annotated[
+        int | None,
+        typer.Option(help="Seed of the INS errors (and particles) (config: navigate.seed)."),
+    ] = None,
     map_channel: Annotated[
-        str, typer.Option("--map-channel", help="Grid channel of a recording map.")
-    ] = "/map/anomaly_filtered",
+        str | None,
+        typer.Option(
+            "--map-channel", help="Grid channel of a recording map (config: /map/<navigate.map>)."
+        ),
+    ] = None,
     config: ConfigOption = None,
 ) -> None:
     """Magnetic anomaly navigation on a map: simulate an INS along the recorded track, aid it
     with the map (EKF or particle filter), and score both against /gnss/fix and the CRLB."""
-    from flows.stages import navigate_recording, require_readable
-    from pipeline.navigation.stage import NavigationSettings
+    from pipeline.run.commands import navigate_recording
+    from pipeline.run.outputs import require_readable
 
     require_readable(recording)
     require_readable(map_path)
     cfg = _stage_config(config, {})
-    settings = NavigationSettings(filter=filter_, ins=ins, segments=segments, seed=seed)
-    with console.status(f"navigating {recording.name} on {map_path.name} ({filter_})"):
+    with console.status(f"navigating {recording.name} on {map_path.name}"):
         summary = navigate_recording(
-            recording, map_path, json_out, settings, out_path, map_channel, cfg
+            recording,
+            map_path,
+            json_out,
+            cfg,
+            out_path,
+            map_channel,
+            filter=filter_,
+            ins=ins,
+            segments=segments,
+            seed=seed,
         )
-    nav = summary["navigation"]
-    d, c = nav["drms_m"], nav["cep50_m"]
-    say(
-        f"{filter_} on {segments} ({nav['epochs']['selected']} epochs, {ins}-grade INS, "
-        f"seed {seed}): DRMS INS-only {d['ins_only']:.1f} m, map-aided {d['map_aided']:.2f} m, "
-        f"CRLB {d['crlb']:.2f} m; CEP50 {c['ins_only']:.1f} -> {c['map_aided']:.2f} m"
-    )
-    for note in nav["notes"]:
-        say(f"note: {note}")
+    emit("navigate", summary["navigation"])
     if out_path:
         say(f"output recording: {out_path}")
     say(f"summary: {json_out}")
 
 
 def _run_postflight(recording: Path, out_dir: Path, config: Path | None = None) -> dict:
-    from flows import stages
+    from flows import postflight as pf
 
     _check_config(config)
-    # bad input fails here, in one line, before Prefect starts a run (or a server)
-    with console.status(f"checking {recording.name}"):
-        stages.validate_recording(recording)
-    from flows.postflight import postflight
-
-    try:
-        with console.status(f"processing {recording.name} (Prefect flow 'postflight')"):
-            return postflight(str(recording), str(out_dir), str(config) if config else None)
-    finally:
-        stages.forget_validated()
+    # bad input fails here, in one line, before Prefect starts a run (or a server); the flow
+    # takes over the flight read for the check
+    with console.status(f"checking {recording.name}") as status, pf.checked(recording):
+        status.update(f"processing {recording.name} (Prefect flow 'postflight')")
+        return pf.postflight(str(recording), str(out_dir), str(config) if config else None)
 
 
 @app.command()
@@ -795,7 +677,7 @@ def process(
     config: ConfigOption = None,
 ) -> None:
     """Run the post-flight flow on one recording."""
-    _say_outputs(_run_postflight(recording, out_dir, config))
+    emit("outputs", _run_postflight(recording, out_dir, config))
 
 
 @app.command()
@@ -841,12 +723,11 @@ def reprocess(
                 description=f"{Path(row['input']).name}: {row['status']}",
             )
 
-        arch.PROGRESS = progress
         runner = arch.dask_runner(workers, dask_address)
-        result = arch.reprocess_archive.with_options(task_runner=runner)(
-            str(archive), str(out_dir), str(config) if config else None
-        )
-        arch.PROGRESS = None
+        with arch.progress_to(progress):
+            result = arch.reprocess_archive.with_options(task_runner=runner)(
+                str(archive), str(out_dir), str(config) if config else None
+            )
     say(
         f"{result['recordings']} recordings: {result['processed']} processed, "
         f"{result['done']} already done, {result['quarantined']} quarantined"
@@ -895,31 +776,7 @@ def campaign(
             from prefect.logging.handlers import APILogWorker
 
             APILogWorker.drain_all(timeout=5)
-    r = doc["crossover_rms_nT"]
-
-    def f(x) -> str:
-        return "-" if x is None else f"{x:.3f}"
-
-    say(
-        f"{len(doc['flights'])} flights: "
-        + ", ".join(f"{k} {v:+.3f} nT" for k, v in doc["flight_offsets_nT"].items())
-    )
-    say(
-        f"crossover RMS within flights {f(r['within_flight']['before'])} -> "
-        f"{f(r['within_flight']['after'])} nT ({doc['crossovers']['within_flight']}), "
-        f"between flights {f(r['between_flights']['before'])} -> "
-        f"{f(r['between_flights']['after'])} nT ({doc['crossovers']['between_flights']})"
-    )
-    for w in doc["warnings"]:
-        say(f"warning: {w}")
-    g = doc["grid"]
-    say(f"grid: {g['shape'][0]} x {g['shape'][1]} cells of {g['cell_m']:.2f} m")
-    o = doc["outputs"]
-    say(f"output recording: {o['mcap']}")
-    say(f"summary: {o['summary']}")
-    say(f"report: {o['report']}")
-    for fmt, paths in (doc.get("exports") or {}).items():
-        say(f"export ({fmt}): {', '.join(paths)}")
+    emit("campaign", doc)
 
 
 @app.command()
@@ -999,87 +856,8 @@ def demo(
         f"simulated flight: {flight_path} ({sim.trajectory.duration_s / 60:.1f} min), "
         f"truth: {truth_path}"
     )
-    result = _run_postflight(flight_path, out_dir)
-    inp = result["input"]
-    say(
-        f"ingested {inp['epochs']} epochs, {len(inp['topics'])} channels, {inp['duration_s']:.0f} s"
-    )
-    _print_compensation(result)
-    m = result.get("map")
-    if m:
-        say(
-            f"map: {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.1f} m; "
-            f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
-            f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])} + "
-            f"Kalman; figures in {Path(result['outputs']['mcap']).parent}"
-        )
-    if result.get("audit"):
-        a = result["audit"]
-        say(
-            "audit: "
-            + ("; ".join(f"{f['effect']} found" for f in a["findings"]) or "no finding")
-            + f"; extended model {' + '.join(a['extended_model'])}"
-        )
-    if result.get("quality"):
-        _print_quality(result["quality"])
-    _say_outputs(result)
+    emit("demo", _run_postflight(flight_path, out_dir))
     say(f"done in {time.perf_counter() - t0:.1f} s")
-
-
-def _say_outputs(result: dict) -> None:
-    """Where the post-flight flow wrote its outputs."""
-    o = result["outputs"]
-    say(f"output recording: {o['mcap']}")
-    say(f"summary: {o['summary']}")
-    say(
-        f"report: {o['report_html']} (open in a browser; Markdown: {o['report']}); "
-        f"Foxglove layout: {o['layout']}"
-    )
-    for fmt, paths in (result.get("exports") or {}).items():
-        say(f"export ({fmt}): {', '.join(paths)}")
-
-
-def _print_compensation(result: dict) -> None:
-    comp = result.get("compensation")
-    if not comp:
-        return
-    table = Table(
-        title="compensation (calibration FOM: sum of 12 box peak-to-peaks)", title_justify="left"
-    )
-    for col in (
-        "model",
-        "FOM raw nT",
-        "FOM comp nT",
-        "lambda",
-        "fit resid nT",
-        "cal resid nT",
-        "survey resid nT",
-        "gradient E/N/U nT/m",
-    ):
-        table.add_column(col, justify="left" if col == "model" else "right")
-
-    def f(x, fmt=".3f"):
-        return "-" if x is None else format(x, fmt)
-
-    for m in ("tl16", "tl18", "agg-tl"):
-        if m not in comp:
-            continue
-        r = comp[m]
-        g = r.get("gradient_nT_per_m")
-        table.add_row(
-            m,
-            f(r["fom_nT"]["uncompensated"], ".2f"),
-            f(r["fom_nT"]["compensated"], ".2f"),
-            f(r["lambda"], ".3g"),
-            f(r["fit_residual_nT"], ".4f"),
-            f(r["residual_std_nT"]["calibration"]),
-            f(r["residual_std_nT"]["survey"]),
-            "-" if not g else f"{g['east']:.3f}/{g['north']:.3f}/{g['up']:.3f}",
-        )
-    show(table)
-    for m in ("tl16", "tl18", "agg-tl"):
-        for w in ((comp.get(m) or {}).get("calibration_guards") or {}).get("warnings", []):
-            say(f"warning: {w}")
 
 
 def main() -> None:

@@ -1,109 +1,103 @@
-"""The post-flight flow.
+"""The post-flight flow: the steps of :func:`pipeline.run.postflight.postflight_steps`, each
+a Prefect task.
 
-ingest -> despike (the scalar magnetometer) -> segment -> compensate (each configured T-L
-model and AGG-TL) -> audit -> extended model -> vector stage (when a fluxgate exists) ->
-anomaly reduction, leveling, gridding, ARIMA-Kalman filter -> quality -> navigation on the
-flight's own map (validation lines, ``[navigate]``) -> write (output MCAP, summary JSON,
-report, figures).
-
-The order lives in :func:`postflight_steps`, a plain function that calls each stage through a
-``call`` hook: the Prefect flow passes tasks (results persisted in Prefect's local result
-storage, keyed by the recording's hash, the configuration's hash and the stage, so a failed run
-resumes after the last finished task; the results are deleted once the run has written its
-outputs), archive workers pass plain calls. Tasks wrap
-``flows.stages`` functions, which wrap ``pipeline``.
+Task results are persisted in Prefect's local result storage, keyed by the recording's hash,
+the configuration's hash and the stage, so a failed run resumes after the last finished task;
+the results are deleted once the run has written its outputs. Archive workers run the same
+steps without tasks (:func:`pipeline.run.postflight.run_plain`).
 """
 
 from __future__ import annotations
 
 import hashlib
+import re
 import shutil
 import time
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from functools import cache
 from pathlib import Path
 from typing import Any
 
 from prefect import flow, task
 
-from flows import stages
 from flows.errors import install_one_line_errors
 from pipeline.config import Config
+from pipeline.errors import AeromagError
+from pipeline.flight import Flight
+from pipeline.io.reader import read_flight
 from pipeline.products.summary import sha256_file
+from pipeline.run.postflight import (
+    COMPENSATE,
+    INGEST,
+    STEPS,
+    WRITE,
+    Step,
+    postflight_steps,
+    run_plain,
+)
+
+__all__ = ["INGEST", "STEP_BY_NAME", "STEPS", "Step", "checked", "postflight", "run_plain"]
+STEP_BY_NAME = {s.name: s for s in STEPS}  # the tasks run the step of their name
+
+# The flight the CLI read to check a recording before the flow (the recording's stat key,
+# the flight, seconds to read it): set only inside :func:`checked`, so the flow it starts
+# does not read the recording twice.
+_CHECKED: ContextVar[tuple[tuple, Flight, float] | None] = ContextVar(
+    "aeromag_checked_flight", default=None
+)
 
 
-@dataclass(frozen=True)
-class Step:
-    """One stage of the post-flight flow: its name (the Prefect task's name and cache key)
-    and the ``flows.stages`` function that runs it."""
-
-    name: str
-    function: Callable[..., Any]
+def _stat_key(recording: str | Path) -> tuple:
+    st = Path(recording).stat()
+    return str(Path(recording).resolve()), st.st_size, st.st_mtime_ns
 
 
-INGEST = Step("ingest", stages.ingest_stage)
-DESPIKE = Step("despike", stages.despike_stage)
-SEGMENT = Step("segment", stages.try_segment)
-COMPENSATE = Step("compensate", stages.compensate_stage)
-AUDIT = Step("audit", stages.audit_stage)
-VECTOR = Step("vector", stages.vector_stage)
-MAP = Step("map", stages.map_stage)
-QUALITY = Step("quality", stages.quality_stage)
-NAVIGATE = Step("navigate", stages.navigate_stage)
-WRITE = Step("write", stages.write_stage)
-STEPS = (INGEST, DESPIKE, SEGMENT, COMPENSATE, AUDIT, VECTOR, MAP, QUALITY, NAVIGATE, WRITE)
-STEP_BY_NAME = {s.name: s for s in STEPS}
+@contextmanager
+def checked(recording: str | Path) -> Iterator[Flight]:
+    """Read and check a recording (scan, channel contract, units) before any flow starts,
+    so that bad input fails with one line and no Prefect run at all; a :func:`postflight`
+    run on the same, unchanged file inside the block takes this flight over.
+
+    Raises
+    ------
+    AeromagError
+        Missing, empty or unreadable file, no scalar magnetometer, wrong units.
+    """
+    if not Path(recording).is_file():
+        raise AeromagError("file not found", file=recording)
+    t0 = time.perf_counter()
+    flight = read_flight(recording)
+    token = _CHECKED.set((_stat_key(recording), flight, time.perf_counter() - t0))
+    try:
+        yield flight
+    finally:
+        _CHECKED.reset(token)
 
 
-def postflight_steps(
-    recording: str, out_dir: str, cfg: Config, call: Callable[..., Any]
-) -> dict[str, Any]:
-    """Every stage in order; ``call(step, *args)`` runs one :class:`Step` (see the module
-    docstring): ``step.function(*args)``, or a Prefect task around it.
+def _take_checked(recording: str) -> tuple[Flight | None, float]:
+    found = _CHECKED.get()
+    if found is None:
+        return None, 0.0
+    try:
+        same = found[0] == _stat_key(recording)
+    except OSError:
+        return None, 0.0
+    return (found[1], found[2]) if same else (None, 0.0)
 
-    The seconds of each stage (summed over calls: ``compensate`` covers every model) go to
-    the write stage, which puts them in the summary (``timings_s``)."""
-    timings: dict[str, float] = {}
-    plain_call = call
 
-    def call(step: Step, *args):
-        t0 = time.perf_counter()
-        try:
-            return plain_call(step, *args)
-        finally:
-            timings[step.name] = timings.get(step.name, 0.0) + time.perf_counter() - t0
+def publish_artifact(stem: str, markdown: str) -> None:
+    """The report as a Prefect markdown artifact, when running inside a flow or task."""
+    try:
+        from prefect.artifacts import create_markdown_artifact
+        from prefect.context import get_run_context
 
-    flight = call(INGEST, recording)
-    timings["ingest"] += stages.validated_read_s()  # read before the flow started
-    despiked = None
-    if cfg["despike"]["enabled"]:  # every later stage sees the despiked scalar
-        flight, despiked = call(DESPIKE, flight, cfg)
-    seg, why = call(SEGMENT, flight)
-    res = stages.FlightResults(flight, seg, why, despiked=despiked)
-    if seg is not None and flight.has("vector_x_nT") and seg.passes():
-        for m in stages.configured_models(flight, cfg):
-            res.runs[m] = call(COMPENSATE, flight, seg, m, cfg)
-        if cfg["audit"]["enabled"]:
-            res.audit = call(AUDIT, flight, seg, cfg)
-    if cfg["vector"]["enabled"] and flight.has("vector_x_nT", "roll_deg"):
-        res.vector = call(VECTOR, flight, seg, cfg)
-    final = stages.final_field(res.runs, res.audit)
-    if (
-        final is not None
-        and seg is not None
-        and seg.mask("survey").sum() > 100
-        and flight.has("lat_deg", "alt_m")
-    ):
-        res.map_run = call(MAP, flight, seg, final[1], cfg)
-        res.quality = call(QUALITY, flight, seg, res.runs, res.audit, cfg)
-    if cfg["navigate"]["enabled"]:  # skipped (one log line) without validation lines or map
-        res.nav = (
-            call(NAVIGATE, flight, seg, final[1], res.map_run, cfg)
-            if res.map_run is not None
-            else "no map"
-        )
-    return call(WRITE, recording, out_dir, cfg, res, timings)
+        get_run_context()
+    except Exception:  # noqa: BLE001 - outside a run: no artifact
+        return
+    key = re.sub(r"[^a-z0-9-]", "-", f"aeromag-{stem}".lower())[:100]
+    create_markdown_artifact(markdown=markdown, key=key, description="post-flight summary")
 
 
 # --------------------------------------------------------------------------------------------
@@ -147,7 +141,10 @@ def _stage(stage: str, key: str, variant: str, args: tuple) -> Any:
 
 @task(name="write-outputs")
 def _write(args: tuple) -> Any:
-    return stages.write_stage(*args)
+    summary = WRITE.function(*args)
+    report = Path(summary["outputs"]["report"])
+    publish_artifact(Path(args[0]).stem, report.read_text())
+    return summary
 
 
 @flow(name="postflight", log_prints=False)
@@ -167,15 +164,7 @@ def postflight(recording: str, out_dir: str, config_path: str | None = None) -> 
         )
         return t(step.name, key, variant, args)
 
-    result = postflight_steps(recording, out_dir, cfg, call)
+    flight, read_s = _take_checked(recording)
+    result = postflight_steps(recording, out_dir, cfg, call, flight, read_s)
     shutil.rmtree(cache_folder(key), ignore_errors=True)  # finished: nothing to resume
     return result
-
-
-def run_plain(recording: str, out_dir: str, config_path: str | None = None) -> dict[str, Any]:
-    """The same steps without Prefect tasks (archive workers, benchmarks)."""
-    cfg = Config.load(config_path)
-    cfg.validate()
-    return postflight_steps(
-        str(recording), str(out_dir), cfg, lambda step, *args: step.function(*args)
-    )

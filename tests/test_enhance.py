@@ -164,11 +164,11 @@ def test_post_flight_enhancements_channels_figures_and_report(dipole, tmp_path):
     """What the write stage adds with ``[enhance] enabled = true`` (without running a flow)."""
     from types import SimpleNamespace
 
-    from flows.stages import enhancement_grids
     from pipeline.config import Config
     from pipeline.products.channels import enhancement_channels
     from pipeline.products.figures import enhancement_figures
     from pipeline.products.html import render_html
+    from pipeline.run.steps import enhancement_grids
 
     cfg = Config.load().with_values({"enhance.enabled": True, "enhance.products": ["rtp", "up:50"]})
     cfg.validate()
@@ -200,8 +200,8 @@ def test_post_flight_enhancements_channels_figures_and_report(dipole, tmp_path):
 
 
 def test_enhancing_a_recording_without_maps_is_one_line(tmp_path):
-    from flows.stages import enhance_recording
     from pipeline.config import Config
+    from pipeline.run.commands import enhance_recording
     from tests.mapfile import write_processed
 
     raw, _ = write_processed(tmp_path / "raw.mcap", frame=False, lines=False, grids=False)

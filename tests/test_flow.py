@@ -213,9 +213,9 @@ def test_navigation_is_skipped_without_validation_lines_or_a_map():
     """One log line, never an error: no map, no validation lines."""
     import numpy as np
 
-    from flows.stages import navigate_stage
     from pipeline.config import Config
     from pipeline.products.log import navigation_lines
+    from pipeline.run.steps import navigate_stage
 
     class NoValidation:  # a segmentation whose flight has no validation epochs
         def mask(self, *labels):

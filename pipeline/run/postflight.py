@@ -1,0 +1,120 @@
+"""The post-flight steps in order, as one plain function.
+
+ingest -> despike (the scalar magnetometer) -> segment -> compensate (each configured T-L
+model and AGG-TL) -> audit -> extended model -> vector stage (when a fluxgate exists) ->
+anomaly reduction, leveling, gridding, ARIMA-Kalman filter -> quality -> navigation on the
+flight's own map (validation lines, ``[navigate]``) -> write (output MCAP, summary JSON,
+report, figures).
+
+:func:`postflight_steps` calls each stage through a ``call`` hook: ``flows/postflight.py``
+passes Prefect tasks (persisted, resumable), :func:`run_plain` (archive workers, benchmarks)
+plain calls.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+from pipeline.config import Config
+from pipeline.flight import Flight
+from pipeline.run import steps
+from pipeline.run.fields import configured_models, final_field, try_segment
+from pipeline.run.outputs import write_outputs
+
+
+@dataclass(frozen=True)
+class Step:
+    """One stage of the post-flight flow: its name (the Prefect task's name and cache key)
+    and the function that runs it."""
+
+    name: str
+    function: Callable[..., Any]
+
+
+INGEST = Step("ingest", steps.ingest_stage)
+DESPIKE = Step("despike", steps.despike_stage)
+SEGMENT = Step("segment", try_segment)
+COMPENSATE = Step("compensate", steps.compensate_stage)
+AUDIT = Step("audit", steps.audit_stage)
+VECTOR = Step("vector", steps.vector_stage)
+MAP = Step("map", steps.map_stage)
+QUALITY = Step("quality", steps.quality_stage)
+NAVIGATE = Step("navigate", steps.navigate_stage)
+WRITE = Step("write", write_outputs)
+STEPS = (INGEST, DESPIKE, SEGMENT, COMPENSATE, AUDIT, VECTOR, MAP, QUALITY, NAVIGATE, WRITE)
+
+
+def postflight_steps(
+    recording: str,
+    out_dir: str,
+    cfg: Config,
+    call: Callable[..., Any],
+    flight: Flight | None = None,
+    read_s: float = 0.0,
+) -> dict[str, Any]:
+    """Every stage in order; ``call(step, *args)`` runs one :class:`Step` (see the module
+    docstring): ``step.function(*args)``, or a Prefect task around it.
+
+    ``flight``: the recording already read (and checked) by the caller, ``read_s`` seconds
+    it took; None: the ingest step reads it. The seconds of each stage (summed over calls:
+    ``compensate`` covers every model) go to the write stage, which puts them in the
+    summary (``timings_s``).
+    """
+    timings: dict[str, float] = {"ingest": read_s}
+    plain_call = call
+
+    def call(step: Step, *args):
+        t0 = time.perf_counter()
+        try:
+            return plain_call(step, *args)
+        finally:
+            timings[step.name] = timings.get(step.name, 0.0) + time.perf_counter() - t0
+
+    if flight is None:
+        flight = call(INGEST, recording)
+    despiked = None
+    if cfg["despike"]["enabled"]:  # every later stage sees the despiked scalar
+        flight, despiked = call(DESPIKE, flight, cfg)
+    seg, why = call(SEGMENT, flight)
+    res = steps.FlightResults(flight, seg, why, despiked=despiked)
+    if seg is not None and flight.has("vector_x_nT") and seg.passes():
+        for m in configured_models(flight, cfg):
+            res.runs[m] = call(COMPENSATE, flight, seg, m, cfg)
+        if cfg["audit"]["enabled"]:
+            res.audit = call(AUDIT, flight, seg, cfg)
+    if cfg["vector"]["enabled"] and flight.has("vector_x_nT", "roll_deg"):
+        res.vector = call(VECTOR, flight, seg, cfg)
+    final = final_field(res.runs, res.audit)
+    if (
+        final is not None
+        and seg is not None
+        and seg.mask("survey").sum() > 100
+        and flight.has("lat_deg", "alt_m")
+    ):
+        res.map_run = call(MAP, flight, seg, final[1], cfg)
+        res.quality = call(QUALITY, flight, seg, res.runs, res.audit, cfg)
+    if cfg["navigate"]["enabled"]:  # skipped (one log line) without validation lines or map
+        res.nav = (
+            call(NAVIGATE, flight, seg, final[1], res.map_run, cfg)
+            if res.map_run is not None
+            else "no map"
+        )
+    return call(WRITE, recording, out_dir, cfg, res, timings)
+
+
+def run_plain(recording: str, out_dir: str, config_path: str | None = None) -> dict[str, Any]:
+    """The post-flight steps without Prefect (archive workers, benchmarks).
+
+    Returns
+    -------
+    dict
+        The summary.
+    """
+    cfg = Config.load(config_path)
+    cfg.validate()
+    return postflight_steps(
+        str(recording), str(out_dir), cfg, lambda step, *args: step.function(*args)
+    )
