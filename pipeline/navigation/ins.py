@@ -23,8 +23,11 @@ Navigation Technology*, ch. 12) with a third-order barometric altitude loop. The
 
 Positions are kept in metres rather than MagNav's radians (better conditioned for a filter
 on a local map): the Pinson matrix is written in radians and transformed by the diagonal
-similarity ``T = diag(R, R cos(lat), 1, ...)``, ``F_m = T F T^-1`` (the slow change of ``T``
-with latitude is neglected: metres over a survey block).
+similarity ``T = diag(R, R cos(lat), 1, ...)``; the transition over a step is
+``T_k expm(F dt) T_{k-1}^-1`` (an exact change of variables: the filters reproduce MagNav's
+numbers, ``tests/test_magnav_peer.py``). MagNav's error states are true minus indicated in
+``get_h`` (``map(lat + x)``); ours indicated minus true: the Pinson dynamics are the same
+(every INS state changes sign), the position rows of ``H`` change sign.
 
 The model (this module) is kept apart from the filters (:mod:`ekf`, :mod:`pf`, :mod:`crlb`),
 which take its transition matrices and noise, statsmodels style.
@@ -72,7 +75,9 @@ class InsGrade:
     """Error budget of an inertial unit (one-sigma values).
 
     Biases are first-order Gauss-Markov processes (sigma, correlation time); random walks are
-    white noise on the velocity (VRW, m/s/sqrt(s)) and the attitude (ARW, rad/sqrt(s)).
+    white noise on the velocity (VRW, m/s/sqrt(s)) and the attitude (ARW, rad/sqrt(s)). The
+    values of each grade live in ``pipeline/default_config.toml`` (``[navigate.grades.*]``,
+    with their sources).
     """
 
     name: str
@@ -80,37 +85,32 @@ class InsGrade:
     gyro_bias_radps: float
     vrw_mps_rt_s: float
     arw_rad_rt_s: float
-    acc_tau_s: float = 3600.0
-    gyro_tau_s: float = 3600.0
-    baro_sigma_m: float = 1.0
-    baro_tau_s: float = 3600.0
-    init_pos_m: float = 3.0
-    init_alt_m: float = 0.1
-    init_vel_mps: float = 0.01
-    init_att_rad: float = np.radians(0.01)
+    acc_tau_s: float
+    gyro_tau_s: float
+    baro_sigma_m: float
+    baro_tau_s: float
+    init_pos_m: float
+    init_alt_m: float
+    init_vel_mps: float
+    init_att_rad: float
+    init_baro_m: float
+    init_baro_acc_mps2: float
+
+    @classmethod
+    def from_config(cls, name: str, values: dict[str, float]) -> InsGrade:
+        """A grade from its ``[navigate.grades.NAME]`` table (every field, floats)."""
+        return cls(name, **{k: float(v) for k, v in values.items()})
 
 
-# Navigation grade (~1 nmi/h, e.g. a ring-laser-gyro unit): the VRW and ARW are MagNav.jl's
-# defaults (create_Qd); the biases are those of a 1 nmi/h class unit (0.01 deg/h gyro bias
-# alone gives R * eps ~ 0.6 nmi/h after the Schuler transient; 50 micro-g accelerometers).
-# Tactical grade (MEMS / FOG tactical units): 1 deg/h gyros, 1 mg accelerometers.
-GRADES: dict[str, InsGrade] = {
-    "navigation": InsGrade(
-        "navigation",
-        acc_bias_mps2=50 * UG,
-        gyro_bias_radps=0.01 * DEG_PER_H,
-        vrw_mps_rt_s=0.000238,
-        arw_rad_rt_s=0.000000581,
-    ),
-    "tactical": InsGrade(
-        "tactical",
-        acc_bias_mps2=1000 * UG,
-        gyro_bias_radps=1.0 * DEG_PER_H,
-        vrw_mps_rt_s=0.002,
-        arw_rad_rt_s=np.radians(0.1) / 60.0,  # 0.1 deg/sqrt(h)
-        init_att_rad=np.radians(0.05),
-    ),
-}
+def _grades() -> dict[str, InsGrade]:
+    from pipeline.defaults import default_value
+
+    return {k: InsGrade.from_config(k, v) for k, v in default_value("navigate", "grades").items()}
+
+
+# navigation: MagNav.jl's create_model defaults; tactical: a tactical-grade unit (sources in
+# the configuration file's comments and docs/navigation.md)
+GRADES: dict[str, InsGrade] = _grades()
 
 
 @dataclass
@@ -195,8 +195,9 @@ class InsErrorModel:
     n: int = field(default=N_INS + 1, init=False)
 
     # ---------------------------------------------------------------------------- dynamics
-    def dynamics(self, traj: Trajectory) -> np.ndarray:
-        """Continuous Pinson matrices F (N, 18, 18) in the metre states (see module doc)."""
+    def dynamics_rad(self, traj: Trajectory) -> np.ndarray:
+        """Continuous Pinson matrices F (N, 18, 18) in MagNav's states (latitude and longitude
+        errors in radians), term by term ``get_pinson``."""
         g = self.grade
         k1, k2, k3 = self.baro_k
         r, w = R_EARTH_M, OMEGA_EARTH_RADPS
@@ -263,25 +264,42 @@ class InsErrorModel:
         F[:, 3:6, 11:14] = traj.c_nb
         F[:, 6:9, 14:17] = -traj.c_nb
         F[:, 17, 17] = -1.0 / self.mag_bias_tau_s
-        # radians -> metres for the two horizontal position states
+        return F
+
+    def metre_scale(self, lat_rad: np.ndarray) -> np.ndarray:
+        """Diagonal of ``T`` (N, 18): metre states = ``T`` x MagNav's radian states (north
+        ``R dlat``, east ``R cos(lat) dlon``, every other state unchanged)."""
+        lat = np.atleast_1d(np.asarray(lat_rad, float))
         t = np.ones((lat.size, self.n))
-        t[:, 0] = r
-        t[:, 1] = r * c
-        return F * t[:, :, None] / t[:, None, :]
+        t[:, 0] = R_EARTH_M
+        t[:, 1] = R_EARTH_M * np.cos(lat)
+        return t
+
+    def dynamics(self, traj: Trajectory) -> np.ndarray:
+        """Continuous Pinson matrices F (N, 18, 18) in the metre states, ``T F T^-1`` at each
+        epoch's latitude (see module doc)."""
+        t = self.metre_scale(traj.lat_rad)
+        return self.dynamics_rad(traj) * t[:, :, None] / t[:, None, :]
 
     def transitions(self, traj: Trajectory) -> np.ndarray:
         """Discrete transition matrices ``Phi[k]`` from epoch k-1 to k (``Phi[0] = I``).
 
-        ``expm(F dt)`` by its third-order Taylor series, batched: the eigenvalues of ``F dt``
-        are tiny (Schuler 1.2e-3 rad/s, barometer loop 0.03/s at dt 0.1 s), so the truncation
-        error is far below the noise; scipy's expm on 36 000 matrices takes ~6 s, this ~0.3 s.
+        ``Phi[k] = T_k expm(F_{k-1} dt_k) T_{k-1}^-1``: the dynamics of the departure epoch
+        held over the step (MagNav's ``ekf`` propagates with ``get_Phi`` at the epoch it
+        leaves), and the metre scaling of each end's latitude, so the metre states are an
+        exact change of variables of MagNav's radian ones. ``expm`` by its Taylor series,
+        batched, summed until the terms fall below double precision: scipy's ``expm`` on
+        36 000 matrices takes ~8 s; a third-order series (this module's earlier choice) was
+        off by 3e-5 of the largest entry at dt 1 s (specific force x tilt is ~10 per second).
         """
-        F = self.dynamics(traj)
+        Fr = self.dynamics_rad(traj)
+        tt = self.metre_scale(traj.lat_rad)
         dt = np.diff(traj.time_s, prepend=traj.time_s[0])
-        A = F * dt[:, None, None]
-        A2 = A @ A
-        eye = np.eye(self.n)
-        return eye + A + A2 / 2.0 + (A2 @ A) / 6.0
+        A = np.zeros_like(Fr)
+        A[1:] = Fr[:-1] * dt[1:, None, None]
+        E = expm_taylor(A)
+        E[1:] *= tt[1:, :, None] / tt[:-1, None, :]
+        return E
 
     def process_noise(self, dt_s: float | np.ndarray) -> np.ndarray:
         """Diagonal of the discrete process noise ``Qd = Q dt`` (MagNav's create_Qd form):
@@ -306,12 +324,26 @@ class InsErrorModel:
         sd[2] = g.init_alt_m
         sd[3:6] = g.init_vel_mps
         sd[6:9] = g.init_att_rad
-        sd[9] = 0.001
-        sd[10] = 0.01
+        sd[9] = g.init_baro_m
+        sd[10] = g.init_baro_acc_mps2
         sd[11:14] = g.acc_bias_mps2
         sd[14:17] = g.gyro_bias_radps
         sd[17] = self.mag_bias_nT
         return np.diag(sd**2)
+
+
+def expm_taylor(A: np.ndarray, max_terms: int = 30) -> np.ndarray:
+    """``expm`` of a batch (N, n, n) of matrices with small eigenvalues by their Taylor series,
+    summed until the largest new term is below 1e-17 of the sum (valid where ``|A|``'s
+    nilpotent-like chains, not its spectral radius, set the size: the Pinson matrices)."""
+    out = np.broadcast_to(np.eye(A.shape[-1]), A.shape).copy()
+    term = out.copy()
+    for k in range(1, max_terms + 1):
+        term = term @ A / k
+        out += term
+        if np.abs(term).max() <= 1e-17 * np.abs(out).max():
+            break
+    return out
 
 
 def simulate_ins_errors(
