@@ -57,8 +57,8 @@ class MeasurementModel:
     ``h(x) = map(p_ins - dp) + dmap/dup (alt_ins - dalt - map_alt) + core(p_ins - dp) + b``
     with ``x`` the error states (indicated minus true; ``dp`` the north/east position error in
     metres, ``dalt`` the altitude error, ``b`` the bias state). MagNav's ``get_h`` / ``get_H``
-    with ``der_mapS`` and ``core=true``; the vertical term's derivative is in ``H`` too
-    (MagNav's ``get_H`` leaves it out when the map is 2-D).
+    with ``der_mapS`` and ``core=true``; ``H`` is the whole Jacobian of that ``h``, with the
+    altitude term's derivatives (MagNav's ``get_H`` leaves them out when the map is 2-D).
 
     Parameters
     ----------
@@ -100,9 +100,12 @@ class MeasurementModel:
         H[0], H[1], H[-1] = -gn * sn, -ge * se, 1.0
         h = m + x[-1]
         if self.vertical is not None and self.alt_above_map_m is not None:
-            dv = self.vertical.at(e, n)[0]
+            dv, dve, dvn = self.vertical.at(e, n)
             if np.isfinite(dv):
-                h += dv * (self.alt_above_map_m[k] - x[2])
+                dz = self.alt_above_map_m[k] - x[2]
+                h += dv * dz
+                H[0] -= dvn * sn * dz
+                H[1] -= dve * se * dz
                 H[2] -= dv
         if self.core_grad is not None:
             g = self.core_grad[k]

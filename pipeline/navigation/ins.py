@@ -352,9 +352,14 @@ def simulate_ins_errors(
     seed: int,
     phi: np.ndarray | None = None,
     init_pos_m: float | None = None,
+    p0: np.ndarray | None = None,
 ) -> np.ndarray:
     """One realisation of the INS errors along ``traj``: x0 ~ N(0, P0), x_k = Phi_k x_{k-1} +
     w_k with w_k ~ N(0, Qd) (MagNav's create_ins does the same on its error model).
+
+    ``p0``: the initial covariance (full; e.g. a GNSS-aided run's,
+    :func:`pipeline.navigation.alignment.gnss_aided_covariance`); default the grade's
+    alignment covariance (``init_pos_m`` overriding its position sigma).
 
     Returns
     -------
@@ -366,10 +371,16 @@ def simulate_ins_errors(
     n = N_INS
     dt = np.diff(traj.time_s, prepend=traj.time_s[0])
     q = model.process_noise(dt)[:, :n]
-    sd0 = np.sqrt(np.diag(model.initial_covariance(init_pos_m))[:n])
+    cov0 = model.initial_covariance(init_pos_m) if p0 is None else np.asarray(p0, float)
+    c = 0.5 * (cov0[:n, :n] + cov0[:n, :n].T)
+    if np.count_nonzero(c - np.diag(np.diag(c))) == 0:
+        root = np.diag(np.sqrt(np.diag(c)))
+    else:  # by eigen-decomposition: a GNSS-aided covariance is nearly singular
+        lam, vec = np.linalg.eigh(c)
+        root = vec * np.sqrt(np.clip(lam, 0.0, None))
     w = rng.standard_normal((len(traj), n)) * np.sqrt(q)
     x = np.empty((len(traj), n))
-    x[0] = sd0 * rng.standard_normal(n)
+    x[0] = root @ rng.standard_normal(n)
     p = phi[:, :n, :n]
     for k in range(1, len(traj)):
         x[k] = p[k] @ x[k - 1] + w[k]
