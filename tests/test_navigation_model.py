@@ -51,6 +51,9 @@ def test_h_jacobian_is_the_derivative_of_h():
             ) / 2e-3
         assert abs(H[2] - num[2]) < 1e-6 and abs(H[17] - 1.0) < 1e-12 and num[5] == 0.0
         assert np.allclose(H[:2], num[:2], rtol=1e-4, atol=1e-7)
+    # the CRLB's vectorised rows are the same Jacobian at zero error
+    rows = meas.jacobians_at(np.array([e0]), np.array([n0]), 18)
+    assert np.allclose(rows[0], meas.evaluate(0, np.zeros(18), e0, n0)[1], rtol=1e-12)
 
 
 def test_altitude_term_follows_a_flight_above_the_map():
@@ -168,3 +171,16 @@ def _stage_run(stage, box_path):
     geomap = frame_map(g, frame, "test", "random map")
     settings = stage.NavigationSettings(segments="all")
     return stage.run_navigation(f, None, d["scalar_nT"].to_numpy(float), geomap, settings)
+
+
+def test_transition_matrices_are_the_exact_exponential():
+    """expm_taylor against scipy's expm at 10 Hz and 1 Hz steps (the metre states' scale)."""
+    from scipy.linalg import expm
+
+    from pipeline.navigation.ins import expm_taylor
+
+    t, e, n, traj, model = _setup(300.0)
+    f = model.dynamics(traj)[::100]
+    for dt in (0.1, 1.0):
+        want = expm(f * dt)
+        assert np.abs(expm_taylor(f * dt) - want).max() < 1e-12 * np.abs(want).max()

@@ -38,16 +38,16 @@ def crlb(
     N, n = qd.shape
     on = meas.map_model.inside(true_east_m, true_north_m)
     allow = on if update is None else (np.asarray(update, bool) & on)
+    rows = meas.jacobians_at(true_east_m, true_north_m, n)
     P = np.array(p0, float)
     out = np.empty((N, n, n) if full_cov else (N, 2, 2))
-    zero = np.zeros(n)
     for k in range(N):
         if k:
             F = phi[k]
             P = F @ P @ F.T
             P[np.diag_indices(n)] += qd[k]
         if allow[k]:
-            H = meas.evaluate(k, zero, true_east_m[k], true_north_m[k])[1]
+            H = rows[k]
             PH = P @ H
             P = P - np.outer(PH, PH) / (float(H @ PH) + r_nT2)
             P = 0.5 * (P + P.T)

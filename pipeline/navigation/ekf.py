@@ -115,6 +115,25 @@ class MeasurementModel:
                 h += self.core_nT[k]
         return h, H
 
+    def jacobians_at(self, east: np.ndarray, north: np.ndarray, n: int) -> np.ndarray:
+        """``H`` (N, n) at zero error for every epoch at once (the CRLB's rows on the true
+        track): the same rows as :meth:`evaluate`, vectorised."""
+        N = np.size(east)
+        sn, se = (np.ones(N), np.ones(N)) if self.map_scale is None else self.map_scale.T
+        _, ge, gn = self.map_model.value_and_gradient(east, north)
+        H = np.zeros((N, n))
+        H[:, 0], H[:, 1], H[:, -1] = -gn * sn, -ge * se, 1.0
+        if self.vertical is not None and self.alt_above_map_m is not None:
+            dv, dve, dvn = self.vertical.value_and_gradient(east, north)
+            ok = np.isfinite(dv)
+            dz = np.asarray(self.alt_above_map_m, float)
+            H[ok, 0] -= (dvn * sn * dz)[ok]
+            H[ok, 1] -= (dve * se * dz)[ok]
+            H[ok, 2] -= dv[ok]
+        if self.core_grad is not None:
+            H[:, :3] -= self.core_grad
+        return H
+
 
 def as_measurement(map_model: MapModel | MeasurementModel) -> MeasurementModel:
     """A :class:`MeasurementModel` (a bare map: the anomaly of the map alone)."""
