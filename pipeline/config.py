@@ -125,6 +125,7 @@ class Config:
             trim=c["trim"],
             ridge=c["ridge"],
             base=c["agg_base"],
+            bt_scale_nT=c["bt_scale_nT"],
         )
 
     def map_settings(self):

@@ -19,7 +19,7 @@ from pipeline.compensate.estimator import bandpassed_design, fit_ridge
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.guards import scaled_condition
 from pipeline.compensate.ridge import LCurve
-from pipeline.compensate.terms import position_terms, tl16_terms, tl18_terms
+from pipeline.compensate.terms import BT_SCALE_NT, position_terms, tl16_terms, tl18_terms
 from pipeline.defaults import default_field, default_value, ridge_problem
 from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
@@ -79,7 +79,8 @@ class Measurements:
 
 @dataclass
 class FitSettings:
-    """How to fit: term set, band (None: no filtering), filter order, trim, ridge."""
+    """How to fit: term set, band (None: no filtering), filter order, trim, ridge, and tl18's
+    column scale (nT)."""
 
     # every default but the model is the shipped configuration's [compensation] value
     model: str = "tl16"
@@ -92,6 +93,9 @@ class FitSettings:
     trim: int = default_field("compensation", "trim")
     # a lambda, or "auto" for the L-curve corner
     ridge: float | str = default_field("compensation", "ridge")
+    # tl18's induced and eddy columns are divided by it (MagNav's Bt_scale): with a fixed
+    # lambda it sets how hard those coefficients are shrunk
+    bt_scale_nT: float = default_field("compensation", "bt_scale_nT")
 
     def __post_init__(self) -> None:
         if self.model not in MODELS:
@@ -101,12 +105,16 @@ class FitSettings:
         problem = ridge_problem(self.ridge)  # the rule Config loading applies
         if problem:
             raise ValueError(problem)
+        if not self.bt_scale_nT > 0:
+            raise ValueError(f"bt_scale_nT must be > 0 nT, not {self.bt_scale_nT!r}")
 
 
-def tl_terms(model: str, meas: Measurements, base: str = "tl18") -> tuple[np.ndarray, list[str]]:
+def tl_terms(
+    model: str, meas: Measurements, base: str = "tl18", bt_scale_nT: float = BT_SCALE_NT
+) -> tuple[np.ndarray, list[str]]:
     """The T-L columns a model compensates with (AGG-TL: those of its ``base`` term set)."""
     if model == "tl18" or (model == "agg-tl" and base == "tl18"):
-        return tl18_terms(meas.vector_nT, meas.time_s)
+        return tl18_terms(meas.vector_nT, meas.time_s, bt_scale_nT)
     return tl16_terms(meas.vector_nT, meas.time_s)
 
 
@@ -135,7 +143,8 @@ class CompensationModel:
 
     def interference_nT(self, meas: Measurements) -> np.ndarray:
         """Carrier interference at every epoch (T-L part, unfiltered columns), nT."""
-        k, _ = tl_terms(self.model, meas, self.settings.base)
+        s = self.settings
+        k, _ = tl_terms(self.model, meas, s.base, s.bt_scale_nT)
         return k @ self.coefficients[: self.n_tl]
 
     def compensate(self, meas: Measurements) -> tuple[np.ndarray, np.ndarray]:
@@ -177,7 +186,7 @@ class CompensationModel:
 def _design(
     settings: FitSettings, meas: Measurements, fit_mask: np.ndarray
 ) -> tuple[np.ndarray, list[str], int, dict[str, float]]:
-    k, names = tl_terms(settings.model, meas, settings.base)
+    k, names = tl_terms(settings.model, meas, settings.base, settings.bt_scale_nT)
     n_tl = k.shape[1]
     reference: dict[str, float] = {}
     if settings.model == "agg-tl":

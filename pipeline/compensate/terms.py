@@ -26,7 +26,9 @@ from __future__ import annotations
 
 import numpy as np
 
-BT_SCALE_NT = 50_000.0
+from pipeline.defaults import default_value
+
+BT_SCALE_NT = float(default_value("compensation", "bt_scale_nT"))
 AXES = "xyz"
 PAIRS_UPPER = [(0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)]
 # MagNav.jl's term-group names (create_TL_A's `terms`) -> our column-name prefixes

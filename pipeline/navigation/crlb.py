@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.navigation.ekf import MeasurementModel, as_measurement
 from pipeline.navigation.map_model import MapModel
 
 
@@ -21,31 +22,34 @@ def crlb(
     p0: np.ndarray,
     true_east_m: np.ndarray,
     true_north_m: np.ndarray,
-    map_model: MapModel,
+    map_model: MapModel | MeasurementModel,
     r_nT2: float,
     update: np.ndarray | None = None,
+    full_cov: bool = False,
 ) -> np.ndarray:
-    """Lower bound on the (north, east) position error covariance, (N, 2, 2) m^2.
+    """Lower bound on the (north, east) position error covariance, (N, 2, 2) m^2 (with
+    ``full_cov``: the whole (N, n, n) covariance, in the model's states).
 
     ``update`` (N,) marks the epochs with a map measurement (default: where the true position
-    is on the map).
+    is on the map). ``map_model``: the measurement's Jacobian at zero error on the true track
+    (a bare map: ``h = map + b``).
     """
+    meas = as_measurement(map_model)
     N, n = qd.shape
-    gx, gy = map_model.gradient(true_east_m, true_north_m)
-    on = map_model.inside(true_east_m, true_north_m)
+    on = meas.map_model.inside(true_east_m, true_north_m)
     allow = on if update is None else (np.asarray(update, bool) & on)
+    rows = meas.jacobians_at(true_east_m, true_north_m, n)
     P = np.array(p0, float)
-    out = np.empty((N, 2, 2))
+    out = np.empty((N, n, n) if full_cov else (N, 2, 2))
     for k in range(N):
         if k:
             F = phi[k]
             P = F @ P @ F.T
             P[np.diag_indices(n)] += qd[k]
         if allow[k]:
-            H = np.zeros(n)
-            H[0], H[1], H[-1] = -gy[k], -gx[k], 1.0
+            H = rows[k]
             PH = P @ H
             P = P - np.outer(PH, PH) / (float(H @ PH) + r_nT2)
             P = 0.5 * (P + P.T)
-        out[k] = P[:2, :2]
+        out[k] = P if full_cov else P[:2, :2]
     return out

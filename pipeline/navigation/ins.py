@@ -23,8 +23,11 @@ Navigation Technology*, ch. 12) with a third-order barometric altitude loop. The
 
 Positions are kept in metres rather than MagNav's radians (better conditioned for a filter
 on a local map): the Pinson matrix is written in radians and transformed by the diagonal
-similarity ``T = diag(R, R cos(lat), 1, ...)``, ``F_m = T F T^-1`` (the slow change of ``T``
-with latitude is neglected: metres over a survey block).
+similarity ``T = diag(R, R cos(lat), 1, ...)``; the transition over a step is
+``T_k expm(F dt) T_{k-1}^-1`` (an exact change of variables: the filters reproduce MagNav's
+numbers, ``tests/test_magnav_peer.py``). MagNav's error states are true minus indicated in
+``get_h`` (``map(lat + x)``); ours indicated minus true: the Pinson dynamics are the same
+(every INS state changes sign), the position rows of ``H`` change sign.
 
 The model (this module) is kept apart from the filters (:mod:`ekf`, :mod:`pf`, :mod:`crlb`),
 which take its transition matrices and noise, statsmodels style.
@@ -72,7 +75,9 @@ class InsGrade:
     """Error budget of an inertial unit (one-sigma values).
 
     Biases are first-order Gauss-Markov processes (sigma, correlation time); random walks are
-    white noise on the velocity (VRW, m/s/sqrt(s)) and the attitude (ARW, rad/sqrt(s)).
+    white noise on the velocity (VRW, m/s/sqrt(s)) and the attitude (ARW, rad/sqrt(s)). The
+    values of each grade live in ``pipeline/default_config.toml`` (``[navigate.grades.*]``,
+    with their sources).
     """
 
     name: str
@@ -80,37 +85,32 @@ class InsGrade:
     gyro_bias_radps: float
     vrw_mps_rt_s: float
     arw_rad_rt_s: float
-    acc_tau_s: float = 3600.0
-    gyro_tau_s: float = 3600.0
-    baro_sigma_m: float = 1.0
-    baro_tau_s: float = 3600.0
-    init_pos_m: float = 3.0
-    init_alt_m: float = 0.1
-    init_vel_mps: float = 0.01
-    init_att_rad: float = np.radians(0.01)
+    acc_tau_s: float
+    gyro_tau_s: float
+    baro_sigma_m: float
+    baro_tau_s: float
+    init_pos_m: float
+    init_alt_m: float
+    init_vel_mps: float
+    init_att_rad: float
+    init_baro_m: float
+    init_baro_acc_mps2: float
+
+    @classmethod
+    def from_config(cls, name: str, values: dict[str, float]) -> InsGrade:
+        """A grade from its ``[navigate.grades.NAME]`` table (every field, floats)."""
+        return cls(name, **{k: float(v) for k, v in values.items()})
 
 
-# Navigation grade (~1 nmi/h, e.g. a ring-laser-gyro unit): the VRW and ARW are MagNav.jl's
-# defaults (create_Qd); the biases are those of a 1 nmi/h class unit (0.01 deg/h gyro bias
-# alone gives R * eps ~ 0.6 nmi/h after the Schuler transient; 50 micro-g accelerometers).
-# Tactical grade (MEMS / FOG tactical units): 1 deg/h gyros, 1 mg accelerometers.
-GRADES: dict[str, InsGrade] = {
-    "navigation": InsGrade(
-        "navigation",
-        acc_bias_mps2=50 * UG,
-        gyro_bias_radps=0.01 * DEG_PER_H,
-        vrw_mps_rt_s=0.000238,
-        arw_rad_rt_s=0.000000581,
-    ),
-    "tactical": InsGrade(
-        "tactical",
-        acc_bias_mps2=1000 * UG,
-        gyro_bias_radps=1.0 * DEG_PER_H,
-        vrw_mps_rt_s=0.002,
-        arw_rad_rt_s=np.radians(0.1) / 60.0,  # 0.1 deg/sqrt(h)
-        init_att_rad=np.radians(0.05),
-    ),
-}
+def _grades() -> dict[str, InsGrade]:
+    from pipeline.defaults import default_value
+
+    return {k: InsGrade.from_config(k, v) for k, v in default_value("navigate", "grades").items()}
+
+
+# navigation: MagNav.jl's create_model defaults; tactical: a tactical-grade unit (sources in
+# the configuration file's comments and docs/navigation.md)
+GRADES: dict[str, InsGrade] = _grades()
 
 
 @dataclass
@@ -195,8 +195,9 @@ class InsErrorModel:
     n: int = field(default=N_INS + 1, init=False)
 
     # ---------------------------------------------------------------------------- dynamics
-    def dynamics(self, traj: Trajectory) -> np.ndarray:
-        """Continuous Pinson matrices F (N, 18, 18) in the metre states (see module doc)."""
+    def dynamics_rad(self, traj: Trajectory) -> np.ndarray:
+        """Continuous Pinson matrices F (N, 18, 18) in MagNav's states (latitude and longitude
+        errors in radians), term by term ``get_pinson``."""
         g = self.grade
         k1, k2, k3 = self.baro_k
         r, w = R_EARTH_M, OMEGA_EARTH_RADPS
@@ -263,25 +264,44 @@ class InsErrorModel:
         F[:, 3:6, 11:14] = traj.c_nb
         F[:, 6:9, 14:17] = -traj.c_nb
         F[:, 17, 17] = -1.0 / self.mag_bias_tau_s
-        # radians -> metres for the two horizontal position states
+        return F
+
+    def metre_scale(self, lat_rad: np.ndarray) -> np.ndarray:
+        """Diagonal of ``T`` (N, 18): metre states = ``T`` x MagNav's radian states (north
+        ``R dlat``, east ``R cos(lat) dlon``, every other state unchanged)."""
+        lat = np.atleast_1d(np.asarray(lat_rad, float))
         t = np.ones((lat.size, self.n))
-        t[:, 0] = r
-        t[:, 1] = r * c
-        return F * t[:, :, None] / t[:, None, :]
+        t[:, 0] = R_EARTH_M
+        t[:, 1] = R_EARTH_M * np.cos(lat)
+        return t
+
+    def dynamics(self, traj: Trajectory) -> np.ndarray:
+        """Continuous Pinson matrices F (N, 18, 18) in the metre states, ``T F T^-1`` at each
+        epoch's latitude (see module doc)."""
+        t = self.metre_scale(traj.lat_rad)
+        return self.dynamics_rad(traj) * t[:, :, None] / t[:, None, :]
 
     def transitions(self, traj: Trajectory) -> np.ndarray:
         """Discrete transition matrices ``Phi[k]`` from epoch k-1 to k (``Phi[0] = I``).
 
-        ``expm(F dt)`` by its third-order Taylor series, batched: the eigenvalues of ``F dt``
-        are tiny (Schuler 1.2e-3 rad/s, barometer loop 0.03/s at dt 0.1 s), so the truncation
-        error is far below the noise; scipy's expm on 36 000 matrices takes ~6 s, this ~0.3 s.
+        ``Phi[k] = T_k expm(F_{k-1} dt_k) T_{k-1}^-1``: the dynamics of the departure epoch
+        held over the step (MagNav's ``ekf`` propagates with ``get_Phi`` at the epoch it
+        leaves), and the metre scaling of each end's latitude, so the metre states are an
+        exact change of variables of MagNav's radian ones. ``expm`` by :func:`expm_taylor`,
+        batched: scipy's ``expm`` on 36 000 matrices takes ~8 s; a third-order series (this
+        module's earlier choice) was off by 3e-5 of the largest entry at dt 1 s.
         """
-        F = self.dynamics(traj)
+        Fr = self.dynamics_rad(traj)
+        tt = self.metre_scale(traj.lat_rad)
         dt = np.diff(traj.time_s, prepend=traj.time_s[0])
-        A = F * dt[:, None, None]
-        A2 = A @ A
-        eye = np.eye(self.n)
-        return eye + A + A2 / 2.0 + (A2 @ A) / 6.0
+        E = np.empty_like(Fr)
+        E[0] = np.eye(self.n)
+        # in chunks: a few MB at a time stay in cache (whole-array temporaries were slower)
+        for a in range(1, len(traj), 2048):
+            b = min(a + 2048, len(traj))
+            E[a:b] = expm_taylor(Fr[a - 1 : b - 1] * dt[a:b, None, None])
+            E[a:b] *= tt[a:b, :, None] / tt[a - 1 : b - 1, None, :]
+        return E
 
     def process_noise(self, dt_s: float | np.ndarray) -> np.ndarray:
         """Diagonal of the discrete process noise ``Qd = Q dt`` (MagNav's create_Qd form):
@@ -306,12 +326,34 @@ class InsErrorModel:
         sd[2] = g.init_alt_m
         sd[3:6] = g.init_vel_mps
         sd[6:9] = g.init_att_rad
-        sd[9] = 0.001
-        sd[10] = 0.01
+        sd[9] = g.init_baro_m
+        sd[10] = g.init_baro_acc_mps2
         sd[11:14] = g.acc_bias_mps2
         sd[14:17] = g.gyro_bias_radps
         sd[17] = self.mag_bias_nT
         return np.diag(sd**2)
+
+
+def expm_taylor(A: np.ndarray, max_step: float = 0.125) -> np.ndarray:
+    """``expm`` of a batch (N, n, n) of Pinson-type matrices ``F dt``: a degree-6 Taylor
+    polynomial (Paterson-Stockmeyer: three products) of ``A / 2^s``, squared ``s`` times,
+    ``s`` the smallest with ``max|dt| / 2^s <= max_step`` s (``max_step`` in the units of
+    ``A``'s time step; the caller passes ``F dt`` with ``dt`` in s, and ``A``'s largest
+    entries are the specific force, ~10 per s). Off by < 1e-12 of the largest entry of
+    scipy's ``expm`` at dt 0.1 s and 1 s (``tests/test_navigation_model.py``)."""
+    # the specific-force entries (~g per s) bound the time step the polynomial can take
+    scale = np.abs(A).max() / 10.0 if A.size else 0.0
+    s = int(max(0, np.ceil(np.log2(scale / max_step)))) if scale > max_step else 0
+    X = A / 2.0**s
+    eye = np.eye(A.shape[-1])
+    X2 = X @ X
+    X3 = X2 @ X
+    low = eye + X + X2 / 2.0 + X3 / 6.0
+    high = X / 24.0 + X2 / 120.0 + X3 / 720.0
+    E = low + X3 @ high
+    for _ in range(s):
+        E = E @ E
+    return E
 
 
 def simulate_ins_errors(
@@ -320,9 +362,14 @@ def simulate_ins_errors(
     seed: int,
     phi: np.ndarray | None = None,
     init_pos_m: float | None = None,
+    p0: np.ndarray | None = None,
 ) -> np.ndarray:
     """One realisation of the INS errors along ``traj``: x0 ~ N(0, P0), x_k = Phi_k x_{k-1} +
     w_k with w_k ~ N(0, Qd) (MagNav's create_ins does the same on its error model).
+
+    ``p0``: the initial covariance (full; e.g. a GNSS-aided run's,
+    :func:`pipeline.navigation.alignment.gnss_aided_covariance`); default the grade's
+    alignment covariance (``init_pos_m`` overriding its position sigma).
 
     Returns
     -------
@@ -334,10 +381,16 @@ def simulate_ins_errors(
     n = N_INS
     dt = np.diff(traj.time_s, prepend=traj.time_s[0])
     q = model.process_noise(dt)[:, :n]
-    sd0 = np.sqrt(np.diag(model.initial_covariance(init_pos_m))[:n])
+    cov0 = model.initial_covariance(init_pos_m) if p0 is None else np.asarray(p0, float)
+    c = 0.5 * (cov0[:n, :n] + cov0[:n, :n].T)
+    if np.count_nonzero(c - np.diag(np.diag(c))) == 0:
+        root = np.diag(np.sqrt(np.diag(c)))
+    else:  # by eigen-decomposition: a GNSS-aided covariance is nearly singular
+        lam, vec = np.linalg.eigh(c)
+        root = vec * np.sqrt(np.clip(lam, 0.0, None))
     w = rng.standard_normal((len(traj), n)) * np.sqrt(q)
     x = np.empty((len(traj), n))
-    x[0] = sd0 * rng.standard_normal(n)
+    x[0] = root @ rng.standard_normal(n)
     p = phi[:, :n, :n]
     for k in range(1, len(traj)):
         x[k] = p[k] @ x[k - 1] + w[k]

@@ -25,29 +25,62 @@ def _fill_nearest(values: np.ndarray) -> np.ndarray:
     return values[iy, ix]
 
 
-def upward_continue(grid: Grid, height_m: float) -> Grid:
-    """The grid continued upward by ``height_m`` (> 0) with harmonica.
-
-    The FFT assumes a periodic grid: masked cells are filled with their nearest neighbour and
-    the grid is padded by reflection on every side (half its size) before the transform, then
-    cropped and re-masked.
-    """
-    import harmonica as hm
+def _fft_operator(
+    values: np.ndarray, cell_east_m: float, cell_north_m: float, pad: bool, apply
+) -> np.ndarray:
+    """``apply`` (a harmonica FFT filter of an xarray grid) to ``values`` (rows north,
+    columns east): masked cells filled with their nearest neighbour, and with ``pad`` the grid
+    reflected by half its size on every side first (the FFT takes the grid as periodic), then
+    cropped and re-masked."""
     import xarray as xr
+
+    vals = _fill_nearest(np.asarray(values, float))
+    ny, nx = vals.shape
+    py, px = (ny // 2, nx // 2) if pad else (0, 0)
+    padded = np.pad(vals, ((py, py), (px, px)), mode="reflect")
+    ee = cell_east_m * np.arange(-px, nx + px)
+    nn = cell_north_m * np.arange(-py, ny + py)
+    da = xr.DataArray(padded, coords={"northing": nn, "easting": ee}, dims=("northing", "easting"))
+    out = np.asarray(apply(da).values)[py : py + ny, px : px + nx].copy()
+    out[~np.isfinite(values)] = np.nan
+    return out
+
+
+def upward_continue_values(
+    values: np.ndarray, cell_east_m: float, cell_north_m: float, height_m: float, pad=True
+) -> np.ndarray:
+    """``values`` (rows north, columns east; cells ``cell_east_m`` by ``cell_north_m``)
+    continued upward by ``height_m`` (> 0) with harmonica: ``exp(-|k| dz)`` in the wavenumber
+    domain. ``pad=False`` is MagNav's ``upward_fft(map, dx, dy, dz; expand=false)``, the grid
+    taken as periodic as it is; the default reflects it by half its size on every side first,
+    which keeps one edge's field from wrapping onto the other."""
+    import harmonica as hm
 
     if height_m <= 0:
         raise ValueError("upward continuation needs a positive height")
-    vals = _fill_nearest(grid.values.astype(float))
-    ny, nx = vals.shape
-    py, px = ny // 2, nx // 2
-    padded = np.pad(vals, ((py, py), (px, px)), mode="reflect")
-    ee = grid.east0_m + grid.cell_m * np.arange(-px, nx + px)
-    nn = grid.north0_m + grid.cell_m * np.arange(-py, ny + py)
-    da = xr.DataArray(padded, coords={"northing": nn, "easting": ee}, dims=("northing", "easting"))
-    up = hm.upward_continuation(da, height_displacement=float(height_m)).values
-    out = up[py : py + ny, px : px + nx]
-    out[~np.isfinite(grid.values)] = np.nan
-    return grid.with_values(out)
+    return _fft_operator(
+        values,
+        cell_east_m,
+        cell_north_m,
+        pad,
+        lambda da: hm.upward_continuation(da, height_displacement=float(height_m)),
+    )
+
+
+def upward_continue(grid: Grid, height_m: float) -> Grid:
+    """The grid continued upward by ``height_m`` (> 0), reflection-padded
+    (:func:`upward_continue_values`)."""
+    c = grid.cell_m
+    return grid.with_values(upward_continue_values(grid.values, c, c, height_m))
+
+
+def vertical_derivative(grid: Grid) -> Grid:
+    """d/d up of the grid's field, nT/m (``-|k|`` in the wavenumber domain, harmonica's
+    ``derivative_upward``), reflection-padded as :func:`upward_continue`."""
+    import harmonica as hm
+
+    c = grid.cell_m
+    return grid.with_values(_fft_operator(grid.values, c, c, True, hm.derivative_upward))
 
 
 def _weights(t: float | np.ndarray) -> tuple:
@@ -84,16 +117,24 @@ class MapModel:
         One-sigma uncertainty of the map value (added to the measurement noise).
     altitude_m : float or None
         Height of the map above the ellipsoid (None: unknown).
+    method : {"cubic", "linear"}
+        The interpolant: the cubic B-spline (default: a continuous gradient, which the EKF's
+        linearisation wants) or bilinear (MagNav's ``map_interpolate(..., :linear)``, whose
+        gradient jumps at cell edges; used to reproduce MagNav's test numbers).
     """
 
     grid: Grid
     sigma_nT: float = 0.0
     altitude_m: float | None = None
+    method: str = "cubic"
     _coef: np.ndarray = field(init=False, repr=False)
     _valid: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         from scipy.ndimage import spline_filter
+
+        if self.method not in ("cubic", "linear"):
+            raise ValueError(f"map interpolation {self.method!r}: use cubic or linear")
 
         vals = _fill_nearest(self.grid.values.astype(float))
         # one node of mirror padding on each side (and one more for the upper neighbour)
@@ -101,6 +142,7 @@ class MapModel:
         ok = np.isfinite(self.grid.values)
         # a point is on the map when the four cells around it are unmasked
         self._valid = np.pad(ok, ((0, 1), (0, 1)), constant_values=False)
+        self._nodes = vals
         self._ny, self._nx = vals.shape
 
     def _frac(self, east_m, north_m):
@@ -141,11 +183,23 @@ class MapModel:
         c = self.grid.cell_m
         return v.reshape(shape), (gx / c).reshape(shape), (gy / c).reshape(shape)
 
+    def _bilinear(self, fx, fy, i, j):
+        """Bilinear value and its derivatives per cell (d/dfx, d/dfy) from the nodes."""
+        v = self._nodes
+        tx, ty = fx - i, fy - j
+        v00, v10 = v[j, i], v[j, i + 1]
+        v01, v11 = v[j + 1, i], v[j + 1, i + 1]
+        lo, hi = v00 + tx * (v10 - v00), v01 + tx * (v11 - v01)
+        dx = (1 - ty) * (v10 - v00) + ty * (v11 - v01)
+        return lo + ty * (hi - lo), dx, hi - lo
+
     def _evaluate_many(self, fx: np.ndarray, fy: np.ndarray):
         fx = np.clip(fx, 0.0, self._nx - 1.0)
         fy = np.clip(fy, 0.0, self._ny - 1.0)
         i = np.minimum(np.floor(fx).astype(int), self._nx - 2)
         j = np.minimum(np.floor(fy).astype(int), self._ny - 2)
+        if self.method == "linear":
+            return self._bilinear(fx, fy, i, j)
         wx, dx = _weights(fx - i)
         wy, dy = _weights(fy - j)
         # 4 x 4 coefficient blocks around each point: (M, 4, 4)
@@ -169,12 +223,15 @@ class MapModel:
         v = self._valid
         if not (v[j, i] and v[j, i + 1] and v[j + 1, i] and v[j + 1, i + 1]):
             return np.nan, 0.0, 0.0
+        cell = self.grid.cell_m
+        if self.method == "linear":
+            val, ddx, ddy = self._bilinear(fx, fy, i, j)
+            return float(val), float(ddx) / cell, float(ddy) / cell
         wx, dx = _weights(fx - i)
         wy, dy = _weights(fy - j)
         blk = self._coef[j + 1 : j + 5, i + 1 : i + 5]
         wx, dx, wy, dy = (np.array(w) for w in (wx, dx, wy, dy))
         bx = blk @ wx
-        cell = self.grid.cell_m
         return float(wy @ bx), float(wy @ (blk @ dx)) / cell, float(dy @ bx) / cell
 
     def coverage(self, east_m, north_m) -> float:
@@ -198,6 +255,6 @@ class MapModel:
             )
         up = upward_continue(self.grid, dh)
         return (
-            MapModel(up, self.sigma_nT, float(altitude_m)),
+            MapModel(up, self.sigma_nT, float(altitude_m), self.method),
             f"map continued upward by {dh:.1f} m (harmonica) to {altitude_m:.1f} m",
         )

@@ -19,13 +19,14 @@ import numpy as np
 from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
-from pipeline.maps.reduce import reduce_to_anomaly
+from pipeline.maps.reduce import igrf_total_gradient_nT_per_m, reduce_to_anomaly
 from pipeline.maps.stage import noise_4th_difference_nT
+from pipeline.navigation.alignment import gnss_aided_covariance
 from pipeline.navigation.crlb import crlb
-from pipeline.navigation.ekf import FilterResult, ekf
+from pipeline.navigation.ekf import FilterResult, MeasurementModel, ekf
 from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory, simulate_ins_errors
 from pipeline.navigation.map_io import GeoMap
-from pipeline.navigation.map_model import MapModel
+from pipeline.navigation.map_model import MapModel, vertical_derivative
 from pipeline.navigation.pf import particle_filter
 from pipeline.segment import Segmentation
 
@@ -54,6 +55,9 @@ class NavigationSettings:
     map_sigma_nT: float | None = None
     sensor_sigma_nT: float | None = None
     max_uncovered: float = 0.5
+    # the window starts from a GNSS-aided INS's covariance (pipeline.navigation.alignment)
+    gnss_aided_s: float = default_field("navigate", "gnss_aided_s")
+    gnss_sigma_m: float = default_field("navigate", "gnss_sigma_m")
 
     def check(self) -> None:
         """Raise :class:`AeromagError` (one line) for an unknown filter, INS grade or segment
@@ -64,6 +68,11 @@ class NavigationSettings:
             raise AeromagError(f"--ins {self.ins!r}: use {' or '.join(GRADES)}")
         if self.segments not in SEGMENT_LABELS:
             raise AeromagError(f"--segments {self.segments!r}: use validation, survey or all")
+        if not (self.gnss_aided_s > 0 and self.gnss_sigma_m > 0):
+            raise AeromagError(
+                f"gnss_aided_s {self.gnss_aided_s!r} and gnss_sigma_m {self.gnss_sigma_m!r}: "
+                "both must be > 0"
+            )
 
 
 def _metrics(dn: np.ndarray, de: np.ndarray) -> dict[str, float]:
@@ -259,6 +268,79 @@ def track_coverage(
     return check_coverage(geomap, np.asarray(e, float), np.asarray(n, float), settings)
 
 
+def _trajectory(
+    flight: Flight, idx: np.ndarray, east_m, north_m, up_m, notes: list[str]
+) -> Trajectory:
+    """The true track of epochs ``idx`` (positions in the map's frame, attitude when whole)."""
+    d = flight.data
+    att = (
+        [d[c].to_numpy(float)[idx] for c in ("roll_deg", "pitch_deg", "yaw_deg")]
+        if flight.has("roll_deg", "pitch_deg", "yaw_deg")
+        else [None, None, None]
+    )
+    if att[0] is not None and not all(np.isfinite(a).all() for a in att):
+        att = [None, None, None]
+        notes.append("attitude incomplete in the window: body axes taken along the track")
+    t = d["time_s"].to_numpy(float)[idx]
+    lat = d["lat_deg"].to_numpy(float)[idx]
+    return Trajectory.from_track(t, north_m, east_m, up_m, lat, *att)
+
+
+def _gnss_aided_p0(
+    flight: Flight,
+    win: np.ndarray,
+    geomap: GeoMap,
+    model: InsErrorModel,
+    window_traj: Trajectory,
+    s: NavigationSettings,
+    notes: list[str],
+) -> np.ndarray:
+    """The initial covariance of the window: a GNSS-aided run over the ``s.gnss_aided_s``
+    seconds of track before it (or, when less than a tenth of that precedes it, over the
+    window's own first ``s.gnss_aided_s`` seconds, noted)."""
+    d = flight.data
+    t_all = d["time_s"].to_numpy(float)
+    ok = np.ones(t_all.size, bool)
+    for c in ("lat_deg", "lon_deg", "alt_m"):
+        ok &= np.isfinite(d[c].to_numpy(float))
+    before = np.flatnonzero(ok[: win[0]] & (t_all[: win[0]] >= t_all[win[0]] - s.gnss_aided_s))
+    if before.size > 10 and t_all[before[-1]] - t_all[before[0]] >= 0.1 * s.gnss_aided_s:
+        lat, lon = d["lat_deg"].to_numpy(float), d["lon_deg"].to_numpy(float)
+        alt = d["alt_m"].to_numpy(float)
+        e, n = (np.asarray(v, float) for v in geomap.to_local(lat[before], lon[before]))
+        aided = _trajectory(flight, before, e, n, alt[before] - np.mean(alt[before]), [])
+        span = t_all[before[-1]] - t_all[before[0]]
+        notes.append(f"initial covariance: GNSS-aided INS over the {span:.0f} s before the window")
+    else:
+        k = np.searchsorted(window_traj.time_s, window_traj.time_s[0] + s.gnss_aided_s)
+        k = max(k, min(10, len(window_traj)))
+        w = window_traj
+        aided = Trajectory(
+            w.time_s[:k], w.lat_rad[:k], w.vel_ned_mps[:k], w.force_ned_mps2[:k], w.c_nb[:k]
+        )
+        notes.append(
+            "initial covariance: GNSS-aided INS over the window's first "
+            f"{w.time_s[k - 1] - w.time_s[0]:.0f} s (no track flown before it)"
+        )
+    return gnss_aided_covariance(model, aided, s.gnss_sigma_m)
+
+
+def _measurement_model(
+    mm: MapModel, time_ns, ins_lat_deg, ins_lon_deg, ins_alt_m, notes: list[str]
+) -> MeasurementModel:
+    """The filters' measurement: the map, its vertical derivative times the height above the
+    map (when the map's altitude is known), and the core field's gradient at the indicated
+    position (the measurement is the total field reduced with the IGRF there)."""
+    vertical, above = None, None
+    if mm.altitude_m is not None:
+        vertical = MapModel(vertical_derivative(mm.grid), method=mm.method)
+        above = np.asarray(ins_alt_m, float) - mm.altitude_m
+    else:
+        notes.append("map altitude unknown: no altitude term in the measurement")
+    grad = igrf_total_gradient_nT_per_m(time_ns, ins_lat_deg, ins_lon_deg, ins_alt_m)
+    return MeasurementModel(mm, None, vertical, above, grad)
+
+
 def run_navigation(
     flight: Flight,
     seg: Segmentation | None,
@@ -298,21 +380,14 @@ def run_navigation(
     flight_alt = float(np.mean(alt[win][selected]))
     mm, how = mm.continued_to(flight_alt)
     notes.append(how)
-    # true track and INS errors
+    # true track and INS errors, from the covariance a GNSS-aided INS has at GNSS loss
     t = d["time_s"].to_numpy(float)[win]
-    att = (
-        [d[c].to_numpy(float)[win] for c in ("roll_deg", "pitch_deg", "yaw_deg")]
-        if flight.has("roll_deg", "pitch_deg", "yaw_deg")
-        else [None, None, None]
-    )
-    if att[0] is not None and not all(np.isfinite(a).all() for a in att):
-        att = [None, None, None]
-        notes.append("attitude incomplete in the window: body axes taken along the track")
-    traj = Trajectory.from_track(t, n_all, e_all, alt[win] - flight_alt, lat[win], *att)
+    traj = _trajectory(flight, win, e_all, n_all, alt[win] - flight_alt, notes)
     model = InsErrorModel(GRADES[s.ins], s.mag_bias_nT, s.mag_bias_tau_s)
     phi = model.transitions(traj)
     qd = model.process_noise(np.diff(t, prepend=t[0]))
-    x_ins = simulate_ins_errors(model, traj, s.seed, phi)
+    p0 = _gnss_aided_p0(flight, win, geomap, model, traj, s, notes)
+    x_ins = simulate_ins_errors(model, traj, s.seed, phi, p0=p0)
     clock["ins"] = time.perf_counter()
     # measured anomaly, reduced as the map: IGRF at the INS-indicated position
     ins_e, ins_n = e_all + x_ins[:, 1], n_all + x_ins[:, 0]
@@ -330,6 +405,7 @@ def run_navigation(
         )
     if base is None:
         notes.append("no base station: diurnal not removed (the mapping did the same)")
+    meas = _measurement_model(mm, flight.time_ns[win], lat_r[win], lon_r[win], alt_r[win], notes)
     # measurement noise: sensor (track) and map (grid), 4th-difference estimates
     sensor = s.sensor_sigma_nT
     if sensor is None:
@@ -345,10 +421,9 @@ def run_navigation(
     mm.sigma_nT = map_sigma
     r = sensor**2 + map_sigma**2
     # filter and bound
-    p0 = model.initial_covariance()
     update = selected & np.isfinite(z)
     if s.filter == "ekf":
-        res = ekf(phi, qd, p0, z, ins_e, ins_n, mm, r, update)
+        res = ekf(phi, qd, p0, z, ins_e, ins_n, meas, r, update)
     else:
         res = particle_filter(
             phi,
@@ -373,8 +448,8 @@ def run_navigation(
         else:
             notes.append("particle filter to the end (its cloud never settled for a handover)")
     clock["filter"] = time.perf_counter()
-    bound = crlb(phi, qd, p0, e_all, n_all, mm, r, update)
-    free = crlb(phi, qd, p0, e_all, n_all, mm, r, np.zeros(t.size, bool))
+    bound = crlb(phi, qd, p0, e_all, n_all, meas, r, update)
+    free = crlb(phi, qd, p0, e_all, n_all, meas, r, np.zeros(t.size, bool))
     clock["crlb"] = time.perf_counter()
     timings = {
         "ins_s": clock["ins"] - clock["start"],
