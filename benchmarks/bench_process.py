@@ -1,9 +1,17 @@
-"""`aeromag process` against the official mcap reader, for flights of about 1, 2.5 and 5 h.
+"""`aeromag process` against the official mcap reader, on two survey shapes and two sizes each.
 
-    .venv/bin/python benchmarks/bench_process.py [--hours 1,2.5,5] [--keep DIR]
+    .venv/bin/python benchmarks/bench_process.py [--hours 1,5] [--block-lines 12,45] [--keep DIR]
 
-For each flight (the demo survey stretched to about the given duration, 10 Hz, simulated and
-written once; ``--keep`` keeps them between runs), in one run:
+Flights (10 Hz, simulated and written once; ``--keep`` keeps them between runs):
+
+- **demo**: the demo survey (15 lines, 700 m wide, ties every 500 m, the X lines, two
+  calibration boxes) with its lines stretched to about the given hours: the line count stays,
+  the lines grow;
+- **block**: the ``uav-block`` scenario (45 lines x 2 km at 50 m, 3 ties 1 km apart, the X
+  lines, one calibration box; about 5 h) and the same block with fewer lines (``--block-lines``):
+  the lines stay 2 km, their count grows, so crossings grow with the square of the line count.
+
+Per flight, in one run:
 
 - the official reader's bare iteration over the file (``mcap.reader.make_reader(f)
   .iter_messages()``, log-time order, the default; nothing decoded);
@@ -14,10 +22,10 @@ written once; ``--keep`` keeps them between runs), in one run:
 - the per-stage seconds and the flow process's own peak memory from the summary JSON
   (``timings_s``, ``peak_memory_mb``).
 
-Prints a table with the ratios process / bare iteration and the fitted exponent k of
-``process seconds ~ epochs^k`` (linear cost: k close to 1; the fixed cost of starting Prefect
-pulls k below 1, so the stages' sum is fitted as well). Targets (issue 20): process <= 5x
-the bare iteration, peak memory <= 1 GB for a 5 h flight, cost linear in duration. Exits
+Prints a table with the ratios process / bare iteration and, per shape, the fitted exponent k
+of ``seconds ~ epochs^k`` of the whole run, of the bare iteration and of every stage (linear
+cost: k close to 1 or below; fixed costs pull k below 1). Targets (issues 35 and 37): process
+<= 3x the bare iteration and peak memory <= 1 GB on every flight, no stage's k above 1. Exits
 non-zero when a run fails or its outputs are wrong (never because something is slow).
 """
 
@@ -48,6 +56,20 @@ def flight_file(hours: float, folder: Path) -> Path:
     if not path.exists():
         length = (hours - 0.486) / 7.67e-4
         sc = Scenario.load("demo", [f"survey.length_m={length:.0f}"])
+        write_simulation(simulate(sc, 1), path)
+    return path
+
+
+def block_file(lines: int, folder: Path) -> Path:
+    """The ``uav-block`` scenario with ``lines`` lines of 2 km at its 50 m spacing (45: the
+    scenario itself, about 5 h at 10 Hz), written once per folder."""
+    from pipeline.simulate import Scenario, simulate, write_simulation
+
+    path = folder / f"block-{lines}lines.mcap"
+    if not path.exists():
+        sc = Scenario.load("uav-block")
+        width = (lines - 1) * float(sc["survey"]["line_spacing_m"])
+        sc = Scenario.load("uav-block", [f"survey.width_m={width:g}"])
         write_simulation(simulate(sc, 1), path)
     return path
 
@@ -84,19 +106,99 @@ def run_process(path: Path, out: Path, env: dict[str, str]) -> tuple[float, floa
     return wall, usage.ru_maxrss / 1024, err
 
 
+def exponent(epochs: np.ndarray, seconds: np.ndarray) -> float:
+    """k in ``seconds ~ epochs^k`` (least squares on logs; NaN with fewer than two sizes or a
+    non-positive time)."""
+    ok = np.isfinite(seconds) & (seconds > 0)
+    if ok.sum() < 2 or np.ptp(np.log(epochs[ok])) == 0:
+        return float("nan")
+    return float(np.polyfit(np.log(epochs[ok]), np.log(seconds[ok]), 1)[0])
+
+
+def exponent_rows(shape: str, res: list[dict]) -> list[tuple[str, str]]:
+    """The fitted exponents of one shape's flights: the whole run, the bare iteration and
+    every stage."""
+    if len(res) < 2:
+        return []
+    e = np.array([r["epochs"] for r in res], float)
+    whole = ", ".join(
+        f"{name} {exponent(e, np.array([r[key] for r in res], float)):.2f}"
+        for name, key in (("process", "wall"), ("bare iteration", "bare"), ("stages' sum", "sum"))
+    )
+    names = list(dict.fromkeys(k for r in res for k in r["stages"]))
+    stages = ", ".join(
+        f"{k} {exponent(e, np.array([r['stages'].get(k, np.nan) for r in res], float)):.2f}"
+        for k in names
+    )
+    return [
+        (f"{shape}: fitted exponent k in seconds ~ epochs^k (linear: k <= ~1)", whole),
+        (f"{shape}: k per stage", stages),
+    ]
+
+
+def measure(path: Path, label: str, out: Path, env: dict[str, str], errors: list[str]):
+    """Bare iteration and ``aeromag process`` of one flight: the table's rows and a record for
+    the exponents (None when the run failed)."""
+    n, bare = bare_iteration(path)
+    try:
+        wall, rss, _ = run_process(path, out, env)
+    except RuntimeError as exc:
+        errors.append(str(exc))
+        return [], None
+    summary = json.loads((out / f"{path.stem}.summary.json").read_text())
+    stages = summary.get("timings_s", {})
+    own_mb = summary.get("peak_memory_mb", float("nan"))
+    epochs = summary["input"]["epochs"]
+    dur_h = summary["input"]["duration_s"] / 3600
+    if "quality" not in summary or "map" not in summary:
+        errors.append(f"{path.name}: the summary has no map or quality section")
+    tag = f"{label}, {dur_h:.2f} h"
+    rows = [
+        (
+            f"{tag}: file",
+            f"{n} messages, {path.stat().st_size / 1e6:.1f} MB, {epochs} epochs",
+        ),
+        (f"{tag}: official reader, bare iteration", f"{bare:.2f} s"),
+        (
+            f"{tag}: aeromag process (wall; ratio to bare, target <= 3x)",
+            f"{wall:.1f} s ({wall / bare:.1f}x)",
+        ),
+        (
+            f"{tag}: stages (summary timings_s, sum)",
+            ", ".join(f"{k} {v:.1f}" for k, v in stages.items())
+            + f"; sum {sum(stages.values()):.1f} s",
+        ),
+        (
+            f"{tag}: peak memory (target <= 1 GB)",
+            f"{rss:.0f} MB child process; flow process {own_mb:.0f} MB (summary)",
+        ),
+    ]
+    rec = {
+        "epochs": epochs,
+        "bare": bare,
+        "wall": wall,
+        "sum": sum(stages.values()) or np.nan,
+        "stages": stages,
+    }
+    return rows, rec
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--hours", default="1,2.5,5")
+    ap.add_argument("--hours", default="1,5", help="demo survey stretched to these hours")
+    ap.add_argument("--block-lines", default="12,45", help="line counts of the block survey")
     ap.add_argument("--keep", type=Path, help="folder to keep the simulated flights in")
     args = ap.parse_args()
     rows: list[tuple[str, str]] = []
     errors: list[str] = []
-    hours = [float(x) for x in args.hours.split(",")]
+    hours = [float(x) for x in args.hours.split(",") if x]
+    lines = [int(x) for x in args.block_lines.split(",") if x]
     with tempfile.TemporaryDirectory() as tmp:
         folder = args.keep or Path(tmp)
         folder.mkdir(parents=True, exist_ok=True)
         t = time.perf_counter()
-        files = [flight_file(h, folder) for h in hours]
+        flights = [("demo", f"{h:g} h", flight_file(h, folder)) for h in hours]
+        flights += [("block", f"{k} lines", block_file(k, folder)) for k in lines]
         rows.append(
             ("flights simulated and written (or reused)", f"{time.perf_counter() - t:.1f} s")
         )
@@ -113,58 +215,14 @@ def main() -> int:
         # warm-up: the first run creates the Prefect database (slower than any later start)
         warm, _, _ = run_process(REPO / "fixtures" / "box_uav.mcap", Path(tmp) / "warm", env)
         rows.append(("warm-up (box fixture; creates the Prefect database)", f"{warm:.1f} s"))
-        res = []
-        for h, path in zip(hours, files, strict=True):
-            n, bare = bare_iteration(path)
-            try:
-                wall, rss, _ = run_process(path, Path(tmp) / f"out-{h:g}", env)
-            except RuntimeError as exc:
-                errors.append(str(exc))
-                continue
-            summary = json.loads(
-                (Path(tmp) / f"out-{h:g}" / f"{path.stem}.summary.json").read_text()
-            )
-            stages = summary.get("timings_s", {})
-            own_mb = summary.get("peak_memory_mb", float("nan"))
-            epochs = summary["input"]["epochs"]
-            dur_h = summary["input"]["duration_s"] / 3600
-            if "quality" not in summary or "map" not in summary:
-                errors.append(f"{path.name}: the summary has no map or quality section")
-            res.append((epochs, bare, wall, sum(stages.values()) or np.nan, rss))
-            rows += [
-                (
-                    f"{dur_h:.2f} h flight: file",
-                    f"{n} messages, {path.stat().st_size / 1e6:.1f} MB, {epochs} epochs",
-                ),
-                (f"{dur_h:.2f} h: official reader, bare iteration", f"{bare:.2f} s"),
-                (
-                    f"{dur_h:.2f} h: aeromag process (wall; ratio to bare, target <= 5x)",
-                    f"{wall:.1f} s ({wall / bare:.1f}x)",
-                ),
-                (
-                    f"{dur_h:.2f} h: stages (summary timings_s, sum)",
-                    ", ".join(f"{k} {v:.1f}" for k, v in stages.items())
-                    + f"; sum {sum(stages.values()):.1f} s",
-                ),
-                (
-                    f"{dur_h:.2f} h: peak memory (target <= 1 GB at 5 h)",
-                    f"{rss:.0f} MB child process; flow process {own_mb:.0f} MB (summary)",
-                ),
-            ]
-    if len(res) >= 2:
-        e, bare, wall, stage_sum, _ = np.array(res, float).T
-        k_wall = np.polyfit(np.log(e), np.log(wall), 1)[0]
-        k_bare = np.polyfit(np.log(e), np.log(bare), 1)[0]
-        line = f"process wall {k_wall:.2f}, bare iteration {k_bare:.2f}"
-        if np.isfinite(stage_sum).all():
-            line += f", stages' sum {np.polyfit(np.log(e), np.log(stage_sum), 1)[0]:.2f}"
-        rows.append(("fitted exponent k in seconds ~ epochs^k (linear: k ~ 1)", line))
-        rows.append(
-            (
-                "process seconds per hour of flight",
-                ", ".join(f"{w / (n_ / 36000):.1f}" for n_, w in zip(e, wall, strict=True)),
-            )
-        )
+        res: dict[str, list[dict]] = {}
+        for shape, size, path in flights:
+            got, rec = measure(path, f"{shape} {size}", Path(tmp) / f"out-{path.stem}", env, errors)
+            rows += got
+            if rec is not None:
+                res.setdefault(shape, []).append(rec)
+        for shape, recs in res.items():
+            rows += exponent_rows(shape, recs)
     return finish(rows, errors)
 
 

@@ -52,6 +52,16 @@ def ar_coefficients(resid: np.ndarray, block: np.ndarray, order: int) -> np.ndar
     return phi
 
 
+def kept_rows(block: np.ndarray, order: int) -> np.ndarray:
+    """The rows :func:`ar_whitener`'s filter of that ``order`` keeps, in its output's order
+    (each block's rows after its first ``order``; blocks no longer than that left out)."""
+    starts, ends = _block_bounds(block)
+    return np.concatenate(
+        [np.arange(a + order, b) for a, b in zip(starts, ends, strict=True) if b - a > order]
+        or [np.zeros(0, int)]
+    )
+
+
 def ar_whitener(phi: np.ndarray, block: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
     """The Cochrane-Orcutt filter with coefficients ``phi`` within each block of ``block``
     (the first ``len(phi)`` rows of each block dropped, blocks no longer than that left

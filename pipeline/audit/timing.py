@@ -58,16 +58,26 @@ def _line_rss(
 ) -> np.ndarray:
     """Residual sum of squares of s ~ a f(t - L) + b + c t (a, b, c free: the sensors'
     scales, offsets and slow drifts differ) for every lag L, nT^2, over the line less
-    ``trim`` samples at either end."""
+    ``trim`` samples at either end.
+
+    The offset and the centred trend are orthogonal, so both come out of s and of every
+    shifted f by one projection; the scale is then one ratio per lag (all lags at once).
+    """
     sl = slice(trim, t.size - trim)
-    y = s_lp[sl]
     tc = t[sl] - t[sl].mean()
-    out = np.empty(lags_s.size)
-    for i, lag in enumerate(lags_s):
-        a = np.column_stack([np.interp(t - lag, t, f_lp)[sl], np.ones(tc.size), tc])
-        coef, *_ = np.linalg.lstsq(a, y, rcond=None)
-        out[i] = float(np.sum((y - a @ coef) ** 2))
-    return out
+    tt = float(tc @ tc)
+
+    def detrend(x: np.ndarray) -> np.ndarray:  # rows: series; their offset and trend out
+        x = x - x.mean(axis=-1, keepdims=True)
+        return x - np.outer(x @ tc / tt, tc) if tt > 0 else x
+
+    y = detrend(s_lp[sl][None, :])[0]
+    shifted = np.stack([np.interp(t - lag, t, f_lp)[sl] for lag in lags_s])
+    f = detrend(shifted)
+    ff = np.einsum("ij,ij->i", f, f)
+    fy = f @ y
+    gain = np.divide(fy**2, ff, out=np.zeros_like(ff), where=ff > 1e-12 * max(ff.max(), 1e-300))
+    return np.maximum(float(y @ y) - gain, 0.0)
 
 
 def _trend_rss(t: np.ndarray, s_lp: np.ndarray, trim: int) -> float:

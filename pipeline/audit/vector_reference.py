@@ -45,7 +45,7 @@ import numpy as np
 from scipy import stats
 from scipy.ndimage import uniform_filter1d
 
-from pipeline.audit.prewhiten import ar_coefficients, ar_whitener
+from pipeline.audit.prewhiten import ar_coefficients, ar_whitener, kept_rows
 
 AR_ORDER = 2
 SCAN_SIMULATIONS = 500
@@ -223,16 +223,101 @@ def _step_bases(q0: np.ndarray, steps_w: list[np.ndarray]) -> np.ndarray:
     return out
 
 
-def _scan_f(y: np.ndarray, q0: np.ndarray, qs: np.ndarray) -> np.ndarray:
-    """F statistics (3 numerator df) of each scanned step against the base, (m, columns of
-    ``y``): one matrix product for all positions and all columns (the null draws)."""
-    y = y if y.ndim == 2 else y[:, None]
-    r0 = y - q0 @ (q0.T @ y)
-    rss0 = np.sum(r0**2, axis=0)
-    dof = q0.shape[0] - q0.shape[1] - 3
-    proj = qs.T @ r0
-    gain = (proj**2).reshape(-1, 3, y.shape[1]).sum(axis=1)
-    return (gain / 3.0) / ((rss0 - gain) / dof)
+def _suffix_sums(x: np.ndarray) -> np.ndarray:
+    """Sums of the rows of ``x`` from each row to the last (one more row: zeros)."""
+    out = np.zeros((x.shape[0] + 1, *x.shape[1:]))
+    np.cumsum(x[::-1], axis=0, out=out[-2::-1])
+    return out
+
+
+@dataclass
+class _StepScan:
+    """Every scanned step design at once, without forming any of them.
+
+    The whitened step design of a change before bin j, ``W(u [k >= j])``, equals the whitened
+    direction cosines ``W(u)`` on every row at least ``p`` (the AR order) past j, is zero
+    before j and differs only on the ``p`` rows from j (the filter reaches back into the
+    zeros). So each design's products with the data and the base are sums of ``W(u)``'s row
+    products from one row on (suffix sums, computed once) plus ``p`` edge rows: the scan
+    costs O(n) whatever the number of change points, where the designs themselves are O(n)
+    each. Rows are the whitened, weighted rows (``kept``: their bins).
+    """
+
+    wu: np.ndarray  # (nw, 3) W(u) / scale
+    start: np.ndarray  # (m,) first row where a design equals wu
+    edge_row: np.ndarray  # (m, p) rows of the edge values
+    edge: np.ndarray  # (m, p, 3) the designs' values there (0: not a whitened row)
+    chol: np.ndarray  # (m, 3, 3) Cholesky factors of the designs' Gram matrices off the base
+    ok: np.ndarray  # (m,) False: the base (nearly) spans the design
+
+    @classmethod
+    def build(cls, u, tb, grid, phi, kept, wu, scale, q0) -> _StepScan:
+        """The scan's designs: ``u`` (n, 3) per bin, ``tb`` the bins' times, ``grid`` the
+        change points (s), ``phi`` the AR coefficients, ``kept`` the whitened rows' bins,
+        ``wu`` the whitened, weighted ``u``, ``scale`` the rows' weights, ``q0`` the base."""
+        p, n, nw = phi.size, u.shape[0], wu.shape[0]
+        j = np.searchsorted(tb, grid, side="right")  # the first bin after each change
+        start = np.searchsorted(kept, j + p)
+        edge_row = np.zeros((j.size, p), int)
+        edge = np.zeros((j.size, p, 3))
+        for d in range(p):
+            k = np.minimum(j + d, n - 1)
+            r = np.minimum(np.searchsorted(kept, k), nw - 1)
+            v = u[k].copy()
+            for lag in range(d):  # the filter's terms that reach rows at or after j
+                v -= phi[lag] * u[k - 1 - lag]
+            here = (kept[r] == k) & (j + d < n)
+            edge_row[:, d] = r
+            edge[:, d] = np.where(here[:, None], v / scale[r][:, None], 0.0)
+        gram = _suffix_sums(wu[:, :, None] * wu[:, None, :])[start]
+        gram += np.einsum("mdi,mdj->mij", edge, edge)
+        cross = _suffix_sums(q0[:, :, None] * wu[:, None, :])[start]
+        cross += np.einsum("mdk,mdi->mki", q0[edge_row], edge)
+        gram -= np.einsum("mki,mkj->mij", cross, cross)
+        chol, ok = _cholesky3(gram)
+        return cls(wu, start, edge_row, edge, chol, ok)
+
+    def f_stats(self, y: np.ndarray, q0: np.ndarray, chunk: int = 64) -> np.ndarray:
+        """F statistics (3 numerator df) of each scanned step against the base, (m, columns
+        of ``y``), ``chunk`` columns at a time."""
+        y = y if y.ndim == 2 else y[:, None]
+        out = np.zeros((self.start.size, y.shape[1]))
+        dof = q0.shape[0] - q0.shape[1] - 3
+        for c in range(0, y.shape[1], chunk):
+            r0 = y[:, c : c + chunk]
+            r0 = r0 - q0 @ (q0.T @ r0)
+            rss0 = np.sum(r0**2, axis=0)
+            b = _suffix_sums(self.wu[:, :, None] * r0[:, None, :])[self.start]
+            b += np.einsum("mdi,mdc->mic", self.edge, r0[self.edge_row])
+            z0 = b[:, 0] / self.chol[:, 0, 0, None]
+            z1 = (b[:, 1] - self.chol[:, 1, 0, None] * z0) / self.chol[:, 1, 1, None]
+            z2 = (
+                b[:, 2] - self.chol[:, 2, 0, None] * z0 - self.chol[:, 2, 1, None] * z1
+            ) / self.chol[:, 2, 2, None]
+            gain = np.where(self.ok[:, None], z0**2 + z1**2 + z2**2, 0.0)
+            out[:, c : c + chunk] = (gain / 3.0) / ((rss0 - gain) / dof)
+        return out
+
+
+def _cholesky3(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Cholesky factors of a stack of 3 x 3 symmetric matrices, and which are positive
+    definite with a condition the scan trusts (the factor's diagonal within 1e6 of itself:
+    the Gram matrices come from sums, which carry rounding of order 1e-16 of the designs'
+    squared size)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        l00 = np.sqrt(a[:, 0, 0])
+        l10, l20 = a[:, 1, 0] / l00, a[:, 2, 0] / l00
+        l11 = np.sqrt(a[:, 1, 1] - l10**2)
+        l21 = (a[:, 2, 1] - l20 * l10) / l11
+        l22 = np.sqrt(a[:, 2, 2] - l20**2 - l21**2)
+    chol = np.zeros_like(a)
+    chol[:, 0, 0], chol[:, 1, 0], chol[:, 2, 0] = l00, l10, l20
+    chol[:, 1, 1], chol[:, 2, 1], chol[:, 2, 2] = l11, l21, l22
+    d = np.column_stack([l00, l11, l22])
+    ok = np.all(np.isfinite(chol.reshape(len(a), -1)), axis=1) & (d.min(axis=1) > 0)
+    ok &= d.min(axis=1) > 1e-6 * d.max(axis=1)
+    chol[~ok] = np.eye(3)
+    return chol, ok
 
 
 def scan_vector_reference(
@@ -282,7 +367,10 @@ def scan_vector_reference(
     if n < 4 * (k0 + 3) or tb[-1] - tb[0] < 4 * guard_s:
         return None
     grid = np.arange(tb[0] + guard_s, tb[-1] - guard_s, scan_every_s)
-    steps = [u * (tb > ts)[:, None] for ts in grid]
+
+    def step(ts: float) -> np.ndarray:  # the step's columns for a change at ts
+        return u * (tb > ts)[:, None]
+
     # the scan twice: the whitening and the weights below come from the model's residual,
     # and a large step left in it both pulls the AR(2) towards a random walk (which whitens
     # a step into one bin) and raises the local RMS around itself, so the step weighs itself
@@ -293,7 +381,7 @@ def scan_vector_reference(
         a0 = base if with_step is None else np.column_stack([base, with_step])
         coef0, *_ = np.linalg.lstsq(a0, y, rcond=None)
         phi = ar_coefficients(y - a0 @ coef0, block, AR_ORDER)
-        whiten = ar_whitener(phi, block)
+        whiten, kept = ar_whitener(phi, block), kept_rows(block, AR_ORDER)
         yw, bw = whiten(y), whiten(base)
         # the residual's size varies tenfold over a flight (manoeuvres and turns leave nT
         # of eddy and lagging-eddy field the columns do not hold, straight lines a few
@@ -311,16 +399,15 @@ def scan_vector_reference(
         uu, sv, _ = np.linalg.svd(bw, full_matrices=False)
         q0 = uu[:, sv > 1e-8 * sv[0]]
         k0 = q0.shape[1]
-        steps_w = [whiten(st) / scale[:, None] for st in steps]
-        qs = _step_bases(q0, steps_w)
-        f = _scan_f(yw, q0, qs)[:, 0]
+        scan = _StepScan.build(u, tb, grid, phi, kept, whiten(u) / scale[:, None], scale, q0)
+        f = scan.f_stats(yw, q0)[:, 0]
         i = int(np.argmax(f))
-        with_step = steps[i]
+        with_step = step(grid[i])
     nw = yw.size
     # what the AR(2) and the weights leave of the slow correlation, measured on the
     # residual with the likeliest step in (a step would otherwise inflate it): the variance
     # of minute means against that of white noise; the F statistics shrink by it
-    q1 = qs[:, 3 * i : 3 * i + 3]
+    q1 = _step_bases(q0, [whiten(with_step) / scale[:, None]])
     r1 = yw - q0 @ (q0.T @ yw) - q1 @ (q1.T @ yw)
     m = int(round(vif_window_s / bin_s))
     nb = r1.size // m
@@ -331,10 +418,10 @@ def scan_vector_reference(
         vif = 1.0
     f = f / vif
     e = np.random.default_rng(seed).standard_normal((nw, SCAN_SIMULATIONS))
-    f_null = _scan_f(e, q0, qs).max(axis=0)
+    f_null = scan.f_stats(e, q0).max(axis=0)
     p = (1 + int(np.sum(f_null >= f[i]))) / (SCAN_SIMULATIONS + 1)
     # the size on the unwhitened data at the likeliest change point
-    a = np.column_stack([base, steps[i]])
+    a = np.column_stack([base, with_step])
     coef, *_ = np.linalg.lstsq(a, y, rcond=None)
     dp = coef[-3:]
     # 95 % profile-likelihood set of the change point: RSS within the chi2(1) bound, from

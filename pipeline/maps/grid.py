@@ -128,9 +128,51 @@ def minimum_curvature(
         small); the curvature penalty is the sum of squared second differences (thin-plate
         energy: f_xx^2 + 2 f_xy^2 + f_yy^2) in cell units.
     """
-    e, n, v = (np.asarray(a, float) for a in (east_m, north_m, value))
-    ok = np.isfinite(e) & np.isfinite(n) & np.isfinite(v)
-    e, n, v = e[ok], n[ok], v[ok]
+    return minimum_curvature_fields(
+        east_m, north_m, {"": value}, cell_m, mask_distance_m, smoothness, margin_cells, crs
+    )[""]
+
+
+def minimum_curvature_fields(
+    east_m: np.ndarray,
+    north_m: np.ndarray,
+    values: dict[str, np.ndarray],
+    cell_m: float,
+    mask_distance_m: float | None = None,
+    smoothness: float = 1e-3,
+    margin_cells: int = 2,
+    crs: str = "",
+) -> dict[str, Grid]:
+    """:func:`minimum_curvature` of several fields sampled at the same positions (name ->
+    nT per sample; same parameters otherwise): the system depends on the positions alone, so
+    fields with the same finite samples share one factorisation (one sparse solve with a
+    column per field)."""
+    e, n = np.asarray(east_m, float), np.asarray(north_m, float)
+    groups: dict[bytes, tuple[np.ndarray, list[str]]] = {}
+    for name, v in values.items():
+        ok = np.isfinite(e) & np.isfinite(n) & np.isfinite(np.asarray(v, float))
+        groups.setdefault(np.packbits(ok).tobytes(), (ok, []))[1].append(name)
+    out: dict[str, Grid] = {}
+    for ok, names in groups.values():
+        vs = np.column_stack([np.asarray(values[k], float)[ok] for k in names])
+        grids = _minimum_curvature(
+            e[ok], n[ok], vs, cell_m, mask_distance_m, smoothness, margin_cells, crs
+        )
+        out.update(zip(names, grids, strict=True))
+    return {k: out[k] for k in values}
+
+
+def _minimum_curvature(
+    e: np.ndarray,
+    n: np.ndarray,
+    vs: np.ndarray,
+    cell_m: float,
+    mask_distance_m: float | None,
+    smoothness: float,
+    margin_cells: int,
+    crs: str,
+) -> list[Grid]:
+    """:func:`minimum_curvature_fields` of finite samples, ``vs`` a column per field."""
     # a cell far below the extent (a mis-measured line spacing, a stray far-away line)
     # would ask for terabytes: coarsen to at most MAX_CELLS (the grid reports its cell)
     span_cells = ((np.ptp(e) + cell_m) / cell_m) * ((np.ptp(n) + cell_m) / cell_m)
@@ -147,7 +189,7 @@ def minimum_curvature(
     uniq, inv, counts = np.unique(key, return_inverse=True, return_counts=True)
     be = np.bincount(inv, e) / counts
     bn = np.bincount(inv, n) / counts
-    bv = np.bincount(inv, v) / counts
+    bv = np.column_stack([np.bincount(inv, v) / counts for v in vs.T])
     fx = np.clip((be - east0) / cell_m, 0, nx - 1 - 1e-9)
     fy = np.clip((bn - north0) / cell_m, 0, ny - 1 - 1e-9)
     i0, j0 = np.floor(fx).astype(int), np.floor(fy).astype(int)
@@ -161,10 +203,16 @@ def minimum_curvature(
     a = sp.csr_matrix((w[keep], (rows[keep], cols[keep])), shape=(be.size, nx * ny))
     lap = _laplacian(ny, nx)
     lhs = (a.T @ a + smoothness * (lap.T @ lap)).tocsc()
-    z = spsolve(lhs, a.T @ bv)
-    grid = z.reshape(ny, nx)
+    # one field: a vector right-hand side (spsolve's 1-D path); several: one factorisation
+    z = spsolve(lhs, a.T @ bv[:, 0]) if bv.shape[1] == 1 else spsolve(lhs, a.T @ bv)
+    z = z.reshape(nx * ny, -1)
     dist = mask_distance_m if mask_distance_m is not None else 2 * cell_m
     gx, gy = np.meshgrid(east0 + cell_m * np.arange(nx), north0 + cell_m * np.arange(ny))
     d, _ = cKDTree(np.column_stack([be, bn])).query(np.column_stack([gx.ravel(), gy.ravel()]))
-    grid[(d > dist).reshape(ny, nx)] = np.nan
-    return Grid(grid, float(east0), float(north0), float(cell_m), crs)
+    far = (d > dist).reshape(ny, nx)
+    grids = []
+    for k in range(z.shape[1]):
+        grid = z[:, k].reshape(ny, nx)
+        grid[far] = np.nan
+        grids.append(Grid(grid, float(east0), float(north0), float(cell_m), crs))
+    return grids

@@ -27,7 +27,7 @@ from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
-from pipeline.maps.grid import Grid, minimum_curvature
+from pipeline.maps.grid import Grid, minimum_curvature_fields
 from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, Leveling, Line, level_lines
 from pipeline.maps.reduce import reduce_to_anomaly
 from pipeline.quality import qc
@@ -377,12 +377,19 @@ def run_quality(
             f"block: the quality grids use {cell_m:.1f} m cells"
         )
         spacing_m = cell_m / s.cell_fraction
-    grids, interp, profiles = {}, {}, {}
+    interp, profiles = {}, {}
+    # every state's samples lie at the same positions: one system for all of them
+    at = np.concatenate([tr.index for tr in mapped])
+    grids = minimum_curvature_fields(
+        ge_all,
+        gn_all,
+        {name: v[at] for name, v in reduced.items()},
+        cell_m,
+        mask_distance_m=spacing_m,
+        crs=frame.crs,
+    )
     for name, v in reduced.items():
-        pts = [(tr.east_m, tr.north_m, v[tr.index]) for tr in mapped]
-        ge, gn, gv = (np.concatenate([p[k] for p in pts]) for k in range(3))
-        grid = minimum_curvature(ge, gn, gv, cell_m, mask_distance_m=spacing_m, crs=frame.crs)
-        grids[name] = grid
+        grid = grids[name]
         diff, per_line = _interpolated(grid, validation, v, east, north)
         st = difference_stats(diff)
         st["samples_outside_map"] = int(np.isnan(diff).sum())
