@@ -120,3 +120,114 @@ def test_series_types_live_in_a_leaf_module():
         if isinstance(n, ast.ImportFrom) and (n.module or "").startswith("pipeline")
     ]
     assert runtime == []
+
+
+# a function called ``simulate`` or ``simulate_*`` outside pipeline/simulate is a simulator in
+# the wrong home, unless a stage computes with it (then it is the stage's method, not a test bed)
+STAGE_METHODS = {
+    # the audit model's prediction of the measurement, the residual's other half
+    ("pipeline/audit/extended.py", "simulate_measurement"),
+    # the navigation stage propagates an INS grade's errors along the flight's own trajectory
+    ("pipeline/navigation/ins.py", "simulate_ins_errors"),
+}
+
+
+def _helper_modules() -> list[Path]:
+    """The code of pipeline/ and benchmarks/, and tests/' shared helpers (not test files)."""
+    tests = [
+        p for p in (REPO / "tests").glob("*.py") if not p.name.startswith(("test_", "conftest"))
+    ]
+    return (
+        sorted((REPO / "pipeline").rglob("*.py"))
+        + sorted((REPO / "benchmarks").glob("*.py"))
+        + tests
+    )
+
+
+def test_every_simulator_lives_in_pipeline_simulate():
+    home = REPO / "pipeline" / "simulate"
+    wrong = []
+    for p in _helper_modules():
+        if home in p.parents:
+            continue
+        rel = p.relative_to(REPO).as_posix()
+        for node in ast.parse(p.read_text()).body:
+            is_sim = isinstance(node, ast.FunctionDef) and (
+                node.name == "simulate" or node.name.startswith("simulate_")
+            )
+            if is_sim and (rel, node.name) not in STAGE_METHODS:
+                wrong.append(f"{rel}:{node.lineno} {node.name}")
+    assert not wrong, "simulators outside pipeline/simulate: " + ", ".join(wrong)
+    for old in ("pipeline/vector/scenarios.py", "pipeline/navigation/synthetic.py"):
+        assert not (REPO / old).exists()
+    assert not (REPO / "tests" / "campaign_sim.py").exists()
+
+
+def test_no_stage_depends_on_the_simulator():
+    """The library's stages never import the simulator (it imports them)."""
+    graph = import_graph(REPO / "pipeline")
+    wrong = [
+        f"{m} -> {t}"
+        for m, targets in graph.items()
+        for t in targets
+        if t.startswith("pipeline.simulate") and not m.startswith("pipeline.simulate")
+    ]
+    assert not wrong
+
+
+def _top_level_imports(folder: Path) -> dict[str, list[tuple[str, int]]]:
+    """file -> (first component of every imported name, line), relative imports as ``.``."""
+    out = {}
+    for p in sorted(folder.glob("*.py")):
+        names = []
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.Import):
+                names += [(a.name.split(".")[0], node.lineno) for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                names.append(("." if node.level else node.module.split(".")[0], node.lineno))
+        out[p.relative_to(REPO).as_posix()] = names
+    return out
+
+
+def test_tests_do_not_import_benchmarks():
+    wrong = [
+        f"{f}:{line}"
+        for f, names in _top_level_imports(REPO / "tests").items()
+        for name, line in names
+        if name == "benchmarks" or name.startswith("bench_")
+    ]
+    assert not wrong, "tests importing benchmarks: " + ", ".join(wrong)
+
+
+def test_benchmarks_import_the_library_not_tests_nor_each_other():
+    """A benchmark imports pipeline/ (flows/ when it measures a flow), the standard library,
+    third-party packages and the benchmarks' own helpers that are not benchmarks
+    (``report.py``, ``runs.py``); never tests/ nor another benchmark."""
+    helpers = {
+        p.stem for p in (REPO / "benchmarks").glob("*.py") if not p.name.startswith("bench_")
+    }
+    assert helpers == {"report", "runs"}
+    wrong = [
+        f"{f}:{line} imports {name}"
+        for f, names in _top_level_imports(REPO / "benchmarks").items()
+        for name, line in names
+        if name in ("tests", "benchmarks", ".") or name.startswith("bench_")
+    ]
+    assert not wrong, ", ".join(wrong)
+
+
+def test_every_stage_takes_white_noise_from_its_one_home():
+    """Despike, map, quality, navigation and the audit import the one estimator; no other
+    module of pipeline/ defines a function estimating white noise."""
+    graph = import_graph(REPO / "pipeline")
+    users = ("despike", "maps.stage", "quality.qc", "navigation.stage", "audit.noise")
+    assert all("pipeline.noise" in graph[f"pipeline.{u}"] for u in users)
+    defined = [
+        f"{p.relative_to(REPO)}:{node.name}"
+        for p in (REPO / "pipeline").rglob("*.py")
+        if p != REPO / "pipeline" / "noise.py"
+        for node in ast.walk(ast.parse(p.read_text()))
+        if isinstance(node, ast.FunctionDef)
+        and ("white_noise" in node.name or "4th_difference" in node.name)
+    ]
+    assert not defined, defined

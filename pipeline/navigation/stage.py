@@ -20,13 +20,13 @@ from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.maps.reduce import reduce_to_anomaly
-from pipeline.maps.stage import noise_4th_difference_nT
 from pipeline.navigation.crlb import crlb
 from pipeline.navigation.ekf import FilterResult, ekf
 from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory, simulate_ins_errors
 from pipeline.navigation.map_io import GeoMap
 from pipeline.navigation.map_model import MapModel
 from pipeline.navigation.pf import particle_filter
+from pipeline.noise import white_noise_nT
 from pipeline.segment import Segmentation
 
 SEGMENT_LABELS = {"validation": ("validation",), "survey": ("survey", "tie"), "all": ()}
@@ -330,16 +330,14 @@ def run_navigation(
         )
     if base is None:
         notes.append("no base station: diurnal not removed (the mapping did the same)")
-    # measurement noise: sensor (track) and map (grid), 4th-difference estimates
+    # measurement noise: sensor (track) and map (grid), white-noise estimates
     sensor = s.sensor_sigma_nT
     if sensor is None:
-        sensor = noise_4th_difference_nT(z[selected])
+        sensor = white_noise_nT(z[selected])
     map_sigma = s.map_sigma_nT
     if map_sigma is None:
         g = mm.grid.values
-        map_sigma = float(
-            np.nanmedian([noise_4th_difference_nT(g.ravel()), noise_4th_difference_nT(g.T.ravel())])
-        )
+        map_sigma = float(np.nanmedian([white_noise_nT(g.ravel()), white_noise_nT(g.T.ravel())]))
     sensor = float(sensor) if np.isfinite(sensor) else 0.1
     map_sigma = float(map_sigma) if np.isfinite(map_sigma) else 0.0
     mm.sigma_nT = map_sigma
