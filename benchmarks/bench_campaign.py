@@ -2,7 +2,7 @@
 
 N uav-small sorties over one geology on different days, each with its own diurnal level
 (nT, drawn from N(0, 5)) and its lines shifted across track by multiples of 12.5 m
-(tests/campaign_sim.py), processed, then merged by ``aeromag campaign``'s steps. Reports the
+(pipeline/simulate/campaign.py), processed, then merged by ``aeromag campaign``'s steps. Reports the
 crossover RMS within and between flights before and after, the ratio against the target
 (between <= 1.2 x within, after), the flight offsets against the flights' true levels, the
 merged grid's RMS error against the true anomaly (after a common offset) with joint levelling
@@ -29,7 +29,7 @@ sys.path.insert(0, str(REPO))
 import numpy as np  # noqa: E402
 from report import finish  # noqa: E402
 
-from tests.campaign_sim import (  # noqa: E402
+from pipeline.simulate.campaign import (  # noqa: E402
     Truth,
     all_crossovers,
     campaign_plan,

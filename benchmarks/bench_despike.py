@@ -14,7 +14,10 @@ import numpy as np
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import run_compensation
 from pipeline.despike import despike, despike_flight
-from tests.test_despike import AMPLITUDES_SIGMA, NOISE_NT, record
+from pipeline.simulate.records import RECORD_NOISE_NT as NOISE_NT
+from pipeline.simulate.records import record
+
+AMPLITUDES_SIGMA = (5, 10, 20, 100, 2000)  # spike amplitude in units of the noise
 
 
 def main() -> None:
@@ -69,11 +72,12 @@ def main() -> None:
 
     from pipeline.io.reader import read_flight
     from pipeline.segment import segment_flight
-    from pipeline.simulate import write_simulation
-    from tests.conftest import run_sim
+    from pipeline.simulate import Scenario, simulate, write_simulation
 
     with tempfile.TemporaryDirectory() as tmp:
-        flight = read_flight(write_simulation(run_sim("uav-small", 3), f"{tmp}/s.mcap"))
+        flight = read_flight(
+            write_simulation(simulate(Scenario.load("uav-small"), 3), f"{tmp}/s.mcap")
+        )
     seg = segment_flight(flight)
     s = FitSettings(model="tl18")
     clean = run_compensation(flight, seg, s).fom.total["compensated"]

@@ -3,9 +3,9 @@
     .venv/bin/python benchmarks/bench_fuzzy_r.py [--seeds 10] [--n 10000] [--cases a,b]
 
 Three estimators of the 21 parameters on the rotating-carrier simulation
-(``pipeline.vector.scenarios.rotating_carrier``, ``--n`` samples at 10 Hz), every seed the same
-flight for all three: the constant-state Kalman filter with fixed R, the same filter with the
-fuzzy-adaptive R (``pipeline.vector.fuzzy.RorFuzzy`` and the window, b and clamp of
+(``pipeline.simulate.vector_carriers.rotating_carrier``, ``--n`` samples at 10 Hz), every seed
+the same flight for all three: the constant-state Kalman filter with fixed R, the same filter
+with the fuzzy-adaptive R (``pipeline.vector.fuzzy.RorFuzzy`` and the window, b and clamp of
 ``[vector] fuzzy_*`` in ``pipeline/default_config.toml``), and (unweighted) batch least
 squares. Cases (sample indices for n = 10 000; they scale with ``--n``):
 
@@ -34,8 +34,8 @@ import numpy as np
 from report import finish
 from scipy import stats
 
+from pipeline.simulate.vector_carriers import PAPER_000, rotating_carrier
 from pipeline.vector.component import ComponentKF, batch_fit
-from pipeline.vector.scenarios import PAPER_000, rotating_carrier
 
 CASES = ("paper", "matched", "step", "ramp", "burst")
 

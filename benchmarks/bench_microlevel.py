@@ -2,7 +2,7 @@
 
     python -m benchmarks.bench_microlevel [--seeds 20]
 
-1. synthetic corrugated surveys (tests/test_microlevel.py): grid error and its stripes before
+1. synthetic corrugated surveys (pipeline/simulate/corrugated.py): grid error and its stripes before
    and after, and the change on the same surveys without corrugation;
 2. a ridge parallel to the lines: peak lost;
 3. simulated uav-small flights (tie-levelled, uncorrugated) through build_map, with and
@@ -16,7 +16,7 @@ import tempfile
 
 import numpy as np
 
-from tests.test_microlevel import (
+from pipeline.simulate.corrugated import (
     error_nT,
     microlevelled,
     stripes_nT,
@@ -78,9 +78,8 @@ def main() -> None:
     from pipeline.io.reader import read_flight
     from pipeline.maps.stage import MapSettings, build_map
     from pipeline.segment import segment_flight
-    from pipeline.simulate import write_simulation
-    from tests.conftest import run_sim
-    from tests.test_maps import truth_on
+    from pipeline.simulate import Scenario, simulate, write_simulation
+    from pipeline.simulate.truth import truth_on
 
     deep = [
         "anomaly.depth_m=[300.0, 500.0]",
@@ -91,7 +90,7 @@ def main() -> None:
     ]
     print("simulated uav-small (tie-levelled, no corrugation), agg-tl, grid error vs truth:")
     for label, seed, over in (("2 deep dipoles", 7, deep), ("default", 3, []), ("default", 5, [])):
-        sim = run_sim("uav-small", seed, over)
+        sim = simulate(Scenario.load("uav-small", over), seed)
         with tempfile.TemporaryDirectory() as tmp:
             flight = read_flight(write_simulation(sim, f"{tmp}/s.mcap"))
         seg = segment_flight(flight)

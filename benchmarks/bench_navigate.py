@@ -25,7 +25,7 @@ from pipeline.navigation.ekf import ekf
 from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory, simulate_ins_errors
 from pipeline.navigation.map_model import MapModel
 from pipeline.navigation.pf import particle_filter
-from pipeline.navigation.synthetic import racetrack, random_field_map
+from pipeline.simulate.navigation import racetrack, random_field_map
 
 
 def drms(err: np.ndarray) -> float:

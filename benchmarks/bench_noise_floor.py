@@ -20,8 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.audit.noise import white_noise_nT
 from pipeline.io.reader import read_flight
+from pipeline.noise import white_noise_nT
 from pipeline.simulate import Scenario, override_value, random_flight_overrides, simulate
 
 
@@ -33,7 +33,7 @@ def simulated(flights: int, seed: int) -> list[dict]:
         true = float(override_value(ov, "sensors.scalar_noise_nT"))
         sim = simulate(Scenario.load("uav-small", ov), int(rng.integers(2**31)))
         s = sim.streams["/mag/scalar"]
-        est = white_noise_nT(s["cols"]["total_nT"], s["t"], 10.0)
+        est = white_noise_nT(s["cols"]["total_nT"], s["t"])
         vib = override_value(ov, "interference.outside_basis.vibration_nT") is not None
         rows.append(
             {
@@ -59,7 +59,7 @@ def recordings(folder: Path) -> list[dict]:
         true = float(json.loads(truth.read_text())["sensors"]["scalar"]["noise_std_nT"])
         fl = read_flight(truth.with_name(truth.name.replace(".truth.json", ".mcap")))
         t = fl.data["time_s"].to_numpy()
-        est = white_noise_nT(fl.data["scalar_nT"].to_numpy(), t, 1.0 / float(np.median(np.diff(t))))
+        est = white_noise_nT(fl.data["scalar_nT"].to_numpy(), t)
         rows.append(
             {
                 "source": truth.name.removesuffix(".truth.json"),

@@ -15,8 +15,8 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from bench_ops import long_flight
 from report import finish
+from runs import long_flight
 
 
 def main() -> int:

@@ -18,6 +18,12 @@ import numpy as np
 from report import finish
 
 from pipeline.geo.frames import ned_to_body
+from pipeline.simulate.vector_carriers import (
+    PAPER_000,
+    PAPER_003_FIELD_G,
+    rotating_carrier,
+    spinning_carrier,
+)
 from pipeline.vector.component import ComponentKF, batch_fit, convergence_sample
 from pipeline.vector.ellipsoid import (
     Ellipsoid,
@@ -30,12 +36,6 @@ from pipeline.vector.ellipsoid import (
     running_rms,
 )
 from pipeline.vector.fuzzy import RorFuzzy
-from pipeline.vector.scenarios import (
-    PAPER_000,
-    PAPER_003_FIELD_G,
-    rotating_carrier,
-    spinning_carrier,
-)
 
 SIGMA_G = 0.0005
 

@@ -30,6 +30,7 @@ from scipy.ndimage import median_filter
 from pipeline.compensate.filters import contiguous_blocks
 from pipeline.defaults import default_field
 from pipeline.flight import Flight
+from pipeline.noise import white_noise_nT
 
 # the running robust scale never drops below this fraction of the block's global one, so a
 # quiet stretch whose MAD happens to be small does not turn noise into spikes
@@ -74,7 +75,8 @@ class DespikeResult:
     amplitude_nT : ndarray
         Measured minus replaced value at each spike (nT).
     noise_nT : float
-        White-noise level of the record from the median absolute 4th difference (nT).
+        White-noise level of the repaired record (nT, :func:`pipeline.noise.white_noise_nT`;
+        a spike is as broadband as noise, so it is measured once the spikes are gone).
     """
 
     values_nT: np.ndarray
@@ -261,12 +263,8 @@ def despike(
     idx: list[int] = []
     amps: list[float] = []
     steps = rounds = 0
-    noise = []
     for block in contiguous_blocks(np.isfinite(x), t) if x.size > 1 else []:
         xb = x[block]
-        d4 = fourth_difference(xb)[2:-2]
-        if d4.size:
-            noise.append(np.abs(d4 - np.median(d4)))
         found, a, st, r = _despike_block(xb, s)
         x[block] = xb
         idx += [int(block[k]) for k in found]
@@ -274,9 +272,7 @@ def despike(
         steps += st
         rounds = max(rounds, r)
     order = np.argsort(idx)
-    sigma = (
-        float(1.4826 * np.median(np.concatenate(noise)) / D4_NOISE_GAIN) if noise else float("nan")
-    )
+    sigma = white_noise_nT(x, t) if x.size > 1 else float("nan")  # of the repaired record
     n = int(np.isfinite(np.asarray(values_nT, float)).sum())
     return DespikeResult(
         x,

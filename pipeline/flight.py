@@ -2,7 +2,8 @@
 
 :class:`Flight` is what :func:`pipeline.io.read_flight` returns and what every stage takes.
 It lives outside :mod:`pipeline.io` so stages can name the type without importing the reader;
-``pipeline.io.reader.Flight`` and ``pipeline.io.Flight`` remain as re-exports.
+``pipeline.io.reader.Flight`` and ``pipeline.io.Flight`` remain as re-exports. The types of its
+fields come from the leaf :mod:`pipeline.io.series`, never from the reader.
 """
 
 from __future__ import annotations
@@ -17,8 +18,7 @@ if TYPE_CHECKING:
     import numpy as np
     import pandas as pd
 
-    from pipeline.io.reader import Gap, TopicSeries
-    from pipeline.io.scan import Loss
+    from pipeline.io.series import Gap, Loss, TopicSeries
 
 
 @dataclass

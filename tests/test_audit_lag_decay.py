@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import pytest
 
-from benchmarks.bench_audit_variety import correct, one_flight
 from pipeline.audit.stage import EDDY_TAU_GRID_S, Auditor
+from pipeline.simulate.audit_trials import correct, one_flight
 
 
 @pytest.mark.slow

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import pytest
 
-from benchmarks.bench_audit_variety import CLASSES, correct, one_flight
+from pipeline.simulate.audit_trials import CLASSES, correct, one_flight
 
 MILD = {"profiles": ("uav",), "noise_nT": (0.02, 0.1), "outside_basis_nT": (0.0, 0.2)}
 SEEDS = (11, 12)

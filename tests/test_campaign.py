@@ -1,7 +1,7 @@
 """Campaigns: sorties of one area levelled jointly on every crossover, gridded once.
 
 Three uav-small sorties over one geology on three days, each with its own diurnal level and
-line positions (tests/campaign_sim.py), simulated and processed once for the module.
+line positions (pipeline/simulate/campaign.py), simulated and processed once for the module.
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from pipeline.campaign.sorties import validate_campaign
 from pipeline.campaign.stage import run_campaign
 from pipeline.errors import AeromagError
 from pipeline.maps.level import Crossover, Line
-from tests.campaign_sim import (
+from pipeline.simulate.campaign import (
     SORTIES,
     Truth,
     all_crossovers,

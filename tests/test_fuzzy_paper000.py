@@ -6,9 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.simulate.vector_carriers import PAPER_000, rotating_carrier
 from pipeline.vector.component import ComponentKF
 from pipeline.vector.fuzzy import RorFuzzy
-from pipeline.vector.scenarios import PAPER_000, rotating_carrier
 
 
 class _Recording:

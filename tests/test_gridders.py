@@ -183,8 +183,8 @@ def test_map_stage_grids_with_equivalent_sources(tmp_path):
     from pipeline.maps.stage import MapSettings, build_map
     from pipeline.segment import segment_flight
     from pipeline.simulate import write_simulation
+    from pipeline.simulate.truth import truth_on
     from tests.conftest import run_sim
-    from tests.test_maps import truth_on
 
     sim = run_sim("uav-small", 7)
     flight = read_flight(write_simulation(sim, tmp_path / "s.mcap"))

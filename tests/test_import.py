@@ -449,7 +449,7 @@ def test_import_mapped_and_a_protobuf_location_fix(tmp_path):
     from foxglove_schemas_protobuf.LocationFix_pb2 import LocationFix
     from mcap_protobuf.writer import Writer as PbWriter
 
-    from pipeline.io.mapping import Mapping
+    from pipeline.io.mapping import Mapping, mapped_series
     from tests.conftest import run_sim
 
     sim = run_sim("calibration-only", 5, ["calibration.passes=1"])
@@ -492,9 +492,7 @@ def test_import_mapped_and_a_protobuf_location_fix(tmp_path):
     sug = tests.cli.run("inspect", str(pb), "--suggest-mapping")
     assert '[topics."/gps/fix_pb"]' in sug.stdout and 'role = "position"' in sug.stdout
     (tmp_path / "pb.toml").write_text(sug.stdout)
-    series = __import__("pipeline.io.reader", fromlist=["_mapped_series"])._mapped_series(
-        pb, Mapping.load(tmp_path / "pb.toml")
-    )
+    series = mapped_series(pb, Mapping.load(tmp_path / "pb.toml"))
     s = series["/gps/fix_pb"]
     np.testing.assert_allclose(s.values["latitude"], g["cols"]["latitude"])
     np.testing.assert_allclose(s.values["altitude"], g["cols"]["altitude"])

@@ -12,7 +12,8 @@ import pytest
 from scipy import stats
 
 from pipeline.maps.arima import fit_arima, rts_smooth
-from pipeline.maps.stage import filter_grid, grid_noise_nT, noise_4th_difference_nT
+from pipeline.maps.stage import filter_grid, grid_noise_nT
+from pipeline.noise import white_noise_nT
 from pipeline.simulate.map_survey import line_survey
 
 
@@ -36,7 +37,7 @@ def test_fourth_difference_does_not_join_across_a_gap():
     x = rng.normal(0, 0.1, 4000)
     x[2000:] += 100.0  # the far side of a masked stretch
     x[1990:2010] = np.nan
-    assert noise_4th_difference_nT(x) == pytest.approx(0.1, rel=0.1)
+    assert white_noise_nT(x) == pytest.approx(0.1, rel=0.1)
 
 
 def test_identification_keeps_masked_gaps_missing():

@@ -10,7 +10,6 @@ import pytest
 import tests.cli
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import run_compensation
-from pipeline.geo.local import LocalFrame
 from pipeline.io.reader import read_flight
 from pipeline.maps.arima import (
     ArimaModel,
@@ -24,6 +23,7 @@ from pipeline.maps.level import Line, crossovers, level_lines
 from pipeline.maps.stage import build_map, filter_sequence, serialize
 from pipeline.segment import segment_flight
 from pipeline.simulate import write_simulation
+from pipeline.simulate.truth import truth_on
 from tests.conftest import run_sim
 from tests.test_schemas import validate_every_message
 
@@ -273,35 +273,6 @@ def mapped(tmp_path_factory):
     seg = segment_flight(flight)
     run = run_compensation(flight, seg, FitSettings(model="agg-tl"))
     return sim, path, flight, seg, run, build_map(flight, seg, run.compensated_nT)
-
-
-def truth_on(sim, grid: Grid, frame: LocalFrame) -> np.ndarray:
-    from scipy.interpolate import RegularGridInterpolator
-
-    tg = sim.truth["anomaly"]["grid"]
-    site = sim.truth["site"]
-    tv = np.array(tg["values_nT"])
-    gx, gy = np.meshgrid(*grid.coordinates())
-    lat, lon, _ = frame.to_geodetic(gx, gy)
-    e, n, _ = LocalFrame(site["latitude_deg"], site["longitude_deg"]).to_enu(lat, lon)
-    ri = RegularGridInterpolator(
-        (
-            tg["north0_m"] + tg["cell_m"] * np.arange(tv.shape[0]),
-            tg["east0_m"] + tg["cell_m"] * np.arange(tv.shape[1]),
-        ),
-        tv,
-        bounds_error=False,
-    )
-    out = ri(np.stack([n, e], -1))
-    s = sim.scenario["survey"]
-    inside = (
-        (e > s["east_m"] + 25)
-        & (e < s["east_m"] + s["width_m"] - 25)
-        & (n > s["north_m"] + 25)
-        & (n < s["north_m"] + s["length_m"] - 25)
-    )
-    out[~inside] = np.nan  # score the block the lines cover
-    return out
 
 
 def test_levelled_grid_matches_the_truth_within_noise(mapped):

@@ -24,7 +24,7 @@ from pipeline.navigation.ins import (
 )
 from pipeline.navigation.map_model import MapModel, upward_continue
 from pipeline.navigation.pf import particle_filter
-from pipeline.navigation.synthetic import dipole_map, racetrack, random_field_map
+from pipeline.simulate.navigation import dipole_map, racetrack, random_field_map
 
 NMI_M = 1852.0
 

@@ -11,7 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.audit.noise import noise_floor_bounds, white_noise_nT
+from pipeline.audit.noise import noise_floor_bounds
+from pipeline.noise import quietest_band_noise_nT, white_noise_nT
 from pipeline.simulate import Scenario, override_value, random_flight_overrides, simulate
 
 RATE_HZ = 10.0
@@ -29,7 +30,7 @@ def test_white_noise_under_a_line_a_step_and_a_smooth_signal():
         + rng.normal(0.0, sigma, t.size)
     )
     x[5000:5100] = np.nan  # a gap
-    est = white_noise_nT(x, t, RATE_HZ)
+    est = white_noise_nT(x, t)
     assert est == pytest.approx(sigma, rel=0.10)
 
 
@@ -52,7 +53,7 @@ def test_a_delay_model_does_not_average_the_noise_down(delay_s):
     raw = field(t - delay_s) + interference(t - delay_s) + rng.normal(0.0, sigma, t.size)
     retimed = np.interp(t + delay_s, t, raw, right=np.nan)
     compensated = retimed - interference(t)
-    assert white_noise_nT(compensated, t, RATE_HZ) < 0.9 * sigma  # the trap
+    assert white_noise_nT(compensated, t) < 0.9 * sigma  # the trap
     est = noise_floor_bounds(
         raw, compensated, interference(t), t, RATE_HZ, delay_s=delay_s
     ).sensor_nT
@@ -61,7 +62,7 @@ def test_a_delay_model_does_not_average_the_noise_down(delay_s):
 
 def test_too_short_records_give_nan():
     t = np.arange(100) / RATE_HZ
-    assert np.isnan(white_noise_nT(np.zeros(100), t, RATE_HZ))
+    assert np.isnan(white_noise_nT(np.zeros(20), t[:20]))
 
 
 def _ratios(seeds) -> list[float]:
@@ -76,7 +77,7 @@ def _ratios(seeds) -> list[float]:
         true = float(override_value(ov, "sensors.scalar_noise_nT"))
         sim = simulate(Scenario.load("uav-small", ov), int(rng.integers(2**31)))
         s = sim.streams["/mag/scalar"]
-        out.append(white_noise_nT(s["cols"]["total_nT"], s["t"], RATE_HZ) / true)
+        out.append(white_noise_nT(s["cols"]["total_nT"], s["t"]) / true)
     return out
 
 
@@ -94,7 +95,6 @@ def test_white_noise_within_20_percent_on_30_flights():
 
 
 def test_quietest_band_under_interference_that_rises_with_frequency():
-    from pipeline.audit.noise import quietest_band_noise_nT
 
     rng = np.random.default_rng(11)
     n = 30_000
@@ -106,7 +106,7 @@ def test_quietest_band_under_interference_that_rises_with_frequency():
     rising = np.diff(rng.normal(0.0, 1.0, n + 2), 2)
     rising *= 4 * sigma / np.std(rising)
     x = 30.0 * np.sin(2 * np.pi * t / 400.0) + rising + rng.normal(0.0, sigma, n)
-    assert white_noise_nT(x, t, RATE_HZ) > 2.0 * sigma  # the upper band holds the rise
+    assert white_noise_nT(x, t) > 2.0 * sigma  # the upper band holds the rise
     assert quietest_band_noise_nT(x, t, RATE_HZ) == pytest.approx(sigma, rel=0.10)
     # on white noise alone it reads a little low (the least of the band means)
     w = rng.normal(0.0, sigma, n)

@@ -9,6 +9,12 @@ import pytest
 
 import tests.cli
 from pipeline.geo.frames import ned_to_body
+from pipeline.simulate.vector_carriers import (
+    PAPER_000,
+    PAPER_003_FIELD_G,
+    rotating_carrier,
+    spinning_carrier,
+)
 from pipeline.vector.component import ComponentKF, batch_fit, convergence_sample
 from pipeline.vector.ellipsoid import (
     Ellipsoid,
@@ -21,12 +27,6 @@ from pipeline.vector.ellipsoid import (
     running_rms,
 )
 from pipeline.vector.fuzzy import RorFuzzy
-from pipeline.vector.scenarios import (
-    PAPER_000,
-    PAPER_003_FIELD_G,
-    rotating_carrier,
-    spinning_carrier,
-)
 from tests.conftest import run_sim, sha256
 from tests.test_schemas import validate_every_message
 

@@ -1,136 +1,14 @@
-"""The scalar sensor's white noise, estimated from the recording itself.
-
-A magnetometer's own noise is white; everything else in a flight record is not: the anomaly
-field and the carrier's interference are concentrated at low frequencies, steps (a current
-switching) are rare events, vibration shows as narrow spectral lines. The estimator exploits
-each difference:
-
-1. the 4th difference removes the smooth part (geology, manoeuvre-driven interference) and
-   its exact gain ``|2 sin(pi f / fs)|**8`` is divided out again, so the estimate is a power
-   spectral density of the record *as if* it had not been differenced (no window leakage from
-   the strong low-frequency content);
-2. Welch's periodograms are combined by their **median** over segments, so segments holding a
-   step or a manoeuvre-residual burst do not count;
-3. the white level is the **median** over the upper half of the band, so a spectral line
-   (vibration aliased into the band) does not count either.
-
-``sigma = sqrt(P_white * fs / 2)`` for a one-sided density ``P_white`` in nT^2/Hz.
-
-Interference that is broadband at the sample rate (attitude jitter faster than it resolves)
-passes all three. It rises with frequency, though, so the quietest 0.5 Hz band of a
-compensated record (:func:`quietest_band_noise_nT`) is a second, often tighter upper bound.
-
-Hand-written because no library offers a line- and step-robust white-noise level;
-:func:`scipy.signal.welch` does the spectral work.
-"""
+"""The audit's noise floor: three upper bounds on the scalar sensor's white noise per sample,
+from the estimator's one home :mod:`pipeline.noise` (the upper band of the raw and of the
+compensated record, and the quietest band of the compensated one)."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.signal import welch
 
-from pipeline.compensate.filters import contiguous_blocks
-
-SEGMENT_SAMPLES = 128  # Welch segment: 12.8 s at 10 Hz, 64 frequency bins
-UPPER_BAND = (0.5, 0.95)  # fractions of the Nyquist frequency holding the white level
-
-
-def _differenced_spectrum(
-    x_nT: np.ndarray, time_s: np.ndarray, rate_hz: float, order: int, segment: int
-) -> tuple[np.ndarray, np.ndarray] | None:
-    """(f Hz, one-sided density nT^2/Hz) of the ``order``-th difference: Welch's median over
-    ``segment``-sample segments in each gap-free block, the blocks weighted by length; None
-    when no block holds two segments."""
-    x = np.asarray(x_nT, float)
-    spectra, weights = [], []
-    for b in contiguous_blocks(np.isfinite(x), np.asarray(time_s, float)):
-        if b.size < 2 * segment:
-            continue
-        f, p = welch(np.diff(x[b], order), fs=rate_hz, nperseg=segment, average="median")
-        spectra.append(p)
-        weights.append(b.size)
-    if not spectra:
-        return None
-    return f, np.average(spectra, axis=0, weights=weights)
-
-
-def white_noise_nT(x_nT: np.ndarray, time_s: np.ndarray, rate_hz: float) -> float:
-    """White-noise standard deviation of a scalar magnetometer record.
-
-    Parameters
-    ----------
-    x_nT : ndarray
-        Total-field samples (nT), raw or compensated; NaN marks missing samples.
-    time_s : ndarray
-        Their times (s); gaps split the record into blocks analysed separately.
-    rate_hz : float
-        Nominal sample rate (Hz).
-
-    Returns
-    -------
-    float
-        Per-sample standard deviation (nT) of the white component, or NaN when no block is
-        long enough (``2 * SEGMENT_SAMPLES`` samples).
-
-    Notes
-    -----
-    Structure that is itself broadband at high frequency (interference from attitude jitter
-    faster than the sample rate resolves) is indistinguishable from sensor noise by its
-    spectrum and raises the estimate; see ``docs`` of the audit.
-    """
-    got = _differenced_spectrum(x_nT, time_s, rate_hz, 4, SEGMENT_SAMPLES)
-    if got is None:
-        return float("nan")
-    f, p = got
-    gain = (2.0 * np.sin(np.pi * f / rate_hz)) ** 8
-    nyq = rate_hz / 2.0
-    sel = (f >= UPPER_BAND[0] * nyq) & (f <= UPPER_BAND[1] * nyq)
-    return float(np.sqrt(np.median(p[sel] / gain[sel]) * nyq))
-
-
-QUIET_SEGMENT_SAMPLES = 256  # finer bins for the quietest band: 25.6 s at 10 Hz
-QUIET_BAND_HZ = 0.5  # width of the band the level is averaged over
-QUIET_LOWEST_HZ = 0.1  # below: geology along the lines and the flight's slow drifts
-
-
-def quietest_band_noise_nT(x_nT: np.ndarray, time_s: np.ndarray, rate_hz: float) -> float:
-    """White-noise level of the quietest 0.5 Hz band of a (compensated) record.
-
-    Interference from attitude jitter faster than the sample rate resolves is broadband
-    after aliasing but not flat: eddy currents follow the rate of turn, so it rises with
-    frequency, and in a compensated record its resolvable part is gone below ~1.5 Hz. The
-    quietest band is then the tightest upper bound on the sensor's own white noise the
-    record offers.
-
-    Parameters
-    ----------
-    x_nT : ndarray
-        Total-field samples (nT), best compensated; NaN marks missing samples.
-    time_s : ndarray
-        Their times (s); gaps split the record into blocks analysed separately.
-    rate_hz : float
-        Nominal sample rate (Hz).
-
-    Returns
-    -------
-    float
-        Per-sample standard deviation (nT): the band's mean density of the 2nd difference,
-        gain divided out (Welch median over 25.6 s segments); NaN when no block is long
-        enough. On white noise it reads 3-4 % low (the least of ~40 band means).
-    """
-    got = _differenced_spectrum(x_nT, time_s, rate_hz, 2, QUIET_SEGMENT_SAMPLES)
-    if got is None:
-        return float("nan")
-    f, p = got
-    inside = (f >= QUIET_LOWEST_HZ) & (f <= UPPER_BAND[1] * rate_hz / 2.0)
-    density = p[inside] / (2.0 * np.sin(np.pi * f[inside] / rate_hz)) ** 4
-    k = max(1, int(round(QUIET_BAND_HZ / (f[1] - f[0]))))
-    if density.size < k:
-        return float("nan")
-    means = np.convolve(density, np.ones(k) / k, mode="valid")  # every band of width k
-    return float(np.sqrt(means.min() * rate_hz / 2.0))
+from pipeline.noise import quietest_band_noise_nT, white_noise_nT
 
 
 @dataclass(frozen=True)
@@ -206,8 +84,8 @@ def noise_floor_bounds(
     delay_s : float
         The model's pure delay of the scalar stream (s; 0: none). Re-timing by a fraction
         of a sample interpolates between samples and averages their noise down, so the
-        interference is moved back to the sensor's own epochs instead. A deconvolved stream
-        (a first-order response) amplifies the noise: an upper bound still, used as it is.
+        interference is moved back to the sensor's own epochs instead. A deconvolved stream (a first-order
+        response) amplifies the noise: an upper bound still, used as it is.
 
     Returns
     -------
@@ -225,7 +103,7 @@ def noise_floor_bounds(
             t - delay_s, t[ok], i[ok], left=np.nan, right=np.nan
         )
     return NoiseFloorBounds(
-        white_noise_nT(raw_nT, time_s, rate_hz),
-        white_noise_nT(own, time_s, rate_hz),
+        white_noise_nT(raw_nT, time_s),
+        white_noise_nT(own, time_s),
         quietest_band_noise_nT(own, time_s, rate_hz),
     )

@@ -8,8 +8,9 @@ from pathlib import Path
 import orjson
 
 from pipeline.io.contract import FULL_PIPELINE_ROLES, INPUT_CONTRACT, rule_for_topic
-from pipeline.io.reader import NS, Gap, decode_topic, find_gaps, read_topics
+from pipeline.io.reader import decode_topic, find_gaps, read_topics
 from pipeline.io.schemas import validate
+from pipeline.io.series import NS, Gap
 
 
 @dataclass

@@ -31,10 +31,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from pipeline.defaults import read_toml
 from pipeline.errors import AeromagError
+from pipeline.io.contract import TopicRule
+from pipeline.io.plausibility import check_units
+from pipeline.io.series import TopicSeries
+from pipeline.io.writer import OutputChannel, write_with_new_channels
 
 ROLES = ("scalar", "vector", "attitude", "position", "base", "aux")
 _NFIELDS = {"scalar": 1, "base": 1, "aux": 1, "vector": 3, "position": 3, "attitude": 3}
@@ -180,6 +183,8 @@ def quaternion_to_euler_deg(q_xyzw: np.ndarray, frame: str) -> np.ndarray:
     ``frame = "flu"``: the quaternion rotates body FLU into world ENU (ROS REP-103), so
     R_ned_frd = T_ned_enu R_enu_flu T_flu_frd.
     """
+    from scipy.spatial.transform import Rotation  # here: reading a flight needs no scipy
+
     r = Rotation.from_quat(np.asarray(q_xyzw, float)).as_matrix()
     if frame == "flu":
         r = _ENU_TO_NED @ r @ _FLU_TO_FRD
@@ -265,7 +270,6 @@ def mapped_columns(
 
 
 def _check_nT(v: np.ndarray, path: Path, topic: str) -> None:
-    from pipeline.io.plausibility import check_units
 
     check_units("the field", v, path, topic)
 
@@ -331,11 +335,9 @@ def import_mapped(src: str | Path, dst: str | Path, mapping: Mapping) -> dict[st
     """Write ``src`` plus contract channels holding its mapped topics (in nT, FRD/NED):
     every aeromag command then reads the result without the mapping. Returns mapped ->
     contract topic."""
-    from pipeline.io.reader import _mapped_series
-    from pipeline.io.writer import OutputChannel, write_with_new_channels
 
     p = Path(src)
-    series = _mapped_series(p, mapping)
+    series = mapped_series(p, mapping)
     used: dict[str, int] = {}
     channels, names = [], {}
     for topic, s in sorted(series.items()):
@@ -375,3 +377,39 @@ def import_mapped(src: str | Path, dst: str | Path, mapping: Mapping) -> dict[st
         },
     )
     return names
+
+
+def mapped_series(path: Path, mapping: Mapping) -> dict[str, TopicSeries]:
+    """Series of the topics a mapping file names (any encoding), as the reader aligns them."""
+    decoded = decoded_messages(path, list(mapping.topics))
+    out = {}
+    for topic, tm in mapping.topics.items():
+        msgs = decoded.get(topic) or []
+        if not msgs:
+            raise AeromagError(
+                "the mapping names this topic but the recording has no message on it",
+                file=path,
+                channel=topic,
+            )
+        t, values, labels = mapped_columns(tm, msgs, path)
+        order = np.argsort(t, kind="stable")
+        t = t[order]
+        keep = np.r_[True, np.diff(t) > 0]
+        finite = np.all(np.column_stack([np.isfinite(v[order]) for v in values.values()]), axis=1)
+        keep &= finite
+        problems = []
+        if (~keep).any():
+            problems.append(f"{int((~keep).sum())} samples dropped (duplicate times or NaN)")
+        rule = TopicRule(
+            topic, "", tm.role, tuple(values), alias=tm.name or topic.strip("/").replace("/", "_")
+        )
+        out[topic] = TopicSeries(
+            topic,
+            rule,
+            t[keep],
+            {k: v[order][keep] for k, v in values.items()},
+            {k: v[order][keep] for k, v in labels.items()},
+            problems,
+            len(msgs),
+        )
+    return out

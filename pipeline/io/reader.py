@@ -32,11 +32,11 @@ from pipeline.io.contract import (
     TopicRule,
     rule_for_topic,
 )
+from pipeline.io.mapping import mapped_series
 from pipeline.io.plausibility import check_degrees, check_units
-from pipeline.io.scan import Loss, ScanError, scan_mcap
+from pipeline.io.scan import ScanError, scan_mcap
 from pipeline.io.schemas import schema
-
-NS = 1_000_000_000
+from pipeline.io.series import NS, Gap, Loss, TopicSeries
 
 
 # --------------------------------------------------------------------------------------------
@@ -147,44 +147,6 @@ def read_topics(path: str | Path, topics: Iterable[str] | None = None) -> RawRec
 # --------------------------------------------------------------------------------------------
 # 2. decoding
 # --------------------------------------------------------------------------------------------
-@dataclass
-class TopicSeries:
-    """A decoded contract topic: sorted, de-duplicated sample times and numeric fields."""
-
-    topic: str
-    rule: TopicRule
-    time_ns: np.ndarray
-    values: dict[str, np.ndarray]
-    labels: dict[str, np.ndarray]  # string fields (sensor_id, unit, line_id, kind)
-    problems: list[str]
-    n_messages: int
-    dropped_ns: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-
-    def dropped_ranges_ns(self, join_s: float = 5.0) -> list[tuple[int, int]]:
-        """Log times of the dropped messages as [first, last] ranges (drops closer than
-        ``join_s`` or 3 sample periods are one range)."""
-        d = np.sort(self.dropped_ns)
-        if d.size == 0:
-            return []
-        period = self.median_period_s
-        join = max(join_s, 3 * period if np.isfinite(period) else 0.0) * NS
-        cut = np.flatnonzero(np.diff(d) > join) + 1
-        return [(int(g[0]), int(g[-1])) for g in np.split(d, cut)]
-
-    @property
-    def median_period_s(self) -> float:
-        """Median interval between samples, s (NaN with fewer than 2 samples)."""
-        if self.time_ns.size < 2:
-            return float("nan")
-        return float(np.median(np.diff(self.time_ns))) / NS
-
-    @property
-    def rate_hz(self) -> float:
-        """Sample rate from the median period, Hz (NaN when undefined)."""
-        p = self.median_period_s
-        return 1.0 / p if p > 0 else float("nan")
-
-
 def _string_fields(schema_name: str) -> set[str]:
     """Fields the schema declares as strings (the rest of a rule's fields are numbers)."""
     props = schema(schema_name).get("properties", {})
@@ -382,20 +344,6 @@ def _decode_columns(raw: RawTopic, numeric: list[str], strings: list[str], batch
 # --------------------------------------------------------------------------------------------
 # 3. alignment
 # --------------------------------------------------------------------------------------------
-@dataclass(frozen=True)
-class Gap:
-    """An interval without samples on a topic, longer than the gap tolerance."""
-
-    topic: str
-    start_ns: int
-    end_ns: int
-
-    @property
-    def duration_s(self) -> float:
-        """Length of the gap, s."""
-        return (self.end_ns - self.start_ns) / NS
-
-
 def find_gaps(time_ns: np.ndarray, topic: str, gap_factor: float = 3.0) -> list[Gap]:
     """Intervals between consecutive samples longer than ``gap_factor`` x the median period."""
     if time_ns.size < 3:
@@ -445,44 +393,6 @@ def _suffix(topic: str, rule: TopicRule) -> str:
     if rule.alias:
         return rule.alias
     return topic[len(rule.topic) + 1 :].replace("/", "_") if topic != rule.topic else ""
-
-
-def _mapped_series(path: Path, mapping) -> dict[str, TopicSeries]:
-    """Series of the topics a mapping file names (any encoding; see pipeline.io.mapping)."""
-    from pipeline.io.mapping import decoded_messages, mapped_columns
-
-    decoded = decoded_messages(path, list(mapping.topics))
-    out = {}
-    for topic, tm in mapping.topics.items():
-        msgs = decoded.get(topic) or []
-        if not msgs:
-            raise AeromagError(
-                "the mapping names this topic but the recording has no message on it",
-                file=path,
-                channel=topic,
-            )
-        t, values, labels = mapped_columns(tm, msgs, path)
-        order = np.argsort(t, kind="stable")
-        t = t[order]
-        keep = np.r_[True, np.diff(t) > 0]
-        finite = np.all(np.column_stack([np.isfinite(v[order]) for v in values.values()]), axis=1)
-        keep &= finite
-        problems = []
-        if (~keep).any():
-            problems.append(f"{int((~keep).sum())} samples dropped (duplicate times or NaN)")
-        rule = TopicRule(
-            topic, "", tm.role, tuple(values), alias=tm.name or topic.strip("/").replace("/", "_")
-        )
-        out[topic] = TopicSeries(
-            topic,
-            rule,
-            t[keep],
-            {k: v[order][keep] for k, v in values.items()},
-            {k: v[order][keep] for k, v in labels.items()},
-            problems,
-            len(msgs),
-        )
-    return out
 
 
 def _check_plausible(series: dict[str, TopicSeries], path: Path) -> None:
@@ -535,7 +445,7 @@ def read_flight(
     unknown: list[str] = []
     notes: list[str] = []
     if mapping is not None:
-        series.update(_mapped_series(path, mapping))
+        series.update(mapped_series(path, mapping))
         for s_ in series.values():
             notes.extend(f"{s_.topic}: {p}" for p in s_.problems)
     for topic, rt in sorted(raw.topics.items()):

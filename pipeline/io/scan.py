@@ -21,6 +21,8 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from pipeline.io.series import Loss
+
 MAGIC = b"\x89MCAP0\r\n"
 OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE, OP_CHUNK = 0x02, 0x03, 0x04, 0x05, 0x06
 OP_ATTACHMENT, OP_METADATA, OP_DATA_END = 0x09, 0x0C, 0x0F
@@ -38,30 +40,6 @@ _MSG_HEAD = struct.Struct("<H4xQ")  # channel id, (sequence), log time
 
 class ScanError(Exception):
     """The file cannot be scanned at all (not MCAP, or nothing before the damage)."""
-
-
-@dataclass
-class Loss:
-    """Data a damaged recording lost: where, why, and the time span if the record told it."""
-
-    offset: int
-    reason: str
-    start_ns: int | None = None
-    end_ns: int | None = None
-    bytes_lost: int = 0
-
-    def describe(self, t0_ns: int | None = None) -> str:
-        """One line; times in seconds after ``t0_ns`` when given, else in ns since 1970."""
-        span = ""
-        if self.start_ns is not None and self.end_ns is not None:
-            if t0_ns is None:
-                span = f", messages logged {self.start_ns} to {self.end_ns} ns"
-            else:
-                span = (
-                    f", messages logged {(self.start_ns - t0_ns) / 1e9:.3f} s to "
-                    f"{(self.end_ns - t0_ns) / 1e9:.3f} s"
-                )
-        return f"{self.reason} at byte {self.offset} ({self.bytes_lost} bytes lost{span})"
 
 
 @dataclass

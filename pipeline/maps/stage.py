@@ -26,6 +26,7 @@ from pipeline.maps.grid import Grid, minimum_curvature
 from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, Leveling, Line, level_lines
 from pipeline.maps.microlevel import MicroLevel, microlevel_lines
 from pipeline.maps.reduce import Reduction, reduce_to_anomaly
+from pipeline.noise import white_noise_nT
 from pipeline.segment import Segmentation
 
 # Samples used to identify the ARIMA model (the filter runs on all of them). 20 000 cells span
@@ -76,29 +77,18 @@ class MapSettings:
     microlevel_clip_nT: float = default_field("map", "microlevel_clip_nT")
 
 
-def noise_4th_difference_nT(x: np.ndarray) -> float:
-    """White-noise level from the 4th difference: Var(d4) = 70 sigma^2 for white noise;
-    smooth geology hardly contributes at along-line sampling. Robust (MAD) estimate.
-    Differences that span a missing sample are dropped (never joined across a gap)."""
-    d4 = np.diff(np.asarray(x, float), 4)
-    d4 = d4[np.isfinite(d4)]
-    if d4.size < 10:
-        return float("nan")
-    mad = np.median(np.abs(d4 - np.median(d4)))
-    return float(1.4826 * mad / np.sqrt(70.0))
-
-
 def grid_noise_nT(grid: Grid, along_north: bool) -> np.ndarray:
     """The white-noise level of the grid itself, per lane (nT, grid-shaped).
 
     A minimum-curvature grid is not the raw samples: a cell on a flight line is the block
     mean of many samples (noise / sqrt(samples per cell)), and cells between lines are
     interpolated from them (smaller, correlated noise). Each lane (a row of cells along the
-    flight-line direction) gets the 4th-difference estimate of its own cells; lanes with too
+    flight-line direction) gets the white-noise estimate of its own cells
+    (:func:`pipeline.noise.white_noise_nT`); lanes with too
     few cells take the median of the others.
     """
     vals = grid.values.T if along_north else grid.values
-    per = np.array([noise_4th_difference_nT(lane) for lane in vals])
+    per = np.array([white_noise_nT(lane) for lane in vals])
     ok = np.isfinite(per) & (per > 0)
     fill = float(np.median(per[ok])) if ok.any() else float("nan")
     per = np.where(ok, per, fill)
@@ -363,7 +353,9 @@ def build_map(
     # ARIMA + Kalman along the flight lines
     along_north = abs(along[1]) >= abs(along[0])
     sensor = float(
-        np.nanmedian([noise_4th_difference_nT(ln.value_nT) for ln in lines if ln.kind == "survey"])
+        np.nanmedian(
+            [white_noise_nT(ln.value_nT, ln.time_s) for ln in lines if ln.kind == "survey"]
+        )
     )
     try:
         filtered, model, kf, noise, source, tests = filter_grid(

@@ -20,7 +20,6 @@ from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.maps.reduce import igrf_total_gradient_nT_per_m, reduce_to_anomaly
-from pipeline.maps.stage import noise_4th_difference_nT
 from pipeline.navigation.alignment import gnss_aided_covariance
 from pipeline.navigation.crlb import crlb
 from pipeline.navigation.ekf import FilterResult, MeasurementModel, ekf
@@ -28,6 +27,7 @@ from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory, simulate_
 from pipeline.navigation.map_io import GeoMap
 from pipeline.navigation.map_model import MapModel, vertical_derivative
 from pipeline.navigation.pf import particle_filter
+from pipeline.noise import white_noise_nT
 from pipeline.segment import Segmentation
 
 SEGMENT_LABELS = {"validation": ("validation",), "survey": ("survey", "tie"), "all": ()}
@@ -406,16 +406,14 @@ def run_navigation(
     if base is None:
         notes.append("no base station: diurnal not removed (the mapping did the same)")
     meas = _measurement_model(mm, flight.time_ns[win], lat_r[win], lon_r[win], alt_r[win], notes)
-    # measurement noise: sensor (track) and map (grid), 4th-difference estimates
+    # measurement noise: sensor (track) and map (grid), white-noise estimates
     sensor = s.sensor_sigma_nT
     if sensor is None:
-        sensor = noise_4th_difference_nT(z[selected])
+        sensor = white_noise_nT(z[selected])
     map_sigma = s.map_sigma_nT
     if map_sigma is None:
         g = mm.grid.values
-        map_sigma = float(
-            np.nanmedian([noise_4th_difference_nT(g.ravel()), noise_4th_difference_nT(g.T.ravel())])
-        )
+        map_sigma = float(np.nanmedian([white_noise_nT(g.ravel()), white_noise_nT(g.T.ravel())]))
     sensor = float(sensor) if np.isfinite(sensor) else 0.1
     map_sigma = float(map_sigma) if np.isfinite(map_sigma) else 0.0
     mm.sigma_nT = map_sigma

@@ -17,7 +17,7 @@ import numpy as np
 
 from pipeline import __version__
 from pipeline.flight import Flight
-from pipeline.io.reader import NS
+from pipeline.io.series import NS
 
 SEGMENT_LABELS = ("calibration", "survey", "tie", "validation", "turn", "transit")
 # the audit's keys a post-flight summary carries (the audit command writes all of them)

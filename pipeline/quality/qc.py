@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.maps.stage import noise_4th_difference_nT
+from pipeline.noise import white_noise_nT
 from pipeline.quality.overlap import Track
 
 
@@ -18,7 +18,7 @@ def line_noise(tracks: list[Track], field: np.ndarray, threshold_nT: float) -> d
     For white noise Var(Δ⁴x) = 70 σ², so σ = std(Δ⁴x)/√70; geology sampled every few metres
     hardly contributes to the 4th difference.
     """
-    per_line = {t.line_id: noise_4th_difference_nT(field[t.index]) for t in tracks}
+    per_line = {t.line_id: white_noise_nT(field[t.index]) for t in tracks}
     vals = np.array([v for v in per_line.values() if np.isfinite(v)])
     return {
         "per_line_nT": {

@@ -1,0 +1,166 @@
+"""Audit trials: a randomised flight hiding one catalogue effect (or nothing, or a step in the
+carrier's permanent field outside the catalogue), audited from its recording alone and scored
+against the simulator's truth. The test bed of ``tests/test_audit_variety.py`` and
+``benchmarks/bench_audit_variety.py``.
+
+Each flight is drawn by :func:`pipeline.simulate.random_flight_overrides`; the effects do not
+take the audit's functional forms only (a lag is a pure delay or a first-order response, a
+current coupling may drift with temperature).
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.audit import EFFECTS, run_audit
+from pipeline.io.reader import read_flight
+from pipeline.segment import segment_flight
+from pipeline.simulate.scenario import Scenario
+from pipeline.simulate.simulator import simulate, write_simulation
+from pipeline.simulate.variety import override_value, random_flight_overrides
+
+CLASSES = ("none", *EFFECTS, "step")
+# a survey as crews fly it: tie lines inside the block (the short flights' only ties lie on
+# the line ends, where they are turns), so that crossovers exist for the survey-side tests
+# and the calibration box over quiet ground, as crews choose its site: 2-3 km from the block's
+# sources (with the box 300 m from the block, as the short flights have it, the sources give
+# a real 0.02-0.04 nT/m gradient over the box, which the audit rightly reports)
+SURVEY = {
+    "uav": [
+        "survey.width_m=200.0",
+        "survey.tie_spacing_m=150.0",
+        "calibration.centre_east_m=-2000.0",
+        "calibration.centre_north_m=-2000.0",
+        "anomaly.quiet_calibration_m=1000.0",
+    ],
+    "fixed-wing": [
+        "survey.width_m=1600.0",
+        "survey.tie_spacing_m=1000.0",
+        "anomaly.quiet_calibration_m=1500.0",
+    ],
+}
+# an unexplained event within this of a hidden step counts as finding it
+EVENT_WINDOW_S = 120.0
+
+
+def hidden_overrides(kind: str, rng: np.random.Generator) -> list[str]:
+    """Scenario overrides hiding ``kind`` (a catalogue effect), with varied forms."""
+    if kind in ("none", "step"):
+        return []
+    out = [f"effects.{kind}.enabled=true"]
+    if kind == "sensor_lag":
+        out.append(f'effects.sensor_lag.response="{rng.choice(["delay", "first_order"])}"')
+    if kind == "electrical_current" and rng.random() < 0.5:
+        out.append(
+            f"effects.electrical_current.temperature_coefficient_per_K={rng.uniform(0.005, 0.03)!r}"
+        )
+    return out
+
+
+def add_permanent_step(sim, rng: np.random.Generator) -> dict:
+    """A step of 3-8 nT in the carrier's permanent field (body frame) at a random time in
+    the middle of the survey: the scalar reading changes by u . dp afterwards."""
+    s = sim.streams["/mag/scalar"]
+    v = sim.streams["/mag/vector"]
+    survey = [g for g in sim.truth["segments"] if g["label"] == "survey"]
+    t0, t1 = float(survey[0]["start_s"]), float(survey[-1]["end_s"])
+    t_step = float(rng.uniform(t0 + 0.3 * (t1 - t0), t0 + 0.7 * (t1 - t0)))
+    dp = rng.normal(size=3)
+    dp *= rng.uniform(3.0, 8.0) / np.linalg.norm(dp)
+    vec = np.stack([np.interp(s["t"], v["t"], v["cols"][k]) for k in ("x_nT", "y_nT", "z_nT")], -1)
+    u = vec / np.linalg.norm(vec, axis=1, keepdims=True)
+    after = s["t"] > t_step
+    s["cols"]["total_nT"] = s["cols"]["total_nT"] + after * (u @ dp)
+    return {"time_s": t_step, "dp_nT": dp.tolist()}
+
+
+def within_ci(effect: str, f: dict, truth: dict) -> list[bool]:
+    """Does each 95 % interval of a finding cover the simulator's truth?"""
+    ci, out = f.get("estimate_ci95") or {}, []
+
+    def cover(key, value, tol=0.0):
+        iv = ci.get(key)
+        if iv is not None:
+            out.append(iv[0] - tol <= value <= iv[1] + tol)
+
+    if effect == "geomagnetic_gradient":
+        # the estimate is the total field's gradient: the injected one plus the main field's
+        # own (IGRF), which the finding reports beside it
+        g = truth["effective"]["gradient_nT_per_m"]
+        est = f.get("estimate") or {}
+        cover("east_nT_per_m", g[0] + est.get("main_field_east_nT_per_m", 0.0))
+        cover("north_nT_per_m", g[1] + est.get("main_field_north_nT_per_m", 0.0))
+    elif effect == "sensor_lag":
+        cover("lag_s", truth["effective"]["sensor_lag_s"])
+    elif effect == "diurnal":
+        # the simulator puts the same variation into the airborne and the base reading
+        cover("base_coefficient", 1.0)
+    elif effect == "electrical_current":
+        # only a finding on the channel that carries the coupling has a truth to cover
+        cur = truth["effects"]["electrical_current"]
+        if str((f.get("estimate") or {}).get("channel", "")).endswith(cur["channel"]):
+            cover("nT_per_unit", cur["coupling_nT_per_A"])
+    return out
+
+
+def one_flight(kind: str, seed: int, folder: Path, **ranges) -> dict:
+    """Simulate, audit and score one flight; ``ranges`` narrow
+    :func:`random_flight_overrides`' draws (the CI subset flies milder flights)."""
+    rng = np.random.default_rng(seed)
+    overrides = random_flight_overrides(rng, **ranges) + hidden_overrides(kind, rng)
+    profile = override_value(overrides, "profile")
+    overrides += SURVEY[profile]
+    sim = simulate(Scenario.load("uav-small", overrides), int(rng.integers(2**31)))
+    step = add_permanent_step(sim, rng) if kind == "step" else None
+    path = write_simulation(sim, folder / f"{kind}-{seed}.mcap")
+    t = time.perf_counter()
+    flight = read_flight(path)
+    res = run_audit(flight, segment_flight(flight)).to_json()
+    named = sorted(f["effect"] for f in res["findings"])
+    events = res["unexplained"]["events"]
+    hit = None
+    if step is not None:
+        ts = int(flight.time_ns[0]) + step["time_s"] * 1e9
+        w = EVENT_WINDOW_S * 1e9
+        hit = any(e["start_ns"] - w <= ts <= e["end_ns"] + w for e in events)
+    cover = []
+    for f in res["findings"]:
+        if f["effect"] == kind:
+            cover += within_ci(kind, f, sim.truth)
+    path.unlink()
+    return {
+        "kind": kind,
+        "seed": seed,
+        "named": named,
+        "events": len(events),
+        "hit": hit,
+        "event_kinds": [e["kind"] for e in events],
+        "estimates": {f["effect"]: f["estimate"] for f in res["findings"]},
+        "ci95": {f["effect"]: f.get("estimate_ci95") for f in res["findings"]},
+        "truth": {
+            "effects": {k: sim.truth["effects"][k] for k in sim.truth["enabled_effects"]},
+            "effective": sim.truth.get("effective"),
+        },
+        "covered": cover,
+        "audit_s": time.perf_counter() - t,
+        "gap": res["baseline"]["generalization_gap"],
+        "noise_floor_nT": res["noise_floor_nT"],
+        "noise_floor_is_upper_bound": res.get("noise_floor_is_upper_bound"),
+        "true_noise_nT": float(override_value(overrides, "sensors.scalar_noise_nT")),
+        "vibration": override_value(overrides, "interference.outside_basis.vibration_nT")
+        is not None,
+        "overrides": overrides,
+    }
+
+
+def correct(row: dict) -> bool:
+    """Named exactly right: the hidden catalogue effect alone; nothing for clean and step
+    flights (a step must show as an event instead)."""
+    if row["kind"] == "none":
+        return row["named"] == []
+    if row["kind"] == "step":
+        return row["named"] == [] and bool(row["hit"])
+    return set(row["named"]) == {row["kind"]}
