@@ -10,7 +10,7 @@ from pipeline.navigation.crlb import crlb
 from pipeline.navigation.ekf import MeasurementModel, ekf
 from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory, simulate_ins_errors
 from pipeline.navigation.map_model import MapModel, upward_continue, vertical_derivative
-from pipeline.navigation.synthetic import racetrack, random_field_map
+from pipeline.simulate.navigation import racetrack, random_field_map
 
 
 def _setup(duration_s, grade="navigation", rate_hz=10.0):

@@ -84,8 +84,8 @@ def noise_floor_bounds(
     delay_s : float
         The model's pure delay of the scalar stream (s; 0: none). Re-timing by a fraction
         of a sample interpolates between samples and averages their noise down, so the
-        interference is moved back to the sensor's own epochs instead. A deconvolved stream (a first-order
-        response) amplifies the noise: an upper bound still, used as it is.
+        interference is moved back to the sensor's own epochs instead. A deconvolved stream
+        (a first-order response) amplifies the noise: an upper bound still, used as it is.
 
     Returns
     -------
