@@ -24,11 +24,11 @@ from pipeline.config import Config
 install_one_line_errors()
 
 
-def _read(index: int, info, origin: tuple[float, float, float]):
+def _read(index: int, info, frame_args: tuple):
     from pipeline.campaign.sorties import read_sortie
-    from pipeline.geo.local import LocalFrame
+    from pipeline.geo.projected import GridFrame
 
-    return read_sortie(index, info, LocalFrame(*origin))
+    return read_sortie(index, info, GridFrame(*frame_args))
 
 
 def _crossovers(a, b, min_angle_deg: float):
@@ -55,8 +55,8 @@ def campaign_steps(
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     infos = validate_campaign(folder)
-    frame = campaign_frame(infos)
-    origin = (frame.lat0_deg, frame.lon0_deg, frame.alt0_m)
+    frame = campaign_frame(infos, cfg.campaign_settings().crs_epsg)
+    origin = frame.args()
     timings["check"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     sorties = run_all("read", [(k, info, origin) for k, info in enumerate(infos)])
