@@ -11,6 +11,7 @@ import tests.cli
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import run_compensation
 from pipeline.geo.local import LocalFrame
+from pipeline.geo.projected import GridFrame
 from pipeline.io.reader import read_flight
 from pipeline.maps.arima import (
     ArimaModel,
@@ -275,7 +276,7 @@ def mapped(tmp_path_factory):
     return sim, path, flight, seg, run, build_map(flight, seg, run.compensated_nT)
 
 
-def truth_on(sim, grid: Grid, frame: LocalFrame) -> np.ndarray:
+def truth_on(sim, grid: Grid, frame: GridFrame) -> np.ndarray:
     from scipy.interpolate import RegularGridInterpolator
 
     tg = sim.truth["anomaly"]["grid"]

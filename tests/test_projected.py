@@ -132,3 +132,37 @@ def test_a_given_epsg_is_used_and_checked():
     for bad in ("EPSG:4326", "utm", "EPSG:999999", "2263"):  # lon/lat, text, unknown, feet
         with pytest.raises(AeromagError, match="map.crs"):
             parse_crs_setting(bad, "c.toml")
+
+
+def test_a_survey_across_zones_is_a_warning_in_the_log_and_map_crs_is_checked():
+    from types import SimpleNamespace
+
+    from pipeline.config import Config
+    from pipeline.products.log import LOG_INFO, LOG_WARNING, map_lines
+
+    def lines_for(frame):
+        s = {
+            "grid_shape": [3, 4],
+            "cell_m": 25.0,
+            "line_spacing_m": 100.0,
+            "crossover_rms_nT": {"before": 1.0, "after": 0.5},
+            "leveling": {"crossovers": 10},
+            "arima_order": [1, 1, 0],
+            "arima_coefficients": {"ar": [0.5], "ma": []},
+            "kalman": {"measurement_noise_nT": 0.1},
+            "microlevel": {"enabled": False},
+            "origin": {"crs_choice": frame.note, "utm_zones_spanned": list(frame.zones)},
+        }
+        return map_lines(SimpleNamespace(summary=lambda: s))
+
+    lat, lon = np.full(50, 30.0), np.linspace(113.0, 114.3, 50)
+    level, text = lines_for(survey_frame(lat, lon, 0.0))[0]
+    assert level == LOG_WARNING and "EPSG:32649" in text and "EPSG:32650" in text
+    level, text = lines_for(survey_frame(lat, lon - 1.5, 0.0))[0]
+    assert level == LOG_INFO and "UTM zone 49N" in text
+    level, _ = lines_for(survey_frame(lat, lon, 0.0, epsg=32650))[0]  # the user's choice
+    assert level == LOG_INFO
+    assert Config.load().with_values({"map.crs": "EPSG:32650"}).map_settings().crs_epsg == 32650
+    assert Config.load().map_settings().crs_epsg is None
+    with pytest.raises(AeromagError, match="map.crs"):
+        Config.load().with_values({"map.crs": "EPSG:4326"}).validate()
