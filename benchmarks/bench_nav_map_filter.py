@@ -45,6 +45,7 @@ from report import finish
 from pipeline.compensate import FitSettings
 from pipeline.compensate.stage import run_compensation
 from pipeline.geo.local import LocalFrame
+from pipeline.geo.projected import GridFrame
 from pipeline.io.reader import read_flight
 from pipeline.maps.grid import Grid
 from pipeline.maps.stage import build_map
@@ -60,7 +61,7 @@ PAPER_FLIGHT = -11.4  # %, 225.47 m -> 199.83 m
 MAPS = ("raw", "filtered", "truth")
 
 
-def truth_grid(sim, grid: Grid, frame: LocalFrame) -> tuple[Grid, dict[str, float]]:
+def truth_grid(sim, grid: Grid, frame: GridFrame) -> tuple[Grid, dict[str, float]]:
     """The simulator's true anomaly on every cell of ``grid``: the exact total-field anomaly of
     its dipoles at the survey height (as its truth grid, which covers the survey block only),
     with the map's datum (offset, east/north plane and gain least-squares fitted to ``grid``

@@ -130,11 +130,13 @@ class Config:
 
     def map_settings(self):
         """:class:`pipeline.maps.stage.MapSettings` from ``[map]``."""
+        from pipeline.geo.projected import parse_crs_setting
         from pipeline.maps.stage import MapSettings, parse_arima
 
         m = self.values["map"]
         return MapSettings(
             cell_m=m["cell_m"] or None,
+            crs_epsg=parse_crs_setting(m["crs"], self.source),
             arima=parse_arima(m["arima"]),
             noise_nT=m["noise_nT"] or None,
             level_trend=m["level_trend"],
@@ -152,10 +154,12 @@ class Config:
     def campaign_settings(self):
         """The campaign's settings: the map stage's cell, trend and crossing angle."""
         from pipeline.campaign.stage import CampaignSettings
+        from pipeline.geo.projected import parse_crs_setting
 
         m = self.values["map"]
         return CampaignSettings(
             cell_m=m["cell_m"] or None,
+            crs_epsg=parse_crs_setting(m["crs"], self.source),
             level_trend=m["level_trend"],
             min_crossing_angle_deg=m["min_crossing_angle_deg"],
         )
@@ -182,12 +186,14 @@ class Config:
 
     def quality_settings(self):
         """:class:`pipeline.quality.QualitySettings` from ``[quality]`` (and the map's
-        crossing angle)."""
+        crossing angle and CRS)."""
+        from pipeline.geo.projected import parse_crs_setting
         from pipeline.quality import QualitySettings
 
         return QualitySettings(
             **self.values["quality"],
             min_crossing_angle_deg=self.values["map"]["min_crossing_angle_deg"],
+            crs_epsg=parse_crs_setting(self.values["map"]["crs"], self.source),
         )
 
     def audit_settings(self):

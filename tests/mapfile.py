@@ -1,19 +1,24 @@
 """A small synthetic processed recording with map channels (export and enhancement tests).
 
-The anomaly is an analytic field of the local east/north coordinates, so exported cells can
-be compared with it anywhere; a corner of the grid is masked (NaN).
+The anomaly is an analytic field of the frame's east/north metres, so exported cells can be
+compared with it anywhere; a corner of the grid is masked (NaN). ``legacy=True`` writes the
+``/map/frame`` of recordings processed before the grids were computed in a projected CRS
+(azimuthal equidistant about the origin, no EPSG code, no origin easting/northing), as those
+recordings hold it.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 
-from pipeline.geo.local import LocalFrame, utm_epsg
+from pipeline.geo.local import LocalFrame
+from pipeline.geo.projected import GridFrame, survey_frame, utm_epsg
 from pipeline.io.writer import McapOutput, encode
 from pipeline.maps.grid import Grid
-from pipeline.products.channels import MAP_FRAME, grid_channel
+from pipeline.products.channels import MAP_FRAME, grid_channel, map_frame_channel
 
 LAT0, LON0, ALT0 = 34.26, 108.9, 500.0
 T0 = 1_781_485_840_000_000_000
@@ -26,18 +31,30 @@ def field_nT(east_m, north_m):
     return 50.0 * np.sin(e / 300.0) * np.cos(n / 400.0) + 0.02 * e
 
 
-def synthetic_grid(ny: int = 30, nx: int = 40) -> Grid:
-    frame = LocalFrame(LAT0, LON0, ALT0)
+def map_frame(legacy: bool = False) -> LocalFrame | GridFrame:
+    """The frame the synthetic grid is in: the survey's UTM zone (EPSG:32649) about a round
+    origin near (LAT0, LON0), or (``legacy``) the older azimuthal equidistant frame."""
+    if legacy:
+        return LocalFrame(LAT0, LON0, ALT0)
+    return survey_frame([LAT0], [LON0], [ALT0])
+
+
+def synthetic_grid(ny: int = 30, nx: int = 40, legacy: bool = False) -> Grid:
+    frame = map_frame(legacy)
     east0, north0 = -CELL * (nx // 2), -CELL * (ny // 2)
     e = east0 + CELL * np.arange(nx)
     n = north0 + CELL * np.arange(ny)
     ee, nn = np.meshgrid(e, n)
     v = field_nT(ee, nn)
     v[-5:, :6] = np.nan  # uncovered north-west corner
-    return Grid(v, east0, north0, CELL, frame.crs)
+    return Grid(v, east0, north0, CELL, frame.crs if legacy else frame.grid_crs)
 
 
-def frame_payload() -> dict:
+def frame_payload(legacy: bool = False) -> dict:
+    """``/map/frame``: the map stage's writer's payload, or (``legacy``) the older fields."""
+    if not legacy:
+        run = SimpleNamespace(frame=map_frame(), main_field=(53000.0, 53.3, -4.2))
+        return map_frame_channel(run, T0).messages[0][1]
     frame = LocalFrame(LAT0, LON0, ALT0)
     return {
         "frame_id": MAP_FRAME,
@@ -52,9 +69,9 @@ def frame_payload() -> dict:
     }
 
 
-def line_payloads(grid: Grid) -> list[tuple[int, dict]]:
+def line_payloads(grid: Grid, legacy: bool = False) -> list[tuple[int, dict]]:
     """Samples along two survey lines (east-west) and a tie line (north-south)."""
-    frame = LocalFrame(LAT0, LON0, ALT0)
+    frame = map_frame(legacy)
     out = []
     k = 0
     tracks = [
@@ -90,11 +107,12 @@ def line_payloads(grid: Grid) -> list[tuple[int, dict]]:
 
 
 def write_processed(
-    path: Path, frame: bool = True, lines: bool = True, grids: bool = True
+    path: Path, frame: bool = True, lines: bool = True, grids: bool = True, legacy: bool = False
 ) -> tuple[Path, Grid]:
     """A recording holding ``/map/frame``, ``/map/anomaly``, ``/map/anomaly_filtered`` and
-    ``/map/lines`` (each optional) plus one scalar sample."""
-    grid = synthetic_grid()
+    ``/map/lines`` (each optional) plus one scalar sample; ``legacy``: as processed before
+    the grids were computed in a projected CRS."""
+    grid = synthetic_grid(legacy=legacy)
     with McapOutput(path) as out:
         cid = out.channel("/mag/scalar", "aeromag.ScalarField")
         out.write(
@@ -109,7 +127,7 @@ def write_processed(
             ),
         )
         if frame:
-            p = {"timestamp": {"sec": T0 // 10**9, "nsec": 0}, **frame_payload()}
+            p = {"timestamp": {"sec": T0 // 10**9, "nsec": 0}, **frame_payload(legacy)}
             out.write(out.channel("/map/frame", "aeromag.MapFrame"), T0, encode(p))
         if grids:
             for topic, g in (("/map/anomaly", grid), ("/map/anomaly_filtered", grid)):
@@ -118,7 +136,7 @@ def write_processed(
                 out.write(out.channel(topic, "foxglove.Grid"), t, encode(p))
         if lines:
             cid = out.channel("/map/lines", "aeromag.LineSample")
-            for t, p in line_payloads(grid):
+            for t, p in line_payloads(grid, legacy):
                 p = {"timestamp": {"sec": t // 10**9, "nsec": t % 10**9}, **p}
                 out.write(cid, t, encode(p))
     return path, grid

@@ -206,14 +206,15 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
     )
 
 
-def _synthetic(path: Path, dlat_deg: float = 0.0) -> Path:
-    """A tiny processed recording with map channels (tests/mapfile.py), moved north by
-    ``dlat_deg``."""
+def _synthetic(path: Path, dlat_deg: float = 0.0, legacy: bool = False) -> Path:
+    """A tiny processed recording with map channels (tests/mapfile.py), its grid moved north
+    by ``dlat_deg`` (1 deg: 111 km); ``legacy``: with the /map/frame of recordings processed
+    before the grids were computed in a projected CRS."""
     from pipeline.io.reader import read_topics
     from pipeline.io.writer import McapOutput, encode
     from tests.mapfile import write_processed
 
-    src, _ = write_processed(path.with_name("." + path.name))
+    src, _ = write_processed(path.with_name("." + path.name), legacy=legacy)
     rec = read_topics(src)
     with McapOutput(path) as out:
         for topic, raw in rec.topics.items():
@@ -222,6 +223,8 @@ def _synthetic(path: Path, dlat_deg: float = 0.0) -> Path:
                 p = json.loads(data)
                 if topic == "/map/frame":
                     p["latitude"] += dlat_deg
+                    if "origin_northing_m" in p:
+                        p["origin_northing_m"] += dlat_deg * 111_000.0
                 out.write(cid, t, encode(p))
     src.unlink()
     return path
@@ -265,6 +268,28 @@ def test_cli_refuses_disjoint_areas_in_one_line_before_any_flow(tmp_path, monkey
     lines = err.strip().splitlines()
     assert len(lines) == 1 and "disjoint areas" in lines[0] and "a, b | c" in lines[0], err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_recording_processed_before_the_projected_frame_joins_a_campaign(tmp_path):
+    """An older recording (azimuthal equidistant /map/frame, no EPSG) and a new one (UTM)
+    over one area: each grid's box is placed by its own frame (its lines fall inside it),
+    one group, and both flights' lines read into the campaign's UTM frame."""
+    from pipeline.campaign.sorties import campaign_frame, read_sortie
+
+    _synthetic(tmp_path / "new.processed.mcap")
+    _synthetic(tmp_path / "old.processed.mcap", legacy=True)
+    infos = validate_campaign(tmp_path)  # disjoint boxes would be refused here
+    assert [i.name for i in infos] == ["new", "old"] and infos[1].frame.legacy
+    frame = campaign_frame(infos)
+    assert frame.crs == "EPSG:32649" and frame.zones == (32649,)
+    for k, info in enumerate(infos):
+        sortie = read_sortie(k, info, frame)
+        assert len(sortie.lines) == 3
+        e = np.concatenate([ln.east_m for ln in sortie.lines])
+        n = np.concatenate([ln.north_m for ln in sortie.lines])
+        lat, lon, _ = frame.to_geodetic(e, n)
+        assert info.lat_range_deg[0] < lat.min() and lat.max() < info.lat_range_deg[1]
+        assert info.lon_range_deg[0] < lon.min() and lon.max() < info.lon_range_deg[1]
 
 
 def test_disjoint_groups_are_named(tmp_path):

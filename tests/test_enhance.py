@@ -172,7 +172,9 @@ def test_post_flight_enhancements_channels_figures_and_report(dipole, tmp_path):
 
     cfg = Config.load().with_values({"enhance.enabled": True, "enhance.products": ["rtp", "up:50"]})
     cfg.validate()
-    run = SimpleNamespace(grid=dipole, filtered=dipole, main_field=(5e4, INC, DEC), lines=[])
+    run = SimpleNamespace(
+        grid=dipole, filtered=dipole, main_field=(5e4, INC, DEC), grid_declination_deg=DEC, lines=[]
+    )
     grids = enhancement_grids(run, cfg)
     assert list(grids) == ["/map/rtp", "/map/upward_50m"]
     chans = enhancement_channels(grids, cfg.enhance_settings(), 10**18)
@@ -209,3 +211,36 @@ def test_enhancing_a_recording_without_maps_is_one_line(tmp_path):
         enhance_recording(raw, tmp_path / "out.mcap", Config.load())
     assert "/map/anomaly" in str(exc.value) and "aeromag process" in str(exc.value)
     assert not (tmp_path / "out.mcap").exists()
+
+
+@pytest.mark.parametrize("legacy", [False, True])
+def test_a_recordings_rtp_takes_the_declination_from_grid_north(tmp_path, legacy):
+    """The grids' axes are the CRS's: the reduction to the pole turns by the declination
+    less the meridian convergence (-1.18 deg at the synthetic survey, 2.1 deg west of its
+    UTM zone's central meridian); an older recording's azimuthal equidistant frame has none
+    at its origin, so its RTP is unchanged."""
+    from flows.stages import enhance_recording
+
+    from pipeline.config import Config
+    from pipeline.export.source import read_map_products
+    from tests.mapfile import write_processed
+
+    src, _ = write_processed(tmp_path / "f.processed.mcap", legacy=legacy)
+    cfg = Config.load().with_values({"enhance.products": ["rtp"], "enhance.source": "anomaly"})
+    enhance_recording(src, tmp_path / "e.mcap", cfg)
+    mp = read_map_products(tmp_path / "e.mcap")
+    f = mp.frame
+    gamma = f.grid_frame().convergence_deg()
+    if legacy:
+        assert abs(gamma) < 1e-6 and f.grid_declination_deg == pytest.approx(-4.2)
+    else:
+        assert -1.3 < gamma < -1.1
+        assert f.grid_declination_deg == pytest.approx(-4.2 - gamma)
+    rtp = mp.grid("rtp").grid.values
+    anomaly = mp.grid("anomaly").grid
+    want = enhance(anomaly, parse_products(["rtp"]), 53.3, f.grid_declination_deg)["/map/rtp"]
+    ok = np.isfinite(rtp)
+    np.testing.assert_allclose(rtp[ok], want.values[ok], atol=1e-3)  # float32 in the channel
+    if not legacy:  # the true declination would give another map
+        true = enhance(anomaly, parse_products(["rtp"]), 53.3, -4.2)["/map/rtp"].values
+        assert np.max(np.abs(true[ok] - rtp[ok])) > 0.05

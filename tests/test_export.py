@@ -1,4 +1,5 @@
-"""Exports: GeoTIFF (UTM), CF netCDF, line CSV/XYZ and MagNav HDF5 from a processed MCAP."""
+"""Exports: GeoTIFF and CF netCDF (the channel's cells in its CRS), line CSV/XYZ and MagNav
+HDF5 from a processed MCAP."""
 
 from __future__ import annotations
 
@@ -11,8 +12,9 @@ from pyproj import Transformer
 import tests.cli
 from pipeline.errors import AeromagError
 from pipeline.export import export_recording
-from pipeline.geo.local import LocalFrame, utm_epsg
-from tests.mapfile import ALT0, LAT0, LON0, field_nT, write_processed
+from pipeline.geo.local import LocalFrame
+from pipeline.geo.projected import utm_epsg
+from tests.mapfile import ALT0, LAT0, LON0, field_nT, map_frame, write_processed
 from tests.test_schemas import validate_every_message
 
 EPSG = utm_epsg(LAT0, LON0)
@@ -47,31 +49,41 @@ def test_every_format_and_grid_is_written(exported):
     assert set(written) == set(ALL)
 
 
-def test_netcdf_is_the_native_grid_cell_for_cell(exported):
+def _channel(src, name="anomaly"):
+    """The grid channel and frame read back from the processed MCAP."""
+    from pipeline.export.source import read_map_products
+
+    mp = read_map_products(src)
+    return mp.grid(name).grid, mp.frame
+
+
+def test_netcdf_holds_the_channel_cells_exactly(exported):
     import xarray as xr
 
-    out, grid, _, _ = exported
+    out, _, _, src = exported
+    grid, frame = _channel(src)
     with xr.open_dataset(out / "flight.maps.nc") as ds:
         assert ds.attrs["Conventions"] == "CF-1.8"
         a = ds["anomaly"]
         assert a.attrs["units"] == "nT" and a.attrs["grid_mapping"] == "crs"
+        # the same cells: count, values (float32, as the channel stores them), places
         np.testing.assert_array_equal(a.to_numpy(), grid.values.astype(np.float32))
+        assert np.isfinite(a.to_numpy()).sum() == np.isfinite(grid.values).sum()
         east, north = grid.coordinates()
-        np.testing.assert_allclose(ds["x"].to_numpy(), east)
-        np.testing.assert_allclose(ds["y"].to_numpy(), north)
+        np.testing.assert_allclose(ds["x"].to_numpy(), frame.origin_easting_m + east, atol=1e-6)
+        np.testing.assert_allclose(ds["y"].to_numpy(), frame.origin_northing_m + north, atol=1e-6)
         assert ds["x"].attrs["standard_name"] == "projection_x_coordinate"
-        assert ds["crs"].attrs["grid_mapping_name"] == "azimuthal_equidistant"
-        assert ds["crs"].attrs["latitude_of_projection_origin"] == pytest.approx(LAT0)
+        assert ds["crs"].attrs["grid_mapping_name"] == "transverse_mercator"
+        assert ds.attrs["utm_epsg"] == EPSG
         # a known point: the cell whose centre is nearest in lat/lon is the point's cell
-        lat, lon, _ = LocalFrame(LAT0, LON0, ALT0).to_geodetic(east[17], north[11])
+        lat, lon, _ = map_frame().to_geodetic(east[17], north[11])
         d2 = (ds["lat"].to_numpy() - lat) ** 2 + (ds["lon"].to_numpy() - lon) ** 2
         assert np.unravel_index(np.argmin(d2), d2.shape) == (11, 17)
     # and the CRS round-trips through rioxarray (GDAL reads the grid mapping)
     import rioxarray  # noqa: F401
 
     with xr.open_dataset(out / "flight.maps.nc", decode_coords="all") as ds:
-        assert ds["anomaly"].rio.crs is not None
-        assert "Azimuthal" in ds["anomaly"].rio.crs.to_wkt()
+        assert ds["anomaly"].rio.crs.to_epsg() == EPSG
     # GDAL's netCDF driver places it: north-up, corner half a cell beyond the first centres
     import rasterio
 
@@ -79,35 +91,47 @@ def test_netcdf_is_the_native_grid_cell_for_cell(exported):
         assert gd.shape == grid.shape
         t = gd.transform
         assert (t.a, t.e) == pytest.approx((grid.cell_m, -grid.cell_m))
-        assert t.c == pytest.approx(east[0] - grid.cell_m / 2)
-        assert t.f == pytest.approx(north[-1] + grid.cell_m / 2)
+        assert t.c == pytest.approx(frame.origin_easting_m + east[0] - grid.cell_m / 2)
+        assert t.f == pytest.approx(frame.origin_northing_m + north[-1] + grid.cell_m / 2)
         np.testing.assert_array_equal(gd.read(1), grid.values[::-1].astype(np.float32))
 
 
-def test_geotiff_is_utm_and_matches_the_grid_at_cell_centres(exported):
+def _geotiff(path):
+    """Values (rows south to north, as the channel's), cell-centre eastings/northings and
+    the EPSG code of a single-band GeoTIFF."""
     import rasterio
 
-    out, grid, _, _ = exported
-    with rasterio.open(out / "flight.anomaly.tif") as ds:
-        assert ds.crs.to_epsg() == EPSG == 32649
-        assert ds.res == pytest.approx((grid.cell_m, grid.cell_m))
-        assert np.isnan(ds.nodata) and ds.tags(1)["units"] == "nT"
-        v = ds.read(1)
-        rows, cols = np.indices(v.shape)
+    with rasterio.open(path) as ds:
+        v = ds.read(1)[::-1]
+        rows, cols = np.indices(ds.shape)
         x, y = rasterio.transform.xy(ds.transform, rows.ravel(), cols.ravel())
-    to_local = Transformer.from_crs(f"EPSG:{EPSG}", grid.crs, always_xy=True)
-    e, n = to_local.transform(np.asarray(x), np.asarray(y))
-    native = grid.interpolate(e, n)  # NaN outside or next to a masked cell
-    tif = v.ravel()
-    both = np.isfinite(native) & np.isfinite(tif)
-    assert both.sum() > 0.8 * np.isfinite(grid.values).sum()
-    # GDAL's bilinear resampling is the grid's own bilinear interpolation (measured: 1e-4 nT,
-    # float32); both are within 0.06 nT of the analytic field on a +-60 nT anomaly
-    assert np.max(np.abs(tif[both] - native[both])) < 0.01
-    assert np.max(np.abs(tif[both] - field_nT(e, n)[both])) < 0.1
-    # nodata outside: the uncovered corner and the rotated raster's margins are NaN
-    assert np.isnan(tif).sum() > 0
-    assert not np.isfinite(tif[np.isnan(native) & (np.abs(e) > 1e4)]).any()
+        epsg, crs, nodata, units = ds.crs.to_epsg(), ds.crs, ds.nodata, ds.tags(1)["units"]
+    shape = v.shape
+    x, y = (np.asarray(a).reshape(shape)[::-1] for a in (x, y))
+    return v, x, y, epsg, crs, nodata, units
+
+
+def test_geotiff_holds_the_channel_cells_exactly(exported):
+    """No resampling: the GeoTIFF is /map/anomaly cell for cell in the frame's CRS."""
+    out, _, _, src = exported
+    grid, frame = _channel(src)
+    v, x, y, epsg, _, nodata, units = _geotiff(out / "flight.anomaly.tif")
+    assert epsg == EPSG == 32649 and frame.epsg == EPSG
+    assert np.isnan(nodata) and units == "nT"
+    assert v.shape == grid.shape
+    assert np.isfinite(v).sum() == np.isfinite(grid.values).sum()
+    np.testing.assert_array_equal(v, grid.values.astype(np.float32))
+    east, north = grid.coordinates()
+    np.testing.assert_allclose(
+        x, np.broadcast_to(frame.origin_easting_m + east, v.shape), atol=1e-6
+    )
+    np.testing.assert_allclose(
+        y, np.broadcast_to((frame.origin_northing_m + north)[:, None], v.shape), atol=1e-6
+    )
+    # the cells are the analytic field at their centres (placed by the CRS alone)
+    e, n = x - frame.origin_easting_m, y - frame.origin_northing_m
+    ok = np.isfinite(v)
+    np.testing.assert_allclose(v[ok], field_nT(e, n)[ok], atol=1e-3)
 
 
 def test_a_known_survey_point_lands_in_the_right_geotiff_cell(exported):
@@ -116,15 +140,43 @@ def test_a_known_survey_point_lands_in_the_right_geotiff_cell(exported):
     out, grid, _, _ = exported
     east, north = grid.coordinates()
     e0, n0 = east[20] + 3.0, north[9] - 4.0  # a point inside cell (9, 20)
-    lat, lon, _ = LocalFrame(LAT0, LON0, ALT0).to_geodetic(e0, n0)
+    lat, lon, _ = map_frame().to_geodetic(e0, n0)
     x, y = Transformer.from_crs("EPSG:4326", f"EPSG:{EPSG}", always_xy=True).transform(lon, lat)
     with rasterio.open(out / "flight.anomaly.tif") as ds:
         r, c = ds.index(x, y)
         cx, cy = rasterio.transform.xy(ds.transform, r, c)
         value = ds.read(1)[r, c]
+        ny = ds.height
+    assert (ny - 1 - r, c) == (9, 20)  # rows north-up in the file
     assert abs(cx - x) <= grid.cell_m / 2 + 1e-6 and abs(cy - y) <= grid.cell_m / 2 + 1e-6
-    ce, cn = Transformer.from_crs(f"EPSG:{EPSG}", grid.crs, always_xy=True).transform(cx, cy)
-    assert value == pytest.approx(field_nT(ce, cn), abs=0.2)
+    assert value == np.float32(grid.values[9, 20])
+
+
+def test_a_legacy_recording_still_exports_its_cells_in_its_own_crs(tmp_path):
+    """A recording processed before the change (local azimuthal equidistant /map/frame
+    without an EPSG code or origin): every export works, the grids cell for cell in that
+    frame's CRS, the lines' x/y in it."""
+    from pyproj import CRS
+
+    from pipeline.export.source import read_map_products
+
+    src, grid = write_processed(tmp_path / "old.processed.mcap", legacy=True)
+    mp = read_map_products(src)
+    assert mp.frame.legacy and mp.frame.epsg is None
+    assert (mp.frame.origin_easting_m, mp.frame.origin_northing_m) == (0.0, 0.0)
+    written = export_recording(src, tmp_path / "out", ALL)
+    assert set(written) == set(ALL)
+    v, x, y, epsg, crs, _, _ = _geotiff(tmp_path / "out" / "old.anomaly.tif")
+    assert epsg is None and "Azimuthal" in CRS.from_wkt(crs.to_wkt()).to_wkt()
+    np.testing.assert_array_equal(v, grid.values.astype(np.float32))
+    east, north = grid.coordinates()
+    np.testing.assert_allclose(x[0], east, atol=1e-6)
+    np.testing.assert_allclose(y[:, 0], north, atol=1e-6)
+    with open(tmp_path / "out" / "old.lines.csv") as f:
+        row = next(csv.DictReader(f))
+    e, n, _ = LocalFrame(LAT0, LON0, ALT0).to_enu(float(row["lat"]), float(row["lon"]))
+    assert float(row["x"]) == pytest.approx(float(e), abs=0.01)
+    assert float(row["y"]) == pytest.approx(float(n), abs=0.01)
 
 
 def test_line_csv_and_xyz(exported):
@@ -192,7 +244,7 @@ def test_magnav_file_has_the_fields_get_map_reads(exported):
     assert np.all(np.diff(xx) > 0) and np.all(np.diff(yy) > 0)
     assert LON0 - 0.01 < xx.mean() < LON0 + 0.01 and LAT0 - 0.01 < yy.mean() < LAT0 + 0.01
     assert np.array_equal(mask.astype(bool), m != 0)
-    frame = LocalFrame(LAT0, LON0, ALT0)
+    frame = map_frame()
     j, i = np.nonzero(mask)  # j: column (xx), i: row (yy)
     e, n, _ = frame.to_enu(yy[i], xx[j])
     np.testing.assert_allclose(m[j, i], field_nT(e, n), atol=0.2)
@@ -208,7 +260,7 @@ def test_magnav_file_reads_back_through_the_navigation_map_reader(exported):
     assert m.altitude_m == pytest.approx(ALT0)
     gx, gy = np.meshgrid(*m.grid.coordinates())
     lat, lon = m.to_geodetic(gx, gy)
-    e, n, _ = LocalFrame(LAT0, LON0, ALT0).to_enu(lat, lon)
+    e, n, _ = map_frame().to_enu(lat, lon)
     ok = np.isfinite(m.grid.values) & (m.grid.values != 0)
     assert ok.sum() > 100
     np.testing.assert_allclose(m.grid.values[ok], field_nT(e[ok], n[ok]), atol=0.3)
@@ -245,10 +297,3 @@ def test_cli_export_and_its_one_line_error(tmp_path):
     assert bad.returncode == 2
     lines = bad.stderr.strip().splitlines()
     assert len(lines) == 1 and "aeromag process" in lines[0] and "Traceback" not in bad.stderr
-
-
-def test_utm_zone_of_a_point():
-    assert utm_epsg(34.26, 108.9) == 32649  # the demo survey (Xi'an)
-    assert utm_epsg(-33.9, 151.2) == 32756  # southern hemisphere: 327zz
-    assert utm_epsg(45.0, -75.7) == 32618
-    assert utm_epsg(0.0, 179.99) == 32660 and utm_epsg(0.0, -180.0) == 32601

@@ -373,12 +373,13 @@ def test_recording_map_is_placed_by_its_map_frame(box_path, tmp_path):
 
     from pipeline.errors import AeromagError
     from pipeline.geo.local import LocalFrame
-    from pipeline.io.writer import write_with_new_channels
+    from pipeline.geo.projected import survey_frame
+    from pipeline.io.writer import OutputChannel, write_with_new_channels
     from pipeline.navigation.map_io import read_map
     from pipeline.products.channels import grid_channel, map_frame_channel
 
     lat0, lon0 = _box_frame(box_path)
-    frame = LocalFrame(lat0, lon0, 420.0)
+    frame = survey_frame([lat0], [lon0], [420.0])  # UTM, origin on a round km near the box
     g = random_field_map(8, size_m=1000.0, cell_m=25.0, origin_m=(-500.0, -500.0))
     t0 = 1_781_485_200_000_000_000
     ch = grid_channel("/map/anomaly_filtered", t0, g)
@@ -386,11 +387,36 @@ def test_recording_map_is_placed_by_its_map_frame(box_path, tmp_path):
     placed = tmp_path / "placed.mcap"
     write_with_new_channels(box_path, placed, [ch, fr])
     m = read_map(placed)
-    assert m.altitude_m == 420.0 and "/map/frame" in m.notes[0]
+    assert m.altitude_m == 420.0 and "/map/frame" in m.notes[0] and m.crs == frame.crs
     e, n = m.to_local(np.array([lat0]), np.array([lon0]))
-    assert abs(e[0]) < 1e-6 and abs(n[0]) < 1e-6
+    want_e, want_n, _ = frame.to_enu(lat0, lon0)
+    assert e[0] == pytest.approx(want_e, abs=1e-6) and n[0] == pytest.approx(want_n, abs=1e-6)
+    assert 0 < np.hypot(e[0], n[0]) < 710  # the origin: the box's position rounded to 1 km
     assert np.allclose(m.grid.values, g.values.astype("float32"))
     assert m.grid.east0_m == pytest.approx(-500.0) and m.grid.north0_m == pytest.approx(-500.0)
+    # a recording processed before the change: the azimuthal equidistant frame about its origin
+    old = LocalFrame(lat0, lon0, 420.0)
+    legacy = OutputChannel("/map/frame", "aeromag.MapFrame")
+    legacy.add(
+        t0,
+        {
+            "frame_id": "local_enu",
+            "crs": old.crs,
+            "latitude": lat0,
+            "longitude": lon0,
+            "altitude_m": 420.0,
+            "utm_epsg": 32649,
+            "igrf_inclination_deg": 50.0,
+            "igrf_declination_deg": -3.0,
+        },
+    )
+    before = tmp_path / "before.processed.mcap"
+    write_with_new_channels(box_path, before, [ch, legacy])
+    m = read_map(before)
+    e, n = m.to_local(np.array([lat0]), np.array([lon0]))
+    assert abs(e[0]) < 1e-6 and abs(n[0]) < 1e-6 and m.crs == old.crs
+    lat, lon = m.to_geodetic(np.array([300.0]), np.array([-200.0]))
+    assert np.allclose(old.to_enu(lat, lon)[:2], [[300.0], [-200.0]], atol=1e-6)
     bare = tmp_path / "old.processed.mcap"
     write_with_new_channels(box_path, bare, [ch])
     with pytest.raises(AeromagError, match="no map georeference"):

@@ -293,6 +293,11 @@ def summary(
                 "longitude_deg": run.frame.lon0_deg,
                 "altitude_m": run.frame.alt0_m,
                 "crs": run.frame.crs,
+                "epsg": run.frame.epsg,
+                "easting_m": run.frame.origin_east_m,
+                "northing_m": run.frame.origin_north_m,
+                "crs_choice": run.frame.note,
+                "utm_zones_spanned": list(run.frame.zones),
             },
             "main_field": {"total_nT": total, "inclination_deg": incl, "declination_deg": decl},
             "anomaly_range_nT": [

@@ -18,7 +18,7 @@ import orjson
 
 from pipeline.errors import AeromagError
 from pipeline.export.source import FRAME_TOPIC, LINES_TOPIC, MAKE_MAPS, MapFrame, decode_grid
-from pipeline.geo.local import LocalFrame
+from pipeline.geo.projected import GridFrame, survey_frame
 from pipeline.maps.level import Line
 
 PROCESSED_SUFFIX = ".processed.mcap"
@@ -153,8 +153,7 @@ def check_sortie(path: str | Path) -> SortieInfo:
     half = grid.cell_m / 2
     ce = [east[cols[0]] - half, east[cols[-1]] + half]
     cn = [north[rows[0]] - half, north[rows[-1]] + half]
-    lf = LocalFrame(frame.latitude_deg, frame.longitude_deg, frame.altitude_m)
-    lat, lon, _ = lf.to_geodetic(np.repeat(ce, 2), np.tile(cn, 2))
+    lat, lon, _ = frame.grid_frame().to_geodetic(np.repeat(ce, 2), np.tile(cn, 2))
     return SortieInfo(
         sortie_name(path),
         path,
@@ -164,25 +163,27 @@ def check_sortie(path: str | Path) -> SortieInfo:
     )
 
 
-def campaign_frame(infos: list[SortieInfo]) -> LocalFrame:
-    """The common local frame: azimuthal equidistant about the centre of the sorties' joint
-    bounding box, at the mean of their observation heights (m above the ellipsoid)."""
-    lat = [v for i in infos for v in i.lat_range_deg]
-    lon = [v for i in infos for v in i.lon_range_deg]
-    return LocalFrame(
-        (min(lat) + max(lat)) / 2,
-        (min(lon) + max(lon)) / 2,
-        float(np.mean([i.frame.altitude_m for i in infos])),
+def campaign_frame(infos: list[SortieInfo], epsg: int | None = None) -> GridFrame:
+    """The common frame (:func:`pipeline.geo.projected.survey_frame`): the projected CRS
+    ``epsg`` (``map.crs``) or the UTM zone of the centre of the sorties' joint bounding box,
+    origin near that centre, "up" zero at the mean of their observation heights (m above
+    the ellipsoid)."""
+    lat = np.array([v for i in infos for v in i.lat_range_deg for _ in range(2)])
+    lon = np.array([v for i in infos for _ in range(2) for v in i.lon_range_deg])
+    frame = survey_frame(lat, lon, 0.0, epsg)
+    alt0 = float(np.mean([i.frame.altitude_m for i in infos]))
+    return GridFrame(
+        frame.crs, frame.origin_east_m, frame.origin_north_m, alt0, frame.note, frame.zones
     )
 
 
-def _box_m(info: SortieInfo, frame: LocalFrame) -> tuple[float, float, float, float]:
+def _box_m(info: SortieInfo, frame: GridFrame) -> tuple[float, float, float, float]:
     la, lo = info.lat_range_deg, info.lon_range_deg
     e, n, _ = frame.to_enu(np.repeat(la, 2), np.tile(lo, 2))
     return float(e.min()), float(e.max()), float(n.min()), float(n.max())
 
 
-def overlap_groups(infos: list[SortieInfo], frame: LocalFrame) -> list[list[int]]:
+def overlap_groups(infos: list[SortieInfo], frame: GridFrame) -> list[list[int]]:
     """The sorties grouped by overlap: two are in one group when their bounding boxes
     overlap or touch, directly or through others (connected components)."""
     boxes = [_box_m(i, frame) for i in infos]
@@ -267,7 +268,7 @@ def line_spacing_m(lines: list[Line], kinds: dict[str, str]) -> tuple[float, flo
     return heading, float(np.median(gaps)) if gaps.size else float("nan")
 
 
-def read_sortie(index: int, info: SortieInfo, frame: LocalFrame) -> Sortie:
+def read_sortie(index: int, info: SortieInfo, frame: GridFrame) -> Sortie:
     """Read a sortie's levelled line samples (``/map/lines``) into the campaign frame.
 
     Parameters
@@ -276,7 +277,7 @@ def read_sortie(index: int, info: SortieInfo, frame: LocalFrame) -> Sortie:
         The flight's number in the campaign (line ids become ``"<index>:<line id>"``).
     info : SortieInfo
         From :func:`check_sortie`.
-    frame : LocalFrame
+    frame : GridFrame
         The campaign frame (:func:`campaign_frame`).
 
     Raises

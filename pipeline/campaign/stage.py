@@ -12,7 +12,7 @@ from pipeline.campaign.sorties import Sortie
 from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.geo.igrf import main_field_direction
-from pipeline.geo.local import LocalFrame
+from pipeline.geo.projected import GridFrame
 from pipeline.maps.grid import Grid, minimum_curvature
 from pipeline.maps.level import Crossover
 
@@ -25,13 +25,14 @@ class CampaignSettings:
     level_trend: bool = default_field("map", "level_trend")  # a slope per line besides its DC
     min_crossing_angle_deg: float = default_field("map", "min_crossing_angle_deg")
     mask_spacings: float = 1.0  # mask cells farther than this many line spacings from data
+    crs_epsg: int | None = None  # the projected CRS (map.crs; None: the campaign's UTM zone)
 
 
 @dataclass
 class CampaignRun:
     """The joint levelling, the merged grid and what places it."""
 
-    frame: LocalFrame
+    frame: GridFrame
     sorties: list[Sortie]
     leveling: JointLeveling
     spacing_m: float  # median of the flights' survey-line spacings
@@ -78,7 +79,7 @@ def _grid(points, cell_m: float, spacing_m: float, mask_spacings: float, crs: st
 
 def run_campaign(
     sorties: list[Sortie],
-    frame: LocalFrame,
+    frame: GridFrame,
     xs: list[Crossover],
     between: np.ndarray,
     settings: CampaignSettings | None = None,
@@ -90,8 +91,8 @@ def run_campaign(
     ----------
     sorties : list of Sortie
         In the campaign frame ``frame`` (flight ``k`` is ``sorties[k]``).
-    frame : LocalFrame
-        The campaign frame.
+    frame : GridFrame
+        The campaign frame (:func:`pipeline.campaign.sorties.campaign_frame`).
     xs : list of Crossover
         Within- and between-flight crossovers (:func:`~pipeline.campaign.joint.sortie_crossovers`).
     between : ndarray of bool
@@ -127,11 +128,11 @@ def run_campaign(
         for so in sorties
         for ln in so.lines
     ]
-    grid = _grid(pts, cell, spacing, s.mask_spacings, frame.crs)
+    grid = _grid(pts, cell, spacing, s.mask_spacings, frame.grid_crs)
     before = None
     if per_flight_grid:
         raw = [(ln.east_m, ln.north_m, ln.value_nT) for so in sorties for ln in so.lines]
-        before = _grid(raw, cell, spacing, s.mask_spacings, frame.crs)
+        before = _grid(raw, cell, spacing, s.mask_spacings, frame.grid_crs)
     t0 = min(so.time_range_s[0] for so in sorties)
     t1 = max(so.time_range_s[1] for so in sorties)
     when = datetime.fromtimestamp((t0 + t1) / 2, tz=UTC)

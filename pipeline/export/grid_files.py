@@ -1,10 +1,10 @@
-"""Map grids as GeoTIFF (the survey's UTM zone) and CF-1.8 netCDF (the native grid).
+"""Map grids as GeoTIFF and CF-1.8 netCDF: the computed cells, unchanged.
 
-The grids are made in the ``local_enu`` frame of ``/map/frame``: an azimuthal equidistant
-projection about the survey centre (``Grid.crs``). The netCDF keeps that grid cell for cell,
-with its projection as a CF grid mapping and 2-D latitude/longitude; the GeoTIFF is the grid
-resampled (bilinear, rasterio/GDAL through rioxarray) onto the UTM zone at the same cell size,
-NaN (the nodata value) outside the covered cells.
+The grids are computed in the projected CRS of ``/map/frame`` (the survey's UTM zone, or
+``map.crs``), their poses in metres about the frame's origin: a file's cell centres are the
+origin plus those metres, its values the channel's float32 cells (same count, NaN = no data).
+Nothing is resampled. A recording processed before the grids were computed in a projected CRS
+is written the same way, in the azimuthal equidistant CRS it was computed in.
 """
 
 from __future__ import annotations
@@ -19,77 +19,51 @@ from pipeline.io.writer import atomic_path
 from pipeline.maps.grid import Grid
 
 
-def grid_dataarray(grid: Grid, name: str = "values"):
-    """A grid as an :class:`xarray.DataArray` on cell-centre coordinates ``y`` (north, m,
-    ascending) and ``x`` (east, m) in its local frame, with the CRS attached (rioxarray)."""
-    import rioxarray  # noqa: F401 - registers the .rio accessor
-    import xarray as xr
-
-    east, north = grid.coordinates()
-    da = xr.DataArray(
-        grid.values.astype(np.float32), coords={"y": north, "x": east}, dims=("y", "x"), name=name
+def grid_in_crs(grid: Grid, frame: MapFrame) -> Grid:
+    """The grid with its cell centres as eastings and northings in the frame's CRS (m):
+    the same values, the origin added (``crs`` then names the CRS itself)."""
+    return Grid(
+        grid.values,
+        frame.origin_easting_m + grid.east0_m,
+        frame.origin_northing_m + grid.north0_m,
+        grid.cell_m,
+        frame.crs,
     )
-    return da.rio.write_crs(grid.crs).rio.write_nodata(np.nan, encoded=False)
-
-
-def to_utm(grid: Grid, utm_epsg: int, cell_m: float | None = None):
-    """The grid resampled (bilinear) onto its UTM zone, north-up, NaN outside the data.
-
-    Parameters
-    ----------
-    grid
-        Values on the local azimuthal equidistant frame (``grid.crs``).
-    utm_epsg
-        EPSG code of the UTM zone (326zz / 327zz).
-    cell_m
-        Output cell size, m (default: the grid's).
-
-    Returns
-    -------
-    xarray.DataArray
-        Dims ``y`` (northing, descending), ``x`` (easting), CRS ``EPSG:<utm_epsg>``.
-    """
-    from rasterio.enums import Resampling
-
-    return reproject(grid, f"EPSG:{utm_epsg}", float(cell_m or grid.cell_m), Resampling.bilinear)
-
-
-def reproject(grid: Grid, dst_crs: str, resolution, resampling):
-    """The grid resampled onto ``dst_crs`` (rioxarray/GDAL), north-up, NaN outside the data;
-    ``resolution`` in the target's units (one value or (x, y))."""
-    import warnings
-
-    da = grid_dataarray(grid).isel(y=slice(None, None, -1))  # north-up for GDAL
-    with warnings.catch_warnings():  # affine's `*` deprecation inside rioxarray
-        warnings.simplefilter("ignore", PendingDeprecationWarning)
-        return da.rio.reproject(
-            dst_crs, resolution=resolution, resampling=resampling, nodata=np.nan
-        )
 
 
 def write_geotiff(path: str | Path, mg: MapGrid, frame: MapFrame) -> Path:
-    """One grid channel as a single-band float32 GeoTIFF in the survey's UTM zone (deflate,
-    nodata NaN; band description and ``units`` tag from the channel), written atomically."""
-    utm = to_utm(mg.grid, frame.utm_epsg)
-    utm.attrs.update(
-        {
-            "long_name": mg.field_name,
-            "units": mg.units,
-            "source": f"aeromag {__version__}: {mg.topic}",
-        }
-    )
-    import warnings
-
+    """One grid channel as a single-band float32 GeoTIFF in the frame's CRS, its cells as
+    computed (north-up rows; deflate, nodata NaN; band description and ``units`` tag from
+    the channel), written atomically. The geotransform puts the first cell's centre at the
+    frame's origin plus the channel's first cell centre."""
     import rasterio
+    from affine import Affine
+    from pyproj import CRS
 
-    with atomic_path(path) as tmp:
-        with warnings.catch_warnings():  # affine's `*` deprecation inside rioxarray
-            warnings.simplefilter("ignore", PendingDeprecationWarning)
-            utm.rio.to_raster(tmp, driver="GTiff", compress="DEFLATE", dtype="float32")
-
-        with rasterio.open(tmp, "r+") as ds:
-            ds.set_band_description(1, mg.field_name)
-            ds.update_tags(1, units=mg.units)
+    g = grid_in_crs(mg.grid, frame)
+    ny, nx = g.shape
+    c = g.cell_m
+    # north-up: the top row is the grid's last (northernmost); corners half a cell out
+    transform = Affine(c, 0.0, g.east0_m - c / 2, 0.0, -c, g.north0_m + (ny - 0.5) * c)
+    crs = rasterio.crs.CRS.from_wkt(CRS.from_user_input(g.crs).to_wkt())
+    profile = {
+        "driver": "GTiff",
+        "height": ny,
+        "width": nx,
+        "count": 1,
+        "dtype": "float32",
+        "crs": crs,
+        "transform": transform,
+        "nodata": np.nan,
+        "compress": "DEFLATE",
+    }
+    with atomic_path(path) as tmp, rasterio.open(tmp, "w", **profile) as ds:
+        ds.write(np.ascontiguousarray(g.values[::-1], dtype=np.float32), 1)
+        ds.set_band_description(1, mg.field_name)
+        ds.update_tags(1, units=mg.units)
+        ds.update_tags(
+            long_name=mg.field_name, units=mg.units, source=f"aeromag {__version__}: {mg.topic}"
+        )
     return Path(path)
 
 
@@ -111,9 +85,9 @@ def cf_name(name: str) -> str:
 
 def write_netcdf(path: str | Path, grids: list[MapGrid], frame: MapFrame) -> Path:
     """Every grid channel as a variable (:func:`cf_name` of its name) of one CF-1.8
-    netCDF-4 file, on the native grid.
+    netCDF-4 file, its cells as computed.
 
-    Coordinates ``x``, ``y`` (m, the projection's easting/northing of the cell centres),
+    Coordinates ``x``, ``y`` (m, the cell centres' easting/northing in the frame's CRS),
     auxiliary 2-D ``lat``/``lon`` (degrees), a ``crs`` grid-mapping variable (CF attributes
     from pyproj, with ``crs_wkt`` and GDAL's ``spatial_ref``); each variable has ``units``,
     ``long_name``, ``grid_mapping`` and NaN as ``_FillValue``. Written atomically.
@@ -133,8 +107,8 @@ def write_netcdf(path: str | Path, grids: list[MapGrid], frame: MapFrame) -> Pat
             (g.east0_m, g.north0_m, g.cell_m), (first.east0_m, first.north0_m, first.cell_m)
         ):
             raise ValueError(f"{mg.topic} is not on the grid of {grids[0].topic}")
-    east, north = first.coordinates()
-    crs = CRS.from_user_input(first.crs)
+    east, north = grid_in_crs(first, frame).coordinates()
+    crs = CRS.from_user_input(frame.crs)
     ee, nn = np.meshgrid(east, north)
     lon, lat = Transformer.from_crs(crs, "EPSG:4326", always_xy=True).transform(ee, nn)
     cf = crs.to_cf()
@@ -188,6 +162,8 @@ def write_netcdf(path: str | Path, grids: list[MapGrid], frame: MapFrame) -> Pat
             "observation_height_m": frame.altitude_m,
             "observation_height_reference": "WGS-84 ellipsoid",
             "utm_epsg": frame.utm_epsg,
+            "frame_origin_easting_m": frame.origin_easting_m,
+            "frame_origin_northing_m": frame.origin_northing_m,
             "igrf_inclination_deg": frame.igrf_inclination_deg,
             "igrf_declination_deg": frame.igrf_declination_deg,
         },

@@ -2,9 +2,10 @@
 
 Columns, one row per sample, lines in order and samples by fiducial: ``line``, ``fiducial``
 (epoch index in the recording), ``time`` (s since 1970-01-01 UTC), ``lon``, ``lat`` (WGS-84,
-degrees), ``x``, ``y`` (easting, northing in the survey's UTM zone, m), ``altitude`` (above the
-WGS-84 ellipsoid, m), ``raw``, ``compensated``, ``levelled``, ``anomaly`` (nT; see
-``aeromag.LineSample`` in ``schemas/``). A missing value is empty in the CSV and ``*`` in the XYZ.
+degrees), ``x``, ``y`` (easting, northing in the grids' CRS: ``/map/frame``'s, m),
+``altitude`` (above the WGS-84 ellipsoid, m), ``raw``, ``compensated``, ``levelled``,
+``anomaly`` (nT; see ``aeromag.LineSample`` in ``schemas/``). A missing value is empty in the
+CSV and ``*`` in the XYZ.
 """
 
 from __future__ import annotations
@@ -62,8 +63,8 @@ def line_table(samples: list[tuple[int, dict]], frame: MapFrame) -> dict[str, np
         "time": np.array([t for t, _ in samples], np.int64) / 1e9,
         **{c: col(key) for c, (key, _) in _FIELDS.items()},
     }
-    to_utm = Transformer.from_crs("EPSG:4326", f"EPSG:{frame.utm_epsg}", always_xy=True)
-    out["x"], out["y"] = (np.asarray(a) for a in to_utm.transform(out["lon"], out["lat"]))
+    to_crs = Transformer.from_crs("EPSG:4326", frame.crs, always_xy=True)
+    out["x"], out["y"] = (np.asarray(a) for a in to_crs.transform(out["lon"], out["lat"]))
     order = np.lexsort((fid, line.astype(str), kind != "survey"))
     return {k: v[order] for k, v in out.items()}
 
@@ -104,7 +105,7 @@ def write_xyz(path: str | Path, table: dict[str, np.ndarray], frame: MapFrame, t
     ]
     out = [
         f"/ aeromag levelled line data: {title}",
-        f"/ x, y: UTM EPSG:{frame.utm_epsg} (m); lon, lat: WGS-84 (deg); altitude: above the "
+        f"/ x, y: {frame.crs} (m); lon, lat: WGS-84 (deg); altitude: above the "
         "WGS-84 ellipsoid (m); time: s since 1970-01-01 UTC; raw .. anomaly: nT; dummy *",
         "/ " + " ".join(n.rjust(w) for n, w in zip(names, width, strict=True)),
     ]

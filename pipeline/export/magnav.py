@@ -8,8 +8,9 @@ cells outside the coverage are 0 with mask 0.
 
 Julia stores arrays column-major and HDF5.jl reverses the dimensions of a dataset written in
 row-major order (h5py): the ``ny`` x ``nx`` Julia matrix is written as its (``nx``, ``ny``)
-transpose. The grid is resampled (bilinear) from the local frame onto a regular
-longitude/latitude grid of about the same cell size, ``yy`` ascending.
+transpose. MagNav's maps are on longitude/latitude axes, so this is the one export that
+resamples: the grid goes (bilinear, :func:`to_lonlat`) from the frame's projected CRS onto a
+regular longitude/latitude grid of about the same cell size, ``yy`` ascending.
 """
 
 from __future__ import annotations
@@ -25,7 +26,12 @@ M_PER_DEG_LAT = 111_320.0  # a degree of latitude, m (to choose the cell size in
 
 
 def to_lonlat(mg: MapGrid, frame: MapFrame):
-    """The grid resampled (bilinear) onto a regular WGS-84 longitude/latitude grid.
+    """The grid resampled (bilinear) from the frame's CRS onto a regular WGS-84
+    longitude/latitude grid covering its cell centres, about the same cell size.
+
+    Each longitude/latitude node is taken into the frame (pyproj) and interpolated there
+    (:meth:`pipeline.maps.grid.Grid.interpolate`): NaN outside the cell centres' span or next
+    to a masked cell, never extrapolated.
 
     Returns
     -------
@@ -36,15 +42,24 @@ def to_lonlat(mg: MapGrid, frame: MapFrame):
     values : ndarray
         ``(ny, nx)``; NaN outside the data.
     """
-    from rasterio.enums import Resampling
-
-    from pipeline.export.grid_files import reproject
-
-    dlat = mg.grid.cell_m / M_PER_DEG_LAT
+    g = mg.grid
+    gf = frame.grid_frame()
+    east, north = g.coordinates()
+    # the span of the cell centres, its border sampled (a projected rectangle is curved)
+    edge_e = np.concatenate(
+        [east, east, np.full(north.size, east[0]), np.full(north.size, east[-1])]
+    )
+    edge_n = np.concatenate(
+        [np.full(east.size, north[0]), np.full(east.size, north[-1]), north, north]
+    )
+    lat_b, lon_b, _ = gf.to_geodetic(edge_e, edge_n)
+    dlat = g.cell_m / M_PER_DEG_LAT
     dlon = dlat / max(np.cos(np.radians(frame.latitude_deg)), 1e-6)
-    ll = reproject(mg.grid, "EPSG:4326", (dlon, dlat), Resampling.bilinear)
-    ll = ll.isel(y=slice(None, None, -1))  # latitude ascending
-    return ll["x"].to_numpy(), ll["y"].to_numpy(), ll.to_numpy().astype(np.float64)
+    lon = lon_b.min() + dlon * np.arange(int(np.floor(np.ptp(lon_b) / dlon)) + 1)
+    lat = lat_b.min() + dlat * np.arange(int(np.floor(np.ptp(lat_b) / dlat)) + 1)
+    lo, la = np.meshgrid(lon, lat)
+    e, n, _ = gf.to_enu(la, lo)
+    return lon, lat, g.interpolate(e, n)
 
 
 def write_magnav_h5(path: str | Path, mg: MapGrid, frame: MapFrame, info: str = "") -> Path:

@@ -16,6 +16,7 @@ import numpy as np
 import orjson
 
 from pipeline.errors import AeromagError
+from pipeline.geo.projected import GridFrame, epsg_of
 from pipeline.maps.grid import Grid
 
 GRID_SCHEMA = "foxglove.Grid"
@@ -26,11 +27,15 @@ MAKE_MAPS = "`aeromag process` (or `aeromag map`) makes them"
 
 @dataclass(frozen=True)
 class MapFrame:
-    """Georeference of the ``local_enu`` frame the grids are placed in (``/map/frame``).
+    """Georeference of the grids (``/map/frame``): the projected CRS they were computed in
+    and the origin of the ``local_enu`` frame their poses are in.
 
-    ``altitude_m`` is the origin's height above the WGS-84 ellipsoid (the mean survey
-    altitude); inclination and declination (deg) are the IGRF's at the origin on the survey
-    date.
+    ``crs`` is ``EPSG:<code>`` with the origin's easting and northing in it; a recording
+    processed before the grids were computed in a projected CRS has the PROJ string of an
+    azimuthal equidistant projection about (latitude, longitude) and the origin (0, 0)
+    (``legacy``). ``altitude_m`` is the origin's height above the WGS-84 ellipsoid (the mean
+    survey altitude); inclination and declination (deg) are the IGRF's at the origin on the
+    survey date.
     """
 
     latitude_deg: float
@@ -41,10 +46,12 @@ class MapFrame:
     igrf_inclination_deg: float
     igrf_declination_deg: float
     time_ns: int
+    origin_easting_m: float = 0.0
+    origin_northing_m: float = 0.0
 
     @classmethod
     def from_message(cls, m: dict, time_ns: int) -> MapFrame:
-        """From a decoded ``aeromag.MapFrame`` payload."""
+        """From a decoded ``aeromag.MapFrame`` payload (either kind: see the class)."""
         return cls(
             float(m["latitude"]),
             float(m["longitude"]),
@@ -54,12 +61,35 @@ class MapFrame:
             float(m.get("igrf_inclination_deg", float("nan"))),
             float(m.get("igrf_declination_deg", float("nan"))),
             int(time_ns),
+            float(m.get("origin_easting_m", 0.0)),
+            float(m.get("origin_northing_m", 0.0)),
         )
+
+    @property
+    def legacy(self) -> bool:
+        """An older recording's frame: azimuthal equidistant about the origin, no EPSG."""
+        return epsg_of(self.crs) is None
+
+    @property
+    def epsg(self) -> int | None:
+        """EPSG code of ``crs`` (None in an older recording)."""
+        return epsg_of(self.crs)
+
+    def grid_frame(self) -> GridFrame:
+        """The frame as a :class:`~pipeline.geo.projected.GridFrame` (positions <-> metres)."""
+        return GridFrame(self.crs, self.origin_easting_m, self.origin_northing_m, self.altitude_m)
+
+    @property
+    def grid_declination_deg(self) -> float:
+        """The IGRF declination from grid north (deg): the true one less the meridian
+        convergence at the origin (what a reduction to the pole on the grid's axes takes)."""
+        return self.igrf_declination_deg - self.grid_frame().convergence_deg()
 
 
 @dataclass
 class MapGrid:
-    """One grid channel: its cells (:class:`Grid`, local_enu metres), the name of its value
+    """One grid channel: its cells (:class:`Grid`, local_enu metres: about the frame's
+    origin along its CRS's axes), the name of its value
     field (``anomaly_nT``, ``tilt_deg`` ...) and the message's log time (ns)."""
 
     topic: str
@@ -199,7 +229,11 @@ def read_map_products(path: str | Path, lines: bool = False) -> MapProducts:
     for t in grid_topics:
         raw = rec.topics[t]
         try:
-            grids.append(decode_grid(t, orjson.loads(raw.data[-1]), raw.log_time_ns[-1], frame.crs))
+            grids.append(
+                decode_grid(
+                    t, orjson.loads(raw.data[-1]), raw.log_time_ns[-1], frame.grid_frame().grid_crs
+                )
+            )
         except (orjson.JSONDecodeError, KeyError, TypeError, ValueError) as exc:
             raise AeromagError(
                 f"unreadable map grid ({type(exc).__name__}: {exc})", file=path, channel=t

@@ -2,7 +2,8 @@
 
 East/north metres come from an azimuthal equidistant projection centred on the reference
 (pyproj); "up" is the ellipsoidal height difference. Over survey areas of tens of km this is
-the flat-earth frame geophysicists grid in, with sub-metre distortion.
+a flat-earth frame with sub-metre distortion, for track geometry (segmentation, compensation,
+the audit). The maps are gridded in a projected CRS instead (:mod:`pipeline.geo.projected`).
 """
 
 from __future__ import annotations
@@ -89,10 +90,3 @@ def local_east_north(lat_deg, lon_deg) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError("no valid position")
     e, n, _ = LocalFrame(float(np.median(lat[ok])), float(np.median(lon[ok]))).to_enu(lat, lon)
     return np.asarray(e), np.asarray(n)
-
-
-def utm_epsg(lat_deg: float, lon_deg: float) -> int:
-    """EPSG code of the WGS-84 UTM zone holding a point (326zz north of the equator, 327zz
-    south; the standard 6-degree zones, without the Norway and Svalbard exceptions)."""
-    zone = int(np.floor((float(lon_deg) + 180.0) / 6.0)) % 60 + 1
-    return (32600 if float(lat_deg) >= 0 else 32700) + zone

@@ -193,7 +193,7 @@ OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
         "aeromag.MapFrame",
         "output",
         ("frame_id", "crs", "latitude", "longitude", "altitude_m", "utm_epsg"),
-        description="georeference of the map grids (local_enu origin, CRS, UTM zone)",
+        description="georeference of the map grids (projected CRS, origin, UTM zone)",
     ),
     TopicRule(
         "/map/lines",

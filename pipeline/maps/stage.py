@@ -12,7 +12,7 @@ from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.geo.igrf import main_field_direction
-from pipeline.geo.local import LocalFrame
+from pipeline.geo.projected import GridFrame, survey_frame
 from pipeline.maps.arima import (
     ArimaModel,
     KalmanResult,
@@ -53,6 +53,8 @@ class MapSettings:
 
     # the keys of [map] default to the shipped configuration's values (0 there: None here)
     cell_m: float | None = default_field("map", "cell_m", lambda v: v or None)  # None: spacing/4
+    # EPSG code of the projected CRS to grid in (map.crs; None: the survey's UTM zone)
+    crs_epsg: int | None = None
     arima: str | tuple[int, int, int] = default_field("map", "arima", parse_arima)
     # linear-in-time line corrections besides the DC
     level_trend: bool = default_field("map", "level_trend")
@@ -186,12 +188,12 @@ def filter_grid(
 
 @dataclass
 class MapRun:
-    """One map stage's results: the local frame (east/north/up m about the survey's mean
-    position), the reduction to anomaly, the levelled lines, the line spacing (m), the
-    anomaly grid and its ARIMA-Kalman-filtered version (nT), the filter's model and run, and
-    what the gridder and micro-levelling did."""
+    """One map stage's results: the frame (east/north/up m along the projected CRS's axes
+    about an origin near the survey's centroid), the reduction to anomaly, the levelled
+    lines, the line spacing (m), the anomaly grid and its ARIMA-Kalman-filtered version (nT),
+    the filter's model and run, and what the gridder and micro-levelling did."""
 
-    frame: LocalFrame
+    frame: GridFrame
     reduction: Reduction
     lines: list[Line]
     leveling: Leveling
@@ -210,6 +212,12 @@ class MapRun:
     gridder: dict[str, Any] = field(default_factory=lambda: {"method": "minimum_curvature"})
     microlevel: MicroLevel | None = None
 
+    @property
+    def grid_declination_deg(self) -> float:
+        """The IGRF declination from grid north (deg): the true one less the meridian
+        convergence at the frame's origin (what a reduction to the pole on the grid takes)."""
+        return self.main_field[2] - self.frame.convergence_deg()
+
     def summary(self) -> dict[str, Any]:
         """The ``map`` block of the summary JSON (shapes, origin, crossovers, levelling,
         gridder, ARIMA model, Kalman settings, anomaly range)."""
@@ -224,11 +232,19 @@ class MapRun:
                 "longitude_deg": self.frame.lon0_deg,
                 "altitude_m": self.frame.alt0_m,
                 "crs": self.frame.crs,
+                "epsg": self.frame.epsg,
+                "easting_m": self.frame.origin_east_m,
+                "northing_m": self.frame.origin_north_m,
+                "first_cell_easting_m": self.frame.origin_east_m + self.grid.east0_m,
+                "first_cell_northing_m": self.frame.origin_north_m + self.grid.north0_m,
+                "crs_choice": self.frame.note,
+                "utm_zones_spanned": list(self.frame.zones),
             },
             "main_field": {
                 "total_nT": self.main_field[0],
                 "inclination_deg": self.main_field[1],
                 "declination_deg": self.main_field[2],
+                "grid_declination_deg": self.grid_declination_deg,
             },
             "line_spacing_m": self.spacing_m,
             "lines": {
@@ -298,9 +314,10 @@ def build_map(
     surv = seg.mask("survey") & np.isfinite(lat)
     if surv.sum() < 100:
         raise AeromagError("no survey lines found to map", file=flight.source, channel="/gnss/fix")
-    frame = LocalFrame(
-        float(np.mean(lat[surv])), float(np.mean(lon[surv])), float(np.mean(alt[surv]))
-    )
+    try:
+        frame = survey_frame(lat[surv], lon[surv], alt[surv], s.crs_epsg)
+    except ValueError as exc:
+        raise AeromagError(f"map.crs: {exc}", file=flight.source, channel="/gnss/fix") from None
     e, n, up = frame.to_enu(lat, lon, alt)
     base = d["base_nT"].to_numpy(float) if flight.has("base_nT") else None
     red = reduce_to_anomaly(flight.time_ns, compensated_nT, lat, lon, alt, base, s.lag_s)
@@ -309,8 +326,10 @@ def build_map(
     lev = level_lines(lines, trend=s.level_trend, min_angle_deg=s.min_crossing_angle_deg)
     for ln in lines:
         ln.value_nT = ln.value_nT - lev.correction(ln.line_id, ln.time_s)
-    # line spacing: cross-track offsets of the survey lines
-    heading = float(np.nanmedian(np.mod(seg.heading_deg[seg.mask("survey")], 180.0)))
+    # line spacing: cross-track offsets of the survey lines; the heading from grid north
+    # (true heading less the meridian convergence: degrees at a zone's edge)
+    true_heading = np.nanmedian(np.mod(seg.heading_deg[seg.mask("survey")], 180.0))
+    heading = float(np.mod(true_heading - frame.convergence_deg(), 180.0))
     along = np.array([np.sin(np.radians(heading)), np.cos(np.radians(heading))])
     across = np.array([along[1], -along[0]])
     offs = np.sort(
@@ -325,7 +344,7 @@ def build_map(
     pts = [(ln.east_m, ln.north_m, ln.value_nT) for ln in lines]
     ge, gn, gv = (np.concatenate([p[k] for p in pts]) for k in range(3))
     grid = minimum_curvature(
-        ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing, crs=frame.crs
+        ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing, crs=frame.grid_crs
     )
     micro = None
     if s.microlevel:
@@ -343,7 +362,7 @@ def build_map(
                 ln.value_nT = ln.value_nT - micro.corrections[ln.line_id]
         gv = np.concatenate([ln.value_nT for ln in lines])
         regrid = minimum_curvature(
-            ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing, crs=frame.crs
+            ge, gn, gv, cell, mask_distance_m=s.mask_spacings * spacing, crs=frame.grid_crs
         )
         change = regrid.values - grid.values
         change = change[np.isfinite(change)]
@@ -393,7 +412,7 @@ def _regrid(
     lines: list[Line],
     up_m: np.ndarray,
     grid: Grid,
-    frame: LocalFrame,
+    frame: GridFrame,
     spacing_m: float,
     s: MapSettings,
 ) -> tuple[Grid, dict[str, Any]]:

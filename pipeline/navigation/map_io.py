@@ -3,9 +3,10 @@
 Three sources:
 
 * a processed aeromag recording: the ``foxglove.Grid`` on ``/map/anomaly_filtered`` (or
-  another channel), in the ``local_enu`` frame whose origin the recording's ``/map/frame``
-  channel gives (:func:`pipeline.export.source.read_map_products`, the one reader of the map
-  channels; any other reader can georeference the grid the same way).
+  another channel), in the ``local_enu`` frame whose CRS and origin the recording's
+  ``/map/frame`` channel gives (older recordings: an azimuthal equidistant frame)
+  (:func:`pipeline.export.source.read_map_products`, the one reader of the map channels; any
+  other reader can georeference the grid the same way).
 * a GeoTIFF or netCDF grid (rioxarray / xarray) with a CRS, or longitude/latitude coordinates.
 * a MagNav.jl HDF5 map (``get_map`` fields ``map`` (ny x nx), ``xx`` (longitudes), ``yy``
   (latitudes), ``alt``, optional ``mask``). MagNav writes ``xx``/``yy`` in degrees by default and
@@ -26,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.errors import AeromagError
-from pipeline.geo.local import LocalFrame
+from pipeline.geo.projected import GridFrame
 from pipeline.maps.grid import Grid
 
 DEFAULT_CHANNEL = "/map/anomaly_filtered"
@@ -59,7 +60,7 @@ class GeoMap:
         }
 
 
-def _local(frame: LocalFrame):
+def _local(frame: GridFrame):
     def to_local(lat, lon):
         e, n, _ = frame.to_enu(lat, lon)
         return e, n
@@ -107,9 +108,9 @@ def read_recording_map(path: Path, channel: str = DEFAULT_CHANNEL) -> GeoMap:
             channel=channel,
         )
     fr = products.frame
-    frame = LocalFrame(fr.latitude_deg, fr.longitude_deg, fr.altitude_m)
+    frame = fr.grid_frame()
     grid = found.grid
-    grid.crs = frame.crs
+    grid.crs = frame.grid_crs
     to_local, to_geo = _local(frame)
     return GeoMap(
         grid,
@@ -119,24 +120,24 @@ def read_recording_map(path: Path, channel: str = DEFAULT_CHANNEL) -> GeoMap:
         str(path),
         f"recording {channel}",
         frame.crs,
-        ["origin from the recording's /map/frame"],
+        ["CRS and origin from the recording's /map/frame"],
     )
 
 
-def frame_map(grid: Grid, frame: LocalFrame, source: str, kind: str) -> GeoMap:
-    """A grid in the ``local_enu`` frame ``frame`` (an in-memory map, e.g. a
+def frame_map(grid: Grid, frame: GridFrame, source: str, kind: str) -> GeoMap:
+    """A grid in the frame ``frame`` (an in-memory map, e.g. a
     :class:`pipeline.maps.stage.MapRun`'s), placed as a recording's ``/map/frame`` places it.
 
     Parameters
     ----------
     grid : Grid
         Values on cells in east/north metres of ``frame``, nT (copied; ``crs`` set).
-    frame : LocalFrame
-        Origin latitude, longitude (deg) and altitude (m; the map's altitude).
+    frame : GridFrame
+        CRS, origin and altitude (m; the map's altitude).
     source, kind : str
         What the map is, for the summary (``map.file``, ``map.kind``).
     """
-    g = Grid(grid.values, grid.east0_m, grid.north0_m, grid.cell_m, frame.crs)
+    g = Grid(grid.values, grid.east0_m, grid.north0_m, grid.cell_m, frame.grid_crs)
     to_local, to_geo = _local(frame)
     return GeoMap(g, to_local, to_geo, frame.alt0_m, source, kind, frame.crs, [])
 

@@ -153,7 +153,7 @@ def _sensor_id(flight: Flight) -> str:
 
 # --------------------------------------------------------------------------------------------
 # maps
-MAP_FRAME = "local_enu"  # x east, y north (m) about the map origin in the summary
+MAP_FRAME = "local_enu"  # x east, y north (m) along the map CRS's axes about /map/frame's origin
 
 
 def grid_channel(topic: str, time_ns: int, grid, field_name: str = "anomaly_nT") -> OutputChannel:
@@ -193,12 +193,15 @@ def grid_channel(topic: str, time_ns: int, grid, field_name: str = "anomaly_nT")
 def map_frame_channel(mr, time_ns: int) -> OutputChannel:
     """``/map/frame``: the georeference of every ``/map/*`` grid (one message).
 
-    The ``local_enu`` frame's origin (WGS-84 latitude, longitude, ellipsoidal height = the
-    mean survey altitude), its PROJ string, the survey's UTM zone (EPSG) and the IGRF
-    inclination, declination and intensity at the origin on the survey date: what an
-    independent reader needs to place the grids and to reduce them to the pole.
+    The projected CRS the grids were computed in (``crs`` ``EPSG:<code>`` and ``epsg``), the
+    ``local_enu`` frame's origin in it (``origin_easting_m``, ``origin_northing_m``: a cell
+    centre's easting is the origin's plus the grid pose's x plus (column + 1/2) cells) and in
+    WGS-84 (latitude, longitude, ellipsoidal height = the mean survey altitude), the meridian
+    convergence there, the survey's UTM zone and the IGRF inclination, declination and
+    intensity at the origin on the survey date: what an independent reader needs to place
+    the grids and to reduce them to the pole.
     """
-    from pipeline.geo.local import utm_epsg
+    from pipeline.geo.projected import utm_epsg
 
     f = mr.frame
     total, incl, decl = mr.main_field
@@ -208,10 +211,15 @@ def map_frame_channel(mr, time_ns: int) -> OutputChannel:
         {
             "frame_id": MAP_FRAME,
             "crs": f.crs,
+            "epsg": f.epsg,
+            "origin_easting_m": float(f.origin_east_m),
+            "origin_northing_m": float(f.origin_north_m),
             "latitude": float(f.lat0_deg),
             "longitude": float(f.lon0_deg),
             "altitude_m": float(f.alt0_m),
-            "utm_epsg": utm_epsg(f.lat0_deg, f.lon0_deg),
+            # the zone chosen (the map.crs given may be another grid)
+            "utm_epsg": f.epsg if f.epsg in f.zones else int(utm_epsg(f.lat0_deg, f.lon0_deg)),
+            "grid_convergence_deg": round(f.convergence_deg(), 9),
             "igrf_inclination_deg": round(incl, 6),
             "igrf_declination_deg": round(decl, 6),
             "igrf_total_nT": round(total, 3),

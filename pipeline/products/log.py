@@ -118,7 +118,10 @@ def map_lines(mr) -> list[tuple[int, str]]:
         ``(level, text)`` pairs.
     """
     s = mr.summary()
+    o = s["origin"]  # a survey across UTM zones gridded in one of them: said as a warning
+    spans = len(o["utm_zones_spanned"]) > 1 and not o["crs_choice"].endswith("map.crs")
     return [
+        (LOG_WARNING if spans else LOG_INFO, f"map: gridded in {s['origin']['crs_choice']}"),
         (
             LOG_INFO,
             f"map: grid {s['grid_shape'][0]} x {s['grid_shape'][1]} cells of "

@@ -112,6 +112,9 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             f"{m['cell_m']:.2f} m; ARIMA{tuple(m['arima_order'])} + Kalman",
             "",
         ]
+        crs = (m.get("origin") or {}).get("crs_choice")
+        if crs:
+            out += [f"Gridded in {crs}; the exported GeoTIFF and netCDF hold these cells.", ""]
         ml = m.get("microlevel") or {}
         if ml.get("enabled"):
             out += [

@@ -11,9 +11,9 @@ Two kinds, as in paper 002 §3.2 and survey practice:
 * **pairs**: a validation sample and a map sample closer than a distance threshold
   (0.5 m in the paper), compared as measured.
 
-Positions are local east/north metres (:class:`pipeline.geo.local.LocalFrame`). The geometry
-is found once; :meth:`OverlapSet.differences` then evaluates any field (raw, each compensation
-model) on it, so every processing state is compared at exactly the same points.
+Positions are east/north metres of the map frame (:class:`pipeline.geo.projected.GridFrame`).
+The geometry is found once; :meth:`OverlapSet.differences` then evaluates any field (raw, each
+compensation model) on it, so every processing state is compared at exactly the same points.
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ import numpy as np
 from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
-from pipeline.geo.local import LocalFrame
+from pipeline.geo.projected import GridFrame, survey_frame
 from pipeline.maps.grid import Grid, minimum_curvature_fields
 from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, Leveling, Line, level_lines
 from pipeline.maps.reduce import reduce_to_anomaly
@@ -77,6 +77,9 @@ class QualitySettings:
         Tracks meeting at a shallower angle (deg) form no intersection or crossover.
     min_overlap_pairs : int
         Pairs needed for the headline heading error to use them (else the intersections).
+    crs_epsg : int or None
+        EPSG code of the projected CRS positions are in (None: the survey's UTM zone), as
+        the map stage's (:func:`pipeline.geo.projected.survey_frame`).
     """
 
     # the keys of [quality] default to the shipped configuration's values
@@ -95,6 +98,8 @@ class QualitySettings:
     # the headline heading error is paper 002's pair statistic when at least this many pairs
     # exist, else the track intersections (config: quality.min_overlap_pairs)
     min_overlap_pairs: int = default_field("quality", "min_overlap_pairs")
+    # the map's projected CRS (config: map.crs; None: the survey's UTM zone)
+    crs_epsg: int | None = None
 
 
 @dataclass
@@ -111,7 +116,7 @@ class Profile:
 class QualityRun:
     """What the quality stage computed for one flight.
 
-    The processing states compared (raw first), the local frame (east/north/up m) and tracks,
+    The processing states compared (raw first), the map's frame (east/north/up m) and tracks,
     the validation-vs-map overlap points (intersections and pairs) with each state's
     differences (nT), the interpolated-map statistics, profiles, grids, the final field's
     leveling, the QC checks, the calibration FOM table, the settings and the notes.
@@ -119,7 +124,7 @@ class QualityRun:
 
     states: list[str]  # processing states compared, raw first
     tl_alias: str | None  # the T-L model reported under "tl"
-    frame: LocalFrame
+    frame: GridFrame
     tracks: list[Track]
     intersections: OverlapSet
     pairs: OverlapSet
@@ -332,9 +337,8 @@ def run_quality(
             file=flight.source,
             channel="/gnss/fix",
         )
-    frame = LocalFrame(
-        float(np.mean(lat[surv])), float(np.mean(lon[surv])), float(np.mean(alt[surv]))
-    )
+    # the map stage's frame (same positions, same CRS): crossovers placed as the map's
+    frame = survey_frame(lat[surv], lon[surv], alt[surv], s.crs_epsg)
     east, north, up = frame.to_enu(lat, lon, alt)
     base = d["base_nT"].to_numpy(float) if flight.has("base_nT") else None
     # IGRF and diurnal are the same for every state: reduce a zero field once
@@ -386,7 +390,7 @@ def run_quality(
         {name: v[at] for name, v in reduced.items()},
         cell_m,
         mask_distance_m=spacing_m,
-        crs=frame.crs,
+        crs=frame.grid_crs,
     )
     for name, v in reduced.items():
         grid = grids[name]

@@ -15,12 +15,12 @@ import numpy as np
 from pipeline.config import Config
 
 
-def read(index: int, info, origin: tuple[float, float, float]):
-    """One sortie's line data in the campaign frame centred at ``origin`` (lat, lon, alt)."""
+def read(index: int, info, frame_args: tuple):
+    """One sortie's line data in the campaign's grid frame (``GridFrame(*frame_args)``)."""
     from pipeline.campaign.sorties import read_sortie
-    from pipeline.geo.local import LocalFrame
+    from pipeline.geo.projected import GridFrame
 
-    return read_sortie(index, info, LocalFrame(*origin))
+    return read_sortie(index, info, GridFrame(*frame_args))
 
 
 def crossovers(a, b, min_angle_deg: float):
@@ -48,8 +48,8 @@ def campaign_steps(
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     infos = validate_campaign(folder)
-    frame = campaign_frame(infos)
-    origin = (frame.lat0_deg, frame.lon0_deg, frame.alt0_m)
+    frame = campaign_frame(infos, cfg.campaign_settings().crs_epsg)
+    origin = frame.args()
     timings["check"] = time.perf_counter() - t0
     t0 = time.perf_counter()
     sorties = run_all("read", [(k, info, origin) for k, info in enumerate(infos)])

@@ -185,7 +185,7 @@ def enhance_recording(src: Path, dst: Path, cfg: Config) -> dict[str, Any]:
             source.grid,
             settings.products,
             f.igrf_inclination_deg,
-            f.igrf_declination_deg,
+            f.grid_declination_deg,  # the grid's axes: true declination less convergence
             settings.pad_fraction,
         )
     except ValueError as exc:

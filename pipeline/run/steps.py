@@ -109,9 +109,9 @@ def enhancement_grids(map_run, cfg) -> dict[str, Grid]:
 
     st = cfg.enhance_settings()
     grid = map_run.filtered if st.source == "anomaly_filtered" else map_run.grid
-    _, incl, decl = map_run.main_field
+    incl = map_run.main_field[1]
     try:
-        return enhance(grid, st.products, incl, decl, st.pad_fraction)
+        return enhance(grid, st.products, incl, map_run.grid_declination_deg, st.pad_fraction)
     except ValueError as exc:
         raise AeromagError(f"enhance: {exc}", channel=f"/map/{st.source}") from None
 

@@ -6,11 +6,12 @@ import numpy as np
 from scipy.interpolate import RegularGridInterpolator
 
 from pipeline.geo.local import LocalFrame
+from pipeline.geo.projected import GridFrame
 from pipeline.maps.grid import Grid
 from pipeline.simulate.simulator import SimulatedFlight
 
 
-def truth_on(sim: SimulatedFlight, grid: Grid, frame: LocalFrame) -> np.ndarray:
+def truth_on(sim: SimulatedFlight, grid: Grid, frame: GridFrame) -> np.ndarray:
     """The simulator's true anomaly (nT) at the centres of a map's grid cells.
 
     Parameters
@@ -19,8 +20,8 @@ def truth_on(sim: SimulatedFlight, grid: Grid, frame: LocalFrame) -> np.ndarray:
         The simulation (its ``truth["anomaly"]["grid"]`` on the site's local frame).
     grid : Grid
         The map's grid, on ``frame`` (east/north m).
-    frame : LocalFrame
-        The map's frame.
+    frame : GridFrame
+        The map's frame (its projected CRS).
 
     Returns
     -------
