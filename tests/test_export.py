@@ -13,7 +13,7 @@ from pipeline.errors import AeromagError
 from pipeline.export import export_recording
 from pipeline.geo.local import LocalFrame, utm_epsg
 from tests.mapfile import ALT0, LAT0, LON0, field_nT, write_processed
-from tests.test_schemas import validate_every_message
+from tests.recordings import validate_every_message
 
 EPSG = utm_epsg(LAT0, LON0)
 ALL = ("geotiff", "netcdf", "csv", "xyz", "magnav")
