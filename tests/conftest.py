@@ -42,6 +42,20 @@ QUIET = [
     "sensors.clock_offset_s={scalar=0.0, vector=0.0, attitude=0.0, gnss=0.0, base=0.0, aux=0.0}",
 ]
 
+# two induced sources 300-500 m deep under the uav-small block (a negative margin keeps them
+# inside it): geology the 50 m lines resolve, the largest anomaly an interior peak
+MAPPED_SURVEY = (
+    "uav-small",
+    7,
+    [
+        "anomaly.depth_m=[300.0, 500.0]",
+        "anomaly.dipoles=2",
+        "anomaly.moment_A_m2=[2.0e7, 5.0e7]",
+        "anomaly.margin_m=-100.0",
+        "anomaly.remanent_fraction=0.0",
+    ],
+)
+
 
 def sha256(path: Path) -> str:
     return hashlib.sha256(Path(path).read_bytes()).hexdigest()

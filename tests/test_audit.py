@@ -17,7 +17,7 @@ from pipeline.io.reader import read_flight
 from pipeline.segment import segment_flight
 from pipeline.simulate import write_simulation
 from tests.conftest import QUIET, run_sim, sha256
-from tests.test_schemas import validate_every_message
+from tests.recordings import validate_every_message
 
 # two calibration boxes (one is held out while the other fits) flown over quiet ground
 AUDIT = ["calibration.passes=2", "anomaly.quiet_calibration_m=400.0"]
@@ -260,7 +260,7 @@ def test_audit_command_writes_the_contract(tmp_path):
         )
         > 0
     )
-    from tests.test_writer import records
+    from tests.recordings import records
 
     msgs = [m for m in records(out)[0] if m[0] == "/audit/finding"]
     assert len(msgs) == 1

@@ -16,7 +16,7 @@ import pytest
 from flows.errors import OneLineErrors
 from pipeline.errors import AeromagError
 from tests.conftest import sha256
-from tests.test_hardening import CORPUS, box_messages, run_cli
+from tests.corpus import CORPUS, box_messages, run_cli
 
 # The post-flight flow processes what a recording allows: without a fluxgate it skips
 # compensation and says so, where `aeromag compensate` must stop.

@@ -30,7 +30,7 @@ from pipeline.simulate.campaign import (
     true_levels_nT,
 )
 from tests.conftest import REPO
-from tests.test_schemas import validate_every_message
+from tests.recordings import validate_every_message
 
 
 @pytest.fixture(scope="module")

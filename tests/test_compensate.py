@@ -18,7 +18,7 @@ from pipeline.io.reader import read_flight
 from pipeline.segment import segment_flight
 from pipeline.simulate import write_simulation
 from tests.conftest import FIXTURES, run_sim
-from tests.test_schemas import validate_every_message
+from tests.recordings import validate_every_message
 
 
 def cli(*args: str) -> subprocess.CompletedProcess:

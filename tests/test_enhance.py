@@ -114,7 +114,7 @@ def test_products_parse():
 
 def test_cli_enhance_then_export(tmp_path):
     from tests.mapfile import write_processed
-    from tests.test_schemas import validate_every_message
+    from tests.recordings import validate_every_message
 
     src, _ = write_processed(tmp_path / "f.processed.mcap")
     out = tmp_path / "f.enhanced.mcap"

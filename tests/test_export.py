@@ -15,7 +15,7 @@ from pipeline.export import export_recording
 from pipeline.geo.local import LocalFrame
 from pipeline.geo.projected import utm_epsg
 from tests.mapfile import ALT0, LAT0, LON0, field_nT, map_frame, write_processed
-from tests.test_schemas import validate_every_message
+from tests.recordings import validate_every_message
 
 EPSG = utm_epsg(LAT0, LON0)
 ALL = ("geotiff", "netcdf", "csv", "xyz", "magnav")

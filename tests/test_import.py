@@ -14,7 +14,7 @@ from pipeline.errors import AeromagError
 from pipeline.io.reader import read_flight
 from pipeline.io.sgl import import_sgl
 from tests.conftest import sha256
-from tests.test_schemas import validate_every_message
+from tests.recordings import validate_every_message
 
 XYZ_COLUMNS = (
     "LINE FLT YEAR DOY TIME UTM-X UTM-Y UTM-Z MSL-Z LAT LONG BARO RADAR TOPO DEM "

@@ -24,8 +24,8 @@ from pipeline.maps.stage import build_map, filter_sequence, serialize
 from pipeline.segment import segment_flight
 from pipeline.simulate import write_simulation
 from pipeline.simulate.truth import truth_on
-from tests.conftest import run_sim
-from tests.test_schemas import validate_every_message
+from tests.conftest import MAPPED_SURVEY, run_sim
+from tests.recordings import validate_every_message
 
 PAPER_AR = np.array([-0.4178, -0.3517])
 
@@ -247,21 +247,6 @@ def test_minimum_curvature_reproduces_a_smooth_field():
 
 
 # ------------------------------------------------------------------------------------------
-# two induced sources 300-500 m deep under the uav-small block (a negative margin keeps them
-# inside it): geology the 50 m lines resolve, the largest anomaly an interior peak
-MAPPED_SURVEY = (
-    "uav-small",
-    7,
-    [
-        "anomaly.depth_m=[300.0, 500.0]",
-        "anomaly.dipoles=2",
-        "anomaly.moment_A_m2=[2.0e7, 5.0e7]",
-        "anomaly.margin_m=-100.0",
-        "anomaly.remanent_fraction=0.0",
-    ],
-)
-
-
 @pytest.fixture(scope="module")
 def mapped(tmp_path_factory):
     """A UAV survey over geology the 50 m lines resolve: two induced sources 300-500 m deep

@@ -124,8 +124,7 @@ def test_map_stage_micro_levels_a_simulated_survey_when_asked(tmp_path):
     from pipeline.segment import segment_flight
     from pipeline.simulate import write_simulation
     from pipeline.simulate.truth import truth_on
-    from tests.conftest import run_sim
-    from tests.test_maps import MAPPED_SURVEY
+    from tests.conftest import MAPPED_SURVEY, run_sim
 
     sim = run_sim(*MAPPED_SURVEY)
     flight = read_flight(write_simulation(sim, tmp_path / "m.mcap"))

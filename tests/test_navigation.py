@@ -281,7 +281,7 @@ def _utm_map(box_path, tmp_path, shift_m=0.0, crs=True) -> Path:
 def test_command_runs_on_a_raw_recording_and_writes_valid_channels(
     box_path, tmp_path, filter_, cli
 ):
-    from tests.test_schemas import validate_every_message
+    from tests.recordings import validate_every_message
 
     tif = _utm_map(box_path, tmp_path)
     out, nav = tmp_path / "nav.mcap", tmp_path / "nav.json"

@@ -23,7 +23,7 @@ from pipeline.quality import (
 from pipeline.segment import segment_flight
 from pipeline.simulate import write_simulation
 from tests.conftest import run_sim, sha256
-from tests.test_schemas import validate_every_message
+from tests.recordings import validate_every_message
 
 
 def _track(line_id, kind, e, n, first_epoch):
@@ -392,7 +392,7 @@ def test_quality_command_writes_summary_plots_and_valid_channels(tmp_path):
         )
         > 0
     )
-    from tests.test_writer import records
+    from tests.recordings import records
 
     topics = {m[0] for m in records(out)[0]}
     assert {"/quality/heading_error", "/quality/crossovers", "/aeromag/log"} <= topics

@@ -6,10 +6,10 @@ import json
 
 import jsonschema
 import pytest
-from mcap.reader import make_reader
 
-from pipeline.io.contract import INPUT_CONTRACT, OUTPUT_CONTRACT, rule_for_topic
+from pipeline.io.contract import INPUT_CONTRACT, OUTPUT_CONTRACT
 from pipeline.io.schemas import schema, schema_dir, schema_path
+from tests.recordings import validate_every_message
 
 SCHEMA_FILES = sorted(schema_dir().glob("aeromag.*.json"))
 
@@ -30,29 +30,6 @@ def test_every_contract_rule_has_its_schema_and_a_readme_line():
         assert f"`{rule.topic}" in readme, rule.topic
         props = schema(rule.schema_name)["properties"]
         assert set(rule.fields) <= set(props), rule.topic
-
-
-def validate_every_message(path, topics: set[str] | None = None) -> int:
-    """Validate each message of each contract channel (or of ``topics`` only: what a command
-    added) with the reference validator."""
-    validators = {}
-    n = 0
-    with open(path, "rb") as f:
-        for sch, ch, msg in make_reader(f).iter_messages(
-            topics=sorted(topics) if topics else None, log_time_order=False
-        ):
-            rule = rule_for_topic(ch.topic)
-            assert rule is not None, f"{ch.topic} is not in the contract"
-            assert sch.name == rule.schema_name and sch.encoding == "jsonschema"
-            assert ch.message_encoding == "json"
-            if sch.name not in validators:
-                validators[sch.name] = jsonschema.Draft202012Validator(json.loads(sch.data))
-            payload = json.loads(msg.data)
-            validators[sch.name].validate(payload)
-            stamp = payload["timestamp"]
-            assert stamp["sec"] * 1_000_000_000 + stamp["nsec"] == msg.log_time
-            n += 1
-    return n
 
 
 def test_every_simulated_message_validates(box_path):

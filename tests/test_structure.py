@@ -231,3 +231,14 @@ def test_every_stage_takes_white_noise_from_its_one_home():
         and ("white_noise" in node.name or "4th_difference" in node.name)
     ]
     assert not defined, defined
+
+
+def test_test_modules_share_helpers_not_each_other():
+    """Code several test files use lives in a helper module of tests/ (conftest.py,
+    recordings.py, corpus.py, ...), never in another test file."""
+    wrong = []
+    for p in sorted((REPO / "tests").glob("*.py")):
+        for name, line in _imports(p, f"tests.{p.stem}"):
+            if name.startswith("tests.test_"):
+                wrong.append(f"{p.relative_to(REPO)}:{line} imports {name}")
+    assert not wrong, ", ".join(wrong)

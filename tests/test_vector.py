@@ -28,7 +28,7 @@ from pipeline.vector.ellipsoid import (
 )
 from pipeline.vector.fuzzy import RorFuzzy
 from tests.conftest import run_sim, sha256
-from tests.test_schemas import validate_every_message
+from tests.recordings import validate_every_message
 
 SIGMA = 0.0005
 FIELD = PAPER_003_FIELD_G

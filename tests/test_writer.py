@@ -12,32 +12,7 @@ from pipeline.errors import AeromagError
 from pipeline.io.writer import OutputChannel, write_with_new_channels
 from tests.conftest import sha256
 from tests.mcap_builder import NS, T0, build, scalar, vector
-
-
-def records(path: Path) -> tuple[list, list, list, dict]:
-    """Messages with their channel and schema content, attachments, metadata, channel list."""
-    with path.open("rb") as f:
-        r = make_reader(f)
-        msgs = [
-            (
-                c.topic,
-                c.message_encoding,
-                dict(c.metadata),
-                (s.name, s.encoding, s.data) if s else None,
-                m.log_time,
-                m.publish_time,
-                m.sequence,
-                m.data,
-            )
-            for s, c, m in r.iter_messages(log_time_order=False)
-        ]
-        atts = [
-            (a.name, a.media_type, a.log_time, a.create_time, a.data) for a in r.iter_attachments()
-        ]
-        meta = [(m.name, dict(m.metadata)) for m in r.iter_metadata()]
-        summ = r.get_summary()
-        chans = {c.topic: c.message_encoding for c in summ.channels.values()} if summ else {}
-    return msgs, atts, meta, chans
+from tests.recordings import records
 
 
 def make_rich_input(path: Path) -> Path:
