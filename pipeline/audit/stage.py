@@ -239,9 +239,6 @@ class Evaluation:
     # calibration that band-passes its steps away, or a gradient seen only through the
     # manoeuvres' small moves, leaves the calibration's tests blind to it
     decided_outside: bool = False
-    # another explanation the data cannot tell from this one (neither predicts held-out data
-    # better by min_gain, neither adds beyond the other): {"candidates", "heldout_gain"}
-    ambiguity: dict[str, Any] | None = None
 
     @property
     def heldout_p(self) -> float:
@@ -1000,7 +997,6 @@ class Auditor:
             and not holds_lag
         ):
             ev.held_back = True
-            ev.ambiguity = None  # the timing broke the tie
             ev.reason = (
                 f"eddy currents that decay with a time constant explain the calibration's "
                 f"residual as well as a lag, and the timing along the lines puts the lag at "
@@ -1017,7 +1013,6 @@ class Auditor:
             and not (timing is not None and timing[1] > 0.0)
         ):
             ev.held_back = True
-            ev.ambiguity = None
             ev.reason = (
                 f"eddy currents that decay over {ev.estimate['eddy_decay']['tau_s']:g} s "
                 f"explain the calibration's residual as well as a lag, and beside them the lag "
@@ -1030,8 +1025,6 @@ class Auditor:
                 f"a lag of {1e3 * lag:.1f} ms is under {self.s.min_lag_samples:g} of a sample "
                 f"({1e3 * smallest:.0f} ms): within the resampling's own error, not a lag to model"
             )
-        if not ev.held_back or abs(lag) < smallest:
-            ev.ambiguity = None  # named, or nothing left to be ambiguous about
         return ev
 
     def _eddy_decay_tau(self, current: ModelSpec) -> float:
@@ -1155,37 +1148,17 @@ class Auditor:
             lambda decay, train, k: decay.with_(lag_s=fold_lags[k]),
             "beyond_lag",
         )
-        # the lag wins outright only when it predicts held-out data better than the decay by
-        # min_gain and the decay adds nothing beside it; where neither is better by min_gain,
-        # or the decay has the lag's own time constant (one response,
-        # :meth:`_same_response`), the calibration cannot tell them apart: the tie is
-        # reported, and only the timing along the lines (a late sensor delays the geology,
-        # decaying eddy currents do not) may name the lag
-        tau = ev.estimate["eddy_decay"]["tau_s"]
-        decay_better = alone.rms_after_nT < (1 - self.s.min_gain) * held.rms_after_nT
-        lag_better = held.rms_after_nT < (1 - self.s.min_gain) * alone.rms_after_nT
-        if adds:
-            return False
-        if lag_better and not self._same_response(tau, lag):
+        # the decay not better than the lag by min_gain, or with the lag's own time constant
+        # (one response, :meth:`_same_response`): the lag wins, a tie if not outright
+        better = alone.rms_after_nT < (1 - self.s.min_gain) * held.rms_after_nT
+        same = self._same_response(ev.estimate["eddy_decay"]["tau_s"], lag)
+        if (not better or same) and not adds:
             ev.held_back = False
             ev.reason = ""
             ev.estimate["preferred_over"] = "eddy currents that decay with a time constant"
             ev.ci95["preferred_over"] = None
-            return False
-        if decay_better and not self._same_response(tau, lag):
-            return False
-        ev.ambiguity = {
-            "candidates": ["sensor_lag", "eddy_decay"],
-            "heldout_gain": {"sensor_lag": held.reduction, "eddy_decay": alone.reduction},
-            "eddy_decay_tau_s": tau,
-        }
-        ev.reason = (
-            f"a lag of {lag:.3f} s and eddy currents decaying over {tau:g} s predict held-out "
-            f"calibration data alike ({100 * held.reduction:.1f} % and "
-            f"{100 * alone.reduction:.1f} %) and neither adds beside the other: the "
-            "calibration cannot tell them apart"
-        )
-        return True
+            return alone.rms_after_nT <= held.rms_after_nT
+        return False
 
     def _eval_electrical_current(self, current: ModelSpec, key: str) -> Evaluation:
         name = key.split(":", 1)[1]
@@ -2131,17 +2104,6 @@ def _quality_figures(
     }
 
 
-def ambiguities(rounds: list[list[Evaluation]]) -> list[dict[str, Any]]:
-    """The ties the data could not break: each candidate's last evaluation that was held back
-    for an explanation it cannot be told from, as ``{"candidates": [names], "heldout_gain":
-    {name: fraction}}`` (plus the rival's parameters)."""
-    last: dict[str, Evaluation] = {}
-    for r in rounds:
-        for e in r:
-            last[e.key] = e
-    return [dict(e.ambiguity) for e in last.values() if e.ambiguity and not e.accepted]
-
-
 def alternatives(finding: Evaluation, rounds: list[list[Evaluation]]) -> list[dict[str, Any]]:
     """What came second to ``finding``: the rival explanation it was weighed against (its
     held-out gain alone), then the other candidates of the round it was accepted in, by
@@ -2216,7 +2178,6 @@ def run_audit(
         "events": events,
         "note": None,
         "spectrum": residual_spectrum(r_e, data.rate_hz, s.band),
-        "ambiguities": ambiguities(rounds),
     }
     spec_ = unexplained["spectrum"]
     white_excess = cv_e > s.unexplained_factor * floor and spec_["kind"] == "white"
