@@ -626,7 +626,7 @@ def navigate(
 ) -> None:
     """Magnetic anomaly navigation on a map: simulate an INS along the recorded track, aid it
     with the map (EKF or particle filter), and score both against /gnss/fix and the CRLB."""
-    from pipeline.run.commands import navigate_recording
+    from pipeline.run.navigate import navigate_recording
     from pipeline.run.outputs import require_readable
 
     require_readable(recording)

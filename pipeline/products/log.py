@@ -240,14 +240,15 @@ def quality_lines(q: QualityRun) -> list[tuple[int, str]]:
 
 
 def navigation_lines(nav) -> list[tuple[int, str]]:
-    """Log lines of :func:`navigate_stage`'s result."""
+    """Log lines of a navigation run (the flow's :func:`navigate_stage` and ``aeromag
+    navigate``), or of why it was skipped."""
     if isinstance(nav, str):
         return [(LOG_INFO, f"navigate: skipped: {nav}")]
     d, st = nav.summary()["drms_m"], nav.settings
     return [
         (
             LOG_INFO,
-            f"navigate: {st.filter} on validation with a {st.ins}-grade INS (seed {st.seed}): "
+            f"navigate: {st.filter} on {st.segments} with a {st.ins}-grade INS (seed {st.seed}): "
             f"DRMS INS-only {d['ins_only']:.1f} m, map-aided {d['map_aided']:.2f} m, "
             f"CRLB {d['crlb']:.2f} m",
         )

@@ -10,7 +10,7 @@ share, so that ``flows/`` only wires (parse, one call here, print).
   ``call`` hook for Prefect tasks) and :func:`run_plain`;
 - :mod:`pipeline.run.outputs`: the post-flight write step and the figures and channels the
   commands share;
-- :mod:`pipeline.run.commands`: the single-stage commands;
+- :mod:`pipeline.run.commands`, :mod:`pipeline.run.navigate`: the single-stage commands;
 - :mod:`pipeline.run.archive`: an archive's job folders, plan and index.
 
 Nothing here imports Prefect.

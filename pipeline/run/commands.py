@@ -1,8 +1,9 @@
 """The single-stage commands (``aeromag compensate``, ``map``, ``quality``, ``audit``,
-``vector``, ``navigate``, ``enhance``): each reads a recording, runs its stage with the
-configuration's section (``--config``; a command's options override its keys before it gets
-here) through the same functions as the post-flight flow (:mod:`pipeline.run.fields`,
-:mod:`pipeline.run.steps`), and writes its output recording and summary atomically.
+``vector``, ``enhance``; ``navigate`` in :mod:`pipeline.run.navigate`): each reads a
+recording, runs its stage with the configuration's section (``--config``; a command's
+options override its keys, :func:`command_config`) through the same functions as the
+post-flight flow (:mod:`pipeline.run.fields`, :mod:`pipeline.run.steps`), and writes its
+output recording and summary atomically.
 """
 
 from __future__ import annotations
@@ -33,7 +34,6 @@ from pipeline.products.channels import (
     field_channel,
     map_channels,
     model_message,
-    navigation_channels,
     quality_channels,
     segment_channel,
     vector_channel,
@@ -381,89 +381,4 @@ def vector_recording(src: Path, dst: Path, summary_path: Path, cfg: Config) -> d
     write_with_new_channels(src, dst, channels, metadata={"aeromag.run": run_metadata()})
     summary = build_summary(flight, vector=run, outputs={"mcap": dst, "summary": summary_path})
     write_json_atomic(summary_path, summary)
-    return summary
-
-
-def navigate_recording(
-    src: Path,
-    map_path: Path,
-    json_out: Path,
-    cfg: Config,
-    out_path: Path | None = None,
-    map_channel: str | None = None,
-    **options: Any,
-) -> dict[str, Any]:
-    """``aeromag navigate``: re-fly the recording with a simulated INS aided by the map.
-
-    The settings are ``[navigate]``'s (filter, INS grade, seed) with each of ``options``
-    given (not None: ``filter``, ``ins``, ``seed``, ``segments``, ...) in its place;
-    ``map_channel`` None: ``/map/<navigate.map>`` of a recording map. A raw recording is
-    despiked (``despike.enabled``) and compensated first (:func:`final_compensation`, as
-    ``aeromag map``); a processed one uses its ``/mag/compensated``.
-    """
-    from pipeline.navigation.map_io import read_map
-    from pipeline.navigation.stage import run_navigation, track_coverage
-
-    given = {k: v for k, v in options.items() if v is not None}
-    settings = replace(cfg.navigation_settings(), **given)
-    settings.check()
-    map_channel = map_channel or f"/map/{cfg['navigate']['map']}"
-    geomap = read_map(map_path, map_channel)
-    flight, despiked, dlines = read_despiked(src, cfg)
-    flight.require("lat_deg", "lon_deg", "alt_m", purpose="navigation (the reference track)")
-    seg, why = try_segment(flight)
-    present = set(flight.all_topics)
-    nav_topics = ("/nav/ins", "/nav/map_aided", "/nav/error", "/nav/innovation")
-    if out_path is not None:
-        refuse_existing(
-            src,
-            [OutputChannel(t, "") for t in nav_topics],
-            present,
-            "navigate the original recording",
-        )
-    if seg is None and settings.segments != "all":
-        raise AeromagError(
-            f"--segments {settings.segments} needs the flight lines: {why}; use --segments all",
-            file=src,
-            channel="/gnss/fix",
-        )
-    track_coverage(flight, seg, geomap, settings)  # fail before compensating
-    lines = ingest_lines(flight) + ([(LOG_INFO, why)] if why else [])
-    comp, more, channels, comp_summary = final_compensation(flight, seg, cfg, "navigate")
-    if comp_summary is not None:  # compensated here, from the despiked record (as `map`)
-        lines += dlines
-    else:
-        despiked = None  # the recording's own /mag/compensated was used
-    lines += more
-    run = run_navigation(flight, seg, comp, geomap, settings)
-    nav = run.summary()
-    d = nav["drms_m"]
-    lines.append(
-        (
-            LOG_INFO,
-            f"navigate: {settings.filter} on {settings.segments} with a {settings.ins}-grade INS: "
-            f"DRMS INS-only {d['ins_only']:.1f} m, map-aided {d['map_aided']:.2f} m, "
-            f"CRLB {d['crlb']:.2f} m",
-        )
-    )
-    lines += [(LOG_INFO, f"navigate: {n}") for n in run.notes]
-    if out_path is not None:
-        out_channels = navigation_channels(run)
-        if "/aeromag/log" not in present:  # a processed input keeps its own log (one channel)
-            out_channels.insert(0, log_channel(flight, lines, "navigate"))
-        if seg is not None and "/flight/segment" not in present:
-            out_channels.append(segment_channel(flight, seg))
-        out_channels += [c for c in channels if c.topic not in present]
-        write_with_new_channels(
-            src, out_path, out_channels, metadata={"aeromag.run": run_metadata()}
-        )
-    summary = build_summary(
-        flight,
-        despiked=despiked,
-        compensation=comp_summary,
-        navigation=run,
-        log=[text for _, text in lines],
-        outputs={"summary": json_out, **({"mcap": out_path} if out_path else {})},
-    )
-    write_json_atomic(json_out, summary)
     return summary
