@@ -25,11 +25,14 @@ from pipeline.navigation.crlb import crlb
 from pipeline.navigation.ekf import FilterResult, MeasurementModel, ekf
 from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory, simulate_ins_errors
 from pipeline.navigation.map_io import GeoMap
-from pipeline.navigation.map_model import MapModel, vertical_derivative
+from pipeline.navigation.map_model import MapModel, upward_continue, vertical_derivative
 from pipeline.navigation.pf import particle_filter
 from pipeline.noise import white_noise_nT
 from pipeline.segment import Segmentation
 
+# the map's vertical derivative is smoothed by continuing the map up this many cells first
+# (unsmoothed, its gridding noise made the filter overconfident: docs/navigation.md)
+VERTICAL_SMOOTHING_CELLS = 4.0
 SEGMENT_LABELS = {"validation": ("validation",), "survey": ("survey", "tie"), "all": ()}
 
 
@@ -333,7 +336,11 @@ def _measurement_model(
     position (the measurement is the total field reduced with the IGRF there)."""
     vertical, above = None, None
     if mm.altitude_m is not None:
-        vertical = MapModel(vertical_derivative(mm.grid), method=mm.method)
+        # the derivative's |k| amplifies the gridding noise of the shortest wavelengths, which
+        # no map resolves: it is taken on the map continued up by four cells (a line spacing
+        # for aeromag's maps, whose cells are a quarter of it)
+        smooth = upward_continue(mm.grid, VERTICAL_SMOOTHING_CELLS * mm.grid.cell_m)
+        vertical = MapModel(vertical_derivative(smooth), method=mm.method)
         above = np.asarray(ins_alt_m, float) - mm.altitude_m
     else:
         notes.append("map altitude unknown: no altitude term in the measurement")
