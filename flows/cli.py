@@ -255,8 +255,8 @@ def compensate(
     model: Annotated[
         str | None,
         typer.Option(
-            help="tl16 | tl18 | agg-tl (default: the configuration's final model the recording "
-            "can fit, as `aeromag process`)"
+            help="tl16 | tl18 | agg-tl | tl-plus | tl-nn (default: the configuration's final "
+            "model the recording can fit, as `aeromag process`)"
         ),
     ] = None,
     agg_base: Annotated[
@@ -316,6 +316,9 @@ def compensate(
         )
     for w in (summary.get("calibration_guards") or {}).get("warnings", []):
         console.print(f"warning: {w}", markup=False, highlight=False, soft_wrap=True)
+    ext = summary.get("extension")
+    if ext:
+        say(f"{summary['model']}: {'used' if ext['used'] else 'not used'}: {ext['reason']}")
     fom = summary["fom_nT"]
     say(
         f"{summary['model']}: lambda {summary['lambda']:.3g}, {summary['samples']} samples, "

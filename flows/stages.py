@@ -14,7 +14,7 @@ from typing import Any
 import matplotlib.pyplot as plt
 import numpy as np
 
-from pipeline.compensate import FitSettings
+from pipeline.compensate import EXTENSIONS, FitSettings
 from pipeline.compensate.stage import CompensationRun, run_compensation
 from pipeline.config import Config
 from pipeline.despike import DespikeResult, despike_flight
@@ -133,6 +133,8 @@ def compensate_recording(
     if seg is not None:
         channels.append(segment_channel(flight, seg))
     channels += [compensated_channel(flight, run), model_message(flight, run)]
+    if run.model.model in EXTENSIONS:  # also under its own name, as in the post-flight flow
+        channels.append(compensated_channel(flight, run, f"/mag/compensated/{run.model.model}"))
     channels += despike_channels(flight, despiked)
     extra: dict[str, Any] = {}
     if run.model.lcurve is not None:
@@ -144,6 +146,7 @@ def compensate_recording(
         flight,
         despiked=despiked,
         **run.summary(),
+        compensation={"final": run.model.model, run.model.model: run.summary()},
         calibration=calibration,
         scalar_topic=flight.topic_of["scalar"],
         vector_topic=flight.topic_of.get("vector"),

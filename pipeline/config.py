@@ -125,6 +125,9 @@ class Config:
             trim=c["trim"],
             ridge=c["ridge"],
             base=c["agg_base"],
+            extension_alpha=c["extension_alpha"],
+            extension_min_gain=c["extension_min_gain"],
+            learner=c["learner"],
         )
 
     def map_settings(self):
