@@ -59,6 +59,8 @@ def _no_worse(seed: int, models: tuple[str, ...]) -> None:
         rms, m = _second_box_rms(meas, fit, test, model)
         ext = m.extension
         assert rms <= MAX_WORSE * base, (seed, model, rms, base, ext["reason"])
+        if not m.used:  # tl18's own field, not the tl18 part of the extension's fit
+            assert abs(rms - base) <= 1e-9 * base, (seed, model, rms, base)
         # what the product applies is never worse than tl18 on its own held-out blocks
         applied = (
             ext["candidate_heldout_residual_nT"] if m.used else ext["tl18_heldout_residual_nT"]

@@ -40,6 +40,9 @@ class ExtendedModel(CompensationModel):
     tau_s: float | None = None
     learner: Any = None
     extension: dict[str, Any] = field(default_factory=dict)
+    # tl18 fitted alone (coefficients, their standard deviations, lambda): what a reverted
+    # extension applies (the extension's own tl18 part is fitted beside its other terms)
+    tl18: tuple[np.ndarray, np.ndarray | None, float] | None = None
 
     @property
     def used(self) -> bool:
@@ -64,12 +67,13 @@ class ExtendedModel(CompensationModel):
         """This model with tl18's coefficients only, saying why (``guard``: which test)."""
         n18 = 18
         ext = {**self.extension, "used": False, "reason": reason, "guard": guard}
-        std = None if self.coefficient_std is None else self.coefficient_std[:n18]
+        theta, std, lam = self.tl18
         return replace(
             self,
             terms=self.terms[:n18],
-            coefficients=self.coefficients[:n18],
+            coefficients=theta,
             coefficient_std=std,
+            lambda_=lam,
             n_tl=n18,
             groups=[],
             tau_s=None,
@@ -94,6 +98,10 @@ def _base_fit(meas: Measurements, mask: np.ndarray, s: FitSettings, groups, tau)
         all_names += n
     kk = np.column_stack(cols)
     return fit_columns(meas, mask, s, kk, all_names, kk.shape[1])
+
+
+def _own(m: CompensationModel) -> tuple[np.ndarray, np.ndarray | None, float]:
+    return m.coefficients.copy(), m.coefficient_std, m.lambda_
 
 
 def _decision(s: FitSettings, before, after, where_t) -> tuple[bool, str, dict]:
@@ -127,6 +135,7 @@ def fit_extension(meas: Measurements, mask: np.ndarray, s: FitSettings) -> Exten
     if s.model == "tl-plus":
         sel = select_groups(setup, s.extension_alpha, s.extension_min_gain)
         base = _base_fit(meas, mask, s, sel.groups, sel.tau_s)
+        alone = _base_fit(meas, mask, s, [], None) if sel.groups else base
         a, b, w = aligned(sel.base, sel.final)
         ok, why, test = _decision(s, a, b, meas.time_s[w])
         if not sel.groups:
@@ -141,7 +150,9 @@ def fit_extension(meas: Measurements, mask: np.ndarray, s: FitSettings) -> Exten
             "term_groups": {g: t.to_dict() for g, t in sel.trials.items()},
             "eddy_tau_s": sel.tau_s,
         }
-        model = ExtendedModel(**vars(base), groups=sel.groups, tau_s=sel.tau_s, extension=ext)
+        model = ExtendedModel(
+            **vars(base), groups=sel.groups, tau_s=sel.tau_s, extension=ext, tl18=_own(alone)
+        )
         return model if ext["used"] else model.revert(why, "heldout")
     from pipeline.compensate.learned import LearnedFolds, evaluate, fit_final
 
@@ -151,6 +162,7 @@ def fit_extension(meas: Measurements, mask: np.ndarray, s: FitSettings) -> Exten
     a, b, w = aligned(tl18, ev.heldout)
     ok, why, test = _decision(s, a, b, meas.time_s[w])
     base = _base_fit(meas, mask, s, [], None)
+    alone = _own(base)
     ext = {
         "used": bool(ok),
         "reason": why,
@@ -167,5 +179,5 @@ def fit_extension(meas: Measurements, mask: np.ndarray, s: FitSettings) -> Exten
         base = replace(base, coefficients=theta, coefficient_std=None)
     else:
         learner = None
-    model = ExtendedModel(**vars(base), learner=learner, extension=ext)
+    model = ExtendedModel(**vars(base), learner=learner, extension=ext, tl18=alone)
     return model if ok else model.revert(why, "heldout")

@@ -21,6 +21,11 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from sklearn.ensemble import HistGradientBoostingRegressor
+from sklearn.neural_network import MLPRegressor
+from sklearn.pipeline import make_pipeline
+from sklearn.preprocessing import StandardScaler
+from threadpoolctl import threadpool_limits
 
 from pipeline.compensate.estimator import bandpassed_design
 from pipeline.compensate.heldout import HeldOutResiduals, fold_masks, within
@@ -29,9 +34,10 @@ from pipeline.compensate.plus import ridge_theta
 from pipeline.compensate.terms import tl18_terms
 
 # one thread: scikit-learn's OpenMP threads fight the other processes on a shared machine
-# (a tl-nn fit measured 20x slower with the default threads on 2 busy cores)
+# (a tl-nn fit measured 20x slower with the default threads on 2 busy cores); threadpoolctl
+# limits only libraries already loaded, hence scikit-learn's imports at the top
 THREADS = 1
-MAX_ITER = 300  # boosting iterations / training epochs searched by early stopping
+MAX_ITER = 150  # boosting iterations / training epochs searched by early stopping
 ROUNDS = 2  # tl18, learner, tl18 refitted beside it, learner again
 PATIENCE = 30
 
@@ -72,10 +78,8 @@ def features(meas) -> tuple[np.ndarray, list[str], dict[str, list[int]]]:
 def make_learner(kind: str, seed: int, n_iter: int = MAX_ITER):
     """A seeded scikit-learn regressor (features standardised for the MLP)."""
     if kind == "hgb":
-        from sklearn.ensemble import HistGradientBoostingRegressor
-
         return HistGradientBoostingRegressor(
-            learning_rate=0.05,
+            learning_rate=0.1,
             max_iter=n_iter,
             max_leaf_nodes=15,
             min_samples_leaf=40,
@@ -83,10 +87,6 @@ def make_learner(kind: str, seed: int, n_iter: int = MAX_ITER):
             early_stopping=False,
             random_state=seed,
         )
-    from sklearn.neural_network import MLPRegressor
-    from sklearn.pipeline import make_pipeline
-    from sklearn.preprocessing import StandardScaler
-
     return make_pipeline(
         StandardScaler(),
         MLPRegressor(
@@ -267,8 +267,6 @@ class LearnedEvaluation:
 
 def evaluate(folds: LearnedFolds) -> LearnedEvaluation:
     """Every fold of ``folds``; importances averaged over the folds."""
-    from threadpoolctl import threadpool_limits
-
     with threadpool_limits(THREADS):
         out = [f for k in range(int(folds.setup.fold.max()) + 1) if (f := folds.fold(k))]
     if not out:
@@ -283,8 +281,6 @@ def evaluate(folds: LearnedFolds) -> LearnedEvaluation:
 def fit_final(folds: LearnedFolds, mask: np.ndarray, n_iter: int) -> tuple[Any, np.ndarray]:
     """tl18 and the learner (``n_iter`` iterations) on the whole calibration ``mask``:
     (learner, tl18 coefficients)."""
-    from threadpoolctl import threadpool_limits
-
     with threadpool_limits(THREADS):
         model, theta, _ = folds.fit_joint(mask, None, max(n_iter, 1))
     return model, theta
@@ -292,8 +288,6 @@ def fit_final(folds: LearnedFolds, mask: np.ndarray, n_iter: int) -> tuple[Any, 
 
 def predict(model, x: np.ndarray) -> np.ndarray:
     """The learner's output (nT) at the rows of ``x`` (NaN where a feature is not finite)."""
-    from threadpoolctl import threadpool_limits
-
     g = np.full(x.shape[0], np.nan)
     ok = np.all(np.isfinite(x), axis=1)
     with threadpool_limits(THREADS):
