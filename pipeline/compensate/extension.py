@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.compensate.heldout import heldout_gain
+from pipeline.compensate.heldout import folds_improved, heldout_gain
 from pipeline.compensate.model import (
     CompensationModel,
     FitSettings,
@@ -104,9 +104,14 @@ def _own(m: CompensationModel) -> tuple[np.ndarray, np.ndarray | None, float]:
     return m.coefficients.copy(), m.coefficient_std, m.lambda_
 
 
-def _decision(s: FitSettings, before, after, where_t) -> tuple[bool, str, dict]:
+def _decision(s: FitSettings, before, after, where_t, fold) -> tuple[bool, str, dict]:
     test = heldout_gain(before, after, where_t)
-    ok = test.p_value < s.extension_alpha and test.reduction >= s.extension_min_gain
+    better, n = folds_improved(before, after, fold)
+    ok = (
+        test.p_value < s.extension_alpha
+        and test.reduction >= s.extension_min_gain
+        and better >= n - 1
+    )
     if ok:
         why = (
             f"held-out residual {test.rms_after_nT:.4f} nT against tl18's "
@@ -116,10 +121,11 @@ def _decision(s: FitSettings, before, after, where_t) -> tuple[bool, str, dict]:
         why = (
             f"does not beat tl18 on held-out calibration blocks: {test.rms_after_nT:.4f} nT "
             f"against {test.rms_before_nT:.4f} nT ({100 * test.reduction:.1f} % lower, "
-            f"p {test.p_value:.2g}; needs >= {100 * s.extension_min_gain:g} % at "
-            f"p < {s.extension_alpha:g})"
+            f"p {test.p_value:.2g}, lower in {better} of {n} blocks; needs >= "
+            f"{100 * s.extension_min_gain:g} % at p < {s.extension_alpha:g}, lower in all "
+            "blocks but one)"
         )
-    return ok, why, test.to_dict()
+    return ok, why, {**test.to_dict(), "blocks_improved": better, "held_out_blocks": n}
 
 
 def fit_extension(meas: Measurements, mask: np.ndarray, s: FitSettings) -> ExtendedModel:
@@ -137,7 +143,7 @@ def fit_extension(meas: Measurements, mask: np.ndarray, s: FitSettings) -> Exten
         base = _base_fit(meas, mask, s, sel.groups, sel.tau_s)
         alone = _base_fit(meas, mask, s, [], None) if sel.groups else base
         a, b, w = aligned(sel.base, sel.final)
-        ok, why, test = _decision(s, a, b, meas.time_s[w])
+        ok, why, test = _decision(s, a, b, meas.time_s[w], setup.fold[w])
         if not sel.groups:
             why = "no term group lowers the held-out residual; tl18 kept"
         ext = {
@@ -160,7 +166,7 @@ def fit_extension(meas: Measurements, mask: np.ndarray, s: FitSettings) -> Exten
     ev = evaluate(folds)
     tl18 = setup.linear(folds.k18)
     a, b, w = aligned(tl18, ev.heldout)
-    ok, why, test = _decision(s, a, b, meas.time_s[w])
+    ok, why, test = _decision(s, a, b, meas.time_s[w], setup.fold[w])
     base = _base_fit(meas, mask, s, [], None)
     alone = _own(base)
     ext = {

@@ -35,8 +35,8 @@ class Measurements:
 
     ``vector_nT`` is body-frame (x forward, y right, z down); positions are optional (AGG-TL):
     latitude/longitude in degrees, altitude above the ellipsoid in metres. ``attitude_deg``
-    (roll, pitch, yaw; NED, yaw from true north) and ``aux`` (recorded currents and voltages
-    by channel name, their own units) feed the extensions (tl-plus, tl-nn).
+    (roll, pitch, yaw; NED, yaw from true north) and ``aux`` (recorded auxiliary channels by
+    name, in their own units, given by ``aux_units``) feed the extensions (tl-plus, tl-nn).
     """
 
     time_s: np.ndarray
@@ -47,6 +47,7 @@ class Measurements:
     alt_m: np.ndarray | None = None
     attitude_deg: np.ndarray | None = None
     aux: dict[str, np.ndarray] = field(default_factory=dict)
+    aux_units: dict[str, str] = field(default_factory=dict)
 
     @classmethod
     def from_flight(cls, flight: Flight) -> Measurements:
@@ -73,6 +74,7 @@ class Measurements:
             d["alt_m"].to_numpy(float) if pos else None,
             d[att].to_numpy(float) if flight.has(*att) else None,
             {c[4:]: d[c].to_numpy(float) for c in d.columns if c.startswith("aux_")},
+            {c[4:]: flight.units.get(c, "") for c in d.columns if c.startswith("aux_")},
         )
 
     @property

@@ -29,6 +29,7 @@ from pipeline.compensate.heldout import (
     Band,
     HeldOutResiduals,
     block_folds,
+    consistent,
     filter_support_s,
     heldout_gain,
     heldout_residuals,
@@ -43,6 +44,9 @@ from pipeline.compensate.nuisance import (
 from pipeline.compensate.ridge import RidgeSVD
 from pipeline.compensate.terms import tl18_terms
 
+# the units of a current or voltage channel: only those are offered as coupling groups (a
+# temperature or a pressure is not a current, and its slow drift fits calibration noise)
+ELECTRICAL_UNITS = frozenset({"A", "mA", "uA", "V", "mV", "kV"})
 TAU_GRID_S = tuple(float(t) for t in np.geomspace(0.02, 1.0, 7))
 MIN_HELDOUT_S = 120.0  # least calibration time that gives folds worth testing on
 
@@ -79,12 +83,13 @@ def ridge_theta(k: np.ndarray, y: np.ndarray, ridge: float | str) -> np.ndarray:
 
 def candidate_groups(meas) -> list[str]:
     """The groups this recording can offer: eddy decay and second order always, attitude
-    rates with an attitude, one current group per recorded auxiliary channel that varies."""
+    rates with an attitude, one current group per recorded auxiliary current or voltage
+    channel (unit in :data:`ELECTRICAL_UNITS`) that varies."""
     out = ["eddy_decay", "second_order"]
     if meas.attitude_deg is not None:
         out.append("attitude_rates")
     for name, x in sorted(meas.aux.items()):
-        if np.nanstd(x) > 0:
+        if meas.aux_units.get(name, "") in ELECTRICAL_UNITS and np.nanstd(x) > 0:
             out.append(f"current:{name}")
     return out
 
@@ -190,6 +195,18 @@ def _try(setup: HeldOutSetup, current: np.ndarray, group: str):
     return best
 
 
+def _why(reduction: float, p: float, steady: bool, alpha: float, min_gain: float) -> str:
+    """Why a group is (not) taken, in words."""
+    problems = []
+    if reduction < min_gain:
+        problems.append(f"held-out reduction {100 * reduction:.1f} % below {100 * min_gain:g} %")
+    if p >= alpha:
+        problems.append(f"not significant (p {p:.2g} >= {alpha:g})")
+    if not steady:
+        problems.append("not lower in all held-out blocks but one")
+    return "; ".join(problems) if problems else "lowers the held-out residual"
+
+
 def select_groups(setup: HeldOutSetup, alpha: float, min_gain: float) -> Selection:
     """Forward selection of term groups on the held-out folds (see the module docstring)."""
     from pipeline.audit.evidence import holm
@@ -203,21 +220,14 @@ def select_groups(setup: HeldOutSetup, alpha: float, min_gain: float) -> Selecti
     t = setup.meas.time_s
     while left:
         tries = {g: _try(setup, current, g) for g in left}
-        tests = {}
+        tests, steady = {}, {}
         for g, (_, h, _) in tries.items():
             a, b, w = aligned(held, h)
             tests[g] = heldout_gain(a, b, t[w])
+            steady[g] = consistent(a, b, setup.fold[w])
         p_adj = dict(zip(tests, holm([v.p_value for v in tests.values()]), strict=True))
         for g, v in tests.items():
-            ok_p, ok_gain = p_adj[g] < alpha, v.reduction >= min_gain
-            why = (
-                "lowers the held-out residual"
-                if ok_p and ok_gain
-                else f"held-out reduction {100 * v.reduction:.1f} % "
-                + (f"below {100 * min_gain:g} %" if not ok_gain else "")
-                + (" and " if not ok_gain and not ok_p else "")
-                + (f"not significant (p {p_adj[g]:.2g} >= {alpha:g})" if not ok_p else "")
-            )
+            why = _why(v.reduction, p_adj[g], steady[g], alpha, min_gain)
             trials[g] = GroupTrial(
                 g,
                 False,
@@ -228,7 +238,11 @@ def select_groups(setup: HeldOutSetup, alpha: float, min_gain: float) -> Selecti
                 tries[g][2],
                 why,
             )
-        passing = [g for g, v in tests.items() if p_adj[g] < alpha and v.reduction >= min_gain]
+        passing = [
+            g
+            for g, v in tests.items()
+            if p_adj[g] < alpha and v.reduction >= min_gain and steady[g]
+        ]
         if not passing:
             break
         g = min(passing, key=lambda x: tries[x][1].rms_nT)
