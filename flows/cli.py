@@ -247,8 +247,8 @@ def compensate(
     model: Annotated[
         str | None,
         typer.Option(
-            help="tl16 | tl18 | agg-tl (default: the configuration's final model the recording "
-            "can fit, as `aeromag process`)"
+            help="tl16 | tl18 | agg-tl | tl-plus | tl-nn (default: the configuration's final "
+            "model the recording can fit, as `aeromag process`)"
         ),
     ] = None,
     agg_base: Annotated[

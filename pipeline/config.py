@@ -126,6 +126,9 @@ class Config:
             ridge=c["ridge"],
             base=c["agg_base"],
             bt_scale_nT=c["bt_scale_nT"],
+            extension_alpha=c["extension_alpha"],
+            extension_min_gain=c["extension_min_gain"],
+            learner=c["learner"],
         )
 
     def map_settings(self):

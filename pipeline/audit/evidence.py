@@ -18,6 +18,7 @@ from scipy import stats
 from scipy.signal import sosfiltfilt
 
 from pipeline.compensate.filters import bandpass_sos
+from pipeline.compensate.heldout import HeldOut, heldout_gain  # noqa: F401 (re-exported)
 
 
 def thinning_step(rate_hz: float, band_hz: tuple[float, float]) -> int:
@@ -108,64 +109,6 @@ def nested_test(y: np.ndarray, x_base: np.ndarray, x_ext: np.ndarray, step: int)
     r1 = sm.OLS(yb, xe / se).fit()
     f, p, df = r1.compare_f_test(r0)
     return NestedTest(float(f), float(p), int(round(df)), float(r1.bic - r0.bic), int(yb.size))
-
-
-@dataclass
-class HeldOut:
-    """Held-out comparison of two models' residuals on the same samples.
-
-    Attributes
-    ----------
-    rms_before_nT, rms_after_nT : float
-        Held-out residual RMS of the base and the extended model, nT.
-    p_value : float
-        One-sided p that the extended model's residual is smaller (Wilcoxon signed-rank over
-        the paired blocks or points); 1 when too few.
-    blocks : int
-        Blocks (or points) in the paired test.
-    """
-
-    rms_before_nT: float
-    rms_after_nT: float
-    p_value: float
-    blocks: int
-
-    @property
-    def reduction(self) -> float:
-        """Fractional held-out RMS reduction, 1 - after / before (0 when before is 0)."""
-        return 1.0 - self.rms_after_nT / self.rms_before_nT if self.rms_before_nT > 0 else 0.0
-
-    def to_dict(self) -> dict:
-        """JSON-ready fields, with the reduction in percent (``reduction_pct``)."""
-        return {
-            "rms_before_nT": self.rms_before_nT,
-            "rms_after_nT": self.rms_after_nT,
-            "p_value": self.p_value,
-            "blocks": self.blocks,
-            "reduction_pct": 100.0 * self.reduction,
-        }
-
-
-def heldout_gain(
-    r_before: np.ndarray, r_after: np.ndarray, time_s: np.ndarray, block_s: float = 10.0
-) -> HeldOut:
-    """Is ``r_after`` smaller than ``r_before`` (same samples) beyond what noise explains?"""
-    a, b, t = (np.asarray(v, float) for v in (r_before, r_after, time_s))
-    ok = np.isfinite(a) & np.isfinite(b)
-    a, b, t = a[ok], b[ok], t[ok]
-    if a.size < 10:
-        return HeldOut(float("nan"), float("nan"), 1.0, 0)
-    key = np.floor((t - t.min()) / block_s).astype(int)
-    _, inv = np.unique(key, return_inverse=True)
-    n = np.bincount(inv)
-    d = (np.bincount(inv, a**2) - np.bincount(inv, b**2)) / n
-    d = d[n >= 5]
-    p = (
-        float(stats.wilcoxon(d, alternative="greater").pvalue)
-        if d.size > 5 and np.any(d != 0)
-        else 1.0
-    )
-    return HeldOut(float(np.sqrt(np.mean(a**2))), float(np.sqrt(np.mean(b**2))), p, int(d.size))
 
 
 def paired_point_gain(d_before: np.ndarray, d_after: np.ndarray, rank: bool = False) -> HeldOut:

@@ -27,6 +27,13 @@ import numpy as np
 from pipeline.audit.vector_cal import VectorCalibration
 from pipeline.compensate.estimator import bandpassed_design, fit_ridge
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
+from pipeline.compensate.nuisance import (
+    SECOND_ORDER_RATE_PER_S,  # noqa: F401 (re-exported: the audit's name for it)
+    current_columns,
+    eddy_decay,  # noqa: F401 (re-exported: the audit's name for it)
+    eddy_decay_columns,
+    second_order_columns,
+)
 from pipeline.compensate.ridge import RidgeSVD
 from pipeline.compensate.terms import (
     BT_SCALE_NT,
@@ -40,7 +47,6 @@ from pipeline.defaults import default_field
 from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
 from pipeline.physics.interference import CarrierInterference, scalar_reading_nT
-from pipeline.physics.outside_basis import first_order_lowpass
 
 
 @dataclass
@@ -198,9 +204,6 @@ class Design:
 
 
 LAG_RESPONSES = ("delay", "first_order")
-# a manoeuvre's typical rate of turn (rad/s: 10 deg at a 5 s period): the squared-rate columns
-# of the second-order terms in units of it, of the order of one like the others
-SECOND_ORDER_RATE_PER_S = 0.2
 
 
 def scalar_series(data: AuditData, lag_s: float, response: str = "delay") -> np.ndarray:
@@ -226,19 +229,6 @@ def scalar_series(data: AuditData, lag_s: float, response: str = "delay") -> np.
     return np.interp(
         data.time_s + lag_s, data.time_s[ok], data.scalar_nT[ok], left=np.nan, right=np.nan
     )
-
-
-def eddy_decay(columns: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndarray:
-    """Eddy columns passed through a first-order response of time constant ``tau_s`` (s),
-    per contiguous block of finite samples: eddy currents in a conductor whose circuit's
-    L/R is not short against the manoeuvres lag dB/dt instead of following it at once.
-    """
-    out = np.full(columns.shape, np.nan)
-    ok = np.all(np.isfinite(columns), axis=1)
-    dt = float(np.median(np.diff(time_s)))
-    for b in contiguous_blocks(ok, time_s):
-        out[b] = first_order_lowpass(columns[b], dt, tau_s)
-    return out
 
 
 def design(data: AuditData, spec: ModelSpec) -> Design:
@@ -269,16 +259,15 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
     sub = [True] * k.shape[1]
     cols = [k]
     if spec.eddy_tau_s > 0:
-        eddy = [i for i, n in enumerate(names) if n.startswith("eddy_")]
-        cols.append(eddy_decay(k[:, eddy], data.time_s, spec.eddy_tau_s))
-        names = names + [f"{names[i]}_decay" for i in eddy]
-        sub += [True] * len(eddy)
-    if spec.aux:
-        u = direction_cosines(v)
-        for name in spec.aux:
-            cols.append(data.aux[name][:, None] * u)
-            names = names + [f"aux_{name}_u{a}" for a in "xyz"]
-            sub += [True] * 3
+        kd, dn = eddy_decay_columns(k, names, data.time_s, spec.eddy_tau_s)
+        cols.append(kd)
+        names = names + dn
+        sub += [True] * len(dn)
+    for name in spec.aux:
+        ka, an = current_columns(v, data.aux[name], name)
+        cols.append(ka)
+        names = names + an
+        sub += [True] * 3
     if spec.eddy_rate:
         u = direction_cosines(v)
         d2b = np.gradient(np.gradient(v, data.time_s, axis=0), data.time_s, axis=0)
@@ -288,24 +277,10 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
         names = names + [f"eddy_rate_u{a}d2B{b}" for a in "xyz" for b in "xyz"]
         sub += [True] * 9
     if spec.second_order:
-        u = direction_cosines(v)
-        quad = [(j, k) for j in range(3) for k in range(j, 3)]
-        cols.append(
-            np.column_stack(
-                [u[:, i] * v[:, j] * v[:, k] / BT_SCALE_NT**2 for i in range(3) for j, k in quad]
-            )
-        )
-        names = names + [
-            f"second_u{'xyz'[i]}B{'xyz'[j]}B{'xyz'[k]}" for i in range(3) for j, k in quad
-        ]
-        sub += [True] * 18
-        # an eddy field of E dB/dt ~ 0.02 s x 10^4 nT/s = 200 nT (a fixed-wing's) puts
-        # 0.4 nT of |E dB|^2 / 2|B| into the magnitude, following the squared rates: a
-        # motor current, whose size follows the manoeuvres', would take it up
-        rate = np.gradient(v, data.time_s, axis=0) / (BT_SCALE_NT * SECOND_ORDER_RATE_PER_S)
-        cols.append(np.column_stack([rate[:, j] * rate[:, k] for j, k in quad]))
-        names = names + [f"second_dB{'xyz'[j]}dB{'xyz'[k]}" for j, k in quad]
-        sub += [True] * 6
+        ks, sn = second_order_columns(v, data.time_s)
+        cols.append(ks)
+        names = names + sn
+        sub += [True] * len(sn)
     if spec.permanent_step_s is not None:
         u = direction_cosines(v)
         after = (data.time_s > spec.permanent_step_s).astype(float)[:, None]

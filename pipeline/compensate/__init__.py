@@ -1,6 +1,8 @@
-"""Tolles-Lawson (tl16, tl18) and anti-geomagnetic-gradient (AGG-TL) compensation."""
+"""Tolles-Lawson (tl16, tl18), anti-geomagnetic-gradient (AGG-TL) compensation and the
+extensions of tl18 chosen on held-out calibration (tl-plus, tl-nn)."""
 
 from pipeline.compensate.model import (
+    EXTENSIONS,
     MODELS,
     CompensationModel,
     FigureOfMerit,
@@ -20,6 +22,7 @@ from pipeline.compensate.terms import (
 )
 
 __all__ = [
+    "EXTENSIONS",
     "MAGNAV_TERMS",
     "MODELS",
     "CompensationModel",

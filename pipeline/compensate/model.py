@@ -24,7 +24,9 @@ from pipeline.defaults import default_field, default_value, ridge_problem
 from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
 
-MODELS = ("tl16", "tl18", "agg-tl")
+MODELS = ("tl16", "tl18", "agg-tl", "tl-plus", "tl-nn")
+# models that extend tl18 (pipeline.compensate.plus, pipeline.compensate.learned)
+EXTENSIONS = ("tl-plus", "tl-nn")
 
 
 @dataclass
@@ -32,7 +34,9 @@ class Measurements:
     """What compensation needs, on one time base.
 
     ``vector_nT`` is body-frame (x forward, y right, z down); positions are optional (AGG-TL):
-    latitude/longitude in degrees, altitude above the ellipsoid in metres.
+    latitude/longitude in degrees, altitude above the ellipsoid in metres. ``attitude_deg``
+    (roll, pitch, yaw; NED, yaw from true north) and ``aux`` (recorded auxiliary channels by
+    name, in their own units, given by ``aux_units``) feed the extensions (tl-plus, tl-nn).
     """
 
     time_s: np.ndarray
@@ -41,6 +45,9 @@ class Measurements:
     lat_deg: np.ndarray | None = None
     lon_deg: np.ndarray | None = None
     alt_m: np.ndarray | None = None
+    attitude_deg: np.ndarray | None = None
+    aux: dict[str, np.ndarray] = field(default_factory=dict)
+    aux_units: dict[str, str] = field(default_factory=dict)
 
     @classmethod
     def from_flight(cls, flight: Flight) -> Measurements:
@@ -57,6 +64,7 @@ class Measurements:
         flight.require("vector_x_nT", "vector_y_nT", "vector_z_nT", purpose="compensation")
         d = flight.data
         pos = flight.has("lat_deg", "lon_deg", "alt_m")
+        att = ["roll_deg", "pitch_deg", "yaw_deg"]
         return cls(
             d["time_s"].to_numpy(float),
             d["scalar_nT"].to_numpy(float),
@@ -64,6 +72,9 @@ class Measurements:
             d["lat_deg"].to_numpy(float) if pos else None,
             d["lon_deg"].to_numpy(float) if pos else None,
             d["alt_m"].to_numpy(float) if pos else None,
+            d[att].to_numpy(float) if flight.has(*att) else None,
+            {c[4:]: d[c].to_numpy(float) for c in d.columns if c.startswith("aux_")},
+            {c[4:]: flight.units.get(c, "") for c in d.columns if c.startswith("aux_")},
         )
 
     @property
@@ -97,11 +108,23 @@ class FitSettings:
     # lambda it sets how hard those coefficients are shrunk
     bt_scale_nT: float = default_field("compensation", "bt_scale_nT")
 
+    # tl-plus / tl-nn: the held-out test an extension must pass against tl18 (one-sided p
+    # below extension_alpha, held-out RMS reduction at least extension_min_gain)
+    extension_alpha: float = default_field("compensation", "extension_alpha")
+    extension_min_gain: float = default_field("compensation", "extension_min_gain")
+    # tl-nn's regressor: "hgb" (histogram gradient boosting) or "mlp"
+    learner: str = default_field("compensation", "learner")
+    seed: int = 0
+
     def __post_init__(self) -> None:
         if self.model not in MODELS:
             raise ValueError(f"unknown model {self.model!r} (use {', '.join(MODELS)})")
         if self.base not in ("tl16", "tl18"):
             raise ValueError(f"unknown AGG-TL base {self.base!r} (use tl16 or tl18)")
+        if self.learner not in ("hgb", "mlp"):
+            raise ValueError(f"unknown learner {self.learner!r} (use hgb or mlp)")
+        if not 0.0 < self.extension_alpha < 1.0:
+            raise ValueError("extension_alpha: use a p-value between 0 and 1")
         problem = ridge_problem(self.ridge)  # the rule Config loading applies
         if problem:
             raise ValueError(problem)
@@ -113,7 +136,7 @@ def tl_terms(
     model: str, meas: Measurements, base: str = "tl18", bt_scale_nT: float = BT_SCALE_NT
 ) -> tuple[np.ndarray, list[str]]:
     """The T-L columns a model compensates with (AGG-TL: those of its ``base`` term set)."""
-    if model == "tl18" or (model == "agg-tl" and base == "tl18"):
+    if model in ("tl18", *EXTENSIONS) or (model == "agg-tl" and base == "tl18"):
         return tl18_terms(meas.vector_nT, meas.time_s, bt_scale_nT)
     return tl16_terms(meas.vector_nT, meas.time_s)
 
@@ -138,7 +161,7 @@ class CompensationModel:
 
     @property
     def model(self) -> str:
-        """The model name (``tl16``, ``tl18`` or ``agg-tl``), from the settings."""
+        """The model name (one of :data:`MODELS`), from the settings."""
         return self.settings.model
 
     def interference_nT(self, meas: Measurements) -> np.ndarray:
@@ -183,9 +206,11 @@ class CompensationModel:
         }
 
 
-def _design(
+def design_of(
     settings: FitSettings, meas: Measurements, fit_mask: np.ndarray
 ) -> tuple[np.ndarray, list[str], int, dict[str, float]]:
+    """A linear model's design on every epoch: (columns, names, compensating count, AGG-TL's
+    position reference)."""
     k, names = tl_terms(settings.model, meas, settings.base, settings.bt_scale_nT)
     n_tl = k.shape[1]
     reference: dict[str, float] = {}
@@ -217,7 +242,25 @@ def fit_compensation(
     """
     s = settings or FitSettings()
     mask = np.asarray(calibration_mask, bool)
-    k_full, names, n_tl, reference = _design(s, meas, mask)
+    if s.model in EXTENSIONS:
+        from pipeline.compensate.extension import fit_extension
+
+        return fit_extension(meas, mask, s)
+    k_full, names, n_tl, reference = design_of(s, meas, mask)
+    return fit_columns(meas, mask, s, k_full, names, n_tl, reference)
+
+
+def fit_columns(
+    meas: Measurements,
+    mask: np.ndarray,
+    s: FitSettings,
+    k_full: np.ndarray,
+    names: list[str],
+    n_tl: int,
+    reference: dict[str, float] | None = None,
+) -> CompensationModel:
+    """The band-passed ridge fit of the design ``k_full`` (columns ``names``, the first
+    ``n_tl`` compensating) on the calibration epochs ``mask``."""
     kf, yf, where = bandpassed_design(
         k_full, meas.scalar_nT, meas.time_s, meas.rate_hz, mask, s.band_hz, s.poles, s.trim
     )
@@ -240,7 +283,7 @@ def fit_compensation(
         fit.residual_rms,
         spans,
         fit.lcurve,
-        reference,
+        reference or {},
         fit.coefficient_std,
         cond,
         weakest,

@@ -36,6 +36,25 @@ class RidgeSVD:
         self.beta = self.u.T @ y
         self.outside2 = max(float(y @ y - self.beta @ self.beta), 0.0)  # part K cannot reach
 
+    @classmethod
+    def from_gram(cls, k: np.ndarray, y: np.ndarray) -> RidgeSVD:
+        """The same solutions from the normal equations' eigendecomposition (p x p) instead
+        of an SVD of the rows: many times faster for tall designs (held-out folds fit
+        hundreds), at the cost of squaring the condition number (fine below ~1e7).
+        :meth:`solve_for` is not available (no left singular vectors)."""
+        k, y = np.asarray(k, float), np.asarray(y, float)
+        w, v = np.linalg.eigh(k.T @ k)
+        order = np.argsort(w)[::-1]
+        w, v = w[order], v[:, order]
+        keep = w > max(w[0], 0.0) * 1e-15  # rounding noise of a singular K'K is not signal
+        self = cls.__new__(cls)
+        self.u = None
+        self.s = np.sqrt(w[keep])
+        self.vt = v[:, keep].T
+        self.beta = (self.vt @ (k.T @ y)) / self.s
+        self.outside2 = max(float(y @ y - self.beta @ self.beta), 0.0)
+        return self
+
     def solve(self, lam: float) -> np.ndarray:
         """The ridge solution theta = (K'K + lam I)^-1 K'y for ``lam``."""
         return self.vt.T @ (self.s / (self.s**2 + lam) * self.beta)

@@ -7,6 +7,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.compensate.extension import ExtendedModel
 from pipeline.compensate.guards import CalibrationCheck, check_calibration
 from pipeline.compensate.model import (
     CompensationModel,
@@ -14,10 +15,12 @@ from pipeline.compensate.model import (
     FitSettings,
     Measurements,
     bandpassed,
+    design_of,
     figure_of_merit,
     fit_compensation,
     fom_band,
 )
+from pipeline.compensate.plus import HeldOutSetup
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.segment import Segmentation
@@ -79,20 +82,33 @@ class CompensationRun:
     residual_std_nT: dict[str, float | None]
     check: CalibrationCheck | None = None
 
+    heldout_residual_nT: float | None = None
+
     def summary(self) -> dict[str, Any]:
-        """The keys of the compensate summary JSON (issue 3 contract) plus details."""
+        """The keys of the compensate summary JSON (issue 3 contract) plus details: the
+        held-out calibration residual (nT, :mod:`pipeline.compensate.heldout`; None when the
+        calibration is too short for held-out blocks) and, for tl-plus / tl-nn, the
+        extension's record with its ``term_groups`` / ``feature_importance`` lifted to the
+        top (issue 36 contract)."""
         m = self.model.to_dict()
         fom = self.fom.to_dict() if self.fom else {"uncompensated": None, "compensated": None}
-        return {
+        out = {
             "model": m["model"],
             "lambda": m["lambda"],
             "terms": m["terms"],
             "coefficients": m["coefficients"],
             "fom_nT": fom,
             "residual_std_nT": self.residual_std_nT,
+            "heldout_residual_nT": self.heldout_residual_nT,
             "calibration_guards": self.check.to_dict() if self.check else None,
             **{k: v for k, v in m.items() if k not in ("model", "lambda", "terms", "coefficients")},
         }
+        ext = m.get("extension")
+        if ext:
+            for key in ("term_groups", "feature_importance"):
+                if key in ext:
+                    out[key] = ext[key]
+        return out
 
 
 def run_compensation(
@@ -111,10 +127,14 @@ def run_compensation(
     try:
         model = fit_compensation(meas, mask, settings)
     except ValueError as exc:
-        raise AeromagError(
-            str(exc), file=flight.source, channel=flight.topic_of.get("vector", "/mag/vector")
-        ) from None
+        channel = flight.topic_of.get("vector", "/mag/vector")
+        if "/ins/attitude" in str(exc):
+            channel = "/ins/attitude"
+        raise AeromagError(str(exc), file=flight.source, channel=channel) from None
+    if isinstance(model, ExtendedModel) and model.used:
+        model = crossover_guard(flight, segmentation, meas, mask, model)
     comp, interference = model.compensate(meas)
+    heldout = heldout_residual(meas, mask, model)
     band, _ = fom_band(settings.band_hz)  # unfiltered fit: the FOM in the shipped band
     fom = None
     resid: dict[str, float | None] = {"calibration": None, "survey": None}
@@ -137,4 +157,90 @@ def run_compensation(
         mask,
         segmentation.boxes() if segmentation is not None else None,
     )
-    return CompensationRun(model, comp, interference, fom, resid, check)
+    return CompensationRun(model, comp, interference, fom, resid, check, heldout)
+
+
+def heldout_residual(meas: Measurements, mask: np.ndarray, model) -> float | None:
+    """The held-out calibration residual (nT) of the applied model: the extension's own
+    when it is used, else that of its linear design refitted per fold; None when the
+    calibration is too short for held-out blocks or the fit is unfiltered."""
+    if isinstance(model, ExtendedModel):
+        ext = model.extension
+        return ext["candidate_heldout_residual_nT" if model.used else "tl18_heldout_residual_nT"]
+    try:
+        setup = HeldOutSetup.of(meas, mask, model.settings)
+    except ValueError:
+        return None
+    k, _, _, _ = design_of(model.settings, meas, mask)
+    held = setup.linear(k)
+    return held.rms_nT if held.residual_nT.size else None
+
+
+def crossover_rms_nT(flight: Flight, seg: Segmentation, field_nT: np.ndarray) -> tuple[float, int]:
+    """RMS of the survey-tie crossover differences of ``field_nT`` (nT) and their count
+    (NaN, 0 without positions or crossings)."""
+    from pipeline.geo.local import LocalFrame
+    from pipeline.maps.level import Line, crossovers
+    from pipeline.quality.stage import flight_tracks
+
+    if not flight.has("lat_deg", "lon_deg"):
+        return float("nan"), 0
+    d = flight.data
+    lat, lon = d["lat_deg"].to_numpy(float), d["lon_deg"].to_numpy(float)
+    sel = seg.mask("survey") & np.isfinite(lat)
+    if not sel.any():
+        return float("nan"), 0
+    e, n, _ = LocalFrame(float(np.mean(lat[sel])), float(np.mean(lon[sel]))).to_enu(lat, lon)
+    t = d["time_s"].to_numpy(float)
+    lines = {"survey": [], "tie": []}
+    for tr in flight_tracks(seg, e, n, kinds=("survey", "tie")):
+        lines[tr.kind].append(
+            Line(
+                tr.line_id,
+                tr.kind,
+                tr.east_m,
+                tr.north_m,
+                t[tr.index],
+                field_nT[tr.index],
+                tr.index,
+            )
+        )
+    xs = crossovers(lines["survey"], lines["tie"])
+    if not xs:
+        return float("nan"), 0
+    dx = np.array([c.difference_nT for c in xs])
+    return float(np.sqrt(np.mean(dx**2))), int(dx.size)
+
+
+def crossover_guard(
+    flight: Flight,
+    seg: Segmentation | None,
+    meas: Measurements,
+    mask: np.ndarray,
+    model: ExtendedModel,
+) -> ExtendedModel:
+    """Keep an extension only if the survey's crossover RMS with it is not above tl18's by
+    more than ``extension_min_gain`` (the fraction an extension must gain on held-out
+    calibration): otherwise revert to tl18, saying so. Without crossovers the guard is
+    recorded as not applied."""
+    if seg is None:
+        model.extension["crossover_guard"] = "not applied: no segmentation"
+        return model
+    tl18 = model.revert("", "crossover")
+    rms18, n = crossover_rms_nT(flight, seg, tl18.compensate(meas)[0])
+    rms, _ = crossover_rms_nT(flight, seg, model.compensate(meas)[0])
+    if n == 0 or not np.isfinite(rms18):
+        model.extension["crossover_guard"] = "not applied: no survey-tie crossovers"
+        return model
+    model.extension["crossover_rms_nT"] = rms
+    model.extension["tl18_crossover_rms_nT"] = rms18
+    model.extension["crossovers"] = n
+    limit = rms18 * (1.0 + model.settings.extension_min_gain)
+    if rms > limit:
+        why = (
+            f"raises the survey's crossover RMS from {rms18:.3f} nT (tl18) to {rms:.3f} nT "
+            f"over {n} crossovers; tl18 kept"
+        )
+        return model.revert(why, "crossover")
+    model.extension["crossover_guard"] = "passed"
+    return model

@@ -141,6 +141,7 @@ def model_message(
             )
         },
     }
+    payload["extension"] = m.get("extension")
     # one ns apart so several models on the topic keep their order
     ch.add(int(flight.time_ns[0]) + len(ch.messages), payload)
     return ch

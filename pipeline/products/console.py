@@ -195,12 +195,17 @@ def outputs_text(result: dict) -> list[Block]:
 
 
 def compensate_text(summary: dict) -> list[Block]:
-    """``aeromag compensate``: the model, its ridge and fit residual, the FOM."""
+    """``aeromag compensate``: an extension's verdict, the model, its ridge and fit residual,
+    the FOM."""
     fom = summary["fom_nT"]
-    out: list[Block] = [
+    out: list[Block] = []
+    ext = summary.get("extension")
+    if ext:  # tl-plus / tl-nn: used or not, and why
+        out.append(f"{summary['model']}: {'used' if ext['used'] else 'not used'}: {ext['reason']}")
+    out.append(
         f"{summary['model']}: lambda {summary['lambda']:.3g}, {summary['samples']} samples, "
         f"fit residual {summary['fit_residual_nT']:.4f} nT"
-    ]
+    )
     if fom["uncompensated"] is not None:
         out.append(
             f"FOM: {fom['uncompensated']:.2f} nT uncompensated -> {fom['compensated']:.2f} nT"

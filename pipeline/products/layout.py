@@ -36,6 +36,8 @@ MODEL_LABELS = {
     "tl16": "T-L (16 terms)",
     "tl18": "T-L (18 terms)",
     "agg-tl": "AGG-TL",
+    "tl-plus": "T-L plus term groups",
+    "tl-nn": "T-L plus learned residual",
     "extended": "extended model",
 }
 # the Map panel's tracks: the reference, the simulated INS and the map-aided navigation

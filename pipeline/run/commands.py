@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.compensate import EXTENSIONS
 from pipeline.compensate.stage import run_compensation
 from pipeline.config import Config
 from pipeline.despike import DespikeResult
@@ -136,6 +137,8 @@ def compensate_recording(
     if seg is not None:
         channels.append(segment_channel(flight, seg))
     channels += [compensated_channel(flight, run), model_message(flight, run)]
+    if run.model.model in EXTENSIONS:  # also under its own name, as in the post-flight flow
+        channels.append(compensated_channel(flight, run, f"/mag/compensated/{run.model.model}"))
     channels += despike_channels(flight, despiked)
     extra: dict[str, Any] = {}
     if run.model.lcurve is not None:
@@ -147,6 +150,7 @@ def compensate_recording(
         flight,
         despiked=despiked,
         **run.summary(),
+        compensation={"final": run.model.model, run.model.model: run.summary()},
         calibration=calibration,
         scalar_topic=flight.topic_of["scalar"],
         vector_topic=flight.topic_of.get("vector"),

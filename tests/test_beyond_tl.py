@@ -1,0 +1,162 @@
+"""tl-plus and tl-nn (issue 36): tl18's extensions, chosen on held-out calibration.
+
+Judged on a second calibration box the fit never saw (the calibration-only scenario flies
+two; the models are fitted on the first) and, where the simulator adds interference outside
+the tl18 basis, against tl18 on that box: not against the models' own residuals.
+
+* nothing outside the basis: neither extension is worse than tl18 by more than 2 % on the
+  second box (a handful of seeds here; ``-m slow`` runs 30);
+* eddy currents that decay with 0.5 s: tl-plus takes the eddy-decay group with a time
+  constant near the true one and removes most of what tl18 leaves on the second box;
+  tl-nn beats tl18 there too;
+* the command's contract: summary keys, channels, one-line errors (exit 2).
+"""
+
+from __future__ import annotations
+
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.compensate import FitSettings, Measurements, bandpassed, fit_compensation
+from pipeline.compensate.heldout import block_folds, filter_support_s, fold_masks
+from pipeline.io.reader import read_flight, read_topics
+from pipeline.segment import segment_flight
+from pipeline.simulate import write_simulation
+from tests.cli import run as cli
+from tests.conftest import FIXTURES, run_sim
+
+MAX_WORSE = 1.02  # issue 36: an extension may cost at most 2 % against tl18 held out
+
+
+def _two_boxes(seed: int, overrides: list[str] | None = None):
+    """A two-box calibration flight: (measurements, first box's epochs, second box's)."""
+    sim = run_sim("calibration-only", seed, overrides or [])
+    fl = read_flight(write_simulation(sim, Path(tempfile.mkdtemp()) / "s.mcap"))
+    passes = segment_flight(fl).passes()
+    meas = Measurements.from_flight(fl)
+    fit, test = (np.zeros(meas.time_s.size, bool) for _ in range(2))
+    fit[passes[0]] = True
+    test[passes[1]] = True
+    return meas, fit, test
+
+
+def _second_box_rms(meas, fit, test, model: str):
+    """(band-passed RMS of the compensated field on the second box (nT), fitted model)."""
+    m = fit_compensation(meas, fit, FitSettings(model))
+    comp, _ = m.compensate(meas)
+    bp = bandpassed(meas.time_s, np.where(test, comp, np.nan), (0.1, 0.9), 4)
+    return float(np.sqrt(np.nanmean(bp[test] ** 2))), m
+
+
+def _no_worse(seed: int, models: tuple[str, ...]) -> None:
+    meas, fit, test = _two_boxes(seed)
+    base, _ = _second_box_rms(meas, fit, test, "tl18")
+    for model in models:
+        rms, m = _second_box_rms(meas, fit, test, model)
+        ext = m.extension
+        assert rms <= MAX_WORSE * base, (seed, model, rms, base, ext["reason"])
+        if not m.used:  # tl18's own field, not the tl18 part of the extension's fit
+            assert abs(rms - base) <= 1e-9 * base, (seed, model, rms, base)
+        # what the product applies is never worse than tl18 on its own held-out blocks
+        applied = (
+            ext["candidate_heldout_residual_nT"] if m.used else ext["tl18_heldout_residual_nT"]
+        )
+        assert applied <= ext["tl18_heldout_residual_nT"] * (1 + 1e-9)
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_tl_plus_no_worse_than_tl18_inside_the_basis(seed):
+    _no_worse(seed, ("tl-plus",))
+
+
+def test_tl_nn_no_worse_than_tl18_inside_the_basis():
+    _no_worse(4, ("tl-plus", "tl-nn"))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", range(10, 40))
+def test_extensions_no_worse_than_tl18_inside_the_basis_30_seeds(seed):
+    _no_worse(seed, ("tl-plus", "tl-nn"))
+
+
+def test_extensions_take_decaying_eddy_currents():
+    meas, fit, test = _two_boxes(1, ["interference.outside_basis.eddy_lag_nT=0.5"])
+    base, _ = _second_box_rms(meas, fit, test, "tl18")
+    plus, m = _second_box_rms(meas, fit, test, "tl-plus")
+    assert m.used and "eddy_decay" in m.groups, m.extension["reason"]
+    assert 0.25 <= m.tau_s <= 1.0  # the simulator's 0.5 s, on a grid of factor ~1.9
+    assert plus < 0.5 * base, (plus, base)
+    groups = m.extension["term_groups"]
+    assert groups["eddy_decay"]["selected"] and groups["eddy_decay"]["reduction_pct"] > 20
+    nn, m = _second_box_rms(meas, fit, test, "tl-nn")
+    assert m.used, m.extension["reason"]
+    assert nn < 0.95 * base, (nn, base)
+    imp = m.extension["feature_importance"]
+    assert set(imp) >= {"tl_terms", "tl_rates", "attitude", "attitude_rates"}
+    assert abs(sum(v["share"] for v in imp.values()) - 1.0) < 1e-9
+
+
+def test_heldout_folds_are_buffered_by_the_filter_support():
+    support = filter_support_s((0.1, 0.9), 10.0, 4)
+    assert 4.0 < support < 20.0
+    # a physical time: the same at another sample rate
+    assert abs(filter_support_s((0.1, 0.9), 20.0, 4) - support) < 0.2
+    t = np.arange(0.0, 600.0, 0.1)
+    mask = (t > 50) & (t < 550)
+    fold = block_folds(mask, 5)
+    assert set(np.unique(fold)) == {-1, 0, 1, 2, 3, 4}
+    for k in range(5):
+        train, test = fold_masks(t, fold, k, support)
+        assert not (train & test).any()
+        gap = np.min(np.abs(t[train][:, None] - t[test][None, ::50]))
+        assert gap > support
+
+
+def test_compensate_tl_plus_contract(tmp_path, box_path):
+    out, js = tmp_path / "o.mcap", tmp_path / "o.json"
+    res = cli(
+        "compensate", str(box_path), "--out", str(out), "--json", str(js), "--model", "tl-plus"
+    )
+    assert res.returncode == 0, res.stderr
+    s = json.loads(js.read_text())
+    c = s["compensation"]["tl-plus"]
+    assert s["compensation"]["final"] == "tl-plus"
+    assert c["heldout_residual_nT"] > 0
+    assert {"eddy_decay", "second_order"} <= set(c["term_groups"])
+    assert isinstance(c["extension"]["used"], bool) and c["extension"]["reason"]
+    topics = set(read_topics(out).topics)
+    assert {"/mag/compensated", "/mag/compensated/tl-plus", "/compensation/model"} <= topics
+
+
+def test_compensate_extensions_bad_input(tmp_path, box_path):
+    src = FIXTURES / "box_scalar_vector_only.mcap"  # no attitude, no GNSS
+    args = ["--calibration", "all", "--model", "tl-nn"]
+    res = cli(
+        "compensate",
+        str(src),
+        "--out",
+        str(tmp_path / "a.mcap"),
+        "--json",
+        str(tmp_path / "a.json"),
+        *args,
+    )
+    assert res.returncode == 2 and "/ins/attitude" in res.stderr, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "a.mcap").exists() and not (tmp_path / "a.json").exists()
+    args = ["--calibration", "0:60", "--model", "tl-plus"]
+    res = cli(
+        "compensate",
+        str(box_path),
+        "--out",
+        str(tmp_path / "b.mcap"),
+        "--json",
+        str(tmp_path / "b.json"),
+        *args,
+    )
+    assert res.returncode == 2 and "calibration" in res.stderr, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "b.mcap").exists()
