@@ -422,8 +422,9 @@ def test_calibration_guards_pass_a_full_box_and_flag_a_poor_one(box_path):
     """The full box passes all three guards for every model; one heading only, or boxes cut
     to 4.5 s, are flagged (and recorded in the summary) rather than silently fitted."""
     from pipeline.compensate import FitSettings
+    from pipeline.compensate.fit import fit_compensation
     from pipeline.compensate.guards import CONDITION_LIMITS, check_calibration
-    from pipeline.compensate.model import Measurements, fit_compensation
+    from pipeline.compensate.model import Measurements
     from pipeline.compensate.stage import run_compensation
     from pipeline.io.reader import read_flight
     from pipeline.segment import segment_flight

@@ -219,10 +219,9 @@ def test_a_recordings_rtp_takes_the_declination_from_grid_north(tmp_path, legacy
     less the meridian convergence (-1.18 deg at the synthetic survey, 2.1 deg west of its
     UTM zone's central meridian); an older recording's azimuthal equidistant frame has none
     at its origin, so its RTP is unchanged."""
-    from flows.stages import enhance_recording
-
     from pipeline.config import Config
     from pipeline.export.source import read_map_products
+    from pipeline.run.commands import enhance_recording
     from tests.mapfile import write_processed
 
     src, _ = write_processed(tmp_path / "f.processed.mcap", legacy=legacy)

@@ -156,17 +156,13 @@ def test_stage_starts_both_runs_from_the_aided_covariance(monkeypatch, box_path)
 
 def _stage_run(stage, box_path):
     """The committed box flight over a random map (placed around it) through run_navigation."""
-    from pipeline.geo.local import LocalFrame
+    from pipeline.geo.projected import survey_frame
     from pipeline.io.reader import read_flight
     from pipeline.navigation.map_io import frame_map
 
     f = read_flight(box_path)
     d = f.data
-    frame = LocalFrame(
-        float(np.nanmean(d["lat_deg"])),
-        float(np.nanmean(d["lon_deg"])),
-        float(np.nanmean(d["alt_m"])),
-    )
+    frame = survey_frame(d["lat_deg"], d["lon_deg"], d["alt_m"])
     g = random_field_map(6, size_m=8000.0, cell_m=25.0, origin_m=(-4000.0, -4000.0))
     geomap = frame_map(g, frame, "test", "random map")
     settings = stage.NavigationSettings(segments="all")

@@ -1,6 +1,7 @@
 """Tolles-Lawson (tl16, tl18), anti-geomagnetic-gradient (AGG-TL) compensation and the
 extensions of tl18 chosen on held-out calibration (tl-plus, tl-nn)."""
 
+from pipeline.compensate.fit import fit_compensation
 from pipeline.compensate.model import (
     EXTENSIONS,
     MODELS,
@@ -10,7 +11,6 @@ from pipeline.compensate.model import (
     Measurements,
     bandpassed,
     figure_of_merit,
-    fit_compensation,
 )
 from pipeline.compensate.ridge import LCurve, RidgeSVD
 from pipeline.compensate.terms import (

@@ -229,27 +229,6 @@ def design_of(
     return k, names, n_tl, reference
 
 
-def fit_compensation(
-    meas: Measurements, calibration_mask: np.ndarray, settings: FitSettings | None = None
-) -> CompensationModel:
-    """Fit a compensation model on the epochs of ``calibration_mask``.
-
-    Raises
-    ------
-    ValueError
-        No usable calibration samples, a band that does not fit the sample rate, or AGG-TL
-        without positions.
-    """
-    s = settings or FitSettings()
-    mask = np.asarray(calibration_mask, bool)
-    if s.model in EXTENSIONS:
-        from pipeline.compensate.extension import fit_extension
-
-        return fit_extension(meas, mask, s)
-    k_full, names, n_tl, reference = design_of(s, meas, mask)
-    return fit_columns(meas, mask, s, k_full, names, n_tl, reference)
-
-
 def fit_columns(
     meas: Measurements,
     mask: np.ndarray,

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.compensate.extension import ExtendedModel
+from pipeline.compensate.fit import fit_compensation
 from pipeline.compensate.guards import CalibrationCheck, check_calibration
 from pipeline.compensate.model import (
     CompensationModel,
@@ -17,7 +18,6 @@ from pipeline.compensate.model import (
     bandpassed,
     design_of,
     figure_of_merit,
-    fit_compensation,
     fom_band,
 )
 from pipeline.compensate.plus import HeldOutSetup

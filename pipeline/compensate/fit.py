@@ -1,0 +1,37 @@
+"""Fitting a compensation model by name: the linear T-L / AGG-TL fits
+(:mod:`pipeline.compensate.model`) or tl18's extensions chosen on held-out calibration
+(:mod:`pipeline.compensate.extension`). A module of its own, so that the extensions, which
+build on the linear fit, and the linear fit do not import each other."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.compensate.extension import fit_extension
+from pipeline.compensate.model import (
+    EXTENSIONS,
+    CompensationModel,
+    FitSettings,
+    Measurements,
+    design_of,
+    fit_columns,
+)
+
+
+def fit_compensation(
+    meas: Measurements, calibration_mask: np.ndarray, settings: FitSettings | None = None
+) -> CompensationModel:
+    """Fit a compensation model on the epochs of ``calibration_mask``.
+
+    Raises
+    ------
+    ValueError
+        No usable calibration samples, a band that does not fit the sample rate, or AGG-TL
+        without positions.
+    """
+    s = settings or FitSettings()
+    mask = np.asarray(calibration_mask, bool)
+    if s.model in EXTENSIONS:
+        return fit_extension(meas, mask, s)
+    k_full, names, n_tl, reference = design_of(s, meas, mask)
+    return fit_columns(meas, mask, s, k_full, names, n_tl, reference)
