@@ -606,7 +606,10 @@ def navigate(
     ] = None,
     ins: Annotated[
         str | None,
-        typer.Option(help="INS grade: navigation (~1 nmi/h) or tactical (config: navigate.ins)."),
+        typer.Option(
+            help="INS: recorded (/ins/solution), navigation (~1 nmi/h) or tactical (simulated), "
+            "auto: recorded when present (config: navigate.ins)."
+        ),
     ] = None,
     segments: Annotated[
         str,

@@ -11,7 +11,7 @@ with the IGRF taken at the INS-indicated position (the true one is what navigati
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -19,11 +19,18 @@ import numpy as np
 from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
+from pipeline.io.contract import INS_FIELDS
 from pipeline.maps.reduce import igrf_total_gradient_nT_per_m, reduce_to_anomaly
 from pipeline.navigation.alignment import gnss_aided_covariance
 from pipeline.navigation.crlb import crlb
 from pipeline.navigation.ekf import FilterResult, MeasurementModel, ekf
-from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory, simulate_ins_errors
+from pipeline.navigation.ins import (
+    GRADES,
+    N_INS,
+    InsErrorModel,
+    Trajectory,
+    simulate_ins_errors,
+)
 from pipeline.navigation.map_io import GeoMap
 from pipeline.navigation.map_model import MapModel, upward_continue, vertical_derivative
 from pipeline.navigation.pf import particle_filter
@@ -34,6 +41,12 @@ from pipeline.segment import Segmentation
 # (unsmoothed, its gridding noise made the filter overconfident: docs/navigation.md)
 VERTICAL_SMOOTHING_CELLS = 4.0
 SEGMENT_LABELS = {"validation": ("validation",), "survey": ("survey", "tie"), "all": ()}
+# the INS navigated: the recording's own (/ins/solution), a simulated one of a grade, or
+# "auto": the recording's when it has one, else a simulated navigation-grade INS
+INS_CHOICES = ("auto", "recorded", *GRADES)
+# the error model (process noise, transitions) a recorded INS is filtered with: its own
+# errors are in the record, its grade is not
+RECORDED_INS_MODEL = "navigation"
 
 
 @dataclass
@@ -67,8 +80,8 @@ class NavigationSettings:
         choice."""
         if self.filter not in ("ekf", "pf"):
             raise AeromagError(f"--filter {self.filter!r}: use ekf or pf")
-        if self.ins not in GRADES:
-            raise AeromagError(f"--ins {self.ins!r}: use {' or '.join(GRADES)}")
+        if self.ins not in INS_CHOICES:
+            raise AeromagError(f"--ins {self.ins!r}: use {', '.join(INS_CHOICES)}")
         if self.segments not in SEGMENT_LABELS:
             raise AeromagError(f"--segments {self.segments!r}: use validation, survey or all")
         if not (self.gnss_aided_s > 0 and self.gnss_sigma_m > 0):
@@ -112,6 +125,7 @@ class NavigationRun:
     coverage: float
     notes: list[str] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
+    ins_source: str = "simulated"  # or "recorded": the recording's /ins/solution
 
     def settings_grade(self):
         """The INS grade's error budget (:class:`pipeline.navigation.ins.InsGrade`)."""
@@ -194,7 +208,11 @@ class NavigationRun:
                 "min_eigenvalue": self.result.min_eigenvalue,
                 "max_asymmetry": self.result.max_asymmetry,
             },
-            "ins": {"grade": self.settings.ins, **_grade_dict(self.settings.ins)},
+            "ins": {
+                "source": self.ins_source,
+                "grade": self.settings.ins,
+                **_grade_dict(self.settings.ins),
+            },
             "map": {**self.geomap.describe(), "used_altitude_m": self.map_model.altitude_m},
             "settings": asdict(self.settings),
             "reference": "/gnss/fix",
@@ -348,6 +366,62 @@ def _measurement_model(
     return MeasurementModel(mm, None, vertical, above, grad)
 
 
+def ins_source(flight: Flight, choice: str) -> tuple[str, str]:
+    """(``"recorded"`` or ``"simulated"``, the error model's grade) for ``--ins choice``.
+
+    Raises
+    ------
+    AeromagError
+        ``recorded`` asked of a recording without ``/ins/solution``.
+    """
+    has = flight.has(*(f"ins_{name}" for name in INS_FIELDS))
+    if choice == "recorded" and not has:
+        raise AeromagError(
+            "--ins recorded: the recording has no INS solution",
+            file=flight.source,
+            channel="/ins/solution",
+        )
+    if choice == "recorded" or (choice == "auto" and has):
+        return "recorded", RECORDED_INS_MODEL
+    return "simulated", "navigation" if choice == "auto" else choice
+
+
+def recorded_ins_errors(flight: Flight, win: np.ndarray, traj: Trajectory) -> np.ndarray:
+    """The recorded INS's errors over the window: its position (m, north/east along the
+    geodesic from the true position, up) and NED velocity (m/s) less the true track's, as
+    the first six of the ``N_INS`` error states (indicated minus true, NED like the Pinson
+    states, not the map grid's axes); the others, which no record holds, zero.
+
+    Raises
+    ------
+    AeromagError
+        The recorded INS does not cover every epoch of the window.
+    """
+    d = flight.data
+    cols = {name: d[f"ins_{name}"].to_numpy(float)[win] for name in INS_FIELDS}
+    missing = ~np.all(np.isfinite(np.column_stack(list(cols.values()))), axis=1)
+    if missing.any():
+        raise AeromagError(
+            f"the recorded INS does not cover the navigated track: {int(missing.sum())} of "
+            f"{missing.size} epochs without it",
+            file=flight.source,
+            channel="/ins/solution",
+        )
+    from pyproj import Geod
+
+    lat, lon = d["lat_deg"].to_numpy(float)[win], d["lon_deg"].to_numpy(float)[win]
+    az, _, dist = Geod(ellps="WGS84").inv(lon, lat, cols["longitude_deg"], cols["latitude_deg"])
+    az = np.radians(np.asarray(az, float))
+    x = np.zeros((win.size, N_INS))
+    x[:, 0], x[:, 1] = dist * np.cos(az), dist * np.sin(az)
+    x[:, 2] = cols["altitude_m"] - d["alt_m"].to_numpy(float)[win]
+    v = np.column_stack(
+        [cols["velocity_north_m_s"], cols["velocity_east_m_s"], cols["velocity_down_m_s"]]
+    )
+    x[:, 3:6] = v - traj.vel_ned_mps
+    return x
+
+
 def run_navigation(
     flight: Flight,
     seg: Segmentation | None,
@@ -372,6 +446,8 @@ def run_navigation(
 
     s = settings or NavigationSettings()
     s.check()
+    source, grade = ins_source(flight, s.ins)
+    s = replace(s, ins=grade)  # the error model's grade from here on
     clock = {"start": time.perf_counter()}
     d = flight.data
     win, selected, ids = select_window(flight, seg, s.segments)
@@ -394,7 +470,13 @@ def run_navigation(
     phi = model.transitions(traj)
     qd = model.process_noise(np.diff(t, prepend=t[0]))
     p0 = _gnss_aided_p0(flight, win, geomap, model, traj, s, notes)
-    x_ins = simulate_ins_errors(model, traj, s.seed, phi, p0=p0)
+    if source == "recorded":
+        x_ins = recorded_ins_errors(flight, win, traj)
+        notes.append(
+            f"INS: the recording's own /ins/solution, filtered with the {grade}-grade error model"
+        )
+    else:
+        x_ins = simulate_ins_errors(model, traj, s.seed, phi, p0=p0)
     clock["ins"] = time.perf_counter()
     # measured anomaly, reduced as the map: IGRF at the INS-indicated position
     ins_e, ins_n = e_all + x_ins[:, 1], n_all + x_ins[:, 0]
@@ -482,4 +564,5 @@ def run_navigation(
         coverage,
         notes,
         timings,
+        source,
     )

@@ -245,10 +245,15 @@ def navigation_lines(nav) -> list[tuple[int, str]]:
     if isinstance(nav, str):
         return [(LOG_INFO, f"navigate: skipped: {nav}")]
     d, st = nav.summary()["drms_m"], nav.settings
+    ins = (
+        "the recorded INS"
+        if nav.ins_source == "recorded"
+        else f"a {st.ins}-grade INS (seed {st.seed})"
+    )
     return [
         (
             LOG_INFO,
-            f"navigate: {st.filter} on {st.segments} with a {st.ins}-grade INS (seed {st.seed}): "
+            f"navigate: {st.filter} on {st.segments} with {ins}: "
             f"DRMS INS-only {d['ins_only']:.1f} m, map-aided {d['map_aided']:.2f} m, "
             f"CRLB {d['crlb']:.2f} m",
         )
