@@ -33,9 +33,9 @@ from pipeline.compensate.nuisance import attitude_rate_columns
 from pipeline.compensate.plus import ridge_theta
 from pipeline.compensate.terms import tl18_terms
 
-# one thread: scikit-learn's OpenMP threads fight the other processes on a shared machine
-# (a tl-nn fit measured 20x slower with the default threads on 2 busy cores); threadpoolctl
-# limits only libraries already loaded, hence scikit-learn's imports at the top
+# one thread: scikit-learn's OpenMP threads oversubscribe a machine the flow's other
+# processes share, and a fit this small gains nothing from them; threadpoolctl limits only
+# libraries already loaded, hence scikit-learn's imports at the top
 THREADS = 1
 MAX_ITER = 150  # boosting iterations / training epochs searched by early stopping
 ROUNDS = 2  # tl18, learner, tl18 refitted beside it, learner again
