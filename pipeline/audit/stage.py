@@ -1438,13 +1438,8 @@ class Auditor:
             red = time_window_mean(self.data.time_s, red, smooth_s)
         t = self.data.time_s
 
-        def line(tr):
-            return Line(
-                tr.line_id, tr.kind, tr.east_m, tr.north_m, t[tr.index], red[tr.index], tr.index
-            )
-
-        survey = [line(tr) for tr in tracks if tr.kind == "survey"]
-        ties = [line(tr) for tr in tracks if tr.kind == "tie"]
+        survey = [Line.from_track(tr, t, red) for tr in tracks if tr.kind == "survey"]
+        ties = [Line.from_track(tr, t, red) for tr in tracks if tr.kind == "tie"]
         xs = crossovers(survey, ties)
         # heading classes relative to the survey's own line direction, not to north
         ref = pattern_direction_deg(

@@ -194,17 +194,7 @@ def crossover_rms_nT(flight: Flight, seg: Segmentation, field_nT: np.ndarray) ->
     t = d["time_s"].to_numpy(float)
     lines = {"survey": [], "tie": []}
     for tr in flight_tracks(seg, e, n, kinds=("survey", "tie")):
-        lines[tr.kind].append(
-            Line(
-                tr.line_id,
-                tr.kind,
-                tr.east_m,
-                tr.north_m,
-                t[tr.index],
-                field_nT[tr.index],
-                tr.index,
-            )
-        )
+        lines[tr.kind].append(Line.from_track(tr, t, field_nT))
     xs = crossovers(lines["survey"], lines["tie"])
     if not xs:
         return float("nan"), 0

@@ -46,6 +46,16 @@ class Line:
         d = np.hypot(np.diff(self.east_m), np.diff(self.north_m))
         self.along_m = np.r_[0.0, np.cumsum(d)]
 
+    @classmethod
+    def from_track(cls, track, time_s: np.ndarray, value_nT: np.ndarray) -> Line:
+        """A flight track (``line_id``, ``kind``, ``east_m``, ``north_m`` and the flight
+        epochs ``index``, e.g. :func:`pipeline.quality.stage.flight_tracks`'s) with the
+        flight's times (s) and field values (nT) on its epochs."""
+        ix = track.index
+        return cls(
+            track.line_id, track.kind, track.east_m, track.north_m, time_s[ix], value_nT[ix], ix
+        )
+
     def geometry(self) -> LineString:
         """The track as a shapely LineString in local east/north metres."""
         return LineString(np.column_stack([self.east_m, self.north_m]))

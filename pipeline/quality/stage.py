@@ -411,15 +411,7 @@ def run_quality(
 
     final = list(fields)[-1]
     lines = [
-        Line(
-            tr.line_id,
-            tr.kind,
-            tr.east_m,
-            tr.north_m,
-            t[tr.index],
-            reduced[final][tr.index],
-            tr.index,
-        )
+        Line.from_track(tr, t, reduced[final])
         for tr in mapped
         if np.isfinite(reduced[final][tr.index]).all()
     ]
