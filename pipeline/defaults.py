@@ -35,6 +35,26 @@ def default_value(section: str, key: str) -> Any:
     return copy.deepcopy(_defaults()[section][key])
 
 
+def default_comment(key: str) -> str:
+    """The comment beside ``section.name`` in the shipped defaults: the one description of a
+    setting, which the command line's option help also shows.
+
+    Raises
+    ------
+    KeyError
+        The shipped file has no such key, or no comment beside it.
+    """
+    section, _, name = key.rpartition(".")
+    current = ""
+    for line in default_text().splitlines():
+        text = line.strip()
+        if text.startswith("["):
+            current = text.strip("[]")
+        elif current == section and text.split("=", 1)[0].strip() == name and "  # " in text:
+            return text.split("  # ", 1)[1].strip()
+    raise KeyError(f"no commented key {key} in the shipped defaults")
+
+
 def default_field(section: str, key: str, convert: Callable[[Any], Any] | None = None) -> Any:
     """A dataclass field defaulting to a shipped value (``convert`` maps the TOML value to the
     field's type, e.g. ``tuple`` for a band): settings classes never re-type a literal."""

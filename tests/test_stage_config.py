@@ -212,19 +212,19 @@ def test_navigate_and_map_compensate_a_raw_recording_alike(tmp_path, monkeypatch
 
 def test_the_checked_flight_is_handed_to_the_flow_only_inside_the_block(tmp_path):
     """`aeromag process` reads a recording once: the flight read to check it reaches the flow
-    only within flows.postflight.checked() and only for the same, unchanged file."""
+    only within checked() and only for the same, unchanged file."""
     import shutil
 
-    from flows import postflight as pf
+    from pipeline.run import postflight as pf
 
     src = tmp_path / "f.mcap"
     shutil.copy(BOX, src)
-    assert pf._take_checked(str(src)) == (None, 0.0)
+    assert pf.take_checked(str(src)) == (None, 0.0)
     with pf.checked(src) as flight:
-        got, read_s = pf._take_checked(str(src))
+        got, read_s = pf.take_checked(str(src))
         assert got is flight and read_s > 0
-        assert pf._take_checked(str(BOX))[0] is None  # another file
-    assert pf._take_checked(str(src)) == (None, 0.0)
+        assert pf.take_checked(str(BOX))[0] is None  # another file
+    assert pf.take_checked(str(src)) == (None, 0.0)
     with pf.checked(src):
         src.write_bytes(src.read_bytes() + b"\0")  # changed since it was checked
-        assert pf._take_checked(str(src))[0] is None
+        assert pf.take_checked(str(src))[0] is None

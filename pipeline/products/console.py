@@ -311,3 +311,21 @@ def inspect_text(d: dict) -> list[Block]:
         rate = "" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
         table.add_row(t["topic"], t["schema"], str(t["messages"]), rate, str(len(t["gaps"])))
     return [table, *(f"warning: {w}" for w in d["warnings"])]
+
+
+def simulation_text(result: dict) -> list[Block]:
+    """``aeromag simulate``: the recording written, its length, messages and hidden effects."""
+    return [
+        f"{result['out']}: {result['duration_s'] / 60:.1f} min flight, {result['messages']} "
+        f"messages, effects: {', '.join(result['effects']) or 'none'}",
+        *([f"{result['truth']}: truth"] if result["truth"] else []),
+    ]
+
+
+def reprocess_text(result: dict) -> list[Block]:
+    """``aeromag reprocess``: how many recordings were processed, done before, quarantined."""
+    return [
+        f"{result['recordings']} recordings: {result['processed']} processed, "
+        f"{result['done']} already done, {result['quarantined']} quarantined",
+        f"index: {result['index']['csv']}",
+    ]

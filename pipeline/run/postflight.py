@@ -13,13 +13,22 @@ plain calls.
 
 from __future__ import annotations
 
+import hashlib
+import importlib.util
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
 from typing import Any
 
 from pipeline.config import Config
+from pipeline.errors import AeromagError
 from pipeline.flight import Flight
+from pipeline.io.reader import read_flight
+from pipeline.products.summary import sha256_file
 from pipeline.run import steps
 from pipeline.run.fields import configured_models, final_field, try_segment
 from pipeline.run.outputs import write_outputs
@@ -118,3 +127,70 @@ def run_plain(recording: str, out_dir: str, config_path: str | None = None) -> d
     return postflight_steps(
         str(recording), str(out_dir), cfg, lambda step, *args: step.function(*args)
     )
+
+
+# The flight the CLI read to check a recording before the flow (the recording's stat key,
+# the flight, seconds to read it): set only inside :func:`checked`, so the flow it starts
+# does not read the recording twice.
+_CHECKED: ContextVar[tuple[tuple, Flight, float] | None] = ContextVar(
+    "aeromag_checked_flight", default=None
+)
+
+
+def _stat_key(recording: str | Path) -> tuple:
+    st = Path(recording).stat()
+    return str(Path(recording).resolve()), st.st_size, st.st_mtime_ns
+
+
+@contextmanager
+def checked(recording: str | Path) -> Iterator[Flight]:
+    """Read and check a recording (scan, channel contract, units) before any flow starts,
+    so that bad input fails with one line and no Prefect run at all; a :func:`postflight`
+    run on the same, unchanged file inside the block takes this flight over.
+
+    Raises
+    ------
+    AeromagError
+        Missing, empty or unreadable file, no scalar magnetometer, wrong units.
+    """
+    if not Path(recording).is_file():
+        raise AeromagError("file not found", file=recording)
+    t0 = time.perf_counter()
+    flight = read_flight(recording)
+    token = _CHECKED.set((_stat_key(recording), flight, time.perf_counter() - t0))
+    try:
+        yield flight
+    finally:
+        _CHECKED.reset(token)
+
+
+def take_checked(recording: str) -> tuple[Flight | None, float]:
+    """The flight :func:`checked` read and its read time (s), when ``recording`` is that
+    same, unchanged file; else None and 0."""
+    found = _CHECKED.get()
+    if found is None:
+        return None, 0.0
+    try:
+        same = found[0] == _stat_key(recording)
+    except OSError:
+        return None, 0.0
+    return (found[1], found[2]) if same else (None, 0.0)
+
+
+@cache
+def code_fingerprint() -> str:
+    """Hash of the installed pipeline and flow code: resumable results of one version are
+    never unpickled into another (a stage's objects change shape between versions)."""
+    h = hashlib.sha256()
+    flows = importlib.util.find_spec("flows")  # located, not imported (it imports Prefect)
+    roots = [Path(__file__).parents[1]]
+    roots += [Path(p) for p in (flows.submodule_search_locations or [])] if flows else []
+    for root in roots:
+        for p in sorted(root.rglob("*.py")):
+            h.update(p.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def run_key(recording: str, cfg: Config) -> str:
+    """Cache folder name of one recording, configuration and code version."""
+    return f"{sha256_file(recording)[:16]}-{cfg.hash[:16]}-{code_fingerprint()}"
