@@ -43,7 +43,7 @@ def test_compensate_takes_compensation(tmp_path, monkeypatch):
     monkeypatch.setattr("pipeline.run.commands.run_compensation", stop)
     got = invoke(
         tmp_path,
-        "[compensation]\nmodels = ['tl16']\nridge = 0.003\ntrim = 7\n",
+        "[compensation]\nmodels = ['tl16']\nridge = 0.003\ntrim_s = 0.7\n",
         "compensate",
         BOX,
         "--out",
@@ -52,7 +52,7 @@ def test_compensate_takes_compensation(tmp_path, monkeypatch):
         tmp_path / "o.json",
     )
     settings = got.args_[2]
-    assert (settings.model, settings.ridge, settings.trim) == ("tl16", 0.003, 7)
+    assert (settings.model, settings.ridge, settings.trim_s) == ("tl16", 0.003, 0.7)
 
 
 def test_map_takes_map(tmp_path, monkeypatch):
