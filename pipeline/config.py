@@ -29,6 +29,7 @@ CONFIG_VERSION = 1
 RENAMED = {
     "compensation.trim": "compensation.trim_s (seconds; 20 samples at 10 Hz is 2.0)",
     "despike.window_samples": "despike.window_s (seconds; 101 samples at 10 Hz is 10.0)",
+    "vector.fuzzy_window": "vector.fuzzy_window_s (seconds; 30 samples at 10 Hz is 3.0)",
 }
 
 

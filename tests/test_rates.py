@@ -2,7 +2,8 @@
 same physical record sampled at 5, 10, 25 and 50 Hz is treated the same (issue 35, item 5).
 
 At 10 Hz every setting keeps the sample count it had when it was one: the despike window 101
-samples, the band-pass trim 20 samples, the smallest lag named 0.2 of a sample.
+samples, the band-pass trim 20 samples, the smallest lag named 0.2 of a sample, the fuzzy-R
+window 30 steps.
 """
 
 from __future__ import annotations
@@ -111,7 +112,11 @@ def test_the_audit_lag_resolution_is_in_seconds():
 
 @pytest.mark.parametrize(
     ("key", "new"),
-    [("compensation.trim", "compensation.trim_s"), ("despike.window_samples", "despike.window_s")],
+    [
+        ("compensation.trim", "compensation.trim_s"),
+        ("despike.window_samples", "despike.window_s"),
+        ("vector.fuzzy_window", "vector.fuzzy_window_s"),
+    ],
 )
 def test_an_old_sample_count_is_a_one_line_error_naming_its_replacement(tmp_path, key, new):
     section, name = key.split(".")
@@ -122,3 +127,47 @@ def test_an_old_sample_count_is_a_one_line_error_naming_its_replacement(tmp_path
     text = str(exc.value)
     assert "\n" not in text and str(f) in text
     assert f"{key} (samples) was replaced by {new} (seconds" in text
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("rate_hz", [5.0, 25.0, 50.0])
+def test_the_audit_names_a_sensor_lag_at_other_rates(rate_hz, tmp_path):
+    """A short simulated flight (two calibration boxes over quiet ground, nothing hidden but
+    a late scalar sensor) sampled at 5, 25 and 50 Hz: the lag is named alone, at its size."""
+    from pipeline.audit import run_audit
+    from pipeline.io.reader import read_flight
+    from pipeline.segment import segment_flight
+    from pipeline.simulate import write_simulation
+    from tests.conftest import run_sim
+
+    fast = max(20.0, rate_hz)
+    sim = run_sim(
+        "uav-small",
+        3,
+        [
+            "calibration.passes=2",
+            "anomaly.quiet_calibration_m=400.0",
+            "effects.sensor_lag.enabled=true",
+            f"sensors.scalar_rate_hz={rate_hz:g}",
+            f"sensors.vector_rate_hz={fast:g}",
+            f"sensors.attitude_rate_hz={fast:g}",
+            f"flight.master_rate_hz={max(50.0, rate_hz):g}",
+        ],
+    )
+    flight = read_flight(write_simulation(sim, tmp_path / "f.mcap"))
+    res = run_audit(flight, segment_flight(flight))
+    named = {f.effect: f.estimate for f in res.findings}
+    assert set(named) == {"sensor_lag"}, res.to_json()["rounds"]
+    truth = sim.truth["effective"]["sensor_lag_s"]
+    assert named["sensor_lag"]["lag_s"] == pytest.approx(truth, abs=0.01)
+
+
+@pytest.mark.parametrize("rate_hz", RATES_HZ)
+def test_the_fuzzy_r_window_is_the_same_seconds_at_every_rate(rate_hz):
+    from pipeline.vector.component import ComponentKF
+
+    kf = ComponentKF.paper(scaled=True, fuzzy=True).configure(Config.load()["vector"])
+    kf.sample_s = 1.0 / rate_hz
+    assert kf.window_steps() == round(3.0 * rate_hz)  # 30 steps at 10 Hz, as before
+    with pytest.raises(ValueError, match="sample interval"):
+        ComponentKF.paper(fuzzy=True).window_steps()

@@ -108,7 +108,7 @@ def test_vector_takes_vector(tmp_path, monkeypatch):
     monkeypatch.setattr("pipeline.vector.stage.run_vector", stop)
     got = invoke(
         tmp_path,
-        "[vector]\nmethod = 'batch'\nfuzzy_window = 7\nfuzzy_exponent = 0.5\n",
+        "[vector]\nmethod = 'batch'\nfuzzy_window_s = 0.7\nfuzzy_exponent = 0.5\n",
         "vector",
         BOX,
         "--out",
@@ -117,7 +117,7 @@ def test_vector_takes_vector(tmp_path, monkeypatch):
         tmp_path / "v.json",
     )
     assert got.args_[2] == "batch"
-    assert got.kwargs["settings"]["fuzzy_window"] == 7
+    assert got.kwargs["settings"]["fuzzy_window_s"] == 0.7
     assert got.kwargs["settings"]["fuzzy_exponent"] == 0.5
 
 
