@@ -290,27 +290,13 @@ def fit_arima(
                 rest = [c for c in candidates if c not in short] if d == d_range[-1] else []
                 candidates = short + rest
                 screened[str(d)] = [list(c) for c in short]
-                ranked: list[tuple[int, int]] | None = short
+                ranked: int | None = len(short)
             else:
                 ranked = None
-            for k, (p, q) in enumerate(candidates):
-                if ranked is not None and k == len(ranked) and best is not None:
-                    break  # a shortlisted candidate is usable: the rest are not fitted
-                try:
-                    res = fit_one(p, d, q)
-                except (np.linalg.LinAlgError, ValueError) as exc:
-                    # the optimiser can step onto a (near) unit root where the stationary
-                    # initialisation is singular: that candidate is out, the others compete
-                    failed.append(f"ARIMA({p},{d},{q}): {type(exc).__name__}")
-                    continue
-                why = degenerate(res, measurement_var)
-                if why is not None and order is None:
-                    failed.append(f"ARIMA({p},{d},{q}): {why}")
-                    continue
-                if why is not None:
-                    bad_explicit = why
-                if best is None or res.bic < best[0].bic:
-                    best = (res, p, d, q)
+            best, why = _best_at(
+                fit_one, d, candidates, ranked, order is not None, measurement_var, failed
+            )
+            bad_explicit = bad_explicit or why
             if best is not None:
                 break
         if best is None and order is None and measurement_var is not None:
@@ -321,14 +307,8 @@ def fit_arima(
                 failed.append("fell back to ARIMA(0,1,0): local level")
     if best is None:
         raise ValueError("no ARIMA candidate could be fitted: " + "; ".join(failed))
-    res, p, d, q = best
-    y = np.diff(x, n=d) if d else x
-    params = dict(zip(res.model.param_names, res.params, strict=True))
-    ar = np.array([params[f"ar.L{i}"] for i in range(1, p + 1)])
-    ma = np.array([params[f"ma.L{i}"] for i in range(1, q + 1)])
     tests = {
         "stationarity": steps,
-        "normality_differenced": normality(y),
         "samples": int(np.isfinite(x).sum()),
         "missing_inside": int((~np.isfinite(x)).sum()),
         "measurement_var": measurement_var,
@@ -338,7 +318,54 @@ def fit_arima(
     }
     if bad_explicit is not None:
         tests["degenerate"] = bad_explicit
+    return _model_of(best, x, tests)
+
+
+def _model_of(best, x: np.ndarray, tests: dict) -> ArimaModel:
+    """The :class:`ArimaModel` of a chosen fit ``(result, p, d, q)`` of ``x``; ``tests``
+    gains the normality of the differenced sequence."""
+    res, p, d, q = best
+    y = np.diff(x, n=d) if d else x
+    params = dict(zip(res.model.param_names, res.params, strict=True))
+    ar = np.array([params[f"ar.L{i}"] for i in range(1, p + 1)])
+    ma = np.array([params[f"ma.L{i}"] for i in range(1, q + 1)])
+    tests = {**tests, "normality_differenced": normality(y)}
     return ArimaModel(p, d, q, ar, ma, float(params["sigma2"]), float(res.bic), tests)
+
+
+def _best_at(
+    fit_one,
+    d: int,
+    candidates: list[tuple[int, int]],
+    n_short: int | None,
+    explicit: bool,
+    measurement_var: float | None,
+    failed: list[str],
+):
+    """The lowest-BIC usable fit ``(result, p, d, q)`` of ``candidates`` (p, q) at ``d`` (or
+    None), and why an ``explicit`` order is degenerate (or None); unusable ones are noted in
+    ``failed``. With ``n_short``, the candidates after the first ``n_short`` (a shortlist) are
+    fitted only when none of those is usable."""
+    best, bad = None, None
+    for k, (p, q) in enumerate(candidates):
+        if n_short is not None and k == n_short and best is not None:
+            break  # a shortlisted candidate is usable: the rest are not fitted
+        try:
+            res = fit_one(p, d, q)
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            # the optimiser can step onto a (near) unit root where the stationary
+            # initialisation is singular: that candidate is out, the others compete
+            failed.append(f"ARIMA({p},{d},{q}): {type(exc).__name__}")
+            continue
+        why = degenerate(res, measurement_var)
+        if why is not None and not explicit:
+            failed.append(f"ARIMA({p},{d},{q}): {why}")
+            continue
+        if why is not None:
+            bad = why
+        if best is None or res.bic < best[0].bic:
+            best = (res, p, d, q)
+    return best, bad
 
 
 def _shortlist(
