@@ -39,14 +39,14 @@ def test_settings_defaults_are_the_shipped_configuration():
     d, cfg = shipped(), Config.load()
     c = d["compensation"]
     fit = FitSettings()
-    assert (fit.band_hz, fit.poles, fit.trim, fit.ridge, fit.base) == (
+    assert (fit.band_hz, fit.poles, fit.trim_s, fit.ridge, fit.base) == (
         tuple(c["band_hz"]),
         c["poles"],
-        c["trim"],
+        c["trim_s"],
         c["ridge"],
         c["agg_base"],
     )
-    assert BandSettings() == BandSettings(tuple(c["band_hz"]), c["poles"], c["trim"])
+    assert BandSettings() == BandSettings(tuple(c["band_hz"]), c["poles"], c["trim_s"])
     a = AuditSettings()
     assert (a.baseline, a.alpha, a.min_gain) == (
         d["audit"]["baseline"],
@@ -119,7 +119,8 @@ def test_no_processing_default_is_retyped_in_the_code():
         for root in ("pipeline", "flows")
         for p in sorted((REPO / root).rglob("*.py"))
         for n, line in enumerate(p.read_text().splitlines(), 1)
-        if band.search(line) or re.search(r"\b(poles|trim)\s*[:=][^=].*\b(4|20)\b", line)
+        if band.search(line)
+        or re.search(r"\b(poles|trim|trim_s)\s*[:=][^=].*\b(4|20|2\.0)\b", line)
     ]
     assert hits == []
 

@@ -420,3 +420,29 @@ def test_map_cli_and_channels(mapped, tmp_path):
         "two",
     )
     assert bad.returncode == 2 and "--arima 'two'" in bad.stderr
+
+
+@pytest.mark.slow  # about a minute: eleven full fits on 12 000 cells
+def test_order_screening_on_a_long_sequence_keeps_the_full_search_result(monkeypatch):
+    """A long map lane (12 000 cells of 12.5 m: anomalies 50-800 m wide, white noise): the
+    order search that ranks candidates on the first cells and fits a shortlist on all of them
+    smooths the lane as the search fitting every candidate on all cells does."""
+    import pipeline.maps.arima as arima
+    from pipeline.maps.arima import rts_smooth
+
+    rng = np.random.default_rng(4)
+    s = np.arange(12_000) * 12.5
+    x = np.zeros(s.size)
+    for _ in range(120):
+        c, w, a = rng.uniform(0, s[-1]), rng.uniform(50, 800), rng.normal(0, 30)
+        x += a / (1 + ((s - c) / w) ** 2) ** 1.5
+    y = x + rng.normal(0, 0.5, s.size)
+    screened = fit_arima(y, measurement_var=0.25)
+    assert screened.tests["screened"], "a sequence this long is screened"
+    monkeypatch.setattr(arima, "SCREEN_SAMPLES", 10**9)  # every candidate on every cell
+    full = fit_arima(y, measurement_var=0.25)
+    assert not full.tests["screened"]
+    a, b = rts_smooth(y, screened, 0.25), rts_smooth(y, full, 0.25)
+    # the smoothed lanes agree to a small share of the noise, and both remove most of it
+    assert np.sqrt(np.mean((a - b) ** 2)) < 0.05 * 0.5
+    assert np.sqrt(np.mean((a - x) ** 2)) < 0.5 * 0.5

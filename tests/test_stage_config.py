@@ -43,7 +43,7 @@ def test_compensate_takes_compensation(tmp_path, monkeypatch):
     monkeypatch.setattr("pipeline.run.commands.run_compensation", stop)
     got = invoke(
         tmp_path,
-        "[compensation]\nmodels = ['tl16']\nridge = 0.003\ntrim = 7\n",
+        "[compensation]\nmodels = ['tl16']\nridge = 0.003\ntrim_s = 0.7\n",
         "compensate",
         BOX,
         "--out",
@@ -52,7 +52,7 @@ def test_compensate_takes_compensation(tmp_path, monkeypatch):
         tmp_path / "o.json",
     )
     settings = got.args_[2]
-    assert (settings.model, settings.ridge, settings.trim) == ("tl16", 0.003, 7)
+    assert (settings.model, settings.ridge, settings.trim_s) == ("tl16", 0.003, 0.7)
 
 
 def test_map_takes_map(tmp_path, monkeypatch):
@@ -108,7 +108,7 @@ def test_vector_takes_vector(tmp_path, monkeypatch):
     monkeypatch.setattr("pipeline.vector.stage.run_vector", stop)
     got = invoke(
         tmp_path,
-        "[vector]\nmethod = 'batch'\nfuzzy_window = 7\nfuzzy_exponent = 0.5\n",
+        "[vector]\nmethod = 'batch'\nfuzzy_window_s = 0.7\nfuzzy_exponent = 0.5\n",
         "vector",
         BOX,
         "--out",
@@ -117,7 +117,7 @@ def test_vector_takes_vector(tmp_path, monkeypatch):
         tmp_path / "v.json",
     )
     assert got.args_[2] == "batch"
-    assert got.kwargs["settings"]["fuzzy_window"] == 7
+    assert got.kwargs["settings"]["fuzzy_window_s"] == 0.7
     assert got.kwargs["settings"]["fuzzy_exponent"] == 0.5
 
 

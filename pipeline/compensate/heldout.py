@@ -151,11 +151,11 @@ def fold_masks(
 
 @dataclass(frozen=True)
 class Band:
-    """The fit band: edges (Hz), Butterworth prototype order, samples trimmed per block end."""
+    """The fit band: edges (Hz), Butterworth prototype order, seconds trimmed per block end."""
 
     band_hz: tuple[float, float]
     poles: int
-    trim: int
+    trim_s: float
 
 
 # predict(train_mask, test_mask) -> (band-passed held-out residual, epoch indices)
@@ -205,11 +205,11 @@ def linear_predictor(
 
     def predict(train: np.ndarray, test: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         kf, yf, _ = bandpassed_design(
-            columns, y_nT, time_s, rate_hz, train, band.band_hz, band.poles, band.trim
+            columns, y_nT, time_s, rate_hz, train, band.band_hz, band.poles, band.trim_s
         )
         theta = fit(kf, yf)
         kt, yt, wt = bandpassed_design(
-            columns, y_nT, time_s, rate_hz, test, band.band_hz, band.poles, band.trim
+            columns, y_nT, time_s, rate_hz, test, band.band_hz, band.poles, band.trim_s
         )
         return yt - kt @ theta, wt
 

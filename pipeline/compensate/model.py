@@ -16,7 +16,12 @@ from typing import Any
 import numpy as np
 
 from pipeline.compensate.estimator import bandpassed_design, fit_ridge
-from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
+from pipeline.compensate.filters import (
+    bandpass_blocks,
+    bandpass_sos,
+    contiguous_blocks,
+    trim_samples,
+)
 from pipeline.compensate.guards import scaled_condition
 from pipeline.compensate.ridge import LCurve
 from pipeline.compensate.terms import BT_SCALE_NT, position_terms, tl16_terms, tl18_terms
@@ -101,7 +106,8 @@ class FitSettings:
     # tl16 (paper 002's choice) cannot follow that and leaves a heading error.
     base: str = default_field("compensation", "agg_base")
     poles: int = default_field("compensation", "poles")
-    trim: int = default_field("compensation", "trim")
+    # the band-pass's edge transient dropped at each block end (s)
+    trim_s: float = default_field("compensation", "trim_s")
     # a lambda, or "auto" for the L-curve corner
     ridge: float | str = default_field("compensation", "ridge")
     # tl18's induced and eddy columns are divided by it (MagNav's Bt_scale): with a fixed
@@ -158,6 +164,8 @@ class CompensationModel:
     coefficient_std: np.ndarray | None = None  # from the residual variance (no ridge)
     condition_number: float = float("nan")  # of the band-passed, column-scaled design
     weakest_terms: list[str] = field(default_factory=list)
+    # samples trim_s dropped at each block end at the recording's rate (the channel's trim)
+    trim_samples: int = 0
 
     @property
     def model(self) -> str:
@@ -197,7 +205,8 @@ class CompensationModel:
             "ridge": "auto" if s.ridge == "auto" else float(s.ridge),
             "band_hz": None if s.band_hz is None else [float(b) for b in s.band_hz],
             "poles": s.poles,
-            "trim": s.trim,
+            "trim": int(self.trim_samples),
+            "trim_s": float(s.trim_s),
             "samples": int(self.n_fit),
             "fit_residual_nT": float(self.fit_residual_nT),
             "calibration_windows_s": [[float(a), float(b)] for a, b in self.calibration_blocks],
@@ -241,7 +250,7 @@ def fit_columns(
     """The band-passed ridge fit of the design ``k_full`` (columns ``names``, the first
     ``n_tl`` compensating) on the calibration epochs ``mask``."""
     kf, yf, where = bandpassed_design(
-        k_full, meas.scalar_nT, meas.time_s, meas.rate_hz, mask, s.band_hz, s.poles, s.trim
+        k_full, meas.scalar_nT, meas.time_s, meas.rate_hz, mask, s.band_hz, s.poles, s.trim_s
     )
     if where.size < 2 * k_full.shape[1]:
         raise ValueError(
@@ -266,6 +275,7 @@ def fit_columns(
         fit.coefficient_std,
         cond,
         weakest,
+        trim_samples(s.trim_s, meas.rate_hz),
     )
 
 

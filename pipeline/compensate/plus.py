@@ -123,7 +123,7 @@ class HeldOutSetup:
                 f"{settings.model} needs at least {MIN_HELDOUT_S:g} s of calibration for its "
                 f"held-out blocks; the calibration has {span:.0f} s"
             )
-        band = Band(tuple(settings.band_hz), settings.poles, settings.trim)
+        band = Band(tuple(settings.band_hz), settings.poles, settings.trim_s)
         buffer = filter_support_s(band.band_hz, meas.rate_hz, band.poles)
         return cls(meas, band, block_folds(valid), buffer, settings.ridge)
 

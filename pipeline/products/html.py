@@ -193,7 +193,7 @@ def _despike_section(s: dict) -> list[str]:
                 "spikes",
                 "fraction %",
                 "threshold sigma",
-                "window samples",
+                "window",
                 "noise nT",
                 "largest spike nT",
                 "level steps left",
@@ -203,7 +203,8 @@ def _despike_section(s: dict) -> list[str]:
                     d["spikes"],
                     _f(100 * d["fraction"], ".3f"),
                     _f(d["threshold_sigma"], "g"),
-                    d["window_samples"],
+                    (f"{d['window_s']:g} s, " if "window_s" in d else "")
+                    + f"{d['window_samples']} samples",
                     _f(d["noise_nT"], ".4f"),
                     _f(d.get("max_abs_amplitude_nT"), ".2f"),
                     d.get("steps_left", 0),

@@ -5,6 +5,12 @@
 from __future__ import annotations
 
 
+def _window(d: dict) -> str:
+    """The despike window: seconds and its samples (summaries before ``window_s``: samples)."""
+    n = f"{d['window_samples']} samples"
+    return f"{d['window_s']:g} s, {n}" if "window_s" in d else n
+
+
 def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
     """The post-flight report: the tables people look at, and the figures."""
 
@@ -29,7 +35,7 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             "",
             f"{d['spikes']} spikes ({100 * d['fraction']:.3f} % of samples) replaced before "
             f"compensation: Hampel test at {d['threshold_sigma']:g} sigma on the 4th "
-            f"difference (window {d['window_samples']} samples); noise {f(d['noise_nT'], '.4f')} "
+            f"difference (window {_window(d)}); noise {f(d['noise_nT'], '.4f')} "
             f"nT, largest spike {f(d['max_abs_amplitude_nT'], '.2f')} nT",
             "",
         ]
