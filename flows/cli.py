@@ -296,7 +296,7 @@ def compensate(
     agg_base: Annotated[str | None, setting("compensation.agg_base")] = None,
     band: Annotated[tuple[float, float] | None, setting("compensation.band_hz")] = None,
     poles: Annotated[int | None, setting("compensation.poles")] = None,
-    trim: Annotated[int | None, setting("compensation.trim")] = None,
+    trim_s: Annotated[float | None, setting("compensation.trim_s", "--trim-s")] = None,
     ridge: Annotated[str | None, setting("compensation.ridge", convert=_ridge)] = None,
     calibration: Annotated[
         str, typer.Option(help="auto | all | T0:T1 (seconds from the first epoch, or Unix seconds)")
