@@ -189,6 +189,13 @@ OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
         description="anomaly grid after the ARIMA + Kalman filter",
     ),
     TopicRule(
+        "/map/uncertainty",
+        "foxglove.Grid",
+        "output",
+        ("column_count", "data"),
+        description="1-sigma error of the anomaly grid per cell, nT (same cells)",
+    ),
+    TopicRule(
         "/map/frame",
         "aeromag.MapFrame",
         "output",
