@@ -625,6 +625,14 @@ def navigate(
             "--map-channel", help="Grid channel of a recording map (config: /map/<navigate.map>)."
         ),
     ] = None,
+    map_sigma: Annotated[
+        float | None,
+        typer.Option(
+            "--map-sigma",
+            help="The map's 1-sigma error, nT, everywhere (default: the map's /map/uncertainty "
+            "when it has one, else navigate.map_sigma_nT).",
+        ),
+    ] = None,
     config: ConfigOption = None,
 ) -> None:
     """Magnetic anomaly navigation on a map: simulate an INS along the recorded track, aid it
@@ -647,6 +655,7 @@ def navigate(
             ins=ins,
             segments=segments,
             seed=seed,
+            map_sigma_nT=map_sigma,
         )
     emit("navigate", summary["navigation"])
     if out_path:
