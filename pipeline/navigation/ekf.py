@@ -96,6 +96,10 @@ class MeasurementModel:
         The map's error variance is multiplied by this (>= 1, :func:`correlated_error_scale`):
         the map's error is correlated along the track, and measurements that share it are not
         the independent ones the filter takes them for.
+    map_var_left : float
+        The share (0-1] of the map's error variance left in the map the filter uses (a Wiener
+        filter having taken out its white noise,
+        :func:`pipeline.navigation.map_model.wiener_smooth`).
 
     The measurement's noise variance is the filters' ``r_nT2`` (the sensor's) plus the map's
     (:meth:`map_var_nT2`): the map's error at the estimated position is as random to the filter
@@ -112,6 +116,7 @@ class MeasurementModel:
     sigma: MapModel | None = None
     map_sigma_nT: float = 0.0
     map_var_scale: float = 1.0
+    map_var_left: float = 1.0
 
     def jacobian_ned(self, k: int | None = None) -> np.ndarray:
         """Map-frame (east, north) metres per (north, east) metre of NED position error:
@@ -136,10 +141,11 @@ class MeasurementModel:
     def map_var_nT2(self, east, north) -> np.ndarray:
         """The map's error variance (nT^2) at map-frame positions: the ``sigma`` grid's where
         it has a value (its largest value elsewhere), else ``map_sigma_nT`` squared."""
+        k = self.map_var_scale * self.map_var_left
         if self.sigma is None:
-            return np.full(np.shape(east), self.map_var_scale * self.map_sigma_nT**2)
+            return np.full(np.shape(east), k * self.map_sigma_nT**2)
         s = self.sigma.value(east, north)
-        return self.map_var_scale * np.where(np.isfinite(s), s, self._sigma_max) ** 2
+        return k * np.where(np.isfinite(s), s, self._sigma_max) ** 2
 
     @property
     def _sigma_max(self) -> float:

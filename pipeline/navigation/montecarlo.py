@@ -27,7 +27,7 @@ from pipeline.navigation.ekf import (
     gate_sigma_of,
 )
 from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory, simulate_ins_errors
-from pipeline.navigation.map_model import MapModel
+from pipeline.navigation.map_model import MapModel, wiener_smooth
 from pipeline.simulate.navigation import racetrack, random_field_map
 
 
@@ -51,6 +51,7 @@ class Trial:
     # the length the filter takes the map error to be correlated over (0: white)
     told_length_m: float = 200.0
     bias_prior: bool = True
+    smooth_map: bool = True
     grade: str = "navigation"
     # the true anomaly field: correlation length (m) and RMS (nT) of the random field
     field_correlation_m: float = 300.0
@@ -97,7 +98,12 @@ def run_trial(trial: Trial, truth: Grid | None = None) -> dict[str, float]:
         tr.seed, truth, tr.map_error_nT, tr.smooth_fraction, tr.noise_fraction, tr.correlation_m
     )
     true_map = MapModel(truth)
+    told = tr.map_error_nT if tr.told_map_sigma_nT is None else tr.told_map_sigma_nT
     used_map = MapModel(truth.with_values(truth.values + err))
+    left = 1.0
+    if tr.smooth_map:
+        smooth, _, left = wiener_smooth(used_map.grid, told)
+        used_map = MapModel(smooth)
     t, e, n = racetrack(tr.duration_s, tr.rate_hz)
     traj = Trajectory.from_track(t, n, e, np.zeros_like(t), 45.0 + n / 111_000.0)
     model = InsErrorModel(GRADES[tr.grade])
@@ -113,15 +119,13 @@ def run_trial(trial: Trial, truth: Grid | None = None) -> dict[str, float]:
         traj.c_nb[:k],
     )
     p0 = gnss_aided_covariance(model, head, 3.0)
-    told0 = tr.map_error_nT if tr.told_map_sigma_nT is None else tr.told_map_sigma_nT
-    p0[-1, -1] += told0**2 if tr.bias_prior else 0.0
+    p0[-1, -1] += told**2 if tr.bias_prior else 0.0
     x = simulate_ins_errors(model, traj, tr.seed, phi, p0=p0)
     rng = np.random.default_rng(10_000 + tr.seed)
     z = true_map.value(e, n) + x[:, -1] + rng.normal(0.0, tr.sensor_nT, t.size)
-    told = tr.map_error_nT if tr.told_map_sigma_nT is None else tr.told_map_sigma_nT
     step = 60.0 / tr.rate_hz  # racetrack speed (m/s) over the rate
     scale = correlated_error_scale(tr.told_length_m, step)
-    meas = MeasurementModel(used_map, map_sigma_nT=told, map_var_scale=scale)
+    meas = MeasurementModel(used_map, map_sigma_nT=told, map_var_scale=scale, map_var_left=left)
     gate = gate_sigma_of(tr.gate_probability) if tr.gate_probability > 0 else None
     res = ekf(phi, qd, p0, z, e + x[:, 1], n + x[:, 0], meas, tr.sensor_nT**2, gate_sigma=gate)
     aided = x[:, :2] - res.state[:, :2]

@@ -38,7 +38,12 @@ from pipeline.navigation.ins import (
     simulate_ins_errors,
 )
 from pipeline.navigation.map_io import GeoMap
-from pipeline.navigation.map_model import MapModel, upward_continue, vertical_derivative
+from pipeline.navigation.map_model import (
+    MapModel,
+    upward_continue,
+    vertical_derivative,
+    wiener_smooth,
+)
 from pipeline.navigation.pf import particle_filter
 from pipeline.noise import white_noise_nT
 from pipeline.segment import Segmentation
@@ -546,8 +551,15 @@ def run_navigation(
     e_all, n_all = np.asarray(e_all, float), np.asarray(n_all, float)
     notes = list(geomap.notes)
     coverage = check_coverage(geomap, e_all[selected], n_all[selected], s)
-    mm = MapModel(geomap.grid, 0.0, geomap.altitude_m)
-    # map at the flight's altitude
+    # the map's white noise filtered out at its error's level (a noisy gradient misleads the
+    # filter), then the map at the flight's altitude
+    level = _map_sigma_level(geomap, s)
+    smooth, removed, left = wiener_smooth(geomap.grid, level)
+    notes.append(
+        f"map Wiener-filtered against {level:.2g} nT of white noise: {removed:.2g} nT RMS "
+        f"removed, {left:.0%} of the map's error variance left"
+    )
+    mm = MapModel(smooth, 0.0, geomap.altitude_m)
     flight_alt = float(np.mean(alt[win][selected]))
     mm, how = mm.continued_to(flight_alt)
     notes.append(how)
@@ -594,20 +606,24 @@ def run_navigation(
     sensor = float(sensor) if np.isfinite(sensor) else 0.1
     sigma_source = _map_error(meas, geomap, s, notes)
     step = np.hypot(np.diff(ins_e), np.diff(ins_n))
+    meas.map_var_left = left
     meas.map_var_scale = correlated_error_scale(
         s.map_error_length_m, float(np.median(step)) if step.size else np.nan
     )
     r = sensor**2
     gate = gate_sigma_of(s.gate_probability) if s.gate_probability > 0 else None
+    # the map's error may be an offset as much as anything: the bias state's prior holds it
+    p0f = p0.copy()
+    p0f[-1, -1] += level**2
     # filter and bound
     update = selected & np.isfinite(z)
     if s.filter == "ekf":
-        res = ekf(phi, qd, p0, z, ins_e, ins_n, meas, r, update, gate_sigma=gate)
+        res = ekf(phi, qd, p0f, z, ins_e, ins_n, meas, r, update, gate_sigma=gate)
     else:
         res = particle_filter(
             phi,
             qd,
-            p0,
+            p0f,
             z,
             ins_e,
             ins_n,
@@ -627,7 +643,7 @@ def run_navigation(
         else:
             notes.append("particle filter to the end (its cloud never settled for a handover)")
     clock["filter"] = time.perf_counter()
-    bound = crlb(phi, qd, p0, e_all, n_all, meas, r, update)
+    bound = crlb(phi, qd, p0f, e_all, n_all, meas, r, update)
     free = crlb(phi, qd, p0, e_all, n_all, meas, r, np.zeros(t.size, bool))
     clock["crlb"] = time.perf_counter()
     on = update & mm.inside(e_all, n_all)
@@ -665,6 +681,16 @@ def run_navigation(
         sigma_source,
         meas.map_var_scale,
     )
+
+
+def _map_sigma_level(geomap: GeoMap, s: NavigationSettings) -> float:
+    """One 1-sigma value of the map's error, nT: ``--map-sigma``, else the median of the
+    map's own error grid, else ``[navigate] map_sigma_nT``."""
+    if s.map_sigma_nT is not None:
+        return float(s.map_sigma_nT)
+    if geomap.sigma is not None and np.isfinite(geomap.sigma.values).any():
+        return float(np.nanmedian(geomap.sigma.values))
+    return float(s.default_map_sigma_nT)
 
 
 def _map_error(meas: MeasurementModel, geomap: GeoMap, s: NavigationSettings, notes) -> str:
