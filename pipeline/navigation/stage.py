@@ -243,7 +243,8 @@ class NavigationRun:
                 "sensor_sigma_nT": self.sensor_sigma_nT,
                 "map_sigma_nT": self.map_sigma_nT,
                 "map_sigma_source": self.map_sigma_source,
-                "map_error_length_m": self.settings.map_error_length_m,
+                "map_error_length_m": self.geomap.error_length_m
+                or self.settings.map_error_length_m,
                 "map_variance_scale": self.map_var_scale,
                 "gate_probability": self.settings.gate_probability,
                 "rejected_by_gate": int(self.result.rejected),
@@ -607,9 +608,12 @@ def run_navigation(
     sigma_source = _map_error(meas, geomap, s, notes)
     step = np.hypot(np.diff(ins_e), np.diff(ins_n))
     meas.map_var_left = left
+    length = geomap.error_length_m or s.map_error_length_m
     meas.map_var_scale = correlated_error_scale(
-        s.map_error_length_m, float(np.median(step)) if step.size else np.nan
+        length, float(np.median(step)) if step.size else np.nan
     )
+    why = "the map's line spacing" if geomap.error_length_m else "[navigate] map_error_length_m"
+    notes.append(f"map error taken as correlated over {length:.0f} m along the track ({why})")
     r = sensor**2
     gate = gate_sigma_of(s.gate_probability) if s.gate_probability > 0 else None
     # the map's error may be an offset as much as anything: the bias state's prior holds it
