@@ -213,3 +213,21 @@ def test_map_sigma_contract(box_path, tmp_path, cli):  # noqa: F811
         assert m["map_sigma_source"] == source
         if with_sigma:  # the Wiener filter leaves at most the 1.5 nT of the grid
             assert 0.0 < m["map_sigma_nT"] <= 1.5 + 1e-6
+
+
+def test_exported_netcdf_brings_its_uncertainty(tmp_path):
+    """A netCDF map exported by aeromag carries ``uncertainty`` beside the grids: navigate
+    reads it as the map's error, cell for cell, placed as the map."""
+    from pipeline.export import export_recording
+    from pipeline.navigation.map_io import read_map
+    from tests.mapfile import uncertainty_of, write_processed
+
+    src, grid = write_processed(tmp_path / "f.processed.mcap", uncertainty=True)
+    export_recording(src, tmp_path / "out", ["netcdf", "geotiff"])
+    m = read_map(tmp_path / "out" / "f.maps.nc")
+    assert m.sigma is not None and m.sigma.shape == m.grid.shape
+    want = uncertainty_of(grid).values.astype(np.float32)
+    np.testing.assert_array_equal(m.sigma.values.astype(np.float32), want)
+    assert (m.sigma.east0_m, m.sigma.north0_m) == (m.grid.east0_m, m.grid.north0_m)
+    # a GeoTIFF holds one band: no error grid, the default applies
+    assert read_map(tmp_path / "out" / "f.anomaly.tif").sigma is None

@@ -233,7 +233,8 @@ def read_raster_map(path: Path) -> GeoMap:
         if path.suffix.lower() in (".tif", ".tiff"):
             da = xr.open_dataarray(path, engine="rasterio").squeeze(drop=True)
         else:
-            ds = xr.open_dataset(path)
+            # "all": the CF grid-mapping variable (the CRS) stays attached to the grids
+            ds = xr.open_dataset(path, decode_coords="all")
             names = [v for v in ds.data_vars if ds[v].ndim == 2]
             if not names:
                 raise AeromagError("no 2-D variable in the netCDF map", file=path)
