@@ -1,5 +1,5 @@
 """Map-aided navigation on maps with errors: never worse than the INS alone, and consistent
-(issue 38, item 4). Monte Carlo over seeded trials (:mod:`pipeline.navigation.montecarlo`).
+(issue 38, item 4). Monte Carlo over seeded trials (:mod:`pipeline.simulate.navigation_trials`).
 
     .venv/bin/python benchmarks/bench_nav_consistency.py [--runs 60] [--duration 1200]
 
@@ -35,7 +35,7 @@ from report import finish
 from scipy.stats import chi2
 
 from pipeline.defaults import default_value
-from pipeline.navigation.montecarlo import Trial, run_trial
+from pipeline.simulate.navigation_trials import Trial, run_trial
 
 
 def draw(seed: int, duration_s: float) -> Trial:

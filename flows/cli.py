@@ -663,6 +663,33 @@ def navigate(
     say(f"summary: {json_out}")
 
 
+@app.command()
+def navigability(
+    recording: Annotated[Path, typer.Argument(help="Processed recording (.mcap) with its map.")],
+    out_path: Annotated[Path, typer.Option("--out", help="Copy of it with /map/navigability.")],
+    speed: Annotated[
+        float | None,
+        typer.Option(help="Vehicle speed, m/s (default: the recording's median ground speed)."),
+    ] = None,
+    heading: Annotated[
+        str, typer.Option(help="Heading from grid north, deg, or all (four directions).")
+    ] = "all",
+    config: ConfigOption = None,
+) -> None:
+    """The position accuracy (CRLB, m) a vehicle reaches flying into each cell of the map."""
+    import json
+
+    from pipeline.run.navigate import navigability_recording
+    from pipeline.run.outputs import require_readable
+
+    require_readable(recording)
+    cfg = _stage_config(config, {})
+    with console.status(f"navigability of {recording.name}'s map"):
+        result = navigability_recording(recording, out_path, cfg, speed, heading)
+    say(json.dumps(result))
+    say(f"output recording: {out_path}")
+
+
 def _run_postflight(recording: Path, out_dir: Path, config: Path | None = None) -> dict:
     from flows import postflight as pf
 

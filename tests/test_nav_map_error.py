@@ -3,13 +3,14 @@ noisy and biased map does not make the filter worse than the INS alone, the map'
 turned by the meridian convergence, consistency statistics, and the ``--map-sigma`` contract.
 
 Trials fly a racetrack over a random field (the truth) with the filter on the field plus an
-error it does not model (:mod:`pipeline.navigation.montecarlo`); every figure is checked
+error it does not model (:mod:`pipeline.simulate.navigation_trials`); every figure is checked
 against the simulated truth.
 """
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -22,10 +23,10 @@ from pipeline.navigation.ekf import MeasurementModel, ekf, gate_sigma_of
 from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory, simulate_ins_errors
 from pipeline.navigation.map_io import GeoMap
 from pipeline.navigation.map_model import MapModel, wiener_smooth
-from pipeline.navigation.montecarlo import Trial, run_trial
 from pipeline.navigation.stage import consistency
 from pipeline.simulate.navigation import racetrack, random_field_map
-from tests.test_navigation import _box_frame, _one_line_error, _utm_map, cli  # noqa: F401
+from pipeline.simulate.navigation_trials import Trial, run_trial
+from tests.navmaps import box_frame, in_process_cli, one_line_error, utm_map  # noqa: F401
 
 
 def _noisy_biased(seed: int, told: float, **kw) -> dict:
@@ -174,7 +175,7 @@ def _placed_map(box_path, tmp_path, with_sigma: bool):
     from pipeline.io.writer import write_with_new_channels
     from pipeline.products.channels import grid_channel, map_frame_channel
 
-    lat0, lon0 = _box_frame(box_path)
+    lat0, lon0 = box_frame(box_path)
     frame = survey_frame([lat0], [lon0], [420.0])
     g = random_field_map(8, size_m=6000.0, cell_m=25.0, origin_m=(-3000.0, -3000.0))
     t0 = 1_781_485_200_000_000_000
@@ -189,11 +190,11 @@ def _placed_map(box_path, tmp_path, with_sigma: bool):
     return placed
 
 
-def test_map_sigma_contract(box_path, tmp_path, cli):  # noqa: F811
-    tif = _utm_map(box_path, tmp_path)
+def test_map_sigma_contract(box_path, tmp_path, cli):
+    tif = utm_map(box_path, tmp_path)
     nav = tmp_path / "n.json"
     base = ("navigate", box_path, "--json", nav, "--segments", "all")
-    line = _one_line_error(*cli(*base, "--map", tif, "--map-sigma", -1))
+    line = one_line_error(*cli(*base, "--map", tif, "--map-sigma", -1))
     assert "--map-sigma" in line and ">= 0" in line and not nav.exists()
     code, text = cli(*base, "--map", tif, "--map-sigma", 2.5)
     assert code == 0, text
@@ -231,3 +232,38 @@ def test_exported_netcdf_brings_its_uncertainty(tmp_path):
     assert (m.sigma.east0_m, m.sigma.north0_m) == (m.grid.east0_m, m.grid.north0_m)
     # a GeoTIFF holds one band: no error grid, the default applies
     assert read_map(tmp_path / "out" / "f.anomaly.tif").sigma is None
+
+
+def test_navigability_command_writes_its_grid_and_refuses_bad_input(box_path, tmp_path, cli):
+    """``aeromag navigability``: /map/navigability (m) on the map's cells, exported as a
+    GeoTIFF in metres; a raw recording, a negative speed and an unknown heading are one line."""
+    from pipeline.export import export_recording
+    from pipeline.export.source import read_map_products
+    from pipeline.io.reader import read_flight
+    from pipeline.io.writer import write_with_new_channels
+    from pipeline.products.channels import field_channel
+
+    placed = _placed_map(box_path, tmp_path, True)
+    out = tmp_path / "navg.processed.mcap"
+    line = one_line_error(*cli("navigability", placed, "--out", out))
+    assert "/mag/compensated" in line and not out.exists()
+    f = read_flight(placed)
+    col = next(c for c in f.data.columns if c.endswith("_nT") and f.data[c].notna().any())
+    total = f.data[col].to_numpy(float)
+    comp = tmp_path / "comp.mcap"
+    ch = field_channel(f, "/mag/compensated", total, np.zeros_like(total), "none")
+    write_with_new_channels(placed, comp, [ch])
+    for bad, word in ((("--speed", -3), "--speed"), (("--heading", "up"), "--heading")):
+        assert word in one_line_error(*cli("navigability", comp, "--out", out, *bad))
+    code, text = cli("navigability", comp, "--out", out, "--speed", 40, "--heading", 90)
+    assert code == 0, text
+    mp = read_map_products(out)
+    nav = mp.grid("navigability").grid
+    anomaly = mp.grid("anomaly_filtered").grid
+    assert nav.shape == anomaly.shape and mp.grid("navigability").units == "m"
+    assert np.array_equal(np.isfinite(nav.values), np.isfinite(anomaly.values))
+    assert np.nanmin(nav.values) > 0
+    written = export_recording(out, tmp_path / "x", ["geotiff", "magnav"])
+    assert any(p.endswith("navg.navigability.tif") for p in written["geotiff"])
+    names = [Path(p).name for p in written["magnav"]]
+    assert names == ["navg.anomaly_filtered.magnav.h5"]  # not the error or navigability grids
