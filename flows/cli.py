@@ -509,6 +509,14 @@ def navigate(
             "--map-channel", help="Grid channel of a recording map (config: /map/<navigate.map>)."
         ),
     ] = None,
+    map_sigma: Annotated[
+        float | None,
+        typer.Option(
+            "--map-sigma",
+            help="The map's 1-sigma error, nT, everywhere (default: the map's /map/uncertainty "
+            "when it has one, else navigate.map_sigma_nT).",
+        ),
+    ] = None,
     config: ConfigOption = None,
 ) -> None:
     """Magnetic anomaly navigation on a map: simulate an INS along the recorded track, aid it
@@ -518,10 +526,40 @@ def navigate(
     cfg = _stage_config(config, navigate, locals(), recording, map_path)
     with console.status(f"navigating {recording.name} on {map_path.name}"):
         summary = navigate_recording(
-            recording, map_path, json_out, cfg, out_path, map_channel, segments=segments
+            recording,
+            map_path,
+            json_out,
+            cfg,
+            out_path,
+            map_channel,
+            segments=segments,
+            map_sigma_nT=map_sigma,
         )
     emit("navigate", summary["navigation"])
     _written(out_path, json_out)
+
+
+@app.command()
+def navigability(
+    recording: Annotated[Path, typer.Argument(help="Processed recording (.mcap) with its map.")],
+    out_path: Annotated[Path, typer.Option("--out", help="Copy of it with /map/navigability.")],
+    speed: Annotated[
+        float | None,
+        typer.Option(help="Vehicle speed, m/s (default: the recording's median ground speed)."),
+    ] = None,
+    heading: Annotated[
+        str, typer.Option(help="Heading from grid north, deg, or all (four directions).")
+    ] = "all",
+    config: ConfigOption = None,
+) -> None:
+    """The position accuracy (CRLB, m) a vehicle reaches flying into each cell of the map."""
+    from pipeline.run.navigate import navigability_recording
+
+    cfg = _stage_config(config, navigability, locals(), recording)
+    with console.status(f"navigability of {recording.name}'s map"):
+        result = navigability_recording(recording, out_path, cfg, speed, heading)
+    emit("navigability", result)
+    _written(out_path)
 
 
 def _run_postflight(recording: Path, out_dir: Path, config: Path | None = None) -> dict:

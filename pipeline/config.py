@@ -189,7 +189,14 @@ class Config:
         from pipeline.navigation.stage import NavigationSettings
 
         n = self.values["navigate"]
-        return NavigationSettings(filter=n["filter"], ins=n["ins"], seed=n["seed"])
+        return NavigationSettings(
+            filter=n["filter"],
+            ins=n["ins"],
+            seed=n["seed"],
+            default_map_sigma_nT=n["map_sigma_nT"],
+            map_error_length_m=n["map_error_length_m"],
+            gate_probability=n["gate_probability"],
+        )
 
     def despike_settings(self):
         """:class:`pipeline.despike.DespikeSettings` from ``[despike]``."""

@@ -44,6 +44,7 @@ def test_postflight_flow_writes_input_plus_new_channels(demo_output):
         "/map/frame",
         "/map/anomaly",
         "/map/anomaly_filtered",
+        "/map/uncertainty",
         "/map/lines",
         "/map/tracks",
         "/quality/heading_error",
@@ -147,7 +148,7 @@ def test_the_exports_hold_the_channels_cells_exactly(demo_output):
     out = out_dir / "demo_flight.processed.mcap"
     o = summary["map"]["origin"]
     assert o["crs"] == "EPSG:32649" and o["utm_zones_spanned"] == [32649]
-    for name in ("anomaly", "anomaly_filtered"):
+    for name in ("anomaly", "anomaly_filtered", "uncertainty"):
         cells, x, y, frame = _decode_grid_channel(out, f"/map/{name}")
         assert frame["crs"] == "EPSG:32649" and frame["epsg"] == 32649
         with rasterio.open(out_dir / f"demo_flight.{name}.tif") as ds:

@@ -446,3 +446,31 @@ def test_order_screening_on_a_long_sequence_keeps_the_full_search_result(monkeyp
     # the smoothed lanes agree to a small share of the noise, and both remove most of it
     assert np.sqrt(np.mean((a - b) ** 2)) < 0.05 * 0.5
     assert np.sqrt(np.mean((a - x) ** 2)) < 0.5 * 0.5
+
+
+def test_map_stage_writes_the_uncertainty_on_the_anomaly_cells(mapped):
+    """/map/uncertainty: the anomaly grid's cells and mask, never below the levelling and noise
+    terms (the interpolation term adds to them away from the lines), and the channel holds
+    those cells (float32)."""
+    import base64
+
+    from pipeline.products.channels import map_channels
+
+    _sim, _p, flight, seg, _r, mr = mapped
+    s, g = mr.uncertainty, mr.grid
+    assert s is not None and s.shape == g.shape and s.cell_m == g.cell_m
+    assert (s.east0_m, s.north0_m) == (g.east0_m, g.north0_m)
+    assert np.array_equal(np.isfinite(s.values), np.isfinite(g.values))
+    v = s.values[np.isfinite(s.values)]
+    model = mr.uncertainty_model
+    floor = np.hypot(model.level_nT, model.noise_nT)
+    assert floor > 0 and v.min() >= floor - 1e-9
+    assert v.max() <= np.hypot(floor, model.interpolation_nT(1e9)) + 1e-9
+    summary = mr.summary()["uncertainty"]
+    assert summary["channel"] == "/map/uncertainty" and summary["heldout_rms_nT"] > 0
+    chans = {c.topic: c for c in map_channels(flight, seg, mr)}
+    msg = chans["/map/uncertainty"].messages[0][1]
+    cells = np.frombuffer(base64.b64decode(msg["data"]), "<f4").reshape(g.shape)
+    np.testing.assert_array_equal(cells, s.values.astype(np.float32))
+    anomaly = chans["/map/anomaly"].messages[0][1]
+    assert msg["pose"] == anomaly["pose"] and msg["fields"][0]["name"] == "uncertainty_nT"

@@ -147,7 +147,16 @@ def test_stage_starts_both_runs_from_the_aided_covariance(monkeypatch, box_path)
     monkeypatch.setattr(stage, "simulate_ins_errors", spy_sim)
     run = _stage_run(stage, box_path)
     ref = seen["ekf"]
-    assert all(np.array_equal(ref, p) for p in [seen["sim"], *seen["crlb"]])
+    # the same covariance everywhere, but for the bias state's prior in the filter and its
+    # bound, which also holds the map's error (it may be an offset)
+    bias = ref[-1, -1] - seen["sim"][-1, -1]
+    assert run.map_sigma_source == "default"  # a map without an error grid
+    assert np.isclose(bias, run.settings.default_map_sigma_nT**2, rtol=1e-9)
+    for p in [seen["sim"], *seen["crlb"]]:
+        q = p.copy()
+        q[-1, -1] = ref[-1, -1]
+        assert np.array_equal(ref, q)
+    assert np.array_equal(ref, seen["crlb"][0])
     assert len(seen["crlb"]) == 2
     assert any(note.startswith("initial covariance: GNSS-aided INS") for note in run.notes)
     # not the alignment's diagonal P0: the fixes correlated the states

@@ -32,13 +32,16 @@ def crlb(
 
     ``update`` (N,) marks the epochs with a map measurement (default: where the true position
     is on the map). ``map_model``: the measurement's Jacobian at zero error on the true track
-    (a bare map: ``h = map + b``).
+    (a bare map: ``h = map + b``). ``r_nT2``: the sensor's noise variance (nT^2); a
+    :class:`MeasurementModel`'s map error variance on the true track is added.
     """
     meas = as_measurement(map_model)
     N, n = qd.shape
     on = meas.map_model.inside(true_east_m, true_north_m)
     allow = on if update is None else (np.asarray(update, bool) & on)
     rows = meas.jacobians_at(true_east_m, true_north_m, n)
+    # the map's error variance on the true track joins the sensor's
+    r = r_nT2 + np.broadcast_to(meas.map_var_nT2(true_east_m, true_north_m), (N,))
     P = np.array(p0, float)
     out = np.empty((N, n, n) if full_cov else (N, 2, 2))
     for k in range(N):
@@ -49,7 +52,7 @@ def crlb(
         if allow[k]:
             H = rows[k]
             PH = P @ H
-            P = P - np.outer(PH, PH) / (float(H @ PH) + r_nT2)
+            P = P - np.outer(PH, PH) / (float(H @ PH) + r[k])
             P = 0.5 * (P + P.T)
         out[k] = P if full_cov else P[:2, :2]
     return out

@@ -329,3 +329,18 @@ def reprocess_text(result: dict) -> list[Block]:
         f"{result['done']} already done, {result['quarantined']} quarantined",
         f"index: {result['index']['csv']}",
     ]
+
+
+def navigability_text(result: dict) -> list[Block]:
+    """``aeromag navigability``: the speed and headings assumed, the noise levels used and the
+    spread of the per-cell position bound."""
+    d = result["drms_m"]
+    sigma = result["map_sigma"]
+    return [
+        f"{result['channel']}: {result['speed_mps']:.1f} m/s, headings "
+        f"{', '.join(f'{h:g}' for h in result['headings_deg'])} deg; sensor "
+        f"{result['sensor_sigma_nT']:.3f} nT, map "
+        + ("its own /map/uncertainty" if sigma == "grid" else f"{sigma:g} nT"),
+        f"position bound (CRLB DRMS) per cell: median {d['median']:.1f} m, 10-90 % "
+        f"{d['p10']:.1f}-{d['p90']:.1f} m",
+    ]

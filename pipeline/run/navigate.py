@@ -7,6 +7,8 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from pipeline.config import Config
 from pipeline.errors import AeromagError
 from pipeline.io.writer import OutputChannel, write_json_atomic, write_with_new_channels
@@ -85,3 +87,96 @@ def navigate_recording(
     )
     write_json_atomic(json_out, summary)
     return summary
+
+
+def parse_headings(text: str) -> tuple[float, ...]:
+    """``--heading``: ``all`` (0, 45, 90, 135: every direction, a line and its reverse alike
+    to first order) or one heading in degrees from grid north."""
+    if str(text).strip().lower() == "all":
+        return (0.0, 45.0, 90.0, 135.0)
+    try:
+        h = float(text)
+    except ValueError:
+        raise AeromagError(f"--heading {text!r}: use degrees from grid north or all") from None
+    if not np.isfinite(h):
+        raise AeromagError(f"--heading {text!r}: use degrees from grid north or all")
+    return (h % 360.0,)
+
+
+def navigability_recording(
+    src: Path,
+    out_path: Path,
+    cfg: Config,
+    speed_mps: float | None = None,
+    heading: str = "all",
+) -> dict[str, Any]:
+    """``aeromag navigability``: the map of a processed recording turned into the position
+    CRLB a vehicle reaches flying into each cell (:mod:`pipeline.navigation.navigability`),
+    written as ``/map/navigability`` (``foxglove.Grid``, m) on a copy of the recording.
+
+    The map is ``/map/<navigate.map>`` with its ``/map/uncertainty`` (else ``[navigate]
+    map_sigma_nT``); the sensor's noise the white noise of the recording's ``/mag/compensated``;
+    ``speed_mps`` None: the recording's median ground speed.
+    """
+    from pipeline.io.reader import read_flight
+    from pipeline.navigation.map_io import read_map
+    from pipeline.navigation.navigability import NavigabilitySettings, navigability
+    from pipeline.noise import white_noise_nT
+    from pipeline.products.channels import grid_channel
+    from pipeline.run.fields import existing_compensated
+
+    headings = parse_headings(heading)
+    if speed_mps is not None and not (np.isfinite(speed_mps) and speed_mps > 0):
+        raise AeromagError(f"--speed {speed_mps!r}: a speed in m/s must be > 0")
+    nav = cfg.navigation_settings()
+    nav.check()
+    geomap = read_map(src, f"/map/{cfg['navigate']['map']}")
+    flight = read_flight(src)
+    comp = existing_compensated(flight)
+    if not comp:
+        raise AeromagError(
+            "no compensated field (run `aeromag process` on it first)",
+            file=src,
+            channel="/mag/compensated",
+        )
+    sensor = white_noise_nT(list(comp.values())[-1])
+    flight.require("lat_deg", "lon_deg", purpose="navigability (the survey's speed)")
+    d = flight.data
+    lat, lon = d["lat_deg"].to_numpy(float), d["lon_deg"].to_numpy(float)
+    ok = np.isfinite(lat) & np.isfinite(lon)
+    if speed_mps is None:
+        e, n = (np.asarray(v, float) for v in geomap.to_local(lat[ok], lon[ok]))
+        t = d["time_s"].to_numpy(float)[ok]
+        v = np.hypot(np.diff(e), np.diff(n)) / np.maximum(np.diff(t), 1e-9)
+        speed_mps = float(np.median(v[v > 1.0])) if (v > 1.0).any() else float("nan")
+        if not np.isfinite(speed_mps):
+            raise AeromagError(
+                "the track does not move: give --speed", file=src, channel="/gnss/fix"
+            )
+    present = set(flight.all_topics)
+    refuse_existing(
+        src, [OutputChannel("/map/navigability", "")], present, "use the recording without it"
+    )
+    sigma = geomap.sigma if geomap.sigma is not None else nav.default_map_sigma_nT
+    s = NavigabilitySettings(
+        speed_mps=float(speed_mps),
+        headings_deg=headings,
+        lat_deg=float(np.median(lat[ok])),
+        map_error_length_m=nav.map_error_length_m,
+    )
+    grid = navigability(geomap.grid, float(sensor), sigma, s)
+    channel = grid_channel("/map/navigability", int(flight.time_ns[0]), grid, "navigability_m")
+    write_with_new_channels(src, out_path, [channel], metadata={"aeromag.run": run_metadata()})
+    v = grid.values[np.isfinite(grid.values)]
+    return {
+        "channel": "/map/navigability",
+        "speed_mps": float(speed_mps),
+        "headings_deg": list(headings),
+        "sensor_sigma_nT": float(sensor),
+        "map_sigma": "grid" if geomap.sigma is not None else nav.default_map_sigma_nT,
+        "drms_m": {
+            "median": float(np.median(v)),
+            "p10": float(np.percentile(v, 10)),
+            "p90": float(np.percentile(v, 90)),
+        },
+    }

@@ -146,6 +146,7 @@ def navigate_stage(flight: Flight, seg: Segmentation | None, comp: np.ndarray, m
     which = cfg["navigate"]["map"]
     grid = map_run.filtered if which == "anomaly_filtered" else map_run.grid
     geomap = frame_map(grid, map_run.frame, f"/map/{which}", f"this flight's /map/{which}")
+    geomap.sigma, geomap.error_length_m = map_run.uncertainty, map_run.spacing_m
     try:
         return run_navigation(flight, seg, comp, geomap, cfg.navigation_settings())
     except AeromagError as exc:

@@ -1,0 +1,71 @@
+"""Navigability map (issue 38, item 6, library part): the per-cell position CRLB against the
+CRLB of flights along chosen tracks over a map with a rich half and a quiet half."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from pipeline.navigation.crlb import crlb
+from pipeline.navigation.ekf import MeasurementModel, correlated_error_scale
+from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory
+from pipeline.navigation.map_model import MapModel
+from pipeline.navigation.navigability import NavigabilitySettings, navigability
+from pipeline.simulate.navigation import random_field_map
+
+SPEED, SIGMA, SENSOR = 60.0, 0.5, 0.1
+
+
+@pytest.fixture(scope="module")
+def half_quiet():
+    """An 8 km map whose west half is 30 times quieter, and its navigability (stride 8)."""
+    g = random_field_map(3, size_m=8000.0, cell_m=50.0, origin_m=(-4000.0, -4000.0))
+    ce, _ = g.coordinates()
+    v = g.values.copy()
+    v[:, ce < 0] *= 1.0 / 30.0
+    g = g.with_values(v)
+    s = NavigabilitySettings(speed_mps=SPEED, stride_cells=8)
+    return g, navigability(g, SENSOR, SIGMA, s), s
+
+
+def _flight_crlb(g, east_m, heading_deg, s):
+    """CRLB DRMS (m) of a flight along a chosen track: a straight line through the map at
+    ``east_m`` on ``heading_deg`` (0: north, 180: south), 2 Hz, 110 s, from the navigability's
+    start sigma; its positions and the bound over the last half."""
+    t = np.arange(0.0, 110.0, 0.5)
+    sign = 1.0 if heading_deg == 0.0 else -1.0
+    n = sign * (-3300.0 + SPEED * t)
+    e = np.full_like(t, east_m)
+    traj = Trajectory.from_track(t, n, e, np.zeros_like(t), np.full(t.size, s.lat_deg))
+    model = InsErrorModel(GRADES["navigation"])
+    phi = model.transitions(traj)
+    qd = model.process_noise(np.diff(t, prepend=t[0]))
+    scale = correlated_error_scale(s.map_error_length_m, SPEED * 0.5)
+    meas = MeasurementModel(MapModel(g), map_sigma_nT=SIGMA, map_var_scale=scale)
+    b = crlb(phi, qd, model.initial_covariance(s.start_sigma_m), e, n, meas, SENSOR**2)
+    k = t > 55.0
+    return e[k], n[k], np.sqrt(b[k, 0, 0] + b[k, 1, 1])
+
+
+def test_navigability_follows_the_crlb_of_flights_along_chosen_tracks(half_quiet):
+    g, nav, s = half_quiet
+    assert nav.shape == g.shape and np.array_equal(np.isfinite(nav.values), np.isfinite(g.values))
+    ce, _ = g.coordinates()
+    quiet = np.nanmedian(nav.values[:, (ce < -1000) & (ce > -3000)])
+    rich = np.nanmedian(nav.values[:, (ce > 1000) & (ce < 3000)])
+    assert quiet > 5 * rich
+    for east in (-2000.0, -1200.0, 1200.0, 2000.0):
+        for heading in (0.0, 180.0):
+            e, n, flown = _flight_crlb(g, east, heading, s)
+            mapped = nav.interpolate(e, n)
+            ratio = np.median(flown) / np.median(mapped)
+            # a different sampling and a single heading against four: the same order
+            assert 1 / 3 < ratio < 3, (east, heading, np.median(flown), np.median(mapped))
+
+
+def test_a_larger_map_error_makes_every_cell_less_navigable(half_quiet):
+    g, nav, s = half_quiet
+    worse = navigability(g, SENSOR, 5.0, s)
+    ok = np.isfinite(nav.values)
+    assert np.all(worse.values[ok] >= nav.values[ok] * (1 - 1e-9))
+    assert np.nanmedian(worse.values / nav.values) > 1.5
