@@ -158,6 +158,8 @@ class CompensationModel:
     coefficient_std: np.ndarray | None = None  # from the residual variance (no ridge)
     condition_number: float = float("nan")  # of the band-passed, column-scaled design
     weakest_terms: list[str] = field(default_factory=list)
+    # AGG-TL: where its horizontal gradient came from (pipeline.compensate.agg_legs)
+    gradient_evidence: dict[str, Any] = field(default_factory=dict)
 
     @property
     def model(self) -> str:
@@ -203,6 +205,7 @@ class CompensationModel:
             "calibration_windows_s": [[float(a), float(b)] for a, b in self.calibration_blocks],
             "gradient_nT_per_m": self.gradient_nT_per_m(),
             "reference": self.reference or None,
+            **({"gradient_evidence": self.gradient_evidence} if self.gradient_evidence else {}),
         }
 
 
