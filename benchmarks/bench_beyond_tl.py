@@ -170,9 +170,10 @@ def summarise(rows: list[dict]) -> list[str]:
             continue
         lines.append(f"## {kind}: {len(mine)} flights")
         lines.append(
-            "| model | heldout nT | crossover nT | truth nT | map nT | used | truth vs tl18 |"
+            "| model | heldout nT | crossover nT | truth nT | truth less scale nT | map nT "
+            "| used | truth vs tl18 |"
         )
-        lines.append("|---|---|---|---|---|---|---|")
+        lines.append("|---|---|---|---|---|---|---|---|")
         base = np.array([r["models"]["tl18"]["truth_nT"] for r in mine])
         for model in MODELS:
             cols = {
