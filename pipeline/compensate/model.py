@@ -166,6 +166,8 @@ class CompensationModel:
     weakest_terms: list[str] = field(default_factory=list)
     # samples trim_s dropped at each block end at the recording's rate (the channel's trim)
     trim_samples: int = 0
+    # AGG-TL: where its horizontal gradient came from (pipeline.compensate.agg_legs)
+    gradient_evidence: dict[str, Any] = field(default_factory=dict)
 
     @property
     def model(self) -> str:
@@ -212,6 +214,7 @@ class CompensationModel:
             "calibration_windows_s": [[float(a), float(b)] for a, b in self.calibration_blocks],
             "gradient_nT_per_m": self.gradient_nT_per_m(),
             "reference": self.reference or None,
+            **({"gradient_evidence": self.gradient_evidence} if self.gradient_evidence else {}),
         }
 
 

@@ -13,6 +13,8 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from pipeline.products.markdown import extension_lines
+
 # figure name -> caption; the report places figures by name, unknown ones go to "Other figures"
 CAPTIONS = {
     "flight_map": "Flight track coloured by segment (local east/north metres).",
@@ -236,6 +238,8 @@ def _compensation_section(s: dict, figs: _Figures) -> list[str]:
                 _f(r["residual_std_nT"].get("calibration")),
                 _f(r["residual_std_nT"].get("survey")),
                 "-" if not g else "/".join(_f(g[k], ".3f") for k in ("east", "north", "up")),
+                _f(r.get("heldout_residual_nT"), ".4f"),
+                _f(r.get("crossover_rms_nT")),
             ]
         )
     out = [
@@ -253,10 +257,20 @@ def _compensation_section(s: dict, figs: _Figures) -> list[str]:
                 "calibration residual nT",
                 "survey residual nT",
                 "gradient E/N/U nT/m",
+                "held-out residual nT",
+                "crossover RMS nT",
             ],
             rows,
         ),
     ]
+    ext = extension_lines(comp)
+    if ext:
+        items = "".join(
+            f"<li>{html.escape(x.strip().lstrip('- ').replace('**', ''))}</li>"
+            for x in ext
+            if x.strip()
+        )
+        out += ["<h3>Extensions of tl18 (tl-plus, tl-nn)</h3>", f"<ul>{items}</ul>"]
     boxes = (s.get("quality") or {}).get("fom_boxes") or comp[models[-1]]["fom_nT"].get("boxes")
     if boxes:
         cols = [k for k in boxes[0] if k.endswith("_nT")]

@@ -46,8 +46,9 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             "",
             f"Final: **{comp['final']}**",
             "",
-            "| model | FOM raw nT | FOM compensated nT | lambda | survey residual nT |",
-            "|---|---|---|---|---|",
+            "| model | FOM raw nT | FOM compensated nT | lambda | survey residual nT "
+            "| held-out residual nT | crossover RMS nT |",
+            "|---|---|---|---|---|---|---|",
         ]
         for m, r in comp.items():
             if m == "final":
@@ -55,9 +56,11 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             out.append(
                 f"| {m} | {f(r['fom_nT']['uncompensated'], '.2f')} | "
                 f"{f(r['fom_nT']['compensated'], '.2f')} | {f(r['lambda'], '.3g')} | "
-                f"{f(r['residual_std_nT']['survey'])} |"
+                f"{f(r['residual_std_nT']['survey'])} | {f(r.get('heldout_residual_nT'), '.4f')} "
+                f"| {f(r.get('crossover_rms_nT'))} |"
             )
         out.append("")
+        out += extension_lines(comp)
     a = s.get("audit")
     if a:
         out += [
@@ -162,3 +165,30 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
     if images:
         out += ["## Figures", ""] + [f"![{k}]({p})" for k, p in images.items()] + [""]
     return "\n".join(out)
+
+
+def extension_lines(comp: dict) -> list[str]:
+    """Markdown lines on tl-plus / tl-nn: used or not and why, tl-plus's groups (with the
+    audit's seeds), tl-nn's feature-group importance (held-out RMS increase when permuted)."""
+    out: list[str] = []
+    for m, r in comp.items():
+        ext = r.get("extension") if isinstance(r, dict) else None
+        if not ext:
+            continue
+        verdict = "used" if ext.get("used") else "not used, tl18 kept"
+        out.append(f"- **{m}**: {verdict}: {ext.get('reason', '')}")
+        groups = [g for g, t in (r.get("term_groups") or {}).items() if t.get("selected")]
+        if groups:
+            out.append(f"  - term groups: {', '.join(groups)}")
+        if ext.get("seeded_by_audit"):
+            out.append(f"  - tried first (named by the audit): {', '.join(ext['seeded_by_audit'])}")
+        imp = r.get("feature_importance") or {}
+        if imp:
+            key = "heldout_rms_increase_nT"
+            ranked = sorted(imp.items(), key=lambda kv: -kv[1].get(key, 0.0))
+            parts = [
+                f"{g} {v.get(key, 0.0):.4f} nT ({100 * v.get('share', 0.0):.0f} %)"
+                for g, v in ranked
+            ]
+            out.append("  - feature-group importance: " + ", ".join(parts))
+    return out + ([""] if out else [])

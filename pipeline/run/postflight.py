@@ -24,6 +24,7 @@ from functools import cache
 from pathlib import Path
 from typing import Any
 
+from pipeline.compensate.plus import audit_nuisances
 from pipeline.config import Config
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
@@ -94,6 +95,11 @@ def postflight_steps(
             res.runs[m] = call(COMPENSATE, flight, seg, m, cfg)
         if cfg["audit"]["enabled"]:
             res.audit = call(AUDIT, flight, seg, cfg)
+            # the audit's "extend the model" step: nuisances it found become tl-plus's first
+            # candidate groups (the key is absent from audits that name none)
+            audit_json = res.audit.to_json() if res.audit is not None else None
+            if "tl-plus" in res.runs and audit_nuisances(audit_json):
+                res.runs["tl-plus"] = call(COMPENSATE, flight, seg, "tl-plus", cfg, audit_json)
     if cfg["vector"]["enabled"] and flight.has("vector_x_nT", "roll_deg"):
         res.vector = call(VECTOR, flight, seg, cfg)
     final = final_field(res.runs, res.audit)

@@ -47,15 +47,18 @@ def despike_stage(flight: Flight, cfg) -> tuple[Flight, DespikeResult]:
     return despike_flight(flight, cfg.despike_settings())
 
 
-def compensate_stage(flight: Flight, seg: Segmentation, model: str, cfg) -> CompensationRun:
-    """Compensate: fit ``model`` (``tl16``, ``tl18`` or ``agg-tl``) with the configuration's
-    settings.
+def compensate_stage(
+    flight: Flight, seg: Segmentation, model: str, cfg, audit: dict | None = None
+) -> CompensationRun:
+    """Compensate: fit ``model`` (``tl16``, ``tl18``, ``agg-tl``, ``tl-plus`` or ``tl-nn``)
+    with the configuration's settings; ``audit``: the audit's summary, whose
+    ``unexplained.nuisances`` tl-plus tries first.
 
     Returns
     -------
     CompensationRun
     """
-    return run_compensation(flight, seg, cfg.fit_settings(model))
+    return run_compensation(flight, seg, cfg.fit_settings(model), audit=audit)
 
 
 def audit_stage(flight: Flight, seg: Segmentation, cfg):
