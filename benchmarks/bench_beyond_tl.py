@@ -143,7 +143,7 @@ def magnav_slice() -> dict:
         s = FitSettings(
             model=model,
             band_hz=band,
-            trim=int(p["trim"]),
+            trim_s=p["trim"] / fs,  # MagNav counts samples; ours is seconds
             ridge=p["lambda"],
             bt_scale_nT=p["Bt_scale"],
         )
