@@ -69,3 +69,30 @@ def test_a_larger_map_error_makes_every_cell_less_navigable(half_quiet):
     ok = np.isfinite(nav.values)
     assert np.all(worse.values[ok] >= nav.values[ok] * (1 - 1e-9))
     assert np.nanmedian(worse.values / nav.values) > 1.5
+
+
+def test_the_line_is_sized_to_the_maps_covered_area():
+    """Item 6.2: the line into a cell is half the shorter side of the map's covered cells
+    long (NaN margins do not count), so a line into the map's centre from any heading lies
+    on the map; bounded to [20, 120] s."""
+    from pipeline.navigation.navigability import MAX_WINDOW_S, MIN_WINDOW_S, line_window_s
+
+    g = random_field_map(5, size_m=4000.0, cell_m=25.0, origin_m=(-2000.0, -2000.0))
+    ce, cn = g.coordinates()
+    v = g.values.copy()
+    v[:, np.abs(ce) > 1500.0] = np.nan  # covered: 3000 m east-west
+    v[np.abs(cn) > 500.0, :] = np.nan  # and 1000 m north-south
+    g = g.with_values(v)
+    speed = 20.0
+    window = line_window_s(g, speed)
+    assert window == pytest.approx(1000.0 / 2 / speed)  # 41 cell centres 25 m apart, halved
+    along = speed * np.linspace(-window, 0.0, 50) * (1 - 1e-9)  # the last centre: inside
+    for heading in np.radians(np.arange(0.0, 360.0, 22.5)):
+        e, n = along * np.sin(heading), along * np.cos(heading)
+        assert np.isfinite(g.interpolate(e, n)).all(), np.degrees(heading)
+    assert line_window_s(g, 0.5) == MAX_WINDOW_S and line_window_s(g, 500.0) == MIN_WINDOW_S
+    s = NavigabilitySettings(speed_mps=speed, headings_deg=(0.0,), stride_cells=8)
+    sized = navigability(g, SENSOR, SIGMA, s)
+    fixed = navigability(g, SENSOR, SIGMA, NavigabilitySettings(**{**vars(s), "window_s": 120.0}))
+    # the default is the sized line, not the fixed one (which starts off this map)
+    assert np.nanmax(np.abs(np.log(sized.values / fixed.values))) > 1e-3
