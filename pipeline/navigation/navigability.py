@@ -24,7 +24,7 @@ import numpy as np
 from scipy.interpolate import RegularGridInterpolator
 
 from pipeline.maps.grid import Grid
-from pipeline.navigation.crlb import crlb
+from pipeline.navigation.crlb import crlb_final
 from pipeline.navigation.ekf import MeasurementModel, correlated_error_scale
 from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory
 from pipeline.navigation.map_model import MapModel
@@ -54,24 +54,33 @@ class NavigabilitySettings:
 MAX_WINDOW_S, MIN_WINDOW_S = 120.0, 20.0
 
 
-def line_window_s(grid: Grid, speed_mps: float) -> float:
-    """The line's duration (s): the time to fly half the shorter side of the map's covered
-    area (its finite cells' bounding box, centre to centre) at ``speed_mps``, within
-    [``MIN_WINDOW_S``, ``MAX_WINDOW_S``].
+def line_window_s(grid: Grid, speed_mps: float, heading_deg: float | None = None) -> float:
+    """The line's duration (s): the time to fly, at ``speed_mps``, from the centre of the
+    map's covered area (its finite cells' bounding box, centre to centre) to its edge along
+    ``heading_deg`` (from grid north; None: half the box's shorter side, the shortest of
+    these), within [``MIN_WINDOW_S``, ``MAX_WINDOW_S``].
 
-    Half the shorter side is the longest line that ends at the map's centre from any heading
-    and stays on the map: a cell's value then measures the map around it, not the updates a
-    longer line would miss off the map (on a survey a few kilometres across, a fixed 120 s
-    line at survey speed starts off the map for most cells and every cell reads as if the
-    vehicle had just arrived). Cells nearer an edge still read worse on the headings coming
-    from that edge, as a vehicle arriving from there would.
+    That is the longest line on that heading that ends at the map's centre and stays on the
+    map: a cell's value then measures the map around it, not the updates a longer line would
+    miss off the map (on a survey a few kilometres across, a fixed 120 s line at survey speed
+    starts off the map for most cells, and its INS drifts there with nothing to correct it).
+    Along the long axis of an elongated block the line is longer than across it. Cells nearer
+    an edge still read worse on the headings coming from that edge, as a vehicle arriving
+    from there would.
     """
     ok = np.isfinite(grid.values)
     if not ok.any():
         return MIN_WINDOW_S
     rows, cols = np.flatnonzero(ok.any(axis=1)), np.flatnonzero(ok.any(axis=0))
-    side_m = grid.cell_m * min(rows[-1] - rows[0], cols[-1] - cols[0])  # centre to centre
-    return float(np.clip(0.5 * side_m / speed_mps, MIN_WINDOW_S, MAX_WINDOW_S))
+    half_n = 0.5 * grid.cell_m * (rows[-1] - rows[0])  # centre to centre
+    half_e = 0.5 * grid.cell_m * (cols[-1] - cols[0])
+    if heading_deg is None:
+        reach_m = min(half_n, half_e)
+    else:
+        h = np.radians(heading_deg)
+        c, s = abs(np.cos(h)), abs(np.sin(h))
+        reach_m = min(half_n / c if c > 1e-9 else np.inf, half_e / s if s > 1e-9 else np.inf)
+    return float(np.clip(reach_m / speed_mps, MIN_WINDOW_S, MAX_WINDOW_S))
 
 
 def _line(s: NavigabilitySettings, heading_deg: float, window_s: float):
@@ -86,6 +95,11 @@ def _line(s: NavigabilitySettings, heading_deg: float, window_s: float):
     phi = model.transitions(traj)
     qd = model.process_noise(np.diff(t, prepend=t[0]))
     return north, east, phi, qd, model.initial_covariance(s.start_sigma_m)
+
+
+def line_s(grid: Grid, s: NavigabilitySettings, heading_deg: float) -> float:
+    """The line's duration on a heading (s): ``s.window_s``, else :func:`line_window_s`."""
+    return s.window_s if s.window_s is not None else line_window_s(grid, s.speed_mps, heading_deg)
 
 
 def navigability(
@@ -106,10 +120,9 @@ def navigability(
         The map's 1-sigma error, nT: a grid on the map's cells (``/map/uncertainty``) or one
         value.
     settings : NavigabilitySettings, optional
-        ``window_s`` None: :func:`line_window_s`.
+        ``window_s`` None: :func:`line_window_s` on each heading.
     """
     s = settings or NavigabilitySettings()
-    window_s = s.window_s if s.window_s is not None else line_window_s(grid, s.speed_mps)
     mm = MapModel(grid)
     scale = correlated_error_scale(s.map_error_length_m, s.speed_mps / s.rate_hz)
     if isinstance(sigma, Grid):
@@ -123,13 +136,14 @@ def navigability(
         iy = np.append(iy, grid.shape[0] - 1)
     if ix[-1] != grid.shape[1] - 1:
         ix = np.append(ix, grid.shape[1] - 1)
-    var = np.zeros((iy.size, ix.size))
+    var = np.zeros(iy.size * ix.size)
+    cy, cx = (a.ravel() for a in np.meshgrid(cn[iy], ce[ix], indexing="ij"))
     for heading in s.headings_deg:
-        north, east, phi, qd, p0 = _line(s, heading, window_s)
-        for a, j in enumerate(iy):
-            for b, i in enumerate(ix):
-                bound = crlb(phi, qd, p0, ce[i] + east, cn[j] + north, meas, sensor_nT**2)
-                var[a, b] += np.trace(bound[-1])
+        north, east, phi, qd, p0 = _line(s, heading, line_s(grid, s, heading))
+        e, n = cx[:, None] + east[None, :], cy[:, None] + north[None, :]
+        bound = crlb_final(phi, qd, p0, e, n, meas, sensor_nT**2)  # every cell at once
+        var += np.trace(bound, axis1=1, axis2=2)
+    var = var.reshape(iy.size, ix.size)
     coarse = np.sqrt(var / len(s.headings_deg))
     itp = RegularGridInterpolator((cn[iy], ce[ix]), np.log(coarse))
     gy, gx = np.meshgrid(cn, ce, indexing="ij")

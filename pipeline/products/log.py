@@ -265,13 +265,15 @@ def navigability_lines(result) -> list[tuple[int, str]]:
     skipped."""
     if isinstance(result, str):
         return [(LOG_INFO, f"navigability: skipped: {result}")]
+    from pipeline.products.markdown import line_range_s
+
     s = result[1]
     d = s["drms_m"]
     return [
         (
             LOG_INFO,
             f"navigability: /map/navigability, CRLB DRMS median {d['median']:.1f} m "
-            f"(10-90 %: {d['p10']:.1f}-{d['p90']:.1f} m) on {s['line_s']:.0f} s lines at "
+            f"(10-90 %: {d['p10']:.1f}-{d['p90']:.1f} m) on {line_range_s(s)} s lines at "
             f"{s['speed_mps']:.1f} m/s",
         )
     ]

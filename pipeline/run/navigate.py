@@ -131,18 +131,13 @@ def navigability_map(
     length ``geomap.error_length_m``, else ``nav.map_error_length_m``; the latitude the
     track's median.
     """
-    from pipeline.navigation.navigability import (
-        NavigabilitySettings,
-        line_window_s,
-        navigability,
-    )
+    from pipeline.navigation.navigability import NavigabilitySettings, line_s, navigability
 
     lat = flight.data["lat_deg"].to_numpy(float)
     sigma = geomap.sigma if geomap.sigma is not None else nav.default_map_sigma_nT
     s = NavigabilitySettings(
         speed_mps=float(speed_mps),
         headings_deg=tuple(headings),
-        window_s=line_window_s(geomap.grid, float(speed_mps)),
         lat_deg=float(np.nanmedian(lat)),
         map_error_length_m=geomap.error_length_m or nav.map_error_length_m,
     )
@@ -152,7 +147,7 @@ def navigability_map(
         "channel": "/map/navigability",
         "speed_mps": float(speed_mps),
         "headings_deg": list(headings),
-        "line_s": s.window_s,
+        "line_s": [line_s(geomap.grid, s, h) for h in headings],
         "start_sigma_m": s.start_sigma_m,
         "sensor_sigma_nT": float(sensor_nT),
         "map_sigma": "grid" if geomap.sigma is not None else nav.default_map_sigma_nT,
