@@ -199,6 +199,7 @@ def test_summary_records_stage_timings_and_peak_memory(demo_output):
         "map",
         "quality",
         "navigate",
+        "navigability",
         "write",
     ]
     assert all(isinstance(v, float) and 0 <= v < 600 for v in t.values())
