@@ -196,7 +196,7 @@ def test_single_stage_commands_take_a_configuration_their_options_override(tmp_p
 @pytest.fixture(scope="module")
 def processed(tmp_path_factory):
     """`process` (the plain steps) with the band 0.05-0.5 Hz; audit and vector off (slow, and
-    the audit's FOM is checked on its own below)."""
+    the audit's FOM is checked on its own below), navigability off (the switch)."""
     from flows.postflight import run_plain
     from pipeline.simulate import write_simulation
 
@@ -206,9 +206,17 @@ def processed(tmp_path_factory):
     cfg.write_text(
         f"config_version = 1\n[compensation]\nband_hz = {BAND}\n"
         "models = ['tl18', 'agg-tl']\n[audit]\nenabled = false\n"
-        "[vector]\nenabled = false\n[map]\narima = '1,1,1'\n"
+        "[vector]\nenabled = false\n[map]\narima = '1,1,1'\n[navigate]\nnavigability = false\n"
     )
     return src, run_plain(str(src), str(folder / "out"), str(cfg))
+
+
+def test_the_navigability_step_follows_its_switch(processed):
+    """``[navigate] navigability = false``: no step, no channel, no summary block."""
+    _, s = processed
+    assert "navigability" not in s and "navigability" not in s["timings_s"]
+    assert "/map/anomaly" in s["channels_written"]
+    assert "/map/navigability" not in s["channels_written"]
 
 
 def test_every_fom_table_agrees_with_a_non_default_band(processed):

@@ -45,6 +45,7 @@ def test_postflight_flow_writes_input_plus_new_channels(demo_output):
         "/map/anomaly",
         "/map/anomaly_filtered",
         "/map/uncertainty",
+        "/map/navigability",
         "/map/lines",
         "/map/tracks",
         "/quality/heading_error",
@@ -148,7 +149,7 @@ def test_the_exports_hold_the_channels_cells_exactly(demo_output):
     out = out_dir / "demo_flight.processed.mcap"
     o = summary["map"]["origin"]
     assert o["crs"] == "EPSG:32649" and o["utm_zones_spanned"] == [32649]
-    for name in ("anomaly", "anomaly_filtered", "uncertainty"):
+    for name in ("anomaly", "anomaly_filtered", "uncertainty", "navigability"):
         cells, x, y, frame = _decode_grid_channel(out, f"/map/{name}")
         assert frame["crs"] == "EPSG:32649" and frame["epsg"] == 32649
         with rasterio.open(out_dir / f"demo_flight.{name}.tif") as ds:
@@ -198,6 +199,7 @@ def test_summary_records_stage_timings_and_peak_memory(demo_output):
         "map",
         "quality",
         "navigate",
+        "navigability",
         "write",
     ]
     assert all(isinstance(v, float) and 0 <= v < 600 for v in t.values())
@@ -234,6 +236,7 @@ def test_process_command_runs_the_flow_without_a_server(box_path, tmp_path):
 
     summary = json.loads((tmp_path / "out" / "box_uav.summary.json").read_text())
     assert summary["navigation"] == {"skipped": "no map"}
+    assert summary["navigability"] == {"skipped": "no map"}
     assert not any(t.startswith("/nav/") for t in summary["channels_written"])
 
 
@@ -278,13 +281,60 @@ def test_postflight_navigates_the_validation_lines_on_its_own_map(demo_output):
     assert any(ln.startswith("navigate: ekf on validation with a navigation-grade") for ln in log)
 
 
+def test_postflight_maps_the_navigability_of_its_own_map(demo_output):
+    """Issue 38, item 6: the flow turns its filtered map into /map/navigability (m) on the
+    map's cells with its /map/uncertainty, at the survey's speed on lines sized to the map;
+    the summary holds the command's block, the report one line and the figure."""
+    import json
+
+    import numpy as np
+
+    out_dir, summary = demo_output
+    nb = summary["navigability"]
+    assert set(nb) == {
+        "channel",
+        "speed_mps",
+        "headings_deg",
+        "line_s",
+        "start_sigma_m",
+        "sensor_sigma_nT",
+        "map_sigma",
+        "drms_m",
+    }
+    assert nb["channel"] == "/map/navigability" and nb["map_sigma"] == "grid"
+    assert nb["headings_deg"] == [0.0, 45.0, 90.0, 135.0]
+    assert 3.0 < nb["speed_mps"] < 30.0  # the UAV's ground speed, not a default
+    assert len(nb["line_s"]) == 4 and all(20.0 <= t <= 120.0 for t in nb["line_s"])
+    assert min(nb["line_s"]) < 120.0  # shorter than the fixed line across this small map
+    cells, *_ = _decode_grid_channel(out_dir / "demo_flight.processed.mcap", "/map/navigability")
+    anomaly, *_ = _decode_grid_channel(out_dir / "demo_flight.processed.mcap", "/map/anomaly")
+    assert np.array_equal(np.isfinite(cells), np.isfinite(anomaly))
+    v = cells[np.isfinite(cells)]
+    assert (v > 0).all()
+    d = nb["drms_m"]
+    assert d["p10"] < d["median"] < d["p90"]
+    assert d["median"] == pytest.approx(float(np.median(v)), rel=1e-3)
+    assert "navigability" in summary["timings_s"]
+    assert (out_dir / "demo_flight.navigability.png").stat().st_size > 10000
+    report = (out_dir / "demo_flight.report.md").read_text()
+    assert "## Navigability of the map" in report and f"{d['median']:.1f} m at the median" in report
+    page = (out_dir / "demo_flight.report.html").read_text()
+    assert "Navigability of the map" in page and 'id="fig-navigability"' in page
+    log = [
+        json.loads(m[2])["message"]
+        for m in _messages(out_dir / "demo_flight.processed.mcap")
+        if m[0] == "/aeromag/log"
+    ]
+    assert any(ln.startswith("navigability: /map/navigability, CRLB DRMS") for ln in log)
+
+
 def test_navigation_is_skipped_without_validation_lines_or_a_map():
     """One log line, never an error: no map, no validation lines."""
     import numpy as np
 
     from pipeline.config import Config
     from pipeline.products.log import navigation_lines
-    from pipeline.run.steps import navigate_stage
+    from pipeline.run.steps import navigability_stage, navigate_stage
 
     class NoValidation:  # a segmentation whose flight has no validation epochs
         def mask(self, *labels):
@@ -292,6 +342,7 @@ def test_navigation_is_skipped_without_validation_lines_or_a_map():
 
     cfg = Config.load()
     assert navigate_stage(None, None, None, None, cfg) == "no map"
+    assert navigability_stage(None, None, None, cfg) == "no map"
     assert navigate_stage(None, NoValidation(), None, object(), cfg) == "no validation lines"
     assert navigation_lines("no validation lines") == [
         (navigation_lines("x")[0][0], "navigate: skipped: no validation lines")

@@ -1,13 +1,14 @@
 """Navigability of a map: the position accuracy a vehicle can reach flying into each cell.
 
 For a cell, a vehicle flies a straight line at ``speed_mps`` that ends at the cell's centre,
-``window_s`` long, with an INS whose position is known to ``start_sigma_m`` when it starts
-(a navigator that has been dead-reckoning, not one fresh from GNSS); the value is the
-posterior CRLB's DRMS (m) at the cell, from the map's gradients along that line, the map's
-own error (its 1-sigma grid or one value, with the correlation inflation ``aeromag navigate``
-uses) and the sensor's noise. With several headings the value is the DRMS over them (the
-square root of the mean of the bound's trace). Lines leaving the map lose the updates off it,
-so cells near the edge read worse, as a vehicle there would.
+``window_s`` long (sized to the map: :func:`line_window_s`), with an INS whose position is
+known to ``start_sigma_m`` when it starts (a navigator that has been dead-reckoning, not one
+fresh from GNSS); the value is the posterior CRLB's DRMS (m) at the cell, from the map's
+gradients along that line, the map's own error (its 1-sigma grid or one value, with the
+correlation inflation ``aeromag navigate`` uses) and the sensor's noise. With several
+headings the value is the DRMS over them (the square root of the mean of the bound's trace).
+Lines leaving the map lose the updates off it, so cells near the edge read worse, as a
+vehicle there would.
 
 The INS model, the CRLB recursion and the measurement are those of ``aeromag navigate``
 (:mod:`pipeline.navigation.crlb`); the transition matrices depend on the line's shape only, so
@@ -23,7 +24,7 @@ import numpy as np
 from scipy.interpolate import RegularGridInterpolator
 
 from pipeline.maps.grid import Grid
-from pipeline.navigation.crlb import crlb
+from pipeline.navigation.crlb import crlb_final
 from pipeline.navigation.ekf import MeasurementModel, correlated_error_scale
 from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory
 from pipeline.navigation.map_model import MapModel
@@ -38,7 +39,7 @@ class NavigabilitySettings:
 
     speed_mps: float = 60.0
     headings_deg: tuple[float, ...] = (0.0, 45.0, 90.0, 135.0)
-    window_s: float = 120.0
+    window_s: float | None = None  # None: sized to the map (line_window_s)
     rate_hz: float = 1.0
     start_sigma_m: float = 500.0
     grade: str = "navigation"
@@ -47,10 +48,45 @@ class NavigabilitySettings:
     map_error_length_m: float = 200.0
 
 
-def _line(s: NavigabilitySettings, heading_deg: float):
+# bounds of the line's duration, s: past MAX_WINDOW_S the bound of a navigation-grade INS over
+# a map with gradients is at its steady state (a longer line changes it little and costs
+# time); under MIN_WINDOW_S (20 updates at 1 Hz) the start sigma, not the map, would set it
+MAX_WINDOW_S, MIN_WINDOW_S = 120.0, 20.0
+
+
+def line_window_s(grid: Grid, speed_mps: float, heading_deg: float | None = None) -> float:
+    """The line's duration (s): the time to fly, at ``speed_mps``, from the centre of the
+    map's covered area (its finite cells' bounding box, centre to centre) to its edge along
+    ``heading_deg`` (from grid north; None: half the box's shorter side, the shortest of
+    these), within [``MIN_WINDOW_S``, ``MAX_WINDOW_S``].
+
+    That is the longest line on that heading that ends at the map's centre and stays on the
+    map: a cell's value then measures the map around it, not the updates a longer line would
+    miss off the map (on a survey a few kilometres across, a fixed 120 s line at survey speed
+    starts off the map for most cells, and its INS drifts there with nothing to correct it).
+    Along the long axis of an elongated block the line is longer than across it. Cells nearer
+    an edge still read worse on the headings coming from that edge, as a vehicle arriving
+    from there would.
+    """
+    ok = np.isfinite(grid.values)
+    if not ok.any():
+        return MIN_WINDOW_S
+    rows, cols = np.flatnonzero(ok.any(axis=1)), np.flatnonzero(ok.any(axis=0))
+    half_n = 0.5 * grid.cell_m * (rows[-1] - rows[0])  # centre to centre
+    half_e = 0.5 * grid.cell_m * (cols[-1] - cols[0])
+    if heading_deg is None:
+        reach_m = min(half_n, half_e)
+    else:
+        h = np.radians(heading_deg)
+        c, s = abs(np.cos(h)), abs(np.sin(h))
+        reach_m = min(half_n / c if c > 1e-9 else np.inf, half_e / s if s > 1e-9 else np.inf)
+    return float(np.clip(reach_m / speed_mps, MIN_WINDOW_S, MAX_WINDOW_S))
+
+
+def _line(s: NavigabilitySettings, heading_deg: float, window_s: float):
     """A straight line ending at (0, 0): time (s), north, east offsets (m), transitions and
     process noise of the INS along it."""
-    t = np.arange(0.0, s.window_s + 1e-9, 1.0 / s.rate_hz)
+    t = np.arange(0.0, window_s + 1e-9, 1.0 / s.rate_hz)
     along = s.speed_mps * (t - t[-1])
     h = np.radians(heading_deg)
     north, east = along * np.cos(h), along * np.sin(h)
@@ -59,6 +95,11 @@ def _line(s: NavigabilitySettings, heading_deg: float):
     phi = model.transitions(traj)
     qd = model.process_noise(np.diff(t, prepend=t[0]))
     return north, east, phi, qd, model.initial_covariance(s.start_sigma_m)
+
+
+def line_s(grid: Grid, s: NavigabilitySettings, heading_deg: float) -> float:
+    """The line's duration on a heading (s): ``s.window_s``, else :func:`line_window_s`."""
+    return s.window_s if s.window_s is not None else line_window_s(grid, s.speed_mps, heading_deg)
 
 
 def navigability(
@@ -78,6 +119,8 @@ def navigability(
     sigma : Grid or float
         The map's 1-sigma error, nT: a grid on the map's cells (``/map/uncertainty``) or one
         value.
+    settings : NavigabilitySettings, optional
+        ``window_s`` None: :func:`line_window_s` on each heading.
     """
     s = settings or NavigabilitySettings()
     mm = MapModel(grid)
@@ -93,13 +136,14 @@ def navigability(
         iy = np.append(iy, grid.shape[0] - 1)
     if ix[-1] != grid.shape[1] - 1:
         ix = np.append(ix, grid.shape[1] - 1)
-    var = np.zeros((iy.size, ix.size))
+    var = np.zeros(iy.size * ix.size)
+    cy, cx = (a.ravel() for a in np.meshgrid(cn[iy], ce[ix], indexing="ij"))
     for heading in s.headings_deg:
-        north, east, phi, qd, p0 = _line(s, heading)
-        for a, j in enumerate(iy):
-            for b, i in enumerate(ix):
-                bound = crlb(phi, qd, p0, ce[i] + east, cn[j] + north, meas, sensor_nT**2)
-                var[a, b] += np.trace(bound[-1])
+        north, east, phi, qd, p0 = _line(s, heading, line_s(grid, s, heading))
+        e, n = cx[:, None] + east[None, :], cy[:, None] + north[None, :]
+        bound = crlb_final(phi, qd, p0, e, n, meas, sensor_nT**2)  # every cell at once
+        var += np.trace(bound, axis1=1, axis2=2)
+    var = var.reshape(iy.size, ix.size)
     coarse = np.sqrt(var / len(s.headings_deg))
     itp = RegularGridInterpolator((cn[iy], ce[ix]), np.log(coarse))
     gy, gx = np.meshgrid(cn, ce, indexing="ij")

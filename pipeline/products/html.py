@@ -13,7 +13,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from pipeline.products.markdown import extension_lines
+from pipeline.products.markdown import extension_lines, navigability_text
 
 # figure name -> caption; the report places figures by name, unknown ones go to "Other figures"
 CAPTIONS = {
@@ -35,6 +35,9 @@ CAPTIONS = {
     "crossovers": "Tie-line crossover differences before and after leveling.",
     "navigation_track": "Navigation on the validation lines: the reference track (/gnss/fix), "
     "the simulated INS alone and the map-aided track over the map (dotted: unscored turns).",
+    "navigability": "Navigability: the position CRLB (DRMS, m, log colour scale) a vehicle "
+    "reaches flying a straight line into each cell from any of four headings, with the flight "
+    "lines over it.",
     "navigation_error": "Horizontal position error against time, INS only and map-aided, with "
     "the posterior CRLB (DRMS); below, the map-aided north/east errors within ± CRLB "
     "(grey: unscored epochs).",
@@ -536,6 +539,17 @@ def _navigation_section(s: dict, figs: _Figures) -> list[str]:
     ]
 
 
+def _navigability_section(s: dict, figs: _Figures) -> list[str]:
+    nb = s.get("navigability")
+    if not nb:
+        return []
+    return [
+        "<h2>Navigability of the map</h2>",
+        f"<p>{html.escape(navigability_text(nb))}</p>",
+        figs.take("navigability"),
+    ]
+
+
 def _enhancements(m: dict, figs: _Figures) -> list[str]:
     names = [f"enhance_{t.removeprefix('/map/')}" for t in m.get("enhancements") or []]
     if not names:
@@ -714,6 +728,7 @@ def render_html(stem: str, summary: dict, images: Mapping[str, str | Path]) -> s
     body += _audit_section(s, figs)
     body += _map_section(s, figs)
     body += _navigation_section(s, figs)
+    body += _navigability_section(s, figs)
     body += _qc_section(s)
     body += _vector_section(s)
     rest = figs.rest()

@@ -11,6 +11,28 @@ def _window(d: dict) -> str:
     return f"{d['window_s']:g} s, {n}" if "window_s" in d else n
 
 
+def line_range_s(nb: dict) -> str:
+    """The navigability lines' durations (s, one per heading) as ``58`` or ``58-120``."""
+    lo, hi = min(nb["line_s"]), max(nb["line_s"])
+    return f"{lo:.0f}" if round(lo) == round(hi) else f"{lo:.0f}-{hi:.0f}"
+
+
+def navigability_text(nb: dict) -> str:
+    """The report's one line on the navigability map (summary ``navigability``)."""
+    if "skipped" in nb:
+        return f"Navigability map skipped: {nb['skipped']}."
+    d = nb["drms_m"]
+    sigma = "its uncertainty grid" if nb["map_sigma"] == "grid" else f"{nb['map_sigma']} nT"
+    return (
+        f"Navigability (/map/navigability): a vehicle flying {line_range_s(nb)} s straight "
+        f"lines at {nb['speed_mps']:.1f} m/s into each cell, its INS known to "
+        f"{nb['start_sigma_m']:g} m at the line's start, reaches a position CRLB (DRMS) of "
+        f"{d['median']:.1f} m at the median "
+        f"cell ({d['p10']:.1f} m at the best 10 %, {d['p90']:.1f} m at the worst 10 %), "
+        f"with {nb['sensor_sigma_nT']:.3f} nT sensor noise and the map's error from {sigma}."
+    )
+
+
 def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
     """The post-flight report: the tables people look at, and the figures."""
 
@@ -159,6 +181,9 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
                     f"{f(g['map_aided']['cep50_m'], '.2f')} |"
                 )
             out.append("")
+    nb = s.get("navigability")
+    if nb:
+        out += ["## Navigability of the map", "", navigability_text(nb), ""]
     v = s.get("vector")
     if v:
         out += ["## Vector magnetometer", "", f"{v['method']} -> `{v['output_topic']}`", ""]

@@ -3,7 +3,8 @@
 ingest -> despike (the scalar magnetometer) -> segment -> compensate (each configured T-L
 model and AGG-TL) -> audit -> extended model -> vector stage (when a fluxgate exists) ->
 anomaly reduction, leveling, gridding, ARIMA-Kalman filter -> quality -> navigation on the
-flight's own map (validation lines, ``[navigate]``) -> write (output MCAP, summary JSON,
+flight's own map (validation lines, ``[navigate]``) -> navigability of that map (``[navigate]
+navigability``) -> write (output MCAP, summary JSON,
 report, figures).
 
 :func:`postflight_steps` calls each stage through a ``call`` hook: ``flows/postflight.py``
@@ -53,8 +54,21 @@ VECTOR = Step("vector", steps.vector_stage)
 MAP = Step("map", steps.map_stage)
 QUALITY = Step("quality", steps.quality_stage)
 NAVIGATE = Step("navigate", steps.navigate_stage)
+NAVIGABILITY = Step("navigability", steps.navigability_stage)
 WRITE = Step("write", write_outputs)
-STEPS = (INGEST, DESPIKE, SEGMENT, COMPENSATE, AUDIT, VECTOR, MAP, QUALITY, NAVIGATE, WRITE)
+STEPS = (
+    INGEST,
+    DESPIKE,
+    SEGMENT,
+    COMPENSATE,
+    AUDIT,
+    VECTOR,
+    MAP,
+    QUALITY,
+    NAVIGATE,
+    NAVIGABILITY,
+    WRITE,
+)
 
 
 def postflight_steps(
@@ -114,6 +128,12 @@ def postflight_steps(
     if cfg["navigate"]["enabled"]:  # skipped (one log line) without validation lines or map
         res.nav = (
             call(NAVIGATE, flight, seg, final[1], res.map_run, cfg)
+            if res.map_run is not None
+            else "no map"
+        )
+    if cfg["navigate"]["navigability"]:  # needs the map only, not validation lines
+        res.navigability = (
+            call(NAVIGABILITY, flight, final[1], res.map_run, cfg)
             if res.map_run is not None
             else "no map"
         )

@@ -158,6 +158,38 @@ def navigate_stage(flight: Flight, seg: Segmentation | None, comp: np.ndarray, m
         return f"{type(exc).__name__}: {exc}"
 
 
+def navigability_stage(flight: Flight, comp: np.ndarray, map_run, cfg):
+    """Navigability of the flight's own map (``[navigate] navigability``): the position CRLB
+    a vehicle reaches flying into each cell (:func:`pipeline.run.navigate.navigability_map`,
+    as ``aeromag navigability``, all four headings) at the survey's median ground speed, with
+    the map's ``/map/uncertainty`` and the compensated field's white noise.
+
+    Returns
+    -------
+    tuple of (Grid, dict) or str
+        The grid (m) and its summary, or why it was skipped (one log line, never an error).
+    """
+    from pipeline.navigation.map_io import frame_map
+    from pipeline.noise import white_noise_nT
+    from pipeline.run.navigate import navigability_map, track_speed_mps
+
+    if map_run is None:
+        return "no map"
+    which = cfg["navigate"]["map"]
+    grid = map_run.filtered if which == "anomaly_filtered" else map_run.grid
+    geomap = frame_map(grid, map_run.frame, f"/map/{which}", f"this flight's /map/{which}")
+    geomap.sigma, geomap.error_length_m = map_run.uncertainty, map_run.spacing_m
+    speed = track_speed_mps(flight, geomap)
+    if not np.isfinite(speed):
+        return "the track does not move"
+    t = flight.data["time_s"].to_numpy(float)
+    sensor = white_noise_nT(np.asarray(comp, float), t)
+    try:
+        return navigability_map(flight, geomap, sensor, cfg.navigation_settings(), speed)
+    except (ValueError, np.linalg.LinAlgError) as exc:  # reported; the other outputs go on
+        return f"{type(exc).__name__}: {exc}"
+
+
 def quality_stage(flight: Flight, seg: Segmentation, runs: dict, audit, cfg) -> QualityRun:
     """Quality: every processing state (raw, each model, the extended model) compared at
     the validation lines, with the 12-box FOM table when the calibration boxes were found.
@@ -181,7 +213,8 @@ class FlightResults:
     ``runs``: each configured model's compensation (model name -> run); ``audit``, ``vector``,
     ``map_run``, ``quality``: the stages' results (None: not run); ``despiked``: the despike
     step's result; ``nav``: :func:`navigate_stage`'s result (a run, a skip reason, or None:
-    not enabled); ``why``: why segmentation failed ("" when it did not).
+    not enabled); ``navigability``: :func:`navigability_stage`'s (likewise); ``why``: why
+    segmentation failed ("" when it did not).
     """
 
     flight: Flight
@@ -194,3 +227,4 @@ class FlightResults:
     quality: Any = None  # pipeline.quality.QualityRun
     despiked: DespikeResult | None = None
     nav: Any = None  # pipeline.navigation.stage.NavigationRun | str
+    navigability: Any = None  # (Grid, summary dict) | str
