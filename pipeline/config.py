@@ -135,6 +135,7 @@ class Config:
             trim_s=c["trim_s"],
             ridge=c["ridge"],
             base=c["agg_base"],
+            agg_gradient=c["agg_gradient"],
             bt_scale_nT=c["bt_scale_nT"],
             extension_alpha=c["extension_alpha"],
             extension_min_gain=c["extension_min_gain"],

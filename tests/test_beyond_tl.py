@@ -235,7 +235,12 @@ def test_agg_tl_takes_the_calibration_legs_gradient():
     sim = run_sim("uav-small", 5, over)
     fl = read_flight(write_simulation(sim, Path(tempfile.mkdtemp()) / "g.mcap"))
     seg = segment_flight(fl)
-    run = run_compensation(fl, seg, FitSettings("agg-tl"))
+    # the default fits the gradient from the position columns; "legs" takes the legs' value
+    assert run_compensation(fl, seg, FitSettings("agg-tl")).summary().get("gradient_evidence") in (
+        None,
+        {},
+    )
+    run = run_compensation(fl, seg, FitSettings("agg-tl", agg_gradient="legs"))
     ev = run.summary()["gradient_evidence"]
     assert ev["source"] == "calibration legs", ev
     assert ev["east_nT_per_m"] == pytest.approx(-0.25, abs=0.01)
@@ -246,5 +251,7 @@ def test_agg_tl_takes_the_calibration_legs_gradient():
     mask = np.zeros(fl.data["time_s"].size, bool)
     for span in seg.passes():
         mask[span] = True
-    plain = fit_compensation(Measurements.from_flight(fl), mask, FitSettings("agg-tl"))
+    plain = fit_compensation(
+        Measurements.from_flight(fl), mask, FitSettings("agg-tl", agg_gradient="legs")
+    )
     assert plain.gradient_evidence == {}

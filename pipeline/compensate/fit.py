@@ -45,7 +45,7 @@ def fit_compensation(
     mask = np.asarray(calibration_mask, bool)
     if s.model in EXTENSIONS:
         return fit_extension(meas, mask, s, seeded)
-    if s.model == "agg-tl" and legs is not None and meas.has_position:
+    if s.model == "agg-tl" and s.agg_gradient == "legs" and legs is not None and meas.has_position:
         return fit_agg_with_legs(meas, mask, s, legs, base_nT)
     k_full, names, n_tl, reference = design_of(s, meas, mask)
     return fit_columns(meas, mask, s, k_full, names, n_tl, reference)
