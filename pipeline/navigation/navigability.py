@@ -19,6 +19,7 @@ grid north (the meridian convergence, a few degrees, is ignored here).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.interpolate import RegularGridInterpolator
@@ -150,3 +151,56 @@ def navigability(
     values = np.exp(itp((gy, gx)))  # log: the bound spans decades between rich and flat areas
     values[~np.isfinite(grid.values)] = np.nan
     return grid.with_values(values)
+
+
+def track_speed_mps(flight, geomap) -> float:
+    """The median ground speed (m/s) of a flight's track in a map's frame, over the epochs
+    that move (> 1 m/s); NaN when none does."""
+    d = flight.data
+    lat, lon = d["lat_deg"].to_numpy(float), d["lon_deg"].to_numpy(float)
+    ok = np.isfinite(lat) & np.isfinite(lon)
+    e, n = (np.asarray(v, float) for v in geomap.to_local(lat[ok], lon[ok]))
+    t = d["time_s"].to_numpy(float)[ok]
+    v = np.hypot(np.diff(e), np.diff(n)) / np.maximum(np.diff(t), 1e-9)
+    return float(np.median(v[v > 1.0])) if (v > 1.0).any() else float("nan")
+
+
+def navigability_map(
+    flight,
+    geomap,
+    sensor_nT: float,
+    nav,
+    speed_mps: float,
+    headings: tuple[float, ...] = (0.0, 45.0, 90.0, 135.0),
+) -> tuple[Any, dict[str, Any]]:
+    """The navigability grid of ``geomap`` (m; :func:`navigability`) and its summary
+    (``aeromag navigability``'s JSON, the post-flight summary's ``navigability``).
+
+    The map's error is its ``sigma`` grid, else ``nav.default_map_sigma_nT``; its correlation
+    length ``geomap.error_length_m``, else ``nav.map_error_length_m``; the latitude the
+    track's median.
+    """
+    lat = flight.data["lat_deg"].to_numpy(float)
+    sigma = geomap.sigma if geomap.sigma is not None else nav.default_map_sigma_nT
+    s = NavigabilitySettings(
+        speed_mps=float(speed_mps),
+        headings_deg=tuple(headings),
+        lat_deg=float(np.nanmedian(lat)),
+        map_error_length_m=geomap.error_length_m or nav.map_error_length_m,
+    )
+    grid = navigability(geomap.grid, float(sensor_nT), sigma, s)
+    v = grid.values[np.isfinite(grid.values)]
+    return grid, {
+        "channel": "/map/navigability",
+        "speed_mps": float(speed_mps),
+        "headings_deg": list(headings),
+        "line_s": [line_s(geomap.grid, s, h) for h in headings],
+        "start_sigma_m": s.start_sigma_m,
+        "sensor_sigma_nT": float(sensor_nT),
+        "map_sigma": "grid" if geomap.sigma is not None else nav.default_map_sigma_nT,
+        "drms_m": {
+            "median": float(np.median(v)),
+            "p10": float(np.percentile(v, 10)),
+            "p90": float(np.percentile(v, 90)),
+        },
+    }

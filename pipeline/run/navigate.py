@@ -12,6 +12,7 @@ import numpy as np
 from pipeline.config import Config
 from pipeline.errors import AeromagError
 from pipeline.io.writer import OutputChannel, write_json_atomic, write_with_new_channels
+from pipeline.navigation.navigability import navigability_map, track_speed_mps
 from pipeline.products.channels import navigation_channels, segment_channel
 from pipeline.products.log import LOG_INFO, ingest_lines, log_channel, navigation_lines
 from pipeline.products.summary import build_summary, run_metadata
@@ -103,62 +104,6 @@ def parse_headings(text: str) -> tuple[float, ...]:
     return (h % 360.0,)
 
 
-def track_speed_mps(flight, geomap) -> float:
-    """The median ground speed (m/s) of a flight's track in a map's frame, over the epochs
-    that move (> 1 m/s); NaN when none does."""
-    d = flight.data
-    lat, lon = d["lat_deg"].to_numpy(float), d["lon_deg"].to_numpy(float)
-    ok = np.isfinite(lat) & np.isfinite(lon)
-    e, n = (np.asarray(v, float) for v in geomap.to_local(lat[ok], lon[ok]))
-    t = d["time_s"].to_numpy(float)[ok]
-    v = np.hypot(np.diff(e), np.diff(n)) / np.maximum(np.diff(t), 1e-9)
-    return float(np.median(v[v > 1.0])) if (v > 1.0).any() else float("nan")
-
-
-def navigability_map(
-    flight,
-    geomap,
-    sensor_nT: float,
-    nav,
-    speed_mps: float,
-    headings: tuple[float, ...] = (0.0, 45.0, 90.0, 135.0),
-) -> tuple[Any, dict[str, Any]]:
-    """The navigability grid of ``geomap`` (m; :func:`pipeline.navigation.navigability.
-    navigability`) and its summary (``aeromag navigability``'s JSON, the post-flight
-    summary's ``navigability``).
-
-    The map's error is its ``sigma`` grid, else ``nav.default_map_sigma_nT``; its correlation
-    length ``geomap.error_length_m``, else ``nav.map_error_length_m``; the latitude the
-    track's median.
-    """
-    from pipeline.navigation.navigability import NavigabilitySettings, line_s, navigability
-
-    lat = flight.data["lat_deg"].to_numpy(float)
-    sigma = geomap.sigma if geomap.sigma is not None else nav.default_map_sigma_nT
-    s = NavigabilitySettings(
-        speed_mps=float(speed_mps),
-        headings_deg=tuple(headings),
-        lat_deg=float(np.nanmedian(lat)),
-        map_error_length_m=geomap.error_length_m or nav.map_error_length_m,
-    )
-    grid = navigability(geomap.grid, float(sensor_nT), sigma, s)
-    v = grid.values[np.isfinite(grid.values)]
-    return grid, {
-        "channel": "/map/navigability",
-        "speed_mps": float(speed_mps),
-        "headings_deg": list(headings),
-        "line_s": [line_s(geomap.grid, s, h) for h in headings],
-        "start_sigma_m": s.start_sigma_m,
-        "sensor_sigma_nT": float(sensor_nT),
-        "map_sigma": "grid" if geomap.sigma is not None else nav.default_map_sigma_nT,
-        "drms_m": {
-            "median": float(np.median(v)),
-            "p10": float(np.percentile(v, 10)),
-            "p90": float(np.percentile(v, 90)),
-        },
-    }
-
-
 def navigability_recording(
     src: Path,
     out_path: Path,
@@ -167,7 +112,8 @@ def navigability_recording(
     heading: str = "all",
 ) -> dict[str, Any]:
     """``aeromag navigability``: the map of a processed recording turned into the position
-    CRLB a vehicle reaches flying into each cell (:func:`navigability_map`), written as
+    CRLB a vehicle reaches flying into each cell
+    (:func:`pipeline.navigation.navigability.navigability_map`), written as
     ``/map/navigability`` (``foxglove.Grid``, m) on a copy of the recording.
 
     The map is ``/map/<navigate.map>`` with its ``/map/uncertainty`` (else ``[navigate]

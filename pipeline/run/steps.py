@@ -160,9 +160,10 @@ def navigate_stage(flight: Flight, seg: Segmentation | None, comp: np.ndarray, m
 
 def navigability_stage(flight: Flight, comp: np.ndarray, map_run, cfg):
     """Navigability of the flight's own map (``[navigate] navigability``): the position CRLB
-    a vehicle reaches flying into each cell (:func:`pipeline.run.navigate.navigability_map`,
-    as ``aeromag navigability``, all four headings) at the survey's median ground speed, with
-    the map's ``/map/uncertainty`` and the compensated field's white noise.
+    a vehicle reaches flying into each cell
+    (:func:`pipeline.navigation.navigability.navigability_map`, as ``aeromag navigability``,
+    all four headings) at the survey's median ground speed, with the map's
+    ``/map/uncertainty`` and the compensated field's white noise.
 
     Returns
     -------
@@ -170,8 +171,8 @@ def navigability_stage(flight: Flight, comp: np.ndarray, map_run, cfg):
         The grid (m) and its summary, or why it was skipped (one log line, never an error).
     """
     from pipeline.navigation.map_io import frame_map
+    from pipeline.navigation.navigability import navigability_map, track_speed_mps
     from pipeline.noise import white_noise_nT
-    from pipeline.run.navigate import navigability_map, track_speed_mps
 
     if map_run is None:
         return "no map"
