@@ -56,6 +56,24 @@ def geotiff(path: Path, grid: Grid, crs: str | None) -> Path:
     return path
 
 
+def navigate_box(path, **settings):
+    """The flight at ``path`` (the committed box or a copy of it) through ``run_navigation``
+    over a random map placed around it; ``settings``: NavigationSettings fields (segments
+    all unless given)."""
+    from pipeline.geo.projected import survey_frame
+    from pipeline.io.reader import read_flight
+    from pipeline.navigation import stage
+    from pipeline.navigation.map_io import frame_map
+
+    f = read_flight(path)
+    d = f.data
+    frame = survey_frame(d["lat_deg"], d["lon_deg"], d["alt_m"])
+    g = random_field_map(6, size_m=8000.0, cell_m=25.0, origin_m=(-4000.0, -4000.0))
+    geomap = frame_map(g, frame, "test", "random map")
+    s = stage.NavigationSettings(**{"segments": "all", **settings})
+    return stage.run_navigation(f, None, d["scalar_nT"].to_numpy(float), geomap, s)
+
+
 def box_frame(box_path):
     from pipeline.io.reader import read_flight
 
