@@ -319,3 +319,48 @@ def test_cli_export_and_its_one_line_error(tmp_path):
     assert bad.returncode == 2
     lines = bad.stderr.strip().splitlines()
     assert len(lines) == 1 and "aeromag process" in lines[0] and "Traceback" not in bad.stderr
+
+
+def test_the_channels_just_written_export_as_the_file_reads_back(tmp_path):
+    """The post-flight write hands its new channels to the export instead of reading the
+    output again: decoded from the bytes the writer wrote, the map products equal those read
+    back from the file (grids cell for cell, frame, line samples in log-time order)."""
+    from pipeline.export.source import read_map_products, written_map_topics
+    from pipeline.io.writer import OutputChannel, write_with_new_channels
+    from tests.corpus import BOX
+    from tests.mapfile import (
+        T0,
+        frame_payload,
+        grid_channel,
+        line_payloads,
+        synthetic_grid,
+        uncertainty_of,
+    )
+
+    grid = synthetic_grid()
+    frame = OutputChannel("/map/frame", "aeromag.MapFrame")
+    frame.add(T0, frame_payload())
+    samples = line_payloads(grid)[::-1]  # out of time order: the writer sorts them
+    times = np.array([t for t, _ in samples], np.int64)
+    channels = [
+        frame,
+        grid_channel("/map/anomaly", T0, grid, "anomaly_nT"),
+        grid_channel("/map/uncertainty", T0, uncertainty_of(grid), "uncertainty_nT"),
+        OutputChannel.rows(
+            "/map/lines", "aeromag.LineSample", times, lambda k: dict(samples[k][1])
+        ),
+    ]
+    out = write_with_new_channels(BOX, tmp_path / "f.processed.mcap", channels)
+    read = read_map_products(out, lines=True)
+    handed = read_map_products(out, lines=True, written=written_map_topics(channels))
+    assert handed.frame == read.frame
+    assert [g.topic for g in handed.grids] == [g.topic for g in read.grids]
+    for a, b in zip(handed.grids, read.grids, strict=True):
+        assert (a.field_name, a.time_ns, a.grid.crs) == (b.field_name, b.time_ns, b.grid.crs)
+        assert (a.grid.east0_m, a.grid.north0_m, a.grid.cell_m) == (
+            b.grid.east0_m,
+            b.grid.north0_m,
+            b.grid.cell_m,
+        )
+        np.testing.assert_array_equal(a.grid.values, b.grid.values)
+    assert handed.lines == read.lines and len(read.lines) == len(samples)

@@ -1,7 +1,8 @@
 """Deliverables from a processed recording: map grids and line data in the formats other
 software reads (GeoTIFF, CF netCDF, CSV, Geosoft XYZ, MagNav.jl HDF5).
 
-Everything is read back from the processed MCAP (:mod:`pipeline.export.source`): the grids'
+Everything comes from the processed MCAP (:mod:`pipeline.export.source`; right after the
+post-flight write, from the bytes just written into it rather than a second read): the grids'
 georeference is its ``/map/frame`` channel, the line data its ``/map/lines``.
 """
 
@@ -38,7 +39,7 @@ def check_formats(formats, source: str | None = None) -> list[str]:
 
 
 def export_recording(
-    recording: str | Path, out_dir: str | Path, formats=None
+    recording: str | Path, out_dir: str | Path, formats=None, written=None
 ) -> dict[str, list[str]]:
     """Write every map channel of a processed recording (and its levelled line data, for
     ``csv`` and ``xyz``) into ``out_dir``, each file atomically.
@@ -49,6 +50,10 @@ def export_recording(
     ``STEM.<grid>.magnav.h5`` (every grid but ``uncertainty`` and ``navigability``).
 
     ``formats``: some of :data:`FORMATS`; by default the configuration's ``export.formats``.
+    ``written``: the new channels just written into ``recording``
+    (:class:`~pipeline.io.writer.OutputChannel`): their map channels are decoded from the
+    bytes the writer wrote (:func:`~pipeline.export.source.written_map_topics`) instead of
+    reading the recording again.
 
     Returns
     -------
@@ -64,11 +69,12 @@ def export_recording(
     from pipeline.export.grid_files import write_geotiff, write_netcdf
     from pipeline.export.lines import line_table, write_csv, write_xyz
     from pipeline.export.magnav import write_magnav_h5
-    from pipeline.export.source import read_map_products
+    from pipeline.export.source import read_map_products, written_map_topics
 
     formats = check_formats(default_value("export", "formats") if formats is None else formats)
     out = Path(out_dir)
-    mp = read_map_products(recording, lines=bool({"csv", "xyz"} & set(formats)))
+    topics = None if written is None else written_map_topics(written)
+    mp = read_map_products(recording, lines=bool({"csv", "xyz"} & set(formats)), written=topics)
     stem = mp.stem
     written: dict[str, list[str]] = {}
 

@@ -191,9 +191,38 @@ def map_topics(path: Path) -> list[str] | None:
     return sorted({c.topic for c in summary.channels.values() if c.topic.startswith("/map/")})
 
 
-def read_map_products(path: str | Path, lines: bool = False) -> MapProducts:
+def written_map_topics(channels) -> dict:
+    """The ``/map/*`` channels of ``channels`` (:class:`~pipeline.io.writer.OutputChannel`)
+    as :func:`~pipeline.io.writer.write_with_new_channels` writes them: each message's bytes
+    as the writer encodes them, in log-time order (ties: as given), as
+    :func:`~pipeline.io.reader.read_topics` would read them back (topic -> ``RawTopic``)."""
+    from pipeline.io.contract import MESSAGE_ENCODING, SCHEMA_ENCODING
+    from pipeline.io.reader import RawTopic
+    from pipeline.io.writer import encode
+
+    out = {}
+    for c in channels:
+        if not c.topic.startswith("/map/") or not len(c.messages):
+            continue
+        times = c.log_times_ns()
+        rank = np.argsort(times, kind="stable").tolist()
+        out[c.topic] = RawTopic(
+            c.topic,
+            c.schema_name,
+            SCHEMA_ENCODING,
+            MESSAGE_ENCODING,
+            times[rank].tolist(),
+            [encode(c.messages[i][1]) for i in rank],
+        )
+    return out
+
+
+def read_map_products(path: str | Path, lines: bool = False, written=None) -> MapProducts:
     """Read the map grids, the frame and (``lines``) the levelled line samples of a processed
     recording.
+
+    ``written``: the map channels just written into ``path`` (:func:`written_map_topics`),
+    decoded from the bytes the writer wrote instead of reading the whole file again.
 
     Raises
     ------
@@ -204,9 +233,9 @@ def read_map_products(path: str | Path, lines: bool = False) -> MapProducts:
     from pipeline.io.reader import read_topics
 
     path = Path(path)
-    rec = read_topics(path, map_topics(path))
+    topics = written if written is not None else read_topics(path, map_topics(path)).topics
     grid_topics = sorted(
-        t for t, r in rec.topics.items() if t.startswith("/map/") and r.schema_name == GRID_SCHEMA
+        t for t, r in topics.items() if t.startswith("/map/") and r.schema_name == GRID_SCHEMA
     )
     if not grid_topics:
         raise AeromagError(
@@ -214,7 +243,7 @@ def read_map_products(path: str | Path, lines: bool = False) -> MapProducts:
             file=path,
             channel="/map/anomaly",
         )
-    fr = rec.topics.get(FRAME_TOPIC)
+    fr = topics.get(FRAME_TOPIC)
     if fr is None or not fr.data:
         raise AeromagError(
             "no map georeference (the recording was processed by an older aeromag): "
@@ -230,7 +259,7 @@ def read_map_products(path: str | Path, lines: bool = False) -> MapProducts:
         ) from None
     grids = []
     for t in grid_topics:
-        raw = rec.topics[t]
+        raw = topics[t]
         try:
             grids.append(
                 decode_grid(
@@ -245,7 +274,7 @@ def read_map_products(path: str | Path, lines: bool = False) -> MapProducts:
     grids.sort(key=lambda g: (g.name != "anomaly", g.name != "anomaly_filtered", g.name))
     out = MapProducts(path, frame, grids)
     if lines:
-        lr = rec.topics.get(LINES_TOPIC)
+        lr = topics.get(LINES_TOPIC)
         if lr is None or not lr.data:
             raise AeromagError(
                 f"no levelled line data in the recording: {MAKE_MAPS}",

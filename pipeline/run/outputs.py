@@ -306,7 +306,9 @@ def write_outputs(
     if r.map_run is not None and cfg["export"]["formats"]:
         from pipeline.export import export_recording
 
-        exports = export_recording(paths["mcap"], out, cfg["export"]["formats"])
+        exports = export_recording(
+            paths["mcap"], out, cfg["export"]["formats"], written=made["channels"]
+        )
     summary |= jsonable(
         {
             "exports": exports,
