@@ -82,17 +82,13 @@ def field_channel(
         else np.asarray(interference_nT, float)
     )
     ix = np.flatnonzero(np.isfinite(comp))
-    total, removed = comp[ix], inter[ix]
-
-    def payload(k: int) -> dict:  # made when written (one message per epoch)
-        return {
-            "sensor_id": sensor,
-            "total_nT": float(total[k]),
-            "interference_nT": float(removed[k]),
-            "model": model,
-        }
-
-    return OutputChannel.rows(topic, "aeromag.CompensatedField", flight.time_ns[ix], payload)
+    columns = {  # one message per epoch, encoded when written
+        "sensor_id": sensor,
+        "total_nT": comp[ix],
+        "interference_nT": inter[ix],
+        "model": model,
+    }
+    return OutputChannel.columns(topic, "aeromag.CompensatedField", flight.time_ns[ix], columns)
 
 
 def vector_channel(
@@ -103,14 +99,9 @@ def vector_channel(
     sensor = str(flight.series[flight.topic_of["vector"]].labels["sensor_id"][0])
     v = np.asarray(vectors_nT, float)
     ix = np.flatnonzero(np.all(np.isfinite(v), axis=1))
-    xyz = v[ix]
-    sensor_id = f"{sensor}-{method}"
-
-    def payload(k: int) -> dict:  # made when written (one message per epoch)
-        x, y, z = xyz[k]
-        return {"sensor_id": sensor_id, "x_nT": float(x), "y_nT": float(y), "z_nT": float(z)}
-
-    return OutputChannel.rows(topic, "aeromag.VectorField", flight.time_ns[ix], payload)
+    xyz = np.ascontiguousarray(v[ix].T)
+    columns = {"sensor_id": f"{sensor}-{method}", "x_nT": xyz[0], "y_nT": xyz[1], "z_nT": xyz[2]}
+    return OutputChannel.columns(topic, "aeromag.VectorField", flight.time_ns[ix], columns)
 
 
 def model_message(
@@ -254,25 +245,27 @@ def line_samples_channel(flight: Flight, mr) -> OutputChannel:
         a[order] for a in (idx, ids, kinds, east, north, anomaly)
     )
 
-    def payload(k: int) -> dict:  # made when written (one message per sample)
-        i = int(idx[k])
-        r = raw[i]
-        return {
-            "line_id": str(ids[k]),
-            "kind": str(kinds[k]),
-            "fiducial": i,
-            "latitude": float(lat[i]),
-            "longitude": float(lon[i]),
-            "altitude_m": float(alt[i]),
-            "east_m": round(float(east[k]), 3),
-            "north_m": round(float(north[k]), 3),
-            "raw_nT": float(r) if np.isfinite(r) else None,
-            "compensated_nT": float(comp[i]),
-            "levelled_nT": float(anomaly[k] + igrf[i]),
-            "anomaly_nT": float(anomaly[k]),
-        }
+    columns = {  # one message per sample, encoded when written (raw_nT: null where NaN)
+        "line_id": np.array([str(v) for v in ids], object),
+        "kind": np.array([str(v) for v in kinds], object),
+        "fiducial": idx,
+        "latitude": lat[idx],
+        "longitude": lon[idx],
+        "altitude_m": alt[idx],
+        "east_m": _rounded(east, 3),
+        "north_m": _rounded(north, 3),
+        "raw_nT": raw[idx],
+        "compensated_nT": comp[idx],
+        "levelled_nT": anomaly + igrf[idx],
+        "anomaly_nT": anomaly,
+    }
+    return OutputChannel.columns("/map/lines", "aeromag.LineSample", flight.time_ns[idx], columns)
 
-    return OutputChannel.rows("/map/lines", "aeromag.LineSample", flight.time_ns[idx], payload)
+
+def _rounded(values: np.ndarray, digits: int) -> np.ndarray:
+    """Python's ``round`` of each value (correctly rounded in decimal, which ``np.round``
+    is not always)."""
+    return np.array([round(v, digits) for v in np.asarray(values, float).tolist()], float)
 
 
 def tracks_channel(
