@@ -304,8 +304,19 @@ def despike_flight(
 ) -> tuple[Flight, DespikeResult]:
     """The flight with its primary scalar magnetometer despiked (a copy; other columns
     shared), and the result."""
+    res = despike_scalar(flight, settings)
+    return repaired_flight(flight, res), res
+
+
+def despike_scalar(flight: Flight, settings: DespikeSettings | None = None) -> DespikeResult:
+    """:func:`despike` of the flight's primary scalar magnetometer (the flight unchanged)."""
     d = flight.data
-    res = despike(d["scalar_nT"].to_numpy(float), d["time_s"].to_numpy(float), settings)
+    return despike(d["scalar_nT"].to_numpy(float), d["time_s"].to_numpy(float), settings)
+
+
+def repaired_flight(flight: Flight, res: DespikeResult) -> Flight:
+    """``flight`` with its primary scalar magnetometer replaced by ``res.values_nT`` (a copy;
+    other columns shared), or ``flight`` itself when ``res`` found no spike."""
     if res.spikes == 0:
-        return flight, res
-    return dataclasses.replace(flight, data=d.assign(scalar_nT=res.values_nT)), res
+        return flight
+    return dataclasses.replace(flight, data=flight.data.assign(scalar_nT=res.values_nT))

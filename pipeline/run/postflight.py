@@ -27,6 +27,7 @@ from typing import Any
 
 from pipeline.compensate.plus import audit_nuisances
 from pipeline.config import Config
+from pipeline.despike import repaired_flight
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.io.reader import read_flight
@@ -46,7 +47,7 @@ class Step:
 
 
 INGEST = Step("ingest", steps.ingest_stage)
-DESPIKE = Step("despike", steps.despike_stage)
+DESPIKE = Step("despike", steps.despike_step)
 SEGMENT = Step("segment", try_segment)
 COMPENSATE = Step("compensate", steps.compensate_stage)
 AUDIT = Step("audit", steps.audit_stage)
@@ -101,7 +102,8 @@ def postflight_steps(
         flight = call(INGEST, recording)
     despiked = None
     if cfg["despike"]["enabled"]:  # every later stage sees the despiked scalar
-        flight, despiked = call(DESPIKE, flight, cfg)
+        despiked = call(DESPIKE, flight, cfg)
+        flight = repaired_flight(flight, despiked)
     seg, why = call(SEGMENT, flight)
     res = steps.FlightResults(flight, seg, why, despiked=despiked)
     if seg is not None and flight.has("vector_x_nT") and seg.passes():

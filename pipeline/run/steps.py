@@ -13,7 +13,7 @@ import numpy as np
 
 from pipeline.compensate.stage import CompensationRun, run_compensation
 from pipeline.config import Config
-from pipeline.despike import DespikeResult, despike_flight
+from pipeline.despike import DespikeResult, despike_flight, despike_scalar
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.io.reader import read_flight
@@ -45,6 +45,18 @@ def despike_stage(flight: Flight, cfg) -> tuple[Flight, DespikeResult]:
     DespikeResult
     """
     return despike_flight(flight, cfg.despike_settings())
+
+
+def despike_step(flight: Flight, cfg) -> DespikeResult:
+    """:func:`despike_stage`'s result alone (the post-flight step: a resumable run persists
+    the result, not a second copy of the flight;
+    :func:`pipeline.despike.repaired_flight` rebuilds it).
+
+    Returns
+    -------
+    DespikeResult
+    """
+    return despike_scalar(flight, cfg.despike_settings())
 
 
 def compensate_stage(
