@@ -119,13 +119,8 @@ def process_new(
     rows = _run_rows([p for p, _ in ready], out, config_path) if ready else []
     rows += [{"input": str(p), "status": "waiting", "reason": why} for p, why in waiting]
     index = runs.write_index(out, rows) if rows else {}
-    return {
-        "recordings": len(found),
-        "waiting": len(waiting),
-        "processed": sum(r["status"] == "processed" for r in rows),
-        "quarantined": sum(r["status"] == "quarantined" for r in rows),
-        "index": index,
-    }
+    counts = {s: sum(r["status"] == s for r in rows) for s in ("processed", "quarantined")}
+    return {"recordings": len(found), "waiting": len(waiting), **counts, "index": index}
 
 
 class _SlowWorkerExit(logging.Filter):
@@ -141,19 +136,11 @@ def dask_runner(workers: int, address: str | None):
     local cluster of ``workers`` processes of one thread each."""
     from prefect_dask import DaskTaskRunner
 
-    for name in (
-        "distributed",
-        "distributed.scheduler",
-        "distributed.nanny",
-        "distributed.core",
-        "distributed.worker",
-        "distributed.http.proxy",
-    ):
-        logging.getLogger(name).setLevel(logging.WARNING)  # the scheduler's chatter
+    for name in ("", ".scheduler", ".nanny", ".core", ".worker", ".http.proxy"):
+        logging.getLogger(f"distributed{name}").setLevel(logging.WARNING)  # its chatter
     nanny = logging.getLogger("distributed.nanny")
     if not any(isinstance(f, _SlowWorkerExit) for f in nanny.filters):
         nanny.addFilter(_SlowWorkerExit())
-
     if address:
         return DaskTaskRunner(address=address)
     # dashboard on a free port: two clusters at once must not fight over 8787
@@ -168,26 +155,36 @@ def dask_runner(workers: int, address: str | None):
     )
 
 
-# --------------------------------------------------------------------------------------------
 def _free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
 
 
-def start_prefect_server(env: dict[str, str] | None = None) -> tuple[str, subprocess.Popen]:
+def start_prefect_server(
+    env: dict[str, str] | None = None, temporary: bool = False
+) -> tuple[str, subprocess.Popen]:
     """Start ``prefect server`` on a free 127.0.0.1 port (analytics off) in its own session;
     returns its API URL and the process (the caller waits for it: :func:`wait_healthy`, and
-    terminates it). ``env``: the server's environment (default: this process's)."""
+    terminates it). ``env``: the server's environment (default: this process's).
+    ``temporary``: the API app alone, as Prefect starts its own temporary server (no UI, no
+    scheduler; healthy in about half the time; the flow's process need not import it)."""
     port = _free_port()
     env = {
         **(os.environ if env is None else env),
         "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
         "DO_NOT_TRACK": "1",
     }
+    cmd = [sys.executable, "-m", "prefect", "server", "start"]
+    if temporary:
+        env |= {
+            "PREFECT_UI_ENABLED": "0",
+            "PREFECT__SERVER_EPHEMERAL": "1",
+            "PREFECT__SERVER_FINAL": "1",
+        }
+        cmd = [sys.executable, "-m", "uvicorn", "--factory", "prefect.server.api.server:create_app"]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "prefect", "server", "start"]
-        + ["--host", "127.0.0.1", "--port", str(port)],
+        cmd + ["--host", "127.0.0.1", "--port", str(port)],
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
@@ -197,23 +194,32 @@ def start_prefect_server(env: dict[str, str] | None = None) -> tuple[str, subpro
 
 
 @contextlib.contextmanager
-def prefect_api(timeout_s: float = 90.0) -> Iterator[str]:
+def prefect_api(timeout_s: float = 90.0, meanwhile=None) -> Iterator[Any]:
     """A Prefect API for flows whose tasks run in other processes (Dask workers, served
     deployments): the configured ``PREFECT_API_URL``, else a local server started on
     127.0.0.1 for the duration (without one each worker process would start its own
-    temporary server, 15-20 s apiece)."""
+    temporary server, 15-20 s apiece); yields its URL. With ``meanwhile`` (one flow in this
+    process): a temporary server, booting while the context ``meanwhile()`` is entered (the
+    recording is read), whose value is yielded."""
     url = os.environ.get("PREFECT_API_URL")
-    if url:
-        yield url
-        return
-    url, proc = start_prefect_server()
-    try:
-        wait_healthy(url, timeout_s, proc)
-        os.environ["PREFECT_API_URL"] = url
-        from prefect.settings import PREFECT_API_URL, temporary_settings
+    within = meanwhile or contextlib.nullcontext
+    if meanwhile is not None:  # one flow in this process: a profile's API too
+        from prefect.settings import PREFECT_API_URL
 
-        with temporary_settings(updates={PREFECT_API_URL: url}):
-            yield url
+        url = url or PREFECT_API_URL.value()
+    if url:
+        with within() as got:
+            yield got if meanwhile else url
+        return
+    url, proc = start_prefect_server(temporary=meanwhile is not None)
+    try:
+        with within() as got:
+            wait_healthy(url, timeout_s, proc)
+            os.environ["PREFECT_API_URL"] = url
+            from prefect.settings import PREFECT_API_URL, temporary_settings
+
+            with temporary_settings(updates={PREFECT_API_URL: url}):
+                yield got if meanwhile else url
     finally:
         os.environ.pop("PREFECT_API_URL", None)
         proc.terminate()

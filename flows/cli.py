@@ -563,12 +563,16 @@ def navigability(
 
 
 def _run_postflight(recording: Path, out_dir: Path, config: Path | None = None) -> dict:
+    from flows import archive as arch
     from flows import postflight as pf
 
     _check_config(config)
-    # bad input fails here, in one line, before Prefect starts a run (or a server); the flow
-    # takes over the flight read for the check
-    with console.status(f"checking {recording.name}") as status, pf.checked(recording):
+    # bad input fails here, in one line, before Prefect starts a run; a temporary server
+    # starts while the recording is read, and the flow takes over the flight read
+    with (
+        console.status(f"checking {recording.name}") as status,
+        arch.prefect_api(meanwhile=lambda: pf.checked(recording)),
+    ):
         status.update(f"processing {recording.name} (Prefect flow 'postflight')")
         return pf.postflight(str(recording), str(out_dir), str(config) if config else None)
 

@@ -48,7 +48,6 @@ def publish_artifact(stem: str, markdown: str) -> None:
     create_markdown_artifact(markdown=markdown, key=key, description="post-flight summary")
 
 
-# --------------------------------------------------------------------------------------------
 install_one_line_errors()
 
 
