@@ -321,7 +321,8 @@ def test_cli_export_and_its_one_line_error(tmp_path):
     assert len(lines) == 1 and "aeromag process" in lines[0] and "Traceback" not in bad.stderr
 
 
-def test_the_channels_just_written_export_as_the_file_reads_back(tmp_path):
+@pytest.mark.parametrize("kind", ["rows", "columns"])
+def test_the_channels_just_written_export_as_the_file_reads_back(tmp_path, kind):
     """The post-flight write hands its new channels to the export instead of reading the
     output again: decoded from the bytes the writer wrote, the map products equal those read
     back from the file (grids cell for cell, frame, line samples in log-time order)."""
@@ -346,10 +347,19 @@ def test_the_channels_just_written_export_as_the_file_reads_back(tmp_path):
         frame,
         grid_channel("/map/anomaly", T0, grid, "anomaly_nT"),
         grid_channel("/map/uncertainty", T0, uncertainty_of(grid), "uncertainty_nT"),
-        OutputChannel.rows(
-            "/map/lines", "aeromag.LineSample", times, lambda k: dict(samples[k][1])
-        ),
     ]
+    if kind == "rows":
+        channels.append(
+            OutputChannel.rows(
+                "/map/lines", "aeromag.LineSample", times, lambda k: dict(samples[k][1])
+            )
+        )
+    else:
+        columns = {
+            k: np.array([p[k] for _, p in samples], None if k != "line_id" else object)
+            for k in samples[0][1]
+        }
+        channels.append(OutputChannel.columns("/map/lines", "aeromag.LineSample", times, columns))
     out = write_with_new_channels(BOX, tmp_path / "f.processed.mcap", channels)
     read = read_map_products(out, lines=True)
     handed = read_map_products(out, lines=True, written=written_map_topics(channels))

@@ -73,8 +73,9 @@ def export_recording(
 
     formats = check_formats(default_value("export", "formats") if formats is None else formats)
     out = Path(out_dir)
-    topics = None if written is None else written_map_topics(written)
-    mp = read_map_products(recording, lines=bool({"csv", "xyz"} & set(formats)), written=topics)
+    lines = bool({"csv", "xyz"} & set(formats))
+    topics = None if written is None else written_map_topics(written, lines)
+    mp = read_map_products(recording, lines=lines, written=topics)
     stem = mp.stem
     written: dict[str, list[str]] = {}
 

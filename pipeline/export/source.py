@@ -191,28 +191,37 @@ def map_topics(path: Path) -> list[str] | None:
     return sorted({c.topic for c in summary.channels.values() if c.topic.startswith("/map/")})
 
 
-def written_map_topics(channels) -> dict:
-    """The ``/map/*`` channels of ``channels`` (:class:`~pipeline.io.writer.OutputChannel`)
-    as :func:`~pipeline.io.writer.write_with_new_channels` writes them: each message's bytes
-    as the writer encodes them, in log-time order (ties: as given), as
-    :func:`~pipeline.io.reader.read_topics` would read them back (topic -> ``RawTopic``)."""
+def written_map_topics(channels, lines: bool = True) -> dict:
+    """The ``/map/*`` channels of ``channels`` (:class:`~pipeline.io.writer.OutputChannel`;
+    ``/map/lines`` only with ``lines``) as :func:`~pipeline.io.writer.write_with_new_channels`
+    writes them: each message's bytes as the writer encodes them, in log-time order (ties:
+    as given), as :func:`~pipeline.io.reader.read_topics` would read them back (topic ->
+    ``RawTopic``)."""
     from pipeline.io.contract import MESSAGE_ENCODING, SCHEMA_ENCODING
     from pipeline.io.reader import RawTopic
-    from pipeline.io.writer import encode
+    from pipeline.io.writer import ColumnMessages, encode, encode_rows
 
     out = {}
     for c in channels:
         if not c.topic.startswith("/map/") or not len(c.messages):
             continue
+        if c.topic == LINES_TOPIC and not lines:
+            continue
         times = c.log_times_ns()
-        rank = np.argsort(times, kind="stable").tolist()
+        rank = np.argsort(times, kind="stable")
+        if isinstance(c.messages, ColumnMessages):  # exact-size bytes, a block at a time
+            block = 1 << 14
+            data = [
+                m
+                for b in range(0, rank.size, block)
+                for m in encode_rows(
+                    c.messages.columns, rank[b : b + block], times[rank[b : b + block]]
+                )
+            ]
+        else:
+            data = [encode(c.messages[i][1]) for i in rank.tolist()]
         out[c.topic] = RawTopic(
-            c.topic,
-            c.schema_name,
-            SCHEMA_ENCODING,
-            MESSAGE_ENCODING,
-            times[rank].tolist(),
-            [encode(c.messages[i][1]) for i in rank],
+            c.topic, c.schema_name, SCHEMA_ENCODING, MESSAGE_ENCODING, times[rank].tolist(), data
         )
     return out
 
