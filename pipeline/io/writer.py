@@ -411,15 +411,16 @@ def write_with_new_channels(
         # first at equal times) and records are produced in that order, input ones read
         # from the file again, new ones encoded as they go into a chunk
         f_cid = np.asarray(index.cid, np.uint16)
-        f_time = np.asarray(index.time_ns, np.uint64).astype(np.int64)
         keep = np.isin(f_cid, np.fromiter(w.channels, np.int64, len(w.channels)))
         kept = np.flatnonzero(keep)
-        grouped = kept[np.argsort(f_cid[kept], kind="stable")]  # file index, input order
-        # rank of each input record among the kept ones in file order (what pass 2 yields)
-        pass2 = np.cumsum(keep) - 1
+        # the kept input records grouped by channel id (file order within), as their ranks
+        # among the kept ones in file order (what pass 2 yields)
+        input_rank = np.argsort(f_cid[kept], kind="stable")
+        grouped = kept[input_rank]  # file index
         cids: list[np.ndarray] = [f_cid[grouped]]
-        times: list[np.ndarray] = [f_time[grouped]]
+        times = [np.asarray(index.time_ns, np.uint64)[grouped].astype(np.int64)]
         n_input = grouped.size
+        del f_cid, kept, grouped
         sources = []
         for c in channels:
             key = (c.schema_name, SCHEMA_ENCODING, schema_bytes(c.schema_name))
@@ -444,21 +445,10 @@ def write_with_new_channels(
             cids.append(np.full(t_c.size, cid, np.uint16))
             times.append(t_c[rank])
         if n_input or sources:
-            t_all = np.concatenate(times)
-            c_all = np.concatenate(cids)
-            order = np.argsort(t_all, kind="stable")
-            # which new channel each position belongs to (-1: an input record)
-            owner = np.repeat(
-                np.arange(-1, len(sources)),
-                [n_input] + [len(t) for t in times[len(times) - len(sources) :]],
-            )
-            # what each output position takes: an input record (its rank in pass 2, >= 0)
-            # or the next message of new channel k (~k)
-            take = np.where(owner < 0, 0, ~owner)
-            take[:n_input] = pass2[grouped]
+            take, c_all, t_all = _merge_plan(input_rank, cids, times)
             records = _input_records(src, index, keep)
             try:
-                w.add_messages(_merged(records, sources, take[order]), c_all[order], t_all[order])
+                w.add_messages(_merged(records, sources, take), c_all, t_all)
             finally:
                 records.close()
         for rec in sc.metadata_records:
@@ -482,6 +472,32 @@ def write_with_new_channels(
             )
         w.finish()
     return dst
+
+
+def _merge_plan(
+    input_rank: np.ndarray, cids: list[np.ndarray], times: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The output order of every message: the input's (``cids[0]``, ``times[0]``; their
+    ranks in pass 2 ``input_rank``) and each new channel's (``cids[k + 1]``, ``times[k + 1]``,
+    in time order) merged by a stable sort of the times (input first at equal times).
+
+    Returns what each output position takes (an input record: its rank in pass 2, >= 0; the
+    next message of new channel k: ~k) and the channel ids and times in output order. The
+    lists are emptied as their arrays are merged (millions of messages at 5 h: each copy
+    counts in the write stage's peak memory).
+    """
+    take = np.empty(sum(t.size for t in times), np.int32)
+    take[: input_rank.size] = input_rank
+    pos = input_rank.size
+    for k, t in enumerate(times[1:]):
+        take[pos : pos + t.size] = ~k
+        pos += t.size
+    c_all = np.concatenate(cids)
+    cids.clear()
+    t_all = np.concatenate(times)
+    times.clear()
+    order = np.argsort(t_all, kind="stable")
+    return take[order], c_all[order], t_all[order]
 
 
 def _encoded(messages, rank: np.ndarray, cid: int) -> Iterator[bytes]:
