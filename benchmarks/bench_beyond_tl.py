@@ -143,6 +143,7 @@ def one_flight(kind: str, seed: int, folder: Path) -> dict:
             **figures,
             "used": ext.get("used"),
             "groups": getattr(run.model, "groups", []),
+            "why": ext.get("reason", ""),
             "fit_s": fit_s,
         }
     return row
