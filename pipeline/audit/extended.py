@@ -264,7 +264,7 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
     sub = [True] * k.shape[1]
     cols = [k]
     if spec.eddy_tau_s > 0:
-        kd, dn = eddy_decay_columns(k, names, data.time_s, spec.eddy_tau_s)
+        kd, dn = eddy_decay_columns(v, data.time_s, spec.eddy_tau_s)
         cols.append(kd)
         names = names + dn
         sub += [True] * len(dn)
