@@ -210,6 +210,9 @@ class Config:
             alpha=a["alpha"],
             min_gain=a["min_gain"],
             band=BandSettings(tuple(c["band_hz"]), c["poles"], c["trim"]),
+            flight_alpha=a["flight_alpha"],
+            null_draws=a["null_draws"],
+            null_seed=a["null_seed"],
         )
 
     def validate(self) -> None:

@@ -33,7 +33,6 @@ from typing import Any
 
 import numpy as np
 from scipy.optimize import curve_fit, minimize_scalar
-from scipy.signal import welch
 
 from pipeline.audit.calibration_events import calibration_steps
 from pipeline.audit.crossval import (
@@ -44,6 +43,7 @@ from pipeline.audit.crossval import (
     passwise_folds,
     stratified_block_folds,
 )
+from pipeline.audit.decide import LagVersusDecay
 from pipeline.audit.diurnal import DiurnalSet, diurnal_evidence
 from pipeline.audit.evidence import (
     HeldOut,
@@ -76,6 +76,9 @@ from pipeline.audit.legs import (
     leg_ids,
 )
 from pipeline.audit.noise import noise_floor_bounds
+from pipeline.audit.nuisances import NuisanceSelection, select_nuisances
+from pipeline.audit.null_calibration import NullCalibration, calibrate_null
+from pipeline.audit.spectrum import manoeuvre_line, residual_spectrum
 from pipeline.audit.survey import (
     CrossoverSet,
     SurveyCoupling,
@@ -100,8 +103,9 @@ from pipeline.audit.vector_cal import fit_vector_calibration
 from pipeline.audit.vector_reference import vector_reference_step
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.model import figure_of_merit
+from pipeline.compensate.nuisance import current_columns
 from pipeline.compensate.stage import calibration_mask
-from pipeline.compensate.terms import BT_SCALE_NT, direction_cosines
+from pipeline.compensate.terms import BT_SCALE_NT, direction_cosines, position_terms
 from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
@@ -206,6 +210,11 @@ class AuditSettings:
     # by a few ms: a lag under a fifth of a sample is within the resampling's own error
     # (20 ms at 10 Hz, 14 cm along track at 7 m/s)
     min_lag_samples: float = 0.2
+    # the whole selection's false-finding rate on a flight with nothing hidden, and the
+    # parametric bootstrap of the null model that measures it (pipeline.audit.null_calibration)
+    flight_alpha: float = default_field("audit", "flight_alpha")
+    null_draws: int = default_field("audit", "null_draws")
+    null_seed: int = default_field("audit", "null_seed")
 
 
 @dataclass
@@ -370,6 +379,8 @@ class AuditResult:
     # the three upper bounds the noise floor is the least of (pipeline.audit.noise)
     noise_floor_bounds_nT: dict[str, float] | None = None
     noise_floor_is_upper_bound: bool = False  # the record's white level rises with frequency
+    # the null model's bootstrap (pipeline.audit.null_calibration), JSON-ready; None: not run
+    null_calibration: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """AUDIT.json (issue 6 contract plus details)."""
@@ -424,6 +435,7 @@ class AuditResult:
                 "terms": self.extended.names,
                 "coefficients": [float(c) for c in self.extended.theta],
             },
+            "null_calibration": self.null_calibration,
             "rounds": [[e.to_dict() for e in r] for r in self.rounds],
             "notes": self.notes,
         }
@@ -494,6 +506,53 @@ class Auditor:
         self._compensated: dict[ModelSpec, np.ndarray] = {}
         self._geometry: tuple | None = None
         self._pass_steps: dict[ModelSpec, list[PassStep]] = {}
+        self.ambiguities: list[dict[str, Any]] = []
+
+    @cached_property
+    def nuisances(self) -> NuisanceSelection:
+        """The carrier's physics outside the T-L basis the held-out calibration supports
+        (:func:`pipeline.audit.nuisances.select_nuisances`): part of the null model."""
+        return select_nuisances(self.flight, self.mask, self.s.band, self.s.alpha, self.s.min_gain)
+
+    @cached_property
+    def null_calibration(self) -> NullCalibration | None:
+        """The selection's maximum statistic under the null model, by parametric bootstrap
+        (:func:`pipeline.audit.null_calibration.calibrate_null`); None without the held-out
+        folds."""
+        nz = self.nuisances
+        if nz.setup is None or nz.columns is None:
+            return None
+        d = self.data
+        cands: dict[str, np.ndarray] = {}
+        if d.enu_m is not None:
+            cands["geomagnetic_gradient"] = position_terms(*d.enu_m.T)[0]
+        for effect, key in self.candidates(ModelSpec(base=self.s.baseline)):
+            if effect == "electrical_current":
+                name = key.split(":", 1)[1]
+                cands[key] = current_columns(d.vector_nT, d.aux[name], name)[0]
+        try:
+            return calibrate_null(
+                nz.setup,
+                nz.columns,
+                cands,
+                self.s.flight_alpha,
+                self.s.min_gain,
+                self.s.null_draws,
+                self.s.null_seed,
+            )
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            self.notes.append(f"the null model's bootstrap could not run: {exc}")
+            return None
+
+    def null_spec(self) -> ModelSpec:
+        """The null model: the baseline with the nuisances the data support."""
+        nz = self.nuisances
+        return ModelSpec(
+            base=self.s.baseline,
+            eddy_tau_s=nz.eddy_tau_s,
+            second_order=nz.second_order,
+            periodic_hz=nz.periodic_hz,
+        )
 
     @cached_property
     def legs(self) -> np.ndarray:
@@ -912,6 +971,8 @@ class Auditor:
             current.with_(lag_s=lag),
             ci95={**ci, **{k: None for k in est if k not in ci}},
         )
+        if current.eddy_tau_s > 0:  # the null model holds eddy currents that decay
+            return self._lag_beside_decay_nuisance(ev, current, lags, sl)
         self._beyond(
             ev,
             current.with_(eddy_rate=True),
@@ -1027,10 +1088,98 @@ class Auditor:
             )
         return ev
 
+    def _fluxgate_timing(self, current: ModelSpec, ev: Evaluation):
+        """The lag the fluxgate's record along the lines gives (:func:`timing_lag`), recorded
+        in ``ev.estimate``; None without it."""
+        tl = timing_lag(
+            self.data.time_s,
+            self.compensated(current),
+            self.data.vector_nT,
+            self.seg.mask("survey", "tie", "validation"),
+            self.data.rate_hz,
+            self.s.max_lag_s,
+        )
+        if tl is not None:
+            ev.estimate.update(
+                fluxgate_lag_s=tl.lag_s,
+                fluxgate_lag_ci95_s=list(tl.ci95_s),
+                fluxgate_lag_p_value=tl.p_value,
+            )
+            ev.ci95.update(fluxgate_lag_s=None, fluxgate_lag_ci95_s=None, fluxgate_lag_p_value=None)
+        return tl
+
+    def _timing_says(self, lag: float, sl, tl) -> str:
+        """What the timing along the lines (survey crossovers ``sl``, the fluxgate ``tl``)
+        says of a lag of ``lag`` s: ``"holds"`` (one is significant and its interval holds
+        the lag), ``"excludes"`` (their combined interval lies below it) or ``"silent"``."""
+        found = [o for o in (sl, tl) if o is not None]
+        if any(o.p_value < self.s.alpha and o.ci95_s[0] <= lag <= o.ci95_s[1] for o in found):
+            return "holds"
+        both = combined_interval(found)
+        return "excludes" if both is not None and both[2] < lag else "silent"
+
+    def _lag_beside_decay_nuisance(
+        self, ev: Evaluation, current: ModelSpec, fold_lags: dict[int, float], sl
+    ) -> Evaluation:
+        """The lag against the null model's eddy decay (:class:`LagVersusDecay`): named when
+        it lowers held-out data beside the decay, or when the two tie and the timing along the
+        lines holds it; a tie the timing cannot break is an ambiguity (``self.ambiguities``)
+        and nothing is named."""
+        s = self.s
+        lag = float(ev.estimate["lag_s"])
+        smallest = s.min_lag_samples / self.data.rate_hz
+        tl = self._fluxgate_timing(current, ev)
+        plain = current.with_(eddy_tau_s=0.0)
+        lag_plain = self._lag_estimate(plain, None, "all")
+        decay_alone = self.heldout(plain, lambda train, k: current)
+        decay_beyond = self.heldout(
+            plain.with_(lag_s=lag_plain), lambda train, k: current.with_(lag_s=fold_lags[k])
+        )
+        lag_alone = None
+        if not (ev.heldout.p_value < s.alpha and ev.heldout.reduction >= s.min_gain):
+            lag_alone = self.heldout(
+                plain,
+                lambda train, k: plain.with_(lag_s=self._lag_estimate(plain, train, f"plain{k}")),
+            )
+        vs = LagVersusDecay(ev.heldout, lag_alone, decay_alone, decay_beyond)
+        verdict = vs.verdict(s.alpha, s.min_gain, self._timing_says(lag_plain, sl, tl))
+        tau = current.eddy_tau_s
+        ev.estimate["eddy_decay"] = {"tau_s": tau, "alone": decay_alone.to_dict()}
+        ev.estimate["against_eddy_decay"] = {"verdict": verdict, **vs.to_dict()}
+        ev.ci95.update(eddy_decay=None, against_eddy_decay=None)
+        self.ambiguities = [a for a in self.ambiguities if "sensor_lag" not in a["candidates"]]
+        if abs(lag_plain) < smallest and abs(lag) < smallest:
+            verdict = "none"
+        if verdict == "lag" and lag_alone is not None:  # the tie, broken by the timing
+            ev.estimate.update(lag_s=lag_plain, confirmed_by="the timing along the lines")
+            ev.heldout, ev.spec, ev.decided_outside = lag_alone, plain.with_(lag_s=lag_plain), True
+        elif verdict == "lag" and self._timing_says(lag, sl, tl) == "holds":
+            # the lines' timing (what a late sensor delays and a decay does not) confirms it
+            ev.estimate["confirmed_by"] = "the timing along the lines"
+            ev.decided_outside = True
+        elif verdict == "ambiguous":
+            ev.held_back = True
+            ev.reason = (
+                f"eddy currents decaying over {tau:.3g} s and a lag of {lag_plain:.3f} s each "
+                "explain the calibration's residual and neither adds to the other; the timing "
+                "along the lines does not decide: an ambiguity, nothing named"
+            )
+            self.ambiguities.append(vs.ambiguity())
+        elif verdict == "none":
+            ev.held_back = True
+            ev.reason = (
+                f"beside eddy currents decaying over {tau:.3g} s the lag lowers held-out data "
+                f"by {100 * ev.heldout.reduction:.1f} % (p {ev.heldout.p_value:.2g}): not a "
+                "late sensor"
+            )
+        return ev
+
     def _eddy_decay_tau(self, current: ModelSpec) -> float:
         """The time constant (s) of decaying eddy currents (:func:`eddy_decay` columns beside
         the T-L ones) that leaves the smallest calibration residual, on
-        :data:`EDDY_TAU_GRID_S`."""
+        :data:`EDDY_TAU_GRID_S` (the null model's, chosen on held-out data, when it has one)."""
+        if current.eddy_tau_s > 0:
+            return current.eddy_tau_s
         fits = {
             tau: self.fit(current.with_(eddy_tau_s=tau), None, "all", ridge="auto")
             for tau in EDDY_TAU_GRID_S
@@ -1887,7 +2036,7 @@ class Auditor:
         tuple
             (final model spec, accepted findings in order, every round's evaluations).
         """
-        current = ModelSpec(base=self.s.baseline)
+        current = self.null_spec()
         current = current.with_(permanent_step_s=self.permanent_step(current))
         findings: list[Evaluation] = []
         rounds: list[list[Evaluation]] = []
@@ -1904,6 +2053,7 @@ class Auditor:
             for e, p in zip(tested, holm([e.test.p_value for e in tested]), strict=True):
                 e.p_adjusted = p
             rounds.append(evals)
+            self._calibrated_gate(evals)
             passing = [e for e in evals if e.passes(self.s)]
             for e in evals:
                 if not e.passes(self.s) and not e.reason:
@@ -1920,6 +2070,24 @@ class Auditor:
                     e.reason = "passed; re-tested in the next round with the better one in"
             current = best.spec
         return self.refine(current, findings), findings, rounds
+
+    def _calibrated_gate(self, evals: list[Evaluation]) -> None:
+        """Hold back a candidate judged on the scalar calibration whose held-out gain beside
+        the null model does not reach the gate the null model's bootstrap sets for the whole
+        selection (:attr:`null_calibration`); a candidate its own evidence outside the
+        calibration decides is not judged there."""
+        nc = self.null_calibration
+        if nc is None:
+            return
+        for e in evals:
+            if e.decided_outside or e.held_back or not e.passes(self.s) or nc.passes(e.key):
+                continue
+            e.held_back = True
+            e.reason = (
+                f"its held-out gain beside the null model, {100 * nc.observed_gain[e.key]:.1f} %,"
+                f" is below the {100 * nc.gate_gain:.1f} % the null model's bootstrap sets for "
+                f"the whole selection at a flight-level rate of {nc.alpha:g}"
+            )
 
     @staticmethod
     def without(spec: ModelSpec, f: Evaluation) -> ModelSpec:
@@ -1991,52 +2159,6 @@ def _electrical(unit: str) -> bool:
     changes the carrier's field too, but that is not an electrical current."""
     u = unit.strip()
     return u == "" or u in {"A", "mA", "uA", "kA", "V", "mV"}
-
-
-def residual_spectrum(residual: np.ndarray, rate_hz: float, band: BandSettings) -> dict[str, Any]:
-    """Name the shape of the held-out residual's spectrum inside the fit band.
-
-    White noise through the band-pass has the filter's flat pass band; a line (an
-    oscillation the model lacks) stands far above the band's median level; coloured noise
-    has a slope in log power vs log frequency. Returns kind (white | line | coloured), the
-    dominant frequency (Hz), the peak-to-median power ratio, the log-log slope and a
-    sentence.
-    """
-    r = np.asarray(residual, float)
-    r = r[np.isfinite(r)]
-    if r.size < 64:
-        return {
-            "kind": "unknown",
-            "dominant_frequency_hz": None,
-            "peak_ratio": None,
-            "slope": None,
-            "description": "too few samples",
-        }
-    f, pxx = welch(r, fs=rate_hz, nperseg=min(512, r.size))
-    lo, hi = band.band_hz
-    inside = (f >= lo * 1.5) & (f <= hi / 1.1)  # the flat part of the pass band
-    if inside.sum() < 4:
-        inside = (f >= lo) & (f <= hi)
-    fi, pi = f[inside], pxx[inside]
-    k = int(np.argmax(pi))
-    ratio = float(pi[k] / np.median(pi))
-    slope = float(np.polyfit(np.log(fi), np.log(pi), 1)[0])
-    if ratio > 8.0:
-        kind, text = "line", f"a line at {fi[k]:.3f} Hz ({ratio:.0f}x the band's median power)"
-    elif abs(slope) > 1.0:
-        kind, text = (
-            "coloured",
-            (f"coloured noise (power ~ f^{slope:.1f} in the band; white noise would be flat)"),
-        )
-    else:
-        kind, text = "white", "flat in the band, like white noise"
-    return {
-        "kind": kind,
-        "dominant_frequency_hz": float(fi[k]),
-        "peak_ratio": ratio,
-        "slope": slope,
-        "description": text,
-    }
 
 
 def _diurnal_shape(time_s: np.ndarray, base: np.ndarray) -> dict[str, float | None]:
@@ -2169,8 +2291,11 @@ def run_audit(
     events = aud.survey_evidence(plain) + aud.calibration_events(plain)
     events += aud.vector_reference_events()
     events += aud.pass_step_events(plain, events)
+    named = {f.effect for f in findings}
     unexplained: dict[str, Any] = {
         "events": events,
+        "nuisances": aud.nuisances.to_list(),
+        "ambiguities": [a for a in aud.ambiguities if not named.intersection(a["candidates"])],
         "note": None,
         "spectrum": residual_spectrum(r_e, data.rate_hz, s.band),
     }
@@ -2190,7 +2315,15 @@ def run_audit(
                 ),
             }
         )
-        if spec_["kind"] == "line":
+        driven = spec_["kind"] == "line" and manoeuvre_line(
+            data.vector_nT[aud.mask], data.rate_hz, spec_["dominant_frequency_hz"], s.band
+        )
+        if driven:
+            unexplained["note"] += (
+                "; the line lies where the manoeuvres drive the carrier's field: interference "
+                "outside the model's forms, not an event"
+            )
+        if spec_["kind"] == "line" and not driven:
             t_cal = data.time_s[aud.mask]
             t0 = int(flight.time_ns[0])
             events.append(
@@ -2320,4 +2453,5 @@ def run_audit(
         int(flight.time_ns[0]),
         bounds.to_dict(),
         floor_is_bound,
+        None if aud.null_calibration is None else aud.null_calibration.to_dict(),
     )
