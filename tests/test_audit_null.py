@@ -121,7 +121,7 @@ def test_the_null_bootstrap_measures_the_selections_false_finding_rate(coupling_
     nc = calibrate_null(sel.setup, sel.columns, cands, 0.05, MIN_GAIN, draws=400, seed=0)
     out = nc.to_dict()
     assert out["method"] == "parametric_bootstrap" and out["draws"] >= 200
-    # half the draws measure the rate: 3 binomial standard errors of slack
+    # the rate is counted on half the draws: 3 binomial standard errors of slack
     assert out["flight_alpha"] <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / (out["draws"] // 2))
     assert not nc.passes("electrical_current:other")
     if coupling_nT_per_A:

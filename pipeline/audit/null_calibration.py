@@ -12,9 +12,11 @@ kept: the whole selection's maximum statistic. The ridge parameters are the reco
 every fit is linear in the data and all draws share one band-pass and one factorisation per
 fold and model: hundreds of draws cost seconds.
 
-Half the draws set the threshold (the maximum statistic's 1 - alpha quantile); the other half
-measure the rate at which the selection, with that threshold and the least gain worth a term,
-names something on a flight with nothing hidden (``flight_alpha``).
+The threshold is the maximum statistic's 1 - alpha quantile over the draws; the gate a
+candidate must reach is it or the least gain worth a term, whichever is larger. The rate at
+which such a gate names something on a flight with nothing hidden (``flight_alpha``) is
+measured on draws that did not set it: the gate set on one half, counted on the other, both
+ways round.
 
 Scope: the candidates linear in the data judged on the scalar calibration (a gradient, each
 recorded current). A lag is not: its first order in the lag lies in T-L's eddy columns (a
@@ -47,7 +49,7 @@ class NullCalibration:
     Attributes
     ----------
     draws : int
-        Null draws (half set the threshold, half measure ``flight_alpha``).
+        Null draws.
     alpha : float
         The flight-level false-finding rate the threshold is set for.
     threshold_gain : float
@@ -56,7 +58,8 @@ class NullCalibration:
         What a candidate's held-out gain must reach: the threshold or the least gain worth a
         term, whichever is larger.
     flight_alpha : float
-        Measured share of the other null draws on which some candidate reaches the gate.
+        Measured share of null draws on which some candidate reaches a gate set on other
+        draws (:func:`crossfit_rate`).
     observed_gain : dict
         Each candidate's statistic on the recording.
     p_value : float
@@ -109,6 +112,18 @@ def surrogates(
             ph[-1] = 0.0
         out[b] = np.fft.irfft(amp[:, None] * np.exp(1j * ph), n=b.size, axis=0) + trend[:, None]
     return out
+
+
+def crossfit_rate(top: np.ndarray, alpha: float, min_gain: float) -> float:
+    """The rate at which a gate set on one half of the null draws' maxima ``top`` (its
+    1 - ``alpha`` quantile, at least ``min_gain``) is reached on the other half, averaged
+    over both ways round: measured on draws the gate did not see."""
+    a, b = top[: top.size // 2], top[top.size // 2 :]
+    rates = [
+        np.mean(test >= max(float(np.quantile(fit, 1.0 - alpha)), min_gain))
+        for fit, test in ((a, b), (b, a))
+    ]
+    return float(np.mean(rates))
 
 
 def _fold_sums(setup: HeldOutSetup, cols: np.ndarray, y: np.ndarray, models, valid) -> np.ndarray:
@@ -184,15 +199,12 @@ def calibrate_null(
     ss = _fold_sums(setup, cols, y, models, valid)
     gains = 1.0 - np.sqrt(ss[1:] / ss[0])  # (candidates, 1 + draws)
     top = gains.max(axis=0) if names else np.zeros(1 + draws)
-    half = draws // 2
-    threshold = float(np.quantile(top[1 : 1 + half], 1.0 - alpha))
-    gate = max(threshold, min_gain)
     return NullCalibration(
         draws=draws,
         alpha=alpha,
-        threshold_gain=threshold,
-        gate_gain=gate,
-        flight_alpha=float(np.mean(top[1 + half :] >= gate)),
+        threshold_gain=float(np.quantile(top[1:], 1.0 - alpha)),
+        gate_gain=max(float(np.quantile(top[1:], 1.0 - alpha)), min_gain),
+        flight_alpha=crossfit_rate(top[1:], alpha, min_gain),
         observed_gain={c: float(gains[i, 0]) for i, c in enumerate(names)},
         p_value=float((1 + np.sum(top[1:] >= top[0])) / (1 + draws)),
     )

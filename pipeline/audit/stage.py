@@ -1011,21 +1011,8 @@ class Auditor:
             and beside_decay_least >= smallest
         ):
             beside_a_decay = self._lag_beyond_eddy_decay(ev, current)
-        tl = timing_lag(
-            self.data.time_s,
-            self.compensated(current),
-            self.data.vector_nT,
-            self.seg.mask("survey", "tie", "validation"),
-            self.data.rate_hz,
-            self.s.max_lag_s,
-        )
+        tl = self._fluxgate_timing(current, ev)
         if tl is not None:  # independent evidence: the fluxgate along the lines
-            est.update(
-                fluxgate_lag_s=tl.lag_s,
-                fluxgate_lag_ci95_s=list(tl.ci95_s),
-                fluxgate_lag_p_value=tl.p_value,
-            )
-            ev.ci95.update(fluxgate_lag_s=None, fluxgate_lag_ci95_s=None, fluxgate_lag_p_value=None)
             # independent timing that disagrees with every calibration form: the truth may lie
             # with either, so the interval spans both
             lo, hi = ev.ci95["lag_s"] or (lag, lag)
@@ -1153,6 +1140,8 @@ class Auditor:
         if verdict == "lag" and lag_alone is not None:  # the tie, broken by the timing
             ev.estimate.update(lag_s=lag_plain, confirmed_by="the timing along the lines")
             ev.heldout, ev.spec, ev.decided_outside = lag_alone, plain.with_(lag_s=lag_plain), True
+            lo, hi = ev.ci95.get("lag_s") or (lag, lag)
+            ev.ci95["lag_s"] = [min(lo, lag_plain), max(hi, lag_plain)]
         elif verdict == "lag" and self._timing_says(lag, sl, tl) == "holds":
             # the lines' timing (what a late sensor delays and a decay does not) confirms it
             ev.estimate["confirmed_by"] = "the timing along the lines"
