@@ -24,7 +24,6 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from pipeline.audit.periodic import periodic_columns
 from pipeline.audit.vector_cal import VectorCalibration
 from pipeline.compensate.estimator import bandpassed_design, fit_ridge
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
@@ -147,9 +146,6 @@ class ModelSpec:
     # before the fit as interference: a coupling the calibration cannot resolve is not fitted
     # there (three free columns of a channel that hardly varies there fit other residual)
     known_aux: tuple[tuple[str, float], ...] = ()
-    # an unrecorded current switched on this period's frequency (Hz; 0: none), coupling along
-    # a fixed body direction (pipeline.audit.periodic): a nuisance of the null model
-    periodic_hz: float = 0.0
 
     def with_(self, **kw) -> ModelSpec:
         """A copy with the given fields replaced."""
@@ -285,11 +281,6 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
         cols.append(ks)
         names = names + sn
         sub += [True] * len(sn)
-    if spec.periodic_hz > 0:
-        kp, pn = periodic_columns(v, data.time_s, spec.periodic_hz)
-        cols.append(kp)
-        names = names + pn
-        sub += [True] * len(pn)
     if spec.permanent_step_s is not None:
         u = direction_cosines(v)
         after = (data.time_s > spec.permanent_step_s).astype(float)[:, None]

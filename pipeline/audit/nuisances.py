@@ -13,9 +13,9 @@ columns, :mod:`pipeline.compensate.nuisance`, and for the buffered contiguous he
 
 Recorded currents are catalogue effects (``electrical_current``), not nuisances, and the
 attitude rates have no place in the audit's model forms; neither is offered here. Slow drift
-and 1/f noise lie below the fit band, which removes them; a periodic (switching) current that
-no channel records is taken by :mod:`pipeline.audit.periodic` when the null model's held-out
-residual shows a line at its frequency.
+and 1/f noise lie below the fit band, which removes them. A current that no channel records
+has no columns here: a residual line it leaves is told from an event by its coherence with
+the attitude (:func:`pipeline.audit.spectrum.manoeuvre_line`).
 """
 
 from __future__ import annotations
@@ -26,9 +26,6 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from pipeline.audit.periodic import NAME as PERIODIC
-from pipeline.audit.periodic import periodic_columns, periodic_nuisance
-from pipeline.audit.spectrum import WELCH_SEGMENT, residual_spectrum
 from pipeline.compensate.model import Measurements
 from pipeline.compensate.plus import (
     TAU_GRID_S,
@@ -41,7 +38,7 @@ from pipeline.compensate.terms import tl18_terms
 from pipeline.flight import Flight
 
 # the nuisance groups whose columns the audit's model (pipeline.audit.extended.ModelSpec) holds
-NULL_GROUPS = ("eddy_decay", "second_order", PERIODIC)
+NULL_GROUPS = ("eddy_decay", "second_order")
 
 
 @dataclass(frozen=True)
@@ -127,14 +124,6 @@ class NuisanceSelection:
         return 0.0
 
     @property
-    def periodic_hz(self) -> float:
-        """The unrecorded periodic current's frequency the null model takes (Hz; 0: none)."""
-        for n in self.nuisances:
-            if n.name == PERIODIC:
-                return float(n.estimate["frequency_hz"])
-        return 0.0
-
-    @property
     def second_order(self) -> bool:
         """Whether the null model takes the second-order terms."""
         return any(n.name == "second_order" for n in self.nuisances)
@@ -189,27 +178,6 @@ def select_from(
         cols.append(group_columns(g, meas, est.get("tau_s", 0.0))[0])
         gain = 1.0 - trial.heldout_after_nT / trial.heldout_before_nT
         out.append(Nuisance(g, float(gain), est))
-    periodic = _periodic(setup, np.column_stack(cols), band, alpha, min_gain)
-    if periodic is not None:
-        out.append(Nuisance(**periodic))
-        cols.append(
-            periodic_columns(meas.vector_nT, meas.time_s, periodic["estimate"]["frequency_hz"])[0]
-        )
     return NuisanceSelection(
         [n for n in out if n.name in NULL_GROUPS], sel, "", setup, np.column_stack(cols)
-    )
-
-
-def _periodic(
-    setup: HeldOutSetup, null_columns: np.ndarray, band, alpha: float, min_gain: float
-) -> dict | None:
-    """The periodic-current nuisance (:func:`periodic_nuisance`) at the line of the null
-    model's held-out residual spectrum, when it has one."""
-    res = setup.linear(null_columns)
-    spec = residual_spectrum(res.residual_nT, setup.meas.rate_hz, band)
-    if spec["kind"] != "line":
-        return None
-    resolution = setup.meas.rate_hz / min(WELCH_SEGMENT, res.residual_nT.size)
-    return periodic_nuisance(
-        setup, null_columns, spec["dominant_frequency_hz"], resolution, alpha, min_gain
     )

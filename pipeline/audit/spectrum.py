@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.signal import welch
+from scipy.signal import coherence, welch
 
 # a line stands this many times above the band's median power: far beyond the scatter of a
 # Welch estimate's bins (chi-square with about 2 x segments degrees of freedom)
@@ -60,21 +60,27 @@ def residual_spectrum(residual: np.ndarray, rate_hz: float, band) -> dict[str, A
     }
 
 
-def manoeuvre_line(vector_nT: np.ndarray, rate_hz: float, frequency_hz: float, band) -> bool:
-    """Whether the manoeuvres drive the field at ``frequency_hz``: some body-frame vector
-    component (x forward, y right, z down; nT, the calibration's samples) has a line
-    (:data:`LINE_RATIO` above its band median) within one Welch bin of it. A residual line
-    there is the carrier's response to the attitude that the model lacks, not an event.
+def manoeuvre_line(
+    residual: np.ndarray, vector_nT: np.ndarray, rate_hz: float, frequency_hz: float, alpha: float
+) -> bool:
+    """Whether a residual line at ``frequency_hz`` is the carrier's response to the attitude:
+    the residual (nT) is coherent there with some body-frame vector component (x forward,
+    y right, z down; nT, the same rows) beyond the coherence a pair of independent series
+    reaches with probability ``alpha`` over the Welch segments (1 - alpha^(1/(K-1)), K
+    non-overlapping segments). Such a line is interference outside the model's forms, not an
+    event; an oscillation of its own (a gimbal, a pump) is not coherent with the attitude.
     """
+    r = np.asarray(residual, float)
     v = np.asarray(vector_nT, float)
-    v = v[np.all(np.isfinite(v), axis=1)]
-    if v.shape[0] < 64:
+    ok = np.isfinite(r) & np.all(np.isfinite(v), axis=1)
+    r, v = r[ok], v[ok]
+    seg = min(WELCH_SEGMENT, r.size)
+    k = r.size // seg
+    if k < 3:
         return False
-    f, pxx = welch(v, fs=rate_hz, nperseg=min(WELCH_SEGMENT, v.shape[0]), axis=0)
-    lo, hi = band.band_hz
-    inside = (f >= lo) & (f <= hi)
-    near = inside & (np.abs(f - frequency_hz) <= (f[1] - f[0]) * 1.01)
-    if not near.any():
-        return False
-    med = np.median(pxx[inside], axis=0)
-    return bool(np.any(pxx[near].max(axis=0) > LINE_RATIO * med))
+    level = 1.0 - alpha ** (1.0 / (k - 1))
+    for i in range(3):
+        f, coh = coherence(r, v[:, i], fs=rate_hz, nperseg=seg)
+        if coh[int(np.argmin(np.abs(f - frequency_hz)))] > level:
+            return True
+    return False

@@ -551,7 +551,6 @@ class Auditor:
             base=self.s.baseline,
             eddy_tau_s=nz.eddy_tau_s,
             second_order=nz.second_order,
-            periodic_hz=nz.periodic_hz,
         )
 
     @cached_property
@@ -2058,7 +2057,36 @@ class Auditor:
                 if e is not best:
                     e.reason = "passed; re-tested in the next round with the better one in"
             current = best.spec
-        return self.refine(current, findings), findings, rounds
+        return self.refine(self.prune_nuisances(current), findings), findings, rounds
+
+    def prune_nuisances(self, spec: ModelSpec) -> ModelSpec:
+        """Drop from ``spec`` each nuisance that no longer lowers held-out data with the
+        findings in the model (p < ``alpha``, by ``min_gain``): taken before the catalogue
+        effects, a nuisance can have followed part of one (a gradient's field moves with the
+        manoeuvres' small displacements). Kept nuisances stay in ``self.nuisances``; the
+        dropped ones are noted."""
+        off = {"eddy_decay": {"eddy_tau_s": 0.0}, "second_order": {"second_order": False}}
+        kept = []
+        for n in self.nuisances.nuisances:
+            without = spec.with_(**off[n.name])
+            if without == spec:
+                continue
+            try:
+                h = self.heldout(without, lambda train, k, s_=spec: s_)
+            except (ValueError, np.linalg.LinAlgError):
+                kept.append(n)
+                continue
+            if h.p_value < self.s.alpha and h.reduction >= self.s.min_gain:
+                kept.append(n)
+                continue
+            spec = without
+            self.notes.append(
+                f"the nuisance {n.name} taken before the catalogue effects lowers held-out data "
+                f"by {100 * h.reduction:.1f} % (p {h.p_value:.2g}) with the findings in the "
+                "model: dropped"
+            )
+        self.nuisances.nuisances = kept
+        return spec
 
     def _calibrated_gate(self, evals: list[Evaluation]) -> None:
         """Hold back a candidate judged on the scalar calibration whose held-out gain beside
@@ -2305,12 +2333,12 @@ def run_audit(
             }
         )
         driven = spec_["kind"] == "line" and manoeuvre_line(
-            data.vector_nT[aud.mask], data.rate_hz, spec_["dominant_frequency_hz"], s.band
+            r_e, data.vector_nT[w_e], data.rate_hz, spec_["dominant_frequency_hz"], s.alpha
         )
         if driven:
             unexplained["note"] += (
-                "; the line lies where the manoeuvres drive the carrier's field: interference "
-                "outside the model's forms, not an event"
+                "; the line is coherent with the attitude: the carrier's interference outside "
+                "the model's forms, not an event"
             )
         if spec_["kind"] == "line" and not driven:
             t_cal = data.time_s[aud.mask]
