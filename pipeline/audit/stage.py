@@ -43,7 +43,7 @@ from pipeline.audit.crossval import (
     passwise_folds,
     stratified_block_folds,
 )
-from pipeline.audit.decide import LagVersusDecay
+from pipeline.audit.decide import LagVersusDecay, significant
 from pipeline.audit.diurnal import DiurnalSet, diurnal_evidence
 from pipeline.audit.evidence import (
     HeldOut,
@@ -617,16 +617,18 @@ class Auditor:
             )
         return self._fit_cache[ck]
 
-    def heldout(self, before: ModelSpec, after_for_fold) -> HeldOut:
+    def heldout(self, before, after_for_fold) -> HeldOut:
         """Held-out band-passed residuals of two models over the folds; ``after_for_fold``
-        builds the extended spec from the training mask (parameters estimated there)."""
+        builds the extended spec from the training mask (parameters estimated there);
+        ``before`` is a spec, or like ``after_for_fold`` a builder of one."""
         rb, ra, tt = [], [], []
         for k, (train, test) in enumerate(self.folds):
-            mb = self.fit(before, train, f"fold{k}")
+            spec_b = before(train, k) if callable(before) else before
+            mb = self.fit(spec_b, train, f"fold{k}")
             spec_a = after_for_fold(train, k)
             ma = self.fit(spec_a, train, f"fold{k}")
             r0, w0 = mb.residual_bp(
-                self.data, self.mask, self.s.band, keep=test, rows=self.rows(before)
+                self.data, self.mask, self.s.band, keep=test, rows=self.rows(spec_b)
             )
             r1, w1 = ma.residual_bp(
                 self.data, self.mask, self.s.band, keep=test, rows=self.rows(spec_a)
@@ -1128,6 +1130,16 @@ class Auditor:
                 lambda train, k: plain.with_(lag_s=self._lag_estimate(plain, train, f"plain{k}")),
             )
         vs = LagVersusDecay(ev.heldout, lag_alone, decay_alone, decay_beyond)
+        if vs.tie(s.alpha, s.min_gain):
+            # the rivals with as many coefficients: the whole reading delayed, or only the
+            # eddy terms (decayed in place of the instantaneous ones)
+            in_place = plain.with_(eddy_tau_s=current.eddy_tau_s, eddy_in_place=True)
+
+            def lag_model(train, k):
+                return plain.with_(lag_s=self._lag_estimate(plain, train, f"plain{k}"))
+
+            vs.lag_over_decay = self.heldout(in_place, lag_model)
+            vs.decay_over_lag = self.heldout(lag_model, lambda train, k: in_place)
         verdict = vs.verdict(s.alpha, s.min_gain, self._timing_says(lag_plain, sl, tl))
         tau = current.eddy_tau_s
         ev.estimate["eddy_decay"] = {"tau_s": tau, "alone": decay_alone.to_dict()}
@@ -1136,8 +1148,14 @@ class Auditor:
         self.ambiguities = [a for a in self.ambiguities if "sensor_lag" not in a["candidates"]]
         if abs(lag_plain) < smallest and abs(lag) < smallest:
             verdict = "none"
-        if verdict == "lag" and lag_alone is not None:  # the tie, broken by the timing
-            ev.estimate.update(lag_s=lag_plain, confirmed_by="the timing along the lines")
+        if verdict == "lag" and lag_alone is not None:  # the tie, broken
+            by_physics = significant(vs.lag_over_decay, s.alpha, s.min_gain)
+            ev.estimate.update(
+                lag_s=lag_plain,
+                confirmed_by="the lag model over the decay in place of the eddy terms"
+                if by_physics
+                else "the timing along the lines",
+            )
             ev.heldout, ev.spec, ev.decided_outside = lag_alone, plain.with_(lag_s=lag_plain), True
             lo, hi = ev.ci95.get("lag_s") or (lag, lag)
             ev.ci95["lag_s"] = [min(lo, lag_plain), max(hi, lag_plain)]
