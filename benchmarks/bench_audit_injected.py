@@ -26,7 +26,7 @@ there, and audits the flight as ``aeromag audit`` does (:func:`pipeline.audit.ru
 
 Printed: per run what was named, the estimate against the injected value and whether the
 95 % interval covers it. Right means the injected effect named alone (a step: nothing named
-and an event near it); below the smallest effect the audit names (``min_lag_samples``,
+and an event near it); below the smallest effect the audit names (``min_lag_s``,
 ``min_excess_gradient_nT_per_m``) nothing named is right too.
 """
 
@@ -125,7 +125,7 @@ def smallest_named(kind: str, value: float, truth: dict, rate_hz: float) -> bool
     """True when the injected effect is at least the smallest the audit is set to name."""
     s = AuditSettings()
     if kind == "sensor_lag":
-        return truth["lag_s"] * rate_hz >= s.min_lag_samples
+        return truth["lag_s"] >= s.min_lag_s
     if kind == "geomagnetic_gradient":
         return value >= s.min_excess_gradient_nT_per_m
     return True

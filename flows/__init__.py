@@ -4,11 +4,9 @@ Importing this package sets Prefect's environment defaults before Prefect itself
 a temporary local server needs more than the default 20 s to start on a new database here, and
 nothing may reach the network (see shared/docs/toolchain.md). Values already set win.
 
-It also runs numpy's BLAS (OpenBLAS) on one thread, as Dask already does in its workers: the
-audit and the compensation solve many small least-squares problems (thin SVDs of calibration
-designs), for which a second thread gains little, and on a busy 2-core
-machine its spin-waiting made each SVD ~100x slower (5 ms -> 600 ms; the audit of a 1 h
-flight took 152 s instead of 14 s; see docs/benchmarks.md). Set before numpy is imported.
+It also runs numpy's BLAS on one thread, as Dask does in its workers: the audit and the
+compensation solve many small least-squares problems, for which a second thread gains little
+and, on a busy machine, spin-waits (docs/benchmarks.md). Set before numpy is imported.
 """
 
 import os

@@ -28,7 +28,7 @@ from prefect import flow, task
 from flows.errors import install_one_line_errors
 from pipeline.config import Config
 from pipeline.errors import AeromagError
-from pipeline.run.archive import discover, is_complete, plan, process_one, write_index
+from pipeline.run import archive as runs
 
 install_one_line_errors()
 # called with (done, total, row) after each recording, inside progress_to() only (the CLI's
@@ -61,7 +61,7 @@ def process_recording(
     dict
         The recording's index row.
     """
-    row = process_one(path, out_dir, config_path, cfg_hash, sha)
+    row = runs.process_one(path, out_dir, config_path, cfg_hash, sha)
     if row["status"] == "processed":
         from flows.postflight import publish_artifact
 
@@ -74,7 +74,7 @@ def _run_rows(recordings: list[Path], out: Path, config_path: str | None) -> lis
     cfg = Config.load(config_path)
     cfg.validate()
     out.mkdir(parents=True, exist_ok=True)
-    rows, todo = plan(recordings, out, cfg)
+    rows, todo = runs.plan(recordings, out, cfg)
     futures = [
         process_recording.submit(str(p), str(out), config_path, cfg.hash, sha) for p, sha in todo
     ]
@@ -87,15 +87,7 @@ def _run_rows(recordings: list[Path], out: Path, config_path: str | None) -> lis
         if (progress := _PROGRESS.get()) is not None:
             progress(len(rows), total, row)
         if k % 4 == 0:  # the index survives a crash with most of its rows
-            write_index(
-                out,
-                rows
-                + [
-                    {"input": str(p), "sha256": s, "status": "pending"}
-                    for p, s in todo
-                    if str(p) not in {r["input"] for r in rows}
-                ],
-            )
+            runs.write_index(out, runs.with_pending(rows, todo))
     return rows
 
 
@@ -105,9 +97,9 @@ def reprocess_archive(
 ) -> dict[str, Any]:
     """Every recording of an archive, in parallel on the flow's task runner."""
     out = Path(out_dir)
-    recordings = discover(Path(archive_dir), exclude=out)
+    recordings = runs.discover(Path(archive_dir), exclude=out)
     rows = _run_rows(recordings, out, config_path)
-    index = write_index(out, rows)
+    index = runs.write_index(out, rows)
     counts = {s: sum(r["status"] == s for r in rows) for s in ("processed", "done", "quarantined")}
     return {"recordings": len(rows), **counts, "index": index}
 
@@ -119,14 +111,14 @@ def process_new(
     """The scheduled job: recordings that appeared in ``watch_dir`` since the last run
     (those without a finished output for this configuration), skipping incomplete files."""
     out = Path(out_dir)
-    found = discover(Path(watch_dir), exclude=out)
+    found = runs.discover(Path(watch_dir), exclude=out)
     ready, waiting = [], []
     for p in found:
-        ok, why = is_complete(p, settle_s)
+        ok, why = runs.is_complete(p, settle_s)
         (ready if ok else waiting).append((p, why))
     rows = _run_rows([p for p, _ in ready], out, config_path) if ready else []
     rows += [{"input": str(p), "status": "waiting", "reason": why} for p, why in waiting]
-    index = write_index(out, rows) if rows else {}
+    index = runs.write_index(out, rows) if rows else {}
     return {
         "recordings": len(found),
         "waiting": len(waiting),
@@ -137,30 +129,16 @@ def process_new(
 
 
 class _SlowWorkerExit(logging.Filter):
-    """Drops the nanny's "Worker process still alive after 4.0 seconds, killing": when the
-    local cluster closes, every result is in; on a busy machine an idle worker may take longer
-    than that to exit and is killed, losing nothing. The warning, one line per worker, broke
-    the at-most-two-lines stderr of ``aeromag reprocess``; other nanny warnings (a worker
-    restarted for memory, say) still show."""
+    """Drops the nanny's "Worker process still alive after N seconds, killing": it comes once
+    the cluster closes, with every result in, and loses nothing; other warnings still show."""
 
     def filter(self, record: logging.LogRecord) -> bool:
         return not str(record.msg).startswith("Worker process still alive after")
 
 
 def dask_runner(workers: int, address: str | None):
-    """Prefect's Dask task runner: a cluster at ``address``, or a local one.
-
-    Parameters
-    ----------
-    workers : int
-        Worker processes of the local cluster (one thread each).
-    address : str or None
-        ``tcp://HOST:PORT`` of an existing scheduler.
-
-    Returns
-    -------
-    prefect_dask.DaskTaskRunner
-    """
+    """Prefect's Dask task runner: the scheduler at ``address`` (``tcp://HOST:PORT``), or a
+    local cluster of ``workers`` processes of one thread each."""
     from prefect_dask import DaskTaskRunner
 
     for name in (
@@ -246,22 +224,9 @@ def prefect_api(timeout_s: float = 90.0) -> Iterator[str]:
 
 
 def wait_healthy(url: str, timeout_s: float, proc: subprocess.Popen | None = None) -> None:
-    """Wait until the Prefect API at ``url`` answers ``/health`` with 200.
-
-    Parameters
-    ----------
-    url : str
-        The API URL (``http://HOST:PORT/api``).
-    timeout_s : float
-        How long to wait, s.
-    proc : subprocess.Popen, optional
-        The server process; its exit ends the wait at once.
-
-    Raises
-    ------
-    AeromagError
-        The server exited or did not become healthy in time.
-    """
+    """Wait until the Prefect API at ``url`` (``http://HOST:PORT/api``) answers ``/health``
+    with 200, at most ``timeout_s`` seconds; an AeromagError when the server process ``proc``
+    exits or the time runs out."""
     import urllib.request
 
     t_end = time.monotonic() + timeout_s

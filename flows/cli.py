@@ -7,11 +7,13 @@ flow import Prefect lazily so that ``inspect`` and ``simulate`` start instantly.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, get_type_hints
 
 import typer
 from rich.console import Console
@@ -86,21 +88,10 @@ def simulate(
     ] = None,
 ) -> None:
     """Simulate a flight: what the recorder writes goes to --out, the truth to --truth."""
-    from pipeline.simulate import Scenario, write_simulation
-    from pipeline.simulate import simulate as run
+    from pipeline.simulate import simulate_recording
 
-    sc = Scenario.load(scenario, set_ or [])
-    with console.status(f"simulating scenario {sc.name} (seed {seed})"):
-        sim = run(sc, seed)
-    with console.status(f"writing {out_path}"):
-        write_simulation(sim, out_path, truth)
-    n = sum(len(s["t"]) for s in sim.streams.values())
-    say(
-        f"{out_path}: {sim.trajectory.duration_s / 60:.1f} min flight, {n} messages, "
-        f"effects: {', '.join(sc.enabled_effects()) or 'none'}"
-    )
-    if truth:
-        say(f"{truth}: truth")
+    with console.status(f"simulating scenario {scenario} (seed {seed})"):
+        emit("simulation", simulate_recording(scenario, seed, set_ or [], out_path, truth))
 
 
 @import_app.command("sgl")
@@ -111,21 +102,14 @@ def import_sgl(
         str | None, typer.Option(help="Only these lines, e.g. 1002.02,1002.20.")
     ] = None,
     calibration_lines: Annotated[
-        str | None,
-        typer.Option(
-            help="Lines flown as calibration boxes (named in the flight's readme); marked "
-            "kind=calibration in /plan/line."
-        ),
+        str | None, typer.Option(help="Lines flown as calibration boxes (kind=calibration).")
     ] = None,
 ) -> None:
     """Import an SGL HDF5 or XYZ file (field mapping in schemas/README.md)."""
     from pipeline.io.sgl import import_sgl as run
 
-    def split(v):
-        return [x.strip() for x in v.split(",") if x.strip()] if v else None
-
     with console.status(f"importing {file.name}"):
-        res = run(file, out_path, split(lines), split(calibration_lines))
+        res = run(file, out_path, _names(lines), _names(calibration_lines))
     say(
         f"{out_path}: {res['samples']} samples over {res['span_s']:.1f} s, "
         f"{len(res['channels'])} channels"
@@ -136,13 +120,7 @@ def import_sgl(
 def import_mapped(
     file: Annotated[Path, typer.Argument(help="A recorder's MCAP (ROS 2, protobuf, JSON).")],
     mapping: Annotated[
-        Path,
-        typer.Option(
-            "--mapping",
-            help="Topic-mapping file (TOML); "
-            "`aeromag inspect FILE "
-            "--suggest-mapping` proposes one.",
-        ),
+        Path, typer.Option(help="Topic mapping (TOML); `aeromag inspect --suggest-mapping`.")
     ],
     out_path: Annotated[Path, typer.Option("--out", help="Recording to write (.mcap).")],
 ) -> None:
@@ -176,12 +154,7 @@ def inspect(
         Path | None, typer.Option("--json", help="Also write the report as JSON.")
     ] = None,
     suggest_mapping: Annotated[
-        bool,
-        typer.Option(
-            "--suggest-mapping",
-            help="Print a topic-mapping file (TOML) for the recorder's "
-            "topics of known types (ROS 2, Foxglove protobuf).",
-        ),
+        bool, typer.Option(help="Print a topic mapping (TOML) for ROS 2 / protobuf topics.")
     ] = False,
 ) -> None:
     """Topics, counts, rates, span, gaps and contract violations (exit 1 on violations)."""
@@ -223,20 +196,87 @@ ConfigOption = Annotated[
 ]
 
 
+Workers = Annotated[int, typer.Option(help="Dask worker processes of the local cluster.")]
+DaskAddress = Annotated[
+    str | None, typer.Option(help="Use an existing Dask cluster, e.g. tcp://HOST:8786.")
+]
+
+
+def _dask_checks(workers: int, config: Path | None) -> None:
+    if workers < 1:
+        _fail(f"--workers {workers}: must be >= 1")
+    _check_config(config)
+
+
+@contextlib.contextmanager
+def _on_dask(workers: int, address: str | None):
+    """A Prefect API and a Dask task runner for a flow over many recordings."""
+    from flows import archive as arch
+
+    with arch.prefect_api():
+        yield arch.dask_runner(workers, address)
+
+
+def setting(key: str, *decls: str, text: str | None = None, convert: Callable | None = None):
+    """An option that overrides the configuration key ``key``; its help is the key's comment
+    in the shipped defaults (one description of each setting) unless ``text`` is given.
+    :func:`_stage_config` finds it in the command's signature; ``convert`` turns the typed
+    value into the key's (one model into the list of models, say)."""
+    from pipeline.defaults import default_comment
+
+    text = text or default_comment(key)
+    info = typer.Option(*decls, help=f"{text[0].upper()}{text[1:]} (config: {key}).")
+    info.aeromag_setting = (key, convert)
+    return info
+
+
 def _check_config(config: Path | None) -> None:
     from pipeline.config import Config
 
     Config.load(config).validate()
 
 
-def _stage_config(config: Path | None, options: dict[str, tuple[str, object]]):
-    """:func:`pipeline.run.commands.command_config`; a refused option exits 2 with one line."""
+def _stage_config(config: Path | None, command: Callable, given: dict, *inputs: Path):
+    """A single-stage command's configuration (:func:`pipeline.run.commands.command_config`):
+    each :func:`setting` option of ``command`` given in ``given`` overrides its key. The
+    inputs are checked readable first; a refused value exits 2 with one line."""
     from pipeline.run.commands import OptionError, command_config
+    from pipeline.run.outputs import require_readable
 
+    for path in inputs:
+        require_readable(path)
+    options = {}
+    for name, hint in get_type_hints(command, include_extras=True).items():
+        for info in getattr(hint, "__metadata__", ()):
+            if (found := getattr(info, "aeromag_setting", None)) is None:
+                continue
+            key, convert = found
+            flags = [d.split("/")[0] for d in info.param_decls if d.startswith("--")]
+            value = given[name]
+            value = convert(value) if convert is not None and value is not None else value
+            options[flags[0] if flags else "--" + name.replace("_", "-")] = (key, value)
     try:
         return command_config(config, options)
     except OptionError as exc:
         _fail(str(exc))
+
+
+def _written(out_path: Path | None, json_out: Path | None = None) -> None:
+    if out_path:
+        say(f"output recording: {out_path}")
+    if json_out:
+        say(f"summary: {json_out}")
+
+
+def _ridge(value: str) -> object:
+    try:
+        return value if value == "auto" else float(value)
+    except ValueError:
+        return value  # the configuration's check names it
+
+
+def _names(value: str | None) -> list[str] | None:
+    return [p.strip() for p in value.split(",") if p.strip()] if value else None
 
 
 @app.command()
@@ -246,33 +286,18 @@ def compensate(
     json_out: SummaryJson,
     model: Annotated[
         str | None,
-        typer.Option(
-            help="tl16 | tl18 | agg-tl | tl-plus | tl-nn (default: the configuration's final "
-            "model the recording can fit, as `aeromag process`)"
+        setting(
+            "compensation.models",
+            text="tl16 | tl18 | agg-tl | tl-plus | tl-nn (default: the configuration's final "
+            "model the recording can fit, as `aeromag process`)",
+            convert=lambda m: [m],
         ),
     ] = None,
-    agg_base: Annotated[
-        str | None,
-        typer.Option(
-            help="AGG-TL's T-L terms: tl18 (|B|-scaled) or tl16 (paper 002) "
-            "(config: compensation.agg_base)"
-        ),
-    ] = None,
-    band: Annotated[
-        tuple[float, float] | None,
-        typer.Option(help="Band-pass edges, Hz (config: compensation.band_hz)."),
-    ] = None,
-    poles: Annotated[
-        int | None, typer.Option(help="Butterworth prototype order (config: compensation.poles).")
-    ] = None,
-    trim: Annotated[
-        int | None,
-        typer.Option(help="Samples dropped at each end of a block (config: compensation.trim)."),
-    ] = None,
-    ridge: Annotated[
-        str | None,
-        typer.Option(help="auto (L-curve corner) or a lambda (config: compensation.ridge)."),
-    ] = None,
+    agg_base: Annotated[str | None, setting("compensation.agg_base")] = None,
+    band: Annotated[tuple[float, float] | None, setting("compensation.band_hz")] = None,
+    poles: Annotated[int | None, setting("compensation.poles")] = None,
+    trim_s: Annotated[float | None, setting("compensation.trim_s", "--trim-s")] = None,
+    ridge: Annotated[str | None, setting("compensation.ridge", convert=_ridge)] = None,
     calibration: Annotated[
         str, typer.Option(help="auto | all | T0:T1 (seconds from the first epoch, or Unix seconds)")
     ] = "auto",
@@ -282,26 +307,8 @@ def compensate(
 ) -> None:
     """Fit a T-L / AGG-TL model, compensate the scalar field, write channels and a summary."""
     from pipeline.run.commands import compensate_recording
-    from pipeline.run.outputs import require_readable
 
-    require_readable(recording)
-    lam: object = ridge
-    if ridge is not None and ridge != "auto":
-        try:
-            lam = float(ridge)
-        except ValueError:
-            pass  # the configuration's check names it
-    cfg = _stage_config(
-        config,
-        {
-            "--model": ("compensation.models", [model] if model else None),
-            "--agg-base": ("compensation.agg_base", agg_base),
-            "--band": ("compensation.band_hz", band),
-            "--poles": ("compensation.poles", poles),
-            "--trim": ("compensation.trim", trim),
-            "--ridge": ("compensation.ridge", lam),
-        },
-    )
+    cfg = _stage_config(config, compensate, locals(), recording)
     with console.status(f"compensating {recording.name}" + (f" ({model})" if model else "")):
         summary = compensate_recording(
             recording, out_path, json_out, cfg, calibration, scalar, vector
@@ -309,8 +316,7 @@ def compensate(
     for w in (summary.get("calibration_guards") or {}).get("warnings", []):
         console.print(f"warning: {w}", markup=False, highlight=False, soft_wrap=True)
     emit("compensate", summary)
-    say(f"output recording: {out_path}")
-    say(f"summary: {json_out}")
+    _written(out_path, json_out)
 
 
 @app.command("map")
@@ -318,24 +324,11 @@ def map_(
     recording: RecordingArg,
     out_path: OutRecording,
     json_out: SummaryJson,
-    cell: Annotated[
-        float | None, typer.Option(help="Cell size, m; 0: line spacing / 4 (config: map.cell_m).")
-    ] = None,
-    arima: Annotated[
-        str | None, typer.Option(help="auto (BIC) or p,d,q (config: map.arima)")
-    ] = None,
-    noise: Annotated[
-        float | None,
-        typer.Option(
-            help="Measurement noise for the Kalman filter, nT; 0: estimated (config: map.noise_nT)"
-        ),
-    ] = None,
+    cell: Annotated[float | None, setting("map.cell_m")] = None,
+    arima: Annotated[str | None, setting("map.arima")] = None,
+    noise: Annotated[float | None, setting("map.noise_nT")] = None,
     level_trend: Annotated[
-        bool | None,
-        typer.Option(
-            "--level-trend/--no-level-trend",
-            help="Linear-in-time line corrections (config: map.level_trend).",
-        ),
+        bool | None, setting("map.level_trend", "--level-trend/--no-level-trend")
     ] = None,
     lag: Annotated[
         float,
@@ -346,23 +339,12 @@ def map_(
     """Reduce, level, grid and ARIMA-Kalman-filter the anomaly map (runs the stages it needs,
     with the configuration's settings)."""
     from pipeline.run.commands import map_recording
-    from pipeline.run.outputs import require_readable
 
-    require_readable(recording)
-    cfg = _stage_config(
-        config,
-        {
-            "--cell": ("map.cell_m", cell),
-            "--arima": ("map.arima", arima),
-            "--noise": ("map.noise_nT", noise),
-            "--level-trend": ("map.level_trend", level_trend),
-        },
-    )
+    cfg = _stage_config(config, map_, locals(), recording)
     with console.status(f"mapping {recording.name}"):
         summary = map_recording(recording, out_path, json_out, cfg, lag)
     emit("map", summary["map"])
-    say(f"output recording: {out_path}")
-    say(f"summary: {json_out}")
+    _written(out_path, json_out)
 
 
 @app.command()
@@ -384,7 +366,7 @@ def export(
     from pipeline.run.outputs import require_readable
 
     require_readable(recording)
-    chosen = check_formats([f for f in formats.split(",") if f.strip()], "--format")
+    chosen = check_formats(_names(formats) or [], "--format")
     with console.status(f"exporting {recording.name}"):
         written = export_recording(recording, out_dir, chosen)
     for fmt, paths in written.items():
@@ -396,39 +378,19 @@ def export(
 def enhance(
     recording: ProcessedArg,
     out_path: OutRecording,
-    products: Annotated[
-        str | None,
-        typer.Option(
-            help="Comma-separated: rtp, dz, thd, tilt, as, up:H (upward continuation by H m) "
-            "(config: enhance.products)."
-        ),
-    ] = None,
-    source: Annotated[
-        str | None,
-        typer.Option(help="Grid to enhance: anomaly or anomaly_filtered (config: enhance.source)."),
-    ] = None,
+    products: Annotated[str | None, setting("enhance.products", convert=_names)] = None,
+    source: Annotated[str | None, setting("enhance.source")] = None,
     config: ConfigOption = None,
 ) -> None:
     """Map enhancements (harmonica): reduction to the pole, vertical and total horizontal
     derivatives, tilt angle, analytic signal, upward continuation -> /map/* grid channels."""
     from pipeline.run.commands import enhance_recording
-    from pipeline.run.outputs import require_readable
 
-    require_readable(recording)
-    cfg = _stage_config(
-        config,
-        {
-            "--products": (
-                "enhance.products",
-                None if products is None else [p for p in products.split(",") if p.strip()],
-            ),
-            "--source": ("enhance.source", source),
-        },
-    )
+    cfg = _stage_config(config, enhance, locals(), recording)
     with console.status(f"enhancing {recording.name}"):
         result = enhance_recording(recording, out_path, cfg)
     emit("enhance", result)
-    say(f"output recording: {out_path}")
+    _written(out_path)
 
 
 @app.command()
@@ -437,52 +399,24 @@ def quality(
     json_out: Annotated[
         Path, typer.Option("--json", help="Summary JSON to write (plots are written next to it).")
     ],
-    overlap_m: Annotated[
-        float | None,
-        typer.Option(
-            "--overlap-m",
-            help="Largest horizontal distance of an overlap pair, m (config: quality.overlap_m).",
-        ),
-    ] = None,
+    overlap_m: Annotated[float | None, setting("quality.overlap_m", "--overlap-m")] = None,
     out_path: Annotated[
         Path | None,
         typer.Option("--out", help="Also write an output recording with the quality channels."),
     ] = None,
-    noise_threshold: Annotated[
-        float | None,
-        typer.Option(
-            help="4th-difference noise above which a line is flagged, nT "
-            "(config: quality.noise_threshold_nT)."
-        ),
-    ] = None,
-    height_tolerance: Annotated[
-        float | None,
-        typer.Option(
-            help="Allowed flight-height deviation, m (config: quality.height_tolerance_m)."
-        ),
-    ] = None,
+    noise_threshold: Annotated[float | None, setting("quality.noise_threshold_nT")] = None,
+    height_tolerance: Annotated[float | None, setting("quality.height_tolerance_m")] = None,
     config: ConfigOption = None,
 ) -> None:
     """Heading error at overlap points, interpolated-map comparison, crossovers and survey QC
     (runs segmentation, the configured compensation models and gridding itself when needed)."""
     from pipeline.run.commands import quality_recording
-    from pipeline.run.outputs import require_readable
 
-    require_readable(recording)
-    cfg = _stage_config(
-        config,
-        {
-            "--overlap-m": ("quality.overlap_m", overlap_m),
-            "--noise-threshold": ("quality.noise_threshold_nT", noise_threshold),
-            "--height-tolerance": ("quality.height_tolerance_m", height_tolerance),
-        },
-    )
+    cfg = _stage_config(config, quality, locals(), recording)
     with console.status(f"quality statistics of {recording.name}"):
         summary = quality_recording(recording, json_out, cfg, out_path)
     emit("quality", summary["quality"])
-    if out_path:
-        say(f"output recording: {out_path}")
-    say(f"summary: {json_out}")
+    _written(out_path, json_out)
 
 
 @app.command()
@@ -496,43 +430,20 @@ def audit(
         Path | None,
         typer.Option(
             "--out",
-            help="Also write an output "
-            "recording: /audit/finding, "
-            "/aeromag/log, compensated "
+            help="Also write an output recording: /audit/finding, /aeromag/log, compensated "
             "fields.",
         ),
     ] = None,
-    baseline: Annotated[
-        str | None,
-        typer.Option(help="Baseline T-L term set: tl18 or tl16 (config: audit.baseline)."),
-    ] = None,
-    alpha: Annotated[
-        float | None,
-        typer.Option(help="Significance level per round (Holm) (config: audit.alpha)."),
-    ] = None,
-    min_gain: Annotated[
-        float | None,
-        typer.Option(
-            help="Smallest held-out RMS reduction an effect must bring (fraction) "
-            "(config: audit.min_gain)."
-        ),
-    ] = None,
+    baseline: Annotated[str | None, setting("audit.baseline")] = None,
+    alpha: Annotated[float | None, setting("audit.alpha")] = None,
+    min_gain: Annotated[float | None, setting("audit.min_gain")] = None,
     config: ConfigOption = None,
 ) -> None:
     """Find what the baseline model gets wrong, name the cause, extend it, measure the gain
     (in the configured fit band)."""
     from pipeline.run.commands import audit_recording
-    from pipeline.run.outputs import require_readable
 
-    require_readable(recording)
-    cfg = _stage_config(
-        config,
-        {
-            "--baseline": ("audit.baseline", baseline),
-            "--alpha": ("audit.alpha", alpha),
-            "--min-gain": ("audit.min_gain", min_gain),
-        },
-    )
+    cfg = _stage_config(config, audit, locals(), recording)
     with console.status(f"auditing {recording.name}") as status:
         j = audit_recording(
             recording,
@@ -543,8 +454,7 @@ def audit(
             progress=lambda m: status.update(f"auditing {recording.name}: {m}"),
         )
     emit("audit", j)
-    if out_path:
-        say(f"output recording: {out_path}")
+    _written(out_path)
     say(f"report: {j['report']['markdown']}")
     say(f"audit: {json_out}")
 
@@ -554,26 +464,14 @@ def vector(
     recording: RecordingArg,
     out_path: OutRecording,
     json_out: SummaryJson,
-    method: Annotated[
-        str | None,
-        typer.Option(
-            help="ellipsoid-kf (online hard/soft-iron "
-            "calibration -> /mag/vector/calibrated), "
-            "component-kf or batch (21-parameter "
-            "compensation -> /mag/vector/compensated) "
-            "(config: vector.method)"
-        ),
-    ] = None,
+    method: Annotated[str | None, setting("vector.method")] = None,
     config: ConfigOption = None,
 ) -> None:
     """Calibrate or compensate the vector magnetometer (papers 003 and 000)."""
     from pipeline.run.commands import vector_recording
-    from pipeline.run.outputs import require_readable
 
-    require_readable(recording)
-    cfg = _stage_config(config, {"--method": ("vector.method", method)})
-    method = cfg["vector"]["method"]
-    with console.status(f"vector stage ({method}) on {recording.name}"):
+    cfg = _stage_config(config, vector, locals(), recording)
+    with console.status(f"vector stage ({cfg['vector']['method']}) on {recording.name}"):
         summary = vector_recording(recording, out_path, json_out, cfg)
     emit("vector", summary["vector"])
     say(f"{summary['vector']['output_topic']} written to {out_path}")
@@ -598,31 +496,25 @@ def navigate(
         Path | None,
         typer.Option("--out", help="Also write a copy of the recording with the /nav channels."),
     ] = None,
-    filter_: Annotated[
-        str | None,
-        typer.Option(
-            "--filter", help="ekf, or pf (marginalised particle filter) (config: navigate.filter)."
-        ),
-    ] = None,
-    ins: Annotated[
-        str | None,
-        typer.Option(
-            help="INS: recorded (/ins/solution), navigation (~1 nmi/h) or tactical (simulated), "
-            "auto: recorded when present (config: navigate.ins)."
-        ),
-    ] = None,
+    filter_: Annotated[str | None, setting("navigate.filter", "--filter")] = None,
+    ins: Annotated[str | None, setting("navigate.ins")] = None,
     segments: Annotated[
         str,
         typer.Option(help="Segments navigated and scored: validation, survey (with ties) or all."),
     ] = "validation",
-    seed: Annotated[
-        int | None,
-        typer.Option(help="Seed of the INS errors (and particles) (config: navigate.seed)."),
-    ] = None,
+    seed: Annotated[int | None, setting("navigate.seed")] = None,
     map_channel: Annotated[
         str | None,
         typer.Option(
             "--map-channel", help="Grid channel of a recording map (config: /map/<navigate.map>)."
+        ),
+    ] = None,
+    map_sigma: Annotated[
+        float | None,
+        typer.Option(
+            "--map-sigma",
+            help="The map's 1-sigma error, nT, everywhere (default: the map's /map/uncertainty "
+            "when it has one, else navigate.map_sigma_nT).",
         ),
     ] = None,
     config: ConfigOption = None,
@@ -630,11 +522,8 @@ def navigate(
     """Magnetic anomaly navigation on a map: simulate an INS along the recorded track, aid it
     with the map (EKF or particle filter), and score both against /gnss/fix and the CRLB."""
     from pipeline.run.navigate import navigate_recording
-    from pipeline.run.outputs import require_readable
 
-    require_readable(recording)
-    require_readable(map_path)
-    cfg = _stage_config(config, {})
+    cfg = _stage_config(config, navigate, locals(), recording, map_path)
     with console.status(f"navigating {recording.name} on {map_path.name}"):
         summary = navigate_recording(
             recording,
@@ -643,15 +532,34 @@ def navigate(
             cfg,
             out_path,
             map_channel,
-            filter=filter_,
-            ins=ins,
             segments=segments,
-            seed=seed,
+            map_sigma_nT=map_sigma,
         )
     emit("navigate", summary["navigation"])
-    if out_path:
-        say(f"output recording: {out_path}")
-    say(f"summary: {json_out}")
+    _written(out_path, json_out)
+
+
+@app.command()
+def navigability(
+    recording: Annotated[Path, typer.Argument(help="Processed recording (.mcap) with its map.")],
+    out_path: Annotated[Path, typer.Option("--out", help="Copy of it with /map/navigability.")],
+    speed: Annotated[
+        float | None,
+        typer.Option(help="Vehicle speed, m/s (default: the recording's median ground speed)."),
+    ] = None,
+    heading: Annotated[
+        str, typer.Option(help="Heading from grid north, deg, or all (four directions).")
+    ] = "all",
+    config: ConfigOption = None,
+) -> None:
+    """The position accuracy (CRLB, m) a vehicle reaches flying into each cell of the map."""
+    from pipeline.run.navigate import navigability_recording
+
+    cfg = _stage_config(config, navigability, locals(), recording)
+    with console.status(f"navigability of {recording.name}'s map"):
+        result = navigability_recording(recording, out_path, cfg, speed, heading)
+    emit("navigability", result)
+    _written(out_path)
 
 
 def _run_postflight(recording: Path, out_dir: Path, config: Path | None = None) -> dict:
@@ -689,10 +597,8 @@ def reprocess(
     out_dir: Annotated[
         Path, typer.Option("--out", help="Output folder (job folders, index, quarantine).")
     ],
-    workers: Annotated[int, typer.Option(help="Dask worker processes of the local cluster.")] = 2,
-    dask_address: Annotated[
-        str | None, typer.Option(help="Use an existing Dask cluster, e.g. tcp://HOST:8786.")
-    ] = None,
+    workers: Workers = 2,
+    dask_address: DaskAddress = None,
     config: ConfigOption = None,
 ) -> None:
     """Reprocess an archive on Dask: only recordings without an output for this input and
@@ -703,39 +609,20 @@ def reprocess(
 
     if not archive.is_dir():
         _fail(f"{archive}: not a folder")
-    if workers < 1:
-        _fail(f"--workers {workers}: must be >= 1")
-    _check_config(config)
-    with (
-        arch.prefect_api(),
-        Progress(
-            "[progress.description]{task.description}",
-            BarColumn(),
-            MofNCompleteColumn(),
-            TimeElapsedColumn(),
-            console=console,
-        ) as prog,
-    ):
+    _dask_checks(workers, config)
+    columns = ("{task.description}", BarColumn(), MofNCompleteColumn(), TimeElapsedColumn())
+    with _on_dask(workers, dask_address) as runner, Progress(*columns, console=console) as prog:
         bar = prog.add_task("recordings", total=None)
 
         def progress(done, total, row):
-            prog.update(
-                bar,
-                completed=done,
-                total=total,
-                description=f"{Path(row['input']).name}: {row['status']}",
-            )
+            name = f"{Path(row['input']).name}: {row['status']}"
+            prog.update(bar, completed=done, total=total, description=name)
 
-        runner = arch.dask_runner(workers, dask_address)
         with arch.progress_to(progress):
             result = arch.reprocess_archive.with_options(task_runner=runner)(
                 str(archive), str(out_dir), str(config) if config else None
             )
-    say(
-        f"{result['recordings']} recordings: {result['processed']} processed, "
-        f"{result['done']} already done, {result['quarantined']} quarantined"
-    )
-    say(f"index: {result['index']['csv']}")
+    emit("reprocess", result)
 
 
 @app.command()
@@ -747,30 +634,24 @@ def campaign(
         Path,
         typer.Option("--out", help="Output folder (campaign.mcap, exports, report, summary)."),
     ],
-    workers: Annotated[int, typer.Option(help="Dask worker processes of the local cluster.")] = 2,
-    dask_address: Annotated[
-        str | None, typer.Option(help="Use an existing Dask cluster, e.g. tcp://HOST:8786.")
-    ] = None,
+    workers: Workers = 2,
+    dask_address: DaskAddress = None,
     config: ConfigOption = None,
 ) -> None:
     """Merge the processed flights of one area (several days, base stations): level them
     jointly on every crossover within and between flights, grid once, export."""
-    from flows import archive as arch
     from pipeline.campaign.sorties import validate_campaign
 
-    if workers < 1:
-        _fail(f"--workers {workers}: must be >= 1")
-    _check_config(config)
+    _dask_checks(workers, config)
     # bad input fails here, in one line, before Prefect starts a server or a cluster
     with console.status(f"checking {folder}"):
         infos = validate_campaign(folder)
     from flows.campaign import campaign as campaign_flow
 
     with (
-        arch.prefect_api(),
+        _on_dask(workers, dask_address) as runner,
         console.status(f"campaign of {len(infos)} flights (Prefect flow 'campaign' on Dask)"),
     ):
-        runner = arch.dask_runner(workers, dask_address)
         try:
             doc = campaign_flow.with_options(task_runner=runner)(
                 str(folder), str(out_dir), str(config) if config else None
@@ -827,16 +708,10 @@ def layout(
 
     Open the recording in Foxglove, then Layouts -> Import from file... -> this file.
     """
-    from pipeline.io.writer import write_json_atomic
-    from pipeline.products.layout import layout_panels, recording_layout
+    from pipeline.products.layout import write_layout
 
-    doc = recording_layout(file)
-    write_json_atomic(out_path, doc)
-    say(
-        f"layout: {out_path} ({len(layout_panels(doc['layout'], doc['configById']))} panels: "
-        + ", ".join(k.split("!", 1)[0] for k in layout_panels(doc["layout"], doc["configById"]))
-        + ")"
-    )
+    panels = write_layout(file, out_path)
+    say(f"layout: {out_path} ({len(panels)} panels: {', '.join(panels)})")
 
 
 @app.command()
@@ -845,48 +720,38 @@ def demo(
     seed: Annotated[int, typer.Option(help="Random seed of the simulated flight.")] = 1,
 ) -> None:
     """Simulate the built-in demo flight, run the post-flight flow on it, print the outputs."""
-    from pipeline.simulate import Scenario, write_simulation
-    from pipeline.simulate import simulate as run
+    from pipeline.simulate import simulate_recording
 
     t0 = time.perf_counter()
     out_dir.mkdir(parents=True, exist_ok=True)
-    flight_path, truth_path = out_dir / "demo_flight.mcap", out_dir / "demo_truth.json"
-    sc = Scenario.load("demo")
     with console.status("simulating the demo flight (002-style UAV survey)"):
-        sim = run(sc, seed)
-        write_simulation(sim, flight_path, truth_path)
-    say(
-        f"simulated flight: {flight_path} ({sim.trajectory.duration_s / 60:.1f} min), "
-        f"truth: {truth_path}"
-    )
-    emit("demo", _run_postflight(flight_path, out_dir))
+        sim = simulate_recording(
+            "demo", seed, [], out_dir / "demo_flight.mcap", out_dir / "demo_truth.json"
+        )
+    say(f"simulated flight: {sim['out']} ({sim['duration_s'] / 60:.1f} min), truth: {sim['truth']}")
+    emit("demo", _run_postflight(Path(sim["out"]), out_dir))
     say(f"done in {time.perf_counter() - t0:.1f} s")
+
+
+def _exit(message: str, code: int) -> None:
+    console.print(message, markup=False, highlight=False, soft_wrap=True)
+    sys.exit(code)
 
 
 def main() -> None:
     """Console-script entry point: one-line errors, never a traceback."""
     try:
         app()
-    except AeromagError as exc:
-        if os.environ.get("AEROMAG_DEBUG"):
-            raise
-        console.print(f"aeromag: error: {exc}", markup=False, highlight=False, soft_wrap=True)
-        sys.exit(2)
     except KeyboardInterrupt:
-        console.print("aeromag: interrupted")
-        sys.exit(130)
+        _exit("aeromag: interrupted", 130)
     except Exception as exc:  # noqa: BLE001 - an internal bug still gets one line
         if os.environ.get("AEROMAG_DEBUG"):
             raise
+        if isinstance(exc, AeromagError):
+            _exit(f"aeromag: error: {exc}", 2)
         text = " ".join(str(exc).split())
-        console.print(
-            f"aeromag: internal error: {type(exc).__name__}: {text} "
-            "(set AEROMAG_DEBUG=1 for the traceback)",
-            markup=False,
-            highlight=False,
-            soft_wrap=True,
-        )
-        sys.exit(3)
+        why = f"{type(exc).__name__}: {text} (set AEROMAG_DEBUG=1 for the traceback)"
+        _exit(f"aeromag: internal error: {why}", 3)
 
 
 if __name__ == "__main__":

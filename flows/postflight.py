@@ -9,14 +9,8 @@ steps without tasks (:func:`pipeline.run.postflight.run_plain`).
 
 from __future__ import annotations
 
-import hashlib
 import re
 import shutil
-import time
-from collections.abc import Iterator
-from contextlib import contextmanager
-from contextvars import ContextVar
-from functools import cache
 from pathlib import Path
 from typing import Any
 
@@ -24,67 +18,21 @@ from prefect import flow, task
 
 from flows.errors import install_one_line_errors
 from pipeline.config import Config
-from pipeline.errors import AeromagError
-from pipeline.flight import Flight
-from pipeline.io.reader import read_flight
-from pipeline.products.summary import sha256_file
 from pipeline.run.postflight import (
     COMPENSATE,
     INGEST,
     STEPS,
     WRITE,
     Step,
+    checked,
     postflight_steps,
+    run_key,
     run_plain,
+    take_checked,
 )
 
 __all__ = ["INGEST", "STEP_BY_NAME", "STEPS", "Step", "checked", "postflight", "run_plain"]
 STEP_BY_NAME = {s.name: s for s in STEPS}  # the tasks run the step of their name
-
-# The flight the CLI read to check a recording before the flow (the recording's stat key,
-# the flight, seconds to read it): set only inside :func:`checked`, so the flow it starts
-# does not read the recording twice.
-_CHECKED: ContextVar[tuple[tuple, Flight, float] | None] = ContextVar(
-    "aeromag_checked_flight", default=None
-)
-
-
-def _stat_key(recording: str | Path) -> tuple:
-    st = Path(recording).stat()
-    return str(Path(recording).resolve()), st.st_size, st.st_mtime_ns
-
-
-@contextmanager
-def checked(recording: str | Path) -> Iterator[Flight]:
-    """Read and check a recording (scan, channel contract, units) before any flow starts,
-    so that bad input fails with one line and no Prefect run at all; a :func:`postflight`
-    run on the same, unchanged file inside the block takes this flight over.
-
-    Raises
-    ------
-    AeromagError
-        Missing, empty or unreadable file, no scalar magnetometer, wrong units.
-    """
-    if not Path(recording).is_file():
-        raise AeromagError("file not found", file=recording)
-    t0 = time.perf_counter()
-    flight = read_flight(recording)
-    token = _CHECKED.set((_stat_key(recording), flight, time.perf_counter() - t0))
-    try:
-        yield flight
-    finally:
-        _CHECKED.reset(token)
-
-
-def _take_checked(recording: str) -> tuple[Flight | None, float]:
-    found = _CHECKED.get()
-    if found is None:
-        return None, 0.0
-    try:
-        same = found[0] == _stat_key(recording)
-    except OSError:
-        return None, 0.0
-    return (found[1], found[2]) if same else (None, 0.0)
 
 
 def publish_artifact(stem: str, markdown: str) -> None:
@@ -107,24 +55,6 @@ install_one_line_errors()
 def _cache_key(context, parameters) -> str:
     # a folder per (recording, configuration) under Prefect's local result storage
     return f"aeromag/{parameters['key']}/{parameters['stage']}-{parameters['variant']}"
-
-
-@cache
-def code_fingerprint() -> str:
-    """Hash of the installed pipeline and flow code: resumable results of one version are
-    never unpickled into another (a stage's objects change shape between versions)."""
-    import pipeline
-
-    h = hashlib.sha256()
-    for root in (Path(pipeline.__file__).parent, Path(__file__).parent):
-        for p in sorted(root.rglob("*.py")):
-            h.update(p.read_bytes())
-    return h.hexdigest()[:12]
-
-
-def run_key(recording: str, cfg: Config) -> str:
-    """Cache folder name of one recording, configuration and code version."""
-    return f"{sha256_file(recording)[:16]}-{cfg.hash[:16]}-{code_fingerprint()}"
 
 
 def cache_folder(key: str) -> Path:
@@ -164,7 +94,7 @@ def postflight(recording: str, out_dir: str, config_path: str | None = None) -> 
         )
         return t(step.name, key, variant, args)
 
-    flight, read_s = _take_checked(recording)
+    flight, read_s = take_checked(recording)
     result = postflight_steps(recording, out_dir, cfg, call, flight, read_s)
     shutil.rmtree(cache_folder(key), ignore_errors=True)  # finished: nothing to resume
     return result

@@ -24,11 +24,21 @@ from pipeline.errors import AeromagError
 
 CONFIG_VERSION = 1
 
+# keys that counted samples for a physical time, now in seconds: an old key is an error naming
+# its replacement (a sample count means a different time at every rate, so it is not converted)
+RENAMED = {
+    "compensation.trim": "compensation.trim_s (seconds; 20 samples at 10 Hz is 2.0)",
+    "despike.window_samples": "despike.window_s (seconds; 101 samples at 10 Hz is 10.0)",
+    "vector.fuzzy_window": "vector.fuzzy_window_s (seconds; 30 samples at 10 Hz is 3.0)",
+}
+
 
 def _merge(base: dict, over: dict, source: str, prefix: str = "") -> dict:
     out = copy.deepcopy(base)
     for k, v in over.items():
         key = f"{prefix}{k}"
+        if key in RENAMED:
+            raise AeromagError(f"{key} (samples) was replaced by {RENAMED[key]}", file=source)
         if k not in base:
             raise AeromagError(f"unknown configuration key {key!r}", file=source)
         if isinstance(base[k], dict):
@@ -122,9 +132,10 @@ class Config:
             model=model,
             band_hz=tuple(c["band_hz"]),
             poles=c["poles"],
-            trim=c["trim"],
+            trim_s=c["trim_s"],
             ridge=c["ridge"],
             base=c["agg_base"],
+            agg_gradient=c["agg_gradient"],
             bt_scale_nT=c["bt_scale_nT"],
             extension_alpha=c["extension_alpha"],
             extension_min_gain=c["extension_min_gain"],
@@ -179,7 +190,14 @@ class Config:
         from pipeline.navigation.stage import NavigationSettings
 
         n = self.values["navigate"]
-        return NavigationSettings(filter=n["filter"], ins=n["ins"], seed=n["seed"])
+        return NavigationSettings(
+            filter=n["filter"],
+            ins=n["ins"],
+            seed=n["seed"],
+            default_map_sigma_nT=n["map_sigma_nT"],
+            map_error_length_m=n["map_error_length_m"],
+            gate_probability=n["gate_probability"],
+        )
 
     def despike_settings(self):
         """:class:`pipeline.despike.DespikeSettings` from ``[despike]``."""
@@ -209,7 +227,7 @@ class Config:
             baseline=a["baseline"],
             alpha=a["alpha"],
             min_gain=a["min_gain"],
-            band=BandSettings(tuple(c["band_hz"]), c["poles"], c["trim"]),
+            band=BandSettings(tuple(c["band_hz"]), c["poles"], c["trim_s"]),
             flight_alpha=a["flight_alpha"],
             null_draws=a["null_draws"],
             null_seed=a["null_seed"],
@@ -248,9 +266,9 @@ class Config:
                 f"compensation.band_hz = {band!r}: use [LOW, HIGH] Hz, 0 < LOW < HIGH",
                 file=self.source,
             )
-        if c["poles"] < 1 or c["trim"] < 0:
+        if c["poles"] < 1 or c["trim_s"] < 0:
             raise AeromagError(
-                "compensation.poles must be >= 1 and compensation.trim >= 0", file=self.source
+                "compensation.poles must be >= 1 and compensation.trim_s >= 0 s", file=self.source
             )
         a = self.values["audit"]
         if a["baseline"] not in ("tl16", "tl18"):

@@ -35,6 +35,33 @@ def default_value(section: str, key: str) -> Any:
     return copy.deepcopy(_defaults()[section][key])
 
 
+@functools.cache
+def _comments() -> dict[str, str]:
+    out, section = {}, ""
+    for line in default_text().splitlines():
+        text = line.strip()
+        if text.startswith("["):
+            section = text.strip("[]")
+        elif "=" in text and "  # " in text and not text.startswith("#"):
+            out[f"{section}.{text.split('=', 1)[0].strip()}"] = text.split("  # ", 1)[1].strip()
+    return out
+
+
+def default_comment(key: str) -> str:
+    """The comment beside ``section.name`` in the shipped defaults: the one description of a
+    setting, which the command line's option help also shows (the file is read once).
+
+    Raises
+    ------
+    KeyError
+        The shipped file has no such key, or no comment beside it.
+    """
+    try:
+        return _comments()[key]
+    except KeyError:
+        raise KeyError(f"no commented key {key} in the shipped defaults") from None
+
+
 def default_field(section: str, key: str, convert: Callable[[Any], Any] | None = None) -> Any:
     """A dataclass field defaulting to a shipped value (``convert`` maps the TOML value to the
     field's type, e.g. ``tuple`` for a band): settings classes never re-type a literal."""

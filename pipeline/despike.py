@@ -5,7 +5,8 @@ difference d4[k] = x[k-2] - 4 x[k-1] + 6 x[k] - 4 x[k+1] + x[k+2]; white noise o
 deviation sigma gives d4 a standard deviation sqrt(70) sigma, and the smooth signal (geology,
 manoeuvre interference at fractions of a Hz) hardly any. The Hampel identifier flags d4 where
 it departs from its running median by more than ``threshold_sigma`` robust standard deviations
-(1.4826 x the running median absolute deviation over ``window_samples``). Each cluster of
+(1.4826 x the running median absolute deviation over ``window_s`` seconds: an odd number of
+samples at the record's rate). Each cluster of
 flagged differences is then explained on the record itself (FIT_MARGIN samples either side):
 a cubic plus the set of at most MAX_TERMS spikes (at a sample of the cluster) and steps
 (before one) that minimises RSS / sigma^2 + threshold_sigma^2 per term, sigma the noise from
@@ -49,17 +50,22 @@ _SPIKE = np.array([1.0, -4.0, 6.0, -4.0, 1.0])
 
 @dataclass
 class DespikeSettings:
-    """``[despike]``: on/off, Hampel window (samples of the 4th difference), threshold."""
+    """``[despike]``: on/off, Hampel window of the 4th difference (s), threshold."""
 
     enabled: bool = default_field("despike", "enabled")
-    window_samples: int = default_field("despike", "window_samples")
+    window_s: float = default_field("despike", "window_s")
     threshold_sigma: float = default_field("despike", "threshold_sigma")
 
     def __post_init__(self) -> None:
-        if self.window_samples < 5:
-            raise ValueError(f"despike.window_samples = {self.window_samples}: use 5 or more")
+        if not self.window_s > 0:
+            raise ValueError(f"despike.window_s = {self.window_s}: must be > 0 s")
         if not self.threshold_sigma > 0:
             raise ValueError(f"despike.threshold_sigma = {self.threshold_sigma}: must be > 0")
+
+    def window_samples(self, rate_hz: float) -> int:
+        """The window at ``rate_hz``: the nearest count of samples, made odd (up), at least 5
+        (the 4th difference's own span)."""
+        return max(int(round(self.window_s * rate_hz)) | 1, 5)
 
 
 @dataclass
@@ -88,6 +94,7 @@ class DespikeResult:
     steps: int = 0  # flagged clusters that look like level steps (left alone)
     rounds: int = 0
     notes: list[str] = field(default_factory=list)
+    window_samples: int = 0  # the window at the record's rate (samples)
 
     @property
     def spikes(self) -> int:
@@ -108,7 +115,8 @@ class DespikeResult:
             "spikes": self.spikes,
             "fraction": self.spikes / self.samples if self.samples else 0.0,
             "threshold_sigma": float(self.settings.threshold_sigma),
-            "window_samples": int(self.settings.window_samples),
+            "window_s": float(self.settings.window_s),
+            "window_samples": int(self.window_samples),
             "noise_nT": self.noise_nT,
             "steps_left": int(self.steps),
             "rounds": int(self.rounds),
@@ -205,18 +213,21 @@ def explain_cluster(
     return [(*candidates[j], float(a)) for j, a in zip(best, best_amp, strict=True)]
 
 
-def _despike_block(x: np.ndarray, s: DespikeSettings) -> tuple[list[int], list[float], int, int]:
-    """Spikes of one contiguous block (repaired in place): indices, amplitudes, steps, rounds."""
+def _despike_block(
+    x: np.ndarray, s: DespikeSettings, window: int
+) -> tuple[list[int], list[float], int, int]:
+    """Spikes of one contiguous block (repaired in place; ``window`` samples of the running
+    median): indices, amplitudes, steps, rounds."""
     found: list[int] = []
     amps: list[float] = []
     steps = rounds = 0
-    if x.size < max(s.window_samples, 9):
+    if x.size < max(window, 9):
         return found, amps, steps, rounds
     for rounds in range(1, MAX_ROUNDS + 1):  # noqa: B007 - reported
         d4 = fourth_difference(x)
         flags = np.zeros(x.size, bool)
         scale = np.full(x.size, np.nan)
-        flags[2:-2], scale[2:-2] = hampel_flags(d4[2:-2], s.window_samples, s.threshold_sigma)
+        flags[2:-2], scale[2:-2] = hampel_flags(d4[2:-2], window, s.threshold_sigma)
         idx = np.flatnonzero(flags)
         if idx.size == 0:
             break
@@ -263,9 +274,10 @@ def despike(
     idx: list[int] = []
     amps: list[float] = []
     steps = rounds = 0
+    window = s.window_samples(1.0 / float(np.median(np.diff(t)))) if t.size > 1 else 5
     for block in contiguous_blocks(np.isfinite(x), t) if x.size > 1 else []:
         xb = x[block]
-        found, a, st, r = _despike_block(xb, s)
+        found, a, st, r = _despike_block(xb, s, window)
         x[block] = xb
         idx += [int(block[k]) for k in found]
         amps += a
@@ -283,6 +295,7 @@ def despike(
         s,
         steps,
         rounds,
+        window_samples=window,
     )
 
 

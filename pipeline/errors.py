@@ -7,6 +7,8 @@ problem. The CLI prints that line and exits non-zero; it never shows a traceback
 
 from __future__ import annotations
 
+import logging
+from collections import OrderedDict
 from pathlib import Path
 
 
@@ -22,3 +24,43 @@ class AeromagError(Exception):
     def __str__(self) -> str:
         parts = [p for p in (self.file, self.channel) if p]
         return ": ".join([*parts, self.problem])
+
+
+class OneLineErrors(logging.Filter):
+    """Logging filter: each record carrying an :class:`AeromagError` becomes its one line,
+    ``aeromag: error: FILE: CHANNEL: problem``, once, without a traceback; repetitions of it
+    (a flow re-logs its task's exception, both log "Finished in state Failed") are dropped.
+    Other exceptions (bugs) keep their tracebacks."""
+
+    def __init__(self, remember: int = 64) -> None:
+        super().__init__("aeromag-one-line-errors")
+        self._seen: OrderedDict[str, None] = OrderedDict()
+        self._remember = remember
+
+    def _first_time(self, text: str) -> bool:
+        if text in self._seen:
+            return False
+        self._seen[text] = None
+        while len(self._seen) > self._remember:
+            self._seen.popitem(last=False)
+        return True
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        """Turn a record carrying an AeromagError into its one line, once.
+
+        Returns
+        -------
+        bool
+            False for a repeat of a line already logged and for Prefect's "Finished in state
+            Failed(...AeromagError...)" record; True otherwise.
+        """
+        exc = record.exc_info[1] if record.exc_info else None
+        if isinstance(exc, AeromagError):
+            if not self._first_time(str(exc)):
+                return False
+            record.msg, record.args = f"aeromag: error: {exc}", ()
+            record.exc_info, record.exc_text = None, None
+            return True
+        if record.levelno >= logging.ERROR and "AeromagError" in str(record.msg):
+            return False  # "Finished in state Failed('... AeromagError: ...')": said already
+        return True

@@ -106,12 +106,23 @@ def line_payloads(grid: Grid, legacy: bool = False) -> list[tuple[int, dict]]:
     return out
 
 
+def uncertainty_of(grid: Grid) -> Grid:
+    """A ``/map/uncertainty`` for ``grid``: 0.3 nT growing with the field's size, same mask."""
+    return grid.with_values(0.3 + 0.01 * np.abs(grid.values))
+
+
 def write_processed(
-    path: Path, frame: bool = True, lines: bool = True, grids: bool = True, legacy: bool = False
+    path: Path,
+    frame: bool = True,
+    lines: bool = True,
+    grids: bool = True,
+    legacy: bool = False,
+    uncertainty: bool = False,
 ) -> tuple[Path, Grid]:
     """A recording holding ``/map/frame``, ``/map/anomaly``, ``/map/anomaly_filtered`` and
-    ``/map/lines`` (each optional) plus one scalar sample; ``legacy``: as processed before
-    the grids were computed in a projected CRS."""
+    ``/map/lines`` (each optional; ``uncertainty``: ``/map/uncertainty`` too,
+    :func:`uncertainty_of`) plus one scalar sample; ``legacy``: as processed before the grids
+    were computed in a projected CRS."""
     grid = synthetic_grid(legacy=legacy)
     with McapOutput(path) as out:
         cid = out.channel("/mag/scalar", "aeromag.ScalarField")
@@ -130,8 +141,14 @@ def write_processed(
             p = {"timestamp": {"sec": T0 // 10**9, "nsec": 0}, **frame_payload(legacy)}
             out.write(out.channel("/map/frame", "aeromag.MapFrame"), T0, encode(p))
         if grids:
-            for topic, g in (("/map/anomaly", grid), ("/map/anomaly_filtered", grid)):
-                ch = grid_channel(topic, T0, g)
+            chosen = [
+                ("/map/anomaly", grid, "anomaly_nT"),
+                ("/map/anomaly_filtered", grid, "anomaly_nT"),
+            ]
+            if uncertainty:
+                chosen.append(("/map/uncertainty", uncertainty_of(grid), "uncertainty_nT"))
+            for topic, g, name in chosen:
+                ch = grid_channel(topic, T0, g, name)
                 t, p = ch.messages[0]
                 out.write(out.channel(topic, "foxglove.Grid"), t, encode(p))
         if lines:

@@ -8,7 +8,7 @@ the tl18 basis, against tl18 on that box: not against the models' own residuals.
   second box (a handful of seeds here; ``-m slow`` runs 30);
 * eddy currents that decay with 0.5 s: tl-plus takes the eddy-decay group with a time
   constant near the true one and removes most of what tl18 leaves on the second box;
-  tl-nn beats tl18 there too;
+  tl-nn, when its held-out gain passes the fold-level test, beats tl18 there too;
 * the command's contract: summary keys, channels, one-line errors (exit 2).
 """
 
@@ -93,8 +93,13 @@ def test_extensions_take_decaying_eddy_currents():
     groups = m.extension["term_groups"]
     assert groups["eddy_decay"]["selected"] and groups["eddy_decay"]["reduction_pct"] > 20
     nn, m = _second_box_rms(meas, fit, test, "tl-nn")
-    assert m.used, m.extension["reason"]
-    assert nn < 0.95 * base, (nn, base)
+    # the learner's held-out gain on this calibration is a few percent, spread unevenly over
+    # the folds: the fold-level test may keep tl18, and then the field is tl18's
+    if m.used:
+        assert nn < 0.95 * base, (nn, base)
+    else:
+        assert "over the folds" in m.extension["reason"], m.extension["reason"]
+        assert abs(nn - base) <= 1e-9 * base
     imp = m.extension["feature_importance"]
     assert set(imp) >= {"tl_terms", "tl_rates", "attitude", "attitude_rates"}
     assert abs(sum(v["share"] for v in imp.values()) - 1.0) < 1e-9
@@ -160,3 +165,93 @@ def test_compensate_extensions_bad_input(tmp_path, box_path):
     assert res.returncode == 2 and "calibration" in res.stderr, res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "b.mcap").exists()
+
+
+def test_audit_nuisances_are_read_defensively():
+    from pipeline.compensate.plus import audit_nuisances
+
+    assert audit_nuisances(None) == {} and audit_nuisances({}) == {}
+    assert audit_nuisances({"unexplained": None}) == {}
+    assert audit_nuisances({"unexplained": {"nuisances": "eddy_decay"}}) == {}
+    got = audit_nuisances(
+        {
+            "unexplained": {
+                "nuisances": [
+                    {"name": "eddy_decay", "heldout_gain": 0.3, "estimate": {"tau_s": 0.4}},
+                    {"name": "current:cur_strobe", "heldout_gain": 0.5},
+                    {"name": "current:"},  # no channel
+                    {"name": "wobble"},  # not a tl-plus group
+                    {"heldout_gain": 0.1},  # no name
+                    "second_order",  # not a record
+                ]
+            }
+        }
+    )
+    assert set(got) == {"eddy_decay", "current:cur_strobe"}
+    assert got["eddy_decay"] == {"heldout_gain": 0.3, "estimate": {"tau_s": 0.4}}
+    assert got["current:cur_strobe"]["estimate"] is None
+
+
+def test_tl_plus_tries_the_audits_groups_first_and_the_report_says_so():
+    from pipeline.compensate.stage import run_compensation
+    from pipeline.products.markdown import extension_lines
+
+    audit = {"unexplained": {"nuisances": [{"name": "eddy_decay", "heldout_gain": 0.6}]}}
+    sim = run_sim("calibration-only", 1, ["interference.outside_basis.eddy_lag_nT=0.5"])
+    fl = read_flight(write_simulation(sim, Path(tempfile.mkdtemp()) / "s.mcap"))
+    run = run_compensation(fl, segment_flight(fl), FitSettings("tl-plus"), audit=audit)
+    s = run.summary()
+    assert s["extension"]["seeded_by_audit"] == ["eddy_decay"]
+    g = s["term_groups"]["eddy_decay"]
+    assert g["selected"] and g["seeded_by_audit"] == {"heldout_gain": 0.6, "estimate": None}
+    # the seeded group was tested on its own: its Holm adjustment is over one hypothesis
+    assert g["p_value_folds_holm"] < 0.01
+    assert "crossover_rms_nT" in s and s["heldout_residual_nT"] > 0
+    lines = extension_lines({"final": "tl-plus", "tl-plus": s})
+    assert any("named by the audit): eddy_decay" in x for x in lines)
+    assert any("term groups: eddy_decay" in x for x in lines)
+    nn = {
+        "extension": {"used": True, "reason": "held-out residual lower"},
+        "feature_importance": {
+            "aux:cur_strobe": {"heldout_rms_increase_nT": 0.024, "share": 0.7},
+            "tl_rates": {"heldout_rms_increase_nT": 0.010, "share": 0.3},
+        },
+    }
+    (imp,) = [x for x in extension_lines({"tl-nn": nn}) if "importance" in x]
+    assert imp.index("aux:cur_strobe 0.0240 nT (70 %)") < imp.index("tl_rates")
+
+
+def test_agg_tl_takes_the_calibration_legs_gradient():
+    from pipeline.compensate.stage import run_compensation
+
+    over = [
+        "effects.geomagnetic_gradient.enabled=true",
+        "effects.geomagnetic_gradient.east_nT_per_m=-0.25",
+        "effects.geomagnetic_gradient.north_nT_per_m=0.15",
+        "effects.geomagnetic_gradient.up_nT_per_m=0.0",
+        # crews fly the box over quiet ground: the legs measure the crust's gradient there too
+        "anomaly.quiet_calibration_m=400",
+    ]
+    sim = run_sim("uav-small", 5, over)
+    fl = read_flight(write_simulation(sim, Path(tempfile.mkdtemp()) / "g.mcap"))
+    seg = segment_flight(fl)
+    # the default fits the gradient from the position columns; "legs" takes the legs' value
+    assert run_compensation(fl, seg, FitSettings("agg-tl")).summary().get("gradient_evidence") in (
+        None,
+        {},
+    )
+    run = run_compensation(fl, seg, FitSettings("agg-tl", agg_gradient="legs"))
+    ev = run.summary()["gradient_evidence"]
+    assert ev["source"] == "calibration legs", ev
+    assert ev["east_nT_per_m"] == pytest.approx(-0.25, abs=0.01)
+    assert ev["north_nT_per_m"] == pytest.approx(0.15, abs=0.01)
+    g = run.summary()["gradient_nT_per_m"]
+    assert (g["east"], g["north"]) == (ev["east_nT_per_m"], ev["north_nT_per_m"])
+    # without a segmentation there are no legs: the band-passed fit alone, as before
+    mask = np.zeros(fl.data["time_s"].size, bool)
+    for span in seg.passes():
+        mask[span] = True
+    plain = fit_compensation(
+        Measurements.from_flight(fl), mask, FitSettings("agg-tl", agg_gradient="legs")
+    )
+    assert plain.gradient_evidence == {}

@@ -148,9 +148,12 @@ def test_tl18_eddy_coefficients_scale_with_the_sample_interval():
 
 
 def test_tl18_coefficients_equal_the_closed_form(tmp_path):
-    """`--model tl18 --band 0.1 0.9 --poles 4 --trim 20 --ridge 0.001` on a recording with
-    only the two magnetometers equals theta = (K'K + lambda I)^-1 K'y written out here."""
+    """`--model tl18 --band 0.1 0.9 --poles 4 --ridge 0.001` and `trim_s = 2.0` (20 samples
+    at the fixture's 10 Hz) on a recording with only the two magnetometers equals
+    theta = (K'K + lambda I)^-1 K'y written out here."""
     src = FIXTURES / "box_scalar_vector_only.mcap"
+    cfg = tmp_path / "trim.toml"
+    cfg.write_text("[compensation]\ntrim_s = 2.0\n")
     res = cli(
         "compensate",
         str(src),
@@ -165,12 +168,12 @@ def test_tl18_coefficients_equal_the_closed_form(tmp_path):
         "0.9",
         "--poles",
         "4",
-        "--trim",
-        "20",
         "--ridge",
         "0.001",
         "--calibration",
         "all",
+        "--config",
+        str(cfg),
     )
     assert res.returncode == 0, res.stderr
     summary = json.loads((tmp_path / "s.json").read_text())

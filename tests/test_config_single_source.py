@@ -39,14 +39,14 @@ def test_settings_defaults_are_the_shipped_configuration():
     d, cfg = shipped(), Config.load()
     c = d["compensation"]
     fit = FitSettings()
-    assert (fit.band_hz, fit.poles, fit.trim, fit.ridge, fit.base) == (
+    assert (fit.band_hz, fit.poles, fit.trim_s, fit.ridge, fit.base) == (
         tuple(c["band_hz"]),
         c["poles"],
-        c["trim"],
+        c["trim_s"],
         c["ridge"],
         c["agg_base"],
     )
-    assert BandSettings() == BandSettings(tuple(c["band_hz"]), c["poles"], c["trim"])
+    assert BandSettings() == BandSettings(tuple(c["band_hz"]), c["poles"], c["trim_s"])
     a = AuditSettings()
     assert (a.baseline, a.alpha, a.min_gain) == (
         d["audit"]["baseline"],
@@ -119,7 +119,8 @@ def test_no_processing_default_is_retyped_in_the_code():
         for root in ("pipeline", "flows")
         for p in sorted((REPO / root).rglob("*.py"))
         for n, line in enumerate(p.read_text().splitlines(), 1)
-        if band.search(line) or re.search(r"\b(poles|trim)\s*[:=][^=].*\b(4|20)\b", line)
+        if band.search(line)
+        or re.search(r"\b(poles|trim|trim_s)\s*[:=][^=].*\b(4|20|2\.0)\b", line)
     ]
     assert hits == []
 
@@ -195,7 +196,7 @@ def test_single_stage_commands_take_a_configuration_their_options_override(tmp_p
 @pytest.fixture(scope="module")
 def processed(tmp_path_factory):
     """`process` (the plain steps) with the band 0.05-0.5 Hz; audit and vector off (slow, and
-    the audit's FOM is checked on its own below)."""
+    the audit's FOM is checked on its own below), navigability off (the switch)."""
     from flows.postflight import run_plain
     from pipeline.simulate import write_simulation
 
@@ -205,9 +206,17 @@ def processed(tmp_path_factory):
     cfg.write_text(
         f"config_version = 1\n[compensation]\nband_hz = {BAND}\n"
         "models = ['tl18', 'agg-tl']\n[audit]\nenabled = false\n"
-        "[vector]\nenabled = false\n[map]\narima = '1,1,1'\n"
+        "[vector]\nenabled = false\n[map]\narima = '1,1,1'\n[navigate]\nnavigability = false\n"
     )
     return src, run_plain(str(src), str(folder / "out"), str(cfg))
+
+
+def test_the_navigability_step_follows_its_switch(processed):
+    """``[navigate] navigability = false``: no step, no channel, no summary block."""
+    _, s = processed
+    assert "navigability" not in s and "navigability" not in s["timings_s"]
+    assert "/map/anomaly" in s["channels_written"]
+    assert "/map/navigability" not in s["channels_written"]
 
 
 def test_every_fom_table_agrees_with_a_non_default_band(processed):

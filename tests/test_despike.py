@@ -113,8 +113,8 @@ def test_fourth_difference_of_a_spike_and_settings_checks():
     x = np.zeros(11)
     x[5] = 1.0
     np.testing.assert_array_equal(fourth_difference(x)[3:8], [1, -4, 6, -4, 1])
-    with pytest.raises(ValueError, match="window_samples"):
-        DespikeSettings(window_samples=3)
+    with pytest.raises(ValueError, match="window_s"):
+        DespikeSettings(window_s=0.0)
     with pytest.raises(ValueError, match="threshold_sigma"):
         DespikeSettings(threshold_sigma=0.0)
 
@@ -196,7 +196,10 @@ def test_configuration_drives_the_despike_settings():
 
     cfg = Config.load().with_values({"despike.threshold_sigma": 4.5})
     assert cfg.despike_settings() == DespikeSettings(threshold_sigma=4.5)
-    with pytest.raises(AeromagError, match="window_samples"):
-        Config.load().with_values({"despike.window_samples": 3}).validate()
+    with pytest.raises(AeromagError, match="window_s"):
+        Config.load().with_values({"despike.window_s": -1.0}).validate()
+    # the old sample count is an error naming its replacement, not silently a new time
+    with pytest.raises(AeromagError, match=r"despike.window_samples \(samples\) was replaced"):
+        Config.load().with_values({"despike.window_samples": 101})
     with pytest.raises(AeromagError, match="unknown configuration key"):
         Config.load().with_values({"despike.window": 3})

@@ -24,7 +24,7 @@ ALL = ("geotiff", "netcdf", "csv", "xyz", "magnav")
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
     d = tmp_path_factory.mktemp("export")
-    src, grid = write_processed(d / "flight.processed.mcap")
+    src, grid = write_processed(d / "flight.processed.mcap", uncertainty=True)
     written = export_recording(src, d / "out", ALL)
     return d / "out", grid, written, src
 
@@ -45,8 +45,30 @@ def test_every_format_and_grid_is_written(exported):
         "flight.lines.csv",
         "flight.lines.xyz",
         "flight.maps.nc",
+        "flight.uncertainty.tif",
     ]
     assert set(written) == set(ALL)
+
+
+def test_the_uncertainty_grid_is_exported_cell_for_cell(exported):
+    """/map/uncertainty is written with the other grids: the GeoTIFF and the netCDF hold
+    the channel's cells exactly, on the anomaly's cells (not as a MagNav map: MagNav's map
+    file has no error field, and an error grid read as a map would be navigated on)."""
+    import xarray as xr
+
+    out, _, _, src = exported
+    sigma, _ = _channel(src, "uncertainty")
+    grid, _ = _channel(src)
+    v, x, y, _, _, _, units = _geotiff(out / "flight.uncertainty.tif")
+    np.testing.assert_array_equal(v, sigma.values.astype(np.float32))
+    assert units == "nT" and sigma.shape == grid.shape
+    _, xa, ya, *_ = _geotiff(out / "flight.anomaly.tif")
+    np.testing.assert_array_equal(x, xa)
+    np.testing.assert_array_equal(y, ya)
+    assert np.array_equal(np.isfinite(v), np.isfinite(grid.values))
+    with xr.open_dataset(out / "flight.maps.nc") as ds:
+        np.testing.assert_array_equal(ds["uncertainty"].to_numpy(), sigma.values.astype(np.float32))
+        assert ds["uncertainty"].attrs["units"] == "nT"
 
 
 def _channel(src, name="anomaly"):

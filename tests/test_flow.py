@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -21,6 +22,11 @@ def _messages(path):
         for ch in sc.channels.values()
         for t, d in zip(ch.log_time_ns, ch.data, strict=True)
     )
+
+
+def _log_lines(path) -> list[str]:
+    """The messages of a recording's /aeromag/log, in time order."""
+    return [json.loads(d)["message"] for topic, _, d in _messages(path) if topic == "/aeromag/log"]
 
 
 def test_postflight_flow_writes_input_plus_new_channels(demo_output):
@@ -44,6 +50,8 @@ def test_postflight_flow_writes_input_plus_new_channels(demo_output):
         "/map/frame",
         "/map/anomaly",
         "/map/anomaly_filtered",
+        "/map/uncertainty",
+        "/map/navigability",
         "/map/lines",
         "/map/tracks",
         "/quality/heading_error",
@@ -78,8 +86,6 @@ def test_the_exported_geotiff_lands_on_the_simulated_anomaly(demo_output):
     """End to end: the post-flight GeoTIFF (UTM: the computed cells), its cell centres
     taken back into the simulator's own frame, is the true anomaly there (up to the regional
     plane the map keeps), and no shift of the truth fits better."""
-    import json
-
     import numpy as np
     import rasterio
     from pyproj import Transformer
@@ -120,7 +126,6 @@ def _decode_grid_channel(path, topic):
     """The cells of a ``foxglove.Grid`` channel and their centres' easting/northing, decoded
     here from the MCAP and ``/map/frame`` alone (schemas/README.md), not by our reader."""
     import base64
-    import json
 
     import numpy as np
 
@@ -147,7 +152,7 @@ def test_the_exports_hold_the_channels_cells_exactly(demo_output):
     out = out_dir / "demo_flight.processed.mcap"
     o = summary["map"]["origin"]
     assert o["crs"] == "EPSG:32649" and o["utm_zones_spanned"] == [32649]
-    for name in ("anomaly", "anomaly_filtered"):
+    for name in ("anomaly", "anomaly_filtered", "uncertainty", "navigability"):
         cells, x, y, frame = _decode_grid_channel(out, f"/map/{name}")
         assert frame["crs"] == "EPSG:32649" and frame["epsg"] == 32649
         with rasterio.open(out_dir / f"demo_flight.{name}.tif") as ds:
@@ -165,8 +170,6 @@ def test_the_exports_hold_the_channels_cells_exactly(demo_output):
             np.testing.assert_allclose(nc["y"].to_numpy(), y, atol=1e-6)
     # a known point: a line sample's position falls in the cell whose centre is within half
     # a cell of it, in the file as in the channel
-    import json
-
     sample = next(json.loads(d) for t, _, d in _messages(out) if t == "/map/lines")
     px, py = Transformer.from_crs("EPSG:4326", "EPSG:32649", always_xy=True).transform(
         sample["longitude"], sample["latitude"]
@@ -197,6 +200,7 @@ def test_summary_records_stage_timings_and_peak_memory(demo_output):
         "map",
         "quality",
         "navigate",
+        "navigability",
         "write",
     ]
     assert all(isinstance(v, float) and 0 <= v < 600 for v in t.values())
@@ -229,10 +233,9 @@ def test_process_command_runs_the_flow_without_a_server(box_path, tmp_path):
     insp = tests.cli.run("inspect", str(out))  # in-process: the process above was the script
     assert insp.returncode == 0 and "/mag/compensated" in insp.stdout
     # a calibration box alone: no map, so navigation is skipped in one log line, no error
-    import json
-
     summary = json.loads((tmp_path / "out" / "box_uav.summary.json").read_text())
     assert summary["navigation"] == {"skipped": "no map"}
+    assert summary["navigability"] == {"skipped": "no map"}
     assert not any(t.startswith("/nav/") for t in summary["channels_written"])
 
 
@@ -242,8 +245,6 @@ def test_postflight_navigates_the_validation_lines_on_its_own_map(demo_output):
     simulator's own track (/gnss/fix is the truth plus GNSS noise), the map-aided DRMS well
     below the INS alone's and within a few CRLBs; channels valid (every channel is checked in
     tests/test_viewing.py), figures, report sections and the Map panel's three tracks."""
-    import json
-
     out_dir, summary = demo_output
     nav = summary["navigation"]
     d = nav["drms_m"]
@@ -269,12 +270,50 @@ def test_postflight_navigates_the_validation_lines_on_its_own_map(demo_output):
     assert layout["map!aeromag-track"]["followTopic"] == "/gnss/fix"
     plot = [p["value"] for p in layout["Plot!aeromag-navigation"]["paths"]]
     assert "/nav/error.map_aided_horizontal_m" in plot and "/nav/error.crlb_drms_m" in plot
-    log = [
-        json.loads(m[2])["message"]
-        for m in _messages(out_dir / "demo_flight.processed.mcap")
-        if m[0] == "/aeromag/log"
-    ]
+    log = _log_lines(out_dir / "demo_flight.processed.mcap")
     assert any(ln.startswith("navigate: ekf on validation with a navigation-grade") for ln in log)
+
+
+def test_postflight_maps_the_navigability_of_its_own_map(demo_output):
+    """Issue 38, item 6: the flow turns its filtered map into /map/navigability (m) on the
+    map's cells with its /map/uncertainty, at the survey's speed on lines sized to the map;
+    the summary holds the command's block, the report one line and the figure."""
+
+    import numpy as np
+
+    out_dir, summary = demo_output
+    nb = summary["navigability"]
+    assert set(nb) == {
+        "channel",
+        "speed_mps",
+        "headings_deg",
+        "line_s",
+        "start_sigma_m",
+        "sensor_sigma_nT",
+        "map_sigma",
+        "drms_m",
+    }
+    assert nb["channel"] == "/map/navigability" and nb["map_sigma"] == "grid"
+    assert nb["headings_deg"] == [0.0, 45.0, 90.0, 135.0]
+    assert 3.0 < nb["speed_mps"] < 30.0  # the UAV's ground speed, not a default
+    assert len(nb["line_s"]) == 4 and all(20.0 <= t <= 120.0 for t in nb["line_s"])
+    assert min(nb["line_s"]) < 120.0  # shorter than the fixed line across this small map
+    cells, *_ = _decode_grid_channel(out_dir / "demo_flight.processed.mcap", "/map/navigability")
+    anomaly, *_ = _decode_grid_channel(out_dir / "demo_flight.processed.mcap", "/map/anomaly")
+    assert np.array_equal(np.isfinite(cells), np.isfinite(anomaly))
+    v = cells[np.isfinite(cells)]
+    assert (v > 0).all()
+    d = nb["drms_m"]
+    assert d["p10"] < d["median"] < d["p90"]
+    assert d["median"] == pytest.approx(float(np.median(v)), rel=1e-3)
+    assert "navigability" in summary["timings_s"]
+    assert (out_dir / "demo_flight.navigability.png").stat().st_size > 10000
+    report = (out_dir / "demo_flight.report.md").read_text()
+    assert "## Navigability of the map" in report and f"{d['median']:.1f} m at the median" in report
+    page = (out_dir / "demo_flight.report.html").read_text()
+    assert "Navigability of the map" in page and 'id="fig-navigability"' in page
+    log = _log_lines(out_dir / "demo_flight.processed.mcap")
+    assert any(ln.startswith("navigability: /map/navigability, CRLB DRMS") for ln in log)
 
 
 def test_navigation_is_skipped_without_validation_lines_or_a_map():
@@ -283,7 +322,7 @@ def test_navigation_is_skipped_without_validation_lines_or_a_map():
 
     from pipeline.config import Config
     from pipeline.products.log import navigation_lines
-    from pipeline.run.steps import navigate_stage
+    from pipeline.run.steps import navigability_stage, navigate_stage
 
     class NoValidation:  # a segmentation whose flight has no validation epochs
         def mask(self, *labels):
@@ -291,6 +330,7 @@ def test_navigation_is_skipped_without_validation_lines_or_a_map():
 
     cfg = Config.load()
     assert navigate_stage(None, None, None, None, cfg) == "no map"
+    assert navigability_stage(None, None, None, cfg) == "no map"
     assert navigate_stage(None, NoValidation(), None, object(), cfg) == "no validation lines"
     assert navigation_lines("no validation lines") == [
         (navigation_lines("x")[0][0], "navigate: skipped: no validation lines")

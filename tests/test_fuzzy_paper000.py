@@ -26,6 +26,7 @@ def test_paper_configuration_fuzzy_r_equals_fixed_r():
     fixed = ComponentKF.paper(scaled=True, fuzzy=False)
     p_fixed = fixed.run(*args)
     fz = ComponentKF.paper(scaled=True, fuzzy=False)
+    fz.sample_s = float(np.diff(fl.time_s)[0])
     rec = _Recording()
     fz.fuzzy = rec
     p_fuzzy = fz.run(*args)
@@ -50,6 +51,7 @@ def test_fuzzy_r_tracks_a_noise_step_and_beats_fixed_r():
         err = {}
         for fuzzy in (False, True):
             kf = ComponentKF.paper(scaled=True, fuzzy=fuzzy)
+            kf.sample_s = float(np.diff(fl.time_s)[0])
             kf.q, kf.r = 1e-12 * np.eye(21), 25.0 * np.eye(3)
             p = kf.run(fl.earth_nT, fl.earth_rate_nT_s, fl.measured_nT)
             err[fuzzy] = np.sqrt(np.mean(((p.state(True) - truth) / truth) ** 2))

@@ -217,7 +217,7 @@ def test_tolles_lawson_within_magnavs_tenth_of_a_nanotesla():
     fit = FitSettings(
         model="tl18",
         band_hz=(p["pass1"], p["pass2"]),
-        trim=int(round(p["trim"])),
+        trim_s=round(p["trim"]) / fs,  # MagNav counts samples
         ridge=p["lambda"],
         bt_scale_nT=p["Bt_scale"],
     )

@@ -420,3 +420,57 @@ def test_map_cli_and_channels(mapped, tmp_path):
         "two",
     )
     assert bad.returncode == 2 and "--arima 'two'" in bad.stderr
+
+
+@pytest.mark.slow  # about a minute: eleven full fits on 12 000 cells
+def test_order_screening_on_a_long_sequence_keeps_the_full_search_result(monkeypatch):
+    """A long map lane (12 000 cells of 12.5 m: anomalies 50-800 m wide, white noise): the
+    order search that ranks candidates on the first cells and fits a shortlist on all of them
+    smooths the lane as the search fitting every candidate on all cells does."""
+    import pipeline.maps.arima as arima
+    from pipeline.maps.arima import rts_smooth
+
+    rng = np.random.default_rng(4)
+    s = np.arange(12_000) * 12.5
+    x = np.zeros(s.size)
+    for _ in range(120):
+        c, w, a = rng.uniform(0, s[-1]), rng.uniform(50, 800), rng.normal(0, 30)
+        x += a / (1 + ((s - c) / w) ** 2) ** 1.5
+    y = x + rng.normal(0, 0.5, s.size)
+    screened = fit_arima(y, measurement_var=0.25)
+    assert screened.tests["screened"], "a sequence this long is screened"
+    monkeypatch.setattr(arima, "SCREEN_SAMPLES", 10**9)  # every candidate on every cell
+    full = fit_arima(y, measurement_var=0.25)
+    assert not full.tests["screened"]
+    a, b = rts_smooth(y, screened, 0.25), rts_smooth(y, full, 0.25)
+    # the smoothed lanes agree to a small share of the noise, and both remove most of it
+    assert np.sqrt(np.mean((a - b) ** 2)) < 0.05 * 0.5
+    assert np.sqrt(np.mean((a - x) ** 2)) < 0.5 * 0.5
+
+
+def test_map_stage_writes_the_uncertainty_on_the_anomaly_cells(mapped):
+    """/map/uncertainty: the anomaly grid's cells and mask, never below the levelling and noise
+    terms (the interpolation term adds to them away from the lines), and the channel holds
+    those cells (float32)."""
+    import base64
+
+    from pipeline.products.channels import map_channels
+
+    _sim, _p, flight, seg, _r, mr = mapped
+    s, g = mr.uncertainty, mr.grid
+    assert s is not None and s.shape == g.shape and s.cell_m == g.cell_m
+    assert (s.east0_m, s.north0_m) == (g.east0_m, g.north0_m)
+    assert np.array_equal(np.isfinite(s.values), np.isfinite(g.values))
+    v = s.values[np.isfinite(s.values)]
+    model = mr.uncertainty_model
+    floor = np.hypot(model.level_nT, model.noise_nT)
+    assert floor > 0 and v.min() >= floor - 1e-9
+    assert v.max() <= np.hypot(floor, model.interpolation_nT(1e9)) + 1e-9
+    summary = mr.summary()["uncertainty"]
+    assert summary["channel"] == "/map/uncertainty" and summary["heldout_rms_nT"] > 0
+    chans = {c.topic: c for c in map_channels(flight, seg, mr)}
+    msg = chans["/map/uncertainty"].messages[0][1]
+    cells = np.frombuffer(base64.b64decode(msg["data"]), "<f4").reshape(g.shape)
+    np.testing.assert_array_equal(cells, s.values.astype(np.float32))
+    anomaly = chans["/map/anomaly"].messages[0][1]
+    assert msg["pose"] == anomaly["pose"] and msg["fields"][0]["name"] == "uncertainty_nT"

@@ -8,7 +8,6 @@ dipoles), tracks synthetic racetracks and straight lines, except the demo-flight
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,6 +24,7 @@ from pipeline.navigation.ins import (
 from pipeline.navigation.map_model import MapModel, upward_continue
 from pipeline.navigation.pf import particle_filter
 from pipeline.simulate.navigation import dipole_map, racetrack, random_field_map
+from tests.navmaps import box_frame, in_process_cli, one_line_error, utm_map  # noqa: F401
 
 NMI_M = 1852.0
 
@@ -213,77 +213,13 @@ def test_particle_filter_recovers_a_large_initial_error(field_map):
 
 
 # ------------------------------------------------------------------------------- command
-@pytest.fixture
-def cli(capsys, monkeypatch):
-    """The real entry point (``flows.cli.main``: one-line errors, exit codes) run in-process
-    (a subprocess per call would re-import the stack for seconds)."""
-    from flows.cli import main
-
-    def run(*args):
-        monkeypatch.setattr("sys.argv", ["aeromag", *[str(a) for a in args]])
-        try:
-            main()
-            code = 0
-        except SystemExit as exc:
-            code = exc.code if isinstance(exc.code, int) else 1
-        cap = capsys.readouterr()
-        return code, (cap.out + cap.err).strip()
-
-    return run
-
-
-def _one_line_error(code, text):
-    assert code == 2, text
-    assert "Traceback" not in text
-    lines = [ln for ln in text.splitlines() if ln.strip()]
-    assert len(lines) == 1 and lines[0].startswith("aeromag: error:"), text
-    return lines[0]
-
-
-def _geotiff(path: Path, grid: Grid, crs: str | None) -> Path:
-    import rioxarray  # noqa: F401
-    import xarray as xr
-
-    e, n = grid.coordinates()
-    da = xr.DataArray(
-        grid.values[::-1].astype("float32"),
-        coords={"y": n[::-1], "x": e},
-        dims=("y", "x"),
-        attrs={"altitude_m": 500.0},
-    )
-    if crs:
-        da = da.rio.write_crs(crs)
-    da.rio.to_raster(path)
-    return path
-
-
-def _box_frame(box_path):
-    from pipeline.io.reader import read_flight
-
-    f = read_flight(box_path)
-    lat, lon = f.data["lat_deg"].to_numpy(float), f.data["lon_deg"].to_numpy(float)
-    return float(np.nanmean(lat)), float(np.nanmean(lon))
-
-
-def _utm_map(box_path, tmp_path, shift_m=0.0, crs=True) -> Path:
-    from pyproj import Transformer
-
-    lat, lon = _box_frame(box_path)
-    zone = int((lon + 180) // 6) + 1
-    epsg = f"EPSG:{32600 + zone if lat >= 0 else 32700 + zone}"
-    x0, y0 = Transformer.from_crs("EPSG:4326", epsg, always_xy=True).transform(lon, lat)
-    g = random_field_map(6, size_m=6000.0, cell_m=25.0, origin_m=(0.0, 0.0))
-    g = Grid(g.values, x0 - 3000.0 + shift_m, y0 - 3000.0, 25.0)
-    return _geotiff(tmp_path / "map.tif", g, epsg if crs else None)
-
-
 @pytest.mark.parametrize("filter_", ["ekf", "pf"])
 def test_command_runs_on_a_raw_recording_and_writes_valid_channels(
     box_path, tmp_path, filter_, cli
 ):
     from tests.recordings import validate_every_message
 
-    tif = _utm_map(box_path, tmp_path)
+    tif = utm_map(box_path, tmp_path)
     out, nav = tmp_path / "nav.mcap", tmp_path / "nav.json"
     code, text = cli(
         "navigate",
@@ -312,24 +248,24 @@ def test_command_runs_on_a_raw_recording_and_writes_valid_channels(
 
 
 def test_map_that_does_not_cover_the_track_is_one_line(box_path, tmp_path, cli):
-    tif = _utm_map(box_path, tmp_path, shift_m=50_000.0)
+    tif = utm_map(box_path, tmp_path, shift_m=50_000.0)
     code, text = cli(
         "navigate", box_path, "--map", tif, "--json", tmp_path / "n.json", "--segments", "all"
     )
-    line = _one_line_error(code, text)
+    line = one_line_error(code, text)
     assert "does not cover the track: 100%" in line
 
 
 def test_map_without_a_crs_is_one_line(box_path, tmp_path, cli):
-    tif = _utm_map(box_path, tmp_path, crs=False)
+    tif = utm_map(box_path, tmp_path, crs=False)
     code, text = cli("navigate", box_path, "--map", tif, "--json", tmp_path / "n.json")
-    line = _one_line_error(code, text)
+    line = one_line_error(code, text)
     assert "cannot be placed" in line
 
 
 def test_recording_without_the_map_channel_is_one_line(box_path, tmp_path, cli):
     code, text = cli("navigate", box_path, "--map", box_path, "--json", tmp_path / "n.json")
-    line = _one_line_error(code, text)
+    line = one_line_error(code, text)
     assert "/map/anomaly_filtered" in line and "no such channel" in line
 
 
@@ -378,7 +314,7 @@ def test_recording_map_is_placed_by_its_map_frame(box_path, tmp_path):
     from pipeline.navigation.map_io import read_map
     from pipeline.products.channels import grid_channel, map_frame_channel
 
-    lat0, lon0 = _box_frame(box_path)
+    lat0, lon0 = box_frame(box_path)
     frame = survey_frame([lat0], [lon0], [420.0])  # UTM, origin on a round km near the box
     g = random_field_map(8, size_m=1000.0, cell_m=25.0, origin_m=(-500.0, -500.0))
     t0 = 1_781_485_200_000_000_000

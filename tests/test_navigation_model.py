@@ -11,6 +11,7 @@ from pipeline.navigation.ekf import MeasurementModel, ekf
 from pipeline.navigation.ins import GRADES, InsErrorModel, Trajectory, simulate_ins_errors
 from pipeline.navigation.map_model import MapModel, upward_continue, vertical_derivative
 from pipeline.simulate.navigation import racetrack, random_field_map
+from tests.navmaps import navigate_box
 
 
 def _setup(duration_s, grade="navigation", rate_hz=10.0):
@@ -145,28 +146,22 @@ def test_stage_starts_both_runs_from_the_aided_covariance(monkeypatch, box_path)
     monkeypatch.setattr(stage, "ekf", spy_ekf)
     monkeypatch.setattr(stage, "crlb", spy_crlb)
     monkeypatch.setattr(stage, "simulate_ins_errors", spy_sim)
-    run = _stage_run(stage, box_path)
+    run = navigate_box(box_path)
     ref = seen["ekf"]
-    assert all(np.array_equal(ref, p) for p in [seen["sim"], *seen["crlb"]])
+    # the same covariance everywhere, but for the bias state's prior in the filter and its
+    # bound, which also holds the map's error (it may be an offset)
+    bias = ref[-1, -1] - seen["sim"][-1, -1]
+    assert run.map_sigma_source == "default"  # a map without an error grid
+    assert np.isclose(bias, run.settings.default_map_sigma_nT**2, rtol=1e-9)
+    for p in [seen["sim"], *seen["crlb"]]:
+        q = p.copy()
+        q[-1, -1] = ref[-1, -1]
+        assert np.array_equal(ref, q)
+    assert np.array_equal(ref, seen["crlb"][0])
     assert len(seen["crlb"]) == 2
     assert any(note.startswith("initial covariance: GNSS-aided INS") for note in run.notes)
     # not the alignment's diagonal P0: the fixes correlated the states
     assert np.count_nonzero(ref[:17, :17] - np.diag(np.diag(ref[:17, :17]))) > 0
-
-
-def _stage_run(stage, box_path):
-    """The committed box flight over a random map (placed around it) through run_navigation."""
-    from pipeline.geo.projected import survey_frame
-    from pipeline.io.reader import read_flight
-    from pipeline.navigation.map_io import frame_map
-
-    f = read_flight(box_path)
-    d = f.data
-    frame = survey_frame(d["lat_deg"], d["lon_deg"], d["alt_m"])
-    g = random_field_map(6, size_m=8000.0, cell_m=25.0, origin_m=(-4000.0, -4000.0))
-    geomap = frame_map(g, frame, "test", "random map")
-    settings = stage.NavigationSettings(segments="all")
-    return stage.run_navigation(f, None, d["scalar_nT"].to_numpy(float), geomap, settings)
 
 
 def test_transition_matrices_are_the_exact_exponential():

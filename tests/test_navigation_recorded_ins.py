@@ -8,12 +8,9 @@ import pytest
 from pyproj import Geod
 
 from pipeline.errors import AeromagError
-from pipeline.geo.projected import survey_frame
 from pipeline.io.reader import read_flight
 from pipeline.io.writer import OutputChannel, write_with_new_channels
-from pipeline.navigation import stage
-from pipeline.navigation.map_io import frame_map
-from pipeline.simulate.navigation import random_field_map
+from tests.navmaps import navigate_box
 
 EARTH_RADIUS_M = 6_371_000.0  # only for the velocities' size
 
@@ -63,21 +60,11 @@ def with_recorded_ins(box_path, path, drift_m_s=(0.05, -0.02), cover=1.0):
     return dn, de
 
 
-def navigate(path, ins):
-    f = read_flight(path)
-    d = f.data
-    frame = survey_frame(d["lat_deg"], d["lon_deg"], d["alt_m"])
-    g = random_field_map(6, size_m=8000.0, cell_m=25.0, origin_m=(-4000.0, -4000.0))
-    geomap = frame_map(g, frame, "test", "random map")
-    settings = stage.NavigationSettings(segments="all", ins=ins)
-    return stage.run_navigation(f, None, d["scalar_nT"].to_numpy(float), geomap, settings)
-
-
 def test_the_recorded_ins_errors_are_the_records(box_path, tmp_path):
     path = tmp_path / "ins.mcap"
     dn, de = with_recorded_ins(box_path, path)
     for ins in ("recorded", "auto"):
-        run = navigate(path, ins)
+        run = navigate_box(path, ins=ins)
         assert run.ins_source == "recorded"
         assert run.summary()["ins"]["source"] == "recorded"
         got = run.ins_error_ne()
@@ -88,18 +75,18 @@ def test_the_recorded_ins_errors_are_the_records(box_path, tmp_path):
         np.testing.assert_allclose(got[:, 1], want_e, atol=0.01)
         np.testing.assert_allclose(run.ins_error[:, 2], 2.0, atol=0.01)
     # without asking, a recording with no INS solution still gets a simulated one
-    assert navigate(box_path, "auto").ins_source == "simulated"
+    assert navigate_box(box_path, ins="auto").ins_source == "simulated"
 
 
 def test_a_recorded_ins_that_does_not_cover_the_track_is_one_line(box_path, tmp_path):
     path = tmp_path / "half.mcap"
     with_recorded_ins(box_path, path, cover=0.5)
     with pytest.raises(AeromagError) as exc:
-        navigate(path, "recorded")
+        navigate_box(path, ins="recorded")
     msg = str(exc.value)
     assert "/ins/solution" in msg and "does not cover" in msg and "\n" not in msg
 
 
 def test_recorded_asked_of_a_recording_without_one_is_one_line(box_path):
     with pytest.raises(AeromagError, match="no INS solution"):
-        navigate(box_path, "recorded")
+        navigate_box(box_path, ins="recorded")

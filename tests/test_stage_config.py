@@ -43,7 +43,7 @@ def test_compensate_takes_compensation(tmp_path, monkeypatch):
     monkeypatch.setattr("pipeline.run.commands.run_compensation", stop)
     got = invoke(
         tmp_path,
-        "[compensation]\nmodels = ['tl16']\nridge = 0.003\ntrim = 7\n",
+        "[compensation]\nmodels = ['tl16']\nridge = 0.003\ntrim_s = 0.7\n",
         "compensate",
         BOX,
         "--out",
@@ -52,7 +52,7 @@ def test_compensate_takes_compensation(tmp_path, monkeypatch):
         tmp_path / "o.json",
     )
     settings = got.args_[2]
-    assert (settings.model, settings.ridge, settings.trim) == ("tl16", 0.003, 7)
+    assert (settings.model, settings.ridge, settings.trim_s) == ("tl16", 0.003, 0.7)
 
 
 def test_map_takes_map(tmp_path, monkeypatch):
@@ -108,7 +108,7 @@ def test_vector_takes_vector(tmp_path, monkeypatch):
     monkeypatch.setattr("pipeline.vector.stage.run_vector", stop)
     got = invoke(
         tmp_path,
-        "[vector]\nmethod = 'batch'\nfuzzy_window = 7\nfuzzy_exponent = 0.5\n",
+        "[vector]\nmethod = 'batch'\nfuzzy_window_s = 0.7\nfuzzy_exponent = 0.5\n",
         "vector",
         BOX,
         "--out",
@@ -117,7 +117,7 @@ def test_vector_takes_vector(tmp_path, monkeypatch):
         tmp_path / "v.json",
     )
     assert got.args_[2] == "batch"
-    assert got.kwargs["settings"]["fuzzy_window"] == 7
+    assert got.kwargs["settings"]["fuzzy_window_s"] == 0.7
     assert got.kwargs["settings"]["fuzzy_exponent"] == 0.5
 
 
@@ -212,19 +212,19 @@ def test_navigate_and_map_compensate_a_raw_recording_alike(tmp_path, monkeypatch
 
 def test_the_checked_flight_is_handed_to_the_flow_only_inside_the_block(tmp_path):
     """`aeromag process` reads a recording once: the flight read to check it reaches the flow
-    only within flows.postflight.checked() and only for the same, unchanged file."""
+    only within checked() and only for the same, unchanged file."""
     import shutil
 
-    from flows import postflight as pf
+    from pipeline.run import postflight as pf
 
     src = tmp_path / "f.mcap"
     shutil.copy(BOX, src)
-    assert pf._take_checked(str(src)) == (None, 0.0)
+    assert pf.take_checked(str(src)) == (None, 0.0)
     with pf.checked(src) as flight:
-        got, read_s = pf._take_checked(str(src))
+        got, read_s = pf.take_checked(str(src))
         assert got is flight and read_s > 0
-        assert pf._take_checked(str(BOX))[0] is None  # another file
-    assert pf._take_checked(str(src)) == (None, 0.0)
+        assert pf.take_checked(str(BOX))[0] is None  # another file
+    assert pf.take_checked(str(src)) == (None, 0.0)
     with pf.checked(src):
         src.write_bytes(src.read_bytes() + b"\0")  # changed since it was checked
-        assert pf._take_checked(str(src))[0] is None
+        assert pf.take_checked(str(src))[0] is None

@@ -155,6 +155,7 @@ def test_fuzzy_adaptive_r_beats_fixed_r_when_the_noise_changes():
         kf = ComponentKF(
             ComponentKF.paper().x0, 100 * np.eye(21), 1e-12 * np.eye(21), 25.0 * np.eye(3), True, fz
         )
+        kf.sample_s = float(np.diff(fl.time_s)[0])
         p = kf.run(fl.earth_nT, fl.earth_rate_nT_s, fl.measured_nT)
         errs[name] = np.sqrt(np.mean(((p.state(True) - truth) / truth) ** 2))
         assert np.nanmin(kf.history.min_eig) > 0

@@ -26,7 +26,12 @@ import numpy as np
 
 from pipeline.audit.vector_cal import VectorCalibration
 from pipeline.compensate.estimator import bandpassed_design, fit_ridge
-from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
+from pipeline.compensate.filters import (
+    bandpass_blocks,
+    bandpass_sos,
+    contiguous_blocks,
+    trim_samples,
+)
 from pipeline.compensate.nuisance import (
     SECOND_ORDER_RATE_PER_S,  # noqa: F401 (re-exported: the audit's name for it)
     current_columns,
@@ -320,7 +325,11 @@ class BandSettings:
 
     band_hz: tuple[float, float] = default_field("compensation", "band_hz", tuple)
     poles: int = default_field("compensation", "poles")
-    trim: int = default_field("compensation", "trim")
+    trim_s: float = default_field("compensation", "trim_s")  # per block end (s)
+
+    def trim_at(self, rate_hz: float) -> int:
+        """Samples trimmed per block end at ``rate_hz``."""
+        return trim_samples(self.trim_s, rate_hz)
 
 
 def bandpassed_rows(
@@ -330,7 +339,7 @@ def bandpassed_rows(
     (epoch mask) only the rows of kept epochs, band-passed with all of ``mask`` (folds of
     short blocks select rows of the once-filtered calibration)."""
     return bandpassed_design(
-        des.columns, des.y, data.time_s, data.rate_hz, mask, bs.band_hz, bs.poles, bs.trim, keep
+        des.columns, des.y, data.time_s, data.rate_hz, mask, bs.band_hz, bs.poles, bs.trim_s, keep
     )
 
 
@@ -505,7 +514,7 @@ def lag_cost(
     valid = inner & np.isfinite(des.y) & np.all(np.isfinite(des.columns), axis=1)
     blocks = contiguous_blocks(valid, t)
     sos = bandpass_sos(bs.band_hz, data.rate_hz, bs.poles)
-    kf, where = bandpass_blocks(des.columns, blocks, sos, bs.trim)
+    kf, where = bandpass_blocks(des.columns, blocks, sos, bs.trim_at(data.rate_hz))
     rows = np.ones(where.size, bool) if keep is None else keep[where]
     kf = kf[rows]
     if kf.shape[0] < 2 * kf.shape[1]:
@@ -514,7 +523,10 @@ def lag_cost(
 
     def cost(tau: float) -> float:
         yf, _ = bandpass_blocks(
-            scalar_series(data, float(tau), spec.lag_response), blocks, sos, bs.trim
+            scalar_series(data, float(tau), spec.lag_response),
+            blocks,
+            sos,
+            bs.trim_at(data.rate_hz),
         )
         yf = yf[rows]
         if not np.all(np.isfinite(yf)):

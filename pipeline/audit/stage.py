@@ -165,8 +165,8 @@ class AuditSettings:
     min_excess_gradient_nT_per_m : float
         Smallest horizontal gradient beyond the main field's (nT/m) that is named a
         gradient effect.
-    min_lag_samples : float
-        Smallest sensor lag, in sample intervals, that is named a lag effect.
+    min_lag_s : float
+        Smallest sensor lag (s) that is named a lag effect.
     fluxgate_tolerance : float
         Largest attitude-dependent disagreement of the vector magnetometer's magnitude with
         the scalar field (held-out RMS, as a fraction of the field) that counts as a
@@ -206,15 +206,15 @@ class AuditSettings:
     # significant and changes the field along the legs by at least this much (RMS, nT): a
     # real but negligible gradient (quiet ground, the main field's own) confirms nothing
     min_leg_ramp_nT: float = 0.5
-    # a lag estimate moves with the resampling and the eddy columns' per-sample differences
-    # by a few ms: a lag under a fifth of a sample is within the resampling's own error
-    # (20 ms at 10 Hz, 14 cm along track at 7 m/s)
-    min_lag_samples: float = 0.2
     # the whole selection's false-finding rate on a flight with nothing hidden, and the
     # parametric bootstrap of the null model that measures it (pipeline.audit.null_calibration)
     flight_alpha: float = default_field("audit", "flight_alpha")
     null_draws: int = default_field("audit", "null_draws")
     null_seed: int = default_field("audit", "null_seed")
+    # a lag estimate moves with the resampling and the eddy columns' differences by a few
+    # ms; under 20 ms a lag shifts the anomaly by less than 14 cm along track at 7 m/s (0.6 m
+    # at 30 m/s), below a survey's positioning error: not worth a model term
+    min_lag_s: float = 0.02
 
 
 @dataclass
@@ -660,9 +660,9 @@ class Auditor:
         )
         blocks = contiguous_blocks(valid, self.data.time_s)
         sos = bandpass_sos(self.s.band.band_hz, self.data.rate_hz, self.s.band.poles)
-        kb, _ = bandpass_blocks(des.columns, blocks, sos, self.s.band.trim)
-        ke, _ = bandpass_blocks(cols_e, blocks, sos, self.s.band.trim)
-        yf, _ = bandpass_blocks(des.y, blocks, sos, self.s.band.trim)
+        kb, _ = bandpass_blocks(des.columns, blocks, sos, self.s.band.trim_at(self.data.rate_hz))
+        ke, _ = bandpass_blocks(cols_e, blocks, sos, self.s.band.trim_at(self.data.rate_hz))
+        yf, _ = bandpass_blocks(des.y, blocks, sos, self.s.band.trim_at(self.data.rate_hz))
         return nested_test(yf, kb, ke, self.step)
 
     # -- candidates -----------------------------------------------------------------------
@@ -986,7 +986,7 @@ class Auditor:
         # columns); or a lag that eddy currents decaying with their best time constant, the
         # rate columns' whole form, leave in one response at least: the rate columns' nine
         # free coefficients also take up a true lag
-        smallest = self.s.min_lag_samples / self.data.rate_hz
+        smallest = self.s.min_lag_s
         beside_most = max(beside_decay.values())
         decay_as_well = False
         if (
@@ -1065,14 +1065,14 @@ class Auditor:
             ev.reason = (
                 f"eddy currents that decay over {ev.estimate['eddy_decay']['tau_s']:g} s "
                 f"explain the calibration's residual as well as a lag, and beside them the lag "
-                f"is {1e3 * beside_most:.1f} ms, under {self.s.min_lag_samples:g} of a "
-                "sample: the decay is the cause"
+                f"is {1e3 * beside_most:.1f} ms, under {1e3 * smallest:.0f} ms: the decay "
+                "is the cause"
             )
         if abs(lag) < smallest:
             ev.held_back = True
             ev.reason = (
-                f"a lag of {1e3 * lag:.1f} ms is under {self.s.min_lag_samples:g} of a sample "
-                f"({1e3 * smallest:.0f} ms): within the resampling's own error, not a lag to model"
+                f"a lag of {1e3 * lag:.1f} ms is under {1e3 * smallest:.0f} ms (min_lag_s): "
+                "within the resampling's own error, not a lag to model"
             )
         return ev
 
@@ -1115,7 +1115,7 @@ class Auditor:
         and nothing is named."""
         s = self.s
         lag = float(ev.estimate["lag_s"])
-        smallest = s.min_lag_samples / self.data.rate_hz
+        smallest = s.min_lag_s
         tl = self._fluxgate_timing(current, ev)
         plain = current.with_(eddy_tau_s=0.0)
         lag_plain = self._lag_estimate(plain, None, "all")
@@ -1261,7 +1261,7 @@ class Auditor:
         decaying with the best time constant (the lag refitted in each training fold; p <
         alpha and at least ``min_gain`` on held-out data): a late sensor beside a carrier
         whose eddy currents decay. Called only when the lag refitted beside that decay stays
-        at least ``min_lag_samples`` in every response (the decay does not take it).
+        at least ``min_lag_s`` in every response (the decay does not take it).
 
         The eddy-rate columns are nine free coefficients, the decay's first order in w tau,
         and take up a true lag as well as the decay; the decay's columns with a fitted time
@@ -2429,7 +2429,9 @@ def run_audit(
         earth = time_window_mean(t, comp, 20.0)
         resid = design(data, fm.spec).measured_nT - simulate_measurement(data, fm, earth)
         valid = aud.mask & np.isfinite(resid)
-        rr, ww = bandpass_blocks(resid, contiguous_blocks(valid, t), sos, s.band.trim)
+        rr, ww = bandpass_blocks(
+            resid, contiguous_blocks(valid, t), sos, s.band.trim_at(data.rate_hz)
+        )
         if where is None:
             where = ww
         full = np.full(t.size, np.nan)

@@ -16,7 +16,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
+from pipeline.compensate.filters import (
+    bandpass_blocks,
+    bandpass_sos,
+    contiguous_blocks,
+    trim_samples,
+)
 from pipeline.compensate.ridge import LCurve, RidgeSVD
 
 
@@ -28,7 +33,7 @@ def bandpassed_design(
     mask: np.ndarray,
     band_hz: tuple[float, float] | None,
     poles: int,
-    trim: int,
+    trim_s: float,
     keep: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Rows of the regression: ``(K, y, epoch indices)``.
@@ -44,9 +49,10 @@ def bandpassed_design(
     mask : ndarray of bool, shape (n,)
         Epochs to fit; epochs with a non-finite value or column are left out, and the rest
         is split into contiguous blocks (also at sampling gaps).
-    band_hz, poles, trim
+    band_hz, poles, trim_s
         Band-pass within each block (``poles``: order of the low-pass prototype), then drop
-        ``trim`` samples at both block ends. ``band_hz=None``: no filter and no trim.
+        ``trim_s`` seconds (nearest sample at ``rate_hz``) at both block ends.
+        ``band_hz=None``: no filter and no trim.
     keep : ndarray of bool, shape (n,), optional
         Keep only the rows of these epochs, band-passed with all of ``mask`` (cross-validation
         folds select rows of the once-filtered calibration).
@@ -58,6 +64,7 @@ def bandpassed_design(
         kf, yf = columns[where], y_nT[where]
     else:
         sos = bandpass_sos(band_hz, rate_hz, poles)
+        trim = trim_samples(trim_s, rate_hz)
         kf, where = bandpass_blocks(columns, blocks, sos, trim)
         yf, _ = bandpass_blocks(y_nT, blocks, sos, trim)
     if keep is not None:

@@ -36,6 +36,11 @@ def contiguous_blocks(
     return np.split(idx, np.flatnonzero(breaks) + 1)
 
 
+def trim_samples(trim_s: float, rate_hz: float) -> int:
+    """Samples in ``trim_s`` seconds at ``rate_hz`` (nearest): the edge a filtered block loses."""
+    return int(round(trim_s * rate_hz))
+
+
 def bandpass_blocks(
     x: np.ndarray, blocks: list[np.ndarray], sos: np.ndarray, trim: int = 0
 ) -> tuple[np.ndarray, np.ndarray]:

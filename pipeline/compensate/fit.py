@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from pipeline.compensate.agg_legs import fit_agg_with_legs
 from pipeline.compensate.extension import fit_extension
 from pipeline.compensate.model import (
     EXTENSIONS,
@@ -19,9 +20,20 @@ from pipeline.compensate.model import (
 
 
 def fit_compensation(
-    meas: Measurements, calibration_mask: np.ndarray, settings: FitSettings | None = None
+    meas: Measurements,
+    calibration_mask: np.ndarray,
+    settings: FitSettings | None = None,
+    legs: np.ndarray | None = None,
+    base_nT: np.ndarray | None = None,
+    seeded: dict[str, dict] | None = None,
 ) -> CompensationModel:
     """Fit a compensation model on the epochs of ``calibration_mask``.
+
+    ``legs`` (calibration leg per epoch, :func:`pipeline.audit.legs.leg_ids`) and
+    ``base_nT`` (the base station's field on the scalar epochs) give AGG-TL the calibration
+    legs' gradient (:mod:`pipeline.compensate.agg_legs`); without ``legs`` it is fitted from
+    the band-passed position columns alone. ``seeded``: tl-plus's term groups the audit
+    named (:func:`pipeline.compensate.plus.audit_nuisances`), tried first.
 
     Raises
     ------
@@ -32,6 +44,8 @@ def fit_compensation(
     s = settings or FitSettings()
     mask = np.asarray(calibration_mask, bool)
     if s.model in EXTENSIONS:
-        return fit_extension(meas, mask, s)
+        return fit_extension(meas, mask, s, seeded)
+    if s.model == "agg-tl" and s.agg_gradient == "legs" and legs is not None and meas.has_position:
+        return fit_agg_with_legs(meas, mask, s, legs, base_nT)
     k_full, names, n_tl, reference = design_of(s, meas, mask)
     return fit_columns(meas, mask, s, k_full, names, n_tl, reference)

@@ -170,7 +170,7 @@ class LearnedFolds:
     def _bp(self, columns: np.ndarray, mask: np.ndarray):
         m, b = self.setup.meas, self.setup.band
         return bandpassed_design(
-            columns, m.scalar_nT, m.time_s, m.rate_hz, mask, b.band_hz, b.poles, b.trim
+            columns, m.scalar_nT, m.time_s, m.rate_hz, mask, b.band_hz, b.poles, b.trim_s
         )
 
     def fit_joint(

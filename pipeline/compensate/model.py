@@ -16,7 +16,12 @@ from typing import Any
 import numpy as np
 
 from pipeline.compensate.estimator import bandpassed_design, fit_ridge
-from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
+from pipeline.compensate.filters import (
+    bandpass_blocks,
+    bandpass_sos,
+    contiguous_blocks,
+    trim_samples,
+)
 from pipeline.compensate.guards import scaled_condition
 from pipeline.compensate.ridge import LCurve
 from pipeline.compensate.terms import BT_SCALE_NT, position_terms, tl16_terms, tl18_terms
@@ -100,8 +105,12 @@ class FitSettings:
     # regional gradient changes between the calibration site and the survey (hundreds of nT);
     # tl16 (paper 002's choice) cannot follow that and leaves a heading error.
     base: str = default_field("compensation", "agg_base")
+    # AGG-TL's horizontal gradient: "fit" from the position columns, "legs" fixed at the
+    # calibration legs' estimate (pipeline.compensate.agg_legs)
+    agg_gradient: str = default_field("compensation", "agg_gradient")
     poles: int = default_field("compensation", "poles")
-    trim: int = default_field("compensation", "trim")
+    # the band-pass's edge transient dropped at each block end (s)
+    trim_s: float = default_field("compensation", "trim_s")
     # a lambda, or "auto" for the L-curve corner
     ridge: float | str = default_field("compensation", "ridge")
     # tl18's induced and eddy columns are divided by it (MagNav's Bt_scale): with a fixed
@@ -121,6 +130,8 @@ class FitSettings:
             raise ValueError(f"unknown model {self.model!r} (use {', '.join(MODELS)})")
         if self.base not in ("tl16", "tl18"):
             raise ValueError(f"unknown AGG-TL base {self.base!r} (use tl16 or tl18)")
+        if self.agg_gradient not in ("fit", "legs"):
+            raise ValueError(f"unknown AGG-TL gradient {self.agg_gradient!r} (use fit or legs)")
         if self.learner not in ("hgb", "mlp"):
             raise ValueError(f"unknown learner {self.learner!r} (use hgb or mlp)")
         if not 0.0 < self.extension_alpha < 1.0:
@@ -158,6 +169,10 @@ class CompensationModel:
     coefficient_std: np.ndarray | None = None  # from the residual variance (no ridge)
     condition_number: float = float("nan")  # of the band-passed, column-scaled design
     weakest_terms: list[str] = field(default_factory=list)
+    # samples trim_s dropped at each block end at the recording's rate (the channel's trim)
+    trim_samples: int = 0
+    # AGG-TL: where its horizontal gradient came from (pipeline.compensate.agg_legs)
+    gradient_evidence: dict[str, Any] = field(default_factory=dict)
 
     @property
     def model(self) -> str:
@@ -197,12 +212,14 @@ class CompensationModel:
             "ridge": "auto" if s.ridge == "auto" else float(s.ridge),
             "band_hz": None if s.band_hz is None else [float(b) for b in s.band_hz],
             "poles": s.poles,
-            "trim": s.trim,
+            "trim": int(self.trim_samples),
+            "trim_s": float(s.trim_s),
             "samples": int(self.n_fit),
             "fit_residual_nT": float(self.fit_residual_nT),
             "calibration_windows_s": [[float(a), float(b)] for a, b in self.calibration_blocks],
             "gradient_nT_per_m": self.gradient_nT_per_m(),
             "reference": self.reference or None,
+            **({"gradient_evidence": self.gradient_evidence} if self.gradient_evidence else {}),
         }
 
 
@@ -241,7 +258,7 @@ def fit_columns(
     """The band-passed ridge fit of the design ``k_full`` (columns ``names``, the first
     ``n_tl`` compensating) on the calibration epochs ``mask``."""
     kf, yf, where = bandpassed_design(
-        k_full, meas.scalar_nT, meas.time_s, meas.rate_hz, mask, s.band_hz, s.poles, s.trim
+        k_full, meas.scalar_nT, meas.time_s, meas.rate_hz, mask, s.band_hz, s.poles, s.trim_s
     )
     if where.size < 2 * k_full.shape[1]:
         raise ValueError(
@@ -266,6 +283,7 @@ def fit_columns(
         fit.coefficient_std,
         cond,
         weakest,
+        trim_samples(s.trim_s, meas.rate_hz),
     )
 
 

@@ -12,10 +12,15 @@ audit):
 Forward selection: each round fits every remaining group beside the current model on the
 held-out folds of :mod:`pipeline.compensate.heldout` (contiguous blocks, buffered by the
 band-pass's support, band-passed within each fold); the group with the smallest held-out
-residual enters when the paired held-out test against the current model gives a
-Holm-adjusted p below ``extension_alpha`` (over that round's candidates) and lowers the
-held-out RMS by at least ``extension_min_gain``. The final model is fitted on the whole
-calibration with the one T-L estimator (band-passed ridge).
+residual enters when it lowers the held-out RMS by at least ``extension_min_gain`` and two
+paired tests against the current model give Holm-adjusted p (over that round's candidates)
+below ``extension_alpha``: the audit's test over 10-s blocks and the test with the held-out
+fold as the unit (:func:`pipeline.compensate.heldout.fold_test`). The second is the
+calibrated one: the 10-s blocks of a fold share its fit, and on calibrations with nothing
+outside the basis the first alone passes spurious groups far more often than its level.
+Groups the audit named (``unexplained.nuisances``) are tried first, each one hypothesis.
+The final model is fitted on the whole calibration with the one T-L estimator (band-passed
+ridge).
 """
 
 from __future__ import annotations
@@ -29,8 +34,8 @@ from pipeline.compensate.heldout import (
     Band,
     HeldOutResiduals,
     block_folds,
-    consistent,
     filter_support_s,
+    fold_test,
     heldout_gain,
     heldout_residuals,
     linear_predictor,
@@ -123,7 +128,7 @@ class HeldOutSetup:
                 f"{settings.model} needs at least {MIN_HELDOUT_S:g} s of calibration for its "
                 f"held-out blocks; the calibration has {span:.0f} s"
             )
-        band = Band(tuple(settings.band_hz), settings.poles, settings.trim)
+        band = Band(tuple(settings.band_hz), settings.poles, settings.trim_s)
         buffer = filter_support_s(band.band_hz, meas.rate_hz, band.poles)
         return cls(meas, band, block_folds(valid), buffer, settings.ridge)
 
@@ -150,6 +155,8 @@ class GroupTrial:
     columns: int
     tau_s: float | None = None
     reason: str = ""
+    p_value_folds: float = 1.0  # Holm-adjusted, the held-out folds as the unit
+    audit: dict | None = None  # the audit's record when it named this group (seeded)
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-ready: the figures, the reduction in percent and why it was (not) taken."""
@@ -165,8 +172,10 @@ class GroupTrial:
             "heldout_after_nT": self.heldout_after_nT,
             "reduction_pct": red,
             "p_value_holm": self.p_value,
+            "p_value_folds_holm": self.p_value_folds,
             "tau_s": self.tau_s,
             "reason": self.reason,
+            "seeded_by_audit": self.audit,
         }
 
 
@@ -195,62 +204,105 @@ def _try(setup: HeldOutSetup, current: np.ndarray, group: str):
     return best
 
 
-def _why(reduction: float, p: float, steady: bool, alpha: float, min_gain: float) -> str:
+def _why(reduction: float, p: float, p_fold: float, alpha: float, min_gain: float) -> str:
     """Why a group is (not) taken, in words."""
     problems = []
     if reduction < min_gain:
         problems.append(f"held-out reduction {100 * reduction:.1f} % below {100 * min_gain:g} %")
     if p >= alpha:
-        problems.append(f"not significant (p {p:.2g} >= {alpha:g})")
-    if not steady:
-        problems.append("not lower in all held-out blocks but one")
+        problems.append(f"not significant over 10-s blocks (p {p:.2g} >= {alpha:g})")
+    if p_fold >= alpha:
+        problems.append(f"not significant over the held-out folds (p {p_fold:.2g} >= {alpha:g})")
     return "; ".join(problems) if problems else "lowers the held-out residual"
 
 
-def select_groups(setup: HeldOutSetup, alpha: float, min_gain: float) -> Selection:
-    """Forward selection of term groups on the held-out folds (see the module docstring)."""
+def _round(setup: HeldOutSetup, current, held, pool, alpha, min_gain, trials):
+    """One forward-selection round over ``pool``: every group's trial (into ``trials``)
+    and the entering group's (name, columns, held-out residuals, tau), or None."""
     from pipeline.audit.evidence import holm
 
+    t = setup.meas.time_s
+    tries = {g: _try(setup, current, g) for g in pool}
+    tests, by_fold = {}, {}
+    for g, (_, h, _) in tries.items():
+        a, b, w = aligned(held, h)
+        tests[g] = heldout_gain(a, b, t[w])
+        by_fold[g] = fold_test(a, b, setup.fold[w])
+    p_adj = dict(zip(tests, holm([v.p_value for v in tests.values()]), strict=True))
+    p_fold = dict(zip(by_fold, holm(list(by_fold.values())), strict=True))
+    for g, v in tests.items():
+        trials[g] = GroupTrial(
+            g,
+            False,
+            v.rms_before_nT,
+            v.rms_after_nT,
+            p_adj[g],
+            tries[g][0].shape[1],
+            tries[g][2],
+            _why(v.reduction, p_adj[g], p_fold[g], alpha, min_gain),
+            p_fold[g],
+            trials[g].audit if g in trials else None,
+        )
+    passing = [
+        g
+        for g, v in tests.items()
+        if p_adj[g] < alpha and p_fold[g] < alpha and v.reduction >= min_gain
+    ]
+    if not passing:
+        return None
+    g = min(passing, key=lambda x: tries[x][1].rms_nT)
+    return (g, *tries[g])
+
+
+def select_groups(
+    setup: HeldOutSetup, alpha: float, min_gain: float, seeded: dict[str, dict] | None = None
+) -> Selection:
+    """Forward selection of term groups on the held-out folds (see the module docstring).
+
+    ``seeded``: groups the audit found (name -> its record, :func:`audit_nuisances`). They
+    are tried first, by themselves: a nuisance named before this calibration's held-out
+    test is one hypothesis each, not a pick among all candidates, so the Holm adjustment of
+    those rounds runs over the seeded groups only. The other groups follow as usual.
+    """
     current, _ = tl18_terms(setup.meas.vector_nT)
     base = held = setup.linear(current)
     chosen: list[str] = []
     tau = None
     trials: dict[str, GroupTrial] = {}
-    left = candidate_groups(setup.meas)
-    t = setup.meas.time_s
-    while left:
-        tries = {g: _try(setup, current, g) for g in left}
-        tests, steady = {}, {}
-        for g, (_, h, _) in tries.items():
-            a, b, w = aligned(held, h)
-            tests[g] = heldout_gain(a, b, t[w])
-            steady[g] = consistent(a, b, setup.fold[w])
-        p_adj = dict(zip(tests, holm([v.p_value for v in tests.values()]), strict=True))
-        for g, v in tests.items():
-            why = _why(v.reduction, p_adj[g], steady[g], alpha, min_gain)
-            trials[g] = GroupTrial(
-                g,
-                False,
-                v.rms_before_nT,
-                v.rms_after_nT,
-                p_adj[g],
-                tries[g][0].shape[1],
-                tries[g][2],
-                why,
-            )
-        passing = [
-            g
-            for g, v in tests.items()
-            if p_adj[g] < alpha and v.reduction >= min_gain and steady[g]
-        ]
-        if not passing:
-            break
-        g = min(passing, key=lambda x: tries[x][1].rms_nT)
-        cols, held, tau_g = tries[g]
-        current = np.column_stack([current, cols])
-        chosen.append(g)
-        trials[g].selected = True
-        if tau_g is not None:
-            tau = tau_g
-        left.remove(g)
+    candidates = candidate_groups(setup.meas)
+    seeds = [g for g in (seeded or {}) if g in candidates]
+    for g in seeds:
+        trials[g] = GroupTrial(g, False, np.nan, np.nan, 1.0, 0, audit=seeded[g])
+    for phase in (seeds, [g for g in candidates if g not in seeds]):
+        left = list(phase)
+        while left:
+            got = _round(setup, current, held, left, alpha, min_gain, trials)
+            if got is None:
+                break
+            g, cols, held, tau_g = got
+            current = np.column_stack([current, cols])
+            chosen.append(g)
+            trials[g].selected = True
+            if tau_g is not None:
+                tau = tau_g
+            left.remove(g)
     return Selection(chosen, tau, base, held, trials)
+
+
+def audit_nuisances(audit: dict | None) -> dict[str, dict]:
+    """The nuisances an audit summary names under ``unexplained.nuisances`` (a list of
+    ``{"name", "heldout_gain", "estimate"}``; names as tl-plus's groups: ``eddy_decay``,
+    ``second_order``, ``attitude_rates``, ``current:<channel>``), by name. Read
+    defensively: an absent key, a malformed entry or an unknown name is left out."""
+    items = ((audit or {}).get("unexplained") or {}).get("nuisances") or []
+    out: dict[str, dict] = {}
+    if not isinstance(items, list):
+        return out
+    for it in items:
+        if not isinstance(it, dict) or not isinstance(it.get("name"), str):
+            continue
+        name = it["name"]
+        known = name in ("eddy_decay", "second_order", "attitude_rates")
+        if known or (name.startswith("current:") and len(name) > len("current:")):
+            out[name] = {"heldout_gain": it.get("heldout_gain"), "estimate": it.get("estimate")}
+    return out

@@ -20,7 +20,7 @@ from pipeline.compensate.model import (
     figure_of_merit,
     fom_band,
 )
-from pipeline.compensate.plus import HeldOutSetup
+from pipeline.compensate.plus import HeldOutSetup, audit_nuisances
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.segment import Segmentation
@@ -83,6 +83,9 @@ class CompensationRun:
     check: CalibrationCheck | None = None
 
     heldout_residual_nT: float | None = None
+    # RMS of the survey-tie crossover differences of the compensated field (nT), and their count
+    crossover_rms_nT: float | None = None
+    crossovers: int = 0
 
     def summary(self) -> dict[str, Any]:
         """The keys of the compensate summary JSON (issue 3 contract) plus details: the
@@ -100,6 +103,8 @@ class CompensationRun:
             "fom_nT": fom,
             "residual_std_nT": self.residual_std_nT,
             "heldout_residual_nT": self.heldout_residual_nT,
+            "crossover_rms_nT": self.crossover_rms_nT,
+            "crossovers": self.crossovers,
             "calibration_guards": self.check.to_dict() if self.check else None,
             **{k: v for k, v in m.items() if k not in ("model", "lambda", "terms", "coefficients")},
         }
@@ -116,16 +121,23 @@ def run_compensation(
     segmentation: Segmentation | None,
     settings: FitSettings,
     calibration: str = "auto",
+    audit: dict | None = None,
 ) -> CompensationRun:
     """Fit ``settings.model`` on the chosen calibration epochs and compensate the flight.
+
+    ``audit``: the model audit's summary; tl-plus tries the term groups it names under
+    ``unexplained.nuisances`` first (:func:`pipeline.compensate.plus.audit_nuisances`; the
+    key may be absent).
 
     Residual figures are standard deviations of the band-passed compensated field over the
     calibration passes and over the survey lines (where present).
     """
     meas = Measurements.from_flight(flight)
     mask = calibration_mask(flight, segmentation, calibration)
+    legs, base = calibration_legs(flight, segmentation, mask, settings)
     try:
-        model = fit_compensation(meas, mask, settings)
+        seeded = audit_nuisances(audit) if settings.model == "tl-plus" else None
+        model = fit_compensation(meas, mask, settings, legs, base, seeded)
     except ValueError as exc:
         channel = flight.topic_of.get("vector", "/mag/vector")
         if "/ins/attitude" in str(exc):
@@ -157,7 +169,33 @@ def run_compensation(
         mask,
         segmentation.boxes() if segmentation is not None else None,
     )
-    return CompensationRun(model, comp, interference, fom, resid, check, heldout)
+    xrms, nx = crossover_rms_nT(flight, segmentation, comp) if segmentation else (np.nan, 0)
+    return CompensationRun(
+        model,
+        comp,
+        interference,
+        fom,
+        resid,
+        check,
+        heldout,
+        float(xrms) if nx else None,
+        nx,
+    )
+
+
+def calibration_legs(
+    flight: Flight, segmentation: Segmentation | None, mask: np.ndarray, settings: FitSettings
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """AGG-TL's evidence beside the band-passed fit: (calibration leg per epoch, the base
+    station's field in nT), each None when absent or not needed."""
+    if settings.model != "agg-tl" or segmentation is None:
+        return None, None
+    from pipeline.audit.legs import leg_ids
+
+    t = flight.data["time_s"].to_numpy(float)
+    legs = leg_ids(mask, segmentation.cardinal, segmentation.calibration_pass, t)
+    base = flight.data["base_nT"].to_numpy(float) if flight.has("base_nT") else None
+    return (legs if (legs >= 0).any() else None), base
 
 
 def heldout_residual(meas: Measurements, mask: np.ndarray, model) -> float | None:

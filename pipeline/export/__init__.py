@@ -12,6 +12,7 @@ from pathlib import Path
 from pipeline.errors import AeromagError
 
 FORMATS = ("geotiff", "netcdf", "csv", "xyz", "magnav")
+NOT_MAGNAV = ("/map/uncertainty", "/map/navigability")  # grids that are not anomaly maps
 
 __all__ = ["FORMATS", "check_formats", "export_recording"]
 
@@ -43,8 +44,9 @@ def export_recording(
     ``csv`` and ``xyz``) into ``out_dir``, each file atomically.
 
     Files (``STEM``: the recording's name without ``.processed.mcap``):
-    ``STEM.<grid>.tif`` per grid channel (``anomaly``, ``anomaly_filtered``, ``rtp`` ...),
-    ``STEM.maps.nc``, ``STEM.lines.csv``, ``STEM.lines.xyz``, ``STEM.<grid>.magnav.h5``.
+    ``STEM.<grid>.tif`` per grid channel (``anomaly``, ``anomaly_filtered``, ``uncertainty``,
+    ``rtp`` ...), ``STEM.maps.nc``, ``STEM.lines.csv``, ``STEM.lines.xyz``,
+    ``STEM.<grid>.magnav.h5`` (every grid but ``uncertainty`` and ``navigability``).
 
     ``formats``: some of :data:`FORMATS`; by default the configuration's ``export.formats``.
 
@@ -80,7 +82,9 @@ def export_recording(
         if "netcdf" in formats:
             put("netcdf", write_netcdf(out / f"{stem}.maps.nc", mp.grids, mp.frame))
         if "magnav" in formats:
-            for g in mp.grids:
+            # not the error and navigability grids: MagNav's map file has no such field, and
+            # either read as a map would be navigated on
+            for g in (g for g in mp.grids if g.topic not in NOT_MAGNAV):
                 put("magnav", write_magnav_h5(out / f"{stem}.{g.name}.magnav.h5", g, mp.frame))
         if {"csv", "xyz"} & set(formats):
             table = line_table(mp.lines, mp.frame)

@@ -109,13 +109,16 @@ class MapGrid:
 
 
 def units_of(field_name: str) -> str:
-    """``anomaly_nT`` -> ``nT``, ``..._nT_per_m`` -> ``nT/m``, ``tilt_deg`` -> ``degree``."""
+    """``anomaly_nT`` -> ``nT``, ``..._nT_per_m`` -> ``nT/m``, ``tilt_deg`` -> ``degree``,
+    ``navigability_m`` -> ``m``."""
     if field_name.endswith("_nT_per_m"):
         return "nT/m"
     if field_name.endswith("_nT"):
         return "nT"
     if field_name.endswith("_deg"):
         return "degree"
+    if field_name.endswith("_m"):
+        return "m"
     return "1"
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import struct
 import zlib
 from collections.abc import Iterable, Sequence
+from itertools import islice
 from typing import BinaryIO
 
 import numpy as np
@@ -164,21 +165,39 @@ class BulkWriter:
         if n == 0:
             return
         limit = self.chunk_size
-        batch: list[bytes] = []
-        offsets: list[int] = []
+        batch: list[bytes] = []  # the open chunk's records, from record ``start`` on
         size = start = 0
-        for k, rec in enumerate(records):
-            if batch and size + len(rec) > limit:  # a record larger than a chunk gets its own
-                self._chunk(
-                    batch, channel_id[start:k], log_time_ns[start:k], np.array(offsets, np.int64)
-                )
-                batch, offsets, size, start = [], [], 0, k
-            batch.append(rec)
-            offsets.append(size)
-            size += len(rec)
+
+        def flush() -> None:
+            end = start + len(batch)
+            lens = np.fromiter(map(len, batch), np.int64, len(batch))
+            self._chunk(
+                batch, channel_id[start:end], log_time_ns[start:end], np.cumsum(lens) - lens
+            )
+
+        # records are taken a block at a time and a chunk's boundary found from their lengths'
+        # running sum (a record joins while the chunk stays within ``limit``; one larger than a
+        # chunk gets its own): the same chunks as a record-by-record loop, without its calls
+        it = iter(records)
+        while part := list(islice(it, 1 << 13)):
+            lens = np.fromiter(map(len, part), np.int64, len(part))
+            j = 0
+            while j < len(part):
+                fill = size + np.cumsum(lens[j:])
+                fit = int(np.searchsorted(fill, limit, side="right"))
+                if fit == 0 and not batch:
+                    fit = 1
+                if fit:
+                    batch.extend(part[j : j + fit])
+                    size = int(fill[fit - 1])
+                    j += fit
+                if j < len(part):  # the next record does not fit: close the chunk
+                    flush()
+                    start += len(batch)
+                    batch, size = [], 0
         if start + len(batch) != n:
             raise ValueError(f"{start + len(batch)} records for {n} channel ids and times")
-        self._chunk(batch, channel_id[start:], log_time_ns[start:], np.array(offsets, np.int64))
+        flush()
         counts = np.bincount(channel_id.astype(np.int64))
         for cid in np.flatnonzero(counts):
             self.stats.channel_message_counts[int(cid)] = self.stats.channel_message_counts.get(

@@ -189,6 +189,20 @@ OUTPUT_CONTRACT: tuple[TopicRule, ...] = (
         description="anomaly grid after the ARIMA + Kalman filter",
     ),
     TopicRule(
+        "/map/uncertainty",
+        "foxglove.Grid",
+        "output",
+        ("column_count", "data"),
+        description="1-sigma error of the anomaly grid per cell, nT (same cells)",
+    ),
+    TopicRule(
+        "/map/navigability",
+        "foxglove.Grid",
+        "output",
+        ("column_count", "data"),
+        description="position CRLB (DRMS, m) of a vehicle flying into each cell",
+    ),
+    TopicRule(
         "/map/frame",
         "aeromag.MapFrame",
         "output",

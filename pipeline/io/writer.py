@@ -442,7 +442,9 @@ def _encoded(messages, rank: np.ndarray, cid: int) -> Iterator[bytes]:
         ix = rank[b : b + block]
         for k, i, t in zip(range(b, b + ix.size), ix.tolist(), time_ns[ix].tolist(), strict=True):
             p = payload(i)
-            p.setdefault("timestamp", stamp(t))
+            if "timestamp" not in p:  # stamp(t), inline
+                sec, nsec = divmod(t, NS)
+                p["timestamp"] = {"sec": sec, "nsec": nsec}
             data = dumps(p, option=opt)
             yield pack(op, 22 + len(data), cid, k & 0xFFFFFFFF, t, t) + data
 

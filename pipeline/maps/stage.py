@@ -23,9 +23,11 @@ from pipeline.maps.arima import (
     rts_smooth,
 )
 from pipeline.maps.grid import Grid, minimum_curvature
+from pipeline.maps.gridders import LineData, MinimumCurvatureGridder
 from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, Leveling, Line, level_lines
 from pipeline.maps.microlevel import MicroLevel, microlevel_lines
 from pipeline.maps.reduce import Reduction, reduce_to_anomaly
+from pipeline.maps.uncertainty import MapUncertainty, fit_uncertainty, uncertainty_grid
 from pipeline.noise import white_noise_nT
 from pipeline.segment import Segmentation
 
@@ -211,6 +213,11 @@ class MapRun:
     # the gridder used and its cross-validation scores (pipeline.maps.gridders)
     gridder: dict[str, Any] = field(default_factory=lambda: {"method": "minimum_curvature"})
     microlevel: MicroLevel | None = None
+    # the grid's 1-sigma error per cell, nT (pipeline.maps.uncertainty; None: fewer than
+    # three survey lines, nothing to hold out) and its model, or why there is none
+    uncertainty: Grid | None = None
+    uncertainty_model: MapUncertainty | None = None
+    uncertainty_note: str = ""
 
     @property
     def grid_declination_deg(self) -> float:
@@ -281,11 +288,61 @@ class MapRun:
                 "exact_steps": self.kalman.exact_steps,
             },
             "sequence_tests": self.sequence_tests,
+            "uncertainty": self._uncertainty_summary(),
             "anomaly_range_nT": [
                 float(np.nanmin(self.grid.values)),
                 float(np.nanmax(self.grid.values)),
             ],
         }
+
+    def _uncertainty_summary(self) -> dict[str, Any]:
+        if self.uncertainty is None or self.uncertainty_model is None:
+            return {"channel": None, "note": self.uncertainty_note}
+        v = self.uncertainty.values[np.isfinite(self.uncertainty.values)]
+        return {
+            "channel": "/map/uncertainty",
+            **self.uncertainty_model.describe(),
+            "median_nT": float(np.median(v)) if v.size else None,
+            "max_nT": float(np.max(v)) if v.size else None,
+            "note": self.uncertainty_note,
+        }
+
+
+def _line_data(lines: list[Line], up_m: np.ndarray) -> LineData:
+    """The levelled lines as the gridders' :class:`LineData` (local east/north/up m, nT)."""
+    return LineData(
+        np.concatenate([ln.east_m for ln in lines]),
+        np.concatenate([ln.north_m for ln in lines]),
+        np.concatenate([up_m[ln.index] for ln in lines]),
+        np.concatenate([ln.value_nT for ln in lines]),
+        np.concatenate([np.full(ln.index.size, ln.line_id, dtype=object) for ln in lines]),
+        np.concatenate([np.full(ln.index.size, ln.kind, dtype=object) for ln in lines]),
+    )
+
+
+def map_uncertainty(
+    data: LineData, grid: Grid, spacing_m: float, sensor_nT: float, leveling: Leveling
+) -> tuple[Grid | None, MapUncertainty | None, str]:
+    """The grid's 1-sigma error per cell (nT; :mod:`pipeline.maps.uncertainty`), its model and
+    a note. Held-out lines are predicted by unmasked minimum curvature whatever the map's
+    gridder (refitting equivalent sources once per fold costs minutes; where they were chosen
+    their cross-validated misfit was the lower, so the sigma errs on the large side). The
+    levelling term is the crossover RMS after levelling over sqrt(2) (each crossover holds two
+    lines' level errors)."""
+    level = leveling.rms_after_nT / np.sqrt(2.0) if np.isfinite(leveling.rms_after_nT) else 0.0
+    noise = sensor_nT if np.isfinite(sensor_nT) else 0.0
+    try:
+        model = fit_uncertainty(
+            data,
+            lambda: MinimumCurvatureGridder(grid.cell_m, np.inf),
+            spacing_m,
+            float(noise),
+            float(level),
+        )
+    except ValueError as exc:
+        return None, None, f"no /map/uncertainty: {exc}"
+    how = "held-out lines predicted by minimum curvature"
+    return uncertainty_grid(model, grid, data), model, how
 
 
 def _lines(seg: Segmentation, e, n, t, v) -> list[Line]:
@@ -368,7 +425,8 @@ def build_map(
         change = change[np.isfinite(change)]
         micro.grid_change_rms_nT = float(np.sqrt(np.mean(change**2))) if change.size else 0.0
         grid = regrid
-    grid, gridder = _regrid(flight, lines, up, grid, frame, spacing, s)
+    data = _line_data(lines, up)
+    grid, gridder = _regrid(flight, data, grid, frame, spacing, s)
     # ARIMA + Kalman along the flight lines
     along_north = abs(along[1]) >= abs(along[0])
     sensor = float(
@@ -385,6 +443,7 @@ def build_map(
             f"map filter: {exc}", file=flight.source, channel="/mag/compensated"
         ) from None
     tests["sensor_noise_nT"] = sensor
+    sigma, sigma_model, sigma_note = map_uncertainty(data, grid, spacing, sensor, lev)
     when = datetime.fromtimestamp(float(np.median(flight.time_ns)) / 1e9, tz=UTC)
     _, total, incl, decl = main_field_direction(frame.lat0_deg, frame.lon0_deg, frame.alt0_m, when)
     return MapRun(
@@ -404,13 +463,15 @@ def build_map(
         (total, incl, decl),
         gridder,
         micro,
+        sigma,
+        sigma_model,
+        sigma_note,
     )
 
 
 def _regrid(
     flight: Flight,
-    lines: list[Line],
-    up_m: np.ndarray,
+    data: LineData,
     grid: Grid,
     frame: GridFrame,
     spacing_m: float,
@@ -419,7 +480,7 @@ def _regrid(
     """The configured gridder's map on the minimum-curvature grid's cells (and mask):
     unchanged for ``minimum_curvature`` on the flight surface; with a DEM, draped at the
     clearance above it by equivalent sources."""
-    from pipeline.maps.gridders import GRIDDERS, LineData, choose_gridder, grid_on
+    from pipeline.maps.gridders import GRIDDERS, choose_gridder, grid_on
 
     method = s.gridder
     if method not in GRIDDERS:
@@ -435,14 +496,6 @@ def _regrid(
         height = dem_heights_m(s.dem_path, lat, lon) + s.dem_clearance_m - frame.alt0_m
         if method != "equivalent_sources":  # minimum curvature cannot continue a field
             method = "equivalent_sources"
-    data = LineData(
-        np.concatenate([ln.east_m for ln in lines]),
-        np.concatenate([ln.north_m for ln in lines]),
-        np.concatenate([up_m[ln.index] for ln in lines]),
-        np.concatenate([ln.value_nT for ln in lines]),
-        np.concatenate([np.full(ln.index.size, ln.line_id, dtype=object) for ln in lines]),
-        np.concatenate([np.full(ln.index.size, ln.kind, dtype=object) for ln in lines]),
-    )
     choice = choose_gridder(data, method, grid.cell_m, spacing_m, s.mask_spacings * spacing_m)
     out = grid_on(choice, data, grid, height)
     info = choice.describe()

@@ -31,6 +31,8 @@ from pipeline.geo.projected import GridFrame
 from pipeline.maps.grid import Grid
 
 DEFAULT_CHANNEL = "/map/anomaly_filtered"
+UNCERTAINTY_CHANNEL = "/map/uncertainty"
+UNCERTAINTY_VARIABLE = "uncertainty"  # its netCDF variable (aeromag export)
 
 
 @dataclass
@@ -45,6 +47,33 @@ class GeoMap:
     kind: str
     crs: str
     notes: list[str] = field(default_factory=list)
+    # the map's 1-sigma error per cell, nT, on the same cells (a recording's /map/uncertainty,
+    # a netCDF's ``uncertainty`` variable); None: the map does not say
+    sigma: Grid | None = None
+    # the distance the map's error stays correlated over, m (its line spacing, when known;
+    # None: [navigate] map_error_length_m)
+    error_length_m: float | None = None
+
+    def ned_to_map(self, lat_deg, lon_deg, step_m: float = 10.0) -> np.ndarray:
+        """(N, 2, 2): map-frame (east, north) metres per metre moved (north, east) at each
+        point, by finite differences of :attr:`to_local` (the projection's meridian
+        convergence and scale; the identity for a local tangent frame)."""
+        lat = np.atleast_1d(np.asarray(lat_deg, float))
+        lon = np.atleast_1d(np.asarray(lon_deg, float))
+        a, f = 6_378_137.0, 1 / 298.257223563
+        e2 = f * (2 - f)
+        sl = np.sin(np.radians(lat))
+        m_rad = a * (1 - e2) / (1 - e2 * sl * sl) ** 1.5
+        n_rad = a / np.sqrt(1 - e2 * sl * sl)
+        dlat = np.degrees(step_m / m_rad)
+        dlon = np.degrees(step_m / (n_rad * np.cos(np.radians(lat))))
+        e0, n0 = (np.asarray(v, float) for v in self.to_local(lat, lon))
+        en, nn = (np.asarray(v, float) for v in self.to_local(lat + dlat, lon))
+        ee, ne = (np.asarray(v, float) for v in self.to_local(lat, lon + dlon))
+        j = np.empty((lat.size, 2, 2))
+        j[:, 0, 0], j[:, 1, 0] = (en - e0) / step_m, (nn - n0) / step_m
+        j[:, 0, 1], j[:, 1, 1] = (ee - e0) / step_m, (ne - n0) / step_m
+        return j
 
     def describe(self) -> dict:
         """The map as NAV.json reports it: file, kind, CRS, shape, cell (m), altitude (m)."""
@@ -56,6 +85,7 @@ class GeoMap:
             "grid_shape": [ny, nx],
             "cell_m": self.grid.cell_m,
             "altitude_m": self.altitude_m,
+            "uncertainty": self.sigma is not None,
             "notes": self.notes,
         }
 
@@ -112,6 +142,12 @@ def read_recording_map(path: Path, channel: str = DEFAULT_CHANNEL) -> GeoMap:
     grid = found.grid
     grid.crs = frame.grid_crs
     to_local, to_geo = _local(frame)
+    sigma = next((g.grid for g in products.grids if g.topic == UNCERTAINTY_CHANNEL), None)
+    notes = ["CRS and origin from the recording's /map/frame"]
+    if sigma is not None and (sigma.shape != grid.shape or channel == UNCERTAINTY_CHANNEL):
+        sigma = None  # not the map's cells (an enhancement of another size, or itself)
+    if sigma is not None:
+        notes.append(f"map error per cell from {UNCERTAINTY_CHANNEL}")
     return GeoMap(
         grid,
         to_local,
@@ -120,7 +156,8 @@ def read_recording_map(path: Path, channel: str = DEFAULT_CHANNEL) -> GeoMap:
         str(path),
         f"recording {channel}",
         frame.crs,
-        ["CRS and origin from the recording's /map/frame"],
+        notes,
+        sigma,
     )
 
 
@@ -191,15 +228,19 @@ def read_raster_map(path: Path) -> GeoMap:
     import rioxarray  # noqa: F401  (registers the .rio accessor)
     import xarray as xr
 
+    sigma_da = None
     try:
         if path.suffix.lower() in (".tif", ".tiff"):
             da = xr.open_dataarray(path, engine="rasterio").squeeze(drop=True)
         else:
-            ds = xr.open_dataset(path)
+            # "all": the CF grid-mapping variable (the CRS) stays attached to the grids
+            ds = xr.open_dataset(path, decode_coords="all")
             names = [v for v in ds.data_vars if ds[v].ndim == 2]
             if not names:
                 raise AeromagError("no 2-D variable in the netCDF map", file=path)
             da = ds[names[0]]
+            if UNCERTAINTY_VARIABLE in names and names[0] != UNCERTAINTY_VARIABLE:
+                sigma_da = ds[UNCERTAINTY_VARIABLE]
     except AeromagError:
         raise
     except Exception as exc:
@@ -213,10 +254,26 @@ def read_raster_map(path: Path) -> GeoMap:
     nodata = da.attrs.get("_FillValue", da.rio.nodata if hasattr(da, "rio") else None)
     if nodata is not None and np.isfinite(nodata):
         vals = np.where(vals == nodata, np.nan, vals)
+    sig = None
+    if sigma_da is not None and sigma_da.dims == da.dims:
+        sig = np.asarray(sigma_da.values, float)
     if x[0] > x[-1]:
         x, vals = x[::-1], vals[:, ::-1]
+        sig = None if sig is None else sig[:, ::-1]
     if y[0] > y[-1]:
         y, vals = y[::-1], vals[::-1]
+        sig = None if sig is None else sig[::-1]
+    gm = _raster_geomap(path, da, vals, x, y, xdim, ydim)
+    if sig is not None:
+        # placed exactly as the map (same axes, same resampling)
+        gm.sigma = _raster_geomap(path, da, sig, x, y, xdim, ydim).grid
+        gm.notes.append(f"map error per cell from the {UNCERTAINTY_VARIABLE!r} variable")
+    return gm
+
+
+def _raster_geomap(path: Path, da, vals, x, y, xdim: str, ydim: str) -> GeoMap:
+    """The raster's values on ascending axes ``x``, ``y`` placed by its CRS (or its
+    longitude/latitude coordinates)."""
     alt = next(
         (float(da.attrs[k]) for k in ("altitude_m", "alt", "height_m") if k in da.attrs), None
     )

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipeline.navigation.ekf import FilterResult
+from pipeline.navigation.ekf import FilterResult, MeasurementModel, as_measurement
 from pipeline.navigation.map_model import MapModel
 
 # Floor on the position process noise, m^2 per second of flight: the INS model's own is ~0
@@ -49,7 +49,7 @@ def particle_filter(
     z_nT: np.ndarray,
     ins_east_m: np.ndarray,
     ins_north_m: np.ndarray,
-    map_model: MapModel,
+    map_model: MapModel | MeasurementModel,
     r_nT2: float,
     seed: int,
     particles: int = 1000,
@@ -62,7 +62,10 @@ def particle_filter(
     ``seed`` seeds the particles, ``times_s`` (N,) the epochs, default 10 Hz).
 
     The reported position covariance is the weighted particle spread; the state is the
-    weighted mean of the particles (position) and of their Kalman means (the rest).
+    weighted mean of the particles (position) and of their Kalman means (the rest). The
+    measurement is the map and the bias (a :class:`MeasurementModel`'s altitude and core terms
+    are not used); each particle's likelihood takes the map's error variance at its own
+    position, the shared Kalman covariance the particles' weighted mean of it.
 
     ``handover_m``: once the cloud's DRMS has stayed below this for ``handover_s`` of map
     updates, the particles' mean and full covariance (spread of the positions and of the
@@ -70,6 +73,7 @@ def particle_filter(
     particle filter finds the position from a large initial error, the EKF then tracks it
     without the particles' position diffusion (``FilterResult.handover_epoch``).
     """
+    meas = as_measurement(map_model)
     rng = np.random.default_rng(seed)
     N, n = qd.shape
     nl = n - 2
@@ -105,12 +109,15 @@ def particle_filter(
             Pl[np.diag_indices(nl)] += ql
             Pl = 0.5 * (Pl + Pl.T)
         if allow[k] and np.isfinite(z[k]):
-            m, gx, gy = map_model.value_and_gradient(
-                ins_east_m[k] - xn[:, 1], ins_north_m[k] - xn[:, 0]
-            )
+            J = meas.jacobian_ned(k)
+            pe = ins_east_m[k] - xn[:, 0] * J[0, 0] - xn[:, 1] * J[0, 1]
+            pn = ins_north_m[k] - xn[:, 0] * J[1, 0] - xn[:, 1] * J[1, 1]
+            m, gx, gy = meas.map_model.value_and_gradient(pe, pn)
             on = np.isfinite(m)
             if on.mean() > 0.5:
-                s = Pl[-1, -1] + r_nT2
+                wn = np.exp(logw - logw.max())
+                r_i = r_nT2 + meas.map_var_nT2(pe, pn)
+                s = Pl[-1, -1] + float(np.average(r_i[on], weights=wn[on] + 1e-300))
                 y = np.where(on, z[k] - m - xl[:, -1], 0.0)
                 # A particle stands for its share of the cloud, a patch of covariance ~ 4 C / n
                 # (C the cloud's covariance, n particles); the map varies across that patch by
@@ -119,10 +126,10 @@ def particle_filter(
                 # a wide cloud on a sharp map collapses onto the few particles that happen to
                 # sit on the measured contour, usually the wrong ones; as the cloud shrinks the
                 # term vanishes and the exact marginalised likelihood remains.
-                wn = np.exp(logw - logw.max())
                 cloud = np.cov(xn.T, aweights=wn) * 4.0 / particles
-                g = np.stack([np.nan_to_num(gy), np.nan_to_num(gx)], axis=1)  # d/dN, d/dE
-                s_i = s + np.einsum("pi,ij,pj->p", g, cloud, g)
+                gx, gy = np.nan_to_num(gx), np.nan_to_num(gy)
+                g = np.stack([gx * J[0, 0] + gy * J[1, 0], gx * J[0, 1] + gy * J[1, 1]], axis=1)
+                s_i = Pl[-1, -1] + r_i + np.einsum("pi,ij,pj->p", g, cloud, g)
                 logw = logw - 0.5 * y * y / s_i - 0.5 * np.log(s_i)
                 logw[~on] = -np.inf
                 K = Pl[:, -1] / s
@@ -162,7 +169,7 @@ def particle_filter(
                     used,
                     min_eig,
                     max_asym,
-                    (phi, qd, z, ins_east_m, ins_north_m, map_model, r_nT2, allow),
+                    (phi, qd, z, ins_east_m, ins_north_m, meas, r_nT2, allow),
                 )
         if k % 100 == 0:
             min_eig = min(min_eig, float(np.linalg.eigvalsh(Pl)[0]))
@@ -183,7 +190,9 @@ def _hand_over(k, w, xn, xl, Pl, out_x, out_p, innov, svar, used, min_eig, max_a
     P = 0.5 * (P + P.T)
     later = allow[k:].copy()
     later[0] = False  # epoch k's measurement is already in the particles
-    tail = ekf(phi[k:], qd[k:], P, z[k:], ins_e[k:], ins_n[k:], map_model, r_nT2, later, mean)
+    tail = ekf(
+        phi[k:], qd[k:], P, z[k:], ins_e[k:], ins_n[k:], map_model.from_epoch(k), r_nT2, later, mean
+    )
     out_x[k:] = tail.state
     out_p[k:] = tail.pos_cov_m2
     innov[k + 1 :] = tail.innovation_nT[1:]

@@ -23,7 +23,13 @@ from pipeline.io.contract import INS_FIELDS
 from pipeline.maps.reduce import igrf_total_gradient_nT_per_m, reduce_to_anomaly
 from pipeline.navigation.alignment import gnss_aided_covariance
 from pipeline.navigation.crlb import crlb
-from pipeline.navigation.ekf import FilterResult, MeasurementModel, ekf
+from pipeline.navigation.ekf import (
+    FilterResult,
+    MeasurementModel,
+    correlated_error_scale,
+    ekf,
+    gate_sigma_of,
+)
 from pipeline.navigation.ins import (
     GRADES,
     N_INS,
@@ -32,7 +38,12 @@ from pipeline.navigation.ins import (
     simulate_ins_errors,
 )
 from pipeline.navigation.map_io import GeoMap
-from pipeline.navigation.map_model import MapModel, upward_continue, vertical_derivative
+from pipeline.navigation.map_model import (
+    MapModel,
+    upward_continue,
+    vertical_derivative,
+    wiener_smooth,
+)
 from pipeline.navigation.pf import particle_filter
 from pipeline.noise import white_noise_nT
 from pipeline.segment import Segmentation
@@ -54,8 +65,10 @@ class NavigationSettings:
     """Settings of a navigation run.
 
     ``max_uncovered`` is the largest fraction of the selected epochs whose true position may be
-    off the map; ``map_sigma_nT`` / ``sensor_sigma_nT`` None: estimated (the grid's and the
-    track's 4th-difference noise).
+    off the map. ``map_sigma_nT``: the map's 1-sigma error everywhere (nT, ``--map-sigma``);
+    None: the map's own error grid when it has one, else ``default_map_sigma_nT``.
+    ``sensor_sigma_nT`` None: the track's white noise (4th differences).
+    ``gate_probability``: the chi-square probability of the innovation gate (0: no gate).
     """
 
     filter: str = default_field("navigate", "filter")
@@ -69,6 +82,9 @@ class NavigationSettings:
     mag_bias_nT: float = 1.0
     mag_bias_tau_s: float = 600.0
     map_sigma_nT: float | None = None
+    default_map_sigma_nT: float = default_field("navigate", "map_sigma_nT")
+    gate_probability: float = default_field("navigate", "gate_probability")
+    map_error_length_m: float = default_field("navigate", "map_error_length_m")
     sensor_sigma_nT: float | None = None
     max_uncovered: float = 0.5
     # the window starts from a GNSS-aided INS's covariance (pipeline.navigation.alignment)
@@ -84,6 +100,19 @@ class NavigationSettings:
             raise AeromagError(f"--ins {self.ins!r}: use {', '.join(INS_CHOICES)}")
         if self.segments not in SEGMENT_LABELS:
             raise AeromagError(f"--segments {self.segments!r}: use validation, survey or all")
+        for name, v in (
+            ("--map-sigma", self.map_sigma_nT),
+            ("map_sigma_nT", self.default_map_sigma_nT),
+            ("--sensor-sigma", self.sensor_sigma_nT),
+            ("map_error_length_m", self.map_error_length_m),
+        ):
+            if v is not None and not (np.isfinite(v) and v >= 0):
+                raise AeromagError(f"{name} {v!r}: a 1-sigma error in nT must be >= 0")
+        if not (0.0 <= self.gate_probability < 1.0):
+            raise AeromagError(
+                f"gate_probability {self.gate_probability!r}: use a probability in (0, 1), "
+                "or 0 for no gate"
+            )
         if not (self.gnss_aided_s > 0 and self.gnss_sigma_m > 0):
             raise AeromagError(
                 f"gnss_aided_s {self.gnss_aided_s!r} and gnss_sigma_m {self.gnss_sigma_m!r}: "
@@ -126,20 +155,31 @@ class NavigationRun:
     notes: list[str] = field(default_factory=list)
     timings_s: dict[str, float] = field(default_factory=dict)
     ins_source: str = "simulated"  # or "recorded": the recording's /ins/solution
+    # (N, 2, 2) map-frame (east, north) m per (north, east) m (GeoMap.ned_to_map; None: axes
+    # along north and east)
+    ned_to_map: np.ndarray | None = None
+    map_sigma_source: str = "grid"  # grid (the map's own) | user (--map-sigma) | default
+    map_var_scale: float = 1.0  # the map error variance's inflation (correlated_error_scale)
 
     def settings_grade(self):
         """The INS grade's error budget (:class:`pipeline.navigation.ins.InsGrade`)."""
         return GRADES[self.settings.ins]
 
     # positions ----------------------------------------------------------------------
+    def _to_map(self, ne: np.ndarray) -> np.ndarray:
+        """(n, 2) north/east offsets (m) as map-frame east/north offsets."""
+        if self.ned_to_map is None:
+            return ne[:, [1, 0]]
+        return np.einsum("kij,kj->ki", self.ned_to_map, ne)
+
     def ins_en(self) -> np.ndarray:
         """INS-indicated positions, (n, 2) east/north m in the map's frame."""
-        return self.true_en + self.ins_error[:, [1, 0]]
+        return self.true_en + self._to_map(self.ins_error[:, :2])
 
     def aided_en(self) -> np.ndarray:
         """Map-aided positions (INS corrected by the filter's error estimate), (n, 2) east/north
         m in the map's frame."""
-        return self.ins_en() - self.result.state[:, [1, 0]]
+        return self.true_en + self._to_map(self.aided_error_ne())
 
     def ins_error_ne(self) -> np.ndarray:
         """INS position error (indicated minus true), (n, 2) north/east m."""
@@ -173,6 +213,9 @@ class NavigationRun:
         innov = self.result.innovation_nT
         ok = np.isfinite(innov)
         nis = innov[ok] ** 2 / self.result.innovation_var_nT2[ok]
+        aid_all = self.aided_error_ne()
+        pinv = np.linalg.inv(self.result.pos_cov_m2[sel])
+        nees = np.einsum("ki,kij,kj->k", aid_all[sel], pinv, aid_all[sel])
         t = (self.time_ns - self.time_ns[0]) / 1e9
         return {
             "drms_m": {
@@ -194,9 +237,16 @@ class NavigationRun:
                 "start_ns": int(self.time_ns[0]),
             },
             "coverage": self.coverage,
+            "nees": consistency(nees, 2, correlated=True),
+            "nis": consistency(nis, 1, correlated=False),
             "measurement": {
                 "sensor_sigma_nT": self.sensor_sigma_nT,
                 "map_sigma_nT": self.map_sigma_nT,
+                "map_sigma_source": self.map_sigma_source,
+                "map_error_length_m": self.geomap.error_length_m
+                or self.settings.map_error_length_m,
+                "map_variance_scale": self.map_var_scale,
+                "gate_probability": self.settings.gate_probability,
                 "rejected_by_gate": int(self.result.rejected),
                 "r_nT2": self.r_nT2,
                 "mag_bias_sigma_nT": self.settings.mag_bias_nT,
@@ -219,6 +269,50 @@ class NavigationRun:
             "notes": self.notes,
             "timings_s": self.timings_s,
         }
+
+
+def _effective_count(x: np.ndarray) -> float:
+    """Independent samples in a series: its length over the integrated autocorrelation time
+    (``1 + 2 sum rho_k``, summed to the first non-positive ``rho_k``)."""
+    n = x.size
+    if n < 3 or np.std(x) == 0:
+        return float(n)
+    d = x - x.mean()
+    f = np.fft.rfft(d, 2 * n)
+    ac = np.fft.irfft(f * np.conj(f))[:n]
+    rho = ac / ac[0]
+    stop = np.flatnonzero(rho[1:] <= 0.0)
+    cut = int(stop[0]) + 1 if stop.size else n
+    tau = 1.0 + 2.0 * float(np.sum(rho[1:cut]))
+    return float(max(1.0, n / tau))
+
+
+def consistency(values: np.ndarray, dof: int, correlated: bool) -> dict[str, Any]:
+    """A normalised squared error's time average and its 95 % chi-square band.
+
+    For a consistent filter each value is chi-square with ``dof`` degrees of freedom, so the
+    mean of K independent ones is ``chi2(dof K) / K``: ``band95`` is its 2.5 and 97.5 %
+    quantiles. ``correlated``: K is the series' effective count (:func:`_effective_count`;
+    estimation errors are correlated over many epochs), else its length (innovations of a
+    consistent filter are white).
+    """
+    from scipy.stats import chi2
+
+    v = np.asarray(values, float)
+    v = v[np.isfinite(v)]
+    if v.size == 0:
+        return {"mean": None, "band95": None, "within_band": None, "samples": 0}
+    k = _effective_count(v) if correlated else float(v.size)
+    lo, hi = (float(chi2.ppf(q, dof * k) / k) for q in (0.025, 0.975))
+    m = float(v.mean())
+    return {
+        "mean": m,
+        "band95": [lo, hi],
+        "within_band": bool(lo <= m <= hi),
+        "dof": dof,
+        "samples": int(v.size),
+        "independent_samples": k,
+    }
 
 
 def _grade_dict(name: str) -> dict[str, float]:
@@ -458,8 +552,15 @@ def run_navigation(
     e_all, n_all = np.asarray(e_all, float), np.asarray(n_all, float)
     notes = list(geomap.notes)
     coverage = check_coverage(geomap, e_all[selected], n_all[selected], s)
-    mm = MapModel(geomap.grid, 0.0, geomap.altitude_m)
-    # map at the flight's altitude
+    # the map's white noise filtered out at its error's level (a noisy gradient misleads the
+    # filter), then the map at the flight's altitude
+    level = _map_sigma_level(geomap, s)
+    smooth, removed, left = wiener_smooth(geomap.grid, level)
+    notes.append(
+        f"map Wiener-filtered against {level:.2g} nT of white noise: {removed:.2g} nT RMS "
+        f"removed, {left:.0%} of the map's error variance left"
+    )
+    mm = MapModel(smooth, 0.0, geomap.altitude_m)
     flight_alt = float(np.mean(alt[win][selected]))
     mm, how = mm.continued_to(flight_alt)
     notes.append(how)
@@ -479,7 +580,10 @@ def run_navigation(
         x_ins = simulate_ins_errors(model, traj, s.seed, phi, p0=p0)
     clock["ins"] = time.perf_counter()
     # measured anomaly, reduced as the map: IGRF at the INS-indicated position
-    ins_e, ins_n = e_all + x_ins[:, 1], n_all + x_ins[:, 0]
+    # NED errors into the map's axes (turned from north by the meridian convergence)
+    j_true = geomap.ned_to_map(lat[win], lon[win])
+    off = np.einsum("kij,kj->ki", j_true, x_ins[:, :2])
+    ins_e, ins_n = e_all + off[:, 0], n_all + off[:, 1]
     ins_lat, ins_lon = geomap.to_geodetic(ins_e, ins_n)
     lat_r, lon_r, alt_r = lat.copy(), lon.copy(), alt.copy()
     lat_r[win], lon_r[win], alt_r[win] = ins_lat, ins_lon, alt[win] + x_ins[:, 2]
@@ -495,31 +599,39 @@ def run_navigation(
     if base is None:
         notes.append("no base station: diurnal not removed (the mapping did the same)")
     meas = _measurement_model(mm, flight.time_ns[win], lat_r[win], lon_r[win], alt_r[win], notes)
-    # measurement noise: sensor (track) and map (grid), white-noise estimates
+    meas.ned_to_map = geomap.ned_to_map(ins_lat, ins_lon)
+    # measurement noise: the sensor's white noise (the track's) and the map's error
     sensor = s.sensor_sigma_nT
     if sensor is None:
         sensor = white_noise_nT(z[selected])
-    map_sigma = s.map_sigma_nT
-    if map_sigma is None:
-        g = mm.grid.values
-        map_sigma = float(np.nanmedian([white_noise_nT(g.ravel()), white_noise_nT(g.T.ravel())]))
     sensor = float(sensor) if np.isfinite(sensor) else 0.1
-    map_sigma = float(map_sigma) if np.isfinite(map_sigma) else 0.0
-    mm.sigma_nT = map_sigma
-    r = sensor**2 + map_sigma**2
+    sigma_source = _map_error(meas, geomap, s, notes)
+    step = np.hypot(np.diff(ins_e), np.diff(ins_n))
+    meas.map_var_left = left
+    length = geomap.error_length_m or s.map_error_length_m
+    meas.map_var_scale = correlated_error_scale(
+        length, float(np.median(step)) if step.size else np.nan
+    )
+    why = "the map's line spacing" if geomap.error_length_m else "[navigate] map_error_length_m"
+    notes.append(f"map error taken as correlated over {length:.0f} m along the track ({why})")
+    r = sensor**2
+    gate = gate_sigma_of(s.gate_probability) if s.gate_probability > 0 else None
+    # the map's error may be an offset as much as anything: the bias state's prior holds it
+    p0f = p0.copy()
+    p0f[-1, -1] += level**2
     # filter and bound
     update = selected & np.isfinite(z)
     if s.filter == "ekf":
-        res = ekf(phi, qd, p0, z, ins_e, ins_n, meas, r, update)
+        res = ekf(phi, qd, p0f, z, ins_e, ins_n, meas, r, update, gate_sigma=gate)
     else:
         res = particle_filter(
             phi,
             qd,
-            p0,
+            p0f,
             z,
             ins_e,
             ins_n,
-            mm,
+            replace(meas, vertical=None, alt_above_map_m=None, core_grad=None),
             r,
             s.seed + 1,
             s.particles,
@@ -535,9 +647,13 @@ def run_navigation(
         else:
             notes.append("particle filter to the end (its cloud never settled for a handover)")
     clock["filter"] = time.perf_counter()
-    bound = crlb(phi, qd, p0, e_all, n_all, meas, r, update)
+    bound = crlb(phi, qd, p0f, e_all, n_all, meas, r, update)
     free = crlb(phi, qd, p0, e_all, n_all, meas, r, np.zeros(t.size, bool))
     clock["crlb"] = time.perf_counter()
+    on = update & mm.inside(e_all, n_all)
+    # the map's 1 sigma along the track (median), as the map gives it (before the inflation)
+    var_on = meas.map_var_nT2(e_all[on], n_all[on]) / meas.map_var_scale
+    map_sigma = float(np.sqrt(np.median(var_on))) if on.any() else meas.map_sigma_nT
     timings = {
         "ins_s": clock["ins"] - clock["start"],
         "filter_s": clock["filter"] - clock["ins"],
@@ -555,7 +671,7 @@ def run_navigation(
         bound,
         free,
         z,
-        r,
+        r + meas.map_var_scale * map_sigma**2,
         sensor,
         map_sigma,
         s,
@@ -565,4 +681,37 @@ def run_navigation(
         notes,
         timings,
         source,
+        j_true,
+        sigma_source,
+        meas.map_var_scale,
     )
+
+
+def _map_sigma_level(geomap: GeoMap, s: NavigationSettings) -> float:
+    """One 1-sigma value of the map's error, nT: ``--map-sigma``, else the median of the
+    map's own error grid, else ``[navigate] map_sigma_nT``."""
+    if s.map_sigma_nT is not None:
+        return float(s.map_sigma_nT)
+    if geomap.sigma is not None and np.isfinite(geomap.sigma.values).any():
+        return float(np.nanmedian(geomap.sigma.values))
+    return float(s.default_map_sigma_nT)
+
+
+def _map_error(meas: MeasurementModel, geomap: GeoMap, s: NavigationSettings, notes) -> str:
+    """Set the measurement's map error: ``--map-sigma`` when given, else the map's own error
+    grid, else ``[navigate] map_sigma_nT``; returns which (user, grid, default) and notes it."""
+    if s.map_sigma_nT is not None:
+        meas.map_sigma_nT = float(s.map_sigma_nT)
+        notes.append(f"map error: {s.map_sigma_nT:g} nT (1 sigma, --map-sigma)")
+        return "user"
+    if geomap.sigma is not None:
+        meas.sigma = MapModel(geomap.sigma, method="linear")
+        meas.map_sigma_nT = float(np.nanmax(geomap.sigma.values))
+        notes.append("map error: the map's own per-cell 1 sigma, at the estimated position")
+        return "grid"
+    meas.map_sigma_nT = float(s.default_map_sigma_nT)
+    notes.append(
+        f"map error: not in the map; {s.default_map_sigma_nT:g} nT (1 sigma, "
+        "[navigate] map_sigma_nT; give --map-sigma for this map)"
+    )
+    return "default"

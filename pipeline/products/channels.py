@@ -490,17 +490,19 @@ def navigation_channels(run) -> list[OutputChannel]:
 
 def map_channels(flight: Flight, seg: Segmentation, mr) -> list[OutputChannel]:
     """Output channels of a map run: ``/map/frame`` (the grids' georeference),
-    ``/map/anomaly``, ``/map/anomaly_filtered`` (``foxglove.Grid``), ``/map/lines`` (the
-    levelled line samples) and ``/map/tracks`` (``foxglove.GeoJSON``).
+    ``/map/anomaly``, ``/map/anomaly_filtered``, ``/map/uncertainty`` (the anomaly grid's
+    1-sigma error per cell, nT, when the survey has three lines or more; ``foxglove.Grid``),
+    ``/map/lines`` (the levelled line samples) and ``/map/tracks`` (``foxglove.GeoJSON``).
     """
     t0 = int(flight.time_ns[0])
-    return [
+    out = [
         map_frame_channel(mr, t0),
         grid_channel("/map/anomaly", t0, mr.grid),
         grid_channel("/map/anomaly_filtered", t0, mr.filtered),
-        line_samples_channel(flight, mr),
-        tracks_channel(flight, seg, t0),
     ]
+    if mr.uncertainty is not None:
+        out.append(grid_channel("/map/uncertainty", t0, mr.uncertainty, "uncertainty_nT"))
+    return [*out, line_samples_channel(flight, mr), tracks_channel(flight, seg, t0)]
 
 
 def enhancement_channels(grids: dict[str, Grid], settings, time_ns: int) -> list[OutputChannel]:

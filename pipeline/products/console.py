@@ -311,3 +311,36 @@ def inspect_text(d: dict) -> list[Block]:
         rate = "" if t["rate_hz"] is None else f"{t['rate_hz']:.2f}"
         table.add_row(t["topic"], t["schema"], str(t["messages"]), rate, str(len(t["gaps"])))
     return [table, *(f"warning: {w}" for w in d["warnings"])]
+
+
+def simulation_text(result: dict) -> list[Block]:
+    """``aeromag simulate``: the recording written, its length, messages and hidden effects."""
+    return [
+        f"{result['out']}: {result['duration_s'] / 60:.1f} min flight, {result['messages']} "
+        f"messages, effects: {', '.join(result['effects']) or 'none'}",
+        *([f"{result['truth']}: truth"] if result["truth"] else []),
+    ]
+
+
+def reprocess_text(result: dict) -> list[Block]:
+    """``aeromag reprocess``: how many recordings were processed, done before, quarantined."""
+    return [
+        f"{result['recordings']} recordings: {result['processed']} processed, "
+        f"{result['done']} already done, {result['quarantined']} quarantined",
+        f"index: {result['index']['csv']}",
+    ]
+
+
+def navigability_text(result: dict) -> list[Block]:
+    """``aeromag navigability``: the speed and headings assumed, the noise levels used and the
+    spread of the per-cell position bound."""
+    d = result["drms_m"]
+    sigma = result["map_sigma"]
+    return [
+        f"{result['channel']}: {result['speed_mps']:.1f} m/s, headings "
+        f"{', '.join(f'{h:g}' for h in result['headings_deg'])} deg; sensor "
+        f"{result['sensor_sigma_nT']:.3f} nT, map "
+        + ("its own /map/uncertainty" if sigma == "grid" else f"{sigma:g} nT"),
+        f"position bound (CRLB DRMS) per cell: median {d['median']:.1f} m, 10-90 % "
+        f"{d['p10']:.1f}-{d['p90']:.1f} m",
+    ]

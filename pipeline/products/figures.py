@@ -604,6 +604,23 @@ def navigation_figures(nav) -> dict[str, object]:
     }
 
 
+def navigability_figure(grid: Grid, lines) -> plt.Figure:
+    """The navigability map: the position CRLB (DRMS, m) per cell on a log colour scale
+    (the bound spans decades between rich and flat parts of a map), the flight lines over it
+    (local metres of the map frame)."""
+    from matplotlib.colors import LogNorm
+
+    v = grid.values[np.isfinite(grid.values) & (grid.values > 0)]
+    lo, hi = np.percentile(v, [1, 99]) if v.size else (1.0, 10.0)
+    hi = max(hi, lo * 1.01)
+    fig = map_figure(grid, lines, "navigability: position CRLB flying into each cell", lo, hi)
+    im = fig.axes[0].images[0]
+    im.set_cmap("viridis_r")  # dark: poor navigation
+    im.set_norm(LogNorm(vmin=lo, vmax=hi))
+    fig.axes[1].set_ylabel("CRLB DRMS (m, log scale)")
+    return fig
+
+
 def flight_map(flight: Flight, seg):
     """The flight track over local east/north (m), coloured by segment label."""
     from pipeline.geo.local import local_east_north

@@ -13,6 +13,8 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
+from pipeline.products.markdown import extension_lines, navigability_text
+
 # figure name -> caption; the report places figures by name, unknown ones go to "Other figures"
 CAPTIONS = {
     "flight_map": "Flight track coloured by segment (local east/north metres).",
@@ -33,6 +35,9 @@ CAPTIONS = {
     "crossovers": "Tie-line crossover differences before and after leveling.",
     "navigation_track": "Navigation on the validation lines: the reference track (/gnss/fix), "
     "the simulated INS alone and the map-aided track over the map (dotted: unscored turns).",
+    "navigability": "Navigability: the position CRLB (DRMS, m, log colour scale) a vehicle "
+    "reaches flying a straight line into each cell from any of four headings, with the flight "
+    "lines over it.",
     "navigation_error": "Horizontal position error against time, INS only and map-aided, with "
     "the posterior CRLB (DRMS); below, the map-aided north/east errors within ± CRLB "
     "(grey: unscored epochs).",
@@ -193,7 +198,7 @@ def _despike_section(s: dict) -> list[str]:
                 "spikes",
                 "fraction %",
                 "threshold sigma",
-                "window samples",
+                "window",
                 "noise nT",
                 "largest spike nT",
                 "level steps left",
@@ -203,7 +208,8 @@ def _despike_section(s: dict) -> list[str]:
                     d["spikes"],
                     _f(100 * d["fraction"], ".3f"),
                     _f(d["threshold_sigma"], "g"),
-                    d["window_samples"],
+                    (f"{d['window_s']:g} s, " if "window_s" in d else "")
+                    + f"{d['window_samples']} samples",
                     _f(d["noise_nT"], ".4f"),
                     _f(d.get("max_abs_amplitude_nT"), ".2f"),
                     d.get("steps_left", 0),
@@ -235,6 +241,8 @@ def _compensation_section(s: dict, figs: _Figures) -> list[str]:
                 _f(r["residual_std_nT"].get("calibration")),
                 _f(r["residual_std_nT"].get("survey")),
                 "-" if not g else "/".join(_f(g[k], ".3f") for k in ("east", "north", "up")),
+                _f(r.get("heldout_residual_nT"), ".4f"),
+                _f(r.get("crossover_rms_nT")),
             ]
         )
     out = [
@@ -252,10 +260,20 @@ def _compensation_section(s: dict, figs: _Figures) -> list[str]:
                 "calibration residual nT",
                 "survey residual nT",
                 "gradient E/N/U nT/m",
+                "held-out residual nT",
+                "crossover RMS nT",
             ],
             rows,
         ),
     ]
+    ext = extension_lines(comp)
+    if ext:
+        items = "".join(
+            f"<li>{html.escape(x.strip().lstrip('- ').replace('**', ''))}</li>"
+            for x in ext
+            if x.strip()
+        )
+        out += ["<h3>Extensions of tl18 (tl-plus, tl-nn)</h3>", f"<ul>{items}</ul>"]
     boxes = (s.get("quality") or {}).get("fom_boxes") or comp[models[-1]]["fom_nT"].get("boxes")
     if boxes:
         cols = [k for k in boxes[0] if k.endswith("_nT")]
@@ -521,6 +539,17 @@ def _navigation_section(s: dict, figs: _Figures) -> list[str]:
     ]
 
 
+def _navigability_section(s: dict, figs: _Figures) -> list[str]:
+    nb = s.get("navigability")
+    if not nb:
+        return []
+    return [
+        "<h2>Navigability of the map</h2>",
+        f"<p>{html.escape(navigability_text(nb))}</p>",
+        figs.take("navigability"),
+    ]
+
+
 def _enhancements(m: dict, figs: _Figures) -> list[str]:
     names = [f"enhance_{t.removeprefix('/map/')}" for t in m.get("enhancements") or []]
     if not names:
@@ -699,6 +728,7 @@ def render_html(stem: str, summary: dict, images: Mapping[str, str | Path]) -> s
     body += _audit_section(s, figs)
     body += _map_section(s, figs)
     body += _navigation_section(s, figs)
+    body += _navigability_section(s, figs)
     body += _qc_section(s)
     body += _vector_section(s)
     rest = figs.rest()

@@ -369,3 +369,13 @@ def recording_layout(path) -> dict[str, Any]:
             f"not a readable MCAP recording ({type(exc).__name__}: {exc})", file=path
         ) from None
     return foxglove_layout(channels, grid_centre_m=centre, grid_span_m=span)
+
+
+def write_layout(path, out_path) -> list[str]:
+    """``aeromag layout``: the layout of the processed recording ``path`` written to
+    ``out_path`` (JSON, atomically); returns the panels' kinds, left to right."""
+    from pipeline.io.writer import write_json_atomic
+
+    doc = recording_layout(path)
+    write_json_atomic(out_path, doc)
+    return [k.split("!", 1)[0] for k in layout_panels(doc["layout"], doc["configById"])]

@@ -258,3 +258,22 @@ def navigation_lines(nav) -> list[tuple[int, str]]:
             f"CRLB {d['crlb']:.2f} m",
         )
     ] + [(LOG_INFO, f"navigate: {n}") for n in nav.notes]
+
+
+def navigability_lines(result) -> list[tuple[int, str]]:
+    """Log line of the flow's navigability step (a (grid, summary) pair), or of why it was
+    skipped."""
+    if isinstance(result, str):
+        return [(LOG_INFO, f"navigability: skipped: {result}")]
+    from pipeline.products.markdown import line_range_s
+
+    s = result[1]
+    d = s["drms_m"]
+    return [
+        (
+            LOG_INFO,
+            f"navigability: /map/navigability, CRLB DRMS median {d['median']:.1f} m "
+            f"(10-90 %: {d['p10']:.1f}-{d['p90']:.1f} m) on {line_range_s(s)} s lines at "
+            f"{s['speed_mps']:.1f} m/s",
+        )
+    ]

@@ -5,6 +5,34 @@
 from __future__ import annotations
 
 
+def _window(d: dict) -> str:
+    """The despike window: seconds and its samples (summaries before ``window_s``: samples)."""
+    n = f"{d['window_samples']} samples"
+    return f"{d['window_s']:g} s, {n}" if "window_s" in d else n
+
+
+def line_range_s(nb: dict) -> str:
+    """The navigability lines' durations (s, one per heading) as ``58`` or ``58-120``."""
+    lo, hi = min(nb["line_s"]), max(nb["line_s"])
+    return f"{lo:.0f}" if round(lo) == round(hi) else f"{lo:.0f}-{hi:.0f}"
+
+
+def navigability_text(nb: dict) -> str:
+    """The report's one line on the navigability map (summary ``navigability``)."""
+    if "skipped" in nb:
+        return f"Navigability map skipped: {nb['skipped']}."
+    d = nb["drms_m"]
+    sigma = "its uncertainty grid" if nb["map_sigma"] == "grid" else f"{nb['map_sigma']} nT"
+    return (
+        f"Navigability (/map/navigability): a vehicle flying {line_range_s(nb)} s straight "
+        f"lines at {nb['speed_mps']:.1f} m/s into each cell, its INS known to "
+        f"{nb['start_sigma_m']:g} m at the line's start, reaches a position CRLB (DRMS) of "
+        f"{d['median']:.1f} m at the median "
+        f"cell ({d['p10']:.1f} m at the best 10 %, {d['p90']:.1f} m at the worst 10 %), "
+        f"with {nb['sensor_sigma_nT']:.3f} nT sensor noise and the map's error from {sigma}."
+    )
+
+
 def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
     """The post-flight report: the tables people look at, and the figures."""
 
@@ -29,7 +57,7 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             "",
             f"{d['spikes']} spikes ({100 * d['fraction']:.3f} % of samples) replaced before "
             f"compensation: Hampel test at {d['threshold_sigma']:g} sigma on the 4th "
-            f"difference (window {d['window_samples']} samples); noise {f(d['noise_nT'], '.4f')} "
+            f"difference (window {_window(d)}); noise {f(d['noise_nT'], '.4f')} "
             f"nT, largest spike {f(d['max_abs_amplitude_nT'], '.2f')} nT",
             "",
         ]
@@ -40,8 +68,9 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             "",
             f"Final: **{comp['final']}**",
             "",
-            "| model | FOM raw nT | FOM compensated nT | lambda | survey residual nT |",
-            "|---|---|---|---|---|",
+            "| model | FOM raw nT | FOM compensated nT | lambda | survey residual nT "
+            "| held-out residual nT | crossover RMS nT |",
+            "|---|---|---|---|---|---|---|",
         ]
         for m, r in comp.items():
             if m == "final":
@@ -49,9 +78,11 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             out.append(
                 f"| {m} | {f(r['fom_nT']['uncompensated'], '.2f')} | "
                 f"{f(r['fom_nT']['compensated'], '.2f')} | {f(r['lambda'], '.3g')} | "
-                f"{f(r['residual_std_nT']['survey'])} |"
+                f"{f(r['residual_std_nT']['survey'])} | {f(r.get('heldout_residual_nT'), '.4f')} "
+                f"| {f(r.get('crossover_rms_nT'))} |"
             )
         out.append("")
+        out += extension_lines(comp)
     a = s.get("audit")
     if a:
         out += [
@@ -150,9 +181,39 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
                     f"{f(g['map_aided']['cep50_m'], '.2f')} |"
                 )
             out.append("")
+    nb = s.get("navigability")
+    if nb:
+        out += ["## Navigability of the map", "", navigability_text(nb), ""]
     v = s.get("vector")
     if v:
         out += ["## Vector magnetometer", "", f"{v['method']} -> `{v['output_topic']}`", ""]
     if images:
         out += ["## Figures", ""] + [f"![{k}]({p})" for k, p in images.items()] + [""]
     return "\n".join(out)
+
+
+def extension_lines(comp: dict) -> list[str]:
+    """Markdown lines on tl-plus / tl-nn: used or not and why, tl-plus's groups (with the
+    audit's seeds), tl-nn's feature-group importance (held-out RMS increase when permuted)."""
+    out: list[str] = []
+    for m, r in comp.items():
+        ext = r.get("extension") if isinstance(r, dict) else None
+        if not ext:
+            continue
+        verdict = "used" if ext.get("used") else "not used, tl18 kept"
+        out.append(f"- **{m}**: {verdict}: {ext.get('reason', '')}")
+        groups = [g for g, t in (r.get("term_groups") or {}).items() if t.get("selected")]
+        if groups:
+            out.append(f"  - term groups: {', '.join(groups)}")
+        if ext.get("seeded_by_audit"):
+            out.append(f"  - tried first (named by the audit): {', '.join(ext['seeded_by_audit'])}")
+        imp = r.get("feature_importance") or {}
+        if imp:
+            key = "heldout_rms_increase_nT"
+            ranked = sorted(imp.items(), key=lambda kv: -kv[1].get(key, 0.0))
+            parts = [
+                f"{g} {v.get(key, 0.0):.4f} nT ({100 * v.get('share', 0.0):.0f} %)"
+                for g, v in ranked
+            ]
+            out.append("  - feature-group importance: " + ", ".join(parts))
+    return out + ([""] if out else [])

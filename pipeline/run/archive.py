@@ -200,3 +200,11 @@ def write_index(out: Path, rows: list[dict]) -> dict[str, str]:
     write_text_atomic(out / "index.csv", buf.getvalue())
     write_json_atomic(out / "index.json", {"recordings": rows})
     return {"csv": str(out / "index.csv"), "json": str(out / "index.json")}
+
+
+def with_pending(rows: list[dict], todo: list[tuple[Path, str]]) -> list[dict]:
+    """The index rows so far, plus a ``pending`` row for each recording of ``todo`` (path,
+    sha256) without one yet."""
+    done = {r["input"] for r in rows}
+    pending = [{"input": str(p), "sha256": s, "status": "pending"} for p, s in todo]
+    return rows + [r for r in pending if r["input"] not in done]

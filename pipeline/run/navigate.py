@@ -7,9 +7,12 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from pipeline.config import Config
 from pipeline.errors import AeromagError
 from pipeline.io.writer import OutputChannel, write_json_atomic, write_with_new_channels
+from pipeline.navigation.navigability import navigability_map, track_speed_mps
 from pipeline.products.channels import navigation_channels, segment_channel
 from pipeline.products.log import LOG_INFO, ingest_lines, log_channel, navigation_lines
 from pipeline.products.summary import build_summary, run_metadata
@@ -84,4 +87,72 @@ def navigate_recording(
         outputs={"summary": json_out, **({"mcap": out_path} if out_path else {})},
     )
     write_json_atomic(json_out, summary)
+    return summary
+
+
+def parse_headings(text: str) -> tuple[float, ...]:
+    """``--heading``: ``all`` (0, 45, 90, 135: every direction, a line and its reverse alike
+    to first order) or one heading in degrees from grid north."""
+    if str(text).strip().lower() == "all":
+        return (0.0, 45.0, 90.0, 135.0)
+    try:
+        h = float(text)
+    except ValueError:
+        raise AeromagError(f"--heading {text!r}: use degrees from grid north or all") from None
+    if not np.isfinite(h):
+        raise AeromagError(f"--heading {text!r}: use degrees from grid north or all")
+    return (h % 360.0,)
+
+
+def navigability_recording(
+    src: Path,
+    out_path: Path,
+    cfg: Config,
+    speed_mps: float | None = None,
+    heading: str = "all",
+) -> dict[str, Any]:
+    """``aeromag navigability``: the map of a processed recording turned into the position
+    CRLB a vehicle reaches flying into each cell
+    (:func:`pipeline.navigation.navigability.navigability_map`), written as
+    ``/map/navigability`` (``foxglove.Grid``, m) on a copy of the recording.
+
+    The map is ``/map/<navigate.map>`` with its ``/map/uncertainty`` (else ``[navigate]
+    map_sigma_nT``); the sensor's noise the white noise of the recording's ``/mag/compensated``;
+    ``speed_mps`` None: the recording's median ground speed.
+    """
+    from pipeline.io.reader import read_flight
+    from pipeline.navigation.map_io import read_map
+    from pipeline.noise import white_noise_nT
+    from pipeline.products.channels import grid_channel
+    from pipeline.run.fields import existing_compensated
+
+    headings = parse_headings(heading)
+    if speed_mps is not None and not (np.isfinite(speed_mps) and speed_mps > 0):
+        raise AeromagError(f"--speed {speed_mps!r}: a speed in m/s must be > 0")
+    nav = cfg.navigation_settings()
+    nav.check()
+    geomap = read_map(src, f"/map/{cfg['navigate']['map']}")
+    flight = read_flight(src)
+    comp = existing_compensated(flight)
+    if not comp:
+        raise AeromagError(
+            "no compensated field (run `aeromag process` on it first)",
+            file=src,
+            channel="/mag/compensated",
+        )
+    sensor = white_noise_nT(list(comp.values())[-1])
+    flight.require("lat_deg", "lon_deg", purpose="navigability (the survey's speed)")
+    if speed_mps is None:
+        speed_mps = track_speed_mps(flight, geomap)
+        if not np.isfinite(speed_mps):
+            raise AeromagError(
+                "the track does not move: give --speed", file=src, channel="/gnss/fix"
+            )
+    present = set(flight.all_topics)
+    refuse_existing(
+        src, [OutputChannel("/map/navigability", "")], present, "use the recording without it"
+    )
+    grid, summary = navigability_map(flight, geomap, float(sensor), nav, speed_mps, headings)
+    channel = grid_channel("/map/navigability", int(flight.time_ns[0]), grid, "navigability_m")
+    write_with_new_channels(src, out_path, [channel], metadata={"aeromag.run": run_metadata()})
     return summary

@@ -31,6 +31,7 @@ from pipeline.products.channels import (
     despike_channels,
     enhancement_channels,
     field_channel,
+    grid_channel,
     map_channels,
     model_message,
     navigation_channels,
@@ -43,6 +44,7 @@ from pipeline.products.figures import (
     flight_map,
     lcurve_figure,
     map_figures,
+    navigability_figure,
     navigation_figures,
     quality_figures,
 )
@@ -56,6 +58,7 @@ from pipeline.products.log import (
     ingest_lines,
     log_channel,
     map_lines,
+    navigability_lines,
     navigation_lines,
     quality_lines,
 )
@@ -223,12 +226,27 @@ def flight_products(r: FlightResults, cfg: Config) -> dict[str, Any]:
         if not isinstance(r.nav, str):
             channels += navigation_channels(r.nav)
             figures.update(navigation_figures(r.nav))
+    if r.navigability is not None:
+        lines += navigability_lines(r.navigability)
+        if not isinstance(r.navigability, str):
+            grid = r.navigability[0]
+            t0 = int(flight.time_ns[0])
+            channels.append(grid_channel("/map/navigability", t0, grid, "navigability_m"))
+            figures["navigability"] = navigability_figure(grid, r.map_run.lines)
     if r.quality is not None:
         lines += quality_lines(r.quality)
         channels += quality_channels(flight, r.quality)
         figures.update(quality_figures(r.quality))
     channels.insert(0, log_channel(flight, lines, "postflight"))
     return out
+
+
+def _navigability_summary(result) -> dict[str, Any]:
+    """The summary's ``navigability`` block: ``aeromag navigability``'s JSON, or
+    ``{"skipped": why}``; nothing when the step was not enabled."""
+    if result is None:
+        return {}
+    return {"navigability": {"skipped": result} if isinstance(result, str) else result[1]}
 
 
 def write_outputs(
@@ -277,6 +295,7 @@ def write_outputs(
         enhancements=list(made["grids"]),
         navigation=r.nav,
         quality=r.quality,
+        **_navigability_summary(r.navigability),
     )
     images = {k: v for k, v in paths.items() if k not in DOCUMENTS}
     report = report_markdown(stem, summary, {k: v.name for k, v in images.items()})

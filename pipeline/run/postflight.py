@@ -3,7 +3,8 @@
 ingest -> despike (the scalar magnetometer) -> segment -> compensate (each configured T-L
 model and AGG-TL) -> audit -> extended model -> vector stage (when a fluxgate exists) ->
 anomaly reduction, leveling, gridding, ARIMA-Kalman filter -> quality -> navigation on the
-flight's own map (validation lines, ``[navigate]``) -> write (output MCAP, summary JSON,
+flight's own map (validation lines, ``[navigate]``) -> navigability of that map (``[navigate]
+navigability``) -> write (output MCAP, summary JSON,
 report, figures).
 
 :func:`postflight_steps` calls each stage through a ``call`` hook: ``flows/postflight.py``
@@ -13,13 +14,23 @@ plain calls.
 
 from __future__ import annotations
 
+import hashlib
+import importlib.util
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
 from typing import Any
 
+from pipeline.compensate.plus import audit_nuisances
 from pipeline.config import Config
+from pipeline.errors import AeromagError
 from pipeline.flight import Flight
+from pipeline.io.reader import read_flight
+from pipeline.products.summary import sha256_file
 from pipeline.run import steps
 from pipeline.run.fields import configured_models, final_field, try_segment
 from pipeline.run.outputs import write_outputs
@@ -43,8 +54,21 @@ VECTOR = Step("vector", steps.vector_stage)
 MAP = Step("map", steps.map_stage)
 QUALITY = Step("quality", steps.quality_stage)
 NAVIGATE = Step("navigate", steps.navigate_stage)
+NAVIGABILITY = Step("navigability", steps.navigability_stage)
 WRITE = Step("write", write_outputs)
-STEPS = (INGEST, DESPIKE, SEGMENT, COMPENSATE, AUDIT, VECTOR, MAP, QUALITY, NAVIGATE, WRITE)
+STEPS = (
+    INGEST,
+    DESPIKE,
+    SEGMENT,
+    COMPENSATE,
+    AUDIT,
+    VECTOR,
+    MAP,
+    QUALITY,
+    NAVIGATE,
+    NAVIGABILITY,
+    WRITE,
+)
 
 
 def postflight_steps(
@@ -85,6 +109,11 @@ def postflight_steps(
             res.runs[m] = call(COMPENSATE, flight, seg, m, cfg)
         if cfg["audit"]["enabled"]:
             res.audit = call(AUDIT, flight, seg, cfg)
+            # the audit's "extend the model" step: nuisances it found become tl-plus's first
+            # candidate groups (the key is absent from audits that name none)
+            audit_json = res.audit.to_json() if res.audit is not None else None
+            if "tl-plus" in res.runs and audit_nuisances(audit_json):
+                res.runs["tl-plus"] = call(COMPENSATE, flight, seg, "tl-plus", cfg, audit_json)
     if cfg["vector"]["enabled"] and flight.has("vector_x_nT", "roll_deg"):
         res.vector = call(VECTOR, flight, seg, cfg)
     final = final_field(res.runs, res.audit)
@@ -99,6 +128,12 @@ def postflight_steps(
     if cfg["navigate"]["enabled"]:  # skipped (one log line) without validation lines or map
         res.nav = (
             call(NAVIGATE, flight, seg, final[1], res.map_run, cfg)
+            if res.map_run is not None
+            else "no map"
+        )
+    if cfg["navigate"]["navigability"]:  # needs the map only, not validation lines
+        res.navigability = (
+            call(NAVIGABILITY, flight, final[1], res.map_run, cfg)
             if res.map_run is not None
             else "no map"
         )
@@ -118,3 +153,70 @@ def run_plain(recording: str, out_dir: str, config_path: str | None = None) -> d
     return postflight_steps(
         str(recording), str(out_dir), cfg, lambda step, *args: step.function(*args)
     )
+
+
+# The flight the CLI read to check a recording before the flow (the recording's stat key,
+# the flight, seconds to read it): set only inside :func:`checked`, so the flow it starts
+# does not read the recording twice.
+_CHECKED: ContextVar[tuple[tuple, Flight, float] | None] = ContextVar(
+    "aeromag_checked_flight", default=None
+)
+
+
+def _stat_key(recording: str | Path) -> tuple:
+    st = Path(recording).stat()
+    return str(Path(recording).resolve()), st.st_size, st.st_mtime_ns
+
+
+@contextmanager
+def checked(recording: str | Path) -> Iterator[Flight]:
+    """Read and check a recording (scan, channel contract, units) before any flow starts,
+    so that bad input fails with one line and no Prefect run at all; a :func:`postflight`
+    run on the same, unchanged file inside the block takes this flight over.
+
+    Raises
+    ------
+    AeromagError
+        Missing, empty or unreadable file, no scalar magnetometer, wrong units.
+    """
+    if not Path(recording).is_file():
+        raise AeromagError("file not found", file=recording)
+    t0 = time.perf_counter()
+    flight = read_flight(recording)
+    token = _CHECKED.set((_stat_key(recording), flight, time.perf_counter() - t0))
+    try:
+        yield flight
+    finally:
+        _CHECKED.reset(token)
+
+
+def take_checked(recording: str) -> tuple[Flight | None, float]:
+    """The flight :func:`checked` read and its read time (s), when ``recording`` is that
+    same, unchanged file; else None and 0."""
+    found = _CHECKED.get()
+    if found is None:
+        return None, 0.0
+    try:
+        same = found[0] == _stat_key(recording)
+    except OSError:
+        return None, 0.0
+    return (found[1], found[2]) if same else (None, 0.0)
+
+
+@cache
+def code_fingerprint() -> str:
+    """Hash of the installed pipeline and flow code: resumable results of one version are
+    never unpickled into another (a stage's objects change shape between versions)."""
+    h = hashlib.sha256()
+    flows = importlib.util.find_spec("flows")  # located, not imported (it imports Prefect)
+    roots = [Path(__file__).parents[1]]
+    roots += [Path(p) for p in (flows.submodule_search_locations or [])] if flows else []
+    for root in roots:
+        for p in sorted(root.rglob("*.py")):
+            h.update(p.read_bytes())
+    return h.hexdigest()[:12]
+
+
+def run_key(recording: str, cfg: Config) -> str:
+    """Cache folder name of one recording, configuration and code version."""
+    return f"{sha256_file(recording)[:16]}-{cfg.hash[:16]}-{code_fingerprint()}"

@@ -47,15 +47,18 @@ def despike_stage(flight: Flight, cfg) -> tuple[Flight, DespikeResult]:
     return despike_flight(flight, cfg.despike_settings())
 
 
-def compensate_stage(flight: Flight, seg: Segmentation, model: str, cfg) -> CompensationRun:
-    """Compensate: fit ``model`` (``tl16``, ``tl18`` or ``agg-tl``) with the configuration's
-    settings.
+def compensate_stage(
+    flight: Flight, seg: Segmentation, model: str, cfg, audit: dict | None = None
+) -> CompensationRun:
+    """Compensate: fit ``model`` (``tl16``, ``tl18``, ``agg-tl``, ``tl-plus`` or ``tl-nn``)
+    with the configuration's settings; ``audit``: the audit's summary, whose
+    ``unexplained.nuisances`` tl-plus tries first.
 
     Returns
     -------
     CompensationRun
     """
-    return run_compensation(flight, seg, cfg.fit_settings(model))
+    return run_compensation(flight, seg, cfg.fit_settings(model), audit=audit)
 
 
 def audit_stage(flight: Flight, seg: Segmentation, cfg):
@@ -146,10 +149,44 @@ def navigate_stage(flight: Flight, seg: Segmentation | None, comp: np.ndarray, m
     which = cfg["navigate"]["map"]
     grid = map_run.filtered if which == "anomaly_filtered" else map_run.grid
     geomap = frame_map(grid, map_run.frame, f"/map/{which}", f"this flight's /map/{which}")
+    geomap.sigma, geomap.error_length_m = map_run.uncertainty, map_run.spacing_m
     try:
         return run_navigation(flight, seg, comp, geomap, cfg.navigation_settings())
     except AeromagError as exc:
         return exc.problem
+    except (ValueError, np.linalg.LinAlgError) as exc:  # reported; the other outputs go on
+        return f"{type(exc).__name__}: {exc}"
+
+
+def navigability_stage(flight: Flight, comp: np.ndarray, map_run, cfg):
+    """Navigability of the flight's own map (``[navigate] navigability``): the position CRLB
+    a vehicle reaches flying into each cell
+    (:func:`pipeline.navigation.navigability.navigability_map`, as ``aeromag navigability``,
+    all four headings) at the survey's median ground speed, with the map's
+    ``/map/uncertainty`` and the compensated field's white noise.
+
+    Returns
+    -------
+    tuple of (Grid, dict) or str
+        The grid (m) and its summary, or why it was skipped (one log line, never an error).
+    """
+    from pipeline.navigation.map_io import frame_map
+    from pipeline.navigation.navigability import navigability_map, track_speed_mps
+    from pipeline.noise import white_noise_nT
+
+    if map_run is None:
+        return "no map"
+    which = cfg["navigate"]["map"]
+    grid = map_run.filtered if which == "anomaly_filtered" else map_run.grid
+    geomap = frame_map(grid, map_run.frame, f"/map/{which}", f"this flight's /map/{which}")
+    geomap.sigma, geomap.error_length_m = map_run.uncertainty, map_run.spacing_m
+    speed = track_speed_mps(flight, geomap)
+    if not np.isfinite(speed):
+        return "the track does not move"
+    t = flight.data["time_s"].to_numpy(float)
+    sensor = white_noise_nT(np.asarray(comp, float), t)
+    try:
+        return navigability_map(flight, geomap, sensor, cfg.navigation_settings(), speed)
     except (ValueError, np.linalg.LinAlgError) as exc:  # reported; the other outputs go on
         return f"{type(exc).__name__}: {exc}"
 
@@ -177,7 +214,8 @@ class FlightResults:
     ``runs``: each configured model's compensation (model name -> run); ``audit``, ``vector``,
     ``map_run``, ``quality``: the stages' results (None: not run); ``despiked``: the despike
     step's result; ``nav``: :func:`navigate_stage`'s result (a run, a skip reason, or None:
-    not enabled); ``why``: why segmentation failed ("" when it did not).
+    not enabled); ``navigability``: :func:`navigability_stage`'s (likewise); ``why``: why
+    segmentation failed ("" when it did not).
     """
 
     flight: Flight
@@ -190,3 +228,4 @@ class FlightResults:
     quality: Any = None  # pipeline.quality.QualityRun
     despiked: DespikeResult | None = None
     nav: Any = None  # pipeline.navigation.stage.NavigationRun | str
+    navigability: Any = None  # (Grid, summary dict) | str

@@ -1,7 +1,12 @@
 """Flight simulator: trajectories, fields, sensors and switchable effects."""
 
 from pipeline.simulate.scenario import EFFECTS, Scenario, builtin_scenarios
-from pipeline.simulate.simulator import SimulatedFlight, simulate, write_simulation
+from pipeline.simulate.simulator import (
+    SimulatedFlight,
+    simulate,
+    simulate_recording,
+    write_simulation,
+)
 from pipeline.simulate.variety import override_value, random_flight_overrides
 
 __all__ = [
@@ -12,5 +17,6 @@ __all__ = [
     "override_value",
     "random_flight_overrides",
     "simulate",
+    "simulate_recording",
     "write_simulation",
 ]

@@ -806,3 +806,28 @@ def write_simulation(
     if truth_out is not None:
         write_json_atomic(truth_out, sim.truth)
     return out
+
+
+def simulate_recording(
+    scenario: str, seed: int, overrides: list[str], dst: Path, truth: Path | None = None
+) -> dict[str, Any]:
+    """``aeromag simulate`` (and the demo's flight): a built-in scenario or a TOML file, with
+    ``key.sub=VALUE`` overrides, simulated with ``seed`` and written to ``dst`` (the truth
+    document to ``truth`` when given).
+
+    Returns
+    -------
+    dict
+        ``out``, ``truth``, ``scenario``, ``duration_s``, ``messages``, ``effects``.
+    """
+    sc = Scenario.load(scenario, overrides)
+    sim = simulate(sc, seed)
+    write_simulation(sim, dst, truth)
+    return {
+        "out": str(dst),
+        "truth": str(truth) if truth else None,
+        "scenario": sc.name,
+        "duration_s": float(sim.trajectory.duration_s),
+        "messages": int(sum(len(s["t"]) for s in sim.streams.values())),
+        "effects": list(sc.enabled_effects()),
+    }

@@ -151,10 +151,11 @@ class ComponentKF:
     """Constant-state Kalman filter of the 21 parameters (paper 000).
 
     ``fuzzy``: adapt R each step by R_k = s_k^b R_(k-1), s_k from the Mamdani system on the
-    ratio of actual to predicted innovation covariance (ROR) over the last ``window`` steps,
-    R_k / R_0 clamped to ``r_bounds``. ``window``, ``b`` and ``r_bounds`` default to
-    ``[vector] fuzzy_window``, ``fuzzy_exponent`` and ``fuzzy_r_bounds`` of the shipped
-    configuration. The covariance update uses Joseph's form (symmetric positive definite by
+    ratio of actual to predicted innovation covariance (ROR) over the steps of the last
+    ``window_s`` seconds (``sample_s``: the interval between the filtered samples, s; needed
+    with fuzzy R), R_k / R_0 clamped to ``r_bounds``. ``window_s``, ``b`` and ``r_bounds``
+    default to ``[vector] fuzzy_window_s``, ``fuzzy_exponent`` and ``fuzzy_r_bounds`` of the
+    shipped configuration. The covariance update uses Joseph's form (symmetric positive definite by
     construction). ROR and R of every step are kept in ``history`` (:class:`KFHistory`).
 
     Units: x0 and the state in the model's units (permanent in uT when ``scaled``, else nT;
@@ -167,7 +168,10 @@ class ComponentKF:
     r: np.ndarray
     scaled: bool = True
     fuzzy: RorFuzzy | None = None
-    window: int = field(default_factory=lambda: int(default_value("vector", "fuzzy_window")))
+    window_s: float = field(
+        default_factory=lambda: float(default_value("vector", "fuzzy_window_s"))
+    )
+    sample_s: float | None = None
     b: float = field(default_factory=lambda: float(default_value("vector", "fuzzy_exponent")))
     r_bounds: tuple[float, float] = field(  # R_k stays within these multiples of R_0
         default_factory=lambda: tuple(float(v) for v in default_value("vector", "fuzzy_r_bounds"))
@@ -188,22 +192,34 @@ class ComponentKF:
         )
 
     def configure(self, vector: dict[str, Any]) -> ComponentKF:
-        """Take the fuzzy-R settings of a ``[vector]`` configuration table (``fuzzy_window``,
+        """Take the fuzzy-R settings of a ``[vector]`` configuration table (``fuzzy_window_s``,
         ``fuzzy_exponent``, ``fuzzy_r_bounds``, ``fuzzy_ror_*``, ``fuzzy_s_*``; missing keys
         keep their current values). Fuzzy R is switched on. Returns self."""
-        if "fuzzy_window" in vector:
-            self.window = int(vector["fuzzy_window"])
+        if "fuzzy_window_s" in vector:
+            self.window_s = float(vector["fuzzy_window_s"])
         if "fuzzy_exponent" in vector:
             self.b = float(vector["fuzzy_exponent"])
         if "fuzzy_r_bounds" in vector:
             lo, hi = (float(v) for v in vector["fuzzy_r_bounds"])
             self.r_bounds = (lo, hi)
-        if self.window < 1 or not 0.0 < self.r_bounds[0] <= 1.0 <= self.r_bounds[1]:
+        if not self.window_s > 0 or not 0.0 < self.r_bounds[0] <= 1.0 <= self.r_bounds[1]:
             raise ValueError(
-                "vector.fuzzy_window >= 1 and fuzzy_r_bounds = [lo <= 1, hi >= 1] with lo > 0"
+                "vector.fuzzy_window_s > 0 and fuzzy_r_bounds = [lo <= 1, hi >= 1] with lo > 0"
             )
         self.fuzzy = RorFuzzy.from_values(vector)
         return self
+
+    def window_steps(self) -> int:
+        """Steps in ``window_s`` at the sample interval ``sample_s`` (nearest, at least one).
+
+        Raises
+        ------
+        ValueError
+            ``sample_s`` not set.
+        """
+        if self.sample_s is None or not self.sample_s > 0:
+            raise ValueError("fuzzy R needs the sample interval (ComponentKF.sample_s, s)")
+        return max(int(round(self.window_s / self.sample_s)), 1)
 
     def run(self, t_nT: np.ndarray, dt_nT_s: np.ndarray, m_nT: np.ndarray) -> ComponentParameters:
         """Filter the samples in order and return the final parameters.
@@ -233,6 +249,7 @@ class ComponentKF:
         r_nt2, rors = np.full(n, np.trace(self.r) / 3.0), np.full(n, np.nan)
         recent: list[np.ndarray] = []
         r0 = np.trace(self.r)
+        window = self.window_steps() if self.fuzzy is not None else 0
         for k in range(n):
             h, y = h_all[k], y_all[k]
             p = p + self.q
@@ -243,7 +260,7 @@ class ComponentKF:
             nu = y - h @ x
             if self.fuzzy is not None:
                 recent.append(np.outer(nu, nu))
-                if len(recent) > self.window:
+                if len(recent) > window:
                     recent.pop(0)
                 c_r = np.mean(recent, axis=0)
                 p_r = h @ p @ h.T + r

@@ -164,6 +164,7 @@ def run_vector(
         extra: dict[str, Any] = {"fit_residual_nT": resid, "standard_errors": se.to_dict()}
     else:
         kf = ComponentKF.paper(scaled=True, fuzzy=True)
+        kf.sample_s = float(np.median(np.diff(t)))  # the fuzzy window's seconds -> steps
         if settings is not None:  # the [vector] table: fuzzy-R window, b, clamp, sets
             kf.configure(settings)
         # the paper's R = 1e-3 nT^2 is far below a real fluxgate's noise: start from the
