@@ -47,7 +47,7 @@ class _FitSettings:
 
     band_hz: tuple[float, float]
     poles: int
-    trim: int
+    trim_s: float
     ridge: float | str = "auto"
     model: str = "the audit's null model"
 
@@ -160,7 +160,7 @@ def select_from(
     alpha, min_gain : float
         Test level and least held-out RMS reduction (fraction) of a group.
     """
-    settings = _FitSettings(tuple(band.band_hz), band.poles, band.trim)
+    settings = _FitSettings(tuple(band.band_hz), band.poles, band.trim_s)
     try:
         setup = HeldOutSetup.of(meas, mask, settings)
         sel = select_groups(setup, alpha, min_gain)

@@ -34,7 +34,12 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
+from pipeline.compensate.filters import (
+    bandpass_blocks,
+    bandpass_sos,
+    contiguous_blocks,
+    trim_samples,
+)
 from pipeline.compensate.heldout import fold_masks
 from pipeline.compensate.plus import HeldOutSetup, ridge_theta
 from pipeline.compensate.ridge import RidgeSVD
@@ -131,6 +136,7 @@ def _fold_sums(setup: HeldOutSetup, cols: np.ndarray, y: np.ndarray, models, val
     column index list of ``cols``; ``y`` (n, draws) holds the recording and its null draws."""
     m, band = setup.meas, setup.band
     sos = bandpass_sos(band.band_hz, m.rate_hz, band.poles)
+    trim = trim_samples(band.trim_s, m.rate_hz)
     both = np.column_stack([cols, y])
     p = cols.shape[1]
     out = np.zeros((len(models), y.shape[1]))
@@ -139,8 +145,8 @@ def _fold_sums(setup: HeldOutSetup, cols: np.ndarray, y: np.ndarray, models, val
         train, test = train & valid, test & valid
         if not train.any() or not test.any():
             continue
-        tr, _ = bandpass_blocks(both, contiguous_blocks(train, m.time_s), sos, band.trim)
-        te, _ = bandpass_blocks(both, contiguous_blocks(test, m.time_s), sos, band.trim)
+        tr, _ = bandpass_blocks(both, contiguous_blocks(train, m.time_s), sos, trim)
+        te, _ = bandpass_blocks(both, contiguous_blocks(test, m.time_s), sos, trim)
         for i, idx in enumerate(models):
             kt, yt = tr[:, idx], tr[:, p:]
             solver = RidgeSVD.from_gram(kt, yt[:, 0])  # the recording's lambda, every draw
@@ -180,8 +186,9 @@ def calibrate_null(
     ok = (setup.fold >= 0) & np.isfinite(m.scalar_nT) & np.all(np.isfinite(null_columns), axis=1)
     band = setup.band
     sos = bandpass_sos(band.band_hz, m.rate_hz, band.poles)
-    kf, _ = bandpass_blocks(null_columns, contiguous_blocks(ok, m.time_s), sos, band.trim)
-    yf, _ = bandpass_blocks(m.scalar_nT, contiguous_blocks(ok, m.time_s), sos, band.trim)
+    trim = trim_samples(band.trim_s, m.rate_hz)
+    kf, _ = bandpass_blocks(null_columns, contiguous_blocks(ok, m.time_s), sos, trim)
+    yf, _ = bandpass_blocks(m.scalar_nT, contiguous_blocks(ok, m.time_s), sos, trim)
     theta = ridge_theta(kf, yf, setup.ridge)
     fitted = null_columns @ theta
     names = list(candidates)
