@@ -231,6 +231,7 @@ class Config:
             flight_alpha=a["flight_alpha"],
             null_draws=a["null_draws"],
             null_seed=a["null_seed"],
+            min_nuisance_nT=a["min_nuisance_nT"],
         )
 
     def validate(self) -> None:

@@ -67,6 +67,13 @@ class LagVersusDecay:
             and not significant(self.decay_beyond_lag, alpha, min_gain)
         )
 
+    def lag_dominates(self, alpha: float, min_gain: float) -> bool:
+        """Whether the lag explains what the decay does and more: it lowers held-out data
+        beside the decay, and the decay adds nothing beside it."""
+        return significant(self.lag_beyond_null, alpha, min_gain) and not significant(
+            self.decay_beyond_lag, alpha, min_gain
+        )
+
     def verdict(self, alpha: float, min_gain: float, timing: str) -> str:
         """``"lag"`` (named), ``"ambiguous"`` (a tie the data cannot break) or ``"none"``.
 

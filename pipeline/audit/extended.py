@@ -520,10 +520,13 @@ def lag_cost(
     if kf.shape[0] < 2 * kf.shape[1]:
         raise ValueError(f"only {kf.shape[0]} usable calibration samples for {kf.shape[1]} terms")
     solver = RidgeSVD(kf, np.zeros(kf.shape[0]))
+    # what the spec takes as known (a measured gradient's field, known couplings) leaves the
+    # record before the fit at every candidate lag, as in design()
+    known = data.scalar_nT - des.y
 
     def cost(tau: float) -> float:
         yf, _ = bandpass_blocks(
-            scalar_series(data, float(tau), spec.lag_response),
+            scalar_series(data, float(tau), spec.lag_response) - known,
             blocks,
             sos,
             bs.trim_at(data.rate_hz),

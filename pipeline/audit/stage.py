@@ -53,6 +53,7 @@ from pipeline.audit.evidence import (
     holm,
     nested_test,
     paired_point_gain,
+    profile_f_test,
     thinning_step,
 )
 from pipeline.audit.extended import (
@@ -167,6 +168,11 @@ class AuditSettings:
         gradient effect.
     min_lag_s : float
         Smallest sensor lag (s) that is named a lag effect.
+    flight_alpha, null_draws, null_seed : float, int, int
+        The whole selection's false-finding rate with nothing hidden, and the null model's
+        bootstrap that measures it (draws, seed).
+    min_nuisance_nT : float
+        Held-out RMS (nT) a nuisance must remove, with the findings in the model, to stay.
     fluxgate_tolerance : float
         Largest attitude-dependent disagreement of the vector magnetometer's magnitude with
         the scalar field (held-out RMS, as a fraction of the field) that counts as a
@@ -211,6 +217,8 @@ class AuditSettings:
     flight_alpha: float = default_field("audit", "flight_alpha")
     null_draws: int = default_field("audit", "null_draws")
     null_seed: int = default_field("audit", "null_seed")
+    # the interference a nuisance must remove to stay in the model beside the findings
+    min_nuisance_nT: float = default_field("audit", "min_nuisance_nT")
     # a lag estimate moves with the resampling and the eddy columns' differences by a few
     # ms; under 20 ms a lag shifts the anomaly by less than 14 cm along track at 7 m/s (0.6 m
     # at 30 m/s), below a survey's positioning error: not worth a model term
@@ -665,6 +673,26 @@ class Auditor:
         yf, _ = bandpass_blocks(des.y, blocks, sos, self.s.band.trim_at(self.data.rate_hz))
         return nested_test(yf, kb, ke, self.step)
 
+    def _lag_profile_test(self, spec: ModelSpec, lag_s: float) -> NestedTest:
+        """The lag's profile-likelihood F-test beside ``spec``'s columns (the record delayed
+        by ``lag_s`` against not): beside decayed eddy columns, which span the lag's
+        linearisation (a first-order response), only the delay of the whole reading tells a
+        late sensor (:func:`pipeline.audit.evidence.profile_f_test`)."""
+        d0, d1 = design(self.data, spec), design(self.data, spec.with_(lag_s=lag_s))
+        valid = (
+            self.mask
+            & np.isfinite(d0.y)
+            & np.isfinite(d1.y)
+            & np.all(np.isfinite(d0.columns), axis=1)
+        )
+        blocks = contiguous_blocks(valid, self.data.time_s)
+        sos = bandpass_sos(self.s.band.band_hz, self.data.rate_hz, self.s.band.poles)
+        trim = self.s.band.trim_at(self.data.rate_hz)
+        kb, _ = bandpass_blocks(d0.columns, blocks, sos, trim)
+        y0, _ = bandpass_blocks(d0.y, blocks, sos, trim)
+        y1, _ = bandpass_blocks(d1.y, blocks, sos, trim)
+        return profile_f_test(y0, y1, kb, self.step)
+
     # -- candidates -----------------------------------------------------------------------
     def candidates(self, current: ModelSpec) -> list[tuple[str, str]]:
         """Candidate effects not yet in ``current``, as (effect, key) pairs.
@@ -1116,6 +1144,7 @@ class Auditor:
         s = self.s
         lag = float(ev.estimate["lag_s"])
         smallest = s.min_lag_s
+        ev.test = self._lag_profile_test(current, lag)
         tl = self._fluxgate_timing(current, ev)
         plain = current.with_(eddy_tau_s=0.0)
         lag_plain = self._lag_estimate(plain, None, "all")
@@ -1148,7 +1177,9 @@ class Auditor:
         self.ambiguities = [a for a in self.ambiguities if "sensor_lag" not in a["candidates"]]
         if abs(lag_plain) < smallest and abs(lag) < smallest:
             verdict = "none"
-        if verdict == "lag" and lag_alone is not None:  # the tie, broken
+        if verdict == "lag" and vs.lag_dominates(s.alpha, s.min_gain):
+            self._lag_in_place_of_decay(ev, plain, lag_plain)
+        elif verdict == "lag" and lag_alone is not None:  # the tie, broken
             by_physics = significant(vs.lag_over_decay, s.alpha, s.min_gain)
             ev.estimate.update(
                 lag_s=lag_plain,
@@ -1179,6 +1210,18 @@ class Auditor:
                 "late sensor"
             )
         return ev
+
+    def _lag_in_place_of_decay(self, ev: Evaluation, plain: ModelSpec, lag_s: float) -> None:
+        """The lag takes the null model's eddy decay's place: it lowers held-out data beside
+        the decay and the decay adds nothing beside it, so the null model the data support
+        with a late sensor holds no decay; the lag is tested (nested F, held out) and
+        estimated against that null model."""
+        ev.test = self._lag_profile_test(plain, lag_s)
+        ev.heldout = self.heldout(
+            plain, lambda train, k: plain.with_(lag_s=self._lag_estimate(plain, train, f"fold{k}"))
+        )
+        ev.spec = plain.with_(lag_s=lag_s)
+        ev.estimate.update(lag_s=lag_s, replaces="eddy_decay")
 
     def _eddy_decay_tau(self, current: ModelSpec) -> float:
         """The time constant (s) of decaying eddy currents (:func:`eddy_decay` columns beside
@@ -2079,7 +2122,8 @@ class Auditor:
 
     def prune_nuisances(self, spec: ModelSpec) -> ModelSpec:
         """Drop from ``spec`` each nuisance that no longer lowers held-out data with the
-        findings in the model (p < ``alpha``, by ``min_gain``): taken before the catalogue
+        findings in the model (p < ``alpha``, by ``min_gain`` and ``min_nuisance_nT`` of
+        interference; each model with its own lag): taken before the catalogue
         effects, a nuisance can have followed part of one (a gradient's field moves with the
         manoeuvres' small displacements). Kept nuisances stay in ``self.nuisances``; the
         dropped ones are noted."""
@@ -2090,21 +2134,40 @@ class Auditor:
             if without == spec:
                 continue
             try:
-                h = self.heldout(without, lambda train, k, s_=spec: s_)
+                h = self.heldout(self._fold_lag(without), self._fold_lag(spec))
             except (ValueError, np.linalg.LinAlgError):
                 kept.append(n)
                 continue
-            if h.p_value < self.s.alpha and h.reduction >= self.s.min_gain:
+            removed_nT = float(np.sqrt(max(h.rms_before_nT**2 - h.rms_after_nT**2, 0.0)))
+            if (
+                h.p_value < self.s.alpha
+                and h.reduction >= self.s.min_gain
+                and removed_nT >= self.s.min_nuisance_nT
+            ):
                 kept.append(n)
                 continue
             spec = without
             self.notes.append(
                 f"the nuisance {n.name} taken before the catalogue effects lowers held-out data "
-                f"by {100 * h.reduction:.1f} % (p {h.p_value:.2g}) with the findings in the "
+                f"by {100 * h.reduction:.1f} % (p {h.p_value:.2g}; {removed_nT:.3f} nT of "
+                f"interference, {self.s.min_nuisance_nT:g} nT matters) with the findings in the "
                 "model: dropped"
             )
         self.nuisances.nuisances = kept
         return spec
+
+    def _fold_lag(self, spec: ModelSpec):
+        """A held-out builder of ``spec`` whose lag, when it has one, is estimated on each
+        fold's training rows with the spec's own other terms: a lag fitted beside a nuisance
+        is not the lag of the model without it (a decay takes part of a delay), so a model
+        judged with another model's lag would be judged unfairly."""
+
+        def build(train, k):
+            if spec.lag_s == 0:
+                return spec
+            return spec.with_(lag_s=self._lag_estimate(spec.with_(lag_s=0.0), train, f"fold{k}"))
+
+        return build
 
     def _calibrated_gate(self, evals: list[Evaluation]) -> None:
         """Hold back a candidate judged on the scalar calibration whose held-out gain beside
