@@ -77,7 +77,7 @@ from pipeline.audit.legs import (
     leg_ids,
 )
 from pipeline.audit.noise import noise_floor_bounds
-from pipeline.audit.nuisances import NuisanceSelection, select_nuisances
+from pipeline.audit.nuisances import Nuisance, NuisanceSelection, select_nuisances
 from pipeline.audit.null_calibration import NullCalibration, calibrate_null
 from pipeline.audit.spectrum import manoeuvre_line, residual_spectrum
 from pipeline.audit.survey import (
@@ -2117,8 +2117,45 @@ class Auditor:
             for e in passing:
                 if e is not best:
                     e.reason = "passed; re-tested in the next round with the better one in"
-            current = best.spec
+            current = self.admit_nuisances(best.spec, best.effect)
         return self.refine(self.prune_nuisances(current), findings), findings, rounds
+
+    def admit_nuisances(self, spec: ModelSpec, finding: str) -> ModelSpec:
+        """Add to ``spec`` each nuisance group it lacks that, with the findings so far in the
+        model, lowers held-out data as :meth:`prune_nuisances` requires one to stay: the
+        field of an effect not yet modelled (a gradient's, along the manoeuvres) can hide a
+        nuisance from the selection on the baseline, and the next candidates are judged
+        against the null model the data support."""
+        trials = []
+        if spec.eddy_tau_s == 0:
+            tau = self._eddy_decay_tau(spec)
+            trials.append(("eddy_decay", spec.with_(eddy_tau_s=tau), {"tau_s": tau}))
+        if not spec.second_order:
+            trials.append(("second_order", spec.with_(second_order=True), {}))
+        for name, trial, est in trials:
+            try:
+                h = self.heldout(self._fold_lag(spec), self._fold_lag(trial))
+            except (ValueError, np.linalg.LinAlgError):
+                continue
+            if self._nuisance_matters(h):
+                spec = trial
+                self.nuisances.nuisances.append(Nuisance(name, float(h.reduction), est))
+                self.notes.append(
+                    f"the nuisance {name} lowers held-out data by {100 * h.reduction:.1f} % "
+                    f"(p {h.p_value:.2g}) with the {finding.replace('_', ' ')} in the model: "
+                    "taken into the null model"
+                )
+        return spec
+
+    def _nuisance_matters(self, h: HeldOut) -> bool:
+        """Whether a nuisance's held-out comparison ``h`` holds it in the model: p below
+        ``alpha``, at least ``min_gain`` of the RMS and ``min_nuisance_nT`` of interference."""
+        removed_nT = float(np.sqrt(max(h.rms_before_nT**2 - h.rms_after_nT**2, 0.0)))
+        return (
+            h.p_value < self.s.alpha
+            and h.reduction >= self.s.min_gain
+            and removed_nT >= self.s.min_nuisance_nT
+        )
 
     def prune_nuisances(self, spec: ModelSpec) -> ModelSpec:
         """Drop from ``spec`` each nuisance that no longer lowers held-out data with the
@@ -2138,14 +2175,10 @@ class Auditor:
             except (ValueError, np.linalg.LinAlgError):
                 kept.append(n)
                 continue
-            removed_nT = float(np.sqrt(max(h.rms_before_nT**2 - h.rms_after_nT**2, 0.0)))
-            if (
-                h.p_value < self.s.alpha
-                and h.reduction >= self.s.min_gain
-                and removed_nT >= self.s.min_nuisance_nT
-            ):
+            if self._nuisance_matters(h):
                 kept.append(n)
                 continue
+            removed_nT = float(np.sqrt(max(h.rms_before_nT**2 - h.rms_after_nT**2, 0.0)))
             spec = without
             self.notes.append(
                 f"the nuisance {n.name} taken before the catalogue effects lowers held-out data "
