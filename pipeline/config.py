@@ -228,6 +228,10 @@ class Config:
             alpha=a["alpha"],
             min_gain=a["min_gain"],
             band=BandSettings(tuple(c["band_hz"]), c["poles"], c["trim_s"]),
+            flight_alpha=a["flight_alpha"],
+            null_draws=a["null_draws"],
+            null_seed=a["null_seed"],
+            min_nuisance_nT=a["min_nuisance_nT"],
         )
 
     def validate(self) -> None:

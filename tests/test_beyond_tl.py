@@ -255,3 +255,39 @@ def test_agg_tl_takes_the_calibration_legs_gradient():
         Measurements.from_flight(fl), mask, FitSettings("agg-tl", agg_gradient="legs")
     )
     assert plain.gradient_evidence == {}
+
+
+def test_eddy_decay_columns_span_a_lagging_eddy_current():
+    """A lagging eddy current E lowpass_tau(dB/dt) (:mod:`pipeline.physics.outside_basis`)
+    in the magnitude, u . E lowpass_tau(dB/dt), is a combination of the eddy-decay columns
+    at that tau to rounding, while the response of tl18's products u_i dB_j (what the columns
+    filtered before) leaves a share of it as the field direction turns in the manoeuvres."""
+    from pipeline.compensate.nuisance import eddy_decay
+    from pipeline.compensate.plus import group_columns
+    from pipeline.compensate.terms import direction_cosines, tl18_terms
+    from pipeline.physics.outside_basis import lagging_eddy_vector
+
+    rate_hz, tau_s = 10.0, 0.6
+    t = np.arange(0.0, 120.0, 1.0 / rate_hz)
+    roll, pitch = np.radians(15.0) * np.sin(t / 1.3), np.radians(10.0) * np.sin(t / 2.1 + 1)
+    b = 50_000.0 * np.column_stack(
+        [np.cos(pitch) * 0.4, np.sin(roll) * 0.6 + 0.2 * np.sin(pitch), np.cos(roll) * 0.8]
+    )
+    e_s = np.random.default_rng(3).normal(0, 0.002, (3, 3))
+    db_per_sample = np.gradient(b, axis=0)
+    # the lagging current's field with the derivative per sample (tl18's eddy scale)
+    lag = lagging_eddy_vector(db_per_sample, 1.0 / rate_hz, tau_s, e_s)  # outside tl18
+    u = direction_cosines(b)
+    y = np.einsum("ij,ij->i", u, lag + db_per_sample @ e_s.T)
+    outside_nT = float(np.sqrt(np.mean(np.einsum("ij,ij->i", u, lag) ** 2)))
+    meas = Measurements(t, np.zeros(t.size), b)
+    new, _ = group_columns("eddy_decay", meas, tau_s)
+    k, names = tl18_terms(b)
+    old = eddy_decay(k[:, [i for i, n in enumerate(names) if n.startswith("eddy_")]], t, tau_s)
+
+    def left(cols):
+        coef, *_ = np.linalg.lstsq(cols, y, rcond=None)
+        return float(np.sqrt(np.mean((y - cols @ coef) ** 2))) / outside_nT  # share left
+
+    assert left(new) < 1e-6
+    assert left(old) > 0.02

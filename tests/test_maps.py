@@ -20,7 +20,7 @@ from pipeline.maps.arima import (
 )
 from pipeline.maps.grid import Grid, minimum_curvature
 from pipeline.maps.level import Line, crossovers, level_lines
-from pipeline.maps.stage import build_map, filter_sequence, serialize
+from pipeline.maps.stage import anomaly_grid, build_map, filter_sequence, serialize
 from pipeline.segment import segment_flight
 from pipeline.simulate import write_simulation
 from pipeline.simulate.truth import truth_on
@@ -282,6 +282,17 @@ def test_levelled_grid_matches_the_truth_within_noise(mapped):
     )
     assert mr.leveling.rms_after_nT < mr.leveling.rms_before_nT
     assert abs(mr.spacing_m - 50.0) < 1.0 and abs(mr.grid.cell_m - 12.5) < 0.3
+
+
+def test_anomaly_grid_is_the_map_stage_before_its_filter(mapped):
+    """The grid without the ARIMA-Kalman filter (what comparisons of grids use) is the map
+    stage's grid cell for cell, and the same lines' levelling."""
+    _sim, _p, flight, seg, run, mr = mapped
+    gm = anomaly_grid(flight, seg, run.compensated_nT)
+    np.testing.assert_array_equal(gm.grid.values, mr.grid.values)
+    assert gm.spacing_m == mr.spacing_m
+    assert [ln.line_id for ln in gm.lines] == [ln.line_id for ln in mr.lines]
+    assert gm.leveling.rms_after_nT == mr.leveling.rms_after_nT
 
 
 def test_arima_kalman_removes_map_noise_and_keeps_the_peak(mapped):

@@ -51,13 +51,14 @@ def _noisy_biased(seed: int, told: float, **kw) -> dict:
 def test_noisy_biased_map_is_not_worse_than_the_ins_alone():
     """With the map's error unknown (``[navigate] map_sigma_nT``), map-aided DRMS is not above
     the INS alone on three seeds; a filter that trusts the map (0.005 nT, white, unsmoothed)
-    is several times worse than the INS on the same draws: the test can tell them apart."""
+    is at least half as bad again as the INS on the same draws (2-8x here; the issue's
+    external-map cases were 1.3-4.6x): the test can tell them apart."""
     told = float(default_value("navigate", "map_sigma_nT"))
     for seed in (1, 2, 3):
         r = _noisy_biased(seed, told)
         assert r["map_aided_m"] <= r["ins_only_m"], r
         naive = _noisy_biased(seed, 0.005, told_length_m=0.0, smooth_map=False, bias_prior=False)
-        assert naive["map_aided_m"] > 2 * naive["ins_only_m"], naive
+        assert naive["map_aided_m"] > 1.5 * naive["ins_only_m"], naive
 
 
 def _short_run(seconds=120.0):

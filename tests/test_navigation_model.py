@@ -175,3 +175,44 @@ def test_transition_matrices_are_the_exact_exponential():
     for dt in (0.1, 1.0):
         want = expm(f * dt)
         assert np.abs(expm_taylor(f * dt) - want).max() < 1e-12 * np.abs(want).max()
+
+
+def test_each_line_starts_with_its_level_unknown():
+    """``stage._line_offsets`` adds the bias state's prior variance at the first epoch of every
+    selected line after the window's first, nowhere else; with it, a step in the measured
+    level between two lines (a heading-dependent compensation residual) goes to the bias
+    state instead of the position: the second line's map-aided DRMS is several times smaller
+    than when the bias is carried across."""
+    from pipeline.navigation.stage import _line_offsets
+
+    qd = np.zeros((8, 3))
+    ids = np.array(["a", "a", "turn", "b", "b", "b", "c", "c"])
+    sel = ids != "turn"
+    out = _line_offsets(qd, sel, ids, 5.0)
+    assert np.flatnonzero(out[:, -1]).tolist() == [3, 6]
+    assert np.all(out[:, :-1] == 0) and np.all(qd == 0)
+
+    t, e, n, traj, model = _setup(400.0, rate_hz=5.0)
+    phi = model.transitions(traj)
+    qd = model.process_noise(np.diff(t, prepend=t[0]))
+    mm = MapModel(random_field_map(5, size_m=16_000.0, correlation_m=400.0, rms_nT=30.0))
+    ids = np.where(np.isclose(e, 1000.0), "L1", np.where(np.isclose(e, -1000.0), "L2", "turn"))
+    sel = ids != "turn"
+    p0 = model.initial_covariance()
+    p0[-1, -1] += 2.0**2
+    meas = MeasurementModel(mm, map_sigma_nT=2.0)
+    second = ids == "L2"
+    for seed in range(3):
+        x = simulate_ins_errors(model, traj, seed, phi, p0=p0)
+        noise = np.random.default_rng(seed).normal(0.0, 0.5, t.size)
+        z = mm.value(e, n) + np.where(second, 2.0, -2.0) + noise
+        drms = [
+            _drms(
+                (
+                    x[:, :2]
+                    - ekf(phi, q, p0, z, e + x[:, 1], n + x[:, 0], meas, 0.25, sel).state[:, :2]
+                )[second]
+            )
+            for q in (qd, _line_offsets(qd, sel, ids, p0[-1, -1]))
+        ]
+        assert drms[1] < drms[0] / 2, drms

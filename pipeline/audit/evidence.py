@@ -111,6 +111,24 @@ def nested_test(y: np.ndarray, x_base: np.ndarray, x_ext: np.ndarray, step: int)
     return NestedTest(float(f), float(p), int(round(df)), float(r1.bic - r0.bic), int(yb.size))
 
 
+def profile_f_test(y0: np.ndarray, y1: np.ndarray, x: np.ndarray, step: int) -> NestedTest:
+    """F-test and BIC of one estimated non-linear parameter (a lag) by its profile
+    likelihood: ``y0`` and ``y1`` are the record without and with the parameter at its
+    estimate, both fitted by the same columns ``x``."""
+    import statsmodels.api as sm
+
+    xb = np.asarray(x, float)[::step]
+    xb = xb / (np.sqrt(np.mean(xb**2, axis=0)) + 1e-300)
+    r0 = sm.OLS(np.asarray(y0, float)[::step], xb).fit()
+    r1 = sm.OLS(np.asarray(y1, float)[::step], xb).fit()
+    n, dof = r1.nobs, r1.df_resid - 1
+    if dof <= 0 or not r1.ssr > 0:
+        return NestedTest(0.0, 1.0, 1, 0.0, int(n))
+    f = max(r0.ssr - r1.ssr, 0.0) / (r1.ssr / dof)
+    bic = n * np.log(r1.ssr / r0.ssr) + np.log(n)
+    return NestedTest(float(f), float(stats.f.sf(f, 1, dof)), 1, float(bic), int(n))
+
+
 def paired_point_gain(d_before: np.ndarray, d_after: np.ndarray, rank: bool = False) -> HeldOut:
     """The same comparison for independent points (crossovers, overlap points); ``rank``:
     a one-sided Wilcoxon signed-rank test of the squares' differences instead of the t-test

@@ -134,6 +134,10 @@ class ModelSpec:
     # through a first-order response, which the rate columns above only approximate to
     # first order in w tau (poor at tau ~ 0.5 s against 3-10 s manoeuvres)
     eddy_tau_s: float = 0.0
+    # the decayed eddy columns in place of T-L's instantaneous ones (the carrier's eddy
+    # currents either decay or do not): the decay as the lag's rival with as many linear
+    # coefficients, told apart by what each delays (pipeline.audit.decide)
+    eddy_in_place: bool = False
     # what T-L's first order leaves out: induced magnetisation that is not linear in the
     # field, u_i B_j B_k / s^2, and the magnitude's second-order term in the eddy field,
     # |E dB_perp|^2 / 2|B|, quadratic in the rate of change (dB_j/dt dB_k/dt); the competing
@@ -261,10 +265,14 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
     """
     v = data.vector_nT if spec.vector_cal is None else spec.vector_cal.apply(data.vector_nT)
     k, names = (tl18_terms if spec.base == "tl18" else tl16_terms)(v, data.time_s)
+    if spec.eddy_tau_s > 0:
+        kd, dn = eddy_decay_columns(v, data.time_s, spec.eddy_tau_s)
+        if spec.eddy_in_place:
+            instant = [i for i, n in enumerate(names) if not n.startswith("eddy_")]
+            k, names = k[:, instant], [names[i] for i in instant]
     sub = [True] * k.shape[1]
     cols = [k]
     if spec.eddy_tau_s > 0:
-        kd, dn = eddy_decay_columns(k, names, data.time_s, spec.eddy_tau_s)
         cols.append(kd)
         names = names + dn
         sub += [True] * len(dn)
@@ -512,10 +520,13 @@ def lag_cost(
     if kf.shape[0] < 2 * kf.shape[1]:
         raise ValueError(f"only {kf.shape[0]} usable calibration samples for {kf.shape[1]} terms")
     solver = RidgeSVD(kf, np.zeros(kf.shape[0]))
+    # what the spec takes as known (a measured gradient's field, known couplings) leaves the
+    # record before the fit at every candidate lag, as in design()
+    known = data.scalar_nT - des.y
 
     def cost(tau: float) -> float:
         yf, _ = bandpass_blocks(
-            scalar_series(data, float(tau), spec.lag_response),
+            scalar_series(data, float(tau), spec.lag_response) - known,
             blocks,
             sos,
             bs.trim_at(data.rate_hz),

@@ -33,7 +33,6 @@ from typing import Any
 
 import numpy as np
 from scipy.optimize import curve_fit, minimize_scalar
-from scipy.signal import welch
 
 from pipeline.audit.calibration_events import calibration_steps
 from pipeline.audit.crossval import (
@@ -44,6 +43,7 @@ from pipeline.audit.crossval import (
     passwise_folds,
     stratified_block_folds,
 )
+from pipeline.audit.decide import LagVersusDecay, significant
 from pipeline.audit.diurnal import DiurnalSet, diurnal_evidence
 from pipeline.audit.evidence import (
     HeldOut,
@@ -53,6 +53,7 @@ from pipeline.audit.evidence import (
     holm,
     nested_test,
     paired_point_gain,
+    profile_f_test,
     thinning_step,
 )
 from pipeline.audit.extended import (
@@ -76,6 +77,9 @@ from pipeline.audit.legs import (
     leg_ids,
 )
 from pipeline.audit.noise import noise_floor_bounds
+from pipeline.audit.nuisances import Nuisance, NuisanceSelection, select_nuisances
+from pipeline.audit.null_calibration import NullCalibration, calibrate_null
+from pipeline.audit.spectrum import manoeuvre_line, residual_spectrum
 from pipeline.audit.survey import (
     CrossoverSet,
     SurveyCoupling,
@@ -100,8 +104,9 @@ from pipeline.audit.vector_cal import fit_vector_calibration
 from pipeline.audit.vector_reference import vector_reference_step
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.model import figure_of_merit
+from pipeline.compensate.nuisance import current_columns
 from pipeline.compensate.stage import calibration_mask
-from pipeline.compensate.terms import BT_SCALE_NT, direction_cosines
+from pipeline.compensate.terms import BT_SCALE_NT, direction_cosines, position_terms
 from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
@@ -163,6 +168,11 @@ class AuditSettings:
         gradient effect.
     min_lag_s : float
         Smallest sensor lag (s) that is named a lag effect.
+    flight_alpha, null_draws, null_seed : float, int, int
+        The whole selection's false-finding rate with nothing hidden, and the null model's
+        bootstrap that measures it (draws, seed).
+    min_nuisance_nT : float
+        Held-out RMS (nT) a nuisance must remove, with the findings in the model, to stay.
     fluxgate_tolerance : float
         Largest attitude-dependent disagreement of the vector magnetometer's magnitude with
         the scalar field (held-out RMS, as a fraction of the field) that counts as a
@@ -202,6 +212,13 @@ class AuditSettings:
     # significant and changes the field along the legs by at least this much (RMS, nT): a
     # real but negligible gradient (quiet ground, the main field's own) confirms nothing
     min_leg_ramp_nT: float = 0.5
+    # the whole selection's false-finding rate on a flight with nothing hidden, and the
+    # parametric bootstrap of the null model that measures it (pipeline.audit.null_calibration)
+    flight_alpha: float = default_field("audit", "flight_alpha")
+    null_draws: int = default_field("audit", "null_draws")
+    null_seed: int = default_field("audit", "null_seed")
+    # the interference a nuisance must remove to stay in the model beside the findings
+    min_nuisance_nT: float = default_field("audit", "min_nuisance_nT")
     # a lag estimate moves with the resampling and the eddy columns' differences by a few
     # ms; under 20 ms a lag shifts the anomaly by less than 14 cm along track at 7 m/s (0.6 m
     # at 30 m/s), below a survey's positioning error: not worth a model term
@@ -370,6 +387,8 @@ class AuditResult:
     # the three upper bounds the noise floor is the least of (pipeline.audit.noise)
     noise_floor_bounds_nT: dict[str, float] | None = None
     noise_floor_is_upper_bound: bool = False  # the record's white level rises with frequency
+    # the null model's bootstrap (pipeline.audit.null_calibration), JSON-ready; None: not run
+    null_calibration: dict[str, Any] | None = None
 
     def to_json(self) -> dict[str, Any]:
         """AUDIT.json (issue 6 contract plus details)."""
@@ -424,6 +443,7 @@ class AuditResult:
                 "terms": self.extended.names,
                 "coefficients": [float(c) for c in self.extended.theta],
             },
+            "null_calibration": self.null_calibration,
             "rounds": [[e.to_dict() for e in r] for r in self.rounds],
             "notes": self.notes,
         }
@@ -494,6 +514,52 @@ class Auditor:
         self._compensated: dict[ModelSpec, np.ndarray] = {}
         self._geometry: tuple | None = None
         self._pass_steps: dict[ModelSpec, list[PassStep]] = {}
+        self.ambiguities: list[dict[str, Any]] = []
+
+    @cached_property
+    def nuisances(self) -> NuisanceSelection:
+        """The carrier's physics outside the T-L basis the held-out calibration supports
+        (:func:`pipeline.audit.nuisances.select_nuisances`): part of the null model."""
+        return select_nuisances(self.flight, self.mask, self.s.band, self.s.alpha, self.s.min_gain)
+
+    @cached_property
+    def null_calibration(self) -> NullCalibration | None:
+        """The selection's maximum statistic under the null model, by parametric bootstrap
+        (:func:`pipeline.audit.null_calibration.calibrate_null`); None without the held-out
+        folds."""
+        nz = self.nuisances
+        if nz.setup is None or nz.columns is None:
+            return None
+        d = self.data
+        cands: dict[str, np.ndarray] = {}
+        if d.enu_m is not None:
+            cands["geomagnetic_gradient"] = position_terms(*d.enu_m.T)[0]
+        for effect, key in self.candidates(ModelSpec(base=self.s.baseline)):
+            if effect == "electrical_current":
+                name = key.split(":", 1)[1]
+                cands[key] = current_columns(d.vector_nT, d.aux[name], name)[0]
+        try:
+            return calibrate_null(
+                nz.setup,
+                nz.columns,
+                cands,
+                self.s.flight_alpha,
+                self.s.min_gain,
+                self.s.null_draws,
+                self.s.null_seed,
+            )
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            self.notes.append(f"the null model's bootstrap could not run: {exc}")
+            return None
+
+    def null_spec(self) -> ModelSpec:
+        """The null model: the baseline with the nuisances the data support."""
+        nz = self.nuisances
+        return ModelSpec(
+            base=self.s.baseline,
+            eddy_tau_s=nz.eddy_tau_s,
+            second_order=nz.second_order,
+        )
 
     @cached_property
     def legs(self) -> np.ndarray:
@@ -559,16 +625,18 @@ class Auditor:
             )
         return self._fit_cache[ck]
 
-    def heldout(self, before: ModelSpec, after_for_fold) -> HeldOut:
+    def heldout(self, before, after_for_fold) -> HeldOut:
         """Held-out band-passed residuals of two models over the folds; ``after_for_fold``
-        builds the extended spec from the training mask (parameters estimated there)."""
+        builds the extended spec from the training mask (parameters estimated there);
+        ``before`` is a spec, or like ``after_for_fold`` a builder of one."""
         rb, ra, tt = [], [], []
         for k, (train, test) in enumerate(self.folds):
-            mb = self.fit(before, train, f"fold{k}")
+            spec_b = before(train, k) if callable(before) else before
+            mb = self.fit(spec_b, train, f"fold{k}")
             spec_a = after_for_fold(train, k)
             ma = self.fit(spec_a, train, f"fold{k}")
             r0, w0 = mb.residual_bp(
-                self.data, self.mask, self.s.band, keep=test, rows=self.rows(before)
+                self.data, self.mask, self.s.band, keep=test, rows=self.rows(spec_b)
             )
             r1, w1 = ma.residual_bp(
                 self.data, self.mask, self.s.band, keep=test, rows=self.rows(spec_a)
@@ -604,6 +672,26 @@ class Auditor:
         ke, _ = bandpass_blocks(cols_e, blocks, sos, self.s.band.trim_at(self.data.rate_hz))
         yf, _ = bandpass_blocks(des.y, blocks, sos, self.s.band.trim_at(self.data.rate_hz))
         return nested_test(yf, kb, ke, self.step)
+
+    def _lag_profile_test(self, spec: ModelSpec, lag_s: float) -> NestedTest:
+        """The lag's profile-likelihood F-test beside ``spec``'s columns (the record delayed
+        by ``lag_s`` against not): beside decayed eddy columns, which span the lag's
+        linearisation (a first-order response), only the delay of the whole reading tells a
+        late sensor (:func:`pipeline.audit.evidence.profile_f_test`)."""
+        d0, d1 = design(self.data, spec), design(self.data, spec.with_(lag_s=lag_s))
+        valid = (
+            self.mask
+            & np.isfinite(d0.y)
+            & np.isfinite(d1.y)
+            & np.all(np.isfinite(d0.columns), axis=1)
+        )
+        blocks = contiguous_blocks(valid, self.data.time_s)
+        sos = bandpass_sos(self.s.band.band_hz, self.data.rate_hz, self.s.band.poles)
+        trim = self.s.band.trim_at(self.data.rate_hz)
+        kb, _ = bandpass_blocks(d0.columns, blocks, sos, trim)
+        y0, _ = bandpass_blocks(d0.y, blocks, sos, trim)
+        y1, _ = bandpass_blocks(d1.y, blocks, sos, trim)
+        return profile_f_test(y0, y1, kb, self.step)
 
     # -- candidates -----------------------------------------------------------------------
     def candidates(self, current: ModelSpec) -> list[tuple[str, str]]:
@@ -912,6 +1000,8 @@ class Auditor:
             current.with_(lag_s=lag),
             ci95={**ci, **{k: None for k in est if k not in ci}},
         )
+        if current.eddy_tau_s > 0:  # the null model holds eddy currents that decay
+            return self._lag_beside_decay_nuisance(ev, current, lags, sl)
         self._beyond(
             ev,
             current.with_(eddy_rate=True),
@@ -950,21 +1040,8 @@ class Auditor:
             and beside_decay_least >= smallest
         ):
             beside_a_decay = self._lag_beyond_eddy_decay(ev, current)
-        tl = timing_lag(
-            self.data.time_s,
-            self.compensated(current),
-            self.data.vector_nT,
-            self.seg.mask("survey", "tie", "validation"),
-            self.data.rate_hz,
-            self.s.max_lag_s,
-        )
+        tl = self._fluxgate_timing(current, ev)
         if tl is not None:  # independent evidence: the fluxgate along the lines
-            est.update(
-                fluxgate_lag_s=tl.lag_s,
-                fluxgate_lag_ci95_s=list(tl.ci95_s),
-                fluxgate_lag_p_value=tl.p_value,
-            )
-            ev.ci95.update(fluxgate_lag_s=None, fluxgate_lag_ci95_s=None, fluxgate_lag_p_value=None)
             # independent timing that disagrees with every calibration form: the truth may lie
             # with either, so the interval spans both
             lo, hi = ev.ci95["lag_s"] or (lag, lag)
@@ -1027,10 +1104,131 @@ class Auditor:
             )
         return ev
 
+    def _fluxgate_timing(self, current: ModelSpec, ev: Evaluation):
+        """The lag the fluxgate's record along the lines gives (:func:`timing_lag`), recorded
+        in ``ev.estimate``; None without it."""
+        tl = timing_lag(
+            self.data.time_s,
+            self.compensated(current),
+            self.data.vector_nT,
+            self.seg.mask("survey", "tie", "validation"),
+            self.data.rate_hz,
+            self.s.max_lag_s,
+        )
+        if tl is not None:
+            ev.estimate.update(
+                fluxgate_lag_s=tl.lag_s,
+                fluxgate_lag_ci95_s=list(tl.ci95_s),
+                fluxgate_lag_p_value=tl.p_value,
+            )
+            ev.ci95.update(fluxgate_lag_s=None, fluxgate_lag_ci95_s=None, fluxgate_lag_p_value=None)
+        return tl
+
+    def _timing_says(self, lag: float, sl, tl) -> str:
+        """What the timing along the lines (survey crossovers ``sl``, the fluxgate ``tl``)
+        says of a lag of ``lag`` s: ``"holds"`` (one is significant and its interval holds
+        the lag), ``"excludes"`` (their combined interval lies below it) or ``"silent"``."""
+        found = [o for o in (sl, tl) if o is not None]
+        if any(o.p_value < self.s.alpha and o.ci95_s[0] <= lag <= o.ci95_s[1] for o in found):
+            return "holds"
+        both = combined_interval(found)
+        return "excludes" if both is not None and both[2] < lag else "silent"
+
+    def _lag_beside_decay_nuisance(
+        self, ev: Evaluation, current: ModelSpec, fold_lags: dict[int, float], sl
+    ) -> Evaluation:
+        """The lag against the null model's eddy decay (:class:`LagVersusDecay`): named when
+        it lowers held-out data beside the decay, or when the two tie and the timing along the
+        lines holds it; a tie the timing cannot break is an ambiguity (``self.ambiguities``)
+        and nothing is named."""
+        s = self.s
+        lag = float(ev.estimate["lag_s"])
+        smallest = s.min_lag_s
+        ev.test = self._lag_profile_test(current, lag)
+        tl = self._fluxgate_timing(current, ev)
+        plain = current.with_(eddy_tau_s=0.0)
+        lag_plain = self._lag_estimate(plain, None, "all")
+        decay_alone = self.heldout(plain, lambda train, k: current)
+        decay_beyond = self.heldout(
+            plain.with_(lag_s=lag_plain), lambda train, k: current.with_(lag_s=fold_lags[k])
+        )
+        lag_alone = None
+        if not (ev.heldout.p_value < s.alpha and ev.heldout.reduction >= s.min_gain):
+            lag_alone = self.heldout(
+                plain,
+                lambda train, k: plain.with_(lag_s=self._lag_estimate(plain, train, f"plain{k}")),
+            )
+        vs = LagVersusDecay(ev.heldout, lag_alone, decay_alone, decay_beyond)
+        if vs.tie(s.alpha, s.min_gain):
+            # the rivals with as many coefficients: the whole reading delayed, or only the
+            # eddy terms (decayed in place of the instantaneous ones)
+            in_place = plain.with_(eddy_tau_s=current.eddy_tau_s, eddy_in_place=True)
+
+            def lag_model(train, k):
+                return plain.with_(lag_s=self._lag_estimate(plain, train, f"plain{k}"))
+
+            vs.lag_over_decay = self.heldout(in_place, lag_model)
+            vs.decay_over_lag = self.heldout(lag_model, lambda train, k: in_place)
+        verdict = vs.verdict(s.alpha, s.min_gain, self._timing_says(lag_plain, sl, tl))
+        tau = current.eddy_tau_s
+        ev.estimate["eddy_decay"] = {"tau_s": tau, "alone": decay_alone.to_dict()}
+        ev.estimate["against_eddy_decay"] = {"verdict": verdict, **vs.to_dict()}
+        ev.ci95.update(eddy_decay=None, against_eddy_decay=None)
+        self.ambiguities = [a for a in self.ambiguities if "sensor_lag" not in a["candidates"]]
+        if abs(lag_plain) < smallest and abs(lag) < smallest:
+            verdict = "none"
+        if verdict == "lag" and vs.lag_dominates(s.alpha, s.min_gain):
+            self._lag_in_place_of_decay(ev, plain, lag_plain)
+        elif verdict == "lag" and lag_alone is not None:  # the tie, broken
+            by_physics = significant(vs.lag_over_decay, s.alpha, s.min_gain)
+            ev.estimate.update(
+                lag_s=lag_plain,
+                confirmed_by="the lag model over the decay in place of the eddy terms"
+                if by_physics
+                else "the timing along the lines",
+            )
+            ev.heldout, ev.spec, ev.decided_outside = lag_alone, plain.with_(lag_s=lag_plain), True
+            lo, hi = ev.ci95.get("lag_s") or (lag, lag)
+            ev.ci95["lag_s"] = [min(lo, lag_plain), max(hi, lag_plain)]
+        elif verdict == "lag" and self._timing_says(lag, sl, tl) == "holds":
+            # the lines' timing (what a late sensor delays and a decay does not) confirms it
+            ev.estimate["confirmed_by"] = "the timing along the lines"
+            ev.decided_outside = True
+        elif verdict == "ambiguous":
+            ev.held_back = True
+            ev.reason = (
+                f"eddy currents decaying over {tau:.3g} s and a lag of {lag_plain:.3f} s each "
+                "explain the calibration's residual and neither adds to the other; the timing "
+                "along the lines does not decide: an ambiguity, nothing named"
+            )
+            self.ambiguities.append(vs.ambiguity())
+        elif verdict == "none":
+            ev.held_back = True
+            ev.reason = (
+                f"beside eddy currents decaying over {tau:.3g} s the lag lowers held-out data "
+                f"by {100 * ev.heldout.reduction:.1f} % (p {ev.heldout.p_value:.2g}): not a "
+                "late sensor"
+            )
+        return ev
+
+    def _lag_in_place_of_decay(self, ev: Evaluation, plain: ModelSpec, lag_s: float) -> None:
+        """The lag takes the null model's eddy decay's place: it lowers held-out data beside
+        the decay and the decay adds nothing beside it, so the null model the data support
+        with a late sensor holds no decay; the lag is tested (nested F, held out) and
+        estimated against that null model."""
+        ev.test = self._lag_profile_test(plain, lag_s)
+        ev.heldout = self.heldout(
+            plain, lambda train, k: plain.with_(lag_s=self._lag_estimate(plain, train, f"fold{k}"))
+        )
+        ev.spec = plain.with_(lag_s=lag_s)
+        ev.estimate.update(lag_s=lag_s, replaces="eddy_decay")
+
     def _eddy_decay_tau(self, current: ModelSpec) -> float:
         """The time constant (s) of decaying eddy currents (:func:`eddy_decay` columns beside
         the T-L ones) that leaves the smallest calibration residual, on
-        :data:`EDDY_TAU_GRID_S`."""
+        :data:`EDDY_TAU_GRID_S` (the null model's, chosen on held-out data, when it has one)."""
+        if current.eddy_tau_s > 0:
+            return current.eddy_tau_s
         fits = {
             tau: self.fit(current.with_(eddy_tau_s=tau), None, "all", ridge="auto")
             for tau in EDDY_TAU_GRID_S
@@ -1887,7 +2085,7 @@ class Auditor:
         tuple
             (final model spec, accepted findings in order, every round's evaluations).
         """
-        current = ModelSpec(base=self.s.baseline)
+        current = self.null_spec()
         current = current.with_(permanent_step_s=self.permanent_step(current))
         findings: list[Evaluation] = []
         rounds: list[list[Evaluation]] = []
@@ -1904,6 +2102,7 @@ class Auditor:
             for e, p in zip(tested, holm([e.test.p_value for e in tested]), strict=True):
                 e.p_adjusted = p
             rounds.append(evals)
+            self._calibrated_gate(evals)
             passing = [e for e in evals if e.passes(self.s)]
             for e in evals:
                 if not e.passes(self.s) and not e.reason:
@@ -1918,8 +2117,108 @@ class Auditor:
             for e in passing:
                 if e is not best:
                     e.reason = "passed; re-tested in the next round with the better one in"
-            current = best.spec
-        return self.refine(current, findings), findings, rounds
+            current = self.admit_nuisances(best.spec, best.effect)
+        return self.refine(self.prune_nuisances(current), findings), findings, rounds
+
+    def admit_nuisances(self, spec: ModelSpec, finding: str) -> ModelSpec:
+        """Add to ``spec`` each nuisance group it lacks that, with the findings so far in the
+        model, lowers held-out data as :meth:`prune_nuisances` requires one to stay: the
+        field of an effect not yet modelled (a gradient's, along the manoeuvres) can hide a
+        nuisance from the selection on the baseline, and the next candidates are judged
+        against the null model the data support."""
+        trials = []
+        if spec.eddy_tau_s == 0:
+            tau = self._eddy_decay_tau(spec)
+            trials.append(("eddy_decay", spec.with_(eddy_tau_s=tau), {"tau_s": tau}))
+        if not spec.second_order:
+            trials.append(("second_order", spec.with_(second_order=True), {}))
+        for name, trial, est in trials:
+            try:
+                h = self.heldout(self._fold_lag(spec), self._fold_lag(trial))
+            except (ValueError, np.linalg.LinAlgError):
+                continue
+            if self._nuisance_matters(h):
+                spec = trial
+                self.nuisances.nuisances.append(Nuisance(name, float(h.reduction), est))
+                self.notes.append(
+                    f"the nuisance {name} lowers held-out data by {100 * h.reduction:.1f} % "
+                    f"(p {h.p_value:.2g}) with the {finding.replace('_', ' ')} in the model: "
+                    "taken into the null model"
+                )
+        return spec
+
+    def _nuisance_matters(self, h: HeldOut) -> bool:
+        """Whether a nuisance's held-out comparison ``h`` holds it in the model: p below
+        ``alpha``, at least ``min_gain`` of the RMS and ``min_nuisance_nT`` of interference."""
+        removed_nT = float(np.sqrt(max(h.rms_before_nT**2 - h.rms_after_nT**2, 0.0)))
+        return (
+            h.p_value < self.s.alpha
+            and h.reduction >= self.s.min_gain
+            and removed_nT >= self.s.min_nuisance_nT
+        )
+
+    def prune_nuisances(self, spec: ModelSpec) -> ModelSpec:
+        """Drop from ``spec`` each nuisance that no longer lowers held-out data with the
+        findings in the model (p < ``alpha``, by ``min_gain`` and ``min_nuisance_nT`` of
+        interference; each model with its own lag): taken before the catalogue
+        effects, a nuisance can have followed part of one (a gradient's field moves with the
+        manoeuvres' small displacements). Kept nuisances stay in ``self.nuisances``; the
+        dropped ones are noted."""
+        off = {"eddy_decay": {"eddy_tau_s": 0.0}, "second_order": {"second_order": False}}
+        kept = []
+        for n in self.nuisances.nuisances:
+            without = spec.with_(**off[n.name])
+            if without == spec:
+                continue
+            try:
+                h = self.heldout(self._fold_lag(without), self._fold_lag(spec))
+            except (ValueError, np.linalg.LinAlgError):
+                kept.append(n)
+                continue
+            if self._nuisance_matters(h):
+                kept.append(n)
+                continue
+            removed_nT = float(np.sqrt(max(h.rms_before_nT**2 - h.rms_after_nT**2, 0.0)))
+            spec = without
+            self.notes.append(
+                f"the nuisance {n.name} taken before the catalogue effects lowers held-out data "
+                f"by {100 * h.reduction:.1f} % (p {h.p_value:.2g}; {removed_nT:.3f} nT of "
+                f"interference, {self.s.min_nuisance_nT:g} nT matters) with the findings in the "
+                "model: dropped"
+            )
+        self.nuisances.nuisances = kept
+        return spec
+
+    def _fold_lag(self, spec: ModelSpec):
+        """A held-out builder of ``spec`` whose lag, when it has one, is estimated on each
+        fold's training rows with the spec's own other terms: a lag fitted beside a nuisance
+        is not the lag of the model without it (a decay takes part of a delay), so a model
+        judged with another model's lag would be judged unfairly."""
+
+        def build(train, k):
+            if spec.lag_s == 0:
+                return spec
+            return spec.with_(lag_s=self._lag_estimate(spec.with_(lag_s=0.0), train, f"fold{k}"))
+
+        return build
+
+    def _calibrated_gate(self, evals: list[Evaluation]) -> None:
+        """Hold back a candidate judged on the scalar calibration whose held-out gain beside
+        the null model does not reach the gate the null model's bootstrap sets for the whole
+        selection (:attr:`null_calibration`); a candidate its own evidence outside the
+        calibration decides is not judged there."""
+        nc = self.null_calibration
+        if nc is None:
+            return
+        for e in evals:
+            if e.decided_outside or e.held_back or not e.passes(self.s) or nc.passes(e.key):
+                continue
+            e.held_back = True
+            e.reason = (
+                f"its held-out gain beside the null model, {100 * nc.observed_gain[e.key]:.1f} %,"
+                f" is below the {100 * nc.gate_gain:.1f} % the null model's bootstrap sets for "
+                f"the whole selection at a flight-level rate of {nc.alpha:g}"
+            )
 
     @staticmethod
     def without(spec: ModelSpec, f: Evaluation) -> ModelSpec:
@@ -1991,52 +2290,6 @@ def _electrical(unit: str) -> bool:
     changes the carrier's field too, but that is not an electrical current."""
     u = unit.strip()
     return u == "" or u in {"A", "mA", "uA", "kA", "V", "mV"}
-
-
-def residual_spectrum(residual: np.ndarray, rate_hz: float, band: BandSettings) -> dict[str, Any]:
-    """Name the shape of the held-out residual's spectrum inside the fit band.
-
-    White noise through the band-pass has the filter's flat pass band; a line (an
-    oscillation the model lacks) stands far above the band's median level; coloured noise
-    has a slope in log power vs log frequency. Returns kind (white | line | coloured), the
-    dominant frequency (Hz), the peak-to-median power ratio, the log-log slope and a
-    sentence.
-    """
-    r = np.asarray(residual, float)
-    r = r[np.isfinite(r)]
-    if r.size < 64:
-        return {
-            "kind": "unknown",
-            "dominant_frequency_hz": None,
-            "peak_ratio": None,
-            "slope": None,
-            "description": "too few samples",
-        }
-    f, pxx = welch(r, fs=rate_hz, nperseg=min(512, r.size))
-    lo, hi = band.band_hz
-    inside = (f >= lo * 1.5) & (f <= hi / 1.1)  # the flat part of the pass band
-    if inside.sum() < 4:
-        inside = (f >= lo) & (f <= hi)
-    fi, pi = f[inside], pxx[inside]
-    k = int(np.argmax(pi))
-    ratio = float(pi[k] / np.median(pi))
-    slope = float(np.polyfit(np.log(fi), np.log(pi), 1)[0])
-    if ratio > 8.0:
-        kind, text = "line", f"a line at {fi[k]:.3f} Hz ({ratio:.0f}x the band's median power)"
-    elif abs(slope) > 1.0:
-        kind, text = (
-            "coloured",
-            (f"coloured noise (power ~ f^{slope:.1f} in the band; white noise would be flat)"),
-        )
-    else:
-        kind, text = "white", "flat in the band, like white noise"
-    return {
-        "kind": kind,
-        "dominant_frequency_hz": float(fi[k]),
-        "peak_ratio": ratio,
-        "slope": slope,
-        "description": text,
-    }
 
 
 def _diurnal_shape(time_s: np.ndarray, base: np.ndarray) -> dict[str, float | None]:
@@ -2169,8 +2422,11 @@ def run_audit(
     events = aud.survey_evidence(plain) + aud.calibration_events(plain)
     events += aud.vector_reference_events()
     events += aud.pass_step_events(plain, events)
+    named = {f.effect for f in findings}
     unexplained: dict[str, Any] = {
         "events": events,
+        "nuisances": aud.nuisances.to_list(),
+        "ambiguities": [a for a in aud.ambiguities if not named.intersection(a["candidates"])],
         "note": None,
         "spectrum": residual_spectrum(r_e, data.rate_hz, s.band),
     }
@@ -2190,7 +2446,15 @@ def run_audit(
                 ),
             }
         )
-        if spec_["kind"] == "line":
+        driven = spec_["kind"] == "line" and manoeuvre_line(
+            r_e, data.vector_nT[w_e], data.rate_hz, spec_["dominant_frequency_hz"], s.alpha
+        )
+        if driven:
+            unexplained["note"] += (
+                "; the line is coherent with the attitude: the carrier's interference outside "
+                "the model's forms, not an event"
+            )
+        if spec_["kind"] == "line" and not driven:
             t_cal = data.time_s[aud.mask]
             t0 = int(flight.time_ns[0])
             events.append(
@@ -2322,4 +2586,5 @@ def run_audit(
         int(flight.time_ns[0]),
         bounds.to_dict(),
         floor_is_bound,
+        None if aud.null_calibration is None else aud.null_calibration.to_dict(),
     )

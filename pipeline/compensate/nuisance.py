@@ -5,8 +5,9 @@ Every builder takes the body-frame vector field (x forward, y right, z down; nT)
 scalar epochs and returns ``(columns (n, k), names)``; the columns are interference shapes
 (compensating: they are subtracted with their fitted coefficients).
 
-- **eddy decay**: the T-L eddy columns through a first-order response of time constant tau
-  (eddy currents in a conductor whose L/R is not short against the manoeuvres);
+- **eddy decay**: the field's change through a first-order response of time constant tau,
+  projected on the field direction like T-L's eddy columns (eddy currents in a conductor
+  whose L/R is not short against the manoeuvres);
 - **second order**: induced magnetisation quadratic in the field, u_i B_j B_k / s^2, and the
   magnitude's second-order term in the eddy field, quadratic in the rate of change
   (dB_j/dt dB_k/dt);
@@ -21,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.compensate.filters import contiguous_blocks
-from pipeline.compensate.terms import BT_SCALE_NT, direction_cosines
+from pipeline.compensate.terms import BT_SCALE_NT, direction_cosines, per_sample_difference
 from pipeline.physics.outside_basis import first_order_lowpass
 
 AXES = "xyz"
@@ -44,13 +45,23 @@ def eddy_decay(columns: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndar
 
 
 def eddy_decay_columns(
-    tl_columns: np.ndarray, tl_names: list[str], time_s: np.ndarray, tau_s: float
+    vector_nT: np.ndarray, time_s: np.ndarray, tau_s: float, bt_scale_nT: float = BT_SCALE_NT
 ) -> tuple[np.ndarray, list[str]]:
-    """The ``eddy_*`` columns of a T-L design through a first-order response of ``tau_s``
-    (s), named ``<eddy name>_decay``."""
-    eddy = [i for i, n in enumerate(tl_names) if n.startswith("eddy_")]
-    cols = eddy_decay(tl_columns[:, eddy], time_s, tau_s)
-    return cols, [f"{tl_names[i]}_decay" for i in eddy]
+    """Decaying eddy columns u_i lowpass_tau(dB_j) / Bt_scale (9; dB per sample, as tl18's
+    eddy columns), named ``eddy_u{i}dB{j}_decay``.
+
+    The eddy current is driven by dB/dt and decays with its circuit's L/R, so the first-order
+    response acts on the field's change, and its field at the sensor enters the magnitude
+    through the present direction u. Filtering tl18's products u_i dB_j instead spans this
+    only while u is constant over tau (not in the manoeuvres that excite the eddy terms).
+    """
+    v = np.asarray(vector_nT, float)
+    u = direction_cosines(v)
+    decayed = eddy_decay(per_sample_difference(v), time_s, tau_s)
+    cols = np.column_stack(
+        [u[:, i] * decayed[:, j] / bt_scale_nT for i in range(3) for j in range(3)]
+    )
+    return cols, [f"eddy_u{AXES[i]}dB{AXES[j]}_decay" for i in range(3) for j in range(3)]
 
 
 def second_order_columns(vector_nT: np.ndarray, time_s: np.ndarray) -> tuple[np.ndarray, list[str]]:

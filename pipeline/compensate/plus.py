@@ -3,8 +3,9 @@
 Candidate groups (column builders in :mod:`pipeline.compensate.nuisance`, shared with the
 audit):
 
-- ``eddy_decay``: the nine tl18 eddy columns through a first-order response, its time
-  constant chosen among :data:`TAU_GRID_S` (0.02-1 s) by the held-out residual;
+- ``eddy_decay``: the field's change through a first-order response, on the nine tl18
+  eddy directions, its time constant chosen among :data:`TAU_GRID_S` (0.02-1 s) by the
+  held-out residual;
 - ``second_order``: induced terms quadratic in the field and the squared-rate terms;
 - ``current:<name>``: each recorded ``/aux`` channel coupling along a fixed body direction;
 - ``attitude_rates``: roll, pitch and yaw rates (when the attitude is recorded).
@@ -60,8 +61,7 @@ def group_columns(group: str, meas, tau_s: float = 0.0) -> tuple[np.ndarray, lis
     """The columns of a term group on every epoch of ``meas`` (a
     :class:`pipeline.compensate.Measurements`)."""
     if group == "eddy_decay":
-        k, names = tl18_terms(meas.vector_nT)
-        return eddy_decay_columns(k, names, meas.time_s, tau_s)
+        return eddy_decay_columns(meas.vector_nT, meas.time_s, tau_s)
     if group == "second_order":
         return second_order_columns(meas.vector_nT, meas.time_s)
     if group == "attitude_rates":
@@ -286,7 +286,41 @@ def select_groups(
             if tau_g is not None:
                 tau = tau_g
             left.remove(g)
+    if tau is not None:
+        tau, held = refine_tau(setup, chosen, tau)
+        trials["eddy_decay"].tau_s = tau
     return Selection(chosen, tau, base, held, trials)
+
+
+def design(setup: HeldOutSetup, groups: list[str], tau_s: float) -> np.ndarray:
+    """tl18's columns and those of ``groups`` (eddy decay with ``tau_s``)."""
+    k, _ = tl18_terms(setup.meas.vector_nT)
+    return np.column_stack([k] + [group_columns(g, setup.meas, tau_s)[0] for g in groups])
+
+
+def refine_tau(
+    setup: HeldOutSetup, groups: list[str], tau_s: float
+) -> tuple[float, HeldOutResiduals]:
+    """The eddy decay's time constant between the grid's neighbours of ``tau_s`` (within
+    :data:`TAU_GRID_S`'s range) that minimises the held-out residual of the selected model,
+    and its held-out residuals: the grid's steps (a factor of two) leave a mismatched
+    response a fraction of the decaying field. Bounded scalar search in log tau."""
+    from scipy.optimize import minimize_scalar
+
+    grid = np.log(TAU_GRID_S)
+    i = int(np.argmin(np.abs(grid - np.log(tau_s))))
+    lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
+    cache: dict[float, HeldOutResiduals] = {}
+
+    def rms(log_tau: float) -> float:
+        if log_tau not in cache:
+            cache[log_tau] = setup.linear(design(setup, groups, float(np.exp(log_tau))))
+        return cache[log_tau].rms_nT
+
+    rms(grid[i])
+    minimize_scalar(rms, bounds=(lo, hi), method="bounded", options={"xatol": 0.05, "maxiter": 8})
+    best = min(cache, key=lambda x: cache[x].rms_nT)
+    return float(np.exp(best)), cache[best]
 
 
 def audit_nuisances(audit: dict | None) -> dict[str, dict]:

@@ -357,13 +357,32 @@ def _lines(seg: Segmentation, e, n, t, v) -> list[Line]:
     return out
 
 
-def build_map(
+@dataclass
+class GriddedMap:
+    """The map stage up to the grid (before the ARIMA-Kalman filter): the frame, the
+    reduction to anomaly, the levelled lines, their heading from grid north (deg) and
+    spacing (m), the anomaly grid (nT), the lines' data, the gridder and micro-levelling."""
+
+    frame: GridFrame
+    reduction: Reduction
+    lines: list[Line]
+    leveling: Leveling
+    heading_deg: float
+    spacing_m: float
+    grid: Grid
+    data: LineData
+    gridder: dict[str, Any]
+    microlevel: MicroLevel | None
+
+
+def anomaly_grid(
     flight: Flight,
     seg: Segmentation,
     compensated_nT: np.ndarray,
     settings: MapSettings | None = None,
-) -> MapRun:
-    """Anomaly grid and its ARIMA-Kalman-filtered version from a compensated flight."""
+) -> GriddedMap:
+    """Reduce, level and grid a compensated flight's lines: :func:`build_map` without the
+    ARIMA-Kalman filter and the uncertainty grid (what a comparison of grids needs)."""
     s = settings or MapSettings()
     flight.require("lat_deg", "lon_deg", "alt_m", purpose="mapping")
     d = flight.data
@@ -427,7 +446,30 @@ def build_map(
         grid = regrid
     data = _line_data(lines, up)
     grid, gridder = _regrid(flight, data, grid, frame, spacing, s)
+    return GriddedMap(frame, red, lines, lev, heading, spacing, grid, data, gridder, micro)
+
+
+def build_map(
+    flight: Flight,
+    seg: Segmentation,
+    compensated_nT: np.ndarray,
+    settings: MapSettings | None = None,
+) -> MapRun:
+    """Anomaly grid (:func:`anomaly_grid`) and its ARIMA-Kalman-filtered version from a
+    compensated flight, with the grid's uncertainty."""
+    s = settings or MapSettings()
+    gm = anomaly_grid(flight, seg, compensated_nT, s)
+    frame, red, lines, lev, spacing, grid, data = (
+        gm.frame,
+        gm.reduction,
+        gm.lines,
+        gm.leveling,
+        gm.spacing_m,
+        gm.grid,
+        gm.data,
+    )
     # ARIMA + Kalman along the flight lines
+    along = np.array([np.sin(np.radians(gm.heading_deg)), np.cos(np.radians(gm.heading_deg))])
     along_north = abs(along[1]) >= abs(along[0])
     sensor = float(
         np.nanmedian(
@@ -461,8 +503,8 @@ def build_map(
         s.direction,
         tests,
         (total, incl, decl),
-        gridder,
-        micro,
+        gm.gridder,
+        gm.microlevel,
         sigma,
         sigma_model,
         sigma_note,

@@ -619,6 +619,7 @@ def run_navigation(
     # the map's error may be an offset as much as anything: the bias state's prior holds it
     p0f = p0.copy()
     p0f[-1, -1] += level**2
+    qd = _line_offsets(qd, selected, ids, p0f[-1, -1])
     # filter and bound
     update = selected & np.isfinite(z)
     if s.filter == "ekf":
@@ -685,6 +686,28 @@ def run_navigation(
         sigma_source,
         meas.map_var_scale,
     )
+
+
+def _line_offsets(
+    qd: np.ndarray, selected: np.ndarray, ids: np.ndarray, offset_var_nT2: float
+) -> np.ndarray:
+    """``qd`` with ``offset_var_nT2`` added to the bias state's process noise at the first
+    epoch of every selected line after the window's first.
+
+    A line's level against the map is not the previous line's: the compensation's residual
+    depends on heading, and the diurnal and the map's levelling error change between lines
+    (what tie-line levelling removes from a survey's own lines, and a navigated line does not
+    get). Taken as the same slowly drifting bias, a new line's offset is read as a position
+    error until the bias state catches up; each line's offset is as unknown as the first
+    line's (the bias state's prior)."""
+    sel = np.asarray(selected, bool)
+    prev_sel = np.r_[False, sel[:-1]]
+    prev_id = np.r_[ids[:1], ids[:-1]]
+    start = sel & (~prev_sel | (ids != prev_id))
+    start[np.argmax(sel)] = False  # the window's first line starts from the prior itself
+    out = np.array(qd, float)
+    out[start, -1] += offset_var_nT2
+    return out
 
 
 def _map_sigma_level(geomap: GeoMap, s: NavigationSettings) -> float:

@@ -30,6 +30,7 @@ AUDIT_KEYS = (
     "band_noise_floor_nT",
     "unexplained",
     "gain",
+    "null_calibration",
 )
 
 

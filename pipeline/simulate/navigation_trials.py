@@ -4,10 +4,11 @@ the INS alone, and is it consistent (NEES, NIS)?
 A trial flies a racetrack over a smooth random anomaly field (the truth) with a simulated
 INS (errors drawn from the covariance a GNSS-aided INS has at GNSS loss,
 :func:`pipeline.navigation.alignment.gnss_aided_covariance`) and a magnetometer with white
-noise. The filter navigates on a *different* map: the truth plus a map error made of a smooth
-field (the interpolation error between lines, correlated over a line spacing), white noise per
-cell (gridding noise) and a constant (a levelling/datum offset), none of which the filter's
-model generates. The filter is told the error's size (the map's 1 sigma, as ``/map/uncertainty``
+noise and a slowly drifting bias (the filters' catch-all state, :func:`magnetometer_bias`).
+The filter navigates on a *different* map: the truth plus a map error made of a smooth field
+(the interpolation error between lines, correlated over a line spacing), white noise per cell
+(gridding noise) and a constant (a levelling/datum offset), none of which the filter's model
+generates. The filter is told the error's size (the map's 1 sigma, as ``/map/uncertainty``
 would give it) or a fixed value (``told_map_sigma_nT``, as ``[navigate] map_sigma_nT``).
 """
 
@@ -82,6 +83,22 @@ def map_error_field(
     return smooth + noise + offset * rng.choice([-1.0, 1.0])
 
 
+def magnetometer_bias(
+    model: InsErrorModel, phi: np.ndarray, qd: np.ndarray, var0_nT2: float, seed: int
+) -> np.ndarray:
+    """One realisation (nT, per epoch) of the magnetometer's slowly varying bias, the
+    first-order Gauss-Markov catch-all the filters carry (``mag_bias_nT`` over
+    ``mag_bias_tau_s``; :meth:`InsErrorModel.process_noise`): initial variance ``var0_nT2``,
+    then ``b_k = phi_k b_(k-1) + w_k`` with the filters' own transition and driving noise."""
+    rng = np.random.default_rng(seed)
+    w = rng.standard_normal(qd.shape[0]) * np.sqrt(qd[:, -1])
+    b = np.empty(qd.shape[0])
+    b[0] = np.sqrt(var0_nT2) * rng.standard_normal()
+    for k in range(1, b.size):
+        b[k] = phi[k, -1, -1] * b[k - 1] + w[k]
+    return b
+
+
 def run_trial(trial: Trial, truth: Grid | None = None) -> dict[str, float]:
     """One trial: DRMS (m) of the INS alone and map-aided, the CRLB-free filter's time-mean
     position NEES (2 dof) and NIS (1 dof), their per-epoch series (``nees``, ``nis``: NaN
@@ -119,10 +136,11 @@ def run_trial(trial: Trial, truth: Grid | None = None) -> dict[str, float]:
         traj.c_nb[:k],
     )
     p0 = gnss_aided_covariance(model, head, 3.0)
+    bias = magnetometer_bias(model, phi, qd, p0[-1, -1], 20_000 + tr.seed)
     p0[-1, -1] += told**2 if tr.bias_prior else 0.0
     x = simulate_ins_errors(model, traj, tr.seed, phi, p0=p0)
     rng = np.random.default_rng(10_000 + tr.seed)
-    z = true_map.value(e, n) + x[:, -1] + rng.normal(0.0, tr.sensor_nT, t.size)
+    z = true_map.value(e, n) + bias + rng.normal(0.0, tr.sensor_nT, t.size)
     step = 60.0 / tr.rate_hz  # racetrack speed (m/s) over the rate
     scale = correlated_error_scale(tr.told_length_m, step)
     meas = MeasurementModel(used_map, map_sigma_nT=told, map_var_scale=scale, map_var_left=left)

@@ -1,0 +1,217 @@
+"""The selection's false-finding rate, measured: a parametric bootstrap of the null model.
+
+The null model (the baseline with the nuisances the data support,
+:mod:`pipeline.audit.nuisances`) is fitted on the calibration; its residual's own spectrum is
+kept and its phases randomised per contiguous block (a coloured-noise surrogate: the
+residual's correlation, 1/f included, without any structure a candidate could follow), and
+each surrogate added to the null model's prediction is a recording on which nothing is
+hidden. On every draw each candidate's held-out statistic (the fraction of the held-out
+residual RMS its columns remove beside the null model's, on the buffered contiguous folds
+of :mod:`pipeline.compensate.heldout`) is recomputed and the largest over the candidates
+kept: the whole selection's maximum statistic. The ridge parameters are the recording's, so
+every fit is linear in the data and all draws share one band-pass and one factorisation per
+fold and model: hundreds of draws cost seconds.
+
+The threshold is the maximum statistic's 1 - alpha quantile over the draws; the gate a
+candidate must reach is it or the least gain worth a term, whichever is larger. The rate at
+which such a gate names something on a flight with nothing hidden (``flight_alpha``) is
+measured on draws that did not set it: the gate set on one half, counted on the other, both
+ways round.
+
+Scope: the candidates linear in the data judged on the scalar calibration (a gradient, each
+recorded current). A lag is not: its first order in the lag lies in T-L's eddy columns (a
+delayed permanent field is the rate of change of the direction cosines), so only the refit
+of the delay itself sees it, and that is too costly to repeat hundreds of times; it is judged
+against the null model with the nuisances instead (:mod:`pipeline.audit.decide`). The diurnal
+is judged on crossovers, the vector calibration on the fluxgate, the events on the survey;
+their tests are not in this maximum.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from pipeline.compensate.filters import (
+    bandpass_blocks,
+    bandpass_sos,
+    contiguous_blocks,
+    trim_samples,
+)
+from pipeline.compensate.heldout import fold_masks
+from pipeline.compensate.plus import HeldOutSetup, ridge_theta
+from pipeline.compensate.ridge import RidgeSVD
+
+METHOD = "parametric_bootstrap"
+
+
+@dataclass
+class NullCalibration:
+    """The measured null distribution of the selection's maximum statistic.
+
+    Attributes
+    ----------
+    draws : int
+        Null draws.
+    alpha : float
+        The flight-level false-finding rate the threshold is set for.
+    threshold_gain : float
+        The maximum statistic's 1 - alpha quantile (fraction of held-out RMS).
+    gate_gain : float
+        What a candidate's held-out gain must reach: the threshold or the least gain worth a
+        term, whichever is larger.
+    flight_alpha : float
+        Measured share of null draws on which some candidate reaches a gate set on other
+        draws (:func:`crossfit_rate`).
+    observed_gain : dict
+        Each candidate's statistic on the recording.
+    p_value : float
+        The recording's maximum statistic against all null draws.
+    """
+
+    draws: int
+    alpha: float
+    threshold_gain: float
+    gate_gain: float
+    flight_alpha: float
+    observed_gain: dict[str, float] = field(default_factory=dict)
+    p_value: float = 1.0
+
+    def passes(self, key: str) -> bool:
+        """Whether candidate ``key``'s statistic on the recording reaches the gate (True for
+        a candidate outside the bootstrap's scope)."""
+        g = self.observed_gain.get(key)
+        return g is None or g >= self.gate_gain
+
+    def to_dict(self) -> dict[str, Any]:
+        """``null_calibration``: ``method``, ``draws``, ``flight_alpha`` and the figures."""
+        return {
+            "method": METHOD,
+            "draws": self.draws,
+            "flight_alpha": self.flight_alpha,
+            "alpha": self.alpha,
+            "threshold_gain": self.threshold_gain,
+            "gate_gain": self.gate_gain,
+            "observed_gain": self.observed_gain,
+            "max_statistic_p_value": self.p_value,
+        }
+
+
+def surrogates(
+    residual: np.ndarray, blocks: list[np.ndarray], draws: int, rng: np.random.Generator
+) -> np.ndarray:
+    """``draws`` coloured-noise copies of ``residual`` (n,) -> (n, draws): per contiguous
+    block (index arrays ``blocks``), the linearly detrended residual's Fourier amplitudes with
+    random phases, the trend added back; NaN outside the blocks."""
+    out = np.full((residual.size, draws), np.nan)
+    for b in blocks:
+        r = residual[b]
+        x = np.arange(b.size, dtype=float)
+        trend = np.polyval(np.polyfit(x, r, 1), x) if b.size > 2 else np.full(b.size, r.mean())
+        amp = np.abs(np.fft.rfft(r - trend))
+        ph = rng.uniform(0.0, 2.0 * np.pi, (amp.size, draws))
+        ph[0] = 0.0
+        if b.size % 2 == 0:
+            ph[-1] = 0.0
+        out[b] = np.fft.irfft(amp[:, None] * np.exp(1j * ph), n=b.size, axis=0) + trend[:, None]
+    return out
+
+
+def crossfit_rate(top: np.ndarray, alpha: float, min_gain: float) -> float:
+    """The rate at which a gate set on one half of the null draws' maxima ``top`` (its
+    1 - ``alpha`` quantile, at least ``min_gain``) is reached on the other half, averaged
+    over both ways round: measured on draws the gate did not see."""
+    a, b = top[: top.size // 2], top[top.size // 2 :]
+    rates = [
+        np.mean(test >= max(float(np.quantile(fit, 1.0 - alpha)), min_gain))
+        for fit, test in ((a, b), (b, a))
+    ]
+    return float(np.mean(rates))
+
+
+def _fold_sums(setup: HeldOutSetup, cols: np.ndarray, y: np.ndarray, models, valid) -> np.ndarray:
+    """Held-out squared residuals summed over the folds: (models, draws), each model a
+    column index list of ``cols``; ``y`` (n, draws) holds the recording and its null draws."""
+    m, band = setup.meas, setup.band
+    sos = bandpass_sos(band.band_hz, m.rate_hz, band.poles)
+    trim = trim_samples(band.trim_s, m.rate_hz)
+    both = np.column_stack([cols, y])
+    p = cols.shape[1]
+    out = np.zeros((len(models), y.shape[1]))
+    for k in range(int(setup.fold.max()) + 1):
+        train, test = fold_masks(m.time_s, setup.fold, k, setup.buffer_s)
+        train, test = train & valid, test & valid
+        if not train.any() or not test.any():
+            continue
+        tr, _ = bandpass_blocks(both, contiguous_blocks(train, m.time_s), sos, trim)
+        te, _ = bandpass_blocks(both, contiguous_blocks(test, m.time_s), sos, trim)
+        for i, idx in enumerate(models):
+            kt, yt = tr[:, idx], tr[:, p:]
+            solver = RidgeSVD.from_gram(kt, yt[:, 0])  # the recording's lambda, every draw
+            lam = solver.lcurve().lambda_corner if setup.ridge == "auto" else float(setup.ridge)
+            theta = np.linalg.solve(kt.T @ kt + lam * np.eye(kt.shape[1]), kt.T @ yt)
+            out[i] += np.sum((te[:, p:] - te[:, idx] @ theta) ** 2, axis=0)
+    return out
+
+
+def calibrate_null(
+    setup: HeldOutSetup,
+    null_columns: np.ndarray,
+    candidates: dict[str, np.ndarray],
+    alpha: float,
+    min_gain: float,
+    draws: int,
+    seed: int,
+) -> NullCalibration:
+    """The null distribution of the selection's maximum statistic (module docstring).
+
+    Parameters
+    ----------
+    setup : HeldOutSetup
+        The calibration's buffered folds and band (:mod:`pipeline.compensate.plus`).
+    null_columns : ndarray, shape (n, p)
+        The null model's design on every epoch.
+    candidates : dict
+        Candidate key -> its extra columns (n, q) on every epoch.
+    alpha, min_gain : float
+        Flight-level false-finding rate, and the least held-out gain worth a term.
+    draws : int
+        Null draws (at least 2).
+    seed : int
+        Seed of the phase randomisation.
+    """
+    m = setup.meas
+    ok = (setup.fold >= 0) & np.isfinite(m.scalar_nT) & np.all(np.isfinite(null_columns), axis=1)
+    band = setup.band
+    sos = bandpass_sos(band.band_hz, m.rate_hz, band.poles)
+    trim = trim_samples(band.trim_s, m.rate_hz)
+    kf, _ = bandpass_blocks(null_columns, contiguous_blocks(ok, m.time_s), sos, trim)
+    yf, _ = bandpass_blocks(m.scalar_nT, contiguous_blocks(ok, m.time_s), sos, trim)
+    theta = ridge_theta(kf, yf, setup.ridge)
+    fitted = null_columns @ theta
+    names = list(candidates)
+    cols = np.column_stack([null_columns, *(candidates[c] for c in names)])
+    valid = ok & np.all(np.isfinite(cols), axis=1)
+    blocks = contiguous_blocks(valid, m.time_s)
+    noise = surrogates(m.scalar_nT - fitted, blocks, draws, np.random.default_rng(seed))
+    y = np.column_stack([m.scalar_nT, fitted[:, None] + noise])
+    p0 = null_columns.shape[1]
+    models, at = [list(range(p0))], p0
+    for c in names:
+        q = candidates[c].shape[1]
+        models.append(list(range(p0)) + list(range(at, at + q)))
+        at += q
+    ss = _fold_sums(setup, cols, y, models, valid)
+    gains = 1.0 - np.sqrt(ss[1:] / ss[0])  # (candidates, 1 + draws)
+    top = gains.max(axis=0) if names else np.zeros(1 + draws)
+    return NullCalibration(
+        draws=draws,
+        alpha=alpha,
+        threshold_gain=float(np.quantile(top[1:], 1.0 - alpha)),
+        gate_gain=max(float(np.quantile(top[1:], 1.0 - alpha)), min_gain),
+        flight_alpha=crossfit_rate(top[1:], alpha, min_gain),
+        observed_gain={c: float(gains[i, 0]) for i, c in enumerate(names)},
+        p_value=float((1 + np.sum(top[1:] >= top[0])) / (1 + draws)),
+    )
