@@ -24,9 +24,8 @@ from pipeline.audit.nuisances import select_from
 from pipeline.audit.null_calibration import calibrate_null, surrogates
 from pipeline.compensate.heldout import HeldOut
 from pipeline.compensate.model import Measurements
-from pipeline.geo.frames import ned_to_body
+from tests.test_audit_second_order import manoeuvres
 
-B_NED_NT = np.array([20_000.0, 1_500.0, 45_000.0])
 # ../shared/recordings beside the checkout (a worktree sits one level deeper)
 RECORDINGS = next(
     (
@@ -44,13 +43,7 @@ def calibration(rate_hz: float = 10.0, seed: int = 1):
     body-frame field (nT; x forward, y right, z down), direction cosines, and the carrier's
     permanent and induced field's total-field part (nT)."""
     rng = np.random.default_rng(seed)
-    t = np.arange(0.0, 4 * 90.0, 1.0 / rate_hz)
-    local = t % 90.0
-    heading = 90.0 * (t // 90.0) + 90.0 * np.clip((local - 80.0) / 10.0, 0.0, 1.0)
-    roll = np.where(local < 27, 10 * np.sin(2 * np.pi * local / 4.5), 0.0)
-    pitch = np.where((local >= 26) & (local < 52), 5 * np.sin(2 * np.pi * (local - 26) / 6.5), 0.0)
-    yaw = np.where((local >= 52) & (local < 79.5), 5 * np.sin(2 * np.pi * (local - 52) / 5.5), 0.0)
-    b = ned_to_body(np.tile(B_NED_NT, (t.size, 1)), roll, pitch, heading + yaw)
+    t, b = manoeuvres(rate_hz)
     u = b / np.linalg.norm(b, axis=1, keepdims=True)
     carrier = u @ rng.normal(0.0, 30.0, 3) + np.sum(u * (b @ rng.normal(0, 2e-4, (3, 3))), axis=1)
     return t, b, u, carrier
