@@ -165,7 +165,8 @@ def test_several_effects_at_once(tmp_path):
 
 def test_structure_outside_the_catalogue_is_reported_as_unexplained(tmp_path):
     """A 0.25 Hz, 0.4 nT oscillation on the scalar sensor (a gimbal motor, say) that no
-    candidate effect produces: no finding, and the residual above the floor is reported."""
+    candidate effect produces: no finding, no event, and the residual above the floor is
+    reported, the line as periodic interference among the null model's nuisances."""
 
     def gimbal(sim):
         s = sim.streams["/mag/scalar"]
@@ -177,9 +178,15 @@ def test_structure_outside_the_catalogue_is_reported_as_unexplained(tmp_path):
     u = j["unexplained"]
     assert u["note"] is not None and u["ratio"] > 3.0
     assert u["dominant_frequency_hz"] == pytest.approx(0.25, abs=0.03)
-    # the spectrum names it: a line, and an oscillation event over the calibration
+    # the spectrum names it: a line, which lasts through the flight: a nuisance, not an event
     assert u["spectrum"]["kind"] == "line"
-    assert [e["kind"] for e in u["events"]] == ["oscillation"]
+    assert u["events"] == []
+    nz = {n["name"]: n for n in u["nuisances"]}
+    line = nz["unrecorded_current"]
+    assert line["estimate"]["frequency_hz"] == pytest.approx(0.25, abs=0.03)
+    # a 0.4 nT sinusoid is 0.28 nT RMS; the band-pass passes 0.25 Hz nearly whole
+    assert line["estimate"]["rms_nT"] == pytest.approx(0.4 / np.sqrt(2), rel=0.3)
+    assert line["heldout_gain"] > 0.3
 
 
 def test_baseline_is_the_production_tl18_model(tmp_path):

@@ -79,7 +79,7 @@ from pipeline.audit.legs import (
 from pipeline.audit.noise import noise_floor_bounds
 from pipeline.audit.nuisances import Nuisance, NuisanceSelection, select_nuisances
 from pipeline.audit.null_calibration import NullCalibration, calibrate_null
-from pipeline.audit.spectrum import manoeuvre_line, residual_spectrum
+from pipeline.audit.spectrum import manoeuvre_line, periodic_nuisance, residual_spectrum
 from pipeline.audit.survey import (
     CrossoverSet,
     SurveyCoupling,
@@ -2455,17 +2455,12 @@ def run_audit(
                 "the model's forms, not an event"
             )
         if spec_["kind"] == "line" and not driven:
-            t_cal = data.time_s[aud.mask]
-            t0 = int(flight.time_ns[0])
-            events.append(
-                {
-                    "kind": "oscillation",
-                    "start_ns": t0 + int(t_cal[0] * 1e9),
-                    "end_ns": t0 + int(t_cal[-1] * 1e9),
-                    "size_nT": cv_e,
-                    "frequency_hz": spec_["dominant_frequency_hz"],
-                    "evidence": "calibration residual spectrum",
-                }
+            # a line of its own through the calibration: periodic interference no channel
+            # records, part of the null model's nuisances rather than an event in time
+            unexplained["nuisances"].append(periodic_nuisance(spec_, cv_e))
+            unexplained["note"] += (
+                "; not coherent with the attitude: periodic interference no channel records "
+                "(unexplained.nuisances: unrecorded_current)"
             )
     for e in events:
         if e["kind"] in ("step", "drift") and not unexplained["note"]:
