@@ -24,7 +24,7 @@ from pipeline.audit.nuisances import select_from
 from pipeline.audit.null_calibration import calibrate_null, surrogates
 from pipeline.compensate.heldout import HeldOut
 from pipeline.compensate.model import Measurements
-from tests.test_audit_second_order import manoeuvres
+from tests.calibration_box import manoeuvres
 
 # ../shared/recordings beside the checkout (a worktree sits one level deeper)
 RECORDINGS = next(
@@ -155,8 +155,8 @@ def test_a_tie_between_a_lag_and_a_decay_names_nothing_unless_the_lines_time_it(
 
 
 def test_a_tie_goes_to_the_rival_that_predicts_held_out_data_better():
-    """The lag model (the whole reading delayed) against the decay in place of the eddy
-    terms, as many coefficients each: the winner by the held-out test is the explanation,
+    """The lag model (the whole reading delayed) against the decay model (the decayed eddy
+    columns beside T-L's): the winner by the held-out test is the explanation,
     whatever the timing along the lines; neither winning leaves the timing to decide."""
     args = (held(0.01, 0.3), held(0.2, 1e-6), held(0.19, 1e-6), held(0.005, 0.4))
     lag = LagVersusDecay(*args, lag_over_decay=held(0.3, 1e-8), decay_over_lag=held(-0.4, 1.0))
@@ -204,25 +204,3 @@ def test_a_late_sensor_beside_decaying_eddy_currents_is_named(tmp_path):
     lags = [f for f in res["findings"] if f["effect"] == "sensor_lag"]
     assert lags, res["unexplained"]
     assert abs(lags[0]["estimate"]["lag_s"] - truth["effect_params"]["lag_s"]) < 0.06
-
-
-def test_the_decay_in_place_replaces_the_instantaneous_eddy_columns():
-    """The decay as the lag's rival has as many columns as T-L: its eddy columns are T-L's
-    through the first-order response, the others are T-L's own."""
-    from pipeline.audit import AuditData, ModelSpec
-    from pipeline.audit.extended import design
-
-    rng = np.random.default_rng(5)
-    t = np.arange(600) * 0.1
-    vec = np.column_stack(
-        [18_000.0 + 300 * np.sin(t / 3), 300 * np.cos(t / 2), 47_000.0 + rng.normal(0, 5, t.size)]
-    )
-    data = AuditData(t, np.linalg.norm(vec, axis=1), vec, None)
-    plain = design(data, ModelSpec())
-    beside = design(data, ModelSpec(eddy_tau_s=0.2))
-    in_place = design(data, ModelSpec(eddy_tau_s=0.2, eddy_in_place=True))
-    assert in_place.columns.shape == plain.columns.shape
-    assert beside.columns.shape[1] == plain.columns.shape[1] + 9
-    instant = [n for n in plain.names if not n.startswith("eddy_")]
-    assert in_place.names == instant + [n for n in beside.names if n.endswith("_decay")]
-    np.testing.assert_allclose(in_place.columns[:, -9:], beside.columns[:, -9:])
