@@ -7,10 +7,11 @@ along the lines, the field the fluxgate predicts), a decay delays only the eddy 
 the decay in the null model (its time constant chosen on held-out data), a true lag still
 lowers the held-out residual, for the decay cannot delay the permanent and induced terms;
 a decay mistaken for a lag does not. Where neither adds to the other on held-out data but
-each alone explains the residual, the two are weighed as rivals with as many linear
-coefficients: the lag model (the whole reading delayed) against the decay model (the T-L
-eddy columns decayed, in place of the instantaneous ones); the one that predicts held-out
-calibration data better by the audit's test is the explanation. When neither wins, the
+each alone explains the residual, the two are weighed as rivals in the forms the null
+model would take them: the lag model (the whole reading delayed) against the decay model
+(the decayed eddy columns beside T-L's); the one that predicts held-out calibration data
+better by the audit's test is the explanation (held-out prediction weighs the decay's extra
+coefficients). When neither wins, the
 timing along the lines (survey crossovers, the fluxgate's record of the same anomalies)
 decides when it holds the lag and excludes none; otherwise the tie is reported as an
 ambiguity and nothing is named for it.
@@ -48,8 +49,8 @@ class LagVersusDecay:
     decay_beyond_lag : HeldOut
         The decay beside the null model without it plus the lag.
     lag_over_decay, decay_over_lag : HeldOut or None
-        The lag model against the decay in place of the instantaneous eddy columns, and the
-        reverse (None when not weighed: no tie).
+        The lag model against the decay model (the null model's form), and the reverse
+        (None when not weighed: no tie).
     """
 
     lag_beyond_null: HeldOut
@@ -79,7 +80,7 @@ class LagVersusDecay:
 
         The lag is named when it lowers held-out data beside the decay. When the two tie
         (each explains the residual alone, neither adds to the other) the rival that
-        predicts held-out data better with as many coefficients is the explanation
+        predicts held-out data better is the explanation
         (``lag_over_decay``, ``decay_over_lag``); when neither does, the timing along the
         lines decides: ``timing`` is ``"holds"`` (a significant timing lag whose interval holds
         the calibration's), ``"excludes"`` (the timing's interval lies below the lag: the

@@ -134,10 +134,6 @@ class ModelSpec:
     # through a first-order response, which the rate columns above only approximate to
     # first order in w tau (poor at tau ~ 0.5 s against 3-10 s manoeuvres)
     eddy_tau_s: float = 0.0
-    # the decayed eddy columns in place of T-L's instantaneous ones (the carrier's eddy
-    # currents either decay or do not): the decay as the lag's rival with as many linear
-    # coefficients, told apart by what each delays (pipeline.audit.decide)
-    eddy_in_place: bool = False
     # what T-L's first order leaves out: induced magnetisation that is not linear in the
     # field, u_i B_j B_k / s^2, and the magnitude's second-order term in the eddy field,
     # |E dB_perp|^2 / 2|B|, quadratic in the rate of change (dB_j/dt dB_k/dt); the competing
@@ -267,9 +263,6 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
     k, names = (tl18_terms if spec.base == "tl18" else tl16_terms)(v, data.time_s)
     if spec.eddy_tau_s > 0:
         kd, dn = eddy_decay_columns(v, data.time_s, spec.eddy_tau_s)
-        if spec.eddy_in_place:
-            instant = [i for i, n in enumerate(names) if not n.startswith("eddy_")]
-            k, names = k[:, instant], [names[i] for i in instant]
     sub = [True] * k.shape[1]
     cols = [k]
     if spec.eddy_tau_s > 0:

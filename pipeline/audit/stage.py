@@ -1160,15 +1160,13 @@ class Auditor:
             )
         vs = LagVersusDecay(ev.heldout, lag_alone, decay_alone, decay_beyond)
         if vs.tie(s.alpha, s.min_gain):
-            # the rivals with as many coefficients: the whole reading delayed, or only the
-            # eddy terms (decayed in place of the instantaneous ones)
-            in_place = plain.with_(eddy_tau_s=current.eddy_tau_s, eddy_in_place=True)
-
+            # the rivals as the null model would take each: the whole reading delayed, or
+            # the decayed eddy terms beside T-L's (held-out data weigh their sizes)
             def lag_model(train, k):
                 return plain.with_(lag_s=self._lag_estimate(plain, train, f"plain{k}"))
 
-            vs.lag_over_decay = self.heldout(in_place, lag_model)
-            vs.decay_over_lag = self.heldout(lag_model, lambda train, k: in_place)
+            vs.lag_over_decay = self.heldout(current, lag_model)
+            vs.decay_over_lag = self.heldout(lag_model, lambda train, k: current)
         verdict = vs.verdict(s.alpha, s.min_gain, self._timing_says(lag_plain, sl, tl))
         tau = current.eddy_tau_s
         ev.estimate["eddy_decay"] = {"tau_s": tau, "alone": decay_alone.to_dict()}
@@ -1183,7 +1181,7 @@ class Auditor:
             by_physics = significant(vs.lag_over_decay, s.alpha, s.min_gain)
             ev.estimate.update(
                 lag_s=lag_plain,
-                confirmed_by="the lag model over the decay in place of the eddy terms"
+                confirmed_by="the lag model over the decay model"
                 if by_physics
                 else "the timing along the lines",
             )
@@ -1222,6 +1220,9 @@ class Auditor:
         )
         ev.spec = plain.with_(lag_s=lag_s)
         ev.estimate.update(lag_s=lag_s, replaces="eddy_decay")
+        # the interval was read beside the decay; it must hold the estimate without it too
+        lo, hi = ev.ci95.get("lag_s") or (lag_s, lag_s)
+        ev.ci95["lag_s"] = [min(lo, lag_s), max(hi, lag_s)]
 
     def _eddy_decay_tau(self, current: ModelSpec) -> float:
         """The time constant (s) of decaying eddy currents (:func:`eddy_decay` columns beside
