@@ -1,4 +1,5 @@
-"""The audit's context: one flight's data, folds and cached fits."""
+"""The audit's context: one flight's data, calibration mask and folds, with the fits, band-passed
+calibration rows, compensated fields and crossovers kept per model."""
 
 from __future__ import annotations
 

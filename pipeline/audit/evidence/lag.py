@@ -1,4 +1,5 @@
-"""The lag estimator: the lag minimising the refitted model's residual, per response form."""
+"""The lag estimator: the lag minimising the refitted model's calibration residual, per response
+form and beside eddy currents that decay; and the fluxgate's timing along the lines."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""The diurnal candidate."""
+"""The diurnal candidate: whether the compensated field follows the base station at the survey's
+crossovers and along the calibration legs (:mod:`pipeline.audit.diurnal`)."""
 
 from __future__ import annotations
 

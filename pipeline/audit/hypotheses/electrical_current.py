@@ -1,4 +1,6 @@
-"""The electrical current candidate."""
+"""The electrical current candidate: an auxiliary channel's current coupling into the reading
+(three body-frame columns), with the survey's crossovers and the channel's switches as evidence
+outside the calibration (rules C1-C4 of docs/audit.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""The geomagnetic gradient candidate."""
+"""The geomagnetic gradient candidate: the ground's gradient at the calibration site, fitted
+as position columns and measured along the calibration legs (rules G1, G2 of docs/audit.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""A candidate against a competing explanation."""
+"""A candidate against a competing explanation: what its extension still gains on held-out data
+with the rival already in the model."""
 
 from __future__ import annotations
 

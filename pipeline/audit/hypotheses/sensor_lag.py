@@ -1,4 +1,6 @@
-"""The sensor lag candidate."""
+"""The sensor lag candidate: a late scalar sensor (a delay or a first-order filter), weighed
+against eddy currents with a time constant and judged by the timing along the lines (rules
+L0-L9 of docs/audit.md)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,5 @@
-"""The vector calibration candidate."""
+"""The vector calibration candidate: the fluxgate's offsets, scale and non-orthogonality, judged
+on the fluxgate itself (rules V1, V2 of docs/audit.md)."""
 
 from __future__ import annotations
 
