@@ -10,7 +10,6 @@ from typing import Any
 import numpy as np
 
 from pipeline.audit.crossval import calibration_strata, passwise_folds, stratified_block_folds
-from pipeline.audit.events import PassStep
 from pipeline.audit.evidence import (
     HeldOut,
     NestedTest,
@@ -95,7 +94,8 @@ class AuditContext:
         self._crossover_cache: dict[tuple, tuple] = {}
         self._compensated: dict[ModelSpec, np.ndarray] = {}
         self._geometry: tuple | None = None
-        self._pass_steps: dict[ModelSpec, list[PassStep]] = {}
+        # each model's permanent-field changes between passes (events.AuditEvents.pass_steps)
+        self._pass_steps: dict[ModelSpec, list] = {}
         self.ambiguities: list[dict[str, Any]] = []
 
     @cached_property

@@ -10,8 +10,7 @@ from pipeline.audit.context import AuditContext
 from pipeline.audit.evidence import HeldOut, holm
 from pipeline.audit.evidence.lag import eddy_decay_tau, lag_estimate
 from pipeline.audit.extended import ModelSpec
-from pipeline.audit.hypotheses import evaluate
-from pipeline.audit.hypotheses.candidates import candidates
+from pipeline.audit.hypotheses import candidates, evaluate, without
 from pipeline.audit.nuisances import Nuisance
 from pipeline.audit.null_calibration import NullCalibration
 from pipeline.audit.result import Evaluation
@@ -145,11 +144,11 @@ def prune_nuisances(ctx: AuditContext, spec: ModelSpec) -> ModelSpec:
     off = {"eddy_decay": {"eddy_tau_s": 0.0}, "second_order": {"second_order": False}}
     kept = []
     for n in ctx.nuisances.nuisances:
-        without = spec.with_(**off[n.name])
-        if without == spec:
+        dropped = spec.with_(**off[n.name])
+        if dropped == spec:
             continue
         try:
-            h = ctx.heldout(fold_lag(ctx, without), fold_lag(ctx, spec))
+            h = ctx.heldout(fold_lag(ctx, dropped), fold_lag(ctx, spec))
         except (ValueError, np.linalg.LinAlgError):
             kept.append(n)
             continue
@@ -157,7 +156,7 @@ def prune_nuisances(ctx: AuditContext, spec: ModelSpec) -> ModelSpec:
             kept.append(n)
             continue
         removed_nT = float(np.sqrt(max(h.rms_before_nT**2 - h.rms_after_nT**2, 0.0)))
-        spec = without
+        spec = dropped
         ctx.notes.append(
             f"the nuisance {n.name} taken before the catalogue effects lowers held-out data "
             f"by {100 * h.reduction:.1f} % (p {h.p_value:.2g}; {removed_nT:.3f} nT of "
@@ -180,23 +179,6 @@ def fold_lag(ctx: AuditContext, spec: ModelSpec):
         return spec.with_(lag_s=lag_estimate(ctx, spec.with_(lag_s=0.0), train, f"fold{k}"))
 
     return build
-
-
-def without(spec: ModelSpec, f: Evaluation) -> ModelSpec:
-    """``spec`` with finding ``f``'s extension taken out."""
-    if f.effect == "geomagnetic_gradient":
-        return spec.with_(gradient=False, known_gradient_nT_per_m=None)
-    if f.effect == "sensor_lag":
-        return spec.with_(lag_s=0.0, lag_response="delay")
-    if f.effect == "diurnal":
-        return spec.with_(diurnal=False)
-    if f.effect == "vector_calibration":
-        return spec.with_(vector_cal=None)
-    name = f.key.split(":", 1)[1]
-    return spec.with_(
-        aux=tuple(a for a in spec.aux if a != name),
-        known_aux=tuple(a for a in spec.known_aux if a[0] != name),
-    )
 
 
 def refine(ctx: AuditContext, spec: ModelSpec, findings: list[Evaluation]) -> ModelSpec:

@@ -36,8 +36,7 @@ from pipeline.audit.events import AuditEvents, PassStep
 from pipeline.audit.evidence import band_noise_gain
 from pipeline.audit.evidence.lag import EDDY_TAU_GRID_S
 from pipeline.audit.extended import FittedModel, ModelSpec, design, simulate_measurement
-from pipeline.audit.hypotheses import geomagnetic_gradient
-from pipeline.audit.hypotheses.candidates import candidates
+from pipeline.audit.hypotheses import candidates, geomagnetic_gradient
 from pipeline.audit.noise import NoiseFloorBounds, noise_floor_bounds
 from pipeline.audit.null_calibration import NullCalibration, calibrate_null
 from pipeline.audit.result import AuditResult, Evaluation, alternatives

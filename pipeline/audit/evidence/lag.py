@@ -8,8 +8,7 @@ from scipy.optimize import minimize_scalar
 
 from pipeline.audit.context import AuditContext
 from pipeline.audit.extended import LAG_RESPONSES, ModelSpec, lag_cost
-from pipeline.audit.result import Evaluation
-from pipeline.audit.timing import timing_lag
+from pipeline.audit.timing import TimingLag, timing_lag
 
 # eddy currents' decay times tried (s): a carrier skin's L/R from a sample to well past
 # the manoeuvres' shortest periods
@@ -82,10 +81,10 @@ def eddy_decay_tau(ctx: AuditContext, current: ModelSpec) -> float:
     return min(fits, key=lambda tau: fits[tau].fit_residual_nT)
 
 
-def fluxgate_timing(ctx: AuditContext, current: ModelSpec, ev: Evaluation):
-    """The lag the fluxgate's record along the lines gives (:func:`timing_lag`), recorded
-    in ``ev.estimate``; None without it."""
-    tl = timing_lag(
+def fluxgate_timing(ctx: AuditContext, current: ModelSpec) -> TimingLag | None:
+    """The lag the fluxgate's record along the lines gives against ``current``'s compensated
+    field (:func:`pipeline.audit.timing.timing_lag`); None without it."""
+    return timing_lag(
         ctx.data.time_s,
         ctx.compensated(current),
         ctx.data.vector_nT,
@@ -93,11 +92,3 @@ def fluxgate_timing(ctx: AuditContext, current: ModelSpec, ev: Evaluation):
         ctx.data.rate_hz,
         ctx.s.max_lag_s,
     )
-    if tl is not None:
-        ev.estimate.update(
-            fluxgate_lag_s=tl.lag_s,
-            fluxgate_lag_ci95_s=list(tl.ci95_s),
-            fluxgate_lag_p_value=tl.p_value,
-        )
-        ev.ci95.update(fluxgate_lag_s=None, fluxgate_lag_ci95_s=None, fluxgate_lag_p_value=None)
-    return tl

@@ -14,6 +14,19 @@ from pipeline.audit.legs import leg_block_means
 from pipeline.audit.result import Evaluation
 from pipeline.audit.survey import heading_levels
 
+EFFECT = "diurnal"
+
+
+def keys(ctx: AuditContext, current: ModelSpec) -> list[str]:
+    """The candidate when ``current`` has no diurnal correction and the flight a base
+    station."""
+    return [EFFECT] if not current.diurnal and ctx.flight.has("base_nT") else []
+
+
+def without(spec: ModelSpec, key: str) -> ModelSpec:
+    """``spec`` without the diurnal correction."""
+    return spec.with_(diurnal=False)
+
 
 def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
     """The diurnal: does ``current``'s compensated field follow the base station where the

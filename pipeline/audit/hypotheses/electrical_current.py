@@ -16,12 +16,47 @@ from pipeline.audit.evidence.survey_side import (
     crossover_coupling_gain,
 )
 from pipeline.audit.extended import FittedModel, ModelSpec
-from pipeline.audit.hypotheses.candidates import candidates
 from pipeline.audit.hypotheses.rival import beyond
 from pipeline.audit.result import Evaluation
 from pipeline.audit.survey import SurveyCoupling
 from pipeline.audit.switching import SwitchCoupling, switch_body_coupling, switch_coupling
 from pipeline.compensate.terms import direction_cosines
+
+EFFECT = "electrical_current"
+
+
+def keys(ctx: AuditContext, current: ModelSpec) -> list[str]:
+    """``electrical_current:<name>`` for each auxiliary channel with an electrical unit
+    (:func:`_electrical`) not yet in ``current`` that varies over the calibration."""
+    out = []
+    for name, x in ctx.data.aux.items():
+        if (
+            name in current.aux
+            or name in dict(current.known_aux)
+            or not _electrical(ctx.data.aux_units.get(name, ""))
+        ):
+            continue
+        xc = x[ctx.mask]
+        if np.isfinite(xc).sum() > 100 and np.nanstd(xc) > 1e-9:
+            out.append(f"{EFFECT}:{name}")
+    return out
+
+
+def without(spec: ModelSpec, key: str) -> ModelSpec:
+    """``spec`` without channel ``key``'s coupling, fitted or known."""
+    name = key.split(":", 1)[1]
+    return spec.with_(
+        aux=tuple(a for a in spec.aux if a != name),
+        known_aux=tuple(a for a in spec.known_aux if a[0] != name),
+    )
+
+
+def _electrical(unit: str) -> bool:
+    """A channel that can carry a current coupling: a current or a voltage (a load's
+    proxy), or one whose unit the recording does not say. A temperature, a pressure ...
+    changes the carrier's field too, but that is not an electrical current."""
+    u = unit.strip()
+    return u == "" or u in {"A", "mA", "uA", "kA", "V", "mV"}
 
 
 def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
@@ -157,7 +192,7 @@ def _by_the_switches(ctx: AuditContext, ev: Evaluation, current: ModelSpec, name
             ev.confirmed_gain = True
             # the steps' own test, Bonferroni over the channels tested, decides alone:
             # the band-passed calibration is blind to a load it sees switch a few times
-            n_channels = sum(e == "electrical_current" for e, _ in candidates(ctx, current))
+            n_channels = len(keys(ctx, current))
             if sw.p_value * max(1, n_channels) < ctx.s.alpha:
                 _decide_by_switches(ctx, ev, current, name, sw)
 

@@ -13,6 +13,21 @@ from pipeline.audit.extended import FittedModel, ModelSpec
 from pipeline.audit.legs import LegGradient
 from pipeline.audit.result import Evaluation
 
+EFFECT = "geomagnetic_gradient"
+
+
+def keys(ctx: AuditContext, current: ModelSpec) -> list[str]:
+    """The candidate when ``current`` has no gradient (fitted or measured) and the flight
+    has positions."""
+    if current.gradient or current.known_gradient_nT_per_m is not None:
+        return []
+    return [EFFECT] if ctx.data.enu_m is not None else []
+
+
+def without(spec: ModelSpec, key: str) -> ModelSpec:
+    """``spec`` with no gradient, fitted or measured."""
+    return spec.with_(gradient=False, known_gradient_nT_per_m=None)
+
 
 def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
     """A horizontal gradient of the ground's field at the calibration site: the position

@@ -33,7 +33,7 @@ from pipeline.audit.evidence.lag import (
 )
 from pipeline.audit.extended import ModelSpec
 from pipeline.audit.result import Evaluation
-from pipeline.audit.timing import combined_interval
+from pipeline.audit.timing import TimingLag, combined_interval
 
 LAG = "sensor_lag"
 DECAY = "eddy_decay"
@@ -138,6 +138,22 @@ class LagVersusDecay:
 SAME_RESPONSE_RATIO = 1.5
 
 
+def recorded_fluxgate_timing(
+    ctx: AuditContext, current: ModelSpec, ev: Evaluation
+) -> TimingLag | None:
+    """The fluxgate's timing along the lines (:func:`pipeline.audit.evidence.lag.fluxgate_timing`),
+    recorded in ``ev.estimate``; None without it."""
+    tl = fluxgate_timing(ctx, current)
+    if tl is not None:
+        ev.estimate.update(
+            fluxgate_lag_s=tl.lag_s,
+            fluxgate_lag_ci95_s=list(tl.ci95_s),
+            fluxgate_lag_p_value=tl.p_value,
+        )
+        ev.ci95.update(fluxgate_lag_s=None, fluxgate_lag_ci95_s=None, fluxgate_lag_p_value=None)
+    return tl
+
+
 def timing_says(ctx: AuditContext, lag: float, sl, tl) -> str:
     """What the timing along the lines (survey crossovers ``sl``, the fluxgate ``tl``)
     says of a lag of ``lag`` s: ``"holds"`` (one is significant and its interval holds
@@ -160,7 +176,7 @@ def lag_beside_decay_nuisance(
     lag = float(ev.estimate["lag_s"])
     smallest = s.min_lag_s
     ev.test = ctx._lag_profile_test(current, lag)
-    tl = fluxgate_timing(ctx, current, ev)
+    tl = recorded_fluxgate_timing(ctx, current, ev)
     plain = current.with_(eddy_tau_s=0.0)
     lag_plain = lag_estimate(ctx, plain, None, "all")
     decay_alone = ctx.heldout(plain, lambda train, k: current)

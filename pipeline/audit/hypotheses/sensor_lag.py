@@ -11,7 +11,6 @@ import numpy as np
 from pipeline.audit.context import AuditContext
 from pipeline.audit.crossval import jackknife_ci95
 from pipeline.audit.evidence.lag import (
-    fluxgate_timing,
     lag_beside_eddy_decay,
     lag_estimate,
     lag_response,
@@ -23,11 +22,24 @@ from pipeline.audit.hypotheses.lag_decay import (
     lag_beside_decay_nuisance,
     lag_beyond_eddy_decay,
     lag_over_eddy_decay,
+    recorded_fluxgate_timing,
     slower_than_lag,
 )
 from pipeline.audit.hypotheses.rival import beyond
 from pipeline.audit.result import Evaluation
 from pipeline.audit.timing import combined_interval
+
+EFFECT = "sensor_lag"
+
+
+def keys(ctx: AuditContext, current: ModelSpec) -> list[str]:
+    """The candidate when ``current`` has no lag."""
+    return [] if current.lag_s else [EFFECT]
+
+
+def without(spec: ModelSpec, key: str) -> ModelSpec:
+    """``spec`` with no lag (and the response form back to a delay)."""
+    return spec.with_(lag_s=0.0, lag_response="delay")
 
 
 def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
@@ -177,7 +189,7 @@ def _by_the_timing(
     held back."""
     lag, smallest = float(ev.estimate["lag_s"]), ctx.s.min_lag_s
     beside_most = max(beside_decay.values())
-    tl = fluxgate_timing(ctx, current, ev)
+    tl = recorded_fluxgate_timing(ctx, current, ev)
     if tl is not None:  # independent evidence: the fluxgate along the lines
         # independent timing that disagrees with every calibration form: the truth may lie
         # with either, so the interval spans both

@@ -14,6 +14,18 @@ from pipeline.audit.vector_cal import fit_vector_calibration
 from pipeline.compensate.terms import direction_cosines
 from pipeline.maps.reduce import time_window_mean
 
+EFFECT = "vector_calibration"
+
+
+def keys(ctx: AuditContext, current: ModelSpec) -> list[str]:
+    """The candidate when ``current`` has no vector calibration."""
+    return [EFFECT] if current.vector_cal is None else []
+
+
+def without(spec: ModelSpec, key: str) -> ModelSpec:
+    """``spec`` with the fluxgate taken as calibrated."""
+    return spec.with_(vector_cal=None)
+
 
 def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
     """The fluxgate's errors, judged on the fluxgate itself.
