@@ -97,7 +97,7 @@ def calibrated_gate(ctx: AuditContext, evals: list[Evaluation], nc: NullCalibrat
 
 def admit_nuisances(ctx: AuditContext, spec: ModelSpec, finding: str) -> ModelSpec:
     """Add to ``spec`` each nuisance group it lacks that, with the findings so far in the
-    model, lowers held-out data as :meth:`prune_nuisances` requires one to stay: the
+    model, lowers held-out data as :func:`prune_nuisances` requires one to stay: the
     field of an effect not yet modelled (a gradient's, along the manoeuvres) can hide a
     nuisance from the selection on the baseline, and the next candidates are judged
     against the null model the data support."""

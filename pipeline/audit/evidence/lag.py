@@ -16,7 +16,7 @@ EDDY_TAU_GRID_S = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5)
 
 
 def lag_estimate(ctx: AuditContext, current: ModelSpec, keep: np.ndarray | None, key: str) -> float:
-    """The lag minimising the refitted model's residual (see :meth:`_lag_fit`)."""
+    """The lag minimising the refitted model's residual (see :func:`lag_fit`)."""
     return lag_fit(ctx, current, keep, key)[0]
 
 
@@ -63,7 +63,7 @@ def lag_response(ctx: AuditContext, current: ModelSpec) -> tuple[str, float, dic
 
 def lag_beside_eddy_decay(ctx: AuditContext, current: ModelSpec) -> dict[str, float]:
     """The lag (s) each response finds beside eddy currents decaying with the best time
-    constant (:meth:`_eddy_decay_tau`), on all calibration data, keyed by response."""
+    constant (:func:`eddy_decay_tau`), on all calibration data, keyed by response."""
     decay = current.with_(eddy_rate=False, eddy_tau_s=eddy_decay_tau(ctx, current))
     return {r: lag_estimate(ctx, decay.with_(lag_response=r), None, "all") for r in LAG_RESPONSES}
 

@@ -173,7 +173,7 @@ def with_legs_gradient(spec: ModelSpec, legs: LegGradient) -> ModelSpec:
 def gradient_from_legs(ctx: AuditContext, spec: ModelSpec) -> ModelSpec | None:
     """``spec`` with the horizontal gradient the calibration legs measure taken out of
     the reading, when they measure one that matters (p < alpha and no reason against
-    it in :meth:`_leg_gradient_verdict`, which tests its excess over the main field's,
+    it in :func:`leg_gradient_verdict`, which tests its excess over the main field's,
     as for the gradient's own candidate); else None."""
     legs = legs_gradient(ctx, spec)
     if legs is None:

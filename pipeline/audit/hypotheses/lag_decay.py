@@ -296,7 +296,7 @@ def decay_explains_lag(
 def _weigh_lag_beyond_eddy_decay(
     ctx: AuditContext, ev: Evaluation, current: ModelSpec
 ) -> tuple[HeldOut, bool]:
-    """:meth:`_weigh_eddy_decay` of the lag, refitted in each training fold beside the
+    """:func:`_weigh_eddy_decay` of the lag, refitted in each training fold beside the
     decay, against the decay alone (under ``"lag_beyond_decay"``)."""
     return _weigh_eddy_decay(
         ctx,
@@ -356,10 +356,10 @@ def lag_over_eddy_decay(
 ) -> bool:
     """Release a lag held back by the eddy-rate alternative when it predicts held-out data
     better than eddy currents that decay with a time constant, or they better it by less
-    than ``min_gain`` or with the lag's own time constant (:meth:`_same_response`; a tie
+    than ``min_gain`` or with the lag's own time constant (:func:`same_response`; a tie
     goes to the one-parameter lag), and they add nothing beyond the lag. Returns whether
     the release was such a tie (for the timing along the lines to break, as in
-    :meth:`_decay_explains_lag`).
+    :func:`decay_explains_lag`).
 
     The eddy-rate columns are the decay's first order in w tau; on a multicopter's brisk
     manoeuvres they mimic a true lag about as well as the lag itself, so that test cannot
@@ -376,7 +376,7 @@ def lag_over_eddy_decay(
         "beyond_lag",
     )
     # the decay not better than the lag by min_gain, or with the lag's own time constant
-    # (one response, :meth:`_same_response`): the lag wins, a tie if not outright
+    # (one response, :func:`same_response`): the lag wins, a tie if not outright
     better = alone.rms_after_nT < (1 - ctx.s.min_gain) * held.rms_after_nT
     same = same_response(ev.estimate["eddy_decay"]["tau_s"], lag)
     if (not better or same) and not adds:

@@ -55,7 +55,7 @@ def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
 
     def ext_for(train, k):
         # the reference level from the all-calibration fit (a fold's cross-validated
-        # lambda leaves the compensated field's level free, see Auditor.fit)
+        # lambda leaves the compensated field's level free, see AuditContext.fit)
         ok = train & sel
         fold_vc[k] = fit_vector_calibration(m[ok], ref[ok])
         return current.with_(vector_cal=fold_vc[k])
