@@ -41,7 +41,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.audit import run_audit
-from pipeline.audit.stage import AuditSettings
+from pipeline.audit.settings import AuditSettings
 from pipeline.geo.local import local_east_north
 from pipeline.io.reader import read_flight
 from pipeline.physics.vector_sensor import FluxgateErrors

@@ -315,7 +315,8 @@ def test_a_coupling_known_from_outside_the_calibration_is_taken_out_before_the_f
 
 def test_evidence_outside_the_calibration_decides_unless_the_calibration_contradicts():
     from pipeline.audit.evidence import HeldOut
-    from pipeline.audit.stage import AuditSettings, Evaluation
+    from pipeline.audit.result import Evaluation
+    from pipeline.audit.settings import AuditSettings
 
     s = AuditSettings()
     ev = Evaluation("electrical_current", "electrical_current:payload", {}, None, None, None)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from pipeline.audit.evidence import HeldOut
-from pipeline.audit.stage import Evaluation, alternatives
+from pipeline.audit.result import Evaluation, alternatives
 
 
 def _held(before: float, after: float) -> HeldOut:

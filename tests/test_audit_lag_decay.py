@@ -4,7 +4,8 @@ the full benchmark (benchmarks/bench_audit_variety.py, whose seeds they are).
 The calibration cannot tell a first-order sensor response from decaying eddy currents of
 the carrier: both read as a lag. The audit holds a lag back when a decay explains the
 calibration as well, leaves the lag nothing beside it, and is clearly slower than the lag
-(`Auditor._slower_than_lag`); a decay as quick as the lag is the sensor's own response.
+(`pipeline.audit.hypotheses.lag_decay.slower_than_lag`); a decay as quick as the lag is the
+sensor's own response.
 A lag the eddy-rate columns take up is weighed against the decay when the decay leaves it.
 All three flights are multicopters with interference outside the tl18 basis. About 2 minutes, so
 they run with ``-m slow`` (the default suite is at its 15-minute budget); the grid check runs
@@ -15,7 +16,8 @@ from __future__ import annotations
 
 import pytest
 
-from pipeline.audit.stage import EDDY_TAU_GRID_S, Auditor
+from pipeline.audit.evidence.lag import EDDY_TAU_GRID_S
+from pipeline.audit.hypotheses.lag_decay import slower_than_lag
 from pipeline.simulate.audit_trials import correct, one_flight
 
 
@@ -46,10 +48,10 @@ def test_lag_against_decaying_eddy_currents(kind, seed, why, tmp_path):
 def test_slower_than_lag_reads_the_time_constant_grid():
     # the grid's first value at or above the lag is still the same response
     assert EDDY_TAU_GRID_S[:4] == (0.05, 0.1, 0.2, 0.3)
-    assert not Auditor._slower_than_lag(0.2, 0.128)
-    assert not Auditor._slower_than_lag(0.1, 0.128)
-    assert Auditor._slower_than_lag(0.3, 0.128)
-    assert Auditor._slower_than_lag(0.7, 0.236)
-    assert Auditor._slower_than_lag(1.0, -0.076)
+    assert not slower_than_lag(0.2, 0.128)
+    assert not slower_than_lag(0.1, 0.128)
+    assert slower_than_lag(0.3, 0.128)
+    assert slower_than_lag(0.7, 0.236)
+    assert slower_than_lag(1.0, -0.076)
     # a lag beyond the grid: no decay on it is slower
-    assert not Auditor._slower_than_lag(1.5, 2.0)
+    assert not slower_than_lag(1.5, 2.0)

@@ -1,7 +1,7 @@
 """The audit's null model: the carrier's physics outside the T-L basis taken in first
 (:mod:`pipeline.audit.nuisances`), a late sensor weighed against eddy currents that decay
-(:mod:`pipeline.audit.decide`), and the whole selection's false-finding rate measured by a
-parametric bootstrap of the null model (:mod:`pipeline.audit.null_calibration`).
+(:mod:`pipeline.audit.hypotheses.lag_decay`), and the whole selection's false-finding rate
+measured by a parametric bootstrap of the null model (:mod:`pipeline.audit.null_calibration`).
 
 The synthetic calibrations are made here with their own physics (an exact first-order
 discretisation of the decay, a random-telegraph current, AR(1) sensor noise), not with the
@@ -18,13 +18,13 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from pipeline.audit.decide import LagVersusDecay
 from pipeline.audit.extended import BandSettings
+from pipeline.audit.hypotheses.lag_decay import LagVersusDecay
 from pipeline.audit.nuisances import select_from
 from pipeline.audit.null_calibration import calibrate_null, surrogates
 from pipeline.compensate.heldout import HeldOut
 from pipeline.compensate.model import Measurements
-from tests.calibration_box import manoeuvres
+from tests.manoeuvres import manoeuvres
 
 # ../shared/recordings beside the checkout (a worktree sits one level deeper)
 RECORDINGS = next(

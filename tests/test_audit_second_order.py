@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from pipeline.audit.extended import AuditData, ModelSpec, design
-from tests.calibration_box import manoeuvres
+from tests.manoeuvres import manoeuvres
 
 
 def residual_after(columns: np.ndarray, y: np.ndarray) -> float:

@@ -114,7 +114,7 @@ def test_quietest_band_under_interference_that_rises_with_frequency():
 
 
 def test_a_floor_over_interference_rising_with_frequency_is_called_an_upper_bound():
-    from pipeline.audit.stage import AuditSettings
+    from pipeline.audit.settings import AuditSettings
 
     rng = np.random.default_rng(12)
     n = 30_000

@@ -1,123 +1,214 @@
-"""Decisions between a catalogue effect and a nuisance of the null model that mimics it.
-
-A late sensor and eddy currents that decay with a time constant both leave a residual that
-follows the attitude's rate of change. Physics separates them: a lag delays everything the
-sensor sees (the permanent and induced interference's response to the attitude, the geology
-along the lines, the field the fluxgate predicts), a decay delays only the eddy terms. With
-the decay in the null model (its time constant chosen on held-out data), a true lag still
-lowers the held-out residual, for the decay cannot delay the permanent and induced terms;
-a decay mistaken for a lag does not. Where neither adds to the other on held-out data but
-each alone explains the residual, the two are weighed as rivals in the forms the null
-model would take them: the lag model (the whole reading delayed) against the decay model
-(the decayed eddy columns beside T-L's); the one that predicts held-out calibration data
-better by the audit's test is the explanation (held-out prediction weighs the decay's extra
-coefficients). When neither wins, the
-timing along the lines (survey crossovers, the fluxgate's record of the same anomalies)
-decides when it holds the lag and excludes none; otherwise the tie is reported as an
-ambiguity and nothing is named for it.
-"""
+"""The selection: forward-stepwise over the candidate effects, with the null model's nuisances."""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
+from collections.abc import Callable
 
-from pipeline.compensate.heldout import HeldOut
+import numpy as np
 
-LAG = "sensor_lag"
-DECAY = "eddy_decay"
+from pipeline.audit.context import AuditContext
+from pipeline.audit.evidence import HeldOut, holm
+from pipeline.audit.evidence.lag import eddy_decay_tau, lag_estimate
+from pipeline.audit.extended import ModelSpec
+from pipeline.audit.hypotheses import candidates, evaluate, without
+from pipeline.audit.nuisances import Nuisance
+from pipeline.audit.null_calibration import NullCalibration
+from pipeline.audit.result import Evaluation
 
 
-def significant(h: HeldOut | None, alpha: float, min_gain: float) -> bool:
-    """Whether a held-out comparison shows a gain: one-sided p below ``alpha`` and at least
-    ``min_gain`` of the held-out RMS removed."""
-    return h is not None and h.p_value < alpha and h.reduction >= min_gain
+def select(
+    ctx: AuditContext,
+    current: ModelSpec,
+    progress=None,
+    null_calibration: Callable[[], NullCalibration | None] = lambda: None,
+) -> tuple[ModelSpec, list[Evaluation], list[list[Evaluation]]]:
+    """Forward-stepwise selection of the effects.
 
+    Starts from ``current`` (the null model, with a permanent-field step where the survey
+    shows one). Each round tests every candidate, Holm-adjusts the F-test p-values of the
+    tested ones and accepts the passing candidate with the largest held-out reduction; it
+    stops when none passes. The accepted effects are then re-estimated together (:func:`refine`).
 
-@dataclass
-class LagVersusDecay:
-    """The held-out comparisons between a lag and the null model's eddy decay.
-
-    Attributes
+    Parameters
     ----------
-    lag_beyond_null : HeldOut
-        The lag beside the null model with the decay in it.
-    lag_alone : HeldOut or None
-        The lag beside the null model without the decay (None when not weighed).
-    decay_alone : HeldOut
-        The decay beside the null model without it (the lag out as well).
-    decay_beyond_lag : HeldOut
-        The decay beside the null model without it plus the lag.
-    lag_over_decay, decay_over_lag : HeldOut or None
-        The lag model against the decay model (the null model's form), and the reverse
-        (None when not weighed: no tie).
+    progress : callable, optional
+        Called with a message before each candidate's test.
+    null_calibration : callable
+        Gives the null model's bootstrap (:func:`calibrated_gate`), None when not run; asked
+        after the first round's tests.
+
+    Returns
+    -------
+    tuple
+        (final model spec, accepted findings in order, every round's evaluations).
     """
+    findings: list[Evaluation] = []
+    rounds: list[list[Evaluation]] = []
+    while True:
+        cands = candidates(ctx, current)
+        if not cands:
+            break
+        evals = []
+        for effect, key in cands:
+            if progress:
+                progress(f"round {len(rounds) + 1}: testing {key}")
+            evals.append(evaluate(ctx, current, effect, key))
+        tested = [e for e in evals if e.test is not None]
+        for e, p in zip(tested, holm([e.test.p_value for e in tested]), strict=True):
+            e.p_adjusted = p
+        rounds.append(evals)
+        calibrated_gate(ctx, evals, null_calibration())
+        passing = [e for e in evals if e.passes(ctx.s)]
+        for e in evals:
+            if not e.passes(ctx.s) and not e.reason:
+                e.reason = e.why_not(ctx.s)
+        if not passing:
+            break
+        # the fluxgate's gain is measured on the fluxgate, not on the scalar residual, so
+        # it does not compete: a scalar-field effect goes first when one passes
+        best = max(passing, key=lambda e: (e.metric == Evaluation.metric, e.heldout.reduction))
+        best.accepted = True
+        findings.append(best)
+        for e in passing:
+            if e is not best:
+                e.reason = "passed; re-tested in the next round with the better one in"
+        current = admit_nuisances(ctx, best.spec, best.effect)
+    return refine(ctx, prune_nuisances(ctx, current), findings), findings, rounds
 
-    lag_beyond_null: HeldOut
-    lag_alone: HeldOut | None  # None: not needed (the lag beats the null with the decay)
-    decay_alone: HeldOut
-    decay_beyond_lag: HeldOut
-    lag_over_decay: HeldOut | None = None
-    decay_over_lag: HeldOut | None = None
 
-    def tie(self, alpha: float, min_gain: float) -> bool:
-        """Whether each explains the residual alone and the decay adds nothing to the lag."""
-        return (
-            significant(self.lag_alone, alpha, min_gain)
-            and significant(self.decay_alone, alpha, min_gain)
-            and not significant(self.decay_beyond_lag, alpha, min_gain)
+def calibrated_gate(ctx: AuditContext, evals: list[Evaluation], nc: NullCalibration | None) -> None:
+    """Hold back a candidate judged on the scalar calibration whose held-out gain beside
+    the null model does not reach the gate the null model's bootstrap sets for the whole
+    selection (``nc``, :attr:`pipeline.audit.stage.Auditor.null_calibration`); a candidate
+    its own evidence outside the
+    calibration decides is not judged there."""
+    if nc is None:
+        return
+    for e in evals:
+        if e.decided_outside or e.held_back or not e.passes(ctx.s) or nc.passes(e.key):
+            continue
+        e.held_back = True
+        e.reason = (
+            f"its held-out gain beside the null model, {100 * nc.observed_gain[e.key]:.1f} %,"
+            f" is below the {100 * nc.gate_gain:.1f} % the null model's bootstrap sets for "
+            f"the whole selection at a flight-level rate of {nc.alpha:g}"
         )
 
-    def lag_dominates(self, alpha: float, min_gain: float) -> bool:
-        """Whether the lag explains what the decay does and more: it lowers held-out data
-        beside the decay, and the decay adds nothing beside it."""
-        return significant(self.lag_beyond_null, alpha, min_gain) and not significant(
-            self.decay_beyond_lag, alpha, min_gain
+
+def admit_nuisances(ctx: AuditContext, spec: ModelSpec, finding: str) -> ModelSpec:
+    """Add to ``spec`` each nuisance group it lacks that, with the findings so far in the
+    model, lowers held-out data as :func:`prune_nuisances` requires one to stay: the
+    field of an effect not yet modelled (a gradient's, along the manoeuvres) can hide a
+    nuisance from the selection on the baseline, and the next candidates are judged
+    against the null model the data support."""
+    trials = []
+    if spec.eddy_tau_s == 0:
+        tau = eddy_decay_tau(ctx, spec)
+        trials.append(("eddy_decay", spec.with_(eddy_tau_s=tau), {"tau_s": tau}))
+    if not spec.second_order:
+        trials.append(("second_order", spec.with_(second_order=True), {}))
+    for name, trial, est in trials:
+        try:
+            h = ctx.heldout(fold_lag(ctx, spec), fold_lag(ctx, trial))
+        except (ValueError, np.linalg.LinAlgError):
+            continue
+        if nuisance_matters(ctx, h):
+            spec = trial
+            ctx.nuisances.nuisances.append(Nuisance(name, float(h.reduction), est))
+            ctx.notes.append(
+                f"the nuisance {name} lowers held-out data by {100 * h.reduction:.1f} % "
+                f"(p {h.p_value:.2g}) with the {finding.replace('_', ' ')} in the model: "
+                "taken into the null model"
+            )
+    return spec
+
+
+def nuisance_matters(ctx: AuditContext, h: HeldOut) -> bool:
+    """Whether a nuisance's held-out comparison ``h`` holds it in the model: p below
+    ``alpha``, at least ``min_gain`` of the RMS and ``min_nuisance_nT`` of interference."""
+    removed_nT = float(np.sqrt(max(h.rms_before_nT**2 - h.rms_after_nT**2, 0.0)))
+    return (
+        h.p_value < ctx.s.alpha
+        and h.reduction >= ctx.s.min_gain
+        and removed_nT >= ctx.s.min_nuisance_nT
+    )
+
+
+def prune_nuisances(ctx: AuditContext, spec: ModelSpec) -> ModelSpec:
+    """Drop from ``spec`` each nuisance that no longer lowers held-out data with the
+    findings in the model (p < ``alpha``, by ``min_gain`` and ``min_nuisance_nT`` of
+    interference; each model with its own lag): taken before the catalogue
+    effects, a nuisance can have followed part of one (a gradient's field moves with the
+    manoeuvres' small displacements). Kept nuisances stay in ``ctx.nuisances``; the
+    dropped ones are noted."""
+    off = {"eddy_decay": {"eddy_tau_s": 0.0}, "second_order": {"second_order": False}}
+    kept = []
+    for n in ctx.nuisances.nuisances:
+        dropped = spec.with_(**off[n.name])
+        if dropped == spec:
+            continue
+        try:
+            h = ctx.heldout(fold_lag(ctx, dropped), fold_lag(ctx, spec))
+        except (ValueError, np.linalg.LinAlgError):
+            kept.append(n)
+            continue
+        if nuisance_matters(ctx, h):
+            kept.append(n)
+            continue
+        removed_nT = float(np.sqrt(max(h.rms_before_nT**2 - h.rms_after_nT**2, 0.0)))
+        spec = dropped
+        ctx.notes.append(
+            f"the nuisance {n.name} taken before the catalogue effects lowers held-out data "
+            f"by {100 * h.reduction:.1f} % (p {h.p_value:.2g}; {removed_nT:.3f} nT of "
+            f"interference, {ctx.s.min_nuisance_nT:g} nT matters) with the findings in the "
+            "model: dropped"
         )
+    ctx.nuisances.nuisances = kept
+    return spec
 
-    def verdict(self, alpha: float, min_gain: float, timing: str) -> str:
-        """``"lag"`` (named), ``"ambiguous"`` (a tie the data cannot break) or ``"none"``.
 
-        The lag is named when it lowers held-out data beside the decay. When the two tie
-        (each explains the residual alone, neither adds to the other) the rival that
-        predicts held-out data better is the explanation
-        (``lag_over_decay``, ``decay_over_lag``); when neither does, the timing along the
-        lines decides: ``timing`` is ``"holds"`` (a significant timing lag whose interval holds
-        the calibration's), ``"excludes"`` (the timing's interval lies below the lag: the
-        sensor is not that late) or ``"silent"``.
-        """
-        if significant(self.lag_beyond_null, alpha, min_gain):
-            return "lag"
-        if not self.tie(alpha, min_gain):
-            return "none"
-        if significant(self.lag_over_decay, alpha, min_gain):
-            return "lag"
-        if significant(self.decay_over_lag, alpha, min_gain) or timing == "excludes":
-            return "none"
-        return "lag" if timing == "holds" else "ambiguous"
+def fold_lag(ctx: AuditContext, spec: ModelSpec):
+    """A held-out builder of ``spec`` whose lag, when it has one, is estimated on each
+    fold's training rows with the spec's own other terms: a lag fitted beside a nuisance
+    is not the lag of the model without it (a decay takes part of a delay), so a model
+    judged with another model's lag would be judged unfairly."""
 
-    def ambiguity(self) -> dict[str, Any]:
-        """The contract's record of the tie: ``{"candidates", "heldout_gain"}`` (fractions
-        of the held-out RMS each removes alone, beside the null model without the other)."""
-        return {
-            "candidates": [LAG, DECAY],
-            "heldout_gain": {
-                LAG: self.lag_alone.reduction if self.lag_alone is not None else 0.0,
-                DECAY: self.decay_alone.reduction,
-            },
-        }
+    def build(train, k):
+        if spec.lag_s == 0:
+            return spec
+        return spec.with_(lag_s=lag_estimate(ctx, spec.with_(lag_s=0.0), train, f"fold{k}"))
 
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-ready: each comparison's figures."""
-        return {
-            "lag_beyond_null": self.lag_beyond_null.to_dict(),
-            "lag_alone": None if self.lag_alone is None else self.lag_alone.to_dict(),
-            "decay_alone": self.decay_alone.to_dict(),
-            "decay_beyond_lag": self.decay_beyond_lag.to_dict(),
-            "lag_over_decay": None
-            if self.lag_over_decay is None
-            else self.lag_over_decay.to_dict(),
-            "decay_over_lag": None
-            if self.decay_over_lag is None
-            else self.decay_over_lag.to_dict(),
-        }
+    return build
+
+
+def refine(ctx: AuditContext, spec: ModelSpec, findings: list[Evaluation]) -> ModelSpec:
+    """Re-estimate every accepted effect with all the others in the model.
+
+    An effect accepted early was estimated while later ones were still unmodelled (a
+    lag estimated before a current coupling is biased by it); the estimates reported
+    are these, with the others present. The acceptance statistics stay those of the
+    round that accepted the effect. An effect that, with the others present, a
+    competing explanation or its own direct evidence now rejects (``held_back``) is
+    dropped from ``findings`` (in place) and from the model (a current's steps inside the
+    calibration legs ramp like a gradient until the current is in the model).
+    """
+    order = sorted(findings, key=lambda f: f.effect != "sensor_lag")  # lag first
+    for f in order:
+        e = evaluate(ctx, without(spec, f), f.effect, f.key)
+        if e.held_back:
+            spec = without(spec, f)
+            findings.remove(f)
+            f.accepted = False
+            f.reason = f"dropped with the other findings in the model: {e.reason}"
+            continue
+        if not e.estimate:
+            continue
+        f.estimate = {**e.estimate, "at_acceptance": f.estimate}
+        # estimated values in the spec (a lag, a vector calibration, a measured
+        # gradient) take the re-estimate; switched-on columns are refitted anyway
+        if e.spec is not None and (
+            f.effect in ("sensor_lag", "vector_calibration")
+            or e.spec.known_gradient_nT_per_m is not None
+        ):
+            spec = e.spec
+    return spec

@@ -173,54 +173,45 @@ def _jackknife_se(x: np.ndarray, y: np.ndarray, group: np.ndarray) -> tuple[floa
     return float(np.sqrt((g - 1) / g * np.sum((theta - theta.mean()) ** 2))), g - 1
 
 
-def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
-    """Does the airborne field follow the base station? (module docstring)
-
-    Parameters
-    ----------
-    sets
-        The data sets (crossovers, calibration legs); a set with non-finite rows has them
-        dropped, one with fewer points than its columns need (4 more) or without any
-        base-station variation is left out.
-
-    Returns
-    -------
-    DiurnalEvidence or None
-        None when no set is usable.
-    """
-    kept, used, screened = [], {}, {}
-    for s in sets:
-        ok = np.isfinite(s.y) & np.isfinite(s.base_nT) & np.all(np.isfinite(s.nuisance), axis=1)
-        if s.drift_s is not None:
-            ok &= np.isfinite(s.drift_s)
-        s = s.take(ok)
-        k = s.nuisance.shape[1] + 1
-        if s.y.size < k + 4 or np.std(s.base_nT) == 0:
-            continue
-        keep = _screen(s)
-        if keep.sum() < k + 4:
-            continue
-        t = s.take(keep)
-        if np.std(t.base_nT) == 0:
-            continue
-        # the base term less its part in the nuisance columns' span (a leg's level absorbs
-        # the base station's tens of thousands of nT): the same fit, well conditioned, and
-        # the same leave-one-out errors for the correction at coefficient 1
-        g_c = t.base_nT - t.nuisance @ np.linalg.lstsq(t.nuisance, t.base_nT, rcond=None)[0]
-        t = replace(t, base_nT=g_c)
-        a = np.column_stack([t.nuisance, t.base_nT])
-        coef, *_ = np.linalg.lstsq(a, t.y, rcond=None)
-        r = t.y - a @ coef
-        sigma = float(np.sqrt(r @ r / (t.y.size - k)))
-        if not sigma > 0:
-            continue
-        kept.append((t, sigma))
-        used[s.name] = int(t.y.size)
-        screened[s.name] = int(s.y.size - t.y.size)
-    if not kept:
+def _usable(s: DiurnalSet) -> tuple[DiurnalSet, float, int] | None:
+    """``s`` ready for the stacked fit: its non-finite rows dropped, gross errors screened
+    out (:func:`_screen`) and the base term less its part in the nuisance columns' span; with
+    its residual standard deviation (nT) and the number of rows screened out. None with too
+    few rows for its columns (4 more) or without base-station variation."""
+    ok = np.isfinite(s.y) & np.isfinite(s.base_nT) & np.all(np.isfinite(s.nuisance), axis=1)
+    if s.drift_s is not None:
+        ok &= np.isfinite(s.drift_s)
+    s = s.take(ok)
+    k = s.nuisance.shape[1] + 1
+    if s.y.size < k + 4 or np.std(s.base_nT) == 0:
         return None
-    # stacked, each set in units of its own residual standard deviation; the nuisance
-    # columns block-diagonal (each set has its own levels), the base term shared
+    keep = _screen(s)
+    if keep.sum() < k + 4:
+        return None
+    t = s.take(keep)
+    if np.std(t.base_nT) == 0:
+        return None
+    # the base term less its part in the nuisance columns' span (a leg's level absorbs
+    # the base station's tens of thousands of nT): the same fit, well conditioned, and
+    # the same leave-one-out errors for the correction at coefficient 1
+    g_c = t.base_nT - t.nuisance @ np.linalg.lstsq(t.nuisance, t.base_nT, rcond=None)[0]
+    t = replace(t, base_nT=g_c)
+    a = np.column_stack([t.nuisance, t.base_nT])
+    coef, *_ = np.linalg.lstsq(a, t.y, rcond=None)
+    r = t.y - a @ coef
+    sigma = float(np.sqrt(r @ r / (t.y.size - k)))
+    if not sigma > 0:
+        return None
+    return t, sigma, int(s.y.size - t.y.size)
+
+
+def _stacked(
+    kept: list[tuple[DiurnalSet, float]],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The usable sets stacked, each in units of its own residual standard deviation: the
+    nuisance columns (block-diagonal: each set has its own levels), the measurements, the
+    base term (shared), each row's standard deviation (nT), the drift column and each row's
+    group (a set's own group: a crossover, a leg)."""
     n_cols = [t.nuisance.shape[1] for t, _ in kept]
     x0 = np.zeros((sum(t.y.size for t, _ in kept), sum(n_cols)))
     y, g, sig, grp, drift = [], [], [], [], []
@@ -238,6 +229,36 @@ def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
         col += m
     y, g, sig, drift = (np.concatenate(v) for v in (y, g, sig, drift))
     grp = np.unique(np.concatenate(grp), axis=0, return_inverse=True)[1].ravel()
+    return x0, y, g, sig, drift, grp
+
+
+def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
+    """Does the airborne field follow the base station? (module docstring)
+
+    Parameters
+    ----------
+    sets
+        The data sets (crossovers, calibration legs); a set with non-finite rows has them
+        dropped, one with fewer points than its columns need (4 more) or without any
+        base-station variation is left out.
+
+    Returns
+    -------
+    DiurnalEvidence or None
+        None when no set is usable.
+    """
+    kept, used, screened = [], {}, {}
+    for s in sets:
+        got = _usable(s)
+        if got is None:
+            continue
+        t, sigma, out = got
+        kept.append((t, sigma))
+        used[s.name] = int(t.y.size)
+        screened[s.name] = out
+    if not kept:
+        return None
+    x0, y, g, sig, drift, grp = _stacked(kept)
     x1 = np.column_stack([x0, g])
     test = nested_test(y, x0, x1, 1)
     n, k = x1.shape

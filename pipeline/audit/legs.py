@@ -212,25 +212,21 @@ def leg_gradient(
         (n, 3) local east, north, up positions (m).
     legs : ndarray of int
         Leg number per epoch (:func:`leg_ids`), -1 outside.
-    block_s : float
-        Averaging block (s).
-    min_leg_blocks : int
-        Legs with fewer full blocks are left out (a level per leg costs one of them).
+    block_s, min_leg_blocks : float, int
+        Averaging block (s); legs with fewer full blocks are left out (a level per leg
+        costs one of them).
     scale_uncertainty : float
         Relative uncertainty of the field's scale, added in quadrature to the standard
-        errors (at least :data:`SCALE_UNCERTAINTY`). A carrier's isotropic soft iron
-        multiplies the whole reading by ``1 + a`` (0.3-1 % on small aircraft), so a
-        gradient is read ``1 + a`` times too large; compensation cannot undo it, since the
-        isotropic term is the one the induced columns cannot hold (``ux^2 + uy^2 + uz^2 = 1``).
+        errors (at least :data:`SCALE_UNCERTAINTY`): a carrier's isotropic soft iron reads
+        a gradient ``1 + a`` times too large (0.3-1 % on small aircraft), which no
+        compensation undoes (the induced columns cannot hold ``ux^2 + uy^2 + uz^2 = 1``).
     nuisance : ndarray, optional
         (n, k) columns of interference the compensation may have taken out wrongly, each
-        with one coefficient in both models of the test (for a channel whose coupling was
-        fitted, ``u_x I, u_y I, u_z I``: a coupling wrong by ``dc`` leaves ``dc . u I``,
-        and a switch within a leg would otherwise read as a ramp).
+        with one coefficient in both models of the test (a fitted channel's ``u I``: a
+        coupling wrong by ``dc`` leaves ``dc . u I``, which a switch in a leg makes a ramp).
     crust_se_nT_per_m : float
-        Standard error (nT/m) allowed in the intervals for the crust's own gradient at the
-        site (:data:`CRUST_GRADIENT_SE_NT_PER_M`; 0 where the field is known to hold only the
-        gradient sought).
+        Standard error (nT/m) the intervals allow for the crust's own gradient at the site
+        (0 where the field is known to hold only the gradient sought).
 
     Returns
     -------

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from pipeline.audit.stage import AuditResult
+from pipeline.audit.result import AuditResult
 from pipeline.flight import Flight
 from pipeline.io.writer import OutputChannel
 from pipeline.products.summary import jsonable
@@ -212,6 +212,45 @@ def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
         "## Findings",
         "",
     ]
+    lines += _finding_lines(res)
+    lines += [
+        "",
+        f"Extended model: **{' + '.join(j['extended_model'])}**; held-out residual "
+        f"{j['unexplained_rms_nT']:.4f} nT.",
+        "",
+    ]
+    if res.unexplained.get("note"):
+        lines += ["## Unexplained", "", res.unexplained["note"] + ".", ""]
+        for e in res.unexplained["events"]:
+            lines.append(
+                f"- {e['kind']}: {e['size_nT']:.2f} nT, from "
+                f"{(e['start_ns'] - int(res.t0_ns)) / 1e9:.1f} s to "
+                f"{(e['end_ns'] - int(res.t0_ns)) / 1e9:.1f} s "
+                f"({e['evidence']})"
+            )
+        lines.append("")
+    lines += _null_model_lines(res)
+    lines += ["## Gain", "", "| metric | baseline | extended |", "|---|---|---|"]
+    for k, v in res.gain.items():
+        lines.append(f"| {k} | {_fmt(v['before'])} | {_fmt(v['after'])} |")
+    lines += _round_lines(res)
+    lines += ["", "## Measured vs simulated", ""]
+    captions = {
+        "residual_time": "Residual vs time (calibration passes, band-passed)",
+        "residual_position": "Residual vs position",
+        "residual_heading": "Residual vs heading; heading error at validation intersections",
+        "gain": "Gain",
+    }
+    for name, path in images.items():
+        lines += [f"### {captions.get(name, name)}", "", f"![{name}]({path})", ""]
+    if res.notes:
+        lines += ["## Notes", ""] + [f"- {n}" for n in res.notes] + [""]
+    return "\n".join(lines)
+
+
+def _finding_lines(res: AuditResult) -> list[str]:
+    """The findings' table, and for each decided outside the calibration, on what."""
+    lines: list[str] = []
     if res.findings:
         lines += [
             "| effect | estimate | delta BIC | p (Holm) | held-out p | gain metric | "
@@ -250,26 +289,12 @@ def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
                 ]
     else:
         lines.append("No finding: no candidate effect improves held-out data beyond noise.")
-    lines += [
-        "",
-        f"Extended model: **{' + '.join(j['extended_model'])}**; held-out residual "
-        f"{j['unexplained_rms_nT']:.4f} nT.",
-        "",
-    ]
-    if res.unexplained.get("note"):
-        lines += ["## Unexplained", "", res.unexplained["note"] + ".", ""]
-        for e in res.unexplained["events"]:
-            lines.append(
-                f"- {e['kind']}: {e['size_nT']:.2f} nT, from "
-                f"{(e['start_ns'] - int(res.t0_ns)) / 1e9:.1f} s to "
-                f"{(e['end_ns'] - int(res.t0_ns)) / 1e9:.1f} s "
-                f"({e['evidence']})"
-            )
-        lines.append("")
-    lines += _null_model_lines(res)
-    lines += ["## Gain", "", "| metric | baseline | extended |", "|---|---|---|"]
-    for k, v in res.gain.items():
-        lines.append(f"| {k} | {_fmt(v['before'])} | {_fmt(v['after'])} |")
+    return lines
+
+
+def _round_lines(res: AuditResult) -> list[str]:
+    """Every round's candidates: tests, held-out residuals and the decision."""
+    lines: list[str] = []
     lines += [
         "",
         "## Candidates, round by round",
@@ -288,18 +313,7 @@ def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
                 f"{'-' if h is None else _fmt(h.p_value)} | "
                 f"{'accepted' if e.accepted else e.reason} |"
             )
-    lines += ["", "## Measured vs simulated", ""]
-    captions = {
-        "residual_time": "Residual vs time (calibration passes, band-passed)",
-        "residual_position": "Residual vs position",
-        "residual_heading": "Residual vs heading; heading error at validation intersections",
-        "gain": "Gain",
-    }
-    for name, path in images.items():
-        lines += [f"### {captions.get(name, name)}", "", f"![{name}]({path})", ""]
-    if res.notes:
-        lines += ["## Notes", ""] + [f"- {n}" for n in res.notes] + [""]
-    return "\n".join(lines)
+    return lines
 
 
 def _null_model_lines(res) -> list[str]:

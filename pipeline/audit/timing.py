@@ -99,6 +99,40 @@ def _argmin_parabola(lags_s: np.ndarray, rss: np.ndarray) -> float:
     return float(lags_s[i])
 
 
+def _line_records(
+    t: np.ndarray, s: np.ndarray, f: np.ndarray, ok: np.ndarray, sos: np.ndarray, trim: int
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The straight runs of ``ok`` at least ``MIN_LINE_S`` long: each run's times (s) and
+    its scalar ``s`` and fluxgate magnitude ``f`` (nT) less their means, low-passed by
+    ``sos``."""
+    lines = []
+    for idx in contiguous_blocks(ok, t):
+        if t[idx[-1]] - t[idx[0]] < MIN_LINE_S or idx.size <= 2 * trim + 10:
+            continue
+        s_lp = sosfiltfilt(sos, s[idx] - s[idx].mean())
+        f_lp = sosfiltfilt(sos, f[idx] - f[idx].mean())
+        lines.append((t[idx], s_lp, f_lp))
+    return lines
+
+
+def _each_line_lag(
+    lines: list, coarse: np.ndarray, coarse_rss: list, edge: float, trim: int
+) -> list[float]:
+    """Each line's own delay (s), refined around its minimum over the coarse grid
+    ``coarse`` (its residuals ``coarse_rss``); a line whose own minimum lies at the search's
+    edge (``edge``) fixes no delay and is left out. Each line times the sensors on its own,
+    over the whole search: a window around the pooled minimum would clip a line's delay to
+    its edge and make the lines agree falsely."""
+    each = []
+    for ln, c in zip(lines, coarse_rss, strict=True):
+        own = _argmin_parabola(coarse, c)
+        if abs(own) >= edge:
+            continue
+        fine = own + np.arange(-COARSE_STEP_S, COARSE_STEP_S + 1e-9, FINE_STEP_S)
+        each.append(_argmin_parabola(fine, _line_rss(*ln, fine, trim)))
+    return each
+
+
 def timing_lag(
     time_s: np.ndarray,
     scalar_nT: np.ndarray,
@@ -142,13 +176,7 @@ def timing_lag(
     # (differences or a high-pass would amplify that noise or need long edge margins)
     sos = butter(4, min(GEOLOGY_CUT_HZ, 0.4 * rate_hz), fs=rate_hz, output="sos")
     trim = int(round(LINE_END_S * rate_hz))  # a turn's tail, the filter's edge transient
-    lines = []
-    for idx in contiguous_blocks(ok, t):
-        if t[idx[-1]] - t[idx[0]] < MIN_LINE_S or idx.size <= 2 * trim + 10:
-            continue
-        s_lp = sosfiltfilt(sos, s[idx] - s[idx].mean())
-        f_lp = sosfiltfilt(sos, f[idx] - f[idx].mean())
-        lines.append((t[idx], s_lp, f_lp))
+    lines = _line_records(t, s, f, ok, sos, trim)
     if len(lines) < 4:
         return None
     coarse = np.arange(-max_lag_s, max_lag_s + 1e-9, COARSE_STEP_S)
@@ -164,16 +192,7 @@ def timing_lag(
     trend_only = sum(_trend_rss(tt, s_lp, trim) for tt, s_lp, _ in lines)
     if 1.0 - total.min() / trend_only < MIN_EXPLAINED:
         return None
-    # each line times the sensors on its own, over the whole search (a window around the
-    # pooled minimum would clip a line's delay to its edge and make the lines agree
-    # falsely); a line whose own minimum lies at the search's edge fixes no delay
-    each = []
-    for ln, c in zip(lines, coarse_rss, strict=True):
-        own = _argmin_parabola(coarse, c)
-        if abs(own) >= edge:
-            continue
-        fine = own + np.arange(-COARSE_STEP_S, COARSE_STEP_S + 1e-9, FINE_STEP_S)
-        each.append(_argmin_parabola(fine, _line_rss(*ln, fine, trim)))
+    each = _each_line_lag(lines, coarse, coarse_rss, edge, trim)
     k = len(each)
     if k < 4:
         return None

@@ -1,5 +1,5 @@
-"""A calibration box's body-frame field for unit tests: four headings, each with roll, pitch
-and yaw oscillations, in a constant Earth field (shared by the audit's model-form tests)."""
+"""A calibration's manoeuvres for the audit's unit tests: roll, pitch and yaw oscillations on
+four headings, and the body-frame field a sensor on the carrier reads through them."""
 
 from __future__ import annotations
 

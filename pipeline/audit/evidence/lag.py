@@ -1,0 +1,94 @@
+"""The lag estimator: the lag minimising the refitted model's calibration residual, per response
+form and beside eddy currents that decay; and the fluxgate's timing along the lines."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from pipeline.audit.context import AuditContext
+from pipeline.audit.extended import LAG_RESPONSES, ModelSpec, lag_cost
+from pipeline.audit.timing import TimingLag, timing_lag
+
+# eddy currents' decay times tried (s): a carrier skin's L/R from a sample to well past
+# the manoeuvres' shortest periods
+EDDY_TAU_GRID_S = (0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5)
+
+
+def lag_estimate(ctx: AuditContext, current: ModelSpec, keep: np.ndarray | None, key: str) -> float:
+    """The lag minimising the refitted model's residual (see :func:`lag_fit`)."""
+    return lag_fit(ctx, current, keep, key)[0]
+
+
+def lag_fit(
+    ctx: AuditContext, current: ModelSpec, keep: np.ndarray | None, key: str
+) -> tuple[float, float]:
+    """(lag s, residual RMS nT at it): a coarse grid over +-``max_lag_s`` (the eddy
+    terms absorb part of a lag, so a linearised estimate with the baseline's
+    coefficients is biased low), then a bounded 1-D refinement. (0, inf) when the
+    calibration is too short to refit."""
+    # the L-curve's lambda even in a fold: with cross-validation's (often tiny) lambda
+    # the eddy terms absorb part of the lag and bias it low
+    lam = ctx.fit(current, keep, key, ridge="auto").lambda_
+    try:
+        cost = lag_cost(ctx.data, current, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s, keep=keep)
+    except ValueError:
+        return 0.0, np.inf
+    step = 0.05
+    grid = np.arange(-ctx.s.max_lag_s, ctx.s.max_lag_s + step / 2, step)
+    costs = [cost(float(t)) for t in grid]
+    best = float(grid[int(np.argmin(costs))])
+    res = minimize_scalar(
+        cost, bounds=(best - step, best + step), method="bounded", options={"xatol": 1e-4}
+    )
+    return float(res.x), float(res.fun)
+
+
+def lag_response(ctx: AuditContext, current: ModelSpec) -> tuple[str, float, dict[str, float]]:
+    """A pure delay or a first-order sensor filter: the response whose best lag leaves
+    the smaller calibration residual (both have one parameter, so no penalty), and that
+    lag (s) on all calibration data; beside them, the lag (s) every model form finds
+    (each response, with and without eddy currents with a time constant), keyed
+    ``<response>`` and ``<response>_eddy_rate``."""
+    fits = {r: lag_fit(ctx, current.with_(lag_response=r), None, "all") for r in LAG_RESPONSES}
+    best = min(LAG_RESPONSES, key=lambda r: fits[r][1])  # ties: the first, a delay
+    forms = {}
+    for r in LAG_RESPONSES:
+        for rate in (False, True):
+            spec = current.with_(lag_response=r, eddy_rate=rate)
+            fit = fits[r] if rate == current.eddy_rate else lag_fit(ctx, spec, None, "all")
+            forms[f"{r}_eddy_rate" if rate else r] = fit[0]
+    return best, fits[best][0], forms
+
+
+def lag_beside_eddy_decay(ctx: AuditContext, current: ModelSpec) -> dict[str, float]:
+    """The lag (s) each response finds beside eddy currents decaying with the best time
+    constant (:func:`eddy_decay_tau`), on all calibration data, keyed by response."""
+    decay = current.with_(eddy_rate=False, eddy_tau_s=eddy_decay_tau(ctx, current))
+    return {r: lag_estimate(ctx, decay.with_(lag_response=r), None, "all") for r in LAG_RESPONSES}
+
+
+def eddy_decay_tau(ctx: AuditContext, current: ModelSpec) -> float:
+    """The time constant (s) of decaying eddy currents (:func:`eddy_decay` columns beside
+    the T-L ones) that leaves the smallest calibration residual, on
+    :data:`EDDY_TAU_GRID_S` (the null model's, chosen on held-out data, when it has one)."""
+    if current.eddy_tau_s > 0:
+        return current.eddy_tau_s
+    fits = {
+        tau: ctx.fit(current.with_(eddy_tau_s=tau), None, "all", ridge="auto")
+        for tau in EDDY_TAU_GRID_S
+    }
+    return min(fits, key=lambda tau: fits[tau].fit_residual_nT)
+
+
+def fluxgate_timing(ctx: AuditContext, current: ModelSpec) -> TimingLag | None:
+    """The lag the fluxgate's record along the lines gives against ``current``'s compensated
+    field (:func:`pipeline.audit.timing.timing_lag`); None without it."""
+    return timing_lag(
+        ctx.data.time_s,
+        ctx.compensated(current),
+        ctx.data.vector_nT,
+        ctx.seg.mask("survey", "tie", "validation"),
+        ctx.data.rate_hz,
+        ctx.s.max_lag_s,
+    )

@@ -1,0 +1,88 @@
+"""Evidence outside the calibration: the survey's crossovers and a channel's switches."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from pipeline.audit.context import AuditContext
+from pipeline.audit.evidence import HeldOut
+from pipeline.audit.extended import ModelSpec
+from pipeline.audit.survey import (
+    CrossoverSet,
+    SurveyCoupling,
+    SurveyHeading,
+    SurveyLag,
+    survey_coupling,
+    survey_coupling_gain,
+    survey_heading,
+    survey_lag,
+)
+from pipeline.audit.switching import SwitchSteps, switch_steps
+from pipeline.compensate.terms import direction_cosines
+from pipeline.maps.reduce import time_window_mean
+
+
+def crossover_lag(ctx: AuditContext, spec: ModelSpec) -> SurveyLag | None:
+    """The lag seen at the survey's crossovers (:func:`pipeline.audit.survey.survey_lag`)."""
+    got = ctx._survey_crossovers(spec)
+    if got is None:
+        return None
+    cs, red = got
+    t = ctx.data.time_s
+    ok = np.isfinite(red)
+    rate = np.full(t.size, np.nan)
+    rate[ok] = np.gradient(red[ok], t[ok])
+    return survey_lag(cs, np.interp(cs.time_a_s, t, rate), np.interp(cs.time_b_s, t, rate))
+
+
+def crossover_heading(ctx: AuditContext, spec: ModelSpec) -> SurveyHeading | None:
+    """``spec``'s heading error seen at the survey's crossovers, and whether it changes
+    across the survey (:func:`pipeline.audit.survey.survey_heading`)."""
+    got = ctx._survey_crossovers(spec)
+    if got is None:
+        return None
+    cs = got[0]
+    return survey_heading(cs, cs.east_m / 1000.0, cs.north_m / 1000.0)
+
+
+def crossover_channel(
+    ctx: AuditContext, spec: ModelSpec, name: str
+) -> tuple[CrossoverSet, np.ndarray, np.ndarray] | None:
+    """``spec``'s survey crossovers with channel ``name`` at their two readings (smoothed
+    over 1 s, as the crossovers are)."""
+    got = ctx._survey_crossovers(spec)
+    if got is None:
+        return None
+    cs = got[0]
+    t = ctx.data.time_s
+    aux = time_window_mean(t, ctx.data.aux[name], 1.0)
+    return cs, np.interp(cs.time_a_s, t, aux), np.interp(cs.time_b_s, t, aux)
+
+
+def crossover_coupling(ctx: AuditContext, spec: ModelSpec, name: str) -> SurveyCoupling | None:
+    """Channel ``name``'s coupling seen at the survey's crossovers
+    (:func:`pipeline.audit.survey.survey_coupling`)."""
+    got = crossover_channel(ctx, spec, name)
+    return None if got is None else survey_coupling(*got)
+
+
+def channel_switch_steps(ctx: AuditContext, spec: ModelSpec, name: str) -> SwitchSteps | None:
+    """The steps of ``spec``'s compensated field where channel ``name`` switches, with
+    the field's direction at each (:func:`pipeline.audit.switching.switch_steps`)."""
+    return switch_steps(
+        ctx.data.time_s,
+        ctx.compensated(spec),
+        ctx.data.aux[name],
+        # compensation is weakest in turns, and in the calibration's manoeuvres a load
+        # that follows them (a motor's current, the bus voltage) changes with the
+        # attitude, so a residual there would pass for a coupling
+        usable=~ctx.seg.mask("turn", "calibration"),
+        direction=direction_cosines(ctx.data.vector_nT),
+    )
+
+
+def crossover_coupling_gain(ctx: AuditContext, spec: ModelSpec, name: str) -> HeldOut | None:
+    """Leave-one-out gain of channel ``name``'s coupling at the survey's crossovers
+    (:func:`pipeline.audit.survey.survey_coupling_gain`)."""
+    got = crossover_channel(ctx, spec, name)
+    return None if got is None else survey_coupling_gain(*got)

@@ -1,0 +1,152 @@
+"""The diurnal candidate: whether the compensated field follows the base station at the survey's
+crossovers and along the calibration legs (:mod:`pipeline.audit.diurnal`)."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import curve_fit
+
+from pipeline.audit.context import AuditContext, crossover_set
+from pipeline.audit.diurnal import DiurnalSet, diurnal_evidence
+from pipeline.audit.evidence import paired_point_gain
+from pipeline.audit.extended import ModelSpec
+from pipeline.audit.legs import leg_block_means
+from pipeline.audit.result import Evaluation
+from pipeline.audit.survey import heading_levels
+
+EFFECT = "diurnal"
+
+
+def keys(ctx: AuditContext, current: ModelSpec) -> list[str]:
+    """The candidate when ``current`` has no diurnal correction and the flight a base
+    station."""
+    return [EFFECT] if not current.diurnal and ctx.flight.has("base_nT") else []
+
+
+def without(spec: ModelSpec, key: str) -> ModelSpec:
+    """``spec`` without the diurnal correction."""
+    return spec.with_(diurnal=False)
+
+
+def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
+    """The diurnal: does ``current``'s compensated field follow the base station where the
+    survey's lines cross and along the calibration legs
+    (:func:`pipeline.audit.diurnal.diurnal_evidence`)? With enough validation overlaps
+    (8) those are the held-out points instead."""
+    sets = [s for s in (_diurnal_crossovers(ctx, current), _diurnal_legs(ctx, current)) if s]
+    ev_d = diurnal_evidence(sets)
+    if ev_d is None:
+        return Evaluation(
+            "diurnal",
+            key,
+            {},
+            None,
+            None,
+            None,
+            reason="no survey crossovers or calibration legs with base-station variation",
+        )
+    held, metric = ev_d.heldout, "heldout_crossover_and_leg_rms"
+    if ctx.flight.has("lat_deg", "lon_deg", "alt_m") and ctx.seg.mask("validation").any():
+        _, _, ov, red, base, _, _ = ctx._crossover_data(current, smooth_s=1.0)
+        if ov.count >= 8:
+            held = paired_point_gain(ov.differences(red), ov.differences(red - base))
+            metric = "heldout_validation_overlap_rms"
+    est = {
+        "base_coefficient": ev_d.coefficient,
+        # the evidence's size: crossovers and calibration-leg blocks used, and left out
+        # as gross errors
+        "crossovers": ev_d.used.get("crossovers", 0),
+        "leg_blocks": ev_d.used.get("legs", 0),
+        "screened_out": sum(ev_d.screened_out.values()),
+        **_diurnal_shape(ctx.data.time_s, ctx.base_smoothed_nT),
+    }
+    ev = Evaluation(
+        "diurnal",
+        key,
+        est,
+        ev_d.test,
+        held,
+        current.with_(diurnal=True),
+        ci95={"base_coefficient": list(ev_d.ci95)},
+    )
+    ev.metric = metric
+    return ev
+
+
+def _diurnal_crossovers(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None:
+    """The survey's crossovers as a diurnal data set: ``spec``'s crossover differences
+    (smoothed over 1 s along track: a second averages the sensor noise out of each
+    reading, the diurnal changes over minutes), a level per heading, the base station's
+    difference between the two readings."""
+    if not (ctx.flight.has("lat_deg", "lon_deg", "alt_m") and ctx.seg.mask("tie").any()):
+        return None
+    dx, db, _, _, _, xs, heading = ctx._crossover_data(spec, smooth_s=1.0)
+    if dx.size == 0:
+        return None
+    return DiurnalSet(
+        "crossovers",
+        dx,
+        heading_levels(crossover_set(dx, xs, heading)),
+        db,
+        drift_s=np.array([c.time_a_s - c.time_b_s for c in xs]),
+    )
+
+
+def _diurnal_legs(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None:
+    """The calibration legs as a diurnal data set: 10 s block means of ``spec``'s
+    compensated field along each leg (the manoeuvres' cycles average out), a level per
+    leg and the east/north/up position (the ground's gradient), the base station's block
+    mean (:func:`pipeline.audit.legs.leg_block_means`)."""
+    if ctx.data.enu_m is None:
+        return None
+    a, leg_of = leg_block_means(
+        ctx.data.time_s,
+        np.column_stack(
+            [ctx.compensated(spec), ctx.base_smoothed_nT, ctx.data.enu_m, ctx.data.time_s]
+        ),
+        ctx.legs,
+        ctx.s.block_s,
+    )
+    if leg_of.size == 0:
+        return None
+    levels = (leg_of[:, None] == np.unique(leg_of)[None, :]).astype(float)
+    return DiurnalSet(
+        "legs",
+        a[:, 0],
+        np.column_stack([levels, a[:, 2:5]]),
+        a[:, 1],
+        group=leg_of,
+        drift_s=a[:, 5],
+    )
+
+
+def _diurnal_shape(time_s: np.ndarray, base: np.ndarray) -> dict[str, float | None]:
+    """Amplitude and period of the base-station variation (a sinusoid fitted to it)."""
+    ok = np.isfinite(base)
+    t, b = time_s[ok], base[ok] - np.nanmean(base)
+    span = float(t[-1] - t[0]) if t.size else 0.0
+    if t.size < 20 or span <= 0:
+        return {"amplitude_nT": None, "period_s": None}
+    best = None
+    for p0 in (span / 2, span, 2 * span):
+        try:
+            par, _ = curve_fit(
+                lambda x, a, p, ph, c: a * np.sin(2 * np.pi * x / p + ph) + c,
+                t,
+                b,
+                p0=[np.std(b) * 1.4, p0, 0.0, 0.0],
+                maxfev=20_000,
+            )
+        except (RuntimeError, ValueError):
+            continue
+        r = np.mean((b - (par[0] * np.sin(2 * np.pi * t / par[1] + par[2]) + par[3])) ** 2)
+        if best is None or r < best[0]:
+            best = (r, par)
+    if best is None:
+        return {"amplitude_nT": float(np.ptp(b) / 2), "period_s": None}
+    a, p = abs(float(best[1][0])), abs(float(best[1][1]))
+    # a period much longer than the record is not determined: report the range instead
+    return {
+        "amplitude_nT": a if p < 4 * span else float(np.ptp(b) / 2),
+        "period_s": p if p < 4 * span else None,
+    }

@@ -1,0 +1,221 @@
+"""The electrical current candidate: an auxiliary channel's current coupling into the reading
+(three body-frame columns), with the survey's crossovers and the channel's switches as evidence
+outside the calibration (rules C1-C4 of docs/audit.md)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from pipeline.audit.context import AuditContext
+from pipeline.audit.crossval import jackknife_ci95
+from pipeline.audit.evidence.survey_side import (
+    channel_switch_steps,
+    crossover_coupling,
+    crossover_coupling_gain,
+)
+from pipeline.audit.extended import FittedModel, ModelSpec
+from pipeline.audit.hypotheses.rival import beyond
+from pipeline.audit.result import Evaluation
+from pipeline.audit.survey import SurveyCoupling
+from pipeline.audit.switching import SwitchCoupling, switch_body_coupling, switch_coupling
+from pipeline.compensate.terms import direction_cosines
+
+EFFECT = "electrical_current"
+
+
+def keys(ctx: AuditContext, current: ModelSpec) -> list[str]:
+    """``electrical_current:<name>`` for each auxiliary channel with an electrical unit
+    (:func:`_electrical`) not yet in ``current`` that varies over the calibration."""
+    out = []
+    for name, x in ctx.data.aux.items():
+        if (
+            name in current.aux
+            or name in dict(current.known_aux)
+            or not _electrical(ctx.data.aux_units.get(name, ""))
+        ):
+            continue
+        xc = x[ctx.mask]
+        if np.isfinite(xc).sum() > 100 and np.nanstd(xc) > 1e-9:
+            out.append(f"{EFFECT}:{name}")
+    return out
+
+
+def without(spec: ModelSpec, key: str) -> ModelSpec:
+    """``spec`` without channel ``key``'s coupling, fitted or known."""
+    name = key.split(":", 1)[1]
+    return spec.with_(
+        aux=tuple(a for a in spec.aux if a != name),
+        known_aux=tuple(a for a in spec.known_aux if a[0] != name),
+    )
+
+
+def _electrical(unit: str) -> bool:
+    """A channel that can carry a current coupling: a current or a voltage (a load's
+    proxy), or one whose unit the recording does not say. A temperature, a pressure ...
+    changes the carrier's field too, but that is not an electrical current."""
+    u = unit.strip()
+    return u == "" or u in {"A", "mA", "uA", "kA", "V", "mV"}
+
+
+def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
+    """A current in auxiliary channel ``key`` (``electrical_current:<name>``) coupling into
+    the reading: its three body-frame columns on the calibration, confirmed or decided by
+    the survey's crossovers (:func:`_by_the_crossovers`) and the channel's switches
+    (:func:`_by_the_switches`), and weighed against the second-order terms."""
+    name = key.split(":", 1)[1]
+    ext = current.with_(aux=current.aux + (name,))
+    ev, sc = _on_the_calibration(ctx, current, key, name, ext)
+    _by_the_crossovers(ctx, ev, current, name, sc)
+    _by_the_switches(ctx, ev, current, name)
+    # a current that follows the manoeuvres (a motor's) can stand in for interference
+    # that is not linear in the field or in the rates: the coupling is named only when it
+    # explains held-out data better than the second-order terms do
+    beyond(
+        ctx,
+        ev,
+        current.with_(second_order=True),
+        ext.with_(second_order=True),
+        "second-order induced and eddy terms",
+        "a current coupling",
+    )
+    return ev
+
+
+def _on_the_calibration(
+    ctx: AuditContext, current: ModelSpec, key: str, name: str, ext: ModelSpec
+) -> tuple[Evaluation, SurveyCoupling | None]:
+    """The coupling's tests and estimates on the calibration, with the survey crossovers'
+    coupling beside them (and returned, None without enough crossovers)."""
+    test = ctx._nested(current, ext_spec=ext)
+    held = ctx.heldout(current, lambda train, k: ext)
+    u = direction_cosines(ctx.data.vector_nT)
+    inside = np.all(np.isfinite(u), axis=1)
+
+    def coupling(fm: FittedModel) -> dict[str, Any]:
+        c = fm.coefficient(f"aux_{name}_u")
+        mag = float(np.linalg.norm(c))
+        # what the scalar sensor sees: the coupling projected on the field direction
+        return {
+            "channel": f"/aux/{name}",
+            "nT_per_unit": mag,
+            "total_field_nT_per_unit": float(np.mean(u[inside] @ c)),
+            "unit": ctx.data.aux_units.get(name, ""),
+            "direction_body": [float(v) for v in c / mag] if mag > 0 else None,
+        }
+
+    est = coupling(ctx.fit(ext, None, "all"))
+    folds = [coupling(ctx.fit(ext, tr, f"fold{k}")) for k, (tr, _) in enumerate(ctx.folds)]
+    ci = jackknife_ci95(est, folds)
+    sc = crossover_coupling(ctx, current, name)
+    if sc is not None:  # independent evidence: the survey's crossovers
+        est.update(
+            survey_total_field_nT_per_unit=sc.nT_per_unit,
+            survey_ci95=list(sc.ci95),
+            survey_p_value=sc.p_value,
+        )
+        ci.update(
+            {k: None for k in ("survey_total_field_nT_per_unit", "survey_ci95", "survey_p_value")}
+        )
+    return Evaluation("electrical_current", key, est, test, held, ext, ci95=ci), sc
+
+
+def _by_the_crossovers(
+    ctx: AuditContext, ev: Evaluation, current: ModelSpec, name: str, sc: SurveyCoupling | None
+) -> None:
+    """The crossovers' leave-one-out gain of the coupling, which confirms the calibration's
+    held-out test when the crossovers' coupling ``sc`` is significant and the gain large
+    enough."""
+    sg = crossover_coupling_gain(ctx, current, name)
+    if sc is not None and sg is not None:
+        ev.estimate["survey_heldout"] = sg.to_dict()
+        ev.ci95["survey_heldout"] = None
+        # the crossovers are survey data, independent of the calibration's: a coupling
+        # they show (p < alpha) and that predicts them leave-one-out by min_gain confirms
+        # the calibration's held-out test; its leave-one-out p joins the held-out p
+        # (Fisher), the two together must reach alpha
+        if sc.p_value < ctx.s.alpha and sg.reduction >= ctx.s.min_gain:
+            ev.confirm_p, ev.confirmed_gain = sg.p_value, True
+
+
+def _by_the_switches(ctx: AuditContext, ev: Evaluation, current: ModelSpec, name: str) -> None:
+    """The field's steps where the channel switches, over the whole flight: their
+    coupling's estimate beside the calibration's, and their own tests, which confirm the
+    calibration's or decide alone (:func:`_decide_by_switches`)."""
+    steps = channel_switch_steps(ctx, current, name)
+    sw = None if steps is None else switch_coupling(steps)
+    body = None if steps is None else switch_body_coupling(steps)
+    if body is not None:
+        # the calibration's three columns can take up other interference that follows
+        # the manoeuvres, and the switches may be read at few headings: the interval of |c|
+        # spans both estimates'
+        ev.estimate.update(
+            switch_nT_per_unit=body.nT_per_unit,
+            switch_vector_body_nT_per_unit=[float(v) for v in body.vector_nT_per_unit],
+        )
+        ev.ci95["switch_nT_per_unit"] = list(body.ci95)
+        ev.ci95["switch_vector_body_nT_per_unit"] = None
+        cal = ev.ci95.get("nT_per_unit")
+        if cal is not None:
+            ev.ci95["nT_per_unit"] = [min(cal[0], body.ci95[0]), max(cal[1], body.ci95[1])]
+    if sw is not None:
+        ev.estimate.update(
+            switch_total_field_nT_per_unit=sw.total_field_nT_per_unit,
+            switch_p_value=sw.p_value,
+            switches=sw.switches,
+            switch_heldout=sw.heldout.to_dict(),
+        )
+        ev.ci95.update(
+            {
+                k: None
+                for k in (
+                    "switch_total_field_nT_per_unit",
+                    "switch_p_value",
+                    "switches",
+                    "switch_heldout",
+                )
+            }
+        )
+        # the field's steps where the channel switches, over the whole flight: evidence
+        # the calibration's band-pass hardly sees (a rarely switched load); it confirms
+        # when the steps predict each other (leave-one-out) significantly, since many
+        # switches make a negligible coupling significant too
+        if (
+            sw.p_value < ctx.s.alpha
+            and sw.heldout.p_value < ctx.s.alpha
+            and sw.heldout.reduction >= ctx.s.min_gain
+        ):
+            p = sw.heldout.p_value
+            # the better of two confirmations, Bonferroni-corrected for the choice
+            ev.confirm_p = p if ev.confirm_p is None else min(1.0, 2 * min(ev.confirm_p, p))
+            ev.confirmed_gain = True
+            # the steps' own test, Bonferroni over the channels tested, decides alone:
+            # the band-passed calibration is blind to a load it sees switch a few times
+            n_channels = len(keys(ctx, current))
+            if sw.p_value * max(1, n_channels) < ctx.s.alpha:
+                _decide_by_switches(ctx, ev, current, name, sw)
+
+
+def _decide_by_switches(
+    ctx: AuditContext, ev: Evaluation, current: ModelSpec, name: str, sw: SwitchCoupling
+) -> None:
+    """Let channel ``name``'s switches decide ``ev`` (``Evaluation.decided_outside``):
+    the calibration's held-out test then only checks that the extension does not make
+    the calibration worse. The extension is the form that lowers the calibration's
+    held-out residual more: the calibration's three body columns (``ev.spec``), or the
+    switches' total-field coupling taken out as known (``ModelSpec.known_aux``), which
+    has nothing to fit. Three free columns of a channel that the band-passed
+    calibration hardly sees fit other residual (ramps along the calibration legs, which
+    a gradient then takes); where the calibration does see the current, its columns
+    also hold the coupling's components across the field, which the known one lacks.
+    The calibration's fit of the coupling stays the reported estimate."""
+    known = current.with_(known_aux=current.known_aux + ((name, sw.total_field_nT_per_unit),))
+    held_known = ctx.heldout(current, lambda train, k: known)
+    ev.decided_outside = True
+    form = "calibration_columns"
+    if ev.heldout is None or held_known.reduction > ev.heldout.reduction:
+        ev.spec, ev.heldout = known, held_known
+        form = "switch_total_field_nT_per_unit"
+    ev.estimate["compensated_with"] = form
+    ev.ci95["compensated_with"] = None

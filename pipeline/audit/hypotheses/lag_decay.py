@@ -1,0 +1,390 @@
+"""Decisions between a catalogue effect and a nuisance of the null model that mimics it.
+
+A late sensor and eddy currents that decay with a time constant both leave a residual that
+follows the attitude's rate of change. Physics separates them: a lag delays everything the
+sensor sees (the permanent and induced interference's response to the attitude, the geology
+along the lines, the field the fluxgate predicts), a decay delays only the eddy terms. With
+the decay in the null model (its time constant chosen on held-out data), a true lag still
+lowers the held-out residual, for the decay cannot delay the permanent and induced terms;
+a decay mistaken for a lag does not. Where neither adds to the other on held-out data but
+each alone explains the residual, the two are weighed as rivals in the forms the null
+model would take them: the lag model (the whole reading delayed) against the decay model
+(the decayed eddy columns beside T-L's); the one that predicts held-out calibration data
+better by the audit's test is the explanation (held-out prediction weighs the decay's extra
+coefficients). When neither wins, the
+timing along the lines (survey crossovers, the fluxgate's record of the same anomalies)
+decides when it holds the lag and excludes none; otherwise the tie is reported as an
+ambiguity and nothing is named for it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from pipeline.audit.context import AuditContext
+from pipeline.audit.evidence import HeldOut
+from pipeline.audit.evidence.lag import (
+    EDDY_TAU_GRID_S,
+    eddy_decay_tau,
+    fluxgate_timing,
+    lag_estimate,
+)
+from pipeline.audit.extended import ModelSpec
+from pipeline.audit.result import Evaluation
+from pipeline.audit.timing import TimingLag, combined_interval
+
+LAG = "sensor_lag"
+DECAY = "eddy_decay"
+
+
+def significant(h: HeldOut | None, alpha: float, min_gain: float) -> bool:
+    """Whether a held-out comparison shows a gain: one-sided p below ``alpha`` and at least
+    ``min_gain`` of the held-out RMS removed."""
+    return h is not None and h.p_value < alpha and h.reduction >= min_gain
+
+
+@dataclass
+class LagVersusDecay:
+    """The held-out comparisons between a lag and the null model's eddy decay.
+
+    Attributes
+    ----------
+    lag_beyond_null : HeldOut
+        The lag beside the null model with the decay in it.
+    lag_alone : HeldOut or None
+        The lag beside the null model without the decay (None when not weighed).
+    decay_alone : HeldOut
+        The decay beside the null model without it (the lag out as well).
+    decay_beyond_lag : HeldOut
+        The decay beside the null model without it plus the lag.
+    lag_over_decay, decay_over_lag : HeldOut or None
+        The lag model against the decay model (the null model's form), and the reverse
+        (None when not weighed: no tie).
+    """
+
+    lag_beyond_null: HeldOut
+    lag_alone: HeldOut | None  # None: not needed (the lag beats the null with the decay)
+    decay_alone: HeldOut
+    decay_beyond_lag: HeldOut
+    lag_over_decay: HeldOut | None = None
+    decay_over_lag: HeldOut | None = None
+
+    def tie(self, alpha: float, min_gain: float) -> bool:
+        """Whether each explains the residual alone and the decay adds nothing to the lag."""
+        return (
+            significant(self.lag_alone, alpha, min_gain)
+            and significant(self.decay_alone, alpha, min_gain)
+            and not significant(self.decay_beyond_lag, alpha, min_gain)
+        )
+
+    def lag_dominates(self, alpha: float, min_gain: float) -> bool:
+        """Whether the lag explains what the decay does and more: it lowers held-out data
+        beside the decay, and the decay adds nothing beside it."""
+        return significant(self.lag_beyond_null, alpha, min_gain) and not significant(
+            self.decay_beyond_lag, alpha, min_gain
+        )
+
+    def verdict(self, alpha: float, min_gain: float, timing: str) -> str:
+        """``"lag"`` (named), ``"ambiguous"`` (a tie the data cannot break) or ``"none"``.
+
+        The lag is named when it lowers held-out data beside the decay. When the two tie
+        (each explains the residual alone, neither adds to the other) the rival that
+        predicts held-out data better is the explanation
+        (``lag_over_decay``, ``decay_over_lag``); when neither does, the timing along the
+        lines decides: ``timing`` is ``"holds"`` (a significant timing lag whose interval holds
+        the calibration's), ``"excludes"`` (the timing's interval lies below the lag: the
+        sensor is not that late) or ``"silent"``.
+        """
+        if significant(self.lag_beyond_null, alpha, min_gain):
+            return "lag"
+        if not self.tie(alpha, min_gain):
+            return "none"
+        if significant(self.lag_over_decay, alpha, min_gain):
+            return "lag"
+        if significant(self.decay_over_lag, alpha, min_gain) or timing == "excludes":
+            return "none"
+        return "lag" if timing == "holds" else "ambiguous"
+
+    def ambiguity(self) -> dict[str, Any]:
+        """The contract's record of the tie: ``{"candidates", "heldout_gain"}`` (fractions
+        of the held-out RMS each removes alone, beside the null model without the other)."""
+        return {
+            "candidates": [LAG, DECAY],
+            "heldout_gain": {
+                LAG: self.lag_alone.reduction if self.lag_alone is not None else 0.0,
+                DECAY: self.decay_alone.reduction,
+            },
+        }
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready: each comparison's figures."""
+        return {
+            "lag_beyond_null": self.lag_beyond_null.to_dict(),
+            "lag_alone": None if self.lag_alone is None else self.lag_alone.to_dict(),
+            "decay_alone": self.decay_alone.to_dict(),
+            "decay_beyond_lag": self.decay_beyond_lag.to_dict(),
+            "lag_over_decay": None
+            if self.lag_over_decay is None
+            else self.lag_over_decay.to_dict(),
+            "decay_over_lag": None
+            if self.decay_over_lag is None
+            else self.decay_over_lag.to_dict(),
+        }
+
+
+# a decay time constant within this ratio of a lag is the same first-order response
+SAME_RESPONSE_RATIO = 1.5
+
+
+def recorded_fluxgate_timing(
+    ctx: AuditContext, current: ModelSpec, ev: Evaluation
+) -> TimingLag | None:
+    """The fluxgate's timing along the lines (:func:`pipeline.audit.evidence.lag.fluxgate_timing`),
+    recorded in ``ev.estimate``; None without it."""
+    tl = fluxgate_timing(ctx, current)
+    if tl is not None:
+        ev.estimate.update(
+            fluxgate_lag_s=tl.lag_s,
+            fluxgate_lag_ci95_s=list(tl.ci95_s),
+            fluxgate_lag_p_value=tl.p_value,
+        )
+        ev.ci95.update(fluxgate_lag_s=None, fluxgate_lag_ci95_s=None, fluxgate_lag_p_value=None)
+    return tl
+
+
+def timing_says(ctx: AuditContext, lag: float, sl, tl) -> str:
+    """What the timing along the lines (survey crossovers ``sl``, the fluxgate ``tl``)
+    says of a lag of ``lag`` s: ``"holds"`` (one is significant and its interval holds
+    the lag), ``"excludes"`` (their combined interval lies below it) or ``"silent"``."""
+    found = [o for o in (sl, tl) if o is not None]
+    if any(o.p_value < ctx.s.alpha and o.ci95_s[0] <= lag <= o.ci95_s[1] for o in found):
+        return "holds"
+    both = combined_interval(found)
+    return "excludes" if both is not None and both[2] < lag else "silent"
+
+
+def lag_beside_decay_nuisance(
+    ctx: AuditContext, ev: Evaluation, current: ModelSpec, fold_lags: dict[int, float], sl
+) -> Evaluation:
+    """The lag against the null model's eddy decay (:class:`LagVersusDecay`): named when
+    it lowers held-out data beside the decay, or when the two tie and the timing along the
+    lines holds it; a tie the timing cannot break is an ambiguity (``ctx.ambiguities``)
+    and nothing is named."""
+    s = ctx.s
+    lag = float(ev.estimate["lag_s"])
+    smallest = s.min_lag_s
+    ev.test = ctx._lag_profile_test(current, lag)
+    tl = recorded_fluxgate_timing(ctx, current, ev)
+    plain = current.with_(eddy_tau_s=0.0)
+    lag_plain = lag_estimate(ctx, plain, None, "all")
+    decay_alone = ctx.heldout(plain, lambda train, k: current)
+    decay_beyond = ctx.heldout(
+        plain.with_(lag_s=lag_plain), lambda train, k: current.with_(lag_s=fold_lags[k])
+    )
+    lag_alone = None
+    if not (ev.heldout.p_value < s.alpha and ev.heldout.reduction >= s.min_gain):
+        lag_alone = ctx.heldout(
+            plain,
+            lambda train, k: plain.with_(lag_s=lag_estimate(ctx, plain, train, f"plain{k}")),
+        )
+    vs = LagVersusDecay(ev.heldout, lag_alone, decay_alone, decay_beyond)
+    if vs.tie(s.alpha, s.min_gain):
+        # the rivals as the null model would take each: the whole reading delayed, or the
+        # decayed eddy terms beside T-L's (held-out data weigh their sizes)
+        def lag_model(train, k):
+            return plain.with_(lag_s=lag_estimate(ctx, plain, train, f"plain{k}"))
+
+        vs.lag_over_decay = ctx.heldout(current, lag_model)
+        vs.decay_over_lag = ctx.heldout(lag_model, lambda train, k: current)
+    verdict = vs.verdict(s.alpha, s.min_gain, timing_says(ctx, lag_plain, sl, tl))
+    tau = current.eddy_tau_s
+    ev.estimate["eddy_decay"] = {"tau_s": tau, "alone": decay_alone.to_dict()}
+    ev.estimate["against_eddy_decay"] = {"verdict": verdict, **vs.to_dict()}
+    ev.ci95.update(eddy_decay=None, against_eddy_decay=None)
+    ctx.ambiguities = [a for a in ctx.ambiguities if "sensor_lag" not in a["candidates"]]
+    if abs(lag_plain) < smallest and abs(lag) < smallest:
+        verdict = "none"
+    if verdict == "lag" and vs.lag_dominates(s.alpha, s.min_gain):
+        _lag_in_place_of_decay(ctx, ev, plain, lag_plain)
+    elif verdict == "lag" and lag_alone is not None:  # the tie, broken
+        by_physics = significant(vs.lag_over_decay, s.alpha, s.min_gain)
+        ev.estimate.update(
+            lag_s=lag_plain,
+            confirmed_by="the lag model over the decay model"
+            if by_physics
+            else "the timing along the lines",
+        )
+        ev.heldout, ev.spec, ev.decided_outside = lag_alone, plain.with_(lag_s=lag_plain), True
+        lo, hi = ev.ci95.get("lag_s") or (lag, lag)
+        ev.ci95["lag_s"] = [min(lo, lag_plain), max(hi, lag_plain)]
+    elif verdict == "lag" and timing_says(ctx, lag, sl, tl) == "holds":
+        # the lines' timing (what a late sensor delays and a decay does not) confirms it
+        ev.estimate["confirmed_by"] = "the timing along the lines"
+        ev.decided_outside = True
+    elif verdict == "ambiguous":
+        ev.held_back = True
+        ev.reason = (
+            f"eddy currents decaying over {tau:.3g} s and a lag of {lag_plain:.3f} s each "
+            "explain the calibration's residual and neither adds to the other; the timing "
+            "along the lines does not decide: an ambiguity, nothing named"
+        )
+        ctx.ambiguities.append(vs.ambiguity())
+    elif verdict == "none":
+        ev.held_back = True
+        ev.reason = (
+            f"beside eddy currents decaying over {tau:.3g} s the lag lowers held-out data "
+            f"by {100 * ev.heldout.reduction:.1f} % (p {ev.heldout.p_value:.2g}): not a "
+            "late sensor"
+        )
+    return ev
+
+
+def _lag_in_place_of_decay(
+    ctx: AuditContext, ev: Evaluation, plain: ModelSpec, lag_s: float
+) -> None:
+    """The lag takes the null model's eddy decay's place: it lowers held-out data beside
+    the decay and the decay adds nothing beside it, so the null model the data support
+    with a late sensor holds no decay; the lag is tested (nested F, held out) and
+    estimated against that null model."""
+    ev.test = ctx._lag_profile_test(plain, lag_s)
+    ev.heldout = ctx.heldout(
+        plain, lambda train, k: plain.with_(lag_s=lag_estimate(ctx, plain, train, f"fold{k}"))
+    )
+    ev.spec = plain.with_(lag_s=lag_s)
+    ev.estimate.update(lag_s=lag_s, replaces="eddy_decay")
+    # the interval was read beside the decay; it must hold the estimate without it too
+    lo, hi = ev.ci95.get("lag_s") or (lag_s, lag_s)
+    ev.ci95["lag_s"] = [min(lo, lag_s), max(hi, lag_s)]
+
+
+def same_response(tau_s: float, lag_s: float) -> bool:
+    """Whether eddy currents decaying with ``tau_s`` and a lag of ``lag_s`` are one
+    first-order response: a sensor filter of tau and eddy currents decaying with tau
+    differ in the calibration only beyond second order in w tau (the T-L eddy columns
+    take the first order of either), while eddy currents that do decay read as a lag far
+    shorter than their time constant."""
+    return abs(np.log(tau_s / max(abs(lag_s), 1e-9))) <= np.log(SAME_RESPONSE_RATIO)
+
+
+def slower_than_lag(tau_s: float, lag_s: float) -> bool:
+    """Whether a decay time constant ``tau_s`` from :data:`EDDY_TAU_GRID_S` is slower
+    than a lag of ``lag_s`` by more than the grid resolves: beyond the grid's first value
+    at or above the lag (a decay on the grid step next to the lag can be the sensor's own
+    first-order response)."""
+    above = [g for g in EDDY_TAU_GRID_S if g >= abs(lag_s)]
+    return bool(above) and tau_s > above[0]
+
+
+def decay_explains_lag(
+    ctx: AuditContext, ev: Evaluation, current: ModelSpec, held: HeldOut
+) -> bool:
+    """Whether eddy currents decaying with a fitted time constant predict held-out
+    calibration data at least as well as the lag, and the lag, refitted beside them in
+    each fold, adds nothing (recorded in ``ev.estimate["eddy_decay"]``).
+
+    The eddy-rate columns are only the decay's first order in w tau: a slow decay can
+    pass that test as a short lag. The calibration alone cannot settle it either way
+    (a true lag and a decay leave about the same held-out residual), so this only
+    marks the tie for the timing along the lines to break. The lag is refitted beside
+    the decay because the decay's columns absorb part of it.
+    """
+    alone, adds = _weigh_lag_beyond_eddy_decay(ctx, ev, current)
+    return alone.rms_after_nT <= held.rms_after_nT and not adds
+
+
+def _weigh_lag_beyond_eddy_decay(
+    ctx: AuditContext, ev: Evaluation, current: ModelSpec
+) -> tuple[HeldOut, bool]:
+    """:func:`_weigh_eddy_decay` of the lag, refitted in each training fold beside the
+    decay, against the decay alone (under ``"lag_beyond_decay"``)."""
+    return _weigh_eddy_decay(
+        ctx,
+        ev,
+        current,
+        lambda decay: decay,
+        lambda decay, train, k: decay.with_(lag_s=lag_estimate(ctx, decay, train, f"decay{k}")),
+        "lag_beyond_decay",
+    )
+
+
+def _weigh_eddy_decay(
+    ctx: AuditContext, ev: Evaluation, current: ModelSpec, before, after_for_fold, key: str
+) -> tuple[HeldOut, bool]:
+    """Eddy currents decaying with the best-fitting time constant against a lag: their
+    held-out gain alone, and whether ``after_for_fold(decay, train, k)`` adds to
+    ``before(decay)`` (p < alpha, by ``min_gain``); both go into
+    ``ev.estimate["eddy_decay"]`` (the second under ``key``)."""
+    tau = eddy_decay_tau(ctx, current)
+    decay = current.with_(eddy_tau_s=tau)
+    alone = ctx.heldout(current, lambda train, k: decay)
+    beyond = ctx.heldout(before(decay), lambda train, k: after_for_fold(decay, train, k))
+    ev.estimate.setdefault("eddy_decay", {}).update(
+        {"tau_s": tau, "alone": alone.to_dict(), key: beyond.to_dict()}
+    )
+    ev.ci95["eddy_decay"] = None
+    return alone, beyond.p_value < ctx.s.alpha and beyond.reduction >= ctx.s.min_gain
+
+
+def lag_beyond_eddy_decay(ctx: AuditContext, ev: Evaluation, current: ModelSpec) -> bool:
+    """Release a lag held back by the eddy-rate alternative when it adds to eddy currents
+    decaying with the best time constant (the lag refitted in each training fold; p <
+    alpha and at least ``min_gain`` on held-out data): a late sensor beside a carrier
+    whose eddy currents decay. Called only when the lag refitted beside that decay stays
+    at least ``min_lag_s`` in every response (the decay does not take it).
+
+    The eddy-rate columns are nine free coefficients, the decay's first order in w tau,
+    and take up a true lag as well as the decay; the decay's columns with a fitted time
+    constant are the alternative whole, and what the lag adds to them is the sensor's.
+    """
+    adds = _weigh_lag_beyond_eddy_decay(ctx, ev, current)[1]
+    if adds:
+        ev.held_back = False
+        ev.reason = ""
+        ev.estimate["beside"] = "eddy currents that decay with a time constant"
+        ev.ci95["beside"] = None
+    return adds
+
+
+def lag_over_eddy_decay(
+    ctx: AuditContext,
+    ev: Evaluation,
+    current: ModelSpec,
+    held: HeldOut,
+    fold_lags: dict[int, float],
+    lag: float,
+) -> bool:
+    """Release a lag held back by the eddy-rate alternative when it predicts held-out data
+    better than eddy currents that decay with a time constant, or they better it by less
+    than ``min_gain`` or with the lag's own time constant (:func:`same_response`; a tie
+    goes to the one-parameter lag), and they add nothing beyond the lag. Returns whether
+    the release was such a tie (for the timing along the lines to break, as in
+    :func:`decay_explains_lag`).
+
+    The eddy-rate columns are the decay's first order in w tau; on a multicopter's brisk
+    manoeuvres they mimic a true lag about as well as the lag itself, so that test cannot
+    decide. Decaying eddy columns with a fitted time constant can: they add nothing
+    beyond a true lag, and predict slowly decaying eddy currents better than a lag does.
+    A sensor filter and a decay with about its time constant are one response.
+    """
+    alone, adds = _weigh_eddy_decay(
+        ctx,
+        ev,
+        current,
+        lambda decay: current.with_(lag_s=lag),
+        lambda decay, train, k: decay.with_(lag_s=fold_lags[k]),
+        "beyond_lag",
+    )
+    # the decay not better than the lag by min_gain, or with the lag's own time constant
+    # (one response, :func:`same_response`): the lag wins, a tie if not outright
+    better = alone.rms_after_nT < (1 - ctx.s.min_gain) * held.rms_after_nT
+    same = same_response(ev.estimate["eddy_decay"]["tau_s"], lag)
+    if (not better or same) and not adds:
+        ev.held_back = False
+        ev.reason = ""
+        ev.estimate["preferred_over"] = "eddy currents that decay with a time constant"
+        ev.ci95["preferred_over"] = None
+        return alone.rms_after_nT <= held.rms_after_nT
+    return False
