@@ -138,6 +138,7 @@ def one_flight(kind: str, seed: int, folder: Path, **ranges) -> dict:
         "events": len(events),
         "hit": hit,
         "event_kinds": [e["kind"] for e in events],
+        "event_evidence": [e["evidence"] for e in events],
         "estimates": {f["effect"]: f["estimate"] for f in res["findings"]},
         "ci95": {f["effect"]: f.get("estimate_ci95") for f in res["findings"]},
         "truth": {
