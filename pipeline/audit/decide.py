@@ -186,11 +186,12 @@ def refine(ctx: AuditContext, spec: ModelSpec, findings: list[Evaluation]) -> Mo
 
     An effect accepted early was estimated while later ones were still unmodelled (a
     lag estimated before a current coupling is biased by it); the estimates reported
-    are these, with the others present. The acceptance statistics stay those of the
-    round that accepted the effect. An effect that, with the others present, a
-    competing explanation or its own direct evidence now rejects (``held_back``) is
-    dropped from ``findings`` (in place) and from the model (a current's steps inside the
-    calibration legs ramp like a gradient until the current is in the model).
+    are these, with the others present, and so are their intervals. The acceptance
+    statistics stay those of the round that accepted the effect. An effect that, with the
+    others present, a competing explanation or its own direct evidence now rejects
+    (``held_back``) is dropped from ``findings`` (in place) and from the model (a current's
+    steps inside the calibration legs ramp like a gradient until the current is in the
+    model).
     """
     order = sorted(findings, key=lambda f: f.effect != "sensor_lag")  # lag first
     for f in order:
@@ -204,6 +205,10 @@ def refine(ctx: AuditContext, spec: ModelSpec, findings: list[Evaluation]) -> Mo
         if not e.estimate:
             continue
         f.estimate = {**e.estimate, "at_acceptance": f.estimate}
+        # the intervals reported are the re-estimate's: an interval read at acceptance
+        # need not hold the estimate reported
+        if e.ci95:
+            f.ci95 = e.ci95
         # estimated values in the spec (a lag, a vector calibration, a measured
         # gradient) take the re-estimate; switched-on columns are refitted anyway
         if e.spec is not None and (
