@@ -31,9 +31,9 @@ the share outside the basis per term (the simulator's truth) and the share of ph
 recorded channel carries (:data:`RECORDED_TERMS`): an unrecorded switching current and the
 aliased vibration of rotor parts have no channel a model could span them with.
 
-Frozen seed block: ``--seed 71`` (flights 71000-71029 ``outside``, 71100-71129 ``none``) was
-never run while the method was being changed; the results in docs/science.md come from it.
-Development runs use other seeds. Cost: about 45 s per flight on the shared machine (30 s
+The frozen seed block a report uses, and its results, are in docs/science.md (each block is
+run once, after the method is fixed; a fresh one each time). Development runs use other seeds.
+Cost: about 45 s per flight on the shared machine (30 s
 of one core; the maps are compared before the ARIMA-Kalman filter, which they do not use).
 """
 

@@ -251,10 +251,42 @@ def test_agg_tl_takes_the_calibration_legs_gradient():
     mask = np.zeros(fl.data["time_s"].size, bool)
     for span in seg.passes():
         mask[span] = True
+    _agg_auto_chooses_by_held_out_data(fl, seg, mask, ev)
     plain = fit_compensation(
         Measurements.from_flight(fl), mask, FitSettings("agg-tl", agg_gradient="legs")
     )
     assert plain.gradient_evidence == {}
+
+
+def _agg_auto_chooses_by_held_out_data(fl, seg, mask, legs_evidence):
+    """``agg_gradient = "auto"`` keeps the legs' gradient on a quiet box, and takes the
+    band-passed fit's when the legs' estimate is corrupted: a base-station reading that
+    ramps with position (0.2 nT/m east), which the legs take out of their field and read
+    as a gradient 0.2 nT/m off."""
+    from pipeline.compensate.agg_legs import _enu
+    from pipeline.compensate.stage import calibration_legs, run_compensation
+
+    ev = run_compensation(fl, seg, FitSettings("agg-tl", agg_gradient="auto")).summary()[
+        "gradient_evidence"
+    ]
+    assert ev["choice"] == "legs" and ev["source"] == "calibration legs", ev
+    assert ev["east_nT_per_m"] == pytest.approx(legs_evidence["east_nT_per_m"], abs=1e-9)
+    assert ev["heldout"]["p_fit_better_folds"] > 0.01
+    meas = Measurements.from_flight(fl)
+    s = FitSettings("agg-tl", agg_gradient="auto")
+    legs, base = calibration_legs(fl, seg, mask, s)
+    ref = {
+        "latitude_deg": float(np.mean(meas.lat_deg[mask])),
+        "longitude_deg": float(np.mean(meas.lon_deg[mask])),
+        "altitude_m": float(np.mean(meas.alt_m[mask])),
+    }
+    ramp = 0.2 * _enu(meas, ref)[:, 0] + (0.0 if base is None else np.nan_to_num(base))
+    bad = fit_compensation(meas, mask, s, legs, ramp).gradient_evidence
+    assert bad["choice"] == "fit" and bad["source"] == "band-passed fit", bad
+    assert bad["east_nT_per_m"] == bad["fit_east_nT_per_m"]
+    # the legs read the ramp as gradient (less the part the base's 60-s smoothing takes)
+    assert bad["legs_east_nT_per_m"] == pytest.approx(bad["fit_east_nT_per_m"] - 0.2, abs=0.05)
+    assert bad["heldout"]["fit_heldout_residual_nT"] < bad["heldout"]["legs_heldout_residual_nT"]
 
 
 def test_eddy_decay_columns_span_a_lagging_eddy_current():

@@ -54,6 +54,7 @@ def fit_agg_with_legs(
     s: FitSettings,
     legs: np.ndarray,
     base_nT: np.ndarray | None = None,
+    design: tuple[np.ndarray, list[str], int, dict[str, float]] | None = None,
 ) -> CompensationModel:
     """AGG-TL on the calibration epochs ``mask`` with the horizontal gradient fixed at the
     one the calibration legs measure.
@@ -67,6 +68,9 @@ def fit_agg_with_legs(
     base_nT : ndarray, optional
         The base station's total field on the scalar epochs (nT): the day's variation,
         which would otherwise ramp along a leg, is taken out of the legs' field.
+    design : tuple, optional
+        :func:`pipeline.compensate.model.design_of`'s output to use instead of the one of
+        ``mask`` (held-out folds share the whole calibration's position reference).
 
     Returns
     -------
@@ -77,7 +81,7 @@ def fit_agg_with_legs(
     # imported here: the audit's package imports the compensation stage at load time
     from pipeline.audit.legs import leg_gradient
 
-    k, names, n_tl, reference = design_of(s, meas, mask)
+    k, names, n_tl, reference = design or design_of(s, meas, mask)
     plain = fit_columns(meas, mask, s, k, names, n_tl, reference)
     comp = meas.scalar_nT - k[:, :n_tl] @ plain.coefficients[:n_tl]
     if base_nT is not None and np.isfinite(base_nT).any():

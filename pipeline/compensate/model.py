@@ -106,7 +106,8 @@ class FitSettings:
     # tl16 (paper 002's choice) cannot follow that and leaves a heading error.
     base: str = default_field("compensation", "agg_base")
     # AGG-TL's horizontal gradient: "fit" from the position columns, "legs" fixed at the
-    # calibration legs' estimate (pipeline.compensate.agg_legs)
+    # calibration legs' estimate (pipeline.compensate.agg_legs), "auto" the legs' unless
+    # held-out calibration data prefer the fit's (pipeline.compensate.agg_choice)
     agg_gradient: str = default_field("compensation", "agg_gradient")
     poles: int = default_field("compensation", "poles")
     # the band-pass's edge transient dropped at each block end (s)
@@ -130,8 +131,10 @@ class FitSettings:
             raise ValueError(f"unknown model {self.model!r} (use {', '.join(MODELS)})")
         if self.base not in ("tl16", "tl18"):
             raise ValueError(f"unknown AGG-TL base {self.base!r} (use tl16 or tl18)")
-        if self.agg_gradient not in ("fit", "legs"):
-            raise ValueError(f"unknown AGG-TL gradient {self.agg_gradient!r} (use fit or legs)")
+        if self.agg_gradient not in ("fit", "legs", "auto"):
+            raise ValueError(
+                f"unknown AGG-TL gradient {self.agg_gradient!r} (use fit, legs or auto)"
+            )
         if self.learner not in ("hgb", "mlp"):
             raise ValueError(f"unknown learner {self.learner!r} (use hgb or mlp)")
         if not 0.0 < self.extension_alpha < 1.0:
