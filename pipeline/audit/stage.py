@@ -262,7 +262,7 @@ def _unexplained(
                 "; the line is coherent with the attitude: the carrier's interference outside "
                 "the model's forms, not an event"
             )
-        if spec_["kind"] == "line" and not driven:
+        elif spec_["kind"] == "line":
             # a line of its own through the calibration: periodic interference no channel
             # records, part of the null model's nuisances rather than an event in time
             unexplained["nuisances"].append(periodic_nuisance(spec_, cv_e))

@@ -64,6 +64,14 @@ def _heldout_record(setup: HeldOutSetup, r_fit, r_legs, s: FitSettings) -> tuple
     }
 
 
+def _figures(held: dict) -> str:
+    """The held-out comparison in a reason's words."""
+    return (
+        f"({held['fit_heldout_residual_nT']:.4f} against {held['legs_heldout_residual_nT']:.4f}"
+        f" nT, p {held['p_fit_better']:.2g}, folds p {held['p_fit_better_folds']:.2g})"
+    )
+
+
 def fit_agg_auto(
     meas: Measurements,
     mask: np.ndarray,
@@ -112,10 +120,8 @@ def fit_agg_auto(
             "choice": "fit",
             "heldout": held,
             "reason": "the band-passed fit's gradient beats the legs' on held-out "
-            f"calibration blocks ({held['fit_heldout_residual_nT']:.4f} against "
-            f"{held['legs_heldout_residual_nT']:.4f} nT, p {held['p_fit_better']:.2g}, "
-            f"folds p {held['p_fit_better_folds']:.2g}): the legs' ramps carry more than "
-            "the gradient at the manoeuvres",
+            f"calibration blocks {_figures(held)}: the legs' ramps carry more than the "
+            "gradient at the manoeuvres",
         }
         return plain
     with_legs.gradient_evidence = {
@@ -123,8 +129,6 @@ def fit_agg_auto(
         "choice": "legs",
         "heldout": held,
         "reason": ev["reason"] + "; the band-passed fit's does not beat it on held-out "
-        f"calibration blocks ({held['fit_heldout_residual_nT']:.4f} against "
-        f"{held['legs_heldout_residual_nT']:.4f} nT, p {held['p_fit_better']:.2g}, "
-        f"folds p {held['p_fit_better_folds']:.2g})",
+        f"calibration blocks {_figures(held)}",
     }
     return with_legs
