@@ -19,9 +19,10 @@ import pytest
 from scipy.signal import lfilter
 
 from pipeline.audit.extended import BandSettings
-from pipeline.audit.hypotheses.lag_decay import LagVersusDecay
+from pipeline.audit.hypotheses.lag_decay import LagVersusDecay, timing_p_late
 from pipeline.audit.nuisances import select_from
 from pipeline.audit.null_calibration import calibrate_null, surrogates
+from pipeline.audit.timing import TimingLag
 from pipeline.compensate.heldout import HeldOut
 from pipeline.compensate.model import Measurements
 from tests.manoeuvres import manoeuvres
@@ -168,6 +169,39 @@ def test_a_tie_goes_to_the_rival_that_predicts_held_out_data_better():
     assert even.verdict(ALPHA, MIN_GAIN, "silent") == "ambiguous"
     assert even.verdict(ALPHA, MIN_GAIN, "holds") == "lag"
     assert set(even.to_dict()) >= {"lag_over_decay", "decay_over_lag"}
+
+
+def test_the_calibration_and_the_lines_timing_join_to_break_a_tie():
+    """Neither the calibration's comparison (p 0.03) nor the lines' timing alone is
+    significant at 0.01; together (Fisher) they are, when the lag model predicts the
+    held-out calibration no worse than the decay model."""
+    args = (held(0.01, 0.3), held(0.2, 1e-6), held(0.19, 1e-6), held(0.005, 0.4))
+    vs = LagVersusDecay(*args, lag_over_decay=held(0.08, 0.03), decay_over_lag=held(-0.1, 0.9))
+    late = TimingLag(0.2, (0.05, 0.35), 0.01, 5)  # 2.6 standard errors late
+    assert vs.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(late, None)) == "lag"
+    early = TimingLag(-0.2, (-0.35, -0.05), 0.01, 5)
+    assert vs.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(early, None)) == "ambiguous"
+    worse = LagVersusDecay(*args, lag_over_decay=held(-0.02, 0.6), decay_over_lag=held(0.02, 0.4))
+    assert worse.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(late, None)) == "ambiguous"
+
+
+def test_joining_the_evidence_names_a_decay_a_lag_at_most_at_alpha():
+    """The decay true, no lag: the calibration's comparison p uniform (its gain always
+    large enough, the worst case) and the two timing estimates unbiased with their own
+    errors; the share of ties named a lag stays within alpha (3 binomial errors)."""
+    rng = np.random.default_rng(11)
+    draws, named = 4000, 0
+    args = (held(0.01, 0.3), held(0.2, 1e-6), held(0.19, 1e-6), held(0.005, 0.4))
+    for _ in range(draws):
+        se_a, se_b = rng.uniform(0.02, 0.2, 2)
+        a, b = rng.normal(0, se_a), rng.normal(0, se_b)
+        sl = TimingLag(a, (a - 1.96 * se_a, a + 1.96 * se_a), 1.0, 5)
+        tl = TimingLag(b, (b - 1.96 * se_b, b + 1.96 * se_b), 1.0, 5)
+        vs = LagVersusDecay(
+            *args, lag_over_decay=held(0.1, rng.uniform()), decay_over_lag=held(-0.1, 0.9)
+        )
+        named += vs.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(sl, tl)) == "lag"
+    assert named / draws <= ALPHA + 3 * np.sqrt(ALPHA * (1 - ALPHA) / draws)
 
 
 def audit(name: str, tmp_path: Path) -> tuple[dict, dict]:

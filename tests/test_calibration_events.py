@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from pipeline.audit.calibration_events import calibration_steps
+from pipeline.audit.calibration_events import calibration_steps, is_switching, switching_nuisance
 
 RATE_HZ = 10.0
 
@@ -66,3 +66,41 @@ def test_an_oscillation_is_not_a_step():
     t, y, leg = legs_with_residual(5)
     y = y + 0.4 * np.sin(2 * np.pi * 0.25 * t)
     assert calibration_steps(t, y, leg, alpha=0.01, min_size_nT=0.3) == []
+
+
+def telegraph(t: np.ndarray, seed: int, size_nT: float, dwell_s=(5.0, 40.0)) -> np.ndarray:
+    """A load switched on and off at random dwell times: 0 or ``size_nT`` (nT)."""
+    rng = np.random.default_rng(seed)
+    edges = np.cumsum(rng.uniform(*dwell_s, 200))
+    return size_nT * (np.searchsorted(edges, t) % 2)
+
+
+def test_a_switched_load_is_a_nuisance_not_a_step():
+    """Repeated steps back and forth (an unrecorded switched current) are not the one change
+    of the permanent field an event reports: two or more steps make a switching nuisance."""
+    hits = 0
+    for s in range(6):
+        t, y, leg = legs_with_residual(200 + s)
+        steps = calibration_steps(t, y + telegraph(t, s, 1.0), leg, 0.01, 0.3, max_steps=6)
+        hits += is_switching(steps)
+    assert hits >= 5
+    t, y, leg = legs_with_residual(210)
+    y = y + telegraph(t, 10, 1.0)
+    steps = calibration_steps(t, y, leg, 0.01, 0.3, max_steps=6)
+    rec = switching_nuisance(t, y, leg, steps)
+    assert rec["name"] == "unrecorded_current"
+    assert rec["estimate"]["form"] == "switching"
+    assert rec["estimate"]["step_nT"] == pytest.approx(1.0, abs=0.3)
+    assert 0.0 < rec["heldout_gain"] < 1.0
+
+
+def test_one_step_stays_one_when_more_are_looked_for():
+    """A single change of the permanent field is not taken for a switched load: the scan for
+    further steps finds none beyond the scan's level (at most 2 of 20 seeds)."""
+    several = 0
+    for s in range(20):
+        t, y, leg = legs_with_residual(300 + s, step_nT=1.0, step_s=137.3)
+        steps = calibration_steps(t, y, leg, 0.01, 0.3, max_steps=6)
+        assert steps, s
+        several += is_switching(steps)
+    assert several <= 2

@@ -18,6 +18,12 @@ the whitened data is Bonferroni-corrected over the scanned positions. The model 
 inside one of several independent legs) is not a change-point library's cost, hence the
 explicit scan.
 
+Steps are looked for one after another (binary segmentation by the same test: each found
+step joins the base, the AR(2) is refitted to what is left). One step is an event: the
+carrier's permanent field changed. Two or more are a load switched on and off that no
+channel records (:func:`is_switching`): a nuisance of the null model
+(:func:`switching_nuisance`), not an event.
+
 Times are seconds from the flight's first epoch; sizes nT.
 """
 
@@ -43,12 +49,18 @@ class CalibrationStep:
     p_value : float
         Two-sided p of the step on the prewhitened data, Bonferroni-corrected over the
         scanned positions.
+    signed_nT : float
+        The step with its sign (after minus before), nT.
+    leg : int
+        Which of the legs used it lies in (in time order).
     """
 
     start_s: float  # the 1 s bins either side of the step
     end_s: float
     size_nT: float
     p_value: float  # Bonferroni over the scanned positions
+    signed_nT: float = 0.0  # the step with its sign (after minus before), nT
+    leg: int = -1  # which of the legs used (in time order)
 
     def to_dict(self, t0_ns: int) -> dict:
         """The step as an unexplained-event record, with absolute times.
@@ -83,6 +95,141 @@ def _bins(t: np.ndarray, y: np.ndarray, bin_s: float) -> tuple[np.ndarray, np.nd
     return tb[ok] / counts[ok], sums[ok] / counts[ok]
 
 
+# a further step closer than this (s) to one found is that step's edge: a step inside a
+# 1 s bin, or a load's supply settling over a second, spreads over two or three bins
+EDGE_S = 3.0
+SCAN_DRAWS = 2000  # null draws of the scan's largest |t| (p resolved to 5e-4)
+
+
+@dataclass
+class _LegMeans:
+    """The calibration legs' 1 s means stacked: times (s), values (nT), leg of each row, the
+    base design (a level and a slope per leg) and the scanned step positions (leg, the bins
+    either side, s)."""
+
+    t: np.ndarray
+    y: np.ndarray
+    which: np.ndarray
+    base: np.ndarray
+    candidates: list[tuple[int, float, float]]
+
+
+def _leg_means(
+    time_s: np.ndarray,
+    compensated_nT: np.ndarray,
+    leg: np.ndarray,
+    bin_s: float,
+    min_leg_s: float,
+    guard_s: float,
+) -> _LegMeans | None:
+    legs = []
+    for g in np.unique(leg[leg >= 0]):
+        sel = (leg == g) & np.isfinite(compensated_nT)
+        if sel.sum() < 2:
+            continue
+        t, y = _bins(time_s[sel], compensated_nT[sel], bin_s)
+        if t[-1] - t[0] >= min_leg_s:
+            legs.append((t, y))
+    if not legs:
+        return None
+    t_all = np.concatenate([t for t, _ in legs])
+    which = np.concatenate([np.full(t.size, i) for i, (t, _) in enumerate(legs)])
+    base, candidates = [], []
+    for i, (t, _) in enumerate(legs):
+        m = (which == i).astype(float)
+        base += [m, m * (t_all - t.mean())]  # centred times, for conditioning
+        idx = np.flatnonzero((t > t[0] + guard_s) & (t < t[-1] - guard_s))
+        candidates += [
+            (i, float(t[a]), float(t[b])) for a, b in zip(idx[:-1], idx[1:], strict=True)
+        ]
+    y_all = np.concatenate([y for _, y in legs])
+    return _LegMeans(t_all, y_all, which, np.column_stack(base), candidates)
+
+
+def _step_column(m: _LegMeans, i: int, lo: float, hi: float) -> np.ndarray:
+    return ((m.which == i) & (m.t > 0.5 * (lo + hi))).astype(float)
+
+
+def _edge_columns(m: _LegMeans, step: CalibrationStep) -> list[np.ndarray]:
+    """A found step's columns: the step, and a free level for each of the two bins either
+    side of it (a step inside a bin, or one that settles over a second, leaves those bins
+    between the two levels; unmodelled, they read as a second step next to the first)."""
+    col = _step_column(m, step.leg, step.start_s, step.end_s)
+    return [col, *((m.t == b).astype(float) for b in (step.start_s, step.end_s))]
+
+
+def _robust_scale(r: np.ndarray) -> np.ndarray:
+    """MAD scale of each column of ``r`` (or of a vector), the normal's consistent factor."""
+    return 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+
+
+def _scan_statistics(
+    m: _LegMeans, known: np.ndarray, found: list[CalibrationStep]
+) -> tuple[np.ndarray, np.ndarray, list[tuple[int, float, float]], np.ndarray]:
+    """The whitened scan: each candidate step's column with the base (``known``) projected
+    out and normalised (n, m), the base's orthonormal basis, the candidates (at least
+    :data:`EDGE_S` from the steps ``found``) and the whitened data."""
+    resid = m.y - known @ np.linalg.lstsq(known, m.y, rcond=None)[0]
+    # AR(2) of the residual by least squares on its own lags, and its filter, within legs
+    whiten = ar_whitener(ar_coefficients(resid, m.which, 2), m.which)
+    taken = [0.5 * (f.start_s + f.end_s) for f in found]
+    cands = [c for c in m.candidates if all(abs(0.5 * (c[1] + c[2]) - t) >= EDGE_S for t in taken)]
+    yw, bw = whiten(m.y), whiten(known)
+    q = np.linalg.svd(bw, full_matrices=False)[0]
+    c = whiten(np.column_stack([_step_column(m, *x) for x in cands] or [np.zeros(m.y.size)]))
+    c = c - q @ (q.T @ c)
+    return c / np.maximum(np.linalg.norm(c, axis=0), 1e-12), q, cands, yw
+
+
+def _scan_p_value(t_max: float, cols: np.ndarray, q: np.ndarray, draws: int = SCAN_DRAWS) -> float:
+    """The scan's largest |t| (``t_max``) against its own null distribution: independent
+    standard normal innovations through the same projection and robust scale
+    (``draws``, fixed seed: the same result on every run). The statistic is free of the
+    noise's scale and of the base's coefficients, so the simulation is exact for white
+    innovations; it replaces Bonferroni, which neighbouring, nearly equal positions make
+    far too conservative."""
+    e = np.random.default_rng(0).standard_normal((q.shape[0], draws))
+    e = e - q @ (q.T @ e)
+    top = np.max(np.abs(cols.T @ e), axis=0) / _robust_scale(e)
+    return float((1 + np.count_nonzero(top >= t_max)) / (draws + 1))
+
+
+def _next_step(
+    m: _LegMeans, known: np.ndarray, found: list[CalibrationStep], alpha: float, min_size_nT: float
+) -> CalibrationStep | None:
+    """The most significant further step beside the columns ``known`` (the base and the
+    steps ``found`` so far), at least :data:`EDGE_S` from those, if it passes the test and
+    the size rule."""
+    if m.y.size <= known.shape[1] + 2 + len(found):
+        return None
+    cols, q, cands, yw = _scan_statistics(m, known, found)
+    if not cands:
+        return None
+    # the whitened innovations' scale without a further step, robust (MAD): the edges of
+    # steps not yet found are outliers there, which an RMS would take for noise (a switched
+    # load's many steps would hide each other)
+    r0 = yw - q @ (q.T @ yw)
+    t = cols.T @ r0 / _robust_scale(r0)
+    j = int(np.argmax(np.abs(t)))
+    i, lo, hi = cands[j]
+    # the size from the unwhitened data at the located step (whitening trades a step's
+    # level for its edge and biases the coefficient when phi is near the unit circle)
+    # and its two edge bins free (a step inside a bin leaves that bin between the levels)
+    edges = _edge_columns(m, CalibrationStep(lo, hi, 0.0, 1.0, leg=i))
+    size = float(np.linalg.lstsq(np.column_stack([known, *edges]), m.y, rcond=None)[0][-3])
+    a = np.column_stack([known, edges[0]])
+    # a step stands out of its leg's own second-to-second scatter; an oscillation (a gimbal,
+    # say) that the whitening models well enough to make a "step" significant does not. The
+    # scatter of first differences (robust: MAD) is blind to a few other steps in the leg,
+    # which a level RMS would count as scatter (a switched load's many steps)
+    leg_diff = np.diff((m.y - a @ np.linalg.lstsq(a, m.y, rcond=None)[0])[m.which == i])
+    scatter = float(_robust_scale(leg_diff)) / np.sqrt(2)
+    if abs(size) < max(min_size_nT, 3.0 * scatter):
+        return None
+    p = _scan_p_value(float(abs(t[j])), cols, q)
+    return CalibrationStep(lo, hi, abs(size), p, signed_nT=size, leg=i) if p < alpha else None
+
+
 def calibration_steps(
     time_s: np.ndarray,
     compensated_nT: np.ndarray,
@@ -92,8 +239,14 @@ def calibration_steps(
     guard_s: float = 5.0,
     bin_s: float = 1.0,
     min_leg_s: float = 30.0,
+    max_steps: int = 1,
 ) -> list[CalibrationStep]:
-    """The most significant step inside a calibration leg, if any.
+    """The significant steps inside the calibration legs, found one after another.
+
+    Each round scans every position for one more step beside those already found (their
+    columns in the base, the AR(2) refitted to what is left) and keeps it when its
+    scan-corrected p is below ``alpha``; the scan stops at the first round without one or at
+    ``max_steps``.
 
     Parameters
     ----------
@@ -104,74 +257,78 @@ def calibration_steps(
     leg : ndarray of int
         Calibration leg of each epoch (one heading of one pass), -1 outside calibration.
     alpha : float
-        Significance after the scan correction.
+        Significance of each round after the scan correction.
     min_size_nT : float
         Smallest step worth reporting (nT).
     guard_s, bin_s, min_leg_s : float
         Margin (s) kept from each leg's ends, averaging bin (s), shortest leg used (s).
+    max_steps : int
+        Most steps looked for.
 
     Returns
     -------
     list of CalibrationStep
-        At most one (the best scanned position).
+        In the order found (the most significant first).
     """
-    from scipy import stats
+    m = _leg_means(time_s, compensated_nT, leg, bin_s, min_leg_s, guard_s)
+    if m is None or not m.candidates:
+        return []
+    found: list[CalibrationStep] = []
+    known = m.base
+    while len(found) < max_steps:
+        step = _next_step(m, known, found, alpha, min_size_nT)
+        if step is None:
+            break
+        found.append(step)
+        known = np.column_stack([known, *_edge_columns(m, step)])
+    return found
 
-    legs = []
-    for g in np.unique(leg[leg >= 0]):
-        sel = (leg == g) & np.isfinite(compensated_nT)
-        if sel.sum() < 2:
-            continue
-        t, y = _bins(time_s[sel], compensated_nT[sel], bin_s)
-        if t[-1] - t[0] >= min_leg_s:
-            legs.append((t, y))
-    if not legs:
-        return []
-    # the base design: a level and a slope per leg (centred times, for conditioning)
-    t_all = np.concatenate([t for t, _ in legs])
-    y_all = np.concatenate([y for _, y in legs])
-    which = np.concatenate([np.full(t.size, i) for i, (t, _) in enumerate(legs)])
-    base = []
-    for i, (t, _) in enumerate(legs):
-        m = (which == i).astype(float)
-        base += [m, m * (t_all - t.mean())]
-    base = np.column_stack(base)
-    coef0, *_ = np.linalg.lstsq(base, y_all, rcond=None)
-    resid = y_all - base @ coef0
-    # AR(2) of the residual by least squares on its own lags, and its filter, within legs
-    phi = ar_coefficients(resid, which, 2)
-    whiten = ar_whitener(phi, which)
-    yw, bw = whiten(y_all), whiten(base)
-    n, k = bw.shape
-    candidates = []
-    for i, (t, _) in enumerate(legs):
-        inner = (t > t[0] + guard_s) & (t < t[-1] - guard_s)
-        idx = np.flatnonzero(inner)
-        for a, b in zip(idx[:-1], idx[1:], strict=True):
-            candidates.append((i, float(t[a]), float(t[b])))
-    if not candidates or n <= k + 2:
-        return []
-    best = None
-    for i, lo, hi in candidates:
-        step = ((which == i) & (t_all > 0.5 * (lo + hi))).astype(float)
-        a = np.column_stack([bw, whiten(step)])
-        coef, *_ = np.linalg.lstsq(a, yw, rcond=None)
-        r = yw - a @ coef
-        s2 = float(r @ r) / (n - k - 1)
-        cov = s2 * np.linalg.pinv(a.T @ a)
-        tval = coef[-1] / np.sqrt(cov[-1, -1])
-        if best is None or abs(tval) > abs(best[0]):
-            best = (tval, lo, hi, step)
-    tval, lo, hi, step = best
-    # the size from the unwhitened data at the located step (whitening trades a step's
-    # level for its edge and biases the coefficient when phi is near the unit circle)
-    a = np.column_stack([base, step])
-    coef = np.linalg.lstsq(a, y_all, rcond=None)[0]
-    size = float(coef[-1])
-    # a step stands out of its leg's own residual; an oscillation (a gimbal, say) that the
-    # whitening models well enough to make a "step" significant does not
-    leg_rms = float(np.sqrt(np.mean((y_all - a @ coef)[which == which[step > 0][0]] ** 2)))
-    p = min(1.0, 2 * float(stats.t.sf(abs(tval), n - k - 1)) * len(candidates))
-    if p < alpha and abs(size) >= max(min_size_nT, 3.0 * leg_rms):
-        return [CalibrationStep(lo, hi, abs(size), p)]
-    return []
+
+def is_switching(steps: list[CalibrationStep]) -> bool:
+    """Whether the calibration's steps are a load switched on and off rather than one event.
+
+    A change of the carrier's permanent field (a moved part, a load left on) happens once;
+    a field that steps again and again is a current no channel records, switched at
+    random or regular times: part of the null model's nuisances, not an event.
+    """
+    return len(steps) >= 2
+
+
+def switching_nuisance(
+    time_s: np.ndarray,
+    compensated_nT: np.ndarray,
+    leg: np.ndarray,
+    steps: list[CalibrationStep],
+    guard_s: float = 5.0,
+    bin_s: float = 1.0,
+    min_leg_s: float = 30.0,
+) -> dict:
+    """The switched current :func:`is_switching` recognised, as an ``unexplained.nuisances``
+    record: ``{"name": "unrecorded_current", "heldout_gain", "estimate"}``.
+
+    The gain is the fraction of the calibration legs' 1 s-mean residual RMS (about each
+    leg's level and slope) the steps remove, in-sample: a switched level has no form to
+    carry to held-out data (its times are what the data show). ``estimate``: ``form``
+    ("switching"), ``switches`` found, ``step_nT`` (the median size, nT), ``rms_nT`` (the
+    steps' share of the 1 s-mean residual, nT) and ``times_s`` (each step's middle, s
+    from the flight's first epoch). The same arguments as :func:`calibration_steps`.
+    """
+    m = _leg_means(time_s, compensated_nT, leg, bin_s, min_leg_s, guard_s)
+    cols = [c for st in steps for c in _edge_columns(m, st)]
+    known = np.column_stack([m.base, *cols])
+
+    def rms(a: np.ndarray) -> float:
+        return float(np.sqrt(np.mean((m.y - a @ np.linalg.lstsq(a, m.y, rcond=None)[0]) ** 2)))
+
+    before, after = rms(m.base), rms(known)
+    return {
+        "name": "unrecorded_current",
+        "heldout_gain": float(1.0 - after / before) if before > 0 else 0.0,
+        "estimate": {
+            "form": "switching",
+            "switches": len(steps),
+            "step_nT": float(np.median([st.size_nT for st in steps])),
+            "rms_nT": float(np.sqrt(max(before**2 - after**2, 0.0))),
+            "times_s": sorted(0.5 * (st.start_s + st.end_s) for st in steps),
+        },
+    }

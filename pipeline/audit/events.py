@@ -8,7 +8,11 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.audit.calibration_events import calibration_steps
+from pipeline.audit.calibration_events import (
+    calibration_steps,
+    is_switching,
+    switching_nuisance,
+)
 from pipeline.audit.evidence import HeldOut
 from pipeline.audit.extended import ModelSpec, design
 from pipeline.audit.survey import survey_events
@@ -17,6 +21,9 @@ from pipeline.audit.vector_reference import vector_reference_step
 # span (s) over which a crossing reading's course over ground is taken: a few samples at
 # any rate, short against a turn's 10-30 s
 COURSE_WINDOW_S = 2.0
+# steps looked for inside the calibration legs: two tell a switched load from one event,
+# a few more estimate its size
+MAX_SWITCHES = 6
 
 
 @dataclass
@@ -106,19 +113,29 @@ class AuditEvents:
             bool,
         ).reshape(len(xs))
 
-    def calibration_events(self, spec: ModelSpec) -> list[dict[str, Any]]:
-        """A step in ``spec``'s compensated field inside a calibration leg
-        (:mod:`pipeline.audit.calibration_events`), as ``unexplained.events`` entries."""
+    def calibration_events(self, spec: ModelSpec) -> tuple[list[dict], list[dict]]:
+        """Steps in ``spec``'s compensated field inside the calibration legs
+        (:mod:`pipeline.audit.calibration_events`): one step as an ``unexplained.events``
+        entry, repeated steps as an unrecorded switched current among
+        ``unexplained.nuisances``.
+
+        Returns
+        -------
+        tuple of list
+            The events and the nuisances.
+        """
         # everything the model explains removed, its geology terms (position) too: a
         # gradient seen through the manoeuvres' height changes is no step
         fm = self.fit(spec, None, "all")
         des = design(self.data, spec)
         comp = des.y - des.columns @ fm.theta
+        t = self.data.time_s
         steps = calibration_steps(
-            self.data.time_s, comp, self.legs, self.s.alpha, self.s.min_event_nT
+            t, comp, self.legs, self.s.alpha, self.s.min_event_nT, max_steps=MAX_SWITCHES
         )
-        t0 = int(self.flight.time_ns[0])
-        return [e.to_dict(t0) for e in steps]
+        if is_switching(steps):
+            return [], [switching_nuisance(t, comp, self.legs, steps)]
+        return [e.to_dict(int(self.flight.time_ns[0])) for e in steps], []
 
     def vector_reference_events(self) -> list[dict[str, Any]]:
         """A step in the carrier's permanent field against the fluxgate

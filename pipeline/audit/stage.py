@@ -227,13 +227,14 @@ def _unexplained(
     # events are what the catalogue model leaves: without the permanent-field step the
     # survey itself showed (which the extended model then absorbs)
     plain = final_spec.with_(permanent_step_s=None)
-    events = aud.survey_evidence(plain) + aud.calibration_events(plain)
+    cal_events, switched = aud.calibration_events(plain)
+    events = aud.survey_evidence(plain) + cal_events
     events += aud.vector_reference_events()
     events += aud.pass_step_events(plain, events)
     named = {f.effect for f in findings}
     unexplained: dict[str, Any] = {
         "events": events,
-        "nuisances": aud.nuisances.to_list(),
+        "nuisances": aud.nuisances.to_list() + switched,
         "ambiguities": [a for a in aud.ambiguities if not named.intersection(a["candidates"])],
         "note": None,
         "spectrum": residual_spectrum(r_e, data.rate_hz, s.band),

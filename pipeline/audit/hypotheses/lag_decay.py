@@ -13,8 +13,9 @@ model would take them: the lag model (the whole reading delayed) against the dec
 better by the audit's test is the explanation (held-out prediction weighs the decay's extra
 coefficients). When neither wins, the
 timing along the lines (survey crossovers, the fluxgate's record of the same anomalies)
-decides when it holds the lag and excludes none; otherwise the tie is reported as an
-ambiguity and nothing is named for it.
+decides when it holds the lag and excludes none, or joined with the calibration's
+comparison (Fisher's method on the two independent p-values); otherwise the tie is
+reported as an ambiguity and nothing is named for it.
 """
 
 from __future__ import annotations
@@ -87,7 +88,9 @@ class LagVersusDecay:
             self.decay_beyond_lag, alpha, min_gain
         )
 
-    def verdict(self, alpha: float, min_gain: float, timing: str) -> str:
+    def verdict(
+        self, alpha: float, min_gain: float, timing: str, timing_p: float | None = None
+    ) -> str:
         """``"lag"`` (named), ``"ambiguous"`` (a tie the data cannot break) or ``"none"``.
 
         The lag is named when it lowers held-out data beside the decay. When the two tie
@@ -102,6 +105,10 @@ class LagVersusDecay:
             return "lag"
         if not self.tie(alpha, min_gain):
             return "none"
+        if timing_p is not None:  # one test of the calibration and the lines together
+            if significant(self.decay_over_lag, alpha, min_gain):
+                return "none"
+            return "lag" if lag_over_decay_with_timing(self, timing_p, alpha) else "ambiguous"
         if significant(self.lag_over_decay, alpha, min_gain):
             return "lag"
         if significant(self.decay_over_lag, alpha, min_gain) or timing == "excludes":
@@ -133,6 +140,38 @@ class LagVersusDecay:
             if self.decay_over_lag is None
             else self.decay_over_lag.to_dict(),
         }
+
+
+def lag_over_decay_with_timing(vs: LagVersusDecay, timing_p: float, alpha: float) -> bool:
+    """Whether the calibration and the lines' timing together favour the lag over the decay.
+
+    The two are independent data: held-out calibration blocks (which rival predicts the
+    residual better) and the survey lines (whether the whole reading is delayed, which a
+    decay of the eddy terms does not do). With the decay true and no lag, the first p is
+    uniform or larger and the timing's one-sided p uniform, so Fisher's combination below
+    ``alpha`` names a decay a lag at most at that rate. Both rivals already explain the
+    residual by the least gain worth a term; the lag model must predict the held-out
+    calibration no worse than the decay model.
+    """
+    h = vs.lag_over_decay
+    if h is None or h.reduction <= 0.0:
+        return False
+    from scipy.stats import combine_pvalues
+
+    return float(combine_pvalues([h.p_value, timing_p], method="fisher").pvalue) < alpha
+
+
+def timing_p_late(sl, tl) -> float | None:
+    """One-sided p (normal) that the sensor reports late, from the inverse-variance
+    combination of the lines' timing estimates (survey crossovers ``sl``, the fluxgate
+    ``tl``; :func:`pipeline.audit.timing.combined_interval`); None without one."""
+    both = combined_interval([o for o in (sl, tl) if o is not None])
+    if both is None:
+        return None
+    lag, lo, hi = both
+    from scipy.stats import norm
+
+    return float(norm.sf(lag / ((hi - lo) / (2 * 1.959964))))
 
 
 # a decay time constant within this ratio of a lag is the same first-order response
@@ -199,7 +238,9 @@ def lag_beside_decay_nuisance(
 
         vs.lag_over_decay = ctx.heldout(current, lag_model)
         vs.decay_over_lag = ctx.heldout(lag_model, lambda train, k: current)
-    verdict = vs.verdict(s.alpha, s.min_gain, timing_says(ctx, lag_plain, sl, tl))
+    verdict = vs.verdict(
+        s.alpha, s.min_gain, timing_says(ctx, lag_plain, sl, tl), timing_p_late(sl, tl)
+    )
     tau = current.eddy_tau_s
     ev.estimate["eddy_decay"] = {"tau_s": tau, "alone": decay_alone.to_dict()}
     ev.estimate["against_eddy_decay"] = {"verdict": verdict, **vs.to_dict()}
@@ -215,7 +256,9 @@ def lag_beside_decay_nuisance(
             lag_s=lag_plain,
             confirmed_by="the lag model over the decay model"
             if by_physics
-            else "the timing along the lines",
+            else "the timing along the lines"
+            if timing_says(ctx, lag_plain, sl, tl) == "holds"
+            else "the lag model over the decay model with the timing along the lines",
         )
         ev.heldout, ev.spec, ev.decided_outside = lag_alone, plain.with_(lag_s=lag_plain), True
         lo, hi = ev.ci95.get("lag_s") or (lag, lag)
