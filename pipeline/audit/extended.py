@@ -494,7 +494,8 @@ def lag_cost(
     max_lag_s: float,
     keep: np.ndarray | None = None,
 ):
-    """cost(tau): fit residual RMS (nT) of ``spec`` refitted with the scalar re-timed by tau.
+    """cost(tau): fit residual RMS (nT) of ``spec`` refitted with the scalar re-timed by tau;
+    ``cost.many(taus)`` the same for an array of taus at once.
 
     Only the scalar moves with the lag, so the design matrix and its SVD are built once for
     every candidate |tau| <= ``max_lag_s`` (the flight's first and last ``max_lag_s`` seconds
@@ -517,19 +518,20 @@ def lag_cost(
     # record before the fit at every candidate lag, as in design()
     known = data.scalar_nT - des.y
 
-    def cost(tau: float) -> float:
-        yf, _ = bandpass_blocks(
-            scalar_series(data, float(tau), spec.lag_response) - known,
-            blocks,
-            sos,
-            bs.trim_at(data.rate_hz),
-        )
+    def costs(taus: np.ndarray) -> np.ndarray:
+        # every candidate's re-timed record band-passed in one call (the filter runs along
+        # the rows, the candidates are columns): the same numbers as one call each
+        y = np.column_stack([scalar_series(data, float(tau), spec.lag_response) for tau in taus])
+        yf, _ = bandpass_blocks(y - known[:, None], blocks, sos, bs.trim_at(data.rate_hz))
         yf = yf[rows]
-        if not np.all(np.isfinite(yf)):
-            return np.inf
         r = yf - kf @ solver.solve_for(yf, lam)
-        return float(np.sqrt(np.mean(r**2)))
+        out = np.sqrt(np.mean(r**2, axis=0))
+        return np.where(np.all(np.isfinite(yf), axis=0), out, np.inf)
 
+    def cost(tau: float) -> float:
+        return float(costs(np.array([tau]))[0])
+
+    cost.many = costs  # type: ignore[attr-defined]
     return cost
 
 

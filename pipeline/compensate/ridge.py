@@ -60,8 +60,11 @@ class RidgeSVD:
         return self.vt.T @ (self.s / (self.s**2 + lam) * self.beta)
 
     def solve_for(self, y: np.ndarray, lam: float) -> np.ndarray:
-        """The ridge solution for another right-hand side with the same matrix."""
-        return self.vt.T @ (self.s / (self.s**2 + lam) * (self.u.T @ np.asarray(y, float)))
+        """The ridge solution for another right-hand side (n,) or several (n, m) with the
+        same matrix."""
+        uy = self.u.T @ np.asarray(y, float)
+        f = self.s / (self.s**2 + lam)
+        return self.vt.T @ (f[:, None] * uy if uy.ndim == 2 else f * uy)
 
     def norms(self, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Residual norm |K theta - y| and solution norm |theta| of the ridge solution for each

@@ -36,7 +36,7 @@ def lag_fit(
         return 0.0, np.inf
     step = 0.05
     grid = np.arange(-ctx.s.max_lag_s, ctx.s.max_lag_s + step / 2, step)
-    costs = [cost(float(t)) for t in grid]
+    costs = cost.many(grid)
     best = float(grid[int(np.argmin(costs))])
     res = minimize_scalar(
         cost, bounds=(best - step, best + step), method="bounded", options={"xatol": 1e-4}
