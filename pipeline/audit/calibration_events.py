@@ -3,20 +3,22 @@
 The crossovers (:mod:`pipeline.audit.survey`) see a change of the carrier's field during the
 survey; during calibration there are no crossovers, but each leg is flown on one heading over
 quiet ground, so the compensated field along a leg is the Earth field's smooth trend. Per
-leg, the 1 s means of the compensated field are modelled as a line, and a step at a scanned
-time inside one leg (at least ``guard_s`` from its ends, where turns and manoeuvre changes
-leave transients) is tested against it:
+leg, the 1 s means of the compensated field are modelled as a smooth trend (a cubic in time:
+over geology a kilometre-long leg's field curves), and a step at a scanned time inside one
+leg (at least ``guard_s`` from its ends, where turns and manoeuvre changes leave transients)
+is tested against it:
 
-    y_k = a_leg + b_leg t_k + c [t_k > t_s] (leg holding t_s only) + e_k
+    y_k = P_leg(t_k) + c [t_k > t_s] (leg holding t_s only) + e_k
 
 The errors are autocorrelated (manoeuvre-frequency residuals last several seconds: lag-one
 correlations of 0.7-0.8 between 1 s means), which a plain or Newey-West t ignores or
-under-corrects (clean calibrations then give "steps"). So the model
-is prewhitened first: an AR(2) fitted to the no-step residuals (least squares on its lags)
-filters y and every column within each leg (Cochrane-Orcutt), and the step's t statistic on
-the whitened data is Bonferroni-corrected over the scanned positions. The model (one step
-inside one of several independent legs) is not a change-point library's cost, hence the
-explicit scan.
+under-corrects (clean calibrations then give "steps"). So the model is prewhitened first: an
+AR(2) fitted to the no-step residuals (least squares on its lags) filters y and every column
+within each leg (Cochrane-Orcutt). The step's t statistic on the whitened data (robust scale)
+is compared with the largest of the same scan over seeded standard normal draws: the scan's
+own null distribution, exact for white innovations, where Bonferroni over neighbouring,
+nearly equal positions is far too conservative. The model (one step inside one of several
+independent legs) is not a change-point library's cost, hence the explicit scan.
 
 Steps are looked for one after another (binary segmentation by the same test: each found
 step joins the base, the AR(2) is refitted to what is left). One step is an event: the
@@ -47,8 +49,8 @@ class CalibrationStep:
     size_nT : float
         Step size (magnitude), nT.
     p_value : float
-        Two-sided p of the step on the prewhitened data, Bonferroni-corrected over the
-        scanned positions.
+        Two-sided p of the step on the prewhitened data, against the scan's own null
+        distribution (corrected for the scanned positions).
     signed_nT : float
         The step with its sign (after minus before), nT.
     leg : int
@@ -58,7 +60,7 @@ class CalibrationStep:
     start_s: float  # the 1 s bins either side of the step
     end_s: float
     size_nT: float
-    p_value: float  # Bonferroni over the scanned positions
+    p_value: float  # corrected for the scanned positions
     signed_nT: float = 0.0  # the step with its sign (after minus before), nT
     leg: int = -1  # which of the legs used (in time order)
 
@@ -98,6 +100,7 @@ def _bins(t: np.ndarray, y: np.ndarray, bin_s: float) -> tuple[np.ndarray, np.nd
 # a further step closer than this (s) to one found is that step's edge: a step inside a
 # 1 s bin, or a load's supply settling over a second, spreads over two or three bins
 EDGE_S = 3.0
+TREND_DEGREE = 3  # of each leg's Earth-field trend
 SCAN_DRAWS = 2000  # null draws of the scan's largest |t| (p resolved to 5e-4)
 
 
@@ -137,7 +140,11 @@ def _leg_means(
     base, candidates = [], []
     for i, (t, _) in enumerate(legs):
         m = (which == i).astype(float)
-        base += [m, m * (t_all - t.mean())]  # centred times, for conditioning
+        # the Earth field along a leg: smooth, but over geology on a kilometre-long leg not
+        # a line (a fixed-wing's legs curve by tens of nT): a cubic in time (centred and
+        # scaled, for conditioning)
+        x = (t_all - t.mean()) / max(float(np.ptp(t)), 1.0)
+        base += [m * x**d for d in range(TREND_DEGREE + 1)]
         idx = np.flatnonzero((t > t[0] + guard_s) & (t < t[-1] - guard_s))
         candidates += [
             (i, float(t[a]), float(t[b])) for a, b in zip(idx[:-1], idx[1:], strict=True)
@@ -158,8 +165,10 @@ def _edge_columns(m: _LegMeans, step: CalibrationStep) -> list[np.ndarray]:
     return [col, *((m.t == b).astype(float) for b in (step.start_s, step.end_s))]
 
 
-def _robust_scale(r: np.ndarray) -> np.ndarray:
-    """MAD scale of each column of ``r`` (or of a vector), the normal's consistent factor."""
+def _scale(r: np.ndarray) -> np.ndarray:
+    """Robust scale (MAD, the normal's consistent factor) of each column of ``r`` (or of a
+    vector): the edges of steps not yet found are outliers in the whitened residual, which
+    an RMS would count as noise (a switched load's many steps would hide each other)."""
     return 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
 
 
@@ -183,14 +192,14 @@ def _scan_statistics(
 
 def _scan_p_value(t_max: float, cols: np.ndarray, q: np.ndarray, draws: int = SCAN_DRAWS) -> float:
     """The scan's largest |t| (``t_max``) against its own null distribution: independent
-    standard normal innovations through the same projection and robust scale
+    standard normal innovations through the same projection and scale
     (``draws``, fixed seed: the same result on every run). The statistic is free of the
     noise's scale and of the base's coefficients, so the simulation is exact for white
     innovations; it replaces Bonferroni, which neighbouring, nearly equal positions make
     far too conservative."""
     e = np.random.default_rng(0).standard_normal((q.shape[0], draws))
     e = e - q @ (q.T @ e)
-    top = np.max(np.abs(cols.T @ e), axis=0) / _robust_scale(e)
+    top = np.max(np.abs(cols.T @ e), axis=0) / _scale(e)
     return float((1 + np.count_nonzero(top >= t_max)) / (draws + 1))
 
 
@@ -205,11 +214,10 @@ def _next_step(
     cols, q, cands, yw = _scan_statistics(m, known, found)
     if not cands:
         return None
-    # the whitened innovations' scale without a further step, robust (MAD): the edges of
-    # steps not yet found are outliers there, which an RMS would take for noise (a switched
-    # load's many steps would hide each other)
+    # the whitened innovations' scale without a further step (the null draws take theirs
+    # the same way)
     r0 = yw - q @ (q.T @ yw)
-    t = cols.T @ r0 / _robust_scale(r0)
+    t = cols.T @ r0 / _scale(r0)
     j = int(np.argmax(np.abs(t)))
     i, lo, hi = cands[j]
     # the size from the unwhitened data at the located step (whitening trades a step's
@@ -220,10 +228,10 @@ def _next_step(
     a = np.column_stack([known, edges[0]])
     # a step stands out of its leg's own second-to-second scatter; an oscillation (a gimbal,
     # say) that the whitening models well enough to make a "step" significant does not. The
-    # scatter of first differences (robust: MAD) is blind to a few other steps in the leg,
-    # which a level RMS would count as scatter (a switched load's many steps)
-    leg_diff = np.diff((m.y - a @ np.linalg.lstsq(a, m.y, rcond=None)[0])[m.which == i])
-    scatter = float(_robust_scale(leg_diff)) / np.sqrt(2)
+    # scatter of first differences (robust) is blind to other steps in the leg, which a
+    # level RMS would count as scatter (a switched load's many steps)
+    res_leg = (m.y - a @ np.linalg.lstsq(a, m.y, rcond=None)[0])[m.which == i]
+    scatter = float(_scale(np.diff(res_leg))) / np.sqrt(2)
     if abs(size) < max(min_size_nT, 3.0 * scatter):
         return None
     p = _scan_p_value(float(abs(t[j])), cols, q)
