@@ -34,6 +34,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import stats
 
 from pipeline.audit.prewhiten import ar_coefficients, ar_whitener
 
@@ -107,8 +108,8 @@ SCAN_DRAWS = 2000  # null draws of the scan's largest |t| (p resolved to 5e-4)
 @dataclass
 class _LegMeans:
     """The calibration legs' 1 s means stacked: times (s), values (nT), leg of each row, the
-    base design (a level and a slope per leg) and the scanned step positions (leg, the bins
-    either side, s)."""
+    base design (each leg's Earth-field trend, a polynomial of :data:`TREND_DEGREE`) and the
+    scanned step positions (leg, the bins either side, s)."""
 
     t: np.ndarray
     y: np.ndarray
@@ -169,7 +170,7 @@ def _scale(r: np.ndarray) -> np.ndarray:
     """Robust scale (MAD, the normal's consistent factor) of each column of ``r`` (or of a
     vector): the edges of steps not yet found are outliers in the whitened residual, which
     an RMS would count as noise (a switched load's many steps would hide each other)."""
-    return 1.4826 * np.median(np.abs(r - np.median(r, axis=0)), axis=0)
+    return stats.median_abs_deviation(r, axis=0, scale="normal")
 
 
 def _scan_statistics(
@@ -315,7 +316,7 @@ def switching_nuisance(
     record: ``{"name": "unrecorded_current", "heldout_gain", "estimate"}``.
 
     The gain is the fraction of the calibration legs' 1 s-mean residual RMS (about each
-    leg's level and slope) the steps remove, in-sample: a switched level has no form to
+    leg's Earth-field trend) the steps remove, in-sample: a switched level has no form to
     carry to held-out data (its times are what the data show). ``estimate``: ``form``
     ("switching"), ``switches`` found, ``step_nT`` (the median size, nT), ``rms_nT`` (the
     steps' share of the 1 s-mean residual, nT) and ``times_s`` (each step's middle, s

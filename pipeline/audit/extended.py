@@ -494,8 +494,8 @@ def lag_cost(
     max_lag_s: float,
     keep: np.ndarray | None = None,
 ):
-    """cost(tau): fit residual RMS (nT) of ``spec`` refitted with the scalar re-timed by tau;
-    ``cost.many(taus)`` the same for an array of taus at once.
+    """costs(taus): fit residual RMS (nT) of ``spec`` refitted with the scalar re-timed by
+    each tau of the array ``taus`` (s).
 
     Only the scalar moves with the lag, so the design matrix and its SVD are built once for
     every candidate |tau| <= ``max_lag_s`` (the flight's first and last ``max_lag_s`` seconds
@@ -528,11 +528,7 @@ def lag_cost(
         out = np.sqrt(np.mean(r**2, axis=0))
         return np.where(np.all(np.isfinite(yf), axis=0), out, np.inf)
 
-    def cost(tau: float) -> float:
-        return float(costs(np.array([tau]))[0])
-
-    cost.many = costs  # type: ignore[attr-defined]
-    return cost
+    return costs
 
 
 # --------------------------------------------------------------------------------------------

@@ -31,13 +31,16 @@ def lag_fit(
     # the eddy terms absorb part of the lag and bias it low
     lam = ctx.fit(current, keep, key, ridge="auto").lambda_
     try:
-        cost = lag_cost(ctx.data, current, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s, keep=keep)
+        costs = lag_cost(ctx.data, current, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s, keep=keep)
     except ValueError:
         return 0.0, np.inf
+
+    def cost(tau: float) -> float:
+        return float(costs(np.array([tau]))[0])
+
     step = 0.05
     grid = np.arange(-ctx.s.max_lag_s, ctx.s.max_lag_s + step / 2, step)
-    costs = cost.many(grid)
-    best = float(grid[int(np.argmin(costs))])
+    best = float(grid[int(np.argmin(costs(grid)))])
     res = minimize_scalar(
         cost, bounds=(best - step, best + step), method="bounded", options={"xatol": 1e-4}
     )

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy.stats import combine_pvalues, norm
 
 from pipeline.audit.context import AuditContext
 from pipeline.audit.evidence import HeldOut
@@ -156,8 +157,6 @@ def lag_over_decay_with_timing(vs: LagVersusDecay, timing_p: float, alpha: float
     h = vs.lag_over_decay
     if h is None or h.reduction <= 0.0:
         return False
-    from scipy.stats import combine_pvalues
-
     return float(combine_pvalues([h.p_value, timing_p], method="fisher").pvalue) < alpha
 
 
@@ -169,8 +168,6 @@ def timing_p_late(sl, tl) -> float | None:
     if both is None:
         return None
     lag, lo, hi = both
-    from scipy.stats import norm
-
     return float(norm.sf(lag / ((hi - lo) / (2 * 1.959964))))
 
 
@@ -238,9 +235,8 @@ def lag_beside_decay_nuisance(
 
         vs.lag_over_decay = ctx.heldout(current, lag_model)
         vs.decay_over_lag = ctx.heldout(lag_model, lambda train, k: current)
-    verdict = vs.verdict(
-        s.alpha, s.min_gain, timing_says(ctx, lag_plain, sl, tl), timing_p_late(sl, tl)
-    )
+    timing = timing_says(ctx, lag_plain, sl, tl)
+    verdict = vs.verdict(s.alpha, s.min_gain, timing, timing_p_late(sl, tl))
     tau = current.eddy_tau_s
     ev.estimate["eddy_decay"] = {"tau_s": tau, "alone": decay_alone.to_dict()}
     ev.estimate["against_eddy_decay"] = {"verdict": verdict, **vs.to_dict()}
@@ -257,7 +253,7 @@ def lag_beside_decay_nuisance(
             confirmed_by="the lag model over the decay model"
             if by_physics
             else "the timing along the lines"
-            if timing_says(ctx, lag_plain, sl, tl) == "holds"
+            if timing == "holds"
             else "the lag model over the decay model with the timing along the lines",
         )
         ev.heldout, ev.spec, ev.decided_outside = lag_alone, plain.with_(lag_s=lag_plain), True
