@@ -51,6 +51,8 @@ from pipeline.compensate.terms import (
 from pipeline.defaults import default_field
 from pipeline.flight import Flight
 from pipeline.geo.local import LocalFrame
+from pipeline.geo.track import smooth_track
+from pipeline.io.series import NS
 from pipeline.physics.interference import CarrierInterference, scalar_reading_nT
 
 
@@ -70,8 +72,9 @@ class AuditData:
         """The audit's inputs from a flight, on its scalar epochs.
 
         Positions, when the flight has them, become local east/north/up metres about the mean
-        position of the calibration epochs; every ``aux_*`` column becomes an auxiliary channel
-        (keyed without the prefix) with its unit.
+        position of the calibration epochs, with the receiver's sample-to-sample noise smoothed
+        out (:mod:`pipeline.geo.track`: a gradient would turn it into field noise); every
+        ``aux_*`` column becomes an auxiliary channel (keyed without the prefix) with its unit.
 
         Parameters
         ----------
@@ -99,6 +102,7 @@ class AuditData:
                 float(np.mean(lat[sel])), float(np.mean(lon[sel])), float(np.mean(alt[sel]))
             )
             enu = np.column_stack(frame.to_enu(lat, lon, alt))
+            enu = _smoothed_enu(flight, frame, enu)
         aux = {c[4:]: d[c].to_numpy(float) for c in d.columns if c.startswith("aux_")}
         units = {k: flight.units.get(f"aux_{k}", "") for k in aux}
         return cls(
@@ -114,6 +118,23 @@ class AuditData:
     def rate_hz(self) -> float:
         """Sample rate, Hz (from the median sample interval)."""
         return 1.0 / float(np.median(np.diff(self.time_s)))
+
+
+def _smoothed_enu(flight: Flight, frame: LocalFrame, enu: np.ndarray) -> np.ndarray:
+    """The track in ``frame``, smoothed at the receiver's own samples and read at the scalar
+    epochs; epochs ``enu`` (the interpolated track) leaves empty stay empty."""
+    series = flight.series.get(flight.topic_of.get("position", ""))
+    if series is None or series.time_ns.size < 8:
+        return enu
+    raw = np.column_stack(
+        frame.to_enu(
+            series.values["latitude"], series.values["longitude"], series.values["altitude"]
+        )
+    )
+    t = (series.time_ns - flight.time_ns[0]) / NS
+    out = smooth_track(t, raw, flight.data["time_s"].to_numpy(float))
+    out[~np.isfinite(enu)] = np.nan
+    return out
 
 
 @dataclass(frozen=True)
