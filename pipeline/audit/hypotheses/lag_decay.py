@@ -89,12 +89,27 @@ class LagVersusDecay:
             self.decay_beyond_lag, alpha, min_gain
         )
 
+    def both_present(self, alpha: float, min_gain: float) -> bool:
+        """Whether each adds to the other: the lag lowers held-out data beside the decay
+        (p < ``alpha``, however little), and the decay lowers them beside the lag
+        (p < ``alpha``, at least ``min_gain``)."""
+        return self.lag_beyond_null.p_value < alpha and significant(
+            self.decay_beyond_lag, alpha, min_gain
+        )
+
     def verdict(
         self, alpha: float, min_gain: float, timing: str, timing_p: float | None = None
     ) -> str:
-        """``"lag"`` (named), ``"ambiguous"`` (a tie the data cannot break) or ``"none"``.
+        """``"lag"`` (named), ``"lag_beside_decay"`` (named, with the decay), ``"ambiguous"``
+        (a tie the data cannot break) or ``"none"``.
 
-        The lag is named when it lowers held-out data beside the decay. When the two tie
+        The lag is named when it lowers held-out data beside the decay. When both are there
+        (:meth:`both_present`) but the lag's share of the calibration's residual is under
+        ``min_gain``, that share does not measure what a late sensor does to a survey (a
+        heading error of twice the lag times the along-track rate of change of the
+        geology); the lines' timing does: the lag is named beside the decay when the
+        timing's one-sided p that the sensor is late (``timing_p``) is under ``alpha``.
+        Both tests must pass, so with no lag the rate stays within ``alpha``. When the two tie
         (each explains the residual alone, neither adds to the other) the rival that
         predicts held-out data better is the explanation
         (``lag_over_decay``, ``decay_over_lag``); when neither does, the timing along the
@@ -104,6 +119,8 @@ class LagVersusDecay:
         """
         if significant(self.lag_beyond_null, alpha, min_gain):
             return "lag"
+        if self.both_present(alpha, min_gain) and timing_p is not None and timing_p < alpha:
+            return "lag_beside_decay"
         if not self.tie(alpha, min_gain):
             return "none"
         if timing_p is not None:  # one test of the calibration and the lines together
@@ -259,6 +276,8 @@ def lag_beside_decay_nuisance(
         ev.heldout, ev.spec, ev.decided_outside = lag_alone, plain.with_(lag_s=lag_plain), True
         lo, hi = ev.ci95.get("lag_s") or (lag, lag)
         ev.ci95["lag_s"] = [min(lo, lag_plain), max(hi, lag_plain)]
+    elif verdict == "lag_beside_decay":
+        _lag_timed_beside_decay(ev, sl, tl)
     elif verdict == "lag" and timing_says(ctx, lag, sl, tl) == "holds":
         # the lines' timing (what a late sensor delays and a decay does not) confirms it
         ev.estimate["confirmed_by"] = "the timing along the lines"
@@ -279,6 +298,20 @@ def lag_beside_decay_nuisance(
             "late sensor"
         )
     return ev
+
+
+def _lag_timed_beside_decay(ev: Evaluation, sl, tl) -> None:
+    """Name the lag beside the null's decay on the lines' timing (the verdict
+    ``"lag_beside_decay"``): decided outside the calibration, its interval widened to the
+    lines' combined timing interval (beside a decay the calibration's lag reads short: the
+    decay takes part of the late response)."""
+    ev.estimate["confirmed_by"] = "the timing along the lines, beside the eddy decay"
+    ev.decided_outside = True
+    both = combined_interval([o for o in (sl, tl) if o is not None])
+    if both is not None:
+        lag = float(ev.estimate["lag_s"])
+        lo, hi = ev.ci95.get("lag_s") or (lag, lag)
+        ev.ci95["lag_s"] = [min(lo, both[1]), max(hi, both[2])]
 
 
 def _lag_in_place_of_decay(
