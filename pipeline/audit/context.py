@@ -176,10 +176,11 @@ class AuditContext:
             )
         return self._fit_cache[ck]
 
-    def heldout(self, before, after_for_fold) -> HeldOut:
+    def heldout(self, before, after_for_fold, where: np.ndarray | None = None) -> HeldOut:
         """Held-out band-passed residuals of two models over the folds; ``after_for_fold``
         builds the extended spec from the training mask (parameters estimated there);
-        ``before`` is a spec, or like ``after_for_fold`` a builder of one."""
+        ``before`` is a spec, or like ``after_for_fold`` a builder of one. ``where`` (bool
+        per epoch), when given, keeps only those epochs' held-out residuals."""
         rb, ra, tt = [], [], []
         for k, (train, test) in enumerate(self.folds):
             spec_b = before(train, k) if callable(before) else before
@@ -193,6 +194,9 @@ class AuditContext:
                 self.data, self.mask, self.s.band, keep=test, rows=self.rows(spec_a)
             )
             common, i0, i1 = np.intersect1d(w0, w1, return_indices=True)
+            if where is not None:
+                keep = where[common]
+                common, i0, i1 = common[keep], i0[keep], i1[keep]
             rb.append(r0[i0])
             ra.append(r1[i1])
             tt.append(self.data.time_s[common])

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from pipeline.audit.calibration_events import (
+    CalibrationStep,
     calibration_steps,
     is_switching,
     switching_nuisance,
@@ -24,6 +25,9 @@ COURSE_WINDOW_S = 2.0
 # steps looked for inside the calibration legs: two tell a switched load from one event,
 # a few more estimate its size
 MAX_SWITCHES = 6
+# calibration after a leg step's leg that tells a permanent change from a switched load
+# (s), on at least two legs (headings: u . dp differs between them)
+PERSIST_MIN_S = 60.0
 
 
 @dataclass
@@ -133,9 +137,28 @@ class AuditEvents:
         steps = calibration_steps(
             t, comp, self.legs, self.s.alpha, self.s.min_event_nT, max_steps=MAX_SWITCHES
         )
-        if is_switching(steps):
+        if is_switching(steps) or (steps and not self._persists(spec, steps[0])):
             return [], [switching_nuisance(t, comp, self.legs, steps)]
         return [e.to_dict(int(self.flight.time_ns[0])) for e in steps], []
+
+    def _persists(self, spec: ModelSpec, step: CalibrationStep) -> bool:
+        """Whether a step found inside a leg is a change of the carrier's permanent field.
+        One persists: the calibration after the step's leg, on other headings, carries the
+        change ``u . dp``, so the model with it predicts those legs' held-out data better
+        (p < ``alpha``). A step the later legs do not carry was a load switched on and off
+        again (off in a turn, say, where no step is looked for): a switched current, a
+        nuisance. With too little calibration after the leg nothing tells them apart; the
+        step stays an event."""
+        t = self.data.time_s
+        t_s = 0.5 * (step.start_s + step.end_s)
+        leg = self.legs[int(np.argmin(np.abs(t - t_s)))]
+        leg_end = float(t[self.legs == leg].max()) if leg >= 0 else t_s
+        after = self.mask & (t > leg_end)
+        later_legs = np.unique(self.legs[after & (self.legs >= 0)])
+        if after.sum() < PERSIST_MIN_S * self.data.rate_hz or later_legs.size < 2:
+            return True
+        held = self.heldout(spec, lambda train, k: spec.with_(permanent_step_s=t_s), where=after)
+        return bool(held.p_value < self.s.alpha)
 
     def vector_reference_events(self) -> list[dict[str, Any]]:
         """A step in the carrier's permanent field against the fluxgate

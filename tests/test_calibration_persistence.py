@@ -1,0 +1,56 @@
+"""A step inside a calibration leg: a change of the carrier's permanent field persists through
+the rest of the calibration (an event); a load switched on and off again does not (a
+switched-current nuisance). Whole simulated flights through ``run_audit``: slow."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from pipeline.audit.stage import run_audit
+from pipeline.io.reader import read_flight
+from pipeline.segment import segment_flight
+from pipeline.simulate import Scenario, simulate, write_simulation
+
+
+def _audit_with_step(tmp_path: Path, seed: int, transient: bool) -> dict:
+    """A 2 nT change u . dp from the middle of the second calibration leg: to the end of
+    the flight, or (``transient``) only to the end of the turn after that leg."""
+    sim = simulate(Scenario.load("uav-small", ["calibration.passes=1"]), seed)
+    legs = {}
+    for g in sim.truth["segments"]:
+        if g["label"] == "calibration":
+            a, b = legs.get(g["line_id"], (g["start_s"], g["end_s"]))
+            legs[g["line_id"]] = (min(a, g["start_s"]), max(b, g["end_s"]))
+    (a, b), (c, _) = sorted(legs.values())[1], sorted(legs.values())[2]
+    on, off = 0.5 * (a + b) + 0.37, (c - 2.0) if transient else np.inf
+    s, v = sim.streams["/mag/scalar"], sim.streams["/mag/vector"]
+    vec = np.stack([np.interp(s["t"], v["t"], v["cols"][f"{k}_nT"]) for k in "xyz"], -1)
+    u = vec / np.linalg.norm(vec, axis=1, keepdims=True)
+    dp = np.random.default_rng(seed).normal(size=3)
+    dp *= 2.0 / np.linalg.norm(dp)
+    s["cols"]["total_nT"] = s["cols"]["total_nT"] + ((s["t"] > on) & (s["t"] < off)) * (u @ dp)
+    flight = read_flight(write_simulation(sim, tmp_path / f"f{seed}{transient}.mcap"))
+    res = run_audit(flight, segment_flight(flight)).to_json()
+    return res
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [3, 4])
+def test_a_load_switched_off_again_is_a_nuisance_not_an_event(tmp_path, seed):
+    res = _audit_with_step(tmp_path, seed, transient=True)
+    events = res["unexplained"]["events"]
+    leg_events = [e for e in events if e["evidence"] == "calibration residual"]
+    assert leg_events == []
+    forms = [n["estimate"].get("form") for n in res["unexplained"]["nuisances"]]
+    assert "switching" in forms
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [3, 4])
+def test_a_permanent_change_in_the_calibration_stays_an_event(tmp_path, seed):
+    res = _audit_with_step(tmp_path, seed, transient=False)
+    steps = [e for e in res["unexplained"]["events"] if e["kind"] == "step"]
+    assert steps
