@@ -11,6 +11,7 @@ fastest manoeuvres), and a t-test then misses even a large reduction.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -98,6 +99,7 @@ class NestedTest:
 def nested_test(y: np.ndarray, x_base: np.ndarray, x_ext: np.ndarray, step: int) -> NestedTest:
     """F-test and BIC of ``x_ext`` (which contains ``x_base``'s columns) against ``x_base``."""
     import statsmodels.api as sm
+    from statsmodels.tools.sm_exceptions import SingularMatrixWarning
 
     yb = np.asarray(y, float)[::step]
     xb = np.asarray(x_base, float)[::step]
@@ -105,8 +107,12 @@ def nested_test(y: np.ndarray, x_base: np.ndarray, x_ext: np.ndarray, step: int)
     # columns scaled to unit RMS: the same fit, better conditioned pseudo-inverse
     sb = np.sqrt(np.mean(xb**2, axis=0)) + 1e-300
     se = np.sqrt(np.mean(xe**2, axis=0)) + 1e-300
-    r0 = sm.OLS(yb, xb / sb).fit()
-    r1 = sm.OLS(yb, xe / se).fit()
+    with warnings.catch_warnings():
+        # columns a flight does not excite (a track without height changes, a straight
+        # smoothed leg): the pseudo-inverse fits, and the F-test counts the design's rank
+        warnings.simplefilter("ignore", SingularMatrixWarning)
+        r0 = sm.OLS(yb, xb / sb).fit()
+        r1 = sm.OLS(yb, xe / se).fit()
     f, p, df = r1.compare_f_test(r0)
     return NestedTest(float(f), float(p), int(round(df)), float(r1.bic - r0.bic), int(yb.size))
 
@@ -116,11 +122,14 @@ def profile_f_test(y0: np.ndarray, y1: np.ndarray, x: np.ndarray, step: int) -> 
     likelihood: ``y0`` and ``y1`` are the record without and with the parameter at its
     estimate, both fitted by the same columns ``x``."""
     import statsmodels.api as sm
+    from statsmodels.tools.sm_exceptions import SingularMatrixWarning
 
     xb = np.asarray(x, float)[::step]
     xb = xb / (np.sqrt(np.mean(xb**2, axis=0)) + 1e-300)
-    r0 = sm.OLS(np.asarray(y0, float)[::step], xb).fit()
-    r1 = sm.OLS(np.asarray(y1, float)[::step], xb).fit()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SingularMatrixWarning)  # as in nested_test
+        r0 = sm.OLS(np.asarray(y0, float)[::step], xb).fit()
+        r1 = sm.OLS(np.asarray(y1, float)[::step], xb).fit()
     n, dof = r1.nobs, r1.df_resid - 1
     if dof <= 0 or not r1.ssr > 0:
         return NestedTest(0.0, 1.0, 1, 0.0, int(n))
