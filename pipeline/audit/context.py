@@ -60,6 +60,8 @@ def crossover_set(difference_nT: np.ndarray, xs: list, heading: dict) -> Crossov
         np.array([heading[c.line_b] for c in xs]),
         np.array([c.east_m for c in xs]),
         np.array([c.north_m for c in xs]),
+        np.array([c.line_a for c in xs]),
+        np.array([c.line_b for c in xs]),
     )
 
 

@@ -10,12 +10,13 @@ error model of the compensated field along the flight,
          + beta t                               a drift (unmodelled diurnal, sensor drift)
 
 each crossover gives d = e(t_a) - e(t_b). A step in the permanent field p changes the reading
-by u . dp, which depends on heading, hence a step size per heading. The change point t_s is
-scanned over the gaps between lines; its significance is an F-test against the model without
-it, corrected for the scan by the scan's own null distribution (the maximum of many F
-statistics is not F-distributed; :func:`scan_p_value`). Few points (tens of crossovers) and
-a heading-grouped model are outside what change-point libraries' cost functions express,
-hence the explicit scan.
+by u . dp, which depends on heading, hence a step size per heading. Each flown line also
+carries a random level of its own (:mod:`pipeline.audit.line_levels`). The change point t_s
+is scanned over the gaps between lines; its significance is the likelihood ratio against
+the model without it, corrected for the scan by a parametric bootstrap of the fitted null
+model (the maximum of many ratios is not chi-square distributed; :func:`step_scan`). Few
+points (tens of crossovers) and a heading-grouped model with crossed line levels are outside
+what change-point libraries' cost functions express, hence the explicit scan.
 
 Times are seconds from the flight's first epoch; sizes nT.
 """
@@ -28,6 +29,13 @@ import numpy as np
 from scipy import stats
 
 from pipeline.audit.evidence import HeldOut, f_test_p, least_squares_rss, paired_point_gain
+from pipeline.audit.line_levels import (
+    LineLevelModel,
+    gls_coefficients,
+    line_incidence,
+    null_draws,
+    scan_statistics,
+)
 
 HEADINGS = ("N", "E", "S", "W")  # the heading classes 0..3
 
@@ -44,6 +52,8 @@ class CrossoverSet:
     heading_b: np.ndarray
     east_m: np.ndarray | None = None  # where the lines cross (the survey's local frame)
     north_m: np.ndarray | None = None
+    line_a: np.ndarray | None = None  # the two lines' ids (each flown piece its own line)
+    line_b: np.ndarray | None = None
 
     @property
     def size(self) -> int:
@@ -52,10 +62,13 @@ class CrossoverSet:
 
     def subset(self, keep: np.ndarray) -> CrossoverSet:
         """The crossovers where ``keep`` (bool per crossover) holds."""
-        pos = (None if v is None else np.asarray(v)[keep] for v in (self.east_m, self.north_m))
+        opt = (
+            None if v is None else np.asarray(v)[keep]
+            for v in (self.east_m, self.north_m, self.line_a, self.line_b)
+        )
         return CrossoverSet(
             *(np.asarray(getattr(self, k))[keep] for k in _READING_FIELDS),
-            *pos,
+            *opt,
         )
 
 
@@ -122,16 +135,20 @@ def heading_levels(x: CrossoverSet) -> np.ndarray:
     return np.column_stack(cols) if cols else np.zeros((x.size, 0))
 
 
-def _step_columns(x: CrossoverSet, t_s: float) -> tuple[np.ndarray, list[int]]:
+def _step_columns(
+    x: CrossoverSet, t_s: float, min_each_side: int = 1
+) -> tuple[np.ndarray, list[int]]:
     """Design columns of gamma_h for a step at ``t_s`` (s), and their heading classes.
 
-    Only headings read on both sides of ``t_s``: a heading read only after it (tie lines
-    all flown after the step) has a step column equal to its level column, and the
-    least-squares split between the two is arbitrary (it was reported as a step size)."""
+    Only headings read at least ``min_each_side`` times on both sides of ``t_s``: a heading
+    read only after it (tie lines all flown after the step) has a step column equal to its
+    level column, and the least-squares split between the two is arbitrary (it was
+    reported as a step size); one reading on a side makes the column a single reading's
+    outlier test, not a step."""
     cols, which = [], []
     for h in range(4):
         t_h = np.r_[x.time_a_s[x.heading_a == h], x.time_b_s[x.heading_b == h]]
-        if not (np.any(t_h <= t_s) and np.any(t_h > t_s)):
+        if min(np.sum(t_h <= t_s), np.sum(t_h > t_s)) < max(1, min_each_side):
             continue
         c = ((x.heading_a == h) & (x.time_a_s > t_s)).astype(float) - (
             (x.heading_b == h) & (x.time_b_s > t_s)
@@ -153,65 +170,63 @@ def _candidate_gaps(x: CrossoverSet, min_each_side: int) -> list[tuple[float, fl
     ]
 
 
-SCAN_SIMULATIONS = 2000  # null draws of the scan's smallest p (p resolved to 5e-4)
+SCAN_DRAWS = 400  # parametric-bootstrap draws of the scan's largest likelihood ratio
 
 
-def scan_p_value(
-    p_min: float, base: np.ndarray, designs: list[np.ndarray], scanned: int, seed: int = 0
-) -> float:
-    """The smallest of a scan's F-test p-values (``p_min``), corrected for the scan.
+@dataclass
+class StepScan:
+    """The step scan of :func:`step_scan`: every candidate gap with its likelihood ratio.
 
-    Neighbouring change points differ by one reading, so their F statistics are nearly the
-    same test: Bonferroni over the ``scanned`` positions (tens) is far too conservative. The
-    scan's own null distribution is exact and cheap instead: under no step with
-    independent Gaussian errors every F statistic is free of the error scale and of the
-    base model's coefficients, so the smallest p of the same scan over
-    :data:`SCAN_SIMULATIONS` standard normal draws (fixed ``seed``: the same result on
-    every run) gives the corrected p. Below the simulations' resolution Bonferroni, a
-    valid bound, takes over.
+    ``gaps`` (earlier, later reading time, s), ``which`` the headings of each candidate's
+    step columns, ``lr`` 2 x the profile log-likelihood gain over the null, ``p_value`` the
+    largest ratio's p under the bootstrap, ``rho`` the best candidate's line-level variance
+    ratio, ``step_nT`` its step per heading (nT)."""
 
-    Parameters
-    ----------
-    p_min : float
-        The scan's smallest F-test p.
-    base : ndarray
-        (n, k0) design without a step.
-    designs : list of ndarray
-        Each scanned position's design (base and step columns).
-    scanned : int
-        Positions scanned (Bonferroni's factor).
-    seed : int
-        Seed of the simulations.
+    gaps: list[tuple[float, float]]
+    which: list[list[int]]
+    lr: np.ndarray
+    p_value: float
+    rho: float
+    step_nT: np.ndarray
 
-    Returns
-    -------
-    float
-        The scan-corrected p.
-    """
-    bonferroni = min(1.0, p_min * scanned)
-    n = base.shape[0]
-    if bonferroni < 1.0 / (SCAN_SIMULATIONS + 1) or not designs:
-        return bonferroni
-    from scipy.linalg import orth
+    @property
+    def best(self) -> int:
+        """Index of the likeliest candidate."""
+        return int(np.argmax(self.lr))
 
-    e = np.random.default_rng(seed).standard_normal((n, SCAN_SIMULATIONS))
 
-    def rss(a: np.ndarray) -> tuple[np.ndarray, int]:
-        q = orth(a) if a.shape[1] else np.zeros((n, 0))
-        r = e - q @ (q.T @ e)
-        return np.sum(r**2, axis=0), q.shape[1]
+def line_model(x: CrossoverSet) -> LineLevelModel:
+    """Random line levels when the crossovers name their lines, else independent readings."""
+    z = None if x.line_a is None else line_incidence(x.line_a, x.line_b)
+    return LineLevelModel.of(z, x.size)
 
-    rss0, k0 = rss(base)
-    smallest = np.ones(SCAN_SIMULATIONS)
-    for a in designs:
-        rss1, k1 = rss(a)
-        df1, df2 = k1 - k0, n - k1
-        if df1 <= 0 or df2 <= 0:
-            continue
-        f = ((rss0 - rss1) / df1) / (rss1 / df2)
-        smallest = np.minimum(smallest, stats.f.sf(f, df1, df2))
-    mc = (1.0 + np.count_nonzero(smallest <= p_min)) / (SCAN_SIMULATIONS + 1)
-    return float(min(bonferroni, mc))
+
+def step_scan(
+    x: CrossoverSet, base: np.ndarray, min_each_side: int, seed: int = 0
+) -> StepScan | None:
+    """Scan every gap between readings for a step per heading beside random line levels
+    (:mod:`pipeline.audit.line_levels`); the largest likelihood ratio's p from
+    :data:`SCAN_DRAWS` draws of the fitted null model, the same scan on each (seeded: the
+    same result on every run). None when no gap can hold a step."""
+    y = np.asarray(x.difference_nT, float)
+    gaps, extras, which = [], [], []
+    for lo, hi in _candidate_gaps(x, min_each_side):
+        cols, w = _step_columns(x, 0.5 * (lo + hi), min_each_side)
+        if w:
+            gaps.append((lo, hi))
+            extras.append(cols)
+            which.append(w)
+    if not gaps:
+        return None
+    model = line_model(x)
+    lr, rho0, rho1 = scan_statistics(model, base, extras, y)
+    lr, best = lr[:, 0], int(np.argmax(lr[:, 0]))
+    sim, _, _ = scan_statistics(
+        model, base, extras, null_draws(model, float(rho0[0]), SCAN_DRAWS, seed)
+    )
+    p = (1.0 + np.count_nonzero(sim.max(axis=0) >= lr[best])) / (SCAN_DRAWS + 1.0)
+    coef = gls_coefficients(model, np.column_stack([base, extras[best]]), y, float(rho1[best, 0]))
+    return StepScan(gaps, which, lr, float(p), float(rho1[best, 0]), coef[base.shape[1] :])
 
 
 def survey_events(
@@ -223,82 +238,71 @@ def survey_events(
     ----------
     x
         Crossover differences (compensated field, reduced for the main field and, when
-        modelled, the diurnal), with times (s) and heading classes.
+        modelled, the diurnal), with times (s), heading classes and, when known, the lines.
     alpha
         Significance after the scan correction.
     min_size_nT
         Smallest step or drift worth reporting.
     min_each_side
-        Readings needed before and after a candidate change point.
+        Readings of a heading needed before and after a candidate change point.
 
-    A step is located between two consecutive crossover readings; the event's start and
-    end span every such gap the data cannot tell from the likeliest one (a 95 % profile
-    likelihood set: n log(RSS(t) / RSS(t_best)) below the chi-square(1) quantile 3.84),
+    Each line's level is a random effect (:mod:`pipeline.audit.line_levels`): a step is a
+    level change the lines after it share beyond their own scatter. A step is located
+    between two consecutive crossover readings; the event's start and end span every such
+    gap the data cannot tell from the likeliest one (a 95 % profile-likelihood set: the
+    likelihood ratio within the chi-square(1) quantile 3.84 of the best),
     ``likeliest_start_s``/``_end_s`` in ``detail`` the likeliest gap itself. A line holds
     2-5 crossovers whose differences scatter by about a nT (geology between the
     interpolated readings, the heading error's change over the area), so the likeliest gap
     alone can lie a line away from the step.
     """
     y = np.asarray(x.difference_nT, float)
-    n = y.size
     base = heading_levels(x)
-    if n < base.shape[1] + 6:
+    if y.size < base.shape[1] + 6:
         return []
-    rss0, k0, _ = least_squares_rss(base, y)
-    out: list[SurveyEvent] = []
-    gaps = _candidate_gaps(x, min_each_side)
-    scanned = []  # (p, start, end, step per heading, added rank, headings, rss)
-    designs = []
-    for lo, hi in gaps:
-        cols, which = _step_columns(x, 0.5 * (lo + hi))
-        if not which:
-            continue
-        designs.append(np.column_stack([base, cols]))
-        rss1, k1, coef = least_squares_rss(designs[-1], y)
-        p = f_test_p(rss0, k0, rss1, k1, n)
-        scanned.append((p, lo, hi, coef[base.shape[1] :], k1 - k0, which, rss1))
-    best = min(scanned, key=lambda c: c[0]) if scanned else None
-    if best is not None and best[4] > 0:
-        p_adj = scan_p_value(best[0], base, designs, len(gaps))
-        size = float(np.max(np.abs(best[3]))) if best[3].size else 0.0
-        if p_adj < alpha and size >= min_size_nT:
-            chi2_95 = float(stats.chi2.ppf(0.95, 1))
-            near = [c for c in scanned if n * np.log(c[6] / best[6]) < chi2_95]
-            out.append(
-                SurveyEvent(
-                    "step",
-                    min(c[1] for c in near),
-                    max(c[2] for c in near),
-                    size,
-                    p_adj,
-                    {
-                        "step_by_heading_nT": {
-                            HEADINGS[h]: float(v) for h, v in zip(best[5], best[3], strict=True)
-                        },
-                        "likeliest_start_s": float(best[1]),
-                        "likeliest_end_s": float(best[2]),
-                    },
-                )
+    scan = step_scan(x, base, min_each_side)
+    if scan is not None:
+        size = float(np.max(np.abs(scan.step_nT))) if scan.step_nT.size else 0.0
+        if scan.p_value < alpha and size >= min_size_nT:
+            b = scan.best
+            near = np.flatnonzero(scan.lr[b] - scan.lr < float(stats.chi2.ppf(0.95, 1)))
+            detail = {
+                "step_by_heading_nT": {
+                    HEADINGS[h]: float(v) for h, v in zip(scan.which[b], scan.step_nT, strict=True)
+                },
+                "likeliest_start_s": scan.gaps[b][0],
+                "likeliest_end_s": scan.gaps[b][1],
+                "line_level_variance_ratio": scan.rho,
+            }
+            lo, hi = min(scan.gaps[i][0] for i in near), max(scan.gaps[i][1] for i in near)
+            return [SurveyEvent("step", lo, hi, size, scan.p_value, detail)]
+    return _drift(x, base, alpha, min_size_nT)
+
+
+def _drift(x: CrossoverSet, base: np.ndarray, alpha: float, min_size_nT: float):
+    """A drift (a trend no step explains) beside random line levels: likelihood ratio
+    against chi-square(1)."""
+    y = np.asarray(x.difference_nT, float)
+    drift = (x.time_a_s - x.time_b_s)[:, None]
+    model = line_model(x)
+    lr, _, rho1 = scan_statistics(model, base, [drift], y)
+    p = float(stats.chi2.sf(lr[0, 0], 1))
+    coef = gls_coefficients(model, np.column_stack([base, drift]), y, float(rho1[0, 0]))
+    t_all = np.r_[x.time_a_s, x.time_b_s]
+    span = float(t_all.max() - t_all.min())
+    size = abs(float(coef[-1])) * span
+    if p < alpha and size >= min_size_nT:
+        return [
+            SurveyEvent(
+                "drift",
+                float(t_all.min()),
+                float(t_all.max()),
+                size,
+                p,
+                {"rate_nT_per_h": float(coef[-1]) * 3600.0},
             )
-    if not out:  # a drift only when no step explains the trend
-        drift = (x.time_a_s - x.time_b_s)[:, None]
-        rss1, k1, coef = least_squares_rss(np.column_stack([base, drift]), y)
-        p = f_test_p(rss0, k0, rss1, k1, n)
-        t_all = np.r_[x.time_a_s, x.time_b_s]
-        span = float(t_all.max() - t_all.min())
-        size = abs(float(coef[-1])) * span
-        if p < alpha and size >= min_size_nT:
-            out.append(
-                SurveyEvent(
-                    "drift",
-                    float(t_all.min()),
-                    float(t_all.max()),
-                    size,
-                    p,
-                    {"rate_nT_per_h": float(coef[-1]) * 3600.0},
-                )
-            )
-    return out
+        ]
+    return []
 
 
 @dataclass
