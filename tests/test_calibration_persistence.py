@@ -15,16 +15,19 @@ from pipeline.segment import segment_flight
 from pipeline.simulate import Scenario, simulate, write_simulation
 
 
-def _audit_with_step(tmp_path: Path, seed: int, transient: bool) -> dict:
-    """A 2 nT change u . dp from the middle of the second calibration leg: to the end of
-    the flight, or (``transient``) only to the end of the turn after that leg."""
+def _audit_with_step(tmp_path: Path, seed: int, transient: bool, leg: int = 1) -> dict:
+    """A 2 nT change u . dp from the middle of calibration leg ``leg`` (in time order): to
+    the end of the flight, or (``transient``) only to the end of the turn after that leg."""
     sim = simulate(Scenario.load("uav-small", ["calibration.passes=1"]), seed)
     legs = {}
     for g in sim.truth["segments"]:
         if g["label"] == "calibration":
             a, b = legs.get(g["line_id"], (g["start_s"], g["end_s"]))
             legs[g["line_id"]] = (min(a, g["start_s"]), max(b, g["end_s"]))
-    (a, b), (c, _) = sorted(legs.values())[1], sorted(legs.values())[2]
+    ordered = sorted(legs.values())
+    i = leg % len(ordered)
+    a, b = ordered[i]
+    c = ordered[i + 1][0] if i + 1 < len(ordered) else b + 12.0  # the transit after the last
     on, off = 0.5 * (a + b) + 0.37, (c - 2.0) if transient else np.inf
     s, v = sim.streams["/mag/scalar"], sim.streams["/mag/vector"]
     vec = np.stack([np.interp(s["t"], v["t"], v["cols"][f"{k}_nT"]) for k in "xyz"], -1)
@@ -32,7 +35,7 @@ def _audit_with_step(tmp_path: Path, seed: int, transient: bool) -> dict:
     dp = np.random.default_rng(seed).normal(size=3)
     dp *= 2.0 / np.linalg.norm(dp)
     s["cols"]["total_nT"] = s["cols"]["total_nT"] + ((s["t"] > on) & (s["t"] < off)) * (u @ dp)
-    flight = read_flight(write_simulation(sim, tmp_path / f"f{seed}{transient}.mcap"))
+    flight = read_flight(write_simulation(sim, tmp_path / f"f{seed}{transient}{leg}.mcap"))
     res = run_audit(flight, segment_flight(flight)).to_json()
     return res
 
@@ -54,3 +57,13 @@ def test_a_permanent_change_in_the_calibration_stays_an_event(tmp_path, seed):
     res = _audit_with_step(tmp_path, seed, transient=False)
     steps = [e for e in res["unexplained"]["events"] if e["kind"] == "step"]
     assert steps
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [3, 4])
+def test_a_permanent_change_in_the_last_leg_is_judged_on_the_legs_before(tmp_path, seed):
+    """No calibration follows the last leg: the legs before it, whose permanent terms the
+    change does not touch, still tell it (they fit better with the terms free after it)."""
+    res = _audit_with_step(tmp_path, seed, transient=False, leg=-1)
+    events = res["unexplained"]["events"]
+    assert [e for e in events if e["evidence"] == "calibration residual"]

@@ -143,22 +143,57 @@ class AuditEvents:
 
     def _persists(self, spec: ModelSpec, step: CalibrationStep) -> bool:
         """Whether a step found inside a leg is a change of the carrier's permanent field.
-        One persists: the calibration after the step's leg, on other headings, carries the
-        change ``u . dp``, so the model with it predicts those legs' held-out data better
-        (p < ``alpha``). A step the later legs do not carry was a load switched on and off
-        again (off in a turn, say, where no step is looked for): a switched current, a
-        nuisance. With too little calibration after the leg nothing tells them apart; the
-        step stays an event."""
-        t = self.data.time_s
+
+        One persists: the calibration after the step's leg (or before it,
+        :meth:`_after_leg`), on other headings, differs by the change ``u . dp``, so the
+        model with it predicts those legs' held-out data better (p < ``alpha``), and better
+        than a step at any other leg's middle does beside it (a permutation test at level
+        1 / (placebos + 1)). The placebos measure how far the permanent terms move between
+        any two stretches of this calibration anyway: a switched load's duty cycle,
+        interference outside the model that follows the manoeuvre mix. A step the other
+        legs do not carry beyond those was a load switched on and off again (off in a turn,
+        say, where no step is looked for): a switched current, a nuisance. With too little
+        calibration on either side of the leg nothing tells them apart; the step stays an
+        event."""
         t_s = 0.5 * (step.start_s + step.end_s)
-        leg = self.legs[int(np.argmin(np.abs(t - t_s)))]
-        leg_end = float(t[self.legs == leg].max()) if leg >= 0 else t_s
-        after = self.mask & (t > leg_end)
-        later_legs = np.unique(self.legs[after & (self.legs >= 0)])
-        if after.sum() < PERSIST_MIN_S * self.data.rate_hz or later_legs.size < 2:
+        after = self._after_leg(t_s)
+        if after is None:
             return True
-        held = self.heldout(spec, lambda train, k: spec.with_(permanent_step_s=t_s), where=after)
-        return bool(held.p_value < self.s.alpha)
+        with_step = spec.with_(permanent_step_s=t_s)
+        held = self.heldout(spec, lambda train, k: with_step, where=after)
+        if held.p_value >= self.s.alpha:
+            return False
+        own = self.legs[int(np.argmin(np.abs(self.data.time_s - t_s)))]
+        for t_k in self._leg_middles(exclude=int(own)):
+            where = self._after_leg(t_k)
+            if where is None:
+                continue
+            placebo = with_step.with_(further_steps_s=(t_k,))
+            gain = self.heldout(with_step, lambda train, k, p=placebo: p, where=where)
+            if gain.reduction >= held.reduction:
+                return False
+        return True
+
+    def _after_leg(self, t_s: float) -> np.ndarray | None:
+        """The calibration after the leg holding ``t_s`` (bool per epoch), or else before it:
+        the first side that lasts :data:`PERSIST_MIN_S` on at least two legs (headings:
+        ``u . dp`` differs between them); None when neither does. The step's model is the
+        same either way (permanent terms free on each side), so either side tests it."""
+        t = self.data.time_s
+        leg = self.legs[int(np.argmin(np.abs(t - t_s)))]
+        inside = self.legs == leg if leg >= 0 else np.zeros(t.size, bool)
+        lo, hi = (float(t[inside].min()), float(t[inside].max())) if inside.any() else (t_s, t_s)
+        for side in (self.mask & (t > hi), self.mask & (t < lo)):
+            legs = np.unique(self.legs[side & (self.legs >= 0)])
+            if side.sum() >= PERSIST_MIN_S * self.data.rate_hz and legs.size >= 2:
+                return side
+        return None
+
+    def _leg_middles(self, exclude: int) -> list[float]:
+        """The middle time (s) of every calibration leg but ``exclude``."""
+        t = self.data.time_s
+        legs = [k for k in np.unique(self.legs) if k >= 0 and k != exclude]
+        return [float(np.median(t[self.legs == k])) for k in legs]
 
     def vector_reference_events(self) -> list[dict[str, Any]]:
         """A step in the carrier's permanent field against the fluxgate

@@ -163,6 +163,9 @@ class ModelSpec:
     # the carrier's permanent field changed at this time (s; an out-of-catalogue step the
     # survey showed between two calibration passes): permanent columns after it, u_i [t > t_s]
     permanent_step_s: float | None = None
+    # further changes of the permanent field (s), each its own u_i [t > t_k] columns: the
+    # placebo steps against which a found step is judged (pipeline.audit.events)
+    further_steps_s: tuple[float, ...] = ()
     # the field's gradient measured along the calibration legs (east, north, up; nT/m),
     # taken out of the scalar before the fit and put back into the compensated field: the
     # gradient extension without parameters to fit (pipeline.audit.legs)
@@ -313,6 +316,11 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
         after = (data.time_s > spec.permanent_step_s).astype(float)[:, None]
         cols.append(u * after)
         names = names + [f"perm_step_u{a}" for a in "xyz"]
+        sub += [True] * 3
+    for k, t_k in enumerate(spec.further_steps_s):
+        u = direction_cosines(v)
+        cols.append(u * (data.time_s > t_k).astype(float)[:, None])
+        names = names + [f"perm_step{k + 2}_u{a}" for a in "xyz"]
         sub += [True] * 3
     if spec.gradient:
         if data.enu_m is None:
