@@ -196,3 +196,32 @@ def test_the_scan_holds_its_level_on_independent_readings():
         x = CrossoverSet(d, ta, tb, ha, hb)
         below += len(survey_events(x, 0.05, 0.0)) > 0
     assert below <= 7  # 3 expected; P(>= 8 | 5 %) < 0.03
+
+
+def test_a_drift_is_found_and_a_heading_error_growing_across_the_area_is_none():
+    """A 2 nT/h drift over the survey is reported (as a drift or, its likeliest reading, a
+    step) where the ties' times tell time from place; a heading error that grows across the
+    block (1 nT/km on the survey lines' headings), flown line after line so that time
+    follows place, is no event once the crossovers say where they are, where read without
+    positions it looks like a step."""
+    found = 0
+    for seed in range(10):
+        rng, ha, hb, ta, tb, d = crossings(500 + seed, 60)
+        east, north = rng.uniform(0, 2000, ta.size), rng.uniform(0, 2000, ta.size)
+        drifted = d + 2.0 / 3600.0 * (ta - tb)
+        found += len(survey_events(CrossoverSet(drifted, ta, tb, ha, hb, east, north), 0.01, 0.3))
+    assert found >= 9
+    false, false_blind = 0, 0
+    for seed in range(10):
+        ha, hb, ta, tb, d, la, lb = survey_grid(600 + seed, lines=16, ties=4)
+        i = np.array([int(k[1:]) for k in la])
+        j = np.array([int(k[1:]) for k in lb])
+        east, north = 100.0 * i, 500.0 * j
+        grow = np.array([1.0, 0.0, -1.0, 0.0]) * 1e-3  # nT per m of east, per heading
+        d = d + (grow[ha] - grow[hb]) * east
+        x = CrossoverSet(d, ta, tb, ha, hb, east, north, la, lb)
+        false += len(survey_events(x, 0.01, 0.3)) > 0
+        blind = CrossoverSet(d, ta, tb, ha, hb, None, None, la, lb)
+        false_blind += len(survey_events(blind, 0.01, 0.3)) > 0
+    assert false <= 1
+    assert false_blind >= 5

@@ -247,7 +247,8 @@ def survey_events(
         Readings of a heading needed before and after a candidate change point.
 
     Each line's level is a random effect (:mod:`pipeline.audit.line_levels`): a step is a
-    level change the lines after it share beyond their own scatter. A step is located
+    level change the lines after it share beyond their own scatter, and beyond heading
+    levels that change across the area (:func:`heading_gradients`). A step is located
     between two consecutive crossover readings; the event's start and end span every such
     gap the data cannot tell from the likeliest one (a 95 % profile-likelihood set: the
     likelihood ratio within the chi-square(1) quantile 3.84 of the best),
@@ -260,6 +261,7 @@ def survey_events(
     base = heading_levels(x)
     if y.size < base.shape[1] + 6:
         return []
+    base = np.column_stack([base, heading_gradients(x, base)])
     scan = step_scan(x, base, min_each_side)
     if scan is not None:
         size = float(np.max(np.abs(scan.step_nT))) if scan.step_nT.size else 0.0
@@ -279,9 +281,30 @@ def survey_events(
     return _drift(x, base, alpha, min_size_nT)
 
 
+def heading_gradients(x: CrossoverSet, levels: np.ndarray) -> np.ndarray:
+    """Columns of heading levels that change across the area (each level column times the
+    crossing's east and north, km) when the crossovers say where they are and leave room
+    for them; else none.
+
+    Lines are flown one after another across the block, so a reading's time follows its
+    place: a heading error that grows across the area (the induced interference scales with
+    the field, a lag sees the ground's gradients) would read as a step or a drift. Only the
+    ties, read at other times over the same places, separate the two; steps and drifts are
+    tested beyond these columns."""
+    if x.east_m is None or x.north_m is None or levels.shape[1] == 0:
+        return np.zeros((x.size, 0))
+    pos = np.column_stack(
+        [levels * (np.asarray(v, float)[:, None] / 1e3) for v in (x.east_m, x.north_m)]
+    )
+    if not np.all(np.isfinite(pos)) or x.size <= levels.shape[1] + pos.shape[1] + 6:
+        return np.zeros((x.size, 0))
+    return pos
+
+
 def _drift(x: CrossoverSet, base: np.ndarray, alpha: float, min_size_nT: float):
-    """A drift (a trend no step explains) beside random line levels: likelihood ratio
-    against chi-square(1)."""
+    """A drift (a trend no step explains) beside random line levels and the ``base``
+    columns (:func:`heading_gradients` among them): likelihood ratio against
+    chi-square(1)."""
     y = np.asarray(x.difference_nT, float)
     drift = (x.time_a_s - x.time_b_s)[:, None]
     model = line_model(x)
