@@ -163,8 +163,7 @@ class AuditEvents:
         held = self.heldout(spec, lambda train, k: with_step, where=after)
         if held.p_value >= self.s.alpha:
             return False
-        own = self.legs[int(np.argmin(np.abs(self.data.time_s - t_s)))]
-        for t_k in self._leg_middles(exclude=int(own)):
+        for t_k in self._leg_middles(exclude=self._leg_at(t_s)):
             where = self._after_leg(t_k)
             if where is None:
                 continue
@@ -180,7 +179,7 @@ class AuditEvents:
         ``u . dp`` differs between them); None when neither does. The step's model is the
         same either way (permanent terms free on each side), so either side tests it."""
         t = self.data.time_s
-        leg = self.legs[int(np.argmin(np.abs(t - t_s)))]
+        leg = self._leg_at(t_s)
         inside = self.legs == leg if leg >= 0 else np.zeros(t.size, bool)
         lo, hi = (float(t[inside].min()), float(t[inside].max())) if inside.any() else (t_s, t_s)
         for side in (self.mask & (t > hi), self.mask & (t < lo)):
@@ -188,6 +187,10 @@ class AuditEvents:
             if side.sum() >= PERSIST_MIN_S * self.data.rate_hz and legs.size >= 2:
                 return side
         return None
+
+    def _leg_at(self, t_s: float) -> int:
+        """The calibration leg of the epoch nearest ``t_s`` (-1: none)."""
+        return int(self.legs[int(np.argmin(np.abs(self.data.time_s - t_s)))])
 
     def _leg_middles(self, exclude: int) -> list[float]:
         """The middle time (s) of every calibration leg but ``exclude``."""

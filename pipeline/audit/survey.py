@@ -202,12 +202,17 @@ def line_model(x: CrossoverSet) -> LineLevelModel:
 
 
 def step_scan(
-    x: CrossoverSet, base: np.ndarray, min_each_side: int, seed: int = 0
+    x: CrossoverSet,
+    base: np.ndarray,
+    min_each_side: int,
+    model: LineLevelModel | None = None,
+    seed: int = 0,
 ) -> StepScan | None:
     """Scan every gap between readings for a step per heading beside random line levels
     (:mod:`pipeline.audit.line_levels`); the largest likelihood ratio's p from
     :data:`SCAN_DRAWS` draws of the fitted null model, the same scan on each (seeded: the
-    same result on every run). None when no gap can hold a step."""
+    same result on every run); ``model`` defaults to :func:`line_model`. None when no gap
+    can hold a step."""
     y = np.asarray(x.difference_nT, float)
     gaps, extras, which = [], [], []
     for lo, hi in _candidate_gaps(x, min_each_side):
@@ -218,7 +223,7 @@ def step_scan(
             which.append(w)
     if not gaps:
         return None
-    model = line_model(x)
+    model = model or line_model(x)
     lr, rho0, rho1 = scan_statistics(model, base, extras, y)
     lr, best = lr[:, 0], int(np.argmax(lr[:, 0]))
     sim, _, _ = scan_statistics(
@@ -262,7 +267,8 @@ def survey_events(
     if y.size < base.shape[1] + 6:
         return []
     base = np.column_stack([base, heading_gradients(x, base)])
-    scan = step_scan(x, base, min_each_side)
+    model = line_model(x)  # one eigendecomposition for the scan and the drift
+    scan = step_scan(x, base, min_each_side, model)
     if scan is not None:
         size = float(np.max(np.abs(scan.step_nT))) if scan.step_nT.size else 0.0
         if scan.p_value < alpha and size >= min_size_nT:
@@ -278,7 +284,7 @@ def survey_events(
             }
             lo, hi = min(scan.gaps[i][0] for i in near), max(scan.gaps[i][1] for i in near)
             return [SurveyEvent("step", lo, hi, size, scan.p_value, detail)]
-    return _drift(x, base, alpha, min_size_nT)
+    return _drift(x, base, model, alpha, min_size_nT)
 
 
 def heading_gradients(x: CrossoverSet, levels: np.ndarray) -> np.ndarray:
@@ -301,13 +307,14 @@ def heading_gradients(x: CrossoverSet, levels: np.ndarray) -> np.ndarray:
     return pos
 
 
-def _drift(x: CrossoverSet, base: np.ndarray, alpha: float, min_size_nT: float):
-    """A drift (a trend no step explains) beside random line levels and the ``base``
-    columns (:func:`heading_gradients` among them): likelihood ratio against
+def _drift(
+    x: CrossoverSet, base: np.ndarray, model: LineLevelModel, alpha: float, min_size_nT: float
+):
+    """A drift (a trend no step explains) beside random line levels (``model``) and the
+    ``base`` columns (:func:`heading_gradients` among them): likelihood ratio against
     chi-square(1)."""
     y = np.asarray(x.difference_nT, float)
     drift = (x.time_a_s - x.time_b_s)[:, None]
-    model = line_model(x)
     lr, _, rho1 = scan_statistics(model, base, [drift], y)
     p = float(stats.chi2.sf(lr[0, 0], 1))
     coef = gls_coefficients(model, np.column_stack([base, drift]), y, float(rho1[0, 0]))
