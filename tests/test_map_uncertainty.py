@@ -1,5 +1,6 @@
-"""The map's error model against the true field of dipole geology (which the model, a scaled
-semivariogram, does not assume): calibrated on average, growing away from the lines."""
+"""The map's error model against the true field of dipole geology (which the model, an
+error binned by the distance to the lines, does not assume): calibrated on average, growing
+away from the lines, with tie lines held out and, without ties, with survey lines held out."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import pytest
 
 from pipeline.maps.gridders import LineData, MinimumCurvatureGridder
 from pipeline.maps.uncertainty import (
+    TIE_METHOD,
     along_line_interpolation_error,
     fit_uncertainty,
     uncertainty_grid,
@@ -71,17 +73,33 @@ def test_along_line_spline_error_of_a_cubic_is_zero_and_of_a_sine_grows_midway()
     assert np.sqrt(e2[-1]) < 0.05
 
 
-def _check(seed):
+def elongated(rng: np.random.Generator, strike_deg: float, n: int = 12) -> list[DipoleSource]:
+    """Dipole chains 1 km long along ``strike_deg`` (from north), 30-80 m deep: dykes."""
+    a = np.radians(strike_deg)
+    along = np.array([np.sin(a), np.cos(a)])
+    out = []
+    for _ in range(n):
+        c, depth, m = rng.uniform(-600, 600, 2), rng.uniform(30, 80), rng.normal(0, 3e3, 3)
+        for s in np.arange(-500.0, 501.0, 20.0):
+            p = c + s * along
+            out.append(DipoleSource(float(p[0]), float(p[1]), -depth, tuple(m)))
+    return out
+
+
+def _check(seed, ties=True, src=None):
     """(mean squared error, mean sigma^2) inside the block, and the mid-gap / on-line means
-    of error^2 and sigma^2 (nT^2)."""
+    of error^2 and sigma^2 (nT^2); ``ties=False`` drops the tie lines before the fit (the
+    survey-line method), ``src`` replaces the random geology."""
     rng = np.random.default_rng(seed)
-    src = geology(rng)
+    src = geology(rng) if src is None else src
     spacing, noise, level = 50.0, 0.05, 0.1
     data = survey(src, rng, spacing, noise, level)
     cell = spacing / 4.0
+    fit_on = data if ties else data.subset(data.kind == "survey")
     model = fit_uncertainty(
-        data, lambda: MinimumCurvatureGridder(cell, np.inf), spacing, noise, level
+        fit_on, lambda: MinimumCurvatureGridder(cell, np.inf), spacing, noise, level
     )
+    assert (model.method == TIE_METHOD) == ties
     grid = MinimumCurvatureGridder(cell, 2 * spacing).fit(data).grid_
     sigma = uncertainty_grid(model, grid, data)
     ge, gn = np.meshgrid(*grid.coordinates())
@@ -97,11 +115,12 @@ def _check(seed):
     return e2.mean(), s2.mean(), (e2[mid].mean(), s2[mid].mean(), e2[on].mean(), s2[on].mean())
 
 
-def test_uncertainty_is_calibrated_against_the_true_field():
+@pytest.mark.parametrize("ties", [True, False], ids=["tie-lines", "survey-lines"])
+def test_uncertainty_is_calibrated_against_the_true_field(ties):
     """Over eight geologies the map's true error and its sigma agree in RMS to within the
     geology's own scatter; on each, within a factor of a few (a sigma per cell that depends
     only on the distance to the lines cannot know where the sources lie)."""
-    rows = [_check(seed) for seed in range(1, 9)]
+    rows = [_check(seed, ties) for seed in range(1, 9)]
     e2, s2 = np.array([r[0] for r in rows]), np.array([r[1] for r in rows])
     pooled = np.sqrt(e2.sum() / s2.sum())
     assert 0.6 < pooled < 1.5, pooled
@@ -110,6 +129,24 @@ def test_uncertainty_is_calibrated_against_the_true_field():
     for _, _, (e_mid, s_mid, e_on, s_on) in rows:
         # the error grows away from the lines, and so does sigma
         assert e_mid > e_on and s_mid > s_on
+
+
+def test_tie_lines_measure_the_error_where_the_geology_runs_along_the_lines():
+    """Dykes striking 30 degrees off the lines: the field varies along the lines far faster
+    than across them, so the along-line shape scaled by held-out survey lines (isotropy)
+    puts sigma well below the true error; the held-out tie lines, which measure across the
+    lines at the survey's own spacing, do not."""
+
+    def ratio(ties):
+        rows = [
+            _check(seed, ties, elongated(np.random.default_rng(100 + seed), 30.0))
+            for seed in range(4)
+        ]
+        return np.sqrt(sum(r[0] for r in rows) / sum(r[1] for r in rows))
+
+    tie, survey_lines = ratio(True), ratio(False)
+    assert 0.7 < tie < 1.4, tie
+    assert survey_lines > 1.4, survey_lines
 
 
 def test_too_few_lines_is_an_error():

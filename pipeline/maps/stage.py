@@ -320,6 +320,16 @@ def _line_data(lines: list[Line], up_m: np.ndarray) -> LineData:
     )
 
 
+def lines_noise_nT(lines: list[Line]) -> float:
+    """The sensor's white noise (nT, 1 sigma): the median over the survey lines of
+    :func:`pipeline.noise.white_noise_nT`."""
+    return float(
+        np.nanmedian(
+            [white_noise_nT(ln.value_nT, ln.time_s) for ln in lines if ln.kind == "survey"]
+        )
+    )
+
+
 def map_uncertainty(
     data: LineData, grid: Grid, spacing_m: float, sensor_nT: float, leveling: Leveling
 ) -> tuple[Grid | None, MapUncertainty | None, str]:
@@ -471,11 +481,7 @@ def build_map(
     # ARIMA + Kalman along the flight lines
     along = np.array([np.sin(np.radians(gm.heading_deg)), np.cos(np.radians(gm.heading_deg))])
     along_north = abs(along[1]) >= abs(along[0])
-    sensor = float(
-        np.nanmedian(
-            [white_noise_nT(ln.value_nT, ln.time_s) for ln in lines if ln.kind == "survey"]
-        )
-    )
+    sensor = lines_noise_nT(lines)
     try:
         filtered, model, kf, noise, source, tests = filter_grid(
             grid, along_north, s.arima, s.noise_nT, s.direction

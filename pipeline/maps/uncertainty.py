@@ -1,22 +1,38 @@
 """The map's own error, 1 sigma per cell (nT): what a user of the grid, or a navigation filter
 reading it, should assume the cell's value is off from the true field at the flight surface.
 
-Three parts, added in quadrature:
+Three parts, added in quadrature (the first alone when tie lines measure it):
 
 * **interpolation**: a cell between flight lines is a guess from the lines beside it, and the
-  guess worsens with the distance ``d`` to the nearest line in a way that depends on how
-  smooth the field is (a smooth field's error grows as ``d^2``, a rough one's as ``d^0.5``).
-  That shape is measured on the data where sampling is dense, along the lines: each line is
-  thinned to knots one line spacing apart, interpolated between them by a cubic spline (the
-  1-D minimum-curvature interpolant), and the squared error is binned by the distance to the
-  nearest knot. The size is then set by **held-out lines** (every n-th interior survey line
-  left out of the grid and predicted by the map's own gridder, its level removed: levelling
-  has its own term), compared with the same along-line measurement at the held-out lines' gap
-  (two spacings). Isotropy is assumed: the field varies across the lines as it does along
-  them, which any interpolation between lines must assume.
-* **levelling**: the crossover differences left after levelling, over sqrt(2) (each holds two
-  lines' level errors).
-* **noise**: the sensor's white noise, which the grid carries on the lines themselves.
+  guess worsens with the distance ``d`` to the nearest line. Measured directly where the
+  survey has them, with **tie lines held out**: the map's gridder is fitted to the survey
+  lines alone and predicts every tie-line sample inside the survey lines' hull. A tie crosses
+  the survey lines, so its samples sit at every distance from 0 to half a spacing from the
+  nearest survey-line sample, at the survey's own spacing; their squared misfits (each tie's
+  level removed, the sensor's noise removed) binned by that distance give the error's shape
+  and size at once, with no assumption about how the field varies across the lines. That
+  misfit holds everything the map carries at a point: what its cells cannot hold of the
+  field along the lines (the error is not zero on a line), the survey lines' level errors
+  and their noise as the grid averages it; the two terms below are therefore not added.
+  Two ties sample a block along two transects only: every n-th interior survey line is also
+  held out (the gridder fitted to the other survey lines) and its misfit compared with the
+  ties' misfit where they cross it, in the same gap. Where the lines miss by more, the ties
+  crossed quieter geology than the block holds, and the error is raised by that ratio;
+  never lowered (sigma too small misleads a navigation filter far more than too large).
+  Without tie lines the shape is measured along the lines and scaled by **held-out survey
+  lines**: each line is thinned to knots one line spacing apart, interpolated between them
+  by a cubic spline (the 1-D minimum-curvature interpolant), the squared error binned by the
+  distance to the nearest knot, and scaled by every n-th interior survey line left out of
+  the grid and predicted by the map's own gridder, against the same along-line measurement
+  at the held-out lines' gap (two spacings). That assumes isotropy (the field varies across
+  the lines as along them), which fails where the geology is elongated.
+* **levelling** (survey-line method only): the crossover differences left after levelling,
+  over sqrt(2) (each holds two lines' level errors).
+* **noise** (survey-line method only): the sensor's white noise, which the grid carries on the
+  lines themselves.
+
+The error is that of the map read at a point (bilinearly between cells, as a navigation
+filter reads it), not only at the cells' centres.
 
 No library gives a cross-validated interpolation error for line data (verde's and harmonica's
 cross-validation return a score, not an error model), hence this module. Coordinates are the
@@ -30,12 +46,16 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import CubicSpline
-from scipy.spatial import cKDTree
+from scipy.spatial import ConvexHull, Delaunay, cKDTree
 
 from pipeline.maps.grid import Grid
 from pipeline.maps.gridders import LineData, line_folds
 
 N_DISTANCE_BINS = 8
+# fewer tie samples than this in a distance bin: the bin's mean squared error is too noisy
+# to stand for the error at that distance (about 30 % relative spread at 20 samples)
+MIN_BIN_SAMPLES = 20
+TIE_METHOD = "tie lines held out"
 
 
 @dataclass
@@ -56,6 +76,9 @@ class MapUncertainty:
         RMS error at the held-out lines (their level removed), nT.
     spacing_m
         Line spacing, m.
+    method
+        ``"tie lines held out"`` (shape and size measured across the lines; ``scale`` 1) or
+        ``"survey lines held out"`` (the along-line shape, scaled).
     """
 
     distance_m: np.ndarray
@@ -65,6 +88,7 @@ class MapUncertainty:
     noise_nT: float
     heldout_rms_nT: float
     spacing_m: float
+    method: str = "survey lines held out"
 
     def interpolation_nT(self, distance_m: np.ndarray) -> np.ndarray:
         """Interpolation error (nT, 1 sigma) at ``distance_m`` from the nearest line; beyond
@@ -72,10 +96,19 @@ class MapUncertainty:
         e2 = np.interp(np.asarray(distance_m, float), self.distance_m, self.shape_nT2)
         return np.sqrt(np.maximum(self.scale * e2, 0.0))
 
+    @property
+    def floor_nT(self) -> float:
+        """What :meth:`sigma_nT` adds to the interpolation term in quadrature (nT): the
+        levelling and noise terms, unless the tie lines measured them already (a tie sample's
+        misfit to the map holds the survey lines' level errors and the noise as the grid
+        carries it; the tie's own noise was removed)."""
+        if self.method == TIE_METHOD:
+            return 0.0
+        return float(np.hypot(self.level_nT, self.noise_nT))
+
     def sigma_nT(self, distance_m: np.ndarray) -> np.ndarray:
         """Total 1-sigma error (nT) at ``distance_m`` from the nearest measurement."""
-        i = self.interpolation_nT(distance_m)
-        return np.sqrt(i**2 + self.level_nT**2 + self.noise_nT**2)
+        return np.hypot(self.interpolation_nT(distance_m), self.floor_nT)
 
     def describe(self) -> dict[str, float]:
         """JSON-ready figures of the model."""
@@ -85,6 +118,7 @@ class MapUncertainty:
             "level_nT": self.level_nT,
             "noise_nT": self.noise_nT,
             "midway_interpolation_nT": float(self.interpolation_nT(self.spacing_m / 2)),
+            "method": self.method,
         }
 
 
@@ -178,6 +212,128 @@ def fit_uncertainty(
     folds = line_folds(data, n_folds)
     if not folds:
         raise ValueError("map uncertainty needs at least three survey lines")
+    tie = _tie_model(data, make_gridder, spacing_m, noise_nT)
+    if tie is None:
+        return _survey_model(data, make_gridder, folds, spacing_m, noise_nT, level_nT)
+    e2, ratio = _heldout_lines(data, make_gridder, folds, spacing_m, noise_nT)
+    # a few transects say little of a whole block: where the held-out lines miss by more than
+    # the ties at the same place, the ties crossed quieter geology and sigma rises with the
+    # ratio; where by less, it stays (a sigma told too small makes a navigation filter read
+    # map error as position, one told too large only slows it)
+    return MapUncertainty(
+        *tie,
+        max(1.0, ratio),
+        float(level_nT),
+        float(noise_nT),
+        float(np.sqrt(e2)),
+        float(spacing_m),
+        TIE_METHOD,
+    )
+
+
+def _tie_misfit(
+    data: LineData, train: np.ndarray, gridder, reach_m: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tie samples' misfit (nT) to ``gridder``, fitted on the samples ``train`` (a mask),
+    each tie's level (its median misfit) removed; their distance (m) to the nearest training
+    sample; and which of them measure interpolation: inside the training lines' hull (where
+    a tie runs past the survey lines the grid extrapolates) and within ``reach_m`` of them."""
+    tie = np.asarray(data.kind == "tie")
+    xy = np.column_stack([data.east_m[train], data.north_m[train]])
+    tie_xy = np.column_stack([data.east_m[tie], data.north_m[tie]])
+    d, _ = cKDTree(xy).query(tie_xy)
+    hull = Delaunay(xy[ConvexHull(xy).vertices])
+    inside = (d <= reach_m) & (hull.find_simplex(tie_xy) >= 0)
+    pred = gridder.predict(data.east_m[tie], data.north_m[tie], data.up_m[tie])
+    r, lab = data.value_nT[tie] - pred, data.line[tie]
+    inside &= np.isfinite(r)
+    for name in np.unique(lab):
+        m = (lab == name) & inside
+        if m.any():
+            r[m] -= np.median(r[m])  # the tie's level is levelling's error, not this
+    return r, d, inside
+
+
+def _tie_model(
+    data: LineData, make_gridder: Callable[[], object], spacing_m: float, noise_nT: float
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The interpolation error measured at held-out tie lines (module docstring): distance
+    bins (m; their centres, from 0 to half a spacing) and the squared error per bin (nT^2,
+    the sensor's noise removed, never falling with distance: farther from the data is on
+    average no better). None without enough tie samples between the survey lines."""
+    if data.kind is None or np.sum(data.kind == "tie") < 2 * MIN_BIN_SAMPLES:
+        return None
+    half = 0.5 * spacing_m
+    survey = np.asarray(data.kind == "survey")
+    g = make_gridder().fit(data.subset(survey))
+    r, d, inside = _tie_misfit(data, survey, g, half)
+    edges = np.linspace(0.0, half, N_DISTANCE_BINS + 1)
+    b = np.clip(np.searchsorted(edges, d[inside], side="right") - 1, 0, N_DISTANCE_BINS - 1)
+    counts = np.bincount(b, minlength=N_DISTANCE_BINS)
+    sums = np.bincount(b, weights=r[inside] ** 2, minlength=N_DISTANCE_BINS)
+    ok = counts >= MIN_BIN_SAMPLES
+    if ok.sum() < 2:
+        return None
+    centre = 0.5 * (edges[1:] + edges[:-1])[ok]
+    e2 = _signal_nT2(sums[ok] / counts[ok], counts[ok], noise_nT)
+    return centre, np.maximum.accumulate(e2)
+
+
+def _signal_nT2(mean2_nT2, count, noise_nT: float):
+    """A mean squared misfit of ``count`` samples less the samples' own noise (nT^2), no
+    smaller than what ``count`` samples resolve: a mean square is known to about
+    sqrt(2 / count) of itself (Gaussian misfits), below which it cannot be told from zero."""
+    return np.maximum(mean2_nT2 - noise_nT**2, np.sqrt(2.0 / count) * mean2_nT2)
+
+
+def _heldout_lines(
+    data: LineData,
+    make_gridder: Callable[[], object],
+    folds: list[np.ndarray],
+    spacing_m: float,
+    noise_nT: float,
+) -> tuple[float, float]:
+    """Held-out survey lines against the ties where they cross them: the lines' mean squared
+    misfit (nT^2, each line's level removed, the noise not) and the ratio of their error to
+    the ties' error at the same place in the same gap (both midway between lines two
+    spacings apart; the noise removed from both). A few tie transects may cross quieter or
+    louder geology than the block holds; the ratio carries the ties' error across the block.
+    The ratio is 1 where the ties do not cross the held-out lines enough to tell (fewer than
+    :data:`MIN_BIN_SAMPLES` samples)."""
+    lines2, ties2 = [], []
+    survey, tie = np.asarray(data.kind == "survey"), np.asarray(data.kind == "tie")
+    for held in folds:
+        g = make_gridder().fit(data.subset(~held & survey))
+        r = data.value_nT[held] - g.predict(data.east_m[held], data.north_m[held], data.up_m[held])
+        lab = data.line[held]
+        for name in np.unique(lab):
+            m = (lab == name) & np.isfinite(r)
+            if m.sum() >= 3:
+                lines2.append((r[m] - np.median(r[m])) ** 2)
+        rt, _, inside = _tie_misfit(data, ~held & survey, g, spacing_m)
+        near, _ = cKDTree(np.column_stack([data.east_m[held], data.north_m[held]])).query(
+            np.column_stack([data.east_m[tie], data.north_m[tie]])
+        )
+        ties2.append(rt[inside & (near <= spacing_m / 4)] ** 2)
+    if not lines2:
+        raise ValueError("map uncertainty: no held-out line could be predicted")
+    e2 = float(np.mean(np.concatenate(lines2)))
+    t2 = np.concatenate(ties2) if ties2 else np.empty(0)
+    if t2.size < MIN_BIN_SAMPLES:
+        return e2, 1.0
+    ties_signal = float(_signal_nT2(float(np.mean(t2)), t2.size, noise_nT))
+    return e2, max(e2 - noise_nT**2, 0.0) / ties_signal if ties_signal > 0 else 1.0
+
+
+def _survey_model(
+    data: LineData,
+    make_gridder: Callable[[], object],
+    folds: list[np.ndarray],
+    spacing_m: float,
+    noise_nT: float,
+    level_nT: float,
+) -> MapUncertainty:
+    """The along-line shape scaled by held-out survey lines (module docstring)."""
     d1, shape1 = _shape(data, spacing_m, noise_nT)
     d2, shape2 = _shape(data, 2.0 * spacing_m, noise_nT)
     err2, ref2 = [], []

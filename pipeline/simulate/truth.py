@@ -8,6 +8,7 @@ from scipy.interpolate import RegularGridInterpolator
 from pipeline.geo.local import LocalFrame
 from pipeline.geo.projected import GridFrame
 from pipeline.maps.grid import Grid
+from pipeline.physics.dipoles import DipoleSource, dipole_field_ned_nT, total_field_anomaly_nT
 from pipeline.simulate.simulator import SimulatedFlight
 
 
@@ -52,3 +53,43 @@ def truth_on(sim: SimulatedFlight, grid: Grid, frame: GridFrame) -> np.ndarray:
     )
     out[~inside] = np.nan  # score the block the lines cover
     return out
+
+
+def true_anomaly_grid(
+    sim: SimulatedFlight, grid: Grid, frame: GridFrame
+) -> tuple[Grid, dict[str, object]]:
+    """The simulator's true anomaly on every cell of ``grid``: the exact total-field anomaly of
+    its dipoles at the survey height (as its truth grid, which covers the survey block only),
+    with the map's datum (offset, east/north plane and gain least-squares fitted to ``grid``
+    inside the surveyed block), masked as ``grid``."""
+    a = sim.truth["anomaly"]
+    site = sim.truth["site"]
+    dipoles = [
+        DipoleSource(d["east_m"], d["north_m"], d["up_m"], tuple(d["moment_ned_A_m2"]))
+        for d in a["dipoles"]
+    ]
+    gx, gy = np.meshgrid(*grid.coordinates())
+    lat, lon, _ = frame.to_geodetic(gx, gy)
+    e, n, _ = LocalFrame(site["latitude_deg"], site["longitude_deg"]).to_enu(lat, lon)
+    up = np.full(e.size, float(a["grid"]["height_agl_m"]))
+    crust = dipole_field_ned_nT(dipoles, e.ravel(), n.ravel(), up)
+    b0 = np.asarray(sim.truth["main_field"]["ned_nT"], float)
+    t = total_field_anomaly_nT(crust, np.broadcast_to(b0, crust.shape)).reshape(gx.shape)
+    # the datum is fitted where the map is data: inside the surveyed block (25 m margin, as
+    # tests/test_maps.py scores), not on the cells the gridder extrapolates beyond the lines
+    sv = sim.scenario["survey"]
+    ok = (
+        np.isfinite(grid.values)
+        & (e > sv["east_m"] + 25)
+        & (e < sv["east_m"] + sv["width_m"] - 25)
+        & (n > sv["north_m"] + 25)
+        & (n < sv["north_m"] + sv["length_m"] - 25)
+    )
+    x = np.column_stack([np.ones(ok.sum()), gx[ok], gy[ok], t[ok]])
+    coef, *_ = np.linalg.lstsq(x, grid.values[ok], rcond=None)
+    out = coef[0] + coef[1] * gx + coef[2] * gy + coef[3] * t
+    out[~np.isfinite(grid.values)] = np.nan
+    return Grid(out, grid.east0_m, grid.north0_m, grid.cell_m), {
+        "gain": float(coef[3]),
+        "block": ok,
+    }
