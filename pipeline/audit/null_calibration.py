@@ -119,6 +119,13 @@ def surrogates(
     return out
 
 
+def _row_of(valid: np.ndarray) -> np.ndarray:
+    """Each epoch's row among the ``valid`` epochs (-1: not valid)."""
+    row = np.full(valid.size, -1)
+    row[valid] = np.arange(int(valid.sum()))
+    return row
+
+
 def crossfit_rate(top: np.ndarray, alpha: float, min_gain: float) -> float:
     """The rate at which a gate set on one half of the null draws' maxima ``top`` (its
     1 - ``alpha`` quantile, at least ``min_gain``) is reached on the other half, averaged
@@ -131,12 +138,18 @@ def crossfit_rate(top: np.ndarray, alpha: float, min_gain: float) -> float:
     return float(np.mean(rates))
 
 
-def _fold_sums(setup: HeldOutSetup, cols: np.ndarray, y: np.ndarray, models, valid) -> np.ndarray:
+def _fold_sums(
+    setup: HeldOutSetup, cols: np.ndarray, y: np.ndarray, models, valid: np.ndarray
+) -> np.ndarray:
     """Held-out squared residuals summed over the folds: (models, draws), each model a
-    column index list of ``cols``; ``y`` (n, draws) holds the recording and its null draws."""
+    column index list of ``cols``; ``y`` (rows, 1 + draws) holds the recording and its null
+    draws.
+    ``cols`` and ``y`` hold the ``valid`` epochs' rows only (every fold's rows are valid):
+    the flight's other epochs would make each (epochs, draws) array the survey's size."""
     m, band = setup.meas, setup.band
     sos = bandpass_sos(band.band_hz, m.rate_hz, band.poles)
     trim = trim_samples(band.trim_s, m.rate_hz)
+    row = _row_of(valid)
     both = np.column_stack([cols, y])
     p = cols.shape[1]
     out = np.zeros((len(models), y.shape[1]))
@@ -145,8 +158,12 @@ def _fold_sums(setup: HeldOutSetup, cols: np.ndarray, y: np.ndarray, models, val
         train, test = train & valid, test & valid
         if not train.any() or not test.any():
             continue
-        tr, _ = bandpass_blocks(both, contiguous_blocks(train, m.time_s), sos, trim)
-        te, _ = bandpass_blocks(both, contiguous_blocks(test, m.time_s), sos, trim)
+        tr, _ = bandpass_blocks(
+            both, [row[b] for b in contiguous_blocks(train, m.time_s)], sos, trim
+        )
+        te, _ = bandpass_blocks(
+            both, [row[b] for b in contiguous_blocks(test, m.time_s)], sos, trim
+        )
         for i, idx in enumerate(models):
             kt, yt = tr[:, idx], tr[:, p:]
             solver = RidgeSVD.from_gram(kt, yt[:, 0])  # the recording's lambda, every draw
@@ -194,9 +211,12 @@ def calibrate_null(
     names = list(candidates)
     cols = np.column_stack([null_columns, *(candidates[c] for c in names)])
     valid = ok & np.all(np.isfinite(cols), axis=1)
-    blocks = contiguous_blocks(valid, m.time_s)
-    noise = surrogates(m.scalar_nT - fitted, blocks, draws, np.random.default_rng(seed))
-    y = np.column_stack([m.scalar_nT, fitted[:, None] + noise])
+    row, keep = _row_of(valid), np.flatnonzero(valid)
+    blocks = [row[b] for b in contiguous_blocks(valid, m.time_s)]
+    residual = (m.scalar_nT - fitted)[keep]
+    noise = surrogates(residual, blocks, draws, np.random.default_rng(seed))
+    y = np.column_stack([m.scalar_nT[keep], fitted[keep, None] + noise])
+    cols = cols[keep]
     p0 = null_columns.shape[1]
     models, at = [list(range(p0))], p0
     for c in names:
