@@ -1,5 +1,6 @@
 """Reading a written recording back in tests: every message validated against its channel's
-schema, and every record (messages, attachments, metadata, channels) for byte-level checks."""
+schema, and every record (messages, attachments, metadata, channels) for byte-level checks;
+where the independent recordings are (``INDEPENDENT``)."""
 
 from __future__ import annotations
 
@@ -10,6 +11,17 @@ import jsonschema
 from mcap.reader import make_reader
 
 from pipeline.io.contract import rule_for_topic
+
+# ../shared/recordings beside the checkout (a worktree sits one level deeper): flights made
+# by a generator that is not aeromag's, with their truth; tests skip when absent
+INDEPENDENT = next(
+    (
+        p / "shared" / "recordings"
+        for p in Path(__file__).resolve().parents[1:4]
+        if (p / "shared" / "recordings").is_dir()
+    ),
+    Path("shared") / "recordings",
+)
 
 
 def validate_every_message(path, topics: set[str] | None = None) -> int:

@@ -26,16 +26,9 @@ from pipeline.audit.timing import TimingLag
 from pipeline.compensate.heldout import HeldOut
 from pipeline.compensate.model import Measurements
 from tests.manoeuvres import manoeuvres
+from tests.recordings import INDEPENDENT
 
-# ../shared/recordings beside the checkout (a worktree sits one level deeper)
-RECORDINGS = next(
-    (
-        p / "shared" / "recordings"
-        for p in Path(__file__).resolve().parents[1:4]
-        if (p / "shared" / "recordings").is_dir()
-    ),
-    Path("shared") / "recordings",
-)
+RECORDINGS = INDEPENDENT
 ALPHA, MIN_GAIN = 0.01, 0.05
 
 
