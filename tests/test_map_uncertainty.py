@@ -170,7 +170,7 @@ def test_sigma_is_not_too_small_on_independent_recordings(name):
     """On flights made by a generator that is not aeromag's (``tests.recordings.INDEPENDENT``),
     the map stage's sigma against the map's error from the truth's dipoles (a plane and gain
     fitted, the datum no map can know): never too small (RMS of error / sigma at most 1.5)
-    and not uselessly large (at least 0.2; 0.28 and 0.32 when this test was written)."""
+    and not uselessly large (at least 0.2)."""
     truth_path = INDEPENDENT / f"{name}.truth.json"
     if not truth_path.exists():
         pytest.skip(f"{truth_path} not present")

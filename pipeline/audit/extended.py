@@ -311,16 +311,13 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
         cols.append(ks)
         names = names + sn
         sub += [True] * len(sn)
-    if spec.permanent_step_s is not None:
+    steps = [] if spec.permanent_step_s is None else [("perm_step", spec.permanent_step_s)]
+    steps += [(f"perm_step{i + 2}", t) for i, t in enumerate(spec.further_steps_s)]
+    if steps:
         u = direction_cosines(v)
-        after = (data.time_s > spec.permanent_step_s).astype(float)[:, None]
-        cols.append(u * after)
-        names = names + [f"perm_step_u{a}" for a in "xyz"]
-        sub += [True] * 3
-    for k, t_k in enumerate(spec.further_steps_s):
-        u = direction_cosines(v)
-        cols.append(u * (data.time_s > t_k).astype(float)[:, None])
-        names = names + [f"perm_step{k + 2}_u{a}" for a in "xyz"]
+    for label, t_step in steps:
+        cols.append(u * (data.time_s > t_step).astype(float)[:, None])
+        names = names + [f"{label}_u{a}" for a in "xyz"]
         sub += [True] * 3
     if spec.gradient:
         if data.enu_m is None:

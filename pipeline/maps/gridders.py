@@ -170,6 +170,19 @@ def line_folds(data: LineData, n_folds: int) -> list[np.ndarray]:
     return [np.isin(data.line, order[k::n_folds]) for k in range(min(n_folds, len(order)))]
 
 
+def line_masks(line: np.ndarray, keep: np.ndarray, min_count: int = 1) -> list[np.ndarray]:
+    """One sample mask per line (``line`` labels, in sorted order): its samples where
+    ``keep`` holds, for lines with at least ``min_count`` of them. Held-out misfits are
+    judged per line with the line's level (its median misfit) removed: a line's offset is
+    levelling's business, not the gridder's."""
+    out = []
+    for name in np.unique(line):
+        m = keep & (line == name)
+        if m.sum() >= min_count:
+            out.append(m)
+    return out
+
+
 def cross_validated_rms_nT(make, data: LineData, n_folds: int = 5) -> float:
     """RMS misfit (nT) at held-out lines of gridders built by ``make()``; the level of each
     held-out line is removed first (a line's offset is levelling's business, not the
@@ -179,12 +192,8 @@ def cross_validated_rms_nT(make, data: LineData, n_folds: int = 5) -> float:
         g = make().fit(data.subset(~held))
         pred = g.predict(data.east_m[held], data.north_m[held], data.up_m[held])
         r = data.value_nT[held] - pred
-        lab = data.line[held]
-        for name in np.unique(lab):
-            rr = r[lab == name]
-            rr = rr[np.isfinite(rr)]
-            if rr.size:
-                errs.append(rr - np.median(rr))
+        for m in line_masks(data.line[held], np.isfinite(r)):
+            errs.append(r[m] - np.median(r[m]))
     if not errs:
         return float("nan")
     e = np.concatenate(errs)

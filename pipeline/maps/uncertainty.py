@@ -49,7 +49,7 @@ from scipy.interpolate import CubicSpline
 from scipy.spatial import ConvexHull, Delaunay, cKDTree
 
 from pipeline.maps.grid import Grid
-from pipeline.maps.gridders import LineData, line_folds
+from pipeline.maps.gridders import LineData, line_folds, line_masks
 
 N_DISTANCE_BINS = 8
 # fewer tie samples than this in a distance bin: the bin's mean squared error is too noisy
@@ -245,12 +245,10 @@ def _tie_misfit(
     hull = Delaunay(xy[ConvexHull(xy).vertices])
     inside = (d <= reach_m) & (hull.find_simplex(tie_xy) >= 0)
     pred = gridder.predict(data.east_m[tie], data.north_m[tie], data.up_m[tie])
-    r, lab = data.value_nT[tie] - pred, data.line[tie]
+    r = data.value_nT[tie] - pred
     inside &= np.isfinite(r)
-    for name in np.unique(lab):
-        m = (lab == name) & inside
-        if m.any():
-            r[m] -= np.median(r[m])  # the tie's level is levelling's error, not this
+    for m in line_masks(data.line[tie], inside):
+        r[m] -= np.median(r[m])  # the tie's level is levelling's error, not this
     return r, d, inside
 
 
@@ -305,11 +303,8 @@ def _heldout_lines(
     for held in folds:
         g = make_gridder().fit(data.subset(~held & survey))
         r = data.value_nT[held] - g.predict(data.east_m[held], data.north_m[held], data.up_m[held])
-        lab = data.line[held]
-        for name in np.unique(lab):
-            m = (lab == name) & np.isfinite(r)
-            if m.sum() >= 3:
-                lines2.append((r[m] - np.median(r[m])) ** 2)
+        for m in line_masks(data.line[held], np.isfinite(r), 3):
+            lines2.append((r[m] - np.median(r[m])) ** 2)
         rt, _, inside = _tie_misfit(data, ~held & survey, g, spacing_m)
         near, _ = cKDTree(np.column_stack([data.east_m[held], data.north_m[held]])).query(
             np.column_stack([data.east_m[tie], data.north_m[tie]])
@@ -343,13 +338,8 @@ def _survey_model(
         tree = cKDTree(np.column_stack([data.east_m[~held], data.north_m[~held]]))
         d, _ = tree.query(np.column_stack([data.east_m[held], data.north_m[held]]))
         r = data.value_nT[held] - pred
-        lab = data.line[held]
-        for name in np.unique(lab):
-            m = (lab == name) & np.isfinite(r)
-            if m.sum() < 3:
-                continue
-            rr = r[m] - np.median(r[m])  # the line's level is levelling's error, not this
-            err2.append(rr**2)
+        for m in line_masks(data.line[held], np.isfinite(r), 3):
+            err2.append((r[m] - np.median(r[m])) ** 2)
             ref2.append(np.interp(d[m], d2, shape2))
     if not err2:
         raise ValueError("map uncertainty: no held-out line could be predicted")

@@ -44,15 +44,20 @@ def truth_on(sim: SimulatedFlight, grid: Grid, frame: GridFrame) -> np.ndarray:
         bounds_error=False,
     )
     out = ri(np.stack([n, e], -1))
-    s = sim.scenario["survey"]
-    inside = (
-        (e > s["east_m"] + 25)
-        & (e < s["east_m"] + s["width_m"] - 25)
-        & (n > s["north_m"] + 25)
-        & (n < s["north_m"] + s["length_m"] - 25)
-    )
-    out[~inside] = np.nan  # score the block the lines cover
+    out[~_inside_block(sim, e, n)] = np.nan  # score the block the lines cover
     return out
+
+
+def _inside_block(sim: SimulatedFlight, east_m: np.ndarray, north_m: np.ndarray) -> np.ndarray:
+    """Which local positions (m) lie inside the surveyed block less 25 m: where the map is
+    the lines' data, not the gridder's extrapolation beyond them."""
+    s = sim.scenario["survey"]
+    return (
+        (east_m > s["east_m"] + 25)
+        & (east_m < s["east_m"] + s["width_m"] - 25)
+        & (north_m > s["north_m"] + 25)
+        & (north_m < s["north_m"] + s["length_m"] - 25)
+    )
 
 
 def true_anomaly_grid(
@@ -75,16 +80,8 @@ def true_anomaly_grid(
     crust = dipole_field_ned_nT(dipoles, e.ravel(), n.ravel(), up)
     b0 = np.asarray(sim.truth["main_field"]["ned_nT"], float)
     t = total_field_anomaly_nT(crust, np.broadcast_to(b0, crust.shape)).reshape(gx.shape)
-    # the datum is fitted where the map is data: inside the surveyed block (25 m margin, as
-    # tests/test_maps.py scores), not on the cells the gridder extrapolates beyond the lines
-    sv = sim.scenario["survey"]
-    ok = (
-        np.isfinite(grid.values)
-        & (e > sv["east_m"] + 25)
-        & (e < sv["east_m"] + sv["width_m"] - 25)
-        & (n > sv["north_m"] + 25)
-        & (n < sv["north_m"] + sv["length_m"] - 25)
-    )
+    # the datum is fitted where the map is data (as tests/test_maps.py scores)
+    ok = np.isfinite(grid.values) & _inside_block(sim, e, n)
     x = np.column_stack([np.ones(ok.sum()), gx[ok], gy[ok], t[ok]])
     coef, *_ = np.linalg.lstsq(x, grid.values[ok], rcond=None)
     out = coef[0] + coef[1] * gx + coef[2] * gy + coef[3] * t
