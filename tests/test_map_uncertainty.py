@@ -157,6 +157,20 @@ def test_tie_lines_measure_the_error_where_the_geology_runs_along_the_lines():
     assert survey_lines > 1.4, survey_lines
 
 
+def test_lines_along_one_track_fall_back_to_the_survey_lines():
+    """Survey lines flown end to end along one track span no area: no tie sample lies
+    between them, so the survey-line method measures the error (no geometry error)."""
+    s = np.arange(0.0, 1000.0, 5.0)
+    tie_e = np.linspace(-100.0, 100.0, 41)
+    e = np.concatenate([np.zeros(3 * s.size), tie_e])
+    n = np.concatenate([s, s + 1000.0, s + 2000.0, np.full(tie_e.size, 500.0)])
+    line = np.repeat(["A", "B", "C", "T"], [s.size, s.size, s.size, tie_e.size])
+    kind = np.where(line == "T", "tie", "survey")
+    data = LineData(e, n, np.zeros_like(e), np.sin(n / 100.0) + 0.01 * e, line, kind)
+    model = fit_uncertainty(data, lambda: MinimumCurvatureGridder(12.5, np.inf), 50.0, 0.05, 0.05)
+    assert model.method != TIE_METHOD
+
+
 def test_too_few_lines_is_an_error():
     rng = np.random.default_rng(0)
     data = survey(geology(rng, 5), rng, spacing_m=500.0)

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.interpolate import CubicSpline
-from scipy.spatial import ConvexHull, Delaunay, cKDTree
+from scipy.spatial import ConvexHull, Delaunay, QhullError, cKDTree
 
 from pipeline.maps.grid import Grid
 from pipeline.maps.gridders import LineData, line_folds, line_masks
@@ -242,7 +242,10 @@ def _tie_misfit(
     xy = np.column_stack([data.east_m[train], data.north_m[train]])
     tie_xy = np.column_stack([data.east_m[tie], data.north_m[tie]])
     d, _ = cKDTree(xy).query(tie_xy)
-    hull = Delaunay(xy[ConvexHull(xy).vertices])
+    try:
+        hull = Delaunay(xy[ConvexHull(xy).vertices])
+    except QhullError:  # the lines span no area (one track): nothing lies between them
+        return data.value_nT[tie] * np.nan, d, np.zeros(d.size, bool)
     inside = (d <= reach_m) & (hull.find_simplex(tie_xy) >= 0)
     pred = gridder.predict(data.east_m[tie], data.north_m[tie], data.up_m[tie])
     r = data.value_nT[tie] - pred
