@@ -24,7 +24,7 @@ The validation lines (never used for the map) are then flown with a navigation-g
 (:func:`pipeline.navigation.stage.run_navigation`, the ``aeromag navigate`` defaults), with
 the map-error model as the post-flight flow uses it: R = sensor² + σ_map² from the map
 stage's ``/map/uncertainty`` (raw and filtered maps; zero for the truth), correlated over the
-line spacing, and the innovation gate. Printed
+length the map stage measured along its held-out lines, and the innovation gate. Printed
 per noise level: mean DRMS (INS-only, each map, CRLB on the filtered map) with 95 % intervals
 (cluster bootstrap: survey seeds, then INS seeds within), and the relative change of mean DRMS,
 filtered against raw (paper 004's -54.7 %) and truth against raw (with the truth's sigma
@@ -96,13 +96,14 @@ def survey_maps(scenario: str, noise_nT: float, seed: int, folder: Path):
     info["raw_minus_truth_rms_nT"] = f_err["raw"]
     maps = {k: frame_map(g, mr.frame, f"{scenario} seed {seed}", k) for k, g in grids.items()}
     # the map-error model (issue 38, item 4), as the flow gives it: the map stage's
-    # /map/uncertainty (None: [navigate] map_sigma_nT) and line spacing for the two maps it
-    # made; none for the truth
+    # /map/uncertainty (None: [navigate] map_sigma_nT) and the error's correlation length for
+    # the two maps it made; no sigma for the truth
     for k, m in maps.items():
         m.sigma = (
             mr.grid.with_values(np.where(off, np.nan, 0.0)) if k == "truth" else mr.uncertainty
         )
-        m.error_length_m = mr.spacing_m
+        m.error_length_m = mr.error_length_m
+    info["error_length_m"] = mr.error_length_m
     info["uncertainty_median_nT"] = (
         float(np.nanmedian(mr.uncertainty.values)) if mr.uncertainty is not None else None
     )
@@ -163,7 +164,11 @@ def main() -> int:
     if a.quick:
         levels, surveys, ins_seeds = [0.05, 2.0], 1, 5
     clock = time.perf_counter()
-    per_run = ["sensor_nT,survey_seed,ins_seed,ins_only_m,crlb_m," + ",".join(MAPS)]
+    per_run = [
+        "sensor_nT,survey_seed,ins_seed,ins_only_m,crlb_m,"
+        + ",".join(MAPS)
+        + ",nees_filtered,nis_filtered,error_length_m"
+    ]
     rows: list[tuple[str, str]] = []
     errors: list[str] = []
     table = [
@@ -211,6 +216,7 @@ def main() -> int:
                         f"{noise:g},{a.first_survey + si},{a.first_ins_seed + ki},"
                         f"{ins_only[si, ki]:.3f},{bound[si, ki]:.3f},"
                         + ",".join(f"{x:.3f}" for x in drms[si, ki])
+                        + f",{nees[si, ki]:.3f},{nis[si, ki]:.3f},{info['error_length_m']:.0f}"
                     )
             mean = lambda v: float(np.mean(v))  # noqa: E731
 

@@ -17,6 +17,7 @@ from pipeline.maps.stage import MapSettings, anomaly_grid, lines_noise_nT, map_u
 from pipeline.maps.uncertainty import (
     TIE_METHOD,
     along_line_interpolation_error,
+    error_correlation_length,
     fit_uncertainty,
     uncertainty_grid,
 )
@@ -121,6 +122,39 @@ def _check(seed, ties=True, src=None):
     d = np.abs(((ge[inside] + 500.0) % spacing) - spacing / 2)  # 0 midway, spacing/2 on a line
     mid, on = d < spacing / 8, d > 3 * spacing / 8
     return e2.mean(), s2.mean(), (e2[mid].mean(), s2[mid].mean(), e2[on].mean(), s2[on].mean())
+
+
+def ou_lines(rng, length_m, noise_nT, n_lines=40, step_m=5.0, line_m=2000.0):
+    """Misfit series along held-out lines: an exponentially correlated error (1 nT, e-folding
+    ``length_m``; two-sided integral ``2 length_m``) plus white noise."""
+    s = np.arange(0.0, line_m, step_m)
+    a = np.exp(-step_m / length_m) if length_m > 0 else 0.0
+    out = []
+    for _ in range(n_lines):
+        x = np.empty(s.size)
+        x[0] = rng.normal()
+        for k in range(1, s.size):
+            x[k] = a * x[k - 1] + np.sqrt(1 - a**2) * rng.normal()
+        out.append((s, x + rng.normal(0, noise_nT, s.size)))
+    return out
+
+
+@pytest.mark.parametrize("length_m", [60.0, 150.0])
+def test_error_correlation_length_of_an_exponentially_correlated_error(length_m):
+    rng = np.random.default_rng(11)
+    spacing = 50.0
+    # measured across twice the spacing: the two-sided integral 2 L, halved
+    clean = error_correlation_length(ou_lines(rng, length_m, 0.0), spacing, 2 * spacing)
+    assert clean == pytest.approx(length_m, rel=0.2)
+    # white noise three times the error's own spread does not shorten it (lag zero unused)
+    noisy = error_correlation_length(ou_lines(rng, length_m, 3.0), spacing, 2 * spacing)
+    assert noisy == pytest.approx(length_m, rel=0.3)
+
+
+def test_error_correlation_length_of_white_noise_is_the_spacing():
+    rng = np.random.default_rng(12)
+    assert error_correlation_length(ou_lines(rng, 0.0, 1.0), 50.0, 100.0) == 50.0
+    assert np.isnan(error_correlation_length([], 50.0, 100.0))
 
 
 @pytest.mark.parametrize("ties", [True, False], ids=["tie-lines", "survey-lines"])

@@ -220,6 +220,14 @@ class MapRun:
     uncertainty_note: str = ""
 
     @property
+    def error_length_m(self) -> float:
+        """How far along a track the map's error stays the same (m): the uncertainty model's
+        measured correlation length, else the line spacing."""
+        if self.uncertainty_model is None:
+            return float(self.spacing_m)
+        return self.uncertainty_model.error_length_m
+
+    @property
     def grid_declination_deg(self) -> float:
         """The IGRF declination from grid north (deg): the true one less the meridian
         convergence at the frame's origin (what a reduction to the pole on the grid takes)."""

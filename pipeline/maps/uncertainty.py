@@ -32,7 +32,9 @@ Three parts, added in quadrature (the first alone when tie lines measure it):
   lines themselves.
 
 The error is that of the map read at a point (bilinearly between cells, as a navigation
-filter reads it), not only at the cells' centres.
+filter reads it), not only at the cells' centres. How far along a track it stays the same
+(its correlation length, which a navigation filter needs so as not to average it away) is
+measured along the held-out survey lines (:func:`error_correlation_length`).
 
 No library gives a cross-validated interpolation error for line data (verde's and harmonica's
 cross-validation return a score, not an error model), hence this module. Coordinates are the
@@ -55,6 +57,10 @@ N_DISTANCE_BINS = 8
 # fewer tie samples than this in a distance bin: the bin's mean squared error is too noisy
 # to stand for the error at that distance (about 30 % relative spread at 20 samples)
 MIN_BIN_SAMPLES = 20
+# the longest lag (in line spacings) over which the map error's autocovariance is summed: an
+# error correlated farther than this is a level, which the navigation filter's bias state
+# and each line's own level take
+MAX_CORRELATION_SPACINGS = 8.0
 TIE_METHOD = "tie lines held out"
 
 
@@ -79,6 +85,11 @@ class MapUncertainty:
     method
         ``"tie lines held out"`` (shape and size measured across the lines; ``scale`` 1) or
         ``"survey lines held out"`` (the along-line shape, scaled).
+    correlation_length_m
+        The distance along a track over which the map's error stays the same (m): the
+        two-sided integral of its autocorrelation, measured along the held-out survey lines
+        (:func:`error_correlation_length`); never below ``spacing_m``. NaN: not measured
+        (the spacing stands for it).
     """
 
     distance_m: np.ndarray
@@ -89,6 +100,7 @@ class MapUncertainty:
     heldout_rms_nT: float
     spacing_m: float
     method: str = "survey lines held out"
+    correlation_length_m: float = float("nan")
 
     def interpolation_nT(self, distance_m: np.ndarray) -> np.ndarray:
         """Interpolation error (nT, 1 sigma) at ``distance_m`` from the nearest line; beyond
@@ -110,10 +122,18 @@ class MapUncertainty:
         """Total 1-sigma error (nT) at ``distance_m`` from the nearest measurement."""
         return np.hypot(self.interpolation_nT(distance_m), self.floor_nT)
 
+    @property
+    def error_length_m(self) -> float:
+        """The error's correlation length a navigation filter charges (m): the measured one,
+        else the line spacing."""
+        c = self.correlation_length_m
+        return float(c) if np.isfinite(c) else float(self.spacing_m)
+
     def describe(self) -> dict[str, float]:
         """JSON-ready figures of the model."""
         return {
             "heldout_rms_nT": self.heldout_rms_nT,
+            "correlation_length_m": self.error_length_m,
             "scale": self.scale,
             "level_nT": self.level_nT,
             "noise_nT": self.noise_nT,
@@ -215,7 +235,7 @@ def fit_uncertainty(
     tie = _tie_model(data, make_gridder, spacing_m, noise_nT)
     if tie is None:
         return _survey_model(data, make_gridder, folds, spacing_m, noise_nT, level_nT)
-    e2, ratio = _heldout_lines(data, make_gridder, folds, spacing_m, noise_nT)
+    e2, ratio, length = _heldout_lines(data, make_gridder, folds, spacing_m, noise_nT)
     # a few transects say little of a whole block: where the held-out lines miss by more than
     # the ties at the same place, the ties crossed quieter geology and sigma rises with the
     # ratio; where by less, it stays (a sigma told too small makes a navigation filter read
@@ -228,6 +248,7 @@ def fit_uncertainty(
         float(np.sqrt(e2)),
         float(spacing_m),
         TIE_METHOD,
+        length,
     )
 
 
@@ -287,27 +308,108 @@ def _signal_nT2(mean2_nT2, count, noise_nT: float):
     return np.maximum(mean2_nT2 - noise_nT**2, np.sqrt(2.0 / count) * mean2_nT2)
 
 
+def error_correlation_length(
+    series: list[tuple[np.ndarray, np.ndarray]], spacing_m: float, gap_m: float
+) -> float:
+    """How far along a track the map's error stays the same (m), from held-out lines.
+
+    Parameters
+    ----------
+    series : list of (distance_m, misfit_nT)
+        Each held-out line's misfit to the grid fitted without it (nT, the line's level
+        removed) against the distance along the line (m, increasing).
+    spacing_m : float
+        The map's line spacing (m).
+    gap_m : float
+        The gap the held-out lines were predicted across (m; twice the spacing when one line
+        in every few is left out).
+
+    Returns
+    -------
+    float
+        The two-sided integral of the error's autocorrelation (m), by the trapezoid rule over
+        lags up to the first where it is no longer positive or
+        :data:`MAX_CORRELATION_SPACINGS`; scaled by ``spacing_m / gap_m`` and never below
+        ``spacing_m``. NaN when no two lags can be formed. The misfits are averaged in bins a
+        sixteenth of a spacing long (at least one and a half sample steps), the
+        autocovariance taken between different bins and its value at zero lag extrapolated
+        from the first two lags: the held-out samples' own white noise, which only zero lag
+        holds, does not shorten it. The scaling: the error between lines is the field the
+        lines do not resolve, on the scale of their gap; measured across twice the map's gap
+        it is twice as long where the geology varies along the lines as across them.
+    """
+    steps = [np.median(np.diff(dist)) for dist, _ in series if dist.size > 1]
+    # bins of several samples where the lines are sampled densely, else of one or two: two
+    # bins' means never share a sample
+    h = max(spacing_m / 16.0, 1.5 * float(np.median(steps)) if steps else 0.0)
+    n_lags = int(MAX_CORRELATION_SPACINGS * spacing_m / h)
+    num, lag, cnt = np.zeros(n_lags + 1), np.zeros(n_lags + 1), np.zeros(n_lags + 1)
+    for dist, misfit in series:
+        b = np.floor((dist - dist[0]) / h).astype(int)
+        n = int(b[-1]) + 1
+        counts = np.bincount(b, minlength=n)
+        have = counts > 0
+        c = np.maximum(counts, 1)
+        mean = np.bincount(b, weights=misfit, minlength=n) / c
+        where = np.bincount(b, weights=dist, minlength=n) / c
+        for k in range(1, min(n_lags, n - 1) + 1):
+            both = have[:-k] & have[k:]
+            num[k] += float(np.sum((mean[:-k] * mean[k:])[both]))
+            lag[k] += float(np.sum((where[k:] - where[:-k])[both]))
+            cnt[k] += float(both.sum())
+    ok = cnt[1:] > 0
+    if ok.sum() < 2:
+        return float("nan")
+    cov, d = (num[1:] / np.maximum(cnt[1:], 1))[ok], (lag[1:] / np.maximum(cnt[1:], 1))[ok]
+    # the autocovariance at zero lag, without the noise: the first two lags' line, no lower
+    # than the first lag
+    c0 = max(cov[0], cov[0] + (cov[0] - cov[1]) * d[0] / max(d[1] - d[0], 1e-9))
+    if c0 <= 0:
+        return float("nan")
+    rho = np.concatenate([[1.0], cov / c0])
+    d = np.concatenate([[0.0], d])
+    stop = np.flatnonzero(~(rho > 0))
+    end = stop[0] if stop.size else rho.size
+    one_sided = float(np.sum(np.diff(d[:end]) * 0.5 * (rho[: end - 1] + rho[1:end])))
+    return float(max(spacing_m, 2.0 * one_sided * spacing_m / gap_m))
+
+
+def _line_series(
+    data: LineData, held: np.ndarray, misfit: np.ndarray
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Each held-out line's misfit (nT, its level removed) against the distance along it
+    (m), for :func:`error_correlation_length`."""
+    out = []
+    e, n = data.east_m[held], data.north_m[held]
+    for m in line_masks(data.line[held], np.isfinite(misfit), 3):
+        d = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(e[m]), np.diff(n[m])))])
+        out.append((d, misfit[m] - np.median(misfit[m])))
+    return out
+
+
 def _heldout_lines(
     data: LineData,
     make_gridder: Callable[[], object],
     folds: list[np.ndarray],
     spacing_m: float,
     noise_nT: float,
-) -> tuple[float, float]:
+) -> tuple[float, float, float]:
     """Held-out survey lines against the ties where they cross them: the lines' mean squared
     misfit (nT^2, each line's level removed, the noise not) and the ratio of their error to
     the ties' error at the same place in the same gap (both midway between lines two
     spacings apart; the noise removed from both). A few tie transects may cross quieter or
     louder geology than the block holds; the ratio carries the ties' error across the block.
     The ratio is 1 where the ties do not cross the held-out lines enough to tell (fewer than
-    :data:`MIN_BIN_SAMPLES` samples)."""
-    lines2, ties2 = [], []
+    :data:`MIN_BIN_SAMPLES` samples). Third, the error's correlation length along the lines
+    (m, :func:`error_correlation_length`)."""
+    lines2, ties2, series = [], [], []
     survey, tie = np.asarray(data.kind == "survey"), np.asarray(data.kind == "tie")
     for held in folds:
         g = make_gridder().fit(data.subset(~held & survey))
         r = data.value_nT[held] - g.predict(data.east_m[held], data.north_m[held], data.up_m[held])
         for m in line_masks(data.line[held], np.isfinite(r), 3):
             lines2.append((r[m] - np.median(r[m])) ** 2)
+        series += _line_series(data, held, r)
         rt, _, inside = _tie_misfit(data, ~held & survey, g, spacing_m)
         near, _ = cKDTree(np.column_stack([data.east_m[held], data.north_m[held]])).query(
             np.column_stack([data.east_m[tie], data.north_m[tie]])
@@ -316,11 +418,13 @@ def _heldout_lines(
     if not lines2:
         raise ValueError("map uncertainty: no held-out line could be predicted")
     e2 = float(np.mean(np.concatenate(lines2)))
+    length = error_correlation_length(series, spacing_m, 2.0 * spacing_m)
     t2 = np.concatenate(ties2) if ties2 else np.empty(0)
     if t2.size < MIN_BIN_SAMPLES:
-        return e2, 1.0
+        return e2, 1.0, length
     ties_signal = float(_signal_nT2(float(np.mean(t2)), t2.size, noise_nT))
-    return e2, max(e2 - noise_nT**2, 0.0) / ties_signal if ties_signal > 0 else 1.0
+    ratio = max(e2 - noise_nT**2, 0.0) / ties_signal if ties_signal > 0 else 1.0
+    return e2, ratio, length
 
 
 def _survey_model(
@@ -334,7 +438,7 @@ def _survey_model(
     """The along-line shape scaled by held-out survey lines (module docstring)."""
     d1, shape1 = _shape(data, spacing_m, noise_nT)
     d2, shape2 = _shape(data, 2.0 * spacing_m, noise_nT)
-    err2, ref2 = [], []
+    err2, ref2, series = [], [], []
     for held in folds:
         g = make_gridder().fit(data.subset(~held))
         pred = g.predict(data.east_m[held], data.north_m[held], data.up_m[held])
@@ -344,6 +448,7 @@ def _survey_model(
         for m in line_masks(data.line[held], np.isfinite(r), 3):
             err2.append((r[m] - np.median(r[m])) ** 2)
             ref2.append(np.interp(d[m], d2, shape2))
+        series += _line_series(data, held, r)
     if not err2:
         raise ValueError("map uncertainty: no held-out line could be predicted")
     e2, r2 = np.concatenate(err2), np.concatenate(ref2)
@@ -358,6 +463,7 @@ def _survey_model(
         float(noise_nT),
         float(np.sqrt(np.mean(e2))),
         float(spacing_m),
+        correlation_length_m=error_correlation_length(series, spacing_m, 2.0 * spacing_m),
     )
 
 

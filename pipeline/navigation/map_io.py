@@ -50,8 +50,8 @@ class GeoMap:
     # the map's 1-sigma error per cell, nT, on the same cells (a recording's /map/uncertainty,
     # a netCDF's ``uncertainty`` variable); None: the map does not say
     sigma: Grid | None = None
-    # the distance the map's error stays correlated over, m (its line spacing, when known;
-    # None: [navigate] map_error_length_m)
+    # the distance the map's error stays correlated over, m (the map stage's measurement
+    # along its held-out lines, when known; None: [navigate] map_error_length_m)
     error_length_m: float | None = None
 
     def ned_to_map(self, lat_deg, lon_deg, step_m: float = 10.0) -> np.ndarray:

@@ -161,7 +161,7 @@ def navigate_stage(flight: Flight, seg: Segmentation | None, comp: np.ndarray, m
     which = cfg["navigate"]["map"]
     grid = map_run.filtered if which == "anomaly_filtered" else map_run.grid
     geomap = frame_map(grid, map_run.frame, f"/map/{which}", f"this flight's /map/{which}")
-    geomap.sigma, geomap.error_length_m = map_run.uncertainty, map_run.spacing_m
+    geomap.sigma, geomap.error_length_m = map_run.uncertainty, map_run.error_length_m
     try:
         return run_navigation(flight, seg, comp, geomap, cfg.navigation_settings())
     except AeromagError as exc:
@@ -191,7 +191,7 @@ def navigability_stage(flight: Flight, comp: np.ndarray, map_run, cfg):
     which = cfg["navigate"]["map"]
     grid = map_run.filtered if which == "anomaly_filtered" else map_run.grid
     geomap = frame_map(grid, map_run.frame, f"/map/{which}", f"this flight's /map/{which}")
-    geomap.sigma, geomap.error_length_m = map_run.uncertainty, map_run.spacing_m
+    geomap.sigma, geomap.error_length_m = map_run.uncertainty, map_run.error_length_m
     speed = track_speed_mps(flight, geomap)
     if not np.isfinite(speed):
         return "the track does not move"
