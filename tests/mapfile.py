@@ -111,6 +111,10 @@ def uncertainty_of(grid: Grid) -> Grid:
     return grid.with_values(0.3 + 0.01 * np.abs(grid.values))
 
 
+# the map error's correlation length a recording with /map/uncertainty states, m
+ERROR_LENGTH_M = 120.0
+
+
 def write_processed(
     path: Path,
     frame: bool = True,
@@ -121,8 +125,8 @@ def write_processed(
 ) -> tuple[Path, Grid]:
     """A recording holding ``/map/frame``, ``/map/anomaly``, ``/map/anomaly_filtered`` and
     ``/map/lines`` (each optional; ``uncertainty``: ``/map/uncertainty`` too,
-    :func:`uncertainty_of`) plus one scalar sample; ``legacy``: as processed before the grids
-    were computed in a projected CRS."""
+    :func:`uncertainty_of`, and the frame's ``error_correlation_length_m``) plus one scalar
+    sample; ``legacy``: as processed before the grids were computed in a projected CRS."""
     grid = synthetic_grid(legacy=legacy)
     with McapOutput(path) as out:
         cid = out.channel("/mag/scalar", "aeromag.ScalarField")
@@ -139,6 +143,8 @@ def write_processed(
         )
         if frame:
             p = {"timestamp": {"sec": T0 // 10**9, "nsec": 0}, **frame_payload(legacy)}
+            if uncertainty:
+                p["error_correlation_length_m"] = ERROR_LENGTH_M
             out.write(out.channel("/map/frame", "aeromag.MapFrame"), T0, encode(p))
         if grids:
             chosen = [

@@ -219,14 +219,17 @@ def test_map_sigma_contract(box_path, tmp_path, cli):
 
 def test_exported_netcdf_brings_its_uncertainty(tmp_path):
     """A netCDF map exported by aeromag carries ``uncertainty`` beside the grids: navigate
-    reads it as the map's error, cell for cell, placed as the map."""
+    reads it as the map's error, cell for cell, placed as the map, with the error's
+    correlation length the recording's ``/map/frame`` states (as the recording itself)."""
     from pipeline.export import export_recording
-    from pipeline.navigation.map_io import read_map
-    from tests.mapfile import uncertainty_of, write_processed
+    from pipeline.navigation.map_io import read_map, read_recording_map
+    from tests.mapfile import ERROR_LENGTH_M, uncertainty_of, write_processed
 
     src, grid = write_processed(tmp_path / "f.processed.mcap", uncertainty=True)
+    assert read_recording_map(src).error_length_m == pytest.approx(ERROR_LENGTH_M)
     export_recording(src, tmp_path / "out", ["netcdf", "geotiff"])
     m = read_map(tmp_path / "out" / "f.maps.nc")
+    assert m.error_length_m == pytest.approx(ERROR_LENGTH_M)
     assert m.sigma is not None and m.sigma.shape == m.grid.shape
     want = uncertainty_of(grid).values.astype(np.float32)
     np.testing.assert_array_equal(m.sigma.values.astype(np.float32), want)

@@ -83,6 +83,16 @@ def cf_name(name: str) -> str:
     return re.sub(r"[^A-Za-z0-9_]", "_", name)
 
 
+def _error_length(mg: MapGrid, frame: MapFrame) -> dict[str, float]:
+    """The map error's correlation length (m) as an attribute of the uncertainty variable,
+    where ``/map/frame`` records it: what ``aeromag navigate`` reads back with the σ."""
+    from pipeline.navigation.map_io import ERROR_LENGTH_ATTR, UNCERTAINTY_CHANNEL
+
+    if mg.topic != UNCERTAINTY_CHANNEL or frame.error_length_m is None:
+        return {}
+    return {ERROR_LENGTH_ATTR: float(frame.error_length_m)}
+
+
 def write_netcdf(path: str | Path, grids: list[MapGrid], frame: MapFrame) -> Path:
     """Every grid channel as a variable (:func:`cf_name` of its name) of one CF-1.8
     netCDF-4 file, its cells as computed.
@@ -124,6 +134,7 @@ def write_netcdf(path: str | Path, grids: list[MapGrid], frame: MapFrame) -> Pat
                     "grid_mapping": "crs",
                     "coordinates": "lat lon",
                     "source_channel": mg.topic,
+                    **_error_length(mg, frame),
                 },
             )
             for mg in grids

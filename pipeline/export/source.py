@@ -48,6 +48,8 @@ class MapFrame:
     time_ns: int
     origin_easting_m: float = 0.0
     origin_northing_m: float = 0.0
+    # the map error's correlation length along a track, m (None: not recorded)
+    error_length_m: float | None = None
 
     @classmethod
     def from_message(cls, m: dict, time_ns: int) -> MapFrame:
@@ -63,6 +65,7 @@ class MapFrame:
             int(time_ns),
             float(m.get("origin_easting_m", 0.0)),
             float(m.get("origin_northing_m", 0.0)),
+            float(m["error_correlation_length_m"]) if "error_correlation_length_m" in m else None,
         )
 
     @property

@@ -33,6 +33,8 @@ from pipeline.maps.grid import Grid
 DEFAULT_CHANNEL = "/map/anomaly_filtered"
 UNCERTAINTY_CHANNEL = "/map/uncertainty"
 UNCERTAINTY_VARIABLE = "uncertainty"  # its netCDF variable (aeromag export)
+# the uncertainty variable's attribute holding the error's correlation length along a track, m
+ERROR_LENGTH_ATTR = "correlation_length_m"
 
 
 @dataclass
@@ -158,6 +160,7 @@ def read_recording_map(path: Path, channel: str = DEFAULT_CHANNEL) -> GeoMap:
         frame.crs,
         notes,
         sigma,
+        fr.error_length_m if sigma is not None else None,
     )
 
 
@@ -268,6 +271,8 @@ def read_raster_map(path: Path) -> GeoMap:
         # placed exactly as the map (same axes, same resampling)
         gm.sigma = _raster_geomap(path, da, sig, x, y, xdim, ydim).grid
         gm.notes.append(f"map error per cell from the {UNCERTAINTY_VARIABLE!r} variable")
+        length = float(sigma_da.attrs.get(ERROR_LENGTH_ATTR, np.nan))
+        gm.error_length_m = length if np.isfinite(length) and length > 0 else None
     return gm
 
 

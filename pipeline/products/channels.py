@@ -215,6 +215,13 @@ def map_frame_channel(mr, time_ns: int) -> OutputChannel:
             "igrf_inclination_deg": round(incl, 6),
             "igrf_declination_deg": round(decl, 6),
             "igrf_total_nT": round(total, 3),
+            # the navigation filter's correlation length for the map's error (only where the
+            # map stage measured that error)
+            **(
+                {"error_correlation_length_m": round(mr.error_length_m, 3)}
+                if getattr(mr, "uncertainty_model", None) is not None
+                else {}
+            ),
         },
     )
     return ch
