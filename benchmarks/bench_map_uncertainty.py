@@ -21,7 +21,9 @@ block). Per map: ``z`` = RMS over the block's cells of (map - truth) / sigma (1:
 error; above 1 sigma is too small, which makes a navigation filter read map error as
 position), and the true error and sigma per band of distance to the nearest line sample (0-1/8,
 1/8-1/4, 1/4-1/2 of a spacing). Printed per scenario and noise: median and largest ``z`` per
-model, and how many maps have ``z`` > 1.5.
+model, and how many maps have ``z`` > 1.5; and the error's correlation length the shipped
+model measured (``MapUncertainty.error_length_m``) against the true error's along the grid's
+two axes (:func:`true_length_m`), in line spacings.
 
 Exits non-zero when a map stage fails; ``z`` has no pass mark here (the results table in
 docs/navigation.md states what was measured).
@@ -55,6 +57,34 @@ BANDS = (0.0, 0.125, 0.25, 0.5)  # distance to the nearest line sample, line spa
 MODELS = ("shipped", "survey-lines")
 
 
+def true_length_m(err: np.ndarray, cell_m: float, axis: int) -> float:
+    """Two-sided integral (m) of the autocorrelation of the map's true error ``err`` (cells,
+    NaN outside the block) along the grid's ``axis`` (1: along rows, east; 0: along columns,
+    north), each row's (column's) mean removed as a navigation filter's per-line level takes
+    it, summed to the first lag where it is no longer positive: what
+    :func:`pipeline.maps.uncertainty.error_correlation_length` estimates for the filter."""
+    rows = err if axis == 1 else err.T
+    n = rows.shape[1]
+    num, cnt, var = np.zeros(n), np.zeros(n), []
+    for r in rows:
+        ok = np.isfinite(r)
+        if ok.sum() < 3:
+            continue
+        x = np.where(ok, r - np.nanmean(r), 0.0)
+        var.append(x[ok] ** 2)
+        for k in range(1, n):
+            both = ok[:-k] & ok[k:]
+            num[k] += float(np.sum((x[:-k] * x[k:])[both]))
+            cnt[k] += float(both.sum())
+    if not var:
+        return float("nan")
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rho = (num[1:] / cnt[1:]) / float(np.mean(np.concatenate(var)))
+    stop = np.flatnonzero(~(rho > 0))
+    rho = rho[: stop[0] if stop.size else rho.size]
+    return float(cell_m * (1.0 + 2.0 * np.sum(rho)))
+
+
 def one(scenario: str, noise_nT: float, seed: int) -> dict:
     """Simulate, map and score one survey (see the module docstring)."""
     sim = simulate(Scenario.load(scenario, [f"sensors.scalar_noise_nT={noise_nT}"]), seed)
@@ -83,6 +113,12 @@ def one(scenario: str, noise_nT: float, seed: int) -> dict:
         "noise_nT": noise_nT,
         "seed": seed,
         "true_nT": [float(np.sqrt(np.mean(err[m] ** 2))) for m in bands],
+        "spacing_m": float(gm.spacing_m),
+    }
+    err2d = np.where(block, gm.grid.values - truth.values, np.nan)
+    row["true_length_m"] = {
+        "east": true_length_m(err2d, gm.grid.cell_m, 1),
+        "north": true_length_m(err2d, gm.grid.cell_m, 0),
     }
     for name, (grid, model, _) in sigmas.items():
         s = grid.values[block]
@@ -91,6 +127,7 @@ def one(scenario: str, noise_nT: float, seed: int) -> dict:
             "z": float(np.sqrt(np.mean((err[ok] / s[ok]) ** 2))),
             "sigma_nT": [float(np.sqrt(np.mean(s[m & ok] ** 2))) for m in bands],
             "method": model.method,
+            "length_m": model.error_length_m,
         }
     return row
 
@@ -136,6 +173,23 @@ def main() -> int:
                     f"> 1.5 on {int(np.sum(z > 1.5))}/{z.size}"
                 )
             table.append((f"{sc}, {nz} nT, {len(sel)} maps", "; ".join(cells)))
+            # the error's correlation length: shipped estimate over the true one along the
+            # grid's axes (the shorter and the longer of the two), in line spacings
+            est = np.array([r["shipped"]["length_m"] / r["spacing_m"] for r in sel])
+            lo, hi = (
+                np.array([f(r["true_length_m"].values()) / r["spacing_m"] for r in sel])
+                for f in (min, max)
+            )
+            table.append(
+                (
+                    f"{sc}, {nz} nT: correlation length, spacings",
+                    f"shipped median {np.median(est):.2f} ({est.min():.2f}-{est.max():.2f}); "
+                    f"true along the grid axes: shorter {np.median(lo):.2f}, "
+                    f"longer {np.median(hi):.2f}; shipped >= shorter on "
+                    f"{int(np.sum(est >= lo))}/{est.size}, >= longer on "
+                    f"{int(np.sum(est >= hi))}/{est.size}",
+                )
+            )
     return finish(table, errors)
 
 
