@@ -109,6 +109,9 @@ def _check(seed, ties=True, src=None):
         fit_on, lambda: MinimumCurvatureGridder(cell, np.inf), spacing, noise, level
     )
     assert (model.method == TIE_METHOD) == ties
+    # the error's correlation length is measured (not the spacing's stand-in), and bounded
+    # by what the held-out lines can show: the summed lags
+    assert spacing <= model.correlation_length_m <= 16 * spacing
     grid = MinimumCurvatureGridder(cell, 2 * spacing).fit(data).grid_
     sigma = uncertainty_grid(model, grid, data)
     ge, gn = np.meshgrid(*grid.coordinates())
@@ -149,6 +152,11 @@ def test_error_correlation_length_of_an_exponentially_correlated_error(length_m)
     # white noise three times the error's own spread does not shorten it (lag zero unused)
     noisy = error_correlation_length(ou_lines(rng, length_m, 3.0), spacing, 2 * spacing)
     assert noisy == pytest.approx(length_m, rel=0.3)
+    # a position held over two samples is no step: the same lines, each sample twice
+    lines = ou_lines(rng, length_m, 0.0)
+    twice = [(np.repeat(d, 2), np.repeat(x, 2)) for d, x in lines]
+    once = error_correlation_length(lines, spacing, 2 * spacing)
+    assert error_correlation_length(twice, spacing, 2 * spacing) == pytest.approx(once, rel=0.05)
 
 
 def test_error_correlation_length_of_white_noise_is_the_spacing():

@@ -235,7 +235,7 @@ def fit_uncertainty(
     tie = _tie_model(data, make_gridder, spacing_m, noise_nT)
     if tie is None:
         return _survey_model(data, make_gridder, folds, spacing_m, noise_nT, level_nT)
-    e2, ratio, length = _heldout_lines(data, make_gridder, folds, spacing_m, noise_nT)
+    e2, ratio, length_m = _heldout_lines(data, make_gridder, folds, spacing_m, noise_nT)
     # a few transects say little of a whole block: where the held-out lines miss by more than
     # the ties at the same place, the ties crossed quieter geology and sigma rises with the
     # ratio; where by less, it stays (a sigma told too small makes a navigation filter read
@@ -248,7 +248,7 @@ def fit_uncertainty(
         float(np.sqrt(e2)),
         float(spacing_m),
         TIE_METHOD,
-        length,
+        length_m,
     )
 
 
@@ -338,7 +338,11 @@ def error_correlation_length(
         lines do not resolve, on the scale of their gap; measured across twice the map's gap
         it is twice as long where the geology varies along the lines as across them.
     """
-    steps = [np.median(np.diff(dist)) for dist, _ in series if dist.size > 1]
+    if not (np.isfinite(spacing_m) and spacing_m > 0 and np.isfinite(gap_m) and gap_m > 0):
+        return float("nan")
+    series = [(d, x) for d, x in series if d.size > 1 and np.all(np.isfinite(d) & np.isfinite(x))]
+    # a position held over several samples is no step
+    steps = [float(np.median(np.diff(d)[np.diff(d) > 0])) for d, _ in series if d[-1] > d[0]]
     # bins of several samples where the lines are sampled densely, else of one or two: two
     # bins' means never share a sample
     h = max(spacing_m / 16.0, 1.5 * float(np.median(steps)) if steps else 0.0)
@@ -362,8 +366,10 @@ def error_correlation_length(
         return float("nan")
     cov, d = (num[1:] / np.maximum(cnt[1:], 1))[ok], (lag[1:] / np.maximum(cnt[1:], 1))[ok]
     # the autocovariance at zero lag, without the noise: the first two lags' line, no lower
-    # than the first lag
-    c0 = max(cov[0], cov[0] + (cov[0] - cov[1]) * d[0] / max(d[1] - d[0], 1e-9))
+    # than the first lag (that lag alone where the two lie too close to draw a line)
+    c0 = cov[0]
+    if d[1] - d[0] > 0.5 * h:
+        c0 = max(c0, cov[0] + (cov[0] - cov[1]) * d[0] / (d[1] - d[0]))
     if c0 <= 0:
         return float("nan")
     rho = np.concatenate([[1.0], cov / c0])
@@ -375,15 +381,23 @@ def error_correlation_length(
 
 
 def _line_series(
-    data: LineData, held: np.ndarray, misfit: np.ndarray
+    data: LineData, held: np.ndarray, misfit: np.ndarray, spacing_m: float
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Each held-out line's misfit (nT, its level removed) against the distance along it
-    (m), for :func:`error_correlation_length`."""
+    (m), for :func:`error_correlation_length`; a line is cut where it jumps farther than
+    the longest lag summed (a gap in the record, a position glitch: nothing correlates
+    across it, and the distance bins would grow with it)."""
     out = []
     e, n = data.east_m[held], data.north_m[held]
-    for m in line_masks(data.line[held], np.isfinite(misfit), 3):
-        d = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(e[m]), np.diff(n[m])))])
-        out.append((d, misfit[m] - np.median(misfit[m])))
+    ok = np.isfinite(misfit) & np.isfinite(e) & np.isfinite(n)
+    for m in line_masks(data.line[held], ok, 3):
+        step = np.hypot(np.diff(e[m]), np.diff(n[m]))
+        x = misfit[m] - np.median(misfit[m])
+        cut = np.flatnonzero(step > MAX_CORRELATION_SPACINGS * spacing_m) + 1
+        dist = np.concatenate([[0.0], np.cumsum(step)])
+        for d, v in zip(np.split(dist, cut), np.split(x, cut), strict=True):
+            if d.size >= 3:
+                out.append((d, v))
     return out
 
 
@@ -409,7 +423,7 @@ def _heldout_lines(
         r = data.value_nT[held] - g.predict(data.east_m[held], data.north_m[held], data.up_m[held])
         for m in line_masks(data.line[held], np.isfinite(r), 3):
             lines2.append((r[m] - np.median(r[m])) ** 2)
-        series += _line_series(data, held, r)
+        series += _line_series(data, held, r, spacing_m)
         rt, _, inside = _tie_misfit(data, ~held & survey, g, spacing_m)
         near, _ = cKDTree(np.column_stack([data.east_m[held], data.north_m[held]])).query(
             np.column_stack([data.east_m[tie], data.north_m[tie]])
@@ -418,13 +432,13 @@ def _heldout_lines(
     if not lines2:
         raise ValueError("map uncertainty: no held-out line could be predicted")
     e2 = float(np.mean(np.concatenate(lines2)))
-    length = error_correlation_length(series, spacing_m, 2.0 * spacing_m)
+    length_m = error_correlation_length(series, spacing_m, 2.0 * spacing_m)
     t2 = np.concatenate(ties2) if ties2 else np.empty(0)
     if t2.size < MIN_BIN_SAMPLES:
-        return e2, 1.0, length
+        return e2, 1.0, length_m
     ties_signal = float(_signal_nT2(float(np.mean(t2)), t2.size, noise_nT))
     ratio = max(e2 - noise_nT**2, 0.0) / ties_signal if ties_signal > 0 else 1.0
-    return e2, ratio, length
+    return e2, ratio, length_m
 
 
 def _survey_model(
@@ -448,7 +462,7 @@ def _survey_model(
         for m in line_masks(data.line[held], np.isfinite(r), 3):
             err2.append((r[m] - np.median(r[m])) ** 2)
             ref2.append(np.interp(d[m], d2, shape2))
-        series += _line_series(data, held, r)
+        series += _line_series(data, held, r, spacing_m)
     if not err2:
         raise ValueError("map uncertainty: no held-out line could be predicted")
     e2, r2 = np.concatenate(err2), np.concatenate(ref2)

@@ -612,11 +612,7 @@ def run_navigation(
     meas.map_var_scale = correlated_error_scale(
         length, float(np.median(step)) if step.size else np.nan
     )
-    why = (
-        "measured by the map stage along its held-out lines"
-        if geomap.error_length_m
-        else "[navigate] map_error_length_m"
-    )
+    why = "the map's own" if geomap.error_length_m else "[navigate] map_error_length_m"
     notes.append(f"map error taken as correlated over {length:.0f} m along the track ({why})")
     r = sensor**2
     gate = gate_sigma_of(s.gate_probability) if s.gate_probability > 0 else None
