@@ -157,6 +157,10 @@ def test_error_correlation_length_of_an_exponentially_correlated_error(length_m)
     twice = [(np.repeat(d, 2), np.repeat(x, 2)) for d, x in lines]
     once = error_correlation_length(lines, spacing, 2 * spacing)
     assert error_correlation_length(twice, spacing, 2 * spacing) == pytest.approx(once, rel=0.05)
+    # a position glitch of a million kilometres splits a line, no more: same length, no
+    # bins spanning the jump
+    jumped = [(np.where(np.arange(d.size) >= d.size // 2, d + 1e9, d), x) for d, x in lines]
+    assert error_correlation_length(jumped, spacing, 2 * spacing) == pytest.approx(once, rel=0.1)
 
 
 def test_error_correlation_length_of_white_noise_is_the_spacing():

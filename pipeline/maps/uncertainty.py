@@ -340,7 +340,14 @@ def error_correlation_length(
     """
     if not (np.isfinite(spacing_m) and spacing_m > 0 and np.isfinite(gap_m) and gap_m > 0):
         return float("nan")
-    series = [(d, x) for d, x in series if d.size > 1 and np.all(np.isfinite(d) & np.isfinite(x))]
+    # a line is cut where it jumps farther than the longest lag summed (a gap in the record,
+    # a position glitch): nothing correlates across it, and the distance bins would grow
+    # with it
+    parts = []
+    for d, x in series:
+        cut = np.flatnonzero(np.diff(d) > MAX_CORRELATION_SPACINGS * spacing_m) + 1
+        parts += zip(np.split(d, cut), np.split(x, cut), strict=True)
+    series = [(d, x) for d, x in parts if d.size >= 3 and np.all(np.isfinite(d) & np.isfinite(x))]
     # a position held over several samples is no step
     steps = [float(np.median(np.diff(d)[np.diff(d) > 0])) for d, _ in series if d[-1] > d[0]]
     # bins of several samples where the lines are sampled densely, else of one or two: two
@@ -380,24 +387,17 @@ def error_correlation_length(
     return float(max(spacing_m, 2.0 * one_sided * spacing_m / gap_m))
 
 
-def _line_series(
-    data: LineData, held: np.ndarray, misfit: np.ndarray, spacing_m: float
-) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Each held-out line's misfit (nT, its level removed) against the distance along it
-    (m), for :func:`error_correlation_length`; a line is cut where it jumps farther than
-    the longest lag summed (a gap in the record, a position glitch: nothing correlates
-    across it, and the distance bins would grow with it)."""
+def _levelled_lines(
+    data: LineData, held: np.ndarray, misfit: np.ndarray
+) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Each held-out line (of at least three predicted samples): its mask within ``held``,
+    the distance along it (m) and its misfit with the line's level (median) removed (nT).
+    A line's offset is levelling's business, not the gridder's."""
     out = []
     e, n = data.east_m[held], data.north_m[held]
-    ok = np.isfinite(misfit) & np.isfinite(e) & np.isfinite(n)
-    for m in line_masks(data.line[held], ok, 3):
-        step = np.hypot(np.diff(e[m]), np.diff(n[m]))
-        x = misfit[m] - np.median(misfit[m])
-        cut = np.flatnonzero(step > MAX_CORRELATION_SPACINGS * spacing_m) + 1
-        dist = np.concatenate([[0.0], np.cumsum(step)])
-        for d, v in zip(np.split(dist, cut), np.split(x, cut), strict=True):
-            if d.size >= 3:
-                out.append((d, v))
+    for m in line_masks(data.line[held], np.isfinite(misfit), 3):
+        d = np.concatenate([[0.0], np.cumsum(np.hypot(np.diff(e[m]), np.diff(n[m])))])
+        out.append((m, d, misfit[m] - np.median(misfit[m])))
     return out
 
 
@@ -421,9 +421,9 @@ def _heldout_lines(
     for held in folds:
         g = make_gridder().fit(data.subset(~held & survey))
         r = data.value_nT[held] - g.predict(data.east_m[held], data.north_m[held], data.up_m[held])
-        for m in line_masks(data.line[held], np.isfinite(r), 3):
-            lines2.append((r[m] - np.median(r[m])) ** 2)
-        series += _line_series(data, held, r, spacing_m)
+        for _, dist, x in _levelled_lines(data, held, r):
+            lines2.append(x**2)
+            series.append((dist, x))
         rt, _, inside = _tie_misfit(data, ~held & survey, g, spacing_m)
         near, _ = cKDTree(np.column_stack([data.east_m[held], data.north_m[held]])).query(
             np.column_stack([data.east_m[tie], data.north_m[tie]])
@@ -459,10 +459,10 @@ def _survey_model(
         tree = cKDTree(np.column_stack([data.east_m[~held], data.north_m[~held]]))
         d, _ = tree.query(np.column_stack([data.east_m[held], data.north_m[held]]))
         r = data.value_nT[held] - pred
-        for m in line_masks(data.line[held], np.isfinite(r), 3):
-            err2.append((r[m] - np.median(r[m])) ** 2)
+        for m, dist, x in _levelled_lines(data, held, r):
+            err2.append(x**2)
             ref2.append(np.interp(d[m], d2, shape2))
-        series += _line_series(data, held, r, spacing_m)
+            series.append((dist, x))
     if not err2:
         raise ValueError("map uncertainty: no held-out line could be predicted")
     e2, r2 = np.concatenate(err2), np.concatenate(ref2)
