@@ -238,6 +238,33 @@ def test_exported_netcdf_brings_its_uncertainty(tmp_path):
     assert read_map(tmp_path / "out" / "f.anomaly.tif").sigma is None
 
 
+def test_a_bad_error_length_is_one_error_naming_it(tmp_path):
+    """A netCDF ``uncertainty:correlation_length_m`` or a ``/map/frame``
+    ``error_correlation_length_m`` that is not a positive number: an AeromagError (one
+    line through every command) naming it, not a filter told a negative length."""
+    import xarray as xr
+
+    from pipeline.errors import AeromagError
+    from pipeline.export import export_recording
+    from pipeline.export.source import MapFrame
+    from pipeline.navigation.map_io import read_map
+    from tests.mapfile import frame_payload, write_processed
+
+    src, _ = write_processed(tmp_path / "f.processed.mcap", uncertainty=True)
+    export_recording(src, tmp_path / "out", ["netcdf"])
+    for bad in (-5.0, "abc"):
+        with xr.open_dataset(tmp_path / "out" / "f.maps.nc") as ds:
+            ds = ds.load()
+        ds["uncertainty"].attrs["correlation_length_m"] = bad
+        path = tmp_path / f"bad{bad}.nc"
+        ds.to_netcdf(path, engine="h5netcdf")
+        with pytest.raises(AeromagError, match="correlation_length_m"):
+            read_map(path)
+    for bad in (0.0, -1.0, float("nan"), "abc"):
+        with pytest.raises(ValueError, match="error_correlation_length_m"):
+            MapFrame.from_message({**frame_payload(False), "error_correlation_length_m": bad}, 0)
+
+
 def test_navigability_command_writes_its_grid_and_refuses_bad_input(box_path, tmp_path, cli):
     """``aeromag navigability``: /map/navigability (m) on the map's cells, exported as a
     GeoTIFF in metres; a raw recording, a negative speed and an unknown heading are one line."""

@@ -25,6 +25,19 @@ LINES_TOPIC = "/map/lines"
 MAKE_MAPS = "`aeromag process` (or `aeromag map`) makes them"
 
 
+def positive_or_none(value, name: str) -> float | None:
+    """``value`` as a positive finite number, None when absent; ValueError otherwise."""
+    if value is None:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        v = float("nan")
+    if not (np.isfinite(v) and v > 0):
+        raise ValueError(f"{name} must be a positive number, not {value!r}")
+    return v
+
+
 @dataclass(frozen=True)
 class MapFrame:
     """Georeference of the grids (``/map/frame``): the projected CRS they were computed in
@@ -65,7 +78,7 @@ class MapFrame:
             int(time_ns),
             float(m.get("origin_easting_m", 0.0)),
             float(m.get("origin_northing_m", 0.0)),
-            float(m["error_correlation_length_m"]) if "error_correlation_length_m" in m else None,
+            positive_or_none(m.get("error_correlation_length_m"), "error_correlation_length_m"),
         )
 
     @property

@@ -271,8 +271,16 @@ def read_raster_map(path: Path) -> GeoMap:
         # placed exactly as the map (same axes, same resampling)
         gm.sigma = _raster_geomap(path, da, sig, x, y, xdim, ydim).grid
         gm.notes.append(f"map error per cell from the {UNCERTAINTY_VARIABLE!r} variable")
-        length = float(sigma_da.attrs.get(ERROR_LENGTH_ATTR, np.nan))
-        gm.error_length_m = length if np.isfinite(length) and length > 0 else None
+        from pipeline.export.source import positive_or_none
+
+        try:
+            gm.error_length_m = positive_or_none(sigma_da.attrs.get(ERROR_LENGTH_ATTR), "")
+        except (TypeError, ValueError):
+            raise AeromagError(
+                f"the {UNCERTAINTY_VARIABLE!r} variable's {ERROR_LENGTH_ATTR} attribute is not "
+                "a positive number of metres",
+                file=path,
+            ) from None
     return gm
 
 
