@@ -20,12 +20,15 @@ Per flight, in one run:
   database so that every flight pays the same warm start): wall seconds and the child's peak
   resident memory (``wait4``; the largest of the CLI process and the server it started);
 - the per-stage seconds and the flow process's own peak memory from the summary JSON
-  (``timings_s``, ``peak_memory_mb``).
+  (``timings_s``, ``peak_memory_mb``);
+- ``aeromag audit FILE --json ... --report ...`` alone as a child process (issue 35's scale
+  item: the audit of the file, reading it included): wall seconds and peak memory.
 
 Prints a table with the ratios process / bare iteration and, per shape, the fitted exponent k
 of ``seconds ~ epochs^k`` of the whole run, of the bare iteration and of every stage (linear
 cost: k close to 1 or below; fixed costs pull k below 1). Targets (issues 35 and 37): process
-<= 3x the bare iteration and peak memory <= 1 GB on every flight, no stage's k above 1. Exits
+and the audit command each <= 3x the bare iteration and peak memory <= 1 GB on every flight,
+no stage's k above 1. Exits
 non-zero when a run fails or its outputs are wrong (never because something is slow).
 """
 
@@ -86,12 +89,24 @@ def bare_iteration(path: Path) -> tuple[int, float]:
 
 def run_process(path: Path, out: Path, env: dict[str, str]) -> tuple[float, float, str]:
     """``aeromag process`` in a child process: wall seconds, peak RSS (MB), stderr tail."""
+    return run_command(["process", str(path), "--out", str(out)], out, env)
+
+
+def run_audit(path: Path, out: Path, env: dict[str, str]) -> tuple[float, float, str]:
+    """``aeromag audit`` in a child process (the command alone: read, despike, segment,
+    audit, report): wall seconds, peak RSS (MB), stderr tail."""
+    args = ["audit", str(path), "--json", str(out / "audit.json"), "--report", str(out)]
+    return run_command(args, out, env)
+
+
+def run_command(args: list[str], out: Path, env: dict[str, str]) -> tuple[float, float, str]:
+    """``aeromag ARGS`` in a child process: wall seconds, peak RSS (MB), stderr tail."""
     out.mkdir(parents=True, exist_ok=True)
     log = out / "stderr.txt"
     with log.open("wb") as f:
         t = time.perf_counter()
         proc = subprocess.Popen(
-            [sys.executable, "-m", "flows.cli", "process", str(path), "--out", str(out)],
+            [sys.executable, "-m", "flows.cli", *args],
             env=env,
             cwd=REPO,
             stdout=subprocess.DEVNULL,
@@ -102,7 +117,7 @@ def run_process(path: Path, out: Path, env: dict[str, str]) -> tuple[float, floa
     proc.returncode = os.waitstatus_to_exitcode(status)
     err = log.read_text(errors="replace")
     if proc.returncode:
-        raise RuntimeError(f"aeromag process {path.name} failed: {err[-1500:]}")
+        raise RuntimeError(f"aeromag {' '.join(args[:2])} failed: {err[-1500:]}")
     return wall, usage.ru_maxrss / 1024, err
 
 
@@ -123,7 +138,12 @@ def exponent_rows(shape: str, res: list[dict]) -> list[tuple[str, str]]:
     e = np.array([r["epochs"] for r in res], float)
     whole = ", ".join(
         f"{name} {exponent(e, np.array([r[key] for r in res], float)):.2f}"
-        for name, key in (("process", "wall"), ("bare iteration", "bare"), ("stages' sum", "sum"))
+        for name, key in (
+            ("process", "wall"),
+            ("bare iteration", "bare"),
+            ("stages' sum", "sum"),
+            ("audit command", "audit command"),
+        )
     )
     names = list(dict.fromkeys(k for r in res for k in r["stages"]))
     stages = ", ".join(
@@ -142,6 +162,7 @@ def measure(path: Path, label: str, out: Path, env: dict[str, str], errors: list
     n, bare = bare_iteration(path)
     try:
         wall, rss, _ = run_process(path, out, env)
+        audit_wall, audit_rss, _ = run_audit(path, out / "audit", env)
     except RuntimeError as exc:
         errors.append(str(exc))
         return [], None
@@ -172,12 +193,17 @@ def measure(path: Path, label: str, out: Path, env: dict[str, str], errors: list
             f"{tag}: peak memory (target <= 1 GB)",
             f"{rss:.0f} MB child process; flow process {own_mb:.0f} MB (summary)",
         ),
+        (
+            f"{tag}: aeromag audit alone (wall; ratio to bare, target <= 3x; peak, <= 1 GB)",
+            f"{audit_wall:.1f} s ({audit_wall / bare:.1f}x); {audit_rss:.0f} MB",
+        ),
     ]
     rec = {
         "epochs": epochs,
         "bare": bare,
         "wall": wall,
         "sum": sum(stages.values()) or np.nan,
+        "audit command": audit_wall,
         "stages": stages,
     }
     return rows, rec

@@ -211,23 +211,24 @@ class AuditContext:
     ) -> NestedTest:
         """Nested test on the whole calibration: ``spec``'s columns vs ``ext_spec``'s (or
         plus the unfiltered ``extra`` columns), band-passed on the same blocks."""
-        des = design(self.data, spec)
+        data, mask, idx = self.data.calibration_part(self.mask)
+        des = design(data, spec)
         if ext_spec is not None:
-            des_e = design(self.data, ext_spec)
+            des_e = design(data, ext_spec)
             cols_e = des_e.columns
         else:
-            cols_e = np.column_stack([des.columns, extra])
+            cols_e = np.column_stack([des.columns, extra[idx]])
         valid = (
-            self.mask
+            mask
             & np.isfinite(des.y)
             & np.all(np.isfinite(cols_e), axis=1)
             & np.all(np.isfinite(des.columns), axis=1)
         )
-        blocks = contiguous_blocks(valid, self.data.time_s)
-        sos = bandpass_sos(self.s.band.band_hz, self.data.rate_hz, self.s.band.poles)
-        kb, _ = bandpass_blocks(des.columns, blocks, sos, self.s.band.trim_at(self.data.rate_hz))
-        ke, _ = bandpass_blocks(cols_e, blocks, sos, self.s.band.trim_at(self.data.rate_hz))
-        yf, _ = bandpass_blocks(des.y, blocks, sos, self.s.band.trim_at(self.data.rate_hz))
+        blocks = contiguous_blocks(valid, data.time_s)
+        sos = bandpass_sos(self.s.band.band_hz, data.rate_hz, self.s.band.poles)
+        kb, _ = bandpass_blocks(des.columns, blocks, sos, self.s.band.trim_at(data.rate_hz))
+        ke, _ = bandpass_blocks(cols_e, blocks, sos, self.s.band.trim_at(data.rate_hz))
+        yf, _ = bandpass_blocks(des.y, blocks, sos, self.s.band.trim_at(data.rate_hz))
         return nested_test(yf, kb, ke, self.step)
 
     def _lag_profile_test(self, spec: ModelSpec, lag_s: float) -> NestedTest:
@@ -235,16 +236,14 @@ class AuditContext:
         by ``lag_s`` against not): beside decayed eddy columns, which span the lag's
         linearisation (a first-order response), only the delay of the whole reading tells a
         late sensor (:func:`pipeline.audit.evidence.profile_f_test`)."""
-        d0, d1 = design(self.data, spec), design(self.data, spec.with_(lag_s=lag_s))
+        data, mask, _ = self.data.calibration_part(self.mask)
+        d0, d1 = design(data, spec), design(data, spec.with_(lag_s=lag_s))
         valid = (
-            self.mask
-            & np.isfinite(d0.y)
-            & np.isfinite(d1.y)
-            & np.all(np.isfinite(d0.columns), axis=1)
+            mask & np.isfinite(d0.y) & np.isfinite(d1.y) & np.all(np.isfinite(d0.columns), axis=1)
         )
-        blocks = contiguous_blocks(valid, self.data.time_s)
-        sos = bandpass_sos(self.s.band.band_hz, self.data.rate_hz, self.s.band.poles)
-        trim = self.s.band.trim_at(self.data.rate_hz)
+        blocks = contiguous_blocks(valid, data.time_s)
+        sos = bandpass_sos(self.s.band.band_hz, data.rate_hz, self.s.band.poles)
+        trim = self.s.band.trim_at(data.rate_hz)
         kb, _ = bandpass_blocks(d0.columns, blocks, sos, trim)
         y0, _ = bandpass_blocks(d0.y, blocks, sos, trim)
         y1, _ = bandpass_blocks(d1.y, blocks, sos, trim)

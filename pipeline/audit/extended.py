@@ -27,8 +27,10 @@ import numpy as np
 from pipeline.audit.vector_cal import VectorCalibration
 from pipeline.compensate.estimator import bandpassed_design, fit_ridge
 from pipeline.compensate.filters import (
+    CALIBRATION_PAD_S,
     bandpass_blocks,
     bandpass_sos,
+    calibration_window,
     contiguous_blocks,
     trim_samples,
 )
@@ -118,6 +120,26 @@ class AuditData:
     def rate_hz(self) -> float:
         """Sample rate, Hz (from the median sample interval)."""
         return 1.0 / float(np.median(np.diff(self.time_s)))
+
+    def take(self, idx: np.ndarray) -> AuditData:
+        """The same inputs on the epochs ``idx`` (indices or a mask)."""
+        return AuditData(
+            self.time_s[idx],
+            self.scalar_nT[idx],
+            self.vector_nT[idx],
+            None if self.enu_m is None else self.enu_m[idx],
+            {k: v[idx] for k, v in self.aux.items()},
+            dict(self.aux_units),
+        )
+
+    def calibration_part(
+        self, mask: np.ndarray, pad_s: float = CALIBRATION_PAD_S
+    ) -> tuple[AuditData, np.ndarray, np.ndarray]:
+        """(data, mask, epoch indices) on the epochs within ``pad_s`` s of ``mask``
+        (:func:`pipeline.compensate.filters.calibration_window`): every design a fit or a
+        test band-passes over ``mask``'s blocks is built there, not on the whole flight."""
+        idx = calibration_window(self.time_s, mask, pad_s)
+        return self.take(idx), mask[idx], idx
 
 
 def _smoothed_enu(flight: Flight, frame: LocalFrame, enu: np.ndarray) -> np.ndarray:
@@ -414,8 +436,10 @@ def calibration_rows(
     -------
     CalibrationRows
     """
-    des = design(data, spec)
-    kf, yf, where = bandpassed_rows(data, des, mask, bs)
+    sub, sub_mask, idx = data.calibration_part(mask)
+    des = design(sub, spec)
+    kf, yf, where = bandpassed_rows(sub, des, sub_mask, bs)
+    where = idx[where]
     for a in (kf, yf, where):
         a.flags.writeable = False
     return CalibrationRows(des.names, des.subtract, kf, yf, where)
@@ -528,8 +552,13 @@ def lag_cost(
     are left out, so that every candidate uses the same rows). With ``keep``, only the rows
     of kept epochs count (band-passed with all of ``mask``).
     """
+    # the flight's first and last max_lag_s seconds: the window's own ends when the
+    # calibration reaches them, else pad (>= max_lag_s) outside the calibration
+    flight_start, flight_end = data.time_s[0], data.time_s[-1]
+    data, mask, idx = data.calibration_part(mask, max(CALIBRATION_PAD_S, 2.0 * max_lag_s))
+    keep = None if keep is None else keep[idx]
     t = data.time_s
-    inner = mask & (t >= t[0] + max_lag_s) & (t <= t[-1] - max_lag_s)
+    inner = mask & (t >= flight_start + max_lag_s) & (t <= flight_end - max_lag_s)
     des = design(data, spec.with_(lag_s=0.0))
     valid = inner & np.isfinite(des.y) & np.all(np.isfinite(des.columns), axis=1)
     blocks = contiguous_blocks(valid, t)

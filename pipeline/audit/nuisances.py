@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from pipeline.compensate.filters import calibration_window
 from pipeline.compensate.model import Measurements
 from pipeline.compensate.plus import (
     TAU_GRID_S,
@@ -114,6 +115,8 @@ class NuisanceSelection:
     note: str = ""
     setup: HeldOutSetup | None = None  # the buffered held-out folds the groups were tested on
     columns: np.ndarray | None = None  # the null model's design (T-L and the groups taken)
+    # the flight's epoch of each of the setup's rows (None: the rows are the flight's)
+    window: np.ndarray | None = None
 
     @property
     def eddy_tau_s(self) -> float:
@@ -136,8 +139,14 @@ class NuisanceSelection:
 def select_nuisances(
     flight: Flight, mask: np.ndarray, band, alpha: float, min_gain: float
 ) -> NuisanceSelection:
-    """:func:`select_from` on the flight's inputs less its recorded channels and attitude."""
-    return select_from(_null_measurements(flight), mask, band, alpha, min_gain)
+    """:func:`select_from` on the flight's inputs less its recorded channels and attitude,
+    on the epochs the calibration's fits read
+    (:func:`pipeline.compensate.filters.calibration_window`; ``window`` of the result)."""
+    meas = _null_measurements(flight)
+    idx = calibration_window(meas.time_s, mask)
+    out = select_from(meas.take(idx), mask[idx], band, alpha, min_gain)
+    out.window = idx
+    return out
 
 
 def select_from(

@@ -80,7 +80,7 @@ class Auditor(AuditEvents, AuditContext):
         nz = self.nuisances
         if nz.setup is None or nz.columns is None:
             return None
-        d = self.data
+        d = self.data if nz.window is None else self.data.take(nz.window)
         cands: dict[str, np.ndarray] = {}
         if d.enu_m is not None:
             cands["geomagnetic_gradient"] = position_terms(*d.enu_m.T)[0]

@@ -82,6 +82,24 @@ class Measurements:
             {c[4:]: flight.units.get(c, "") for c in d.columns if c.startswith("aux_")},
         )
 
+    def take(self, idx: np.ndarray) -> Measurements:
+        """The same inputs on the epochs ``idx`` (indices or a mask)."""
+
+        def sub(a):
+            return None if a is None else a[idx]
+
+        return Measurements(
+            self.time_s[idx],
+            self.scalar_nT[idx],
+            self.vector_nT[idx],
+            sub(self.lat_deg),
+            sub(self.lon_deg),
+            sub(self.alt_m),
+            sub(self.attitude_deg),
+            {k: v[idx] for k, v in self.aux.items()},
+            dict(self.aux_units),
+        )
+
     @property
     def has_position(self) -> bool:
         """Whether positions are present (AGG-TL needs them)."""

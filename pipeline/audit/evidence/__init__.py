@@ -11,7 +11,6 @@ fastest manoeuvres), and a t-test then misses even a large reduction.
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -40,14 +39,31 @@ def thinning_step(rate_hz: float, band_hz: tuple[float, float]) -> int:
     return max(1, int(round(rate_hz / (2.0 * (band_hz[1] - band_hz[0])))))
 
 
+# A direction of a design (columns scaled to unit RMS) whose singular value is below this
+# fraction of the largest is taken as no direction. Band-passed columns carry rounding of
+# about 1e-13 of themselves; a rank decided there flips with the order of operations, and
+# with it the F-test's degrees of freedom and BIC's penalty (nearly collinear nuisance
+# columns, a decay of 0.02 s beside T-L's instantaneous eddy terms, come that close).
+RANK_RTOL = 1e-8
+
+
 def least_squares_rss(a: np.ndarray, y: np.ndarray) -> tuple[float, int, np.ndarray]:
     """Ordinary least squares of ``y`` on the columns of ``a``: (residual sum of squares,
-    rank of ``a``, coefficients); no columns: (y . y, 0, empty)."""
+    rank of ``a``, coefficients of the minimum-norm solution); no columns: (y . y, 0,
+    empty). Columns are scaled to unit RMS and the rank counts singular values above
+    :data:`RANK_RTOL` of the largest, so rounding cannot change it."""
+    y = np.asarray(y, float)
     if a.shape[1] == 0:
         return float(y @ y), 0, np.zeros(0)
-    coef, *_ = np.linalg.lstsq(a, y, rcond=None)
-    r = y - a @ coef
-    return float(r @ r), int(np.linalg.matrix_rank(a)), coef
+    scale = np.sqrt(np.mean(np.asarray(a, float) ** 2, axis=0))
+    scale = np.where(scale > 0, scale, 1.0)
+    u, sv, vt = np.linalg.svd(a / scale, full_matrices=False)
+    rank = int(np.sum(sv > RANK_RTOL * sv[0])) if sv.size and sv[0] > 0 else 0
+    ur = u[:, :rank]
+    proj = ur.T @ y
+    r = y - ur @ proj
+    coef = (vt[:rank].T @ (proj / sv[:rank])) / scale
+    return float(r @ r), rank, coef
 
 
 def f_test_p(rss0: float, k0: int, rss1: float, k1: int, n: int) -> float:
@@ -97,44 +113,33 @@ class NestedTest:
 
 
 def nested_test(y: np.ndarray, x_base: np.ndarray, x_ext: np.ndarray, step: int) -> NestedTest:
-    """F-test and BIC of ``x_ext`` (which contains ``x_base``'s columns) against ``x_base``."""
-    import statsmodels.api as sm
-    from statsmodels.tools.sm_exceptions import SingularMatrixWarning
-
+    """F-test and BIC of ``x_ext`` (which contains ``x_base``'s columns) against ``x_base``,
+    on every ``step``-th row; degrees of freedom from the designs' ranks
+    (:func:`least_squares_rss`)."""
     yb = np.asarray(y, float)[::step]
-    xb = np.asarray(x_base, float)[::step]
-    xe = np.asarray(x_ext, float)[::step]
-    # columns scaled to unit RMS: the same fit, better conditioned pseudo-inverse
-    sb = np.sqrt(np.mean(xb**2, axis=0)) + 1e-300
-    se = np.sqrt(np.mean(xe**2, axis=0)) + 1e-300
-    with warnings.catch_warnings():
-        # columns a flight does not excite (a track without height changes, a straight
-        # smoothed leg): the pseudo-inverse fits, and the F-test counts the design's rank
-        warnings.simplefilter("ignore", SingularMatrixWarning)
-        r0 = sm.OLS(yb, xb / sb).fit()
-        r1 = sm.OLS(yb, xe / se).fit()
-    f, p, df = r1.compare_f_test(r0)
-    return NestedTest(float(f), float(p), int(round(df)), float(r1.bic - r0.bic), int(yb.size))
+    rss0, k0, _ = least_squares_rss(np.asarray(x_base, float)[::step], yb)
+    rss1, k1, _ = least_squares_rss(np.asarray(x_ext, float)[::step], yb)
+    n, df = yb.size, k1 - k0
+    if df <= 0 or n - k1 <= 0 or not rss1 > 0:
+        return NestedTest(0.0, 1.0, max(df, 0), 0.0, int(n))
+    f = max(rss0 - rss1, 0.0) / df / (rss1 / (n - k1))
+    bic = n * np.log(rss1 / rss0) + df * np.log(n)
+    return NestedTest(float(f), float(stats.f.sf(f, df, n - k1)), int(df), float(bic), int(n))
 
 
 def profile_f_test(y0: np.ndarray, y1: np.ndarray, x: np.ndarray, step: int) -> NestedTest:
     """F-test and BIC of one estimated non-linear parameter (a lag) by its profile
     likelihood: ``y0`` and ``y1`` are the record without and with the parameter at its
     estimate, both fitted by the same columns ``x``."""
-    import statsmodels.api as sm
-    from statsmodels.tools.sm_exceptions import SingularMatrixWarning
-
     xb = np.asarray(x, float)[::step]
-    xb = xb / (np.sqrt(np.mean(xb**2, axis=0)) + 1e-300)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", SingularMatrixWarning)  # as in nested_test
-        r0 = sm.OLS(np.asarray(y0, float)[::step], xb).fit()
-        r1 = sm.OLS(np.asarray(y1, float)[::step], xb).fit()
-    n, dof = r1.nobs, r1.df_resid - 1
-    if dof <= 0 or not r1.ssr > 0:
+    rss0, _, _ = least_squares_rss(xb, np.asarray(y0, float)[::step])
+    rss1, k, _ = least_squares_rss(xb, np.asarray(y1, float)[::step])
+    n = xb.shape[0]
+    dof = n - k - 1
+    if dof <= 0 or not rss1 > 0:
         return NestedTest(0.0, 1.0, 1, 0.0, int(n))
-    f = max(r0.ssr - r1.ssr, 0.0) / (r1.ssr / dof)
-    bic = n * np.log(r1.ssr / r0.ssr) + np.log(n)
+    f = max(rss0 - rss1, 0.0) / (rss1 / dof)
+    bic = n * np.log(rss1 / rss0) + np.log(n)
     return NestedTest(float(f), float(stats.f.sf(f, 1, dof)), 1, float(bic), int(n))
 
 
