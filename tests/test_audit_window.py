@@ -15,7 +15,7 @@ from pipeline.audit.extended import (
     design,
     lag_cost,
 )
-from pipeline.compensate.filters import calibration_window
+from pipeline.compensate.heldout import calibration_window
 from tests.manoeuvres import manoeuvres
 
 

@@ -116,6 +116,12 @@ class AuditContext:
         )
 
     @cached_property
+    def calibration_part(self) -> tuple[AuditData, np.ndarray, np.ndarray]:
+        """(data, mask, epoch indices) near the calibration
+        (:meth:`AuditData.calibration_part`): where the nested tests build their designs."""
+        return self.data.calibration_part(self.mask)
+
+    @cached_property
     def legs(self) -> np.ndarray:
         """Calibration leg of each epoch (one heading of one pass), -1 elsewhere
         (:func:`pipeline.audit.legs.leg_ids`)."""
@@ -211,7 +217,7 @@ class AuditContext:
     ) -> NestedTest:
         """Nested test on the whole calibration: ``spec``'s columns vs ``ext_spec``'s (or
         plus the unfiltered ``extra`` columns), band-passed on the same blocks."""
-        data, mask, idx = self.data.calibration_part(self.mask)
+        data, mask, idx = self.calibration_part
         des = design(data, spec)
         if ext_spec is not None:
             des_e = design(data, ext_spec)
@@ -236,7 +242,7 @@ class AuditContext:
         by ``lag_s`` against not): beside decayed eddy columns, which span the lag's
         linearisation (a first-order response), only the delay of the whole reading tells a
         late sensor (:func:`pipeline.audit.evidence.profile_f_test`)."""
-        data, mask, _ = self.data.calibration_part(self.mask)
+        data, mask, _ = self.calibration_part
         d0, d1 = design(data, spec), design(data, spec.with_(lag_s=lag_s))
         valid = (
             mask & np.isfinite(d0.y) & np.isfinite(d1.y) & np.all(np.isfinite(d0.columns), axis=1)

@@ -27,13 +27,12 @@ import numpy as np
 from pipeline.audit.vector_cal import VectorCalibration
 from pipeline.compensate.estimator import bandpassed_design, fit_ridge
 from pipeline.compensate.filters import (
-    CALIBRATION_PAD_S,
     bandpass_blocks,
     bandpass_sos,
-    calibration_window,
     contiguous_blocks,
     trim_samples,
 )
+from pipeline.compensate.heldout import CALIBRATION_PAD_S, calibration_window
 from pipeline.compensate.nuisance import (
     SECOND_ORDER_RATE_PER_S,  # noqa: F401 (re-exported: the audit's name for it)
     current_columns,
@@ -136,7 +135,7 @@ class AuditData:
         self, mask: np.ndarray, pad_s: float = CALIBRATION_PAD_S
     ) -> tuple[AuditData, np.ndarray, np.ndarray]:
         """(data, mask, epoch indices) on the epochs within ``pad_s`` s of ``mask``
-        (:func:`pipeline.compensate.filters.calibration_window`): every design a fit or a
+        (:func:`pipeline.compensate.heldout.calibration_window`): every design a fit or a
         test band-passes over ``mask``'s blocks is built there, not on the whole flight."""
         idx = calibration_window(self.time_s, mask, pad_s)
         return self.take(idx), mask[idx], idx

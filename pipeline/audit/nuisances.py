@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from pipeline.compensate.filters import calibration_window
+from pipeline.compensate.heldout import calibration_window
 from pipeline.compensate.model import Measurements
 from pipeline.compensate.plus import (
     TAU_GRID_S,
@@ -141,7 +141,7 @@ def select_nuisances(
 ) -> NuisanceSelection:
     """:func:`select_from` on the flight's inputs less its recorded channels and attitude,
     on the epochs the calibration's fits read
-    (:func:`pipeline.compensate.filters.calibration_window`; ``window`` of the result)."""
+    (:func:`pipeline.compensate.heldout.calibration_window`; ``window`` of the result)."""
     meas = _null_measurements(flight)
     idx = calibration_window(meas.time_s, mask)
     out = select_from(meas.take(idx), mask[idx], band, alpha, min_gain)

@@ -36,30 +36,6 @@ def contiguous_blocks(
     return np.split(idx, np.flatnonzero(breaks) + 1)
 
 
-# A calibration fit reads the calibration epochs and their neighbours: derivatives (a sample
-# each side), a re-timed record (the audit's longest lag, 1 s) and a decaying eddy response
-# started in steady state, whose start-up falls as exp(-t / tau). Thirty seconds is twenty
-# decay times of the slowest decay tried (1.5 s): a start-up below 1e-8 of the column.
-CALIBRATION_PAD_S = 30.0
-
-
-def calibration_window(
-    time_s: np.ndarray, mask: np.ndarray, pad_s: float = CALIBRATION_PAD_S
-) -> np.ndarray:
-    """Indices (time order) of the epochs within ``pad_s`` seconds of an epoch of ``mask``:
-    the part of a flight that columns band-passed over ``mask``'s blocks depend on. Columns
-    built on these epochs alone equal those built on the whole flight at the epochs of
-    ``mask`` (recursive filters' start-up aside, exp(-``pad_s`` / tau)); a calibration of
-    minutes in a flight of hours costs minutes."""
-    t = np.asarray(time_s, float)
-    tm = t[mask]
-    if tm.size == 0:
-        return np.zeros(0, int)
-    pos = np.clip(np.searchsorted(tm, t), 1, max(tm.size - 1, 1))
-    near = np.minimum(np.abs(t - tm[pos - 1]), np.abs(t - tm[np.minimum(pos, tm.size - 1)]))
-    return np.flatnonzero((near <= pad_s) | mask)
-
-
 def trim_samples(trim_s: float, rate_hz: float) -> int:
     """Samples in ``trim_s`` seconds at ``rate_hz`` (nearest): the edge a filtered block loses."""
     return int(round(trim_s * rate_hz))

@@ -183,6 +183,24 @@ def within(time_s: np.ndarray, mask: np.ndarray, buffer_s: float) -> np.ndarray:
     return near <= buffer_s
 
 
+# A calibration fit reads the calibration epochs and their neighbours: derivatives (a sample
+# each side), a re-timed record (the audit's longest lag, 1 s) and a decaying eddy response
+# started in steady state, whose start-up falls as exp(-t / tau). Thirty seconds is twenty
+# decay times of the slowest decay tried (1.5 s): a start-up below 1e-8 of the column.
+CALIBRATION_PAD_S = 30.0
+
+
+def calibration_window(
+    time_s: np.ndarray, mask: np.ndarray, pad_s: float = CALIBRATION_PAD_S
+) -> np.ndarray:
+    """Indices (time order) of the epochs within ``pad_s`` seconds of an epoch of ``mask``
+    (:func:`within`): the part of a flight that columns band-passed over ``mask``'s blocks
+    depend on. Columns built on these epochs alone equal those built on the whole flight at
+    the epochs of ``mask`` (recursive filters' start-up aside, exp(-``pad_s`` / tau)); a
+    calibration of minutes in a flight of hours costs minutes."""
+    return np.flatnonzero(within(np.asarray(time_s, float), mask, pad_s))
+
+
 def fold_masks(
     time_s: np.ndarray, fold: np.ndarray, k: int, buffer_s: float
 ) -> tuple[np.ndarray, np.ndarray]:
