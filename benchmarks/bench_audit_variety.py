@@ -2,6 +2,7 @@
 
     .venv/bin/python benchmarks/bench_audit_variety.py [--flights 30] [--seed 2026]
         [--classes none,geomagnetic_gradient,...] [--json OUT.json] [--workers 2]
+        [--qq NULL_QQ.png]
 
 Each flight is drawn by :func:`pipeline.simulate.random_flight_overrides` (multicopter or
 fixed-wing, one or two calibration passes, headings in any order, manoeuvre blocks of
@@ -14,7 +15,9 @@ recording. Printed: the confusion matrix (rows: hidden, columns: named), the sha
 flights named exactly right per class, the coverage of the 95 % intervals, for ``step``
 the share with an ``unexplained`` event within +-120 s of the step, and the share of flights
 whose ``noise_floor_nT`` lies within 20 % of the simulated sensor noise (with and without
-vibration outside the basis). Targets (issue 16):
+vibration outside the basis). On the flights with nothing hidden: the flight-level false
+rate with its exact interval, and the p-values that should spread uniformly there (the null
+bootstrap's maximum statistic, the first round's tests) with a QQ plot. Targets (issue 16):
 named alone >= 95 %, clean -> no finding >= 95 %, step -> event >= 90 %, coverage >= 90 %.
 """
 
@@ -30,6 +33,7 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import binomtest, kstest
 
 from pipeline.audit import EFFECTS
 from pipeline.simulate.audit_trials import CLASSES, EVENT_WINDOW_S, correct, one_flight
@@ -111,10 +115,40 @@ def summarise(rows: list[dict]) -> str:
     if clean:
         bad = [r for r in clean if r["named"] or r["events"]]
         by = Counter(e for r in clean for e in r["event_evidence"])
+        ci = binomtest(len(bad), len(clean)).proportion_ci(0.95, method="exact")
         lines.append(
             f"\nnothing hidden, any finding or event (the flight-level false rate): "
-            f"{len(bad)}/{len(clean)}; events by evidence: {dict(by) or '-'}"
+            f"{len(bad)}/{len(clean)} (95 % Clopper-Pearson {ci.low:.3f}-{ci.high:.3f}); "
+            f"events by evidence: {dict(by) or '-'}"
         )
+        big = [r for r in clean if outside_basis_nT(r) >= 0.5]
+        lines.append(
+            f"- of them with >= 0.5 nT RMS outside the tl18 basis on calibration: "
+            f"{sum(bool(r['named'] or r['events']) for r in big)}/{len(big)}"
+        )
+        for name, p in null_p_sets(clean).items():
+            if p.size:
+                ks = kstest(p, "uniform")
+                lines.append(
+                    f"- null p-values, {name}: {p.size}, share below 0.05 "
+                    f"{np.mean(p < 0.05):.3f}, Kolmogorov-Smirnov against uniform p "
+                    f"{ks.pvalue:.3g}"
+                )
+        lines.append("\n| first-round test, share of null flights p < 0.05 | F-test | held out |")
+        lines.append("|---|---|---|")
+        for effect in EFFECTS:
+            shares = []
+            for test in ("f_test", "heldout"):
+                p = np.array(
+                    [
+                        v
+                        for r in clean
+                        for k, v in r.get("null_p_values", {}).get(test, {}).items()
+                        if k.split(":")[0] == effect and v is not None
+                    ]
+                )
+                shares.append(f"{np.mean(p < 0.05):.2f} of {p.size}" if p.size else "-")
+            lines.append(f"| {effect} | {shares[0]} | {shares[1]} |")
     steps = [r for r in rows if r["kind"] == "step"]
     if steps:
         lines.append(
@@ -124,6 +158,58 @@ def summarise(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def outside_basis_nT(row: dict) -> float:
+    """The flight's interference outside the tl18 basis on calibration (nT RMS): the
+    terms' overrides added in quadrature (:func:`pipeline.simulate.random_flight_overrides`)."""
+    terms = [
+        float(o.split("=", 1)[1])
+        for o in row["overrides"]
+        if o.startswith("interference.outside_basis.") and o.split("=", 1)[0].endswith("_nT")
+    ]
+    return float(np.sqrt(np.sum(np.square(terms)))) if terms else 0.0
+
+
+def null_p_sets(clean: list[dict]) -> dict[str, np.ndarray]:
+    """The p-values of the flights with nothing hidden, by test: the selection's maximum
+    statistic (one per flight) and the first round's nested and held-out tests (one per
+    candidate)."""
+    rr = [r["null_p_values"] for r in clean if r.get("null_p_values")]
+
+    def arr(vals):
+        return np.array([v for v in vals if v is not None], dtype=float)
+
+    return {
+        "maximum statistic (null bootstrap)": arr(r["max_statistic"] for r in rr),
+        "first-round F-tests": arr(v for r in rr for v in r["f_test"].values()),
+        "first-round held-out tests": arr(v for r in rr for v in r["heldout"].values()),
+    }
+
+
+def qq_plot(clean: list[dict], path: Path) -> None:
+    """Uniform QQ plot of the null flights' p-values (:func:`null_p_sets`), log scale: a
+    calibrated test lies on the diagonal, an anti-conservative one below it."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(5.5, 5.5))
+    lo = 1.0
+    for name, p in null_p_sets(clean).items():
+        if p.size:
+            p = np.sort(np.clip(p, 1e-12, 1.0))
+            expected = (np.arange(1, p.size + 1) - 0.5) / p.size
+            ax.plot(expected, p, ".", label=f"{name} ({p.size})")
+            lo = min(lo, expected[0], p[0])
+    ax.plot([lo, 1], [lo, 1], "k--", lw=1, label="uniform")
+    ax.set(xscale="log", yscale="log", xlabel="expected p (uniform)", ylabel="observed p")
+    ax.set_title(f"Audit p-values on {len(clean)} flights with nothing hidden")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--flights", type=int, default=30)
@@ -131,6 +217,7 @@ def main() -> int:
     ap.add_argument("--classes", default=",".join(CLASSES))
     ap.add_argument("--json", type=Path)
     ap.add_argument("--workers", type=int, default=1, help="flights audited at a time")
+    ap.add_argument("--qq", type=Path, help="write the null flights' p-value QQ plot (PNG)")
     a = ap.parse_args()
     t0 = time.perf_counter()
     rows = run(
@@ -144,6 +231,9 @@ def main() -> int:
     print(f"\n{len(rows)} flights in {time.perf_counter() - t0:.0f} s")
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1))
+    clean = [r for r in rows if r["kind"] == "none"]
+    if a.qq and clean:
+        qq_plot(clean, a.qq)
     return 0 if all(correct(r) for r in rows) else 1
 
 

@@ -117,6 +117,50 @@ def test_the_null_bootstrap_measures_the_selections_false_finding_rate(coupling_
         assert not nc.passes("electrical_current:load")
 
 
+def cubic_interference(u: np.ndarray) -> np.ndarray:
+    """Four unit-RMS columns cubic in the direction cosines: interference outside T-L's
+    basis (its induced terms are quadratic), the stand-in for second-order physics."""
+    c = (u - u.mean(0)) / u.std(0)
+    out = np.column_stack([c[:, 0] ** 3, c[:, 0] * c[:, 1] * c[:, 2], c[:, 2] ** 2 * c[:, 1]])
+    out = np.column_stack([out, c[:, 1] ** 3])
+    return out / out.std(0)
+
+
+@pytest.mark.parametrize("coupled", [False, True])
+def test_a_candidate_is_judged_beside_the_rival_it_must_beat(coupled):
+    """A channel that follows the manoeuvres (a motor's current) stands in for cubic
+    interference the null model lacks: beside the null model alone it reaches the gate,
+    beside its rival it gains nothing; a coupling of its own still reaches the gate."""
+    rng = np.random.default_rng(21)
+    t, b, u, carrier = calibration(seed=21)
+    rival = cubic_interference(u)
+    motor = rival[:, :3] + 0.05 * rng.normal(size=(t.size, 3))
+    scalar = np.linalg.norm(b, axis=1) + carrier + rival @ np.array([0.3, 0.2, -0.2, 0.1])
+    scalar += ar1_noise(t.size, 0.02, 0.3, rng)
+    if coupled:
+        scalar += 0.3 * (motor - rival[:, :3]) @ np.array([1.0, -0.5, 0.8])
+    sel = select_from(
+        Measurements(t, scalar, b), np.ones(t.size, bool), BandSettings(), ALPHA, MIN_GAIN
+    )
+    key = "electrical_current:motor"
+    alone = calibrate_null(sel.setup, sel.columns, {key: motor}, 0.05, MIN_GAIN, 400, 0)
+    beside = calibrate_null(
+        sel.setup,
+        sel.columns,
+        {key: motor},
+        0.05,
+        MIN_GAIN,
+        400,
+        0,
+        {key: "cubic"},
+        {"cubic": rival},
+    )
+    assert alone.passes(key)
+    assert beside.passes(key) == coupled, beside.to_dict()
+    if not coupled:
+        assert beside.observed_gain[key] < MIN_GAIN
+
+
 def test_surrogates_keep_the_residuals_spectrum_and_lose_its_phase():
     rng = np.random.default_rng(2)
     r = ar1_noise(2000, 1.0, 0.8, rng)

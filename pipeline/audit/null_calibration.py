@@ -173,6 +173,33 @@ def _fold_sums(
     return out
 
 
+def _models(
+    p0: int, candidates: dict[str, np.ndarray], rivals: dict[str, str], rival_cols: dict
+) -> tuple[list[np.ndarray], list[list[int]], list[tuple[int, int]]]:
+    """The extra column blocks after the null model's ``p0`` columns, every model's column
+    indices (the null model first) and, per candidate, the (base, extended) model indices:
+    the base is the null model with the candidate's rival (``rivals``: key -> name in
+    ``rival_cols``) when it has one."""
+    blocks, models, pairs, placed, at = [], [list(range(p0))], [], {}, p0
+
+    def place(name: str, block: np.ndarray) -> list[int]:
+        nonlocal at
+        if name not in placed:
+            blocks.append(block)
+            placed[name] = list(range(at, at + block.shape[1]))
+            at += block.shape[1]
+        return placed[name]
+
+    for c, block in candidates.items():
+        r = rivals.get(c)
+        base = models[0] + (place(f"rival:{r}", rival_cols[r]) if r else [])
+        if base not in models:
+            models.append(base)
+        models.append(base + place(f"candidate:{c}", block))
+        pairs.append((models.index(base), len(models) - 1))
+    return blocks, models, pairs
+
+
 def calibrate_null(
     setup: HeldOutSetup,
     null_columns: np.ndarray,
@@ -181,6 +208,8 @@ def calibrate_null(
     min_gain: float,
     draws: int,
     seed: int,
+    rivals: dict[str, str] | None = None,
+    rival_columns: dict[str, np.ndarray] | None = None,
 ) -> NullCalibration:
     """The null distribution of the selection's maximum statistic (module docstring).
 
@@ -198,6 +227,10 @@ def calibrate_null(
         Null draws (at least 2).
     seed : int
         Seed of the phase randomisation.
+    rivals, rival_columns : dict, optional
+        Candidate key -> the name of its competing explanation, and name -> that
+        explanation's columns (n, r) on every epoch: the candidate's statistic is then its
+        gain beside the null model and the rival (what it must beat to be named).
     """
     m = setup.meas
     ok = (setup.fold >= 0) & np.isfinite(m.scalar_nT) & np.all(np.isfinite(null_columns), axis=1)
@@ -209,22 +242,19 @@ def calibrate_null(
     theta = ridge_theta(kf, yf, setup.ridge)
     fitted = null_columns @ theta
     names = list(candidates)
-    cols = np.column_stack([null_columns, *(candidates[c] for c in names)])
+    extra, models, pairs = _models(
+        null_columns.shape[1], candidates, rivals or {}, rival_columns or {}
+    )
+    cols = np.column_stack([null_columns, *extra])
     valid = ok & np.all(np.isfinite(cols), axis=1)
     row, keep = _row_of(valid), np.flatnonzero(valid)
     blocks = [row[b] for b in contiguous_blocks(valid, m.time_s)]
     residual = (m.scalar_nT - fitted)[keep]
     noise = surrogates(residual, blocks, draws, np.random.default_rng(seed))
     y = np.column_stack([m.scalar_nT[keep], fitted[keep, None] + noise])
-    cols = cols[keep]
-    p0 = null_columns.shape[1]
-    models, at = [list(range(p0))], p0
-    for c in names:
-        q = candidates[c].shape[1]
-        models.append(list(range(p0)) + list(range(at, at + q)))
-        at += q
-    ss = _fold_sums(setup, cols, y, models, valid)
-    gains = 1.0 - np.sqrt(ss[1:] / ss[0])  # (candidates, 1 + draws)
+    ss = _fold_sums(setup, cols[keep], y, models, valid)
+    # (candidates, 1 + draws): each candidate's gain over its own base model
+    gains = np.array([1.0 - np.sqrt(ss[e] / ss[b]) for b, e in pairs]).reshape(-1, 1 + draws)
     top = gains.max(axis=0) if names else np.zeros(1 + draws)
     return NullCalibration(
         draws=draws,

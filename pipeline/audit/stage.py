@@ -44,7 +44,7 @@ from pipeline.audit.settings import AuditSettings
 from pipeline.audit.spectrum import manoeuvre_line, periodic_nuisance, residual_spectrum
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.model import figure_of_merit
-from pipeline.compensate.nuisance import current_columns
+from pipeline.compensate.nuisance import current_columns, second_order_columns
 from pipeline.compensate.terms import position_terms
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
@@ -84,10 +84,16 @@ class Auditor(AuditEvents, AuditContext):
         cands: dict[str, np.ndarray] = {}
         if d.enu_m is not None:
             cands["geomagnetic_gradient"] = position_terms(*d.enu_m.T)[0]
+        rivals: dict[str, str] = {}
         for effect, key in candidates(self, ModelSpec(base=self.s.baseline)):
             if effect == "electrical_current":
                 name = key.split(":", 1)[1]
                 cands[key] = current_columns(d.vector_nT, d.aux[name], name)[0]
+                if not nz.second_order:  # the rival a current must beat (rule C4)
+                    rivals[key] = "second_order"
+        rival_cols = (
+            {"second_order": second_order_columns(d.vector_nT, d.time_s)[0]} if rivals else {}
+        )
         try:
             return calibrate_null(
                 nz.setup,
@@ -97,6 +103,8 @@ class Auditor(AuditEvents, AuditContext):
                 self.s.min_gain,
                 self.s.null_draws,
                 self.s.null_seed,
+                rivals,
+                rival_cols,
             )
         except (ValueError, np.linalg.LinAlgError) as exc:
             self.notes.append(f"the null model's bootstrap could not run: {exc}")

@@ -154,6 +154,20 @@ def one_flight(kind: str, seed: int, folder: Path, **ranges) -> dict:
         "vibration": override_value(overrides, "interference.outside_basis.vibration_nT")
         is not None,
         "overrides": overrides,
+        "null_p_values": null_p_values(res),
+    }
+
+
+def null_p_values(res: dict) -> dict:
+    """The p-values a flight with nothing hidden should spread uniformly: the whole
+    selection's maximum statistic against the null bootstrap, and each first-round
+    candidate's nested F-test and held-out test (before any rule or gate)."""
+    first = res["rounds"][0] if res.get("rounds") else []
+    nc = res.get("null_calibration") or {}
+    return {
+        "max_statistic": nc.get("max_statistic_p_value"),
+        "f_test": {c["key"]: c.get("p_value") for c in first},
+        "heldout": {c["key"]: (c.get("heldout") or {}).get("p_value") for c in first},
     }
 
 
