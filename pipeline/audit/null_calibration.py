@@ -8,9 +8,12 @@ each surrogate added to the null model's prediction is a recording on which noth
 hidden. On every draw each candidate's held-out statistic (the fraction of the held-out
 residual RMS its columns remove beside the null model's, on the buffered contiguous folds
 of :mod:`pipeline.compensate.heldout`) is recomputed and the largest over the candidates
-kept: the whole selection's maximum statistic. The ridge parameters are the recording's, so
-every fit is linear in the data and all draws share one band-pass and one factorisation per
-fold and model: hundreds of draws cost seconds.
+kept: the whole selection's maximum statistic. A candidate with a competing explanation the
+selection makes it beat (a current that follows the manoeuvres against the second-order
+terms) is measured beside that rival too: otherwise the rival's physics, absent from the
+null model and so from its draws, would count as the candidate's gain. The ridge parameters
+are the recording's, so every fit is linear in the data and all draws share one band-pass
+and one factorisation per fold and model: hundreds of draws cost seconds.
 
 The threshold is the maximum statistic's 1 - alpha quantile over the draws; the gate a
 candidate must reach is it or the least gain worth a term, whichever is larger. The rate at
@@ -20,8 +23,9 @@ ways round.
 
 Scope: the candidates linear in the data judged on the scalar calibration (a gradient, each
 recorded current). A lag is not: its first order in the lag lies in T-L's eddy columns (a
-delayed permanent field is the rate of change of the direction cosines), so only the refit
-of the delay itself sees it, and that is too costly to repeat hundreds of times; it is judged
+delayed permanent field is the rate of change of the direction cosines), so only the delay
+itself sees it, and the null model's design delayed over the lag grid on these contiguous
+folds tells a late sensor from eddy decay less well than the lag's own tests; it is judged
 against the null model with the nuisances instead (:mod:`pipeline.audit.decide`). The diurnal
 is judged on crossovers, the vector calibration on the fluxgate, the events on the survey;
 their tests are not in this maximum.
