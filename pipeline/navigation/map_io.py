@@ -274,8 +274,10 @@ def read_raster_map(path: Path) -> GeoMap:
         from pipeline.export.source import positive_or_none
 
         try:
-            gm.error_length_m = positive_or_none(sigma_da.attrs.get(ERROR_LENGTH_ATTR), "")
-        except (TypeError, ValueError):
+            gm.error_length_m = positive_or_none(
+                sigma_da.attrs.get(ERROR_LENGTH_ATTR), ERROR_LENGTH_ATTR
+            )
+        except ValueError:
             raise AeromagError(
                 f"the {UNCERTAINTY_VARIABLE!r} variable's {ERROR_LENGTH_ATTR} attribute is not "
                 "a positive number of metres",
