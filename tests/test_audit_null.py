@@ -11,10 +11,7 @@ in ``../shared/recordings`` (made by a generator that is not aeromag's), skipped
 
 from __future__ import annotations
 
-import functools
 import json
-import tempfile
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -268,24 +265,32 @@ def test_a_small_lag_beside_a_needed_decay_is_named_on_the_lines_timing():
     assert named / draws <= ALPHA + 3 * np.sqrt(ALPHA * (1 - ALPHA) / draws)
 
 
-@functools.cache
-def audited(name: str) -> tuple[dict, dict]:
-    """``aeromag audit`` on shared recording ``name`` (once per session): (AUDIT.json, truth)."""
+@pytest.fixture(scope="session")
+def audited(tmp_path_factory):
+    """``aeromag audit`` on a shared recording, once per session: name -> (AUDIT.json,
+    truth)."""
     from tests.cli import run
 
-    src = RECORDINGS / f"{name}.mcap"
-    if not src.exists():
-        pytest.skip(f"{src} not present")
-    tmp = Path(tempfile.mkdtemp(prefix="audit-null-"))
-    out = tmp / "a.json"
-    done = run("audit", str(src), "--json", str(out), "--report", str(tmp / "rep"))
-    assert done.returncode == 0, done.stderr
-    return json.loads(out.read_text()), json.loads((RECORDINGS / f"{name}.truth.json").read_text())
+    done: dict[str, tuple[dict, dict]] = {}
+
+    def get(name: str) -> tuple[dict, dict]:
+        if name not in done:
+            src = RECORDINGS / f"{name}.mcap"
+            if not src.exists():
+                pytest.skip(f"{src} not present")
+            tmp = tmp_path_factory.mktemp(name)
+            out = tmp / "a.json"
+            ran = run("audit", str(src), "--json", str(out), "--report", str(tmp / "rep"))
+            assert ran.returncode == 0, ran.stderr
+            truth = json.loads((RECORDINGS / f"{name}.truth.json").read_text())
+            done[name] = (json.loads(out.read_text()), truth)
+        return done[name]
+
+    return get
 
 
-def decay_tau_error(name: str) -> float | None:
+def decay_tau_error(res: dict, truth: dict) -> float | None:
     """|log(estimated / true)| of the null model's eddy-decay time constant (None: no decay)."""
-    res, truth = audited(name)
     tau = truth["sensors"]["scalar"]["realism"]["eddy_time_constant_s"]
     nz = {n["name"]: n for n in res["unexplained"]["nuisances"]}
     if "eddy_decay" not in nz:
@@ -295,13 +300,13 @@ def decay_tau_error(name: str) -> float | None:
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", ["realism_none", "realism_geomagnetic_gradient"])
-def test_eddy_decay_is_no_late_sensor_on_independent_flights(name):
-    res, _ = audited(name)
+def test_eddy_decay_is_no_late_sensor_on_independent_flights(name, audited):
+    res, truth = audited(name)
     named = {f["effect"] for f in res["findings"]}
     assert "sensor_lag" not in named
     # alone the decay must stay; beside a finding it may be dropped (it lowers nothing more)
     if name == "realism_none":
-        assert decay_tau_error(name) is not None
+        assert decay_tau_error(res, truth) is not None
     for a in res["unexplained"]["ambiguities"]:
         assert set(a) == {"candidates", "heldout_gain"}
     assert res["null_calibration"]["draws"] >= 200
@@ -317,13 +322,13 @@ NEAR_TIE = pytest.mark.xfail(
 @pytest.mark.parametrize(
     "name", ["realism_none", pytest.param("realism_geomagnetic_gradient", marks=NEAR_TIE)]
 )
-def test_the_null_models_decay_time_constant_within_30_percent(name):
-    err = decay_tau_error(name)
+def test_the_null_models_decay_time_constant_within_30_percent(name, audited):
+    err = decay_tau_error(*audited(name))
     assert err is None or err < np.log(1.3)
 
 
 @pytest.mark.slow
-def test_a_late_sensor_beside_decaying_eddy_currents_is_named():
+def test_a_late_sensor_beside_decaying_eddy_currents_is_named(audited):
     res, truth = audited("realism_sensor_lag")
     lags = [f for f in res["findings"] if f["effect"] == "sensor_lag"]
     assert lags, res["unexplained"]
@@ -335,7 +340,7 @@ def test_a_late_sensor_beside_decaying_eddy_currents_is_named():
 @pytest.mark.xfail(
     strict=True, reason="a lag read beside eddy decay runs long (docs/audit.md, Results)"
 )
-def test_a_late_sensor_beside_decaying_eddy_currents_is_read_within_60_ms():
+def test_a_late_sensor_beside_decaying_eddy_currents_is_read_within_60_ms(audited):
     res, truth = audited("realism_sensor_lag")
     lag = [f for f in res["findings"] if f["effect"] == "sensor_lag"][0]["estimate"]["lag_s"]
     assert abs(lag - truth["effect_params"]["lag_s"]) < 0.06
