@@ -20,7 +20,7 @@ from scipy.signal import lfilter
 from pipeline.audit.extended import BandSettings
 from pipeline.audit.hypotheses.lag_decay import LagVersusDecay, timing_p_late
 from pipeline.audit.nuisances import select_from
-from pipeline.audit.null_calibration import calibrate_null, surrogates
+from pipeline.audit.null_calibration import calibrate_null, monte_carlo_threshold, surrogates
 from pipeline.audit.timing import TimingLag
 from pipeline.compensate.heldout import HeldOut
 from pipeline.compensate.model import Measurements
@@ -344,3 +344,38 @@ def test_a_late_sensor_beside_decaying_eddy_currents_is_read_within_60_ms(audite
     res, truth = audited("realism_sensor_lag")
     lag = [f for f in res["findings"] if f["effect"] == "sensor_lag"][0]["estimate"]["lag_s"]
     assert abs(lag - truth["effect_params"]["lag_s"]) < 0.06
+
+
+@pytest.mark.parametrize("step_nT", [0.0, 3.0])
+def test_a_change_between_passes_must_reach_the_selections_gate(step_nT):
+    """A change of the permanent field between the calibration's halves (the pass-step
+    candidate: direction cosines after the gap) is judged by the same null maximum as the
+    findings: over interference the null model lacks (cubic in the direction cosines), no
+    change reaches the gate; a 3 nT change does."""
+    rng = np.random.default_rng(31)
+    t, b, u, carrier = calibration(seed=31)
+    scalar = np.linalg.norm(b, axis=1) + carrier
+    scalar += cubic_interference(u) @ np.array([0.3, 0.2, -0.2, 0.1])
+    scalar += ar1_noise(t.size, 0.02, 0.3, rng)
+    after = (t > np.median(t)).astype(float)[:, None]
+    scalar += step_nT * (u * after) @ np.array([0.6, -0.48, 0.64])
+    sel = select_from(
+        Measurements(t, scalar, b), np.ones(t.size, bool), BandSettings(), ALPHA, MIN_GAIN
+    )
+    key = "pass_step:0"
+    nc = calibrate_null(sel.setup, sel.columns, {key: u * after}, 0.05, MIN_GAIN, 400, 0)
+    assert nc.passes(key) == (step_nT > 0), nc.to_dict()
+
+
+def test_the_monte_carlo_threshold_holds_its_level_for_few_draws():
+    """A new null draw reaches the threshold set on 39 draws at most alpha of the time
+    (exactly (n + 1 - k) / (n + 1) for continuous draws); the plain quantile's rate is
+    above alpha at that size."""
+    rng = np.random.default_rng(3)
+    sets, new = rng.uniform(size=(40_000, 39)), rng.uniform(size=40_000)
+    alpha = 0.05
+    ours = np.array([monte_carlo_threshold(s, alpha) for s in sets])
+    plain = np.quantile(sets, 1.0 - alpha, axis=1)
+    se = np.sqrt(alpha * (1 - alpha) / new.size)
+    assert np.mean(new >= ours) <= alpha + 2 * se
+    assert np.mean(new >= plain) > alpha + 3 * se

@@ -225,3 +225,49 @@ def test_a_drift_is_found_and_a_heading_error_growing_across_the_area_is_none():
         false_blind += len(survey_events(blind, 0.01, 0.3)) > 0
     assert false <= 1
     assert false_blind >= 5
+
+
+def test_a_crossing_read_in_a_turns_roll_out_is_left_out():
+    """A crossover reading whose course window (2 s) runs off its line's start or end was
+    read in the turn's roll-out, where the carrier's interference is the turn's: left out,
+    like one read in the turn; readings inside both lines are kept."""
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from pipeline.audit.events import AuditEvents
+
+    rate = 10.0
+    t = np.arange(0.0, 200.0, 1 / rate)
+    north = SimpleNamespace(
+        line_id="L1",
+        index=np.flatnonzero(t < 60),
+        heading_deg=0.0,
+        east_m=np.zeros(600),
+        north_m=30.0 * t[:600],
+    )
+    east_idx = np.flatnonzero((t >= 100) & (t < 160))
+    east = SimpleNamespace(
+        line_id="T1",
+        index=east_idx,
+        heading_deg=90.0,
+        east_m=30.0 * (t[east_idx] - 100.0),
+        north_m=np.full(east_idx.size, 900.0),
+    )
+    fake = SimpleNamespace(
+        flight=SimpleNamespace(data=pd.DataFrame({"alt_m": np.full(t.size, 100.0)})),
+        data=SimpleNamespace(time_s=t, rate_hz=rate),
+        _survey_geometry=lambda: (None, None, [north, east]),
+    )
+
+    def crossing(ta, tb):
+        return SimpleNamespace(time_a_s=ta, time_b_s=tb, line_a="L1", line_b="T1")
+
+    xs = [
+        crossing(30.0, 130.0),
+        crossing(30.0, 100.0),
+        crossing(30.0, 100.5),
+        crossing(59.8, 130.0),
+    ]
+    keep = AuditEvents._straight_crossings(fake, xs)
+    assert keep.tolist() == [True, False, False, False]

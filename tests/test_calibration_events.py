@@ -7,7 +7,12 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from pipeline.audit.calibration_events import calibration_steps, is_switching, switching_nuisance
+from pipeline.audit.calibration_events import (
+    calibration_steps,
+    is_switching,
+    manoeuvre_blocks,
+    switching_nuisance,
+)
 
 RATE_HZ = 10.0
 
@@ -106,3 +111,31 @@ def test_one_step_stays_one_when_more_are_looked_for():
         assert steps, s
         several += is_switching(steps)
     assert several <= 2
+
+
+def test_manoeuvre_blocks_number_each_run_of_one_manoeuvre():
+    lab = np.array(["", "roll", "roll", "steady", "pitch", "pitch", "roll", "steady", ""])
+    assert manoeuvre_blocks(lab).tolist() == [-1, 0, 0, -1, 1, 1, 2, -1, -1]
+
+
+def test_a_level_change_where_a_manoeuvre_stops_is_no_step():
+    """Interference even in the attitude (a second-order term, roll squared) raises the
+    compensated field's mean while the carrier rolls: a 1 nT level change where each roll
+    block stops (and starts). With the manoeuvre blocks known no step is looked for at
+    their edges; read blind, the same record gives one. A step inside a block is still
+    found where it is."""
+    t, y, leg = legs_with_residual(7)
+    label = np.full(t.size, "steady", dtype=object)
+    rolling = np.zeros(t.size, bool)
+    for k in range(4):  # a 30 s roll block in the middle of each leg
+        rolling |= (t >= 90 * k + 25) & (t < 90 * k + 55)
+    label[rolling] = "roll"
+    label[leg < 0] = ""
+    block = manoeuvre_blocks(label)
+    offset = y + 1.0 * rolling
+    assert calibration_steps(t, offset, leg, alpha=0.01, min_size_nT=0.3, block=block) == []
+    assert calibration_steps(t, offset, leg, alpha=0.01, min_size_nT=0.3) != []
+    stepped = y + 1.0 * (t > 130.3)  # inside the second leg's roll block (115-145 s)
+    ev = calibration_steps(t, stepped, leg, alpha=0.01, min_size_nT=0.3, block=block)
+    assert len(ev) == 1
+    assert ev[0].start_s - 2.0 <= 130.3 <= ev[0].end_s + 2.0

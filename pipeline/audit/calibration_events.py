@@ -5,8 +5,8 @@ survey; during calibration there are no crossovers, but each leg is flown on one
 quiet ground, so the compensated field along a leg is the Earth field's smooth trend. Per
 leg, the 1 s means of the compensated field are modelled as a smooth trend (a cubic in time:
 over geology a kilometre-long leg's field curves), and a step at a scanned time inside one
-leg (at least ``guard_s`` from its ends, where turns and manoeuvre changes leave transients)
-is tested against it:
+leg (at least ``guard_s`` from its ends, where turns and manoeuvre changes leave transients,
+and not where a manoeuvre starts or stops) is tested against it:
 
     y_k = P_leg(t_k) + c [t_k > t_s] (leg holding t_s only) + e_k
 
@@ -89,13 +89,30 @@ class CalibrationStep:
         }
 
 
-def _bins(t: np.ndarray, y: np.ndarray, bin_s: float) -> tuple[np.ndarray, np.ndarray]:
+def _bins(
+    t: np.ndarray, y: np.ndarray, bin_s: float, block: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Bin means of time and value, and each bin's manoeuvre block (-2 where the bin holds
+    epochs of two blocks: a manoeuvre's edge)."""
     k = np.floor((t - t[0]) / bin_s).astype(int)
     counts = np.bincount(k)
     sums = np.bincount(k, weights=y)
     tb = np.bincount(k, weights=t)
+    lo = np.full(counts.size, np.iinfo(np.int64).max)
+    hi = np.full(counts.size, np.iinfo(np.int64).min)
+    np.minimum.at(lo, k, block)
+    np.maximum.at(hi, k, block)
     ok = counts > 0
-    return tb[ok] / counts[ok], sums[ok] / counts[ok]
+    return tb[ok] / counts[ok], sums[ok] / counts[ok], np.where(lo == hi, lo, -2)[ok]
+
+
+def manoeuvre_blocks(manoeuvre: np.ndarray) -> np.ndarray:
+    """Each epoch's manoeuvre block (a run of one manoeuvre label, numbered in time order),
+    -1 outside manoeuvres (steady flight, no label)."""
+    lab = np.asarray(manoeuvre).astype(str)
+    active = ~np.isin(lab, ("", "steady", "none"))
+    start = active & np.r_[True, lab[1:] != lab[:-1]]
+    return np.where(active, np.cumsum(start) - 1, -1)
 
 
 # a further step closer than this (s) to one found is that step's edge: a step inside a
@@ -125,21 +142,23 @@ def _leg_means(
     bin_s: float,
     min_leg_s: float,
     guard_s: float,
+    block: np.ndarray | None = None,
 ) -> _LegMeans | None:
+    block = np.full(time_s.size, -1) if block is None else np.asarray(block, int)
     legs = []
     for g in np.unique(leg[leg >= 0]):
         sel = (leg == g) & np.isfinite(compensated_nT)
         if sel.sum() < 2:
             continue
-        t, y = _bins(time_s[sel], compensated_nT[sel], bin_s)
+        t, y, b = _bins(time_s[sel], compensated_nT[sel], bin_s, block[sel])
         if t[-1] - t[0] >= min_leg_s:
-            legs.append((t, y))
+            legs.append((t, y, b))
     if not legs:
         return None
-    t_all = np.concatenate([t for t, _ in legs])
-    which = np.concatenate([np.full(t.size, i) for i, (t, _) in enumerate(legs)])
+    t_all = np.concatenate([t for t, _, _ in legs])
+    which = np.concatenate([np.full(t.size, i) for i, (t, _, _) in enumerate(legs)])
     base, candidates = [], []
-    for i, (t, _) in enumerate(legs):
+    for i, (t, _, b) in enumerate(legs):
         m = (which == i).astype(float)
         # the Earth field along a leg: smooth, but over geology on a kilometre-long leg not
         # a line (a fixed-wing's legs curve by tens of nT): a cubic in time (centred and
@@ -147,10 +166,15 @@ def _leg_means(
         x = (t_all - t.mean()) / max(float(np.ptp(t)), 1.0)
         base += [m * x**d for d in range(TREND_DEGREE + 1)]
         idx = np.flatnonzero((t > t[0] + guard_s) & (t < t[-1] - guard_s))
+        # interference even in the attitude (second-order terms, rectified eddy decay)
+        # has a mean while the carrier manoeuvres, which changes where a manoeuvre starts
+        # or stops: no step of the permanent field is looked for there
         candidates += [
-            (i, float(t[a]), float(t[b])) for a, b in zip(idx[:-1], idx[1:], strict=True)
+            (i, float(t[a]), float(t[c]))
+            for a, c in zip(idx[:-1], idx[1:], strict=True)
+            if b[a] == b[c] and b[a] != -2
         ]
-    y_all = np.concatenate([y for _, y in legs])
+    y_all = np.concatenate([y for _, y, _ in legs])
     return _LegMeans(t_all, y_all, which, np.column_stack(base), candidates)
 
 
@@ -249,6 +273,7 @@ def calibration_steps(
     bin_s: float = 1.0,
     min_leg_s: float = 30.0,
     max_steps: int = 1,
+    block: np.ndarray | None = None,
 ) -> list[CalibrationStep]:
     """The significant steps inside the calibration legs, found one after another.
 
@@ -273,13 +298,16 @@ def calibration_steps(
         Margin (s) kept from each leg's ends, averaging bin (s), shortest leg used (s).
     max_steps : int
         Most steps looked for.
+    block : ndarray of int, optional
+        Manoeuvre block of each epoch (:func:`manoeuvre_blocks`; -1 outside manoeuvres):
+        no step is looked for at a block's edges.
 
     Returns
     -------
     list of CalibrationStep
         In the order found (the most significant first).
     """
-    m = _leg_means(time_s, compensated_nT, leg, bin_s, min_leg_s, guard_s)
+    m = _leg_means(time_s, compensated_nT, leg, bin_s, min_leg_s, guard_s, block)
     if m is None or not m.candidates:
         return []
     found: list[CalibrationStep] = []
@@ -311,6 +339,7 @@ def switching_nuisance(
     guard_s: float = 5.0,
     bin_s: float = 1.0,
     min_leg_s: float = 30.0,
+    block: np.ndarray | None = None,
 ) -> dict:
     """The switched current :func:`is_switching` recognised, as an ``unexplained.nuisances``
     record: ``{"name": "unrecorded_current", "heldout_gain", "estimate"}``.
@@ -322,7 +351,7 @@ def switching_nuisance(
     steps' share of the 1 s-mean residual, nT) and ``times_s`` (each step's middle, s
     from the flight's first epoch). The same arguments as :func:`calibration_steps`.
     """
-    m = _leg_means(time_s, compensated_nT, leg, bin_s, min_leg_s, guard_s)
+    m = _leg_means(time_s, compensated_nT, leg, bin_s, min_leg_s, guard_s, block)
     cols = [c for st in steps for c in _edge_columns(m, st)]
     known = np.column_stack([m.base, *cols])
 

@@ -12,6 +12,7 @@ from pipeline.audit.calibration_events import (
     CalibrationStep,
     calibration_steps,
     is_switching,
+    manoeuvre_blocks,
     switching_nuisance,
 )
 from pipeline.audit.evidence import HeldOut
@@ -28,6 +29,12 @@ MAX_SWITCHES = 6
 # calibration after a leg step's leg that tells a permanent change from a switched load
 # (s), on at least two legs (headings: u . dp differs between them)
 PERSIST_MIN_S = 60.0
+
+
+def pass_step_key(gap: int) -> str:
+    """The null bootstrap's key of a permanent-field change in gap ``gap`` between
+    calibration passes (:meth:`AuditEvents.pass_steps`)."""
+    return f"pass_step:{gap}"
 
 
 @dataclass
@@ -78,7 +85,7 @@ class AuditEvents:
         _, _, _, _, _, xs, _ = self._crossover_data(spec, smooth_s=1.0)
         keep = self._straight_crossings(xs)
         x = x.subset(keep)
-        events = survey_events(x, self.s.alpha, self.s.min_event_nT)
+        events = survey_events(x, self.s.event_alpha, self.s.min_event_nT)
         t0 = int(self.flight.time_ns[0])
         return [e.to_dict(t0) for e in events]
 
@@ -86,8 +93,9 @@ class AuditEvents:
         self, xs: list, max_turn_deg: float = 15.0, max_height_m: float = 20.0
     ) -> np.ndarray:
         """Which crossovers ``xs`` read the same ground the same way: both lines flying
-        straight (the course over ground within ``COURSE_WINDOW_S`` of the reading within
-        ``max_turn_deg`` of the line's mean heading) and at heights within
+        straight (the course over ground within ``COURSE_WINDOW_S`` of the reading, a window
+        wholly on the line, within ``max_turn_deg`` of the line's mean heading) and at
+        heights within
         ``max_height_m`` of each other. A line's ends can run into its turns, and a track
         labelled a tie can be a climbing transit; the ground's anomalies change by
         0.02-0.1 nT per metre of height, so 20 m keeps the error near the crossovers'
@@ -105,9 +113,11 @@ class AuditEvents:
             tr = by_id[line_id]
             tt = t_all[tr.index]
             i = int(np.clip(np.searchsorted(tt, time_s), 0, tt.size - 1))
-            lo, hi = max(0, i - half), min(tt.size - 1, i + half)
+            lo, hi = i - half, i + half
+            if lo < 0 or hi > tt.size - 1:
+                return False  # the window runs off the line: read in the turn's roll-out
             de, dn = tr.east_m[hi] - tr.east_m[lo], tr.north_m[hi] - tr.north_m[lo]
-            if hi == lo or np.hypot(de, dn) == 0:
+            if np.hypot(de, dn) == 0:
                 return True
             course = np.degrees(np.arctan2(de, dn))
             return abs((course - tr.heading_deg + 180.0) % 360.0 - 180.0) <= max_turn_deg
@@ -134,11 +144,18 @@ class AuditEvents:
         des = design(self.data, spec)
         comp = des.y - des.columns @ fm.theta
         t = self.data.time_s
+        block = manoeuvre_blocks(self.seg.manoeuvre)
         steps = calibration_steps(
-            t, comp, self.legs, self.s.alpha, self.s.min_event_nT, max_steps=MAX_SWITCHES
+            t,
+            comp,
+            self.legs,
+            self.s.event_alpha,
+            self.s.min_event_nT,
+            max_steps=MAX_SWITCHES,
+            block=block,
         )
         if is_switching(steps) or (steps and not self._persists(spec, steps[0])):
-            return [], [switching_nuisance(t, comp, self.legs, steps)]
+            return [], [switching_nuisance(t, comp, self.legs, steps, block=block)]
         return [e.to_dict(int(self.flight.time_ns[0])) for e in steps], []
 
     def _persists(self, spec: ModelSpec, step: CalibrationStep) -> bool:
@@ -211,7 +228,12 @@ class AuditEvents:
         """
         d = self.data
         step = vector_reference_step(
-            d.time_s, d.scalar_nT, d.vector_nT, d.aux, self.s.alpha, self.s.min_vector_step_nT
+            d.time_s,
+            d.scalar_nT,
+            d.vector_nT,
+            d.aux,
+            self.s.event_alpha,
+            self.s.min_vector_step_nT,
         )
         if step is None:
             return []
@@ -227,19 +249,21 @@ class AuditEvents:
         F-test (Bonferroni over the gaps), BIC and held-out test (the stratified folds: every
         fold trains on both passes) all favour it. The held-out test is the one that decides:
         the F-test alone is far too optimistic (the calibration residual is autocorrelated
-        and the passes' unmodelled interference differs a little).
+        and the passes' unmodelled interference differs a little). Like every candidate of
+        the selection, its held-out gain on the null bootstrap's folds must also reach the
+        gate of the whole selection's maximum statistic (:attr:`null_calibration`): the
+        event then has the flight-level false rate the findings have.
         Kept per model. Hand-written: the test is the audit's own nested and held-out pair,
         which no change-point library computes on a regression's coefficients.
         """
         if spec in self._pass_steps:
             return self._pass_steps[spec]
-        t = self.data.time_s
-        gaps = [
-            (float(t[a[-1]]), float(t[b[0]]))
-            for a, b in zip(self.passes[:-1], self.passes[1:], strict=True)
-        ]
+        gaps = self.pass_gaps()
+        nc = self.null_calibration
         out = []
-        for lo, hi in gaps:
+        for i, (lo, hi) in enumerate(gaps):
+            if nc is not None and not nc.passes(pass_step_key(i)):
+                continue
             ext = spec.with_(permanent_step_s=0.5 * (lo + hi))
             try:
                 test = self._nested(spec, ext_spec=ext)
@@ -251,6 +275,20 @@ class AuditEvents:
                 out.append(PassStep(lo, hi, p, held))
         self._pass_steps[spec] = out
         return out
+
+    def pass_gaps(self) -> list[tuple[float, float]]:
+        """(end of the earlier pass, start of the later one), s, for every pair of
+        consecutive calibration passes."""
+        t = self.data.time_s
+        return [
+            (float(t[a[-1]]), float(t[b[0]]))
+            for a, b in zip(self.passes[:-1], self.passes[1:], strict=True)
+        ]
+
+    def pass_gap_middles(self) -> list[float]:
+        """The middle (s) of each gap of :meth:`pass_gaps`: where the calibration model puts
+        a change of the permanent field between the passes."""
+        return [0.5 * (lo + hi) for lo, hi in self.pass_gaps()]
 
     def pass_step_events(self, spec: ModelSpec, located: list[dict[str, Any]]) -> list[dict]:
         """``spec``'s permanent-field change between calibration passes (:meth:`pass_steps`)

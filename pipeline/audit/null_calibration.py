@@ -15,8 +15,9 @@ null model and so from its draws, would count as the candidate's gain. The ridge
 are the recording's, so every fit is linear in the data and all draws share one band-pass
 and one factorisation per fold and model: hundreds of draws cost seconds.
 
-The threshold is the maximum statistic's 1 - alpha quantile over the draws; the gate a
-candidate must reach is it or the least gain worth a term, whichever is larger. The rate at
+The threshold is the maximum statistic's 1 - alpha quantile over the draws (the order
+statistic whose level holds for their finite number); the gate a candidate must reach is
+it or the least gain worth a term, whichever is larger. The rate at
 which such a gate names something on a flight with nothing hidden (``flight_alpha``) is
 measured on draws that did not set it: the gate set on one half, counted on the other, both
 ways round.
@@ -62,7 +63,8 @@ class NullCalibration:
     alpha : float
         The flight-level false-finding rate the threshold is set for.
     threshold_gain : float
-        The maximum statistic's 1 - alpha quantile (fraction of held-out RMS).
+        The maximum statistic's 1 - alpha quantile (fraction of held-out RMS;
+        :func:`monte_carlo_threshold`).
     gate_gain : float
         What a candidate's held-out gain must reach: the threshold or the least gain worth a
         term, whichever is larger.
@@ -73,6 +75,10 @@ class NullCalibration:
         Each candidate's statistic on the recording.
     p_value : float
         The recording's maximum statistic against all null draws.
+    event_tests_alpha : float
+        Summed levels of the event tests outside the maximum (each calibrated by its own
+        null simulation): the flight's false-finding rate is at most ``flight_alpha`` plus
+        this (Bonferroni).
     """
 
     draws: int
@@ -82,6 +88,7 @@ class NullCalibration:
     flight_alpha: float
     observed_gain: dict[str, float] = field(default_factory=dict)
     p_value: float = 1.0
+    event_tests_alpha: float = 0.0
 
     def passes(self, key: str) -> bool:
         """Whether candidate ``key``'s statistic on the recording reaches the gate (True for
@@ -90,12 +97,17 @@ class NullCalibration:
         return g is None or g >= self.gate_gain
 
     def to_dict(self) -> dict[str, Any]:
-        """``null_calibration``: ``method``, ``draws``, ``flight_alpha`` and the figures."""
+        """``null_calibration``: ``method``, ``draws``, ``flight_alpha`` (the whole flight's:
+        the maximum's measured rate plus the event tests' levels; ``alpha`` its target) and
+        the figures."""
         return {
             "method": METHOD,
             "draws": self.draws,
-            "flight_alpha": self.flight_alpha,
-            "alpha": self.alpha,
+            "flight_alpha": self.flight_alpha + self.event_tests_alpha,
+            "alpha": self.alpha + self.event_tests_alpha,
+            "maximum_alpha": self.alpha,
+            "maximum_flight_alpha": self.flight_alpha,
+            "event_tests_alpha": self.event_tests_alpha,
             "threshold_gain": self.threshold_gain,
             "gate_gain": self.gate_gain,
             "observed_gain": self.observed_gain,
@@ -130,13 +142,21 @@ def _row_of(valid: np.ndarray) -> np.ndarray:
     return row
 
 
+def monte_carlo_threshold(top: np.ndarray, alpha: float) -> float:
+    """The draws' ``top`` value that a new null draw reaches with probability at most
+    ``alpha``: the ceil((n + 1)(1 - alpha))-th smallest of n (a Monte Carlo test's exact
+    level for exchangeable draws; the plain quantile's level is alpha only as n grows)."""
+    k = int(np.ceil((top.size + 1) * (1.0 - alpha)))
+    return float(np.inf if k > top.size else np.sort(top)[k - 1])
+
+
 def crossfit_rate(top: np.ndarray, alpha: float, min_gain: float) -> float:
     """The rate at which a gate set on one half of the null draws' maxima ``top`` (its
     1 - ``alpha`` quantile, at least ``min_gain``) is reached on the other half, averaged
     over both ways round: measured on draws the gate did not see."""
     a, b = top[: top.size // 2], top[top.size // 2 :]
     rates = [
-        np.mean(test >= max(float(np.quantile(fit, 1.0 - alpha)), min_gain))
+        np.mean(test >= max(monte_carlo_threshold(fit, alpha), min_gain))
         for fit, test in ((a, b), (b, a))
     ]
     return float(np.mean(rates))
@@ -260,11 +280,12 @@ def calibrate_null(
     # (candidates, 1 + draws): each candidate's gain over its own base model
     gains = np.array([1.0 - np.sqrt(ss[e] / ss[b]) for b, e in pairs]).reshape(-1, 1 + draws)
     top = gains.max(axis=0) if names else np.zeros(1 + draws)
+    threshold = monte_carlo_threshold(top[1:], alpha)
     return NullCalibration(
         draws=draws,
         alpha=alpha,
-        threshold_gain=float(np.quantile(top[1:], 1.0 - alpha)),
-        gate_gain=max(float(np.quantile(top[1:], 1.0 - alpha)), min_gain),
+        threshold_gain=threshold,
+        gate_gain=max(threshold, min_gain),
         flight_alpha=crossfit_rate(top[1:], alpha, min_gain),
         observed_gain={c: float(gains[i, 0]) for i, c in enumerate(names)},
         p_value=float((1 + np.sum(top[1:] >= top[0])) / (1 + draws)),

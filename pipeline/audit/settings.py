@@ -8,6 +8,11 @@ from pipeline.audit.crossval import BLOCK_S, N_FOLDS
 from pipeline.audit.extended import BandSettings
 from pipeline.defaults import default_field
 
+# the event detectors outside the null bootstrap's maximum, each a test calibrated by its
+# own null simulation: the survey's change scan (steps and drift), the calibration legs'
+# step scan and the step against the fluxgate
+EVENT_TESTS = 3
+
 
 @dataclass
 class AuditSettings:
@@ -51,8 +56,10 @@ class AuditSettings:
     min_lag_s : float
         Smallest sensor lag (s) that is named a lag effect.
     flight_alpha, null_draws, null_seed : float, int, int
-        The whole selection's false-finding rate with nothing hidden, and the null model's
-        bootstrap that measures it (draws, seed).
+        The whole selection's false-finding rate with nothing hidden (findings and events
+        together: :attr:`event_alpha` for each event test outside the bootstrap's maximum,
+        :attr:`maximum_alpha` for the maximum), and the null model's bootstrap that
+        measures it (draws, seed).
     min_nuisance_nT : float
         Held-out RMS (nT) a nuisance must remove, with the findings in the model, to stay.
     fluxgate_tolerance : float
@@ -105,3 +112,16 @@ class AuditSettings:
     # ms; under 20 ms a lag shifts the anomaly by less than 14 cm along track at 7 m/s (0.6 m
     # at 30 m/s), below a survey's positioning error: not worth a model term
     min_lag_s: float = 0.02
+
+    @property
+    def event_alpha(self) -> float:
+        """Level of each of the :data:`EVENT_TESTS` event tests outside the bootstrap's
+        maximum: ``alpha``, or an equal share of ``flight_alpha`` when that is smaller."""
+        return min(self.alpha, self.flight_alpha / (EVENT_TESTS + 1))
+
+    @property
+    def maximum_alpha(self) -> float:
+        """Level of the null bootstrap's maximum (the findings and the change between
+        calibration passes): what of ``flight_alpha`` the event tests leave (Bonferroni:
+        the flight's false-finding rate is at most the sum of the levels)."""
+        return self.flight_alpha - EVENT_TESTS * self.event_alpha

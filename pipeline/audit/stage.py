@@ -32,7 +32,7 @@ import numpy as np
 
 from pipeline.audit.context import AuditContext
 from pipeline.audit.decide import select
-from pipeline.audit.events import AuditEvents, PassStep
+from pipeline.audit.events import AuditEvents, PassStep, pass_step_key
 from pipeline.audit.evidence import band_noise_gain
 from pipeline.audit.evidence.lag import EDDY_TAU_GRID_S
 from pipeline.audit.extended import FittedModel, ModelSpec, design, simulate_measurement
@@ -40,12 +40,12 @@ from pipeline.audit.hypotheses import candidates, geomagnetic_gradient
 from pipeline.audit.noise import NoiseFloorBounds, noise_floor_bounds
 from pipeline.audit.null_calibration import NullCalibration, calibrate_null
 from pipeline.audit.result import AuditResult, Evaluation, alternatives
-from pipeline.audit.settings import AuditSettings
+from pipeline.audit.settings import EVENT_TESTS, AuditSettings
 from pipeline.audit.spectrum import manoeuvre_line, periodic_nuisance, residual_spectrum
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.model import figure_of_merit
 from pipeline.compensate.nuisance import current_columns, second_order_columns
-from pipeline.compensate.terms import position_terms
+from pipeline.compensate.terms import direction_cosines, position_terms
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.maps.reduce import time_window_mean
@@ -94,12 +94,17 @@ class Auditor(AuditEvents, AuditContext):
         rival_cols = (
             {"second_order": second_order_columns(d.vector_nT, d.time_s)[0]} if rivals else {}
         )
+        # a change of the permanent field between passes is a candidate of the selection
+        # too: the event it reports must beat the same null maximum
+        u = direction_cosines(d.vector_nT)
+        for i, t_s in enumerate(self.pass_gap_middles()):
+            cands[pass_step_key(i)] = u * (d.time_s > t_s).astype(float)[:, None]
         try:
-            return calibrate_null(
+            nc = calibrate_null(
                 nz.setup,
                 nz.columns,
                 cands,
-                self.s.flight_alpha,
+                self.s.maximum_alpha,
                 self.s.min_gain,
                 self.s.null_draws,
                 self.s.null_seed,
@@ -109,6 +114,8 @@ class Auditor(AuditEvents, AuditContext):
         except (ValueError, np.linalg.LinAlgError) as exc:
             self.notes.append(f"the null model's bootstrap could not run: {exc}")
             return None
+        nc.event_tests_alpha = EVENT_TESTS * self.s.event_alpha
+        return nc
 
     def gradient_from_legs(self, spec: ModelSpec) -> ModelSpec | None:
         """:func:`pipeline.audit.hypotheses.geomagnetic_gradient.gradient_from_legs`."""

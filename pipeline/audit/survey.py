@@ -12,9 +12,10 @@ error model of the compensated field along the flight,
 each crossover gives d = e(t_a) - e(t_b). A step in the permanent field p changes the reading
 by u . dp, which depends on heading, hence a step size per heading. Each flown line also
 carries a random level of its own (:mod:`pipeline.audit.line_levels`). The change point t_s
-is scanned over the gaps between lines; its significance is the likelihood ratio against
-the model without it, corrected for the scan by a parametric bootstrap of the fitted null
-model (the maximum of many ratios is not chi-square distributed; :func:`step_scan`). Few
+is scanned over the gaps between readings, and the drift tested beside it, as one family:
+each candidate's likelihood ratio against the model without it, the smallest pointwise p
+corrected for the scan (and the drift) by a parametric bootstrap of the fitted null model
+(the extreme of many ratios is not chi-square distributed; :func:`step_scan`). Few
 points (tens of crossovers) and a heading-grouped model with crossed line levels are outside
 what change-point libraries' cost functions express, hence the explicit scan.
 
@@ -170,17 +171,18 @@ def _candidate_gaps(x: CrossoverSet, min_each_side: int) -> list[tuple[float, fl
     ]
 
 
-SCAN_DRAWS = 400  # parametric-bootstrap draws of the scan's largest likelihood ratio
+SCAN_DRAWS = 400  # parametric-bootstrap draws of the scan statistic (p resolved to 2.5e-3)
 
 
 @dataclass
 class StepScan:
-    """The step scan of :func:`step_scan`: every candidate gap with its likelihood ratio.
+    """The change scan of :func:`step_scan`: a step at every candidate gap and a drift.
 
     ``gaps`` (earlier, later reading time, s), ``which`` the headings of each candidate's
-    step columns, ``lr`` 2 x the profile log-likelihood gain over the null, ``p_value`` the
-    largest ratio's p under the bootstrap, ``rho`` the best candidate's line-level variance
-    ratio, ``step_nT`` its step per heading (nT)."""
+    step columns, ``lr`` 2 x the profile log-likelihood gain over the null of each step
+    (``drift_lr`` the drift's), ``p_value`` the scan statistic's p under the bootstrap,
+    ``rho`` the best step's line-level variance ratio, ``step_nT`` its step per heading
+    (nT), ``drift_is_best`` whether the drift, not a step, is the scan's likeliest change."""
 
     gaps: list[tuple[float, float]]
     which: list[list[int]]
@@ -188,10 +190,12 @@ class StepScan:
     p_value: float
     rho: float
     step_nT: np.ndarray
+    drift_lr: float = 0.0
+    drift_is_best: bool = False
 
     @property
     def best(self) -> int:
-        """Index of the likeliest candidate."""
+        """Index of the likeliest step."""
         return int(np.argmax(self.lr))
 
 
@@ -201,6 +205,17 @@ def line_model(x: CrossoverSet) -> LineLevelModel:
     return LineLevelModel.of(z, x.size)
 
 
+def drift_column(x: CrossoverSet) -> np.ndarray:
+    """The drift's design column: the two readings' time difference (s), (n, 1)."""
+    return (x.time_a_s - x.time_b_s)[:, None]
+
+
+def _least_p(lr: np.ndarray, dof: np.ndarray) -> np.ndarray:
+    """Each draw's smallest pointwise chi-square log p over the candidates ((cands, draws)
+    ratios ``lr`` with ``dof`` columns each): candidates of different sizes on one scale."""
+    return np.min(stats.chi2.logsf(lr, dof[:, None]), axis=0)
+
+
 def step_scan(
     x: CrossoverSet,
     base: np.ndarray,
@@ -208,11 +223,15 @@ def step_scan(
     model: LineLevelModel | None = None,
     seed: int = 0,
 ) -> StepScan | None:
-    """Scan every gap between readings for a step per heading beside random line levels
-    (:mod:`pipeline.audit.line_levels`); the largest likelihood ratio's p from
-    :data:`SCAN_DRAWS` draws of the fitted null model, the same scan on each (seeded: the
-    same result on every run); ``model`` defaults to :func:`line_model`. None when no gap
-    can hold a step."""
+    """Scan every gap between readings for a step per heading, and the survey for a drift,
+    beside random line levels (:mod:`pipeline.audit.line_levels`); ``model`` defaults to
+    :func:`line_model`. None when neither a gap nor the drift can be tested.
+
+    One family: the statistic is the smallest pointwise chi-square p over all of them (a
+    step's degrees of freedom are its headings), its p from :data:`SCAN_DRAWS` draws of the
+    fitted null model, the same scan on each (seeded: the same result on every run). A drift
+    tested on its own beside the steps' scan would add its level to the scan's.
+    """
     y = np.asarray(x.difference_nT, float)
     gaps, extras, which = [], [], []
     for lo, hi in _candidate_gaps(x, min_each_side):
@@ -221,17 +240,33 @@ def step_scan(
             gaps.append((lo, hi))
             extras.append(cols)
             which.append(w)
-    if not gaps:
+    if y.size < base.shape[1] + 3:
         return None
     model = model or line_model(x)
-    lr, rho0, rho1 = scan_statistics(model, base, extras, y)
-    lr, best = lr[:, 0], int(np.argmax(lr[:, 0]))
+    cands = [*extras, drift_column(x)]
+    dof = np.array([c.shape[1] for c in cands], float)
+    lr, rho0, rho1 = scan_statistics(model, base, cands, y)
     sim, _, _ = scan_statistics(
-        model, base, extras, null_draws(model, float(rho0[0]), SCAN_DRAWS, seed)
+        model, base, cands, null_draws(model, float(rho0[0]), SCAN_DRAWS, seed)
     )
-    p = (1.0 + np.count_nonzero(sim.max(axis=0) >= lr[best])) / (SCAN_DRAWS + 1.0)
+    stat, null = _least_p(lr, dof)[0], _least_p(sim, dof)
+    p = (1.0 + np.count_nonzero(null <= stat)) / (SCAN_DRAWS + 1.0)
+    point = stats.chi2.logsf(lr[:, 0], dof)
+    steps_lr = lr[:-1, 0]
+    if not gaps:
+        return StepScan([], [], steps_lr, float(p), 0.0, np.zeros(0), float(lr[-1, 0]), True)
+    best = int(np.argmax(steps_lr))
     coef = gls_coefficients(model, np.column_stack([base, extras[best]]), y, float(rho1[best, 0]))
-    return StepScan(gaps, which, lr, float(p), float(rho1[best, 0]), coef[base.shape[1] :])
+    return StepScan(
+        gaps,
+        which,
+        steps_lr,
+        float(p),
+        float(rho1[best, 0]),
+        coef[base.shape[1] :],
+        float(lr[-1, 0]),
+        bool(np.argmin(point) == point.size - 1),
+    )
 
 
 def survey_events(
@@ -245,7 +280,7 @@ def survey_events(
         Crossover differences (compensated field, reduced for the main field and, when
         modelled, the diurnal), with times (s), heading classes and, when known, the lines.
     alpha
-        Significance after the scan correction.
+        Significance of the scan (steps and drift together, :func:`step_scan`).
     min_size_nT
         Smallest step or drift worth reporting.
     min_each_side
@@ -260,7 +295,8 @@ def survey_events(
     ``likeliest_start_s``/``_end_s`` in ``detail`` the likeliest gap itself. A line holds
     2-5 crossovers whose differences scatter by about a nT (geology between the
     interpolated readings, the heading error's change over the area), so the likeliest gap
-    alone can lie a line away from the step.
+    alone can lie a line away from the step. The event is the scan's likeliest change (on
+    the pointwise scale): a step, or a drift.
     """
     y = np.asarray(x.difference_nT, float)
     base = heading_levels(x)
@@ -269,22 +305,25 @@ def survey_events(
     base = np.column_stack([base, heading_gradients(x, base)])
     model = line_model(x)  # one eigendecomposition for the scan and the drift
     scan = step_scan(x, base, min_each_side, model)
-    if scan is not None:
-        size = float(np.max(np.abs(scan.step_nT))) if scan.step_nT.size else 0.0
-        if scan.p_value < alpha and size >= min_size_nT:
-            b = scan.best
-            near = np.flatnonzero(scan.lr[b] - scan.lr < float(stats.chi2.ppf(0.95, 1)))
-            detail = {
-                "step_by_heading_nT": {
-                    HEADINGS[h]: float(v) for h, v in zip(scan.which[b], scan.step_nT, strict=True)
-                },
-                "likeliest_start_s": scan.gaps[b][0],
-                "likeliest_end_s": scan.gaps[b][1],
-                "line_level_variance_ratio": scan.rho,
-            }
-            lo, hi = min(scan.gaps[i][0] for i in near), max(scan.gaps[i][1] for i in near)
-            return [SurveyEvent("step", lo, hi, size, scan.p_value, detail)]
-    return _drift(x, base, model, alpha, min_size_nT)
+    if scan is None or scan.p_value >= alpha:
+        return []
+    if scan.drift_is_best:
+        return _drift(x, base, model, scan.p_value, min_size_nT)
+    size = float(np.max(np.abs(scan.step_nT))) if scan.step_nT.size else 0.0
+    if size < min_size_nT:
+        return []
+    b = scan.best
+    near = np.flatnonzero(scan.lr[b] - scan.lr < float(stats.chi2.ppf(0.95, 1)))
+    detail = {
+        "step_by_heading_nT": {
+            HEADINGS[h]: float(v) for h, v in zip(scan.which[b], scan.step_nT, strict=True)
+        },
+        "likeliest_start_s": scan.gaps[b][0],
+        "likeliest_end_s": scan.gaps[b][1],
+        "line_level_variance_ratio": scan.rho,
+    }
+    lo, hi = min(scan.gaps[i][0] for i in near), max(scan.gaps[i][1] for i in near)
+    return [SurveyEvent("step", lo, hi, size, scan.p_value, detail)]
 
 
 def heading_gradients(x: CrossoverSet, levels: np.ndarray) -> np.ndarray:
@@ -308,31 +347,30 @@ def heading_gradients(x: CrossoverSet, levels: np.ndarray) -> np.ndarray:
 
 
 def _drift(
-    x: CrossoverSet, base: np.ndarray, model: LineLevelModel, alpha: float, min_size_nT: float
-):
-    """A drift (a trend no step explains) beside random line levels (``model``) and the
-    ``base`` columns (:func:`heading_gradients` among them): likelihood ratio against
-    chi-square(1)."""
+    x: CrossoverSet, base: np.ndarray, model: LineLevelModel, p_value: float, min_size_nT: float
+) -> list[SurveyEvent]:
+    """The drift (a trend no step explains) beside random line levels (``model``) and the
+    ``base`` columns (:func:`heading_gradients` among them), as an event with the scan's
+    ``p_value`` when its change over the survey reaches ``min_size_nT``."""
     y = np.asarray(x.difference_nT, float)
-    drift = (x.time_a_s - x.time_b_s)[:, None]
-    lr, _, rho1 = scan_statistics(model, base, [drift], y)
-    p = float(stats.chi2.sf(lr[0, 0], 1))
+    drift = drift_column(x)
+    _, _, rho1 = scan_statistics(model, base, [drift], y)
     coef = gls_coefficients(model, np.column_stack([base, drift]), y, float(rho1[0, 0]))
     t_all = np.r_[x.time_a_s, x.time_b_s]
     span = float(t_all.max() - t_all.min())
     size = abs(float(coef[-1])) * span
-    if p < alpha and size >= min_size_nT:
-        return [
-            SurveyEvent(
-                "drift",
-                float(t_all.min()),
-                float(t_all.max()),
-                size,
-                p,
-                {"rate_nT_per_h": float(coef[-1]) * 3600.0},
-            )
-        ]
-    return []
+    if size < min_size_nT:
+        return []
+    return [
+        SurveyEvent(
+            "drift",
+            float(t_all.min()),
+            float(t_all.max()),
+            size,
+            p_value,
+            {"rate_nT_per_h": float(coef[-1]) * 3600.0},
+        )
+    ]
 
 
 @dataclass
