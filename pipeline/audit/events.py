@@ -95,11 +95,11 @@ class AuditEvents:
         """Which crossovers ``xs`` read the same ground the same way: both lines flying
         straight (the course over ground within ``COURSE_WINDOW_S`` of the reading, a window
         wholly on the line, within ``max_turn_deg`` of the line's mean heading) and at
-        heights within
-        ``max_height_m`` of each other. A line's ends can run into its turns, and a track
-        labelled a tie can be a climbing transit; the ground's anomalies change by
-        0.02-0.1 nT per metre of height, so 20 m keeps the error near the crossovers'
-        own scatter."""
+        heights within ``max_height_m`` of each other. A line's ends can run into its turns
+        (a reading whose window runs off the line is in the turn's roll-out, where the
+        carrier's interference is the turn's), and a track labelled a tie can be a climbing
+        transit; the ground's anomalies change by 0.02-0.1 nT per metre of height, so 20 m
+        keeps the error near the crossovers' own scatter."""
         alt = self.flight.data["alt_m"].to_numpy(float)
         t_all = self.data.time_s
         t_a = np.array([c.time_a_s for c in xs], float)
