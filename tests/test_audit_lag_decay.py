@@ -29,8 +29,17 @@ from pipeline.simulate.audit_trials import correct, one_flight
         # it named a 0.076 s lag beside the gradient (-0.003 s beside a 1.0 s decay)
         ("geomagnetic_gradient", 7110, "a slow decay is no late sensor"),
         # a true 0.1 s first-order sensor lag and eddy currents decaying over 1.5 s: the
-        # best decay (0.2 s) takes the lag, being the sensor's own response
-        ("sensor_lag", 2026206, "a decay as quick as the lag is the sensor"),
+        # null model's decay (0.13 s) takes the lag, which then gains nothing beside it
+        pytest.param(
+            "sensor_lag",
+            2026206,
+            "a decay as quick as the lag is the sensor",
+            marks=pytest.mark.xfail(
+                strict=True,
+                reason="a 0.1 s first-order lag beside eddy decay is taken by the null "
+                "model's decay (docs/audit.md, Results: lags named on 3 of 5)",
+            ),
+        ),
         # a true 0.1 s delay, no decaying eddy currents: the eddy-rate columns took it
         # (-0.005 s beside them) while the best decay left 0.056 s; until 2026-12-02 it
         # named nothing
