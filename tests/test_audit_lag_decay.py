@@ -25,11 +25,11 @@ from pipeline.simulate.audit_trials import correct, one_flight
 @pytest.mark.parametrize(
     ("kind", "seed", "why"),
     [
-        # gradient, no lag; eddy currents of 0.5 nT decaying over 1.2 s. Until 2026-12-02
-        # it named a 0.076 s lag beside the gradient (-0.003 s beside a 1.0 s decay)
+        # gradient, no lag; eddy currents of 0.5 nT decaying over 1.2 s: the delay they
+        # put into the calibration is the decay's, not a late sensor's
         ("geomagnetic_gradient", 7110, "a slow decay is no late sensor"),
         # a true 0.1 s first-order sensor lag and eddy currents decaying over 1.5 s: the
-        # null model's decay (0.13 s) takes the lag, which then gains nothing beside it
+        # null model's decay takes the lag, which then gains nothing beside it
         pytest.param(
             "sensor_lag",
             2026206,
@@ -40,9 +40,8 @@ from pipeline.simulate.audit_trials import correct, one_flight
                 "model's decay (docs/audit.md, Results: lags named on 3 of 5)",
             ),
         ),
-        # a true 0.1 s delay, no decaying eddy currents: the eddy-rate columns took it
-        # (-0.005 s beside them) while the best decay left 0.056 s; until 2026-12-02 it
-        # named nothing
+        # a true 0.1 s delay, no decaying eddy currents: the eddy-rate columns take it
+        # while the best decay leaves part of it, so the lag is weighed against the decay
         ("sensor_lag", 7213, "the rate columns take a lag the decay leaves"),
     ],
 )
