@@ -23,13 +23,15 @@ measured on draws that did not set it: the gate set on one half, counted on the 
 ways round.
 
 Scope: the candidates linear in the data judged on the scalar calibration (a gradient, each
-recorded current). A lag is not: its first order in the lag lies in T-L's eddy columns (a
-delayed permanent field is the rate of change of the direction cosines), so only the delay
-itself sees it, and the null model's design delayed over the lag grid on these contiguous
-folds tells a late sensor from eddy decay less well than the lag's own tests; it is judged
-against the null model with the nuisances instead (:mod:`pipeline.audit.decide`). The diurnal
-is judged on crossovers, the vector calibration on the fluxgate, the events on the survey;
-their tests are not in this maximum.
+recorded current, a change of the permanent field between calibration passes). A lag is
+not: its first order in the lag lies in T-L's eddy columns (a delayed permanent field is the
+rate of change of the direction cosines), so only the delay itself sees it, and the null
+model's design delayed over the lag grid on these contiguous folds tells a late sensor from
+eddy decay less well than the lag's own tests; it is judged against the null model with the
+nuisances instead (:mod:`pipeline.audit.decide`). The diurnal is judged on crossovers, the
+vector calibration on the fluxgate, the events on the survey; their tests are not in this
+maximum (the events share the flight's rate with it by Bonferroni,
+:class:`pipeline.audit.settings.AuditSettings`).
 """
 
 from __future__ import annotations
@@ -61,7 +63,8 @@ class NullCalibration:
     draws : int
         Null draws.
     alpha : float
-        The flight-level false-finding rate the threshold is set for.
+        The level the maximum's threshold is set for (the flight's rate less the event
+        tests' levels, :attr:`event_tests_alpha`).
     threshold_gain : float
         The maximum statistic's 1 - alpha quantile (fraction of held-out RMS;
         :func:`monte_carlo_threshold`).

@@ -179,9 +179,9 @@ class StepScan:
     """The change scan of :func:`step_scan`: a step at every candidate gap and a drift.
 
     ``gaps`` (earlier, later reading time, s), ``which`` the headings of each candidate's
-    step columns, ``lr`` 2 x the profile log-likelihood gain over the null of each step
-    (``drift_lr`` the drift's), ``p_value`` the scan statistic's p under the bootstrap,
-    ``rho`` the best step's line-level variance ratio, ``step_nT`` its step per heading
+    step columns, ``lr`` 2 x the profile log-likelihood gain over the null of each step,
+    ``p_value`` the scan statistic's p under the bootstrap, ``rho`` the best step's
+    line-level variance ratio (``drift_rho`` the drift's), ``step_nT`` its step per heading
     (nT), ``drift_is_best`` whether the drift, not a step, is the scan's likeliest change."""
 
     gaps: list[tuple[float, float]]
@@ -190,7 +190,7 @@ class StepScan:
     p_value: float
     rho: float
     step_nT: np.ndarray
-    drift_lr: float = 0.0
+    drift_rho: float = 0.0
     drift_is_best: bool = False
 
     @property
@@ -249,12 +249,11 @@ def step_scan(
     sim, _, _ = scan_statistics(
         model, base, cands, null_draws(model, float(rho0[0]), SCAN_DRAWS, seed)
     )
-    stat, null = _least_p(lr, dof)[0], _least_p(sim, dof)
-    p = (1.0 + np.count_nonzero(null <= stat)) / (SCAN_DRAWS + 1.0)
     point = stats.chi2.logsf(lr[:, 0], dof)
+    p = (1.0 + np.count_nonzero(_least_p(sim, dof) <= point.min())) / (SCAN_DRAWS + 1.0)
     steps_lr = lr[:-1, 0]
     if not gaps:
-        return StepScan([], [], steps_lr, float(p), 0.0, np.zeros(0), float(lr[-1, 0]), True)
+        return StepScan([], [], steps_lr, float(p), 0.0, np.zeros(0), float(rho1[-1, 0]), True)
     best = int(np.argmax(steps_lr))
     coef = gls_coefficients(model, np.column_stack([base, extras[best]]), y, float(rho1[best, 0]))
     return StepScan(
@@ -264,7 +263,7 @@ def step_scan(
         float(p),
         float(rho1[best, 0]),
         coef[base.shape[1] :],
-        float(lr[-1, 0]),
+        float(rho1[-1, 0]),
         bool(np.argmin(point) == point.size - 1),
     )
 
@@ -308,7 +307,7 @@ def survey_events(
     if scan is None or scan.p_value >= alpha:
         return []
     if scan.drift_is_best:
-        return _drift(x, base, model, scan.p_value, min_size_nT)
+        return _drift(x, base, model, scan, min_size_nT)
     size = float(np.max(np.abs(scan.step_nT))) if scan.step_nT.size else 0.0
     if size < min_size_nT:
         return []
@@ -347,15 +346,13 @@ def heading_gradients(x: CrossoverSet, levels: np.ndarray) -> np.ndarray:
 
 
 def _drift(
-    x: CrossoverSet, base: np.ndarray, model: LineLevelModel, p_value: float, min_size_nT: float
+    x: CrossoverSet, base: np.ndarray, model: LineLevelModel, scan: StepScan, min_size_nT: float
 ) -> list[SurveyEvent]:
-    """The drift (a trend no step explains) beside random line levels (``model``) and the
-    ``base`` columns (:func:`heading_gradients` among them), as an event with the scan's
-    ``p_value`` when its change over the survey reaches ``min_size_nT``."""
+    """The drift (a trend no step explains) beside random line levels (``model``, at the
+    scan's ``drift_rho``) and the ``base`` columns (:func:`heading_gradients` among them),
+    as an event with the scan's p when its change over the survey reaches ``min_size_nT``."""
     y = np.asarray(x.difference_nT, float)
-    drift = drift_column(x)
-    _, _, rho1 = scan_statistics(model, base, [drift], y)
-    coef = gls_coefficients(model, np.column_stack([base, drift]), y, float(rho1[0, 0]))
+    coef = gls_coefficients(model, np.column_stack([base, drift_column(x)]), y, scan.drift_rho)
     t_all = np.r_[x.time_a_s, x.time_b_s]
     span = float(t_all.max() - t_all.min())
     size = abs(float(coef[-1])) * span
@@ -367,7 +364,7 @@ def _drift(
             float(t_all.min()),
             float(t_all.max()),
             size,
-            p_value,
+            scan.p_value,
             {"rate_nT_per_h": float(coef[-1]) * 3600.0},
         )
     ]
