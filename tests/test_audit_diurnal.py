@@ -128,3 +128,17 @@ def test_the_interval_holds_when_a_legs_blocks_share_their_errors():
         ev = diurnal_evidence([leg_set(rng, phase, legs=4, along_nT=0.6)])
         covered.append(ev.ci95[0] <= 1.0 <= ev.ci95[1])
     assert np.mean(covered) >= 0.8
+
+
+@pytest.mark.parametrize("rate_hz", [5.0, 10.0, 50.0])
+def test_the_base_stations_amplitude_and_period_are_read_from_its_record(rate_hz):
+    """A smoothed base-station record of a 12 nT, 80 min variation over 2 h, with noise, at
+    any rate: its amplitude and period come back (the fit reads the record's 10 s means)."""
+    from pipeline.audit.hypotheses.diurnal import _diurnal_shape
+
+    rng = np.random.default_rng(11)
+    t = np.arange(0.0, 7200.0, 1.0 / rate_hz)
+    base = 48_000.0 + 12.0 * np.sin(2 * np.pi * t / 4800.0 + 0.4) + rng.normal(0, 0.05, t.size)
+    got = _diurnal_shape(t, base)
+    assert got["amplitude_nT"] == pytest.approx(12.0, rel=0.01)
+    assert got["period_s"] == pytest.approx(4800.0, rel=0.01)

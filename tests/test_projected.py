@@ -166,3 +166,22 @@ def test_a_survey_across_zones_is_a_warning_in_the_log_and_map_crs_is_checked():
     assert Config.load().map_settings().crs_epsg is None
     with pytest.raises(AeromagError, match="map.crs"):
         Config.load().with_values({"map.crs": "EPSG:4326"}).validate()
+
+
+def test_a_map_placed_in_a_frame_pickles_with_its_transforms():
+    """A map's transforms are module functions bound to the frame, not closures: the
+    navigation results that hold the map pickle with the standard library (a process pool,
+    a child process) and place points as before."""
+    from pipeline.maps.grid import Grid
+    from pipeline.navigation.map_io import frame_map
+
+    f = survey_frame([34.25, 34.26], [108.9, 108.91], [500.0, 520.0])
+    grid = Grid(np.arange(12.0).reshape(3, 4), -100.0, -50.0, 25.0)
+    m = frame_map(grid, f, "test", "in-memory map")
+    back = pickle.loads(pickle.dumps(m))
+    e, n = back.to_local(34.255, 108.905)
+    e0, n0 = m.to_local(34.255, 108.905)
+    assert float(e) == pytest.approx(float(e0)) and float(n) == pytest.approx(float(n0))
+    la, lo = back.to_geodetic(e, n)
+    assert float(la) == pytest.approx(34.255, abs=1e-9)
+    assert float(lo) == pytest.approx(108.905, abs=1e-9)

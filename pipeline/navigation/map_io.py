@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -92,16 +93,20 @@ class GeoMap:
         }
 
 
+def _to_local(frame: GridFrame, lat, lon):
+    e, n, _ = frame.to_enu(lat, lon)
+    return e, n
+
+
+def _to_geodetic(frame: GridFrame, e, n):
+    lat, lon, _ = frame.to_geodetic(e, n)
+    return lat, lon
+
+
 def _local(frame: GridFrame):
-    def to_local(lat, lon):
-        e, n, _ = frame.to_enu(lat, lon)
-        return e, n
-
-    def to_geodetic(e, n):
-        lat, lon, _ = frame.to_geodetic(e, n)
-        return lat, lon
-
-    return to_local, to_geodetic
+    # partials of module functions, not closures: a map's transforms pickle with it (the
+    # flow hands results between processes and persists them)
+    return partial(_to_local, frame), partial(_to_geodetic, frame)
 
 
 def read_map(path: str | Path, channel: str = DEFAULT_CHANNEL) -> GeoMap:

@@ -32,6 +32,8 @@ def _fft_operator(
     columns east): masked cells filled with their nearest neighbour, and with ``pad`` the grid
     reflected by half its size on every side first (the FFT takes the grid as periodic), then
     cropped and re-masked."""
+    import warnings
+
     import xarray as xr
 
     vals = _fill_nearest(np.asarray(values, float))
@@ -41,7 +43,9 @@ def _fft_operator(
     ee = cell_east_m * np.arange(-px, nx + px)
     nn = cell_north_m * np.arange(-py, ny + py)
     da = xr.DataArray(padded, coords={"northing": nn, "easting": ee}, dims=("northing", "easting"))
-    out = np.asarray(apply(da).values)[py : py + ny, px : px + nx].copy()
+    with warnings.catch_warnings():  # xarray/xrft deprecations inside harmonica
+        warnings.simplefilter("ignore", FutureWarning)
+        out = np.asarray(apply(da).values)[py : py + ny, px : px + nx].copy()
     out[~np.isfinite(values)] = np.nan
     return out
 

@@ -120,10 +120,17 @@ def _diurnal_legs(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None:
     )
 
 
+# the base station's record is smoothed over a minute (``BASE_SMOOTHING_S``) and the
+# variation's periods are hours: means over this many seconds lose nothing of the sinusoid
+# and spare the fit a flight's worth of samples
+SHAPE_BIN_S = 10.0
+
+
 def _diurnal_shape(time_s: np.ndarray, base: np.ndarray) -> dict[str, float | None]:
-    """Amplitude and period of the base-station variation (a sinusoid fitted to it)."""
+    """Amplitude and period of the base-station variation (a sinusoid fitted to its means
+    over :data:`SHAPE_BIN_S`)."""
     ok = np.isfinite(base)
-    t, b = time_s[ok], base[ok] - np.nanmean(base)
+    t, b = _bin_means(time_s[ok], base[ok] - np.nanmean(base), SHAPE_BIN_S)
     span = float(t[-1] - t[0]) if t.size else 0.0
     if t.size < 20 or span <= 0:
         return {"amplitude_nT": None, "period_s": None}
@@ -150,3 +157,13 @@ def _diurnal_shape(time_s: np.ndarray, base: np.ndarray) -> dict[str, float | No
         "amplitude_nT": a if p < 4 * span else float(np.ptp(b) / 2),
         "period_s": p if p < 4 * span else None,
     }
+
+
+def _bin_means(time_s: np.ndarray, x: np.ndarray, bin_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mean time (s) and mean of ``x`` in each occupied bin of ``bin_s`` seconds."""
+    if time_s.size == 0:
+        return time_s, x
+    k = np.floor((time_s - time_s[0]) / bin_s).astype(np.int64)
+    n = np.bincount(k)
+    keep = n > 0
+    return (np.bincount(k, time_s)[keep] / n[keep], np.bincount(k, x)[keep] / n[keep])
