@@ -61,7 +61,13 @@ class PassStep:
     @property
     def middle_s(self) -> float:
         """The gap's middle (s), where the calibration model puts the change."""
-        return 0.5 * (self.start_s + self.end_s)
+        return self.gap_middle_s(self.start_s, self.end_s)
+
+    @staticmethod
+    def gap_middle_s(start_s: float, end_s: float) -> float:
+        """Where the calibration model puts a change between passes: no calibration sample
+        lies in the gap, so any time in it is the same model; its middle (s)."""
+        return 0.5 * (start_s + end_s)
 
 
 class AuditEvents:
@@ -261,10 +267,10 @@ class AuditEvents:
         gaps = self.pass_gaps()
         nc = self.null_calibration
         out = []
-        for i, (lo, hi) in enumerate(gaps):
+        for i, ((lo, hi), middle_s) in enumerate(zip(gaps, self.pass_gap_middles(), strict=True)):
             if nc is not None and not nc.passes(pass_step_key(i)):
                 continue
-            ext = spec.with_(permanent_step_s=0.5 * (lo + hi))
+            ext = spec.with_(permanent_step_s=middle_s)
             try:
                 test = self._nested(spec, ext_spec=ext)
                 held = self.heldout(spec, lambda train, k, ext=ext: ext)
@@ -287,8 +293,8 @@ class AuditEvents:
 
     def pass_gap_middles(self) -> list[float]:
         """The middle (s) of each gap of :meth:`pass_gaps`: where the calibration model puts
-        a change of the permanent field between the passes."""
-        return [0.5 * (lo + hi) for lo, hi in self.pass_gaps()]
+        a change of the permanent field between the passes (:attr:`PassStep.middle_s`)."""
+        return [PassStep.gap_middle_s(lo, hi) for lo, hi in self.pass_gaps()]
 
     def pass_step_events(self, spec: ModelSpec, located: list[dict[str, Any]]) -> list[dict]:
         """``spec``'s permanent-field change between calibration passes (:meth:`pass_steps`)

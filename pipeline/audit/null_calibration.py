@@ -237,6 +237,7 @@ def calibrate_null(
     seed: int,
     rivals: dict[str, str] | None = None,
     rival_columns: dict[str, np.ndarray] | None = None,
+    event_tests_alpha: float = 0.0,
 ) -> NullCalibration:
     """The null distribution of the selection's maximum statistic (module docstring).
 
@@ -258,6 +259,9 @@ def calibrate_null(
         Candidate key -> the name of its competing explanation, and name -> that
         explanation's columns (n, r) on every epoch: the candidate's statistic is then its
         gain beside the null model and the rival (what it must beat to be named).
+    event_tests_alpha : float
+        The summed levels of the event tests outside the maximum, which the flight's
+        false-finding rate adds (:attr:`NullCalibration.event_tests_alpha`).
     """
     m = setup.meas
     ok = (setup.fold >= 0) & np.isfinite(m.scalar_nT) & np.all(np.isfinite(null_columns), axis=1)
@@ -292,4 +296,5 @@ def calibrate_null(
         flight_alpha=crossfit_rate(top[1:], alpha, min_gain),
         observed_gain={c: float(gains[i, 0]) for i, c in enumerate(names)},
         p_value=float((1 + np.sum(top[1:] >= top[0])) / (1 + draws)),
+        event_tests_alpha=event_tests_alpha,
     )

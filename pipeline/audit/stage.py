@@ -110,11 +110,11 @@ class Auditor(AuditEvents, AuditContext):
                 self.s.null_seed,
                 rivals,
                 rival_cols,
+                EVENT_TESTS * self.s.event_alpha,
             )
         except (ValueError, np.linalg.LinAlgError) as exc:
             self.notes.append(f"the null model's bootstrap could not run: {exc}")
             return None
-        nc.event_tests_alpha = EVENT_TESTS * self.s.event_alpha
         return nc
 
     def gradient_from_legs(self, spec: ModelSpec) -> ModelSpec | None:
