@@ -412,6 +412,13 @@ SEGMENT_COLOURS = {
 }
 
 
+def _runs_apart(sel: np.ndarray, *values: np.ndarray) -> list[np.ndarray]:
+    """``values`` at the epochs of ``sel``, with one NaN where a run of ``sel`` ends."""
+    idx = np.flatnonzero(sel)
+    breaks = np.flatnonzero(np.diff(idx) > 1) + 1
+    return [np.insert(np.asarray(v, float)[idx], breaks, np.nan) for v in values]
+
+
 def flight_map_figure(
     east_m: np.ndarray,
     north_m: np.ndarray,
@@ -429,8 +436,8 @@ def flight_map_figure(
         if not sel.any():
             continue
         # NaN between runs of the label, so separate pieces are not joined by straight lines
-        e = np.where(sel, east_m, np.nan)
-        n = np.where(sel, north_m, np.nan)
+        # (one NaN per gap: a path of the label's epochs only, not of the whole flight)
+        e, n = _runs_apart(sel, east_m, north_m)
         minor = label in ("turn", "transit")
         ax.plot(
             e,

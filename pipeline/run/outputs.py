@@ -10,6 +10,7 @@ presence marks a recording as done).
 from __future__ import annotations
 
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
@@ -273,8 +274,6 @@ def write_outputs(
     stem, out = Path(recording).stem, Path(out_dir)
     paths = output_paths(recording, out_dir)
     made = flight_products(r, cfg)
-    for name, fig in made["figures"].items():
-        paths[name] = save_figure(fig, out / f"{stem}.{name}.png")
     meta = {
         "aeromag.run": {
             **run_metadata(),
@@ -282,7 +281,18 @@ def write_outputs(
             "config_version": str(cfg["config_version"]),
         }
     }
-    write_with_new_channels(recording, paths["mcap"], made["channels"], metadata=meta)
+    # the figures render (Agg, PNG) while the recording is written: the two share no state
+    # and each spends much of its time outside the interpreter lock
+    with ThreadPoolExecutor(1, thread_name_prefix="aeromag-figures") as pool:
+        figures = pool.submit(
+            lambda: {n: save_figure(f, out / f"{stem}.{n}.png") for n, f in made["figures"].items()}
+        )
+        write_with_new_channels(recording, paths["mcap"], made["channels"], metadata=meta)
+        try:
+            paths.update(figures.result())
+        except BaseException:  # nothing half-written: the recording goes with its figures
+            paths["mcap"].unlink(missing_ok=True)
+            raise
     summary = build_summary(
         r.flight,
         config=cfg,
