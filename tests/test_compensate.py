@@ -490,3 +490,25 @@ def test_audit_baseline_and_postflight_tl18_are_one_estimator(clean_survey):
     np.testing.assert_allclose(
         audit.theta[: post.coefficients.size], post.coefficients, rtol=0, atol=1e-8 * scale
     )
+
+
+@pytest.mark.parametrize(
+    ("rate_hz", "band_hz", "poles", "shape"),
+    [
+        (10.0, (0.1, 0.9), 4, (500,)),
+        (20.0, (0.1, 0.9), 4, (300, 7)),
+        (5.0, (0.05, 1.0), 2, (90, 1)),
+    ],
+)
+def test_the_zero_phase_filter_is_scipys(rate_hz, band_hz, poles, shape):
+    """The block filter's zero-phase pass (its steady state computed once per filter) gives
+    scipy's sosfiltfilt to the last bit, and the cached design is a copy each call."""
+    from pipeline.compensate.filters import filtfilt_sos
+
+    x = np.random.default_rng(5).standard_normal(shape).cumsum(axis=0)
+    sos = bandpass_sos(band_hz, rate_hz, poles)
+    np.testing.assert_array_equal(filtfilt_sos(sos, x), sosfiltfilt(sos, x, axis=0))
+    sos[0, 0] = 99.0  # a caller's change does not reach the next caller
+    assert bandpass_sos(band_hz, rate_hz, poles)[0, 0] != 99.0
+    with pytest.raises(ValueError):
+        filtfilt_sos(sos, x[:10])
