@@ -90,6 +90,21 @@ def test_a_recorded_switched_current_is_no_step():
     assert vector_reference_step(t, s, v, aux={"current": current}) is None
 
 
+def test_a_recorded_current_with_gaps_and_a_scalar_dropout_still_joins_the_model():
+    """A channel recorded on most epochs joins the model with its gaps left out (before, a
+    single missing sample dropped the channel, so its switch read as a step), and a scalar
+    dropout beside a recorded channel is left out too (it used to stop the audit)."""
+    t, s, v = flight(5)
+    current = (t > 1300.0) * 2.0
+    u = v / np.linalg.norm(v, axis=1, keepdims=True)
+    s = s + current * (u @ np.array([1.5, 1.0, -2.0]))
+    gappy = current.copy()
+    gappy[[0, 1, 5000, 5001]] = np.nan  # a channel's first and a few later samples missing
+    s[8000:8050] = np.nan  # a 5 s scalar dropout
+    assert vector_reference_step(t, s, v, aux={"current": gappy}) is None
+    assert vector_reference_step(t, s, v) is not None
+
+
 def test_too_short_a_record_gives_nothing():
     t, s, v = flight(6, (3.0, 0.0, 0.0), step_s=100.0)
     keep = t < 300.0

@@ -174,6 +174,21 @@ def difference_design(
         return e, e, np.empty((0, 1)), np.empty((0, 3)), np.empty(0, int)
     t, s, vec, b = time_s[ok], scalar_nT[ok], vector_nT[ok], b[ok]
     u = vec / b[:, None]
+    cols = _difference_columns(t, b, u, [v[ok] for v in aux.values()])
+    x = np.column_stack([s - b, *cols, u])
+    means, idx = _bin_means(t, x, bin_s)
+    tb = t[0] + (idx + 0.5) * bin_s
+    block = np.concatenate([[0], np.cumsum(np.diff(idx) > 2)])
+    return tb, means[:, 0], means[:, 1:-3], means[:, -3:], block
+
+
+def _difference_columns(
+    t: np.ndarray, b: np.ndarray, u: np.ndarray, aux: list[np.ndarray]
+) -> list[np.ndarray]:
+    """The model's columns of the scalar-minus-vector difference on the epochs (times ``t``,
+    s; fluxgate magnitude ``b``, nT, and direction cosines ``u``; the aux channels):
+    level, drift, the carrier's permanent, induced, third-order and eddy terms, the timing
+    term and ``I u`` per channel (the module docstring)."""
     b0 = float(np.median(b))
     # the timing term: d|B|/dt over the ground's gradients (np.gradient on uneven epochs)
     db = np.gradient(b, t) if t.size > 2 else np.zeros_like(b)
@@ -198,16 +213,12 @@ def difference_design(
     for i in range(3):
         for j in range(3):
             cols.append(bs * u[:, i] * du[:, j])
-    for v in aux.values():
+    for v in aux:
         sd = float(np.std(v))
         if sd > 0:
             for i in range(3):
                 cols.append((v - v.mean()) / sd * u[:, i])
-    x = np.column_stack([s - b, *cols, u])
-    means, idx = _bin_means(t, x, bin_s)
-    tb = t[0] + (idx + 0.5) * bin_s
-    block = np.concatenate([[0], np.cumsum(np.diff(idx) > 2)])
-    return tb, means[:, 0], means[:, 1:-3], means[:, -3:], block
+    return cols
 
 
 def _step_bases(q0: np.ndarray, steps_w: list[np.ndarray]) -> np.ndarray:
@@ -367,71 +378,24 @@ def scan_vector_reference(
     if n < 4 * (k0 + 3) or tb[-1] - tb[0] < 4 * guard_s:
         return None
     grid = np.arange(tb[0] + guard_s, tb[-1] - guard_s, scan_every_s)
-
-    def step(ts: float) -> np.ndarray:  # the step's columns for a change at ts
-        return u * (tb > ts)[:, None]
-
-    # the scan twice: the whitening and the weights below come from the model's residual,
-    # and a large step left in it both pulls the AR(2) towards a random walk (which whitens
-    # a step into one bin) and raises the local RMS around itself, so the step weighs itself
-    # down. The second scan takes both from the residual with the first scan's likeliest
-    # step in.
-    with_step = None
-    for _ in range(2):
-        a0 = base if with_step is None else np.column_stack([base, with_step])
-        coef0, *_ = np.linalg.lstsq(a0, y, rcond=None)
-        phi = ar_coefficients(y - a0 @ coef0, block, AR_ORDER)
-        whiten, kept = ar_whitener(phi, block), kept_rows(block, AR_ORDER)
-        yw, bw = whiten(y), whiten(base)
-        # the residual's size varies tenfold over a flight (manoeuvres and turns leave nT
-        # of eddy and lagging-eddy field the columns do not hold, straight lines a few
-        # tenths): an equal-weight F test let a manoeuvre block's misfit pass for a step (a
-        # 40 nT "step" inside a calibration). Each whitened row is weighted by the local RMS
-        # of the model's whitened residual (a centred ``scale_window_s`` mean of its square).
-        aw = bw if with_step is None else np.column_stack([bw, whiten(with_step)])
-        cw, *_ = np.linalg.lstsq(aw, yw, rcond=None)
-        r2 = uniform_filter1d((yw - aw @ cw) ** 2, int(scale_window_s / bin_s) | 1, mode="nearest")
-        scale = np.sqrt(np.maximum(r2, 0.25 * np.median(r2)))
-        yw, bw = yw / scale, bw / scale[:, None]
-        # an orthonormal basis of the columns' span: some are (nearly) dependent on the
-        # sphere (sum_i u_i^2 = 1, sum_i u_i du_i/dt = 0), which a QR would keep as noise
-        # directions
-        uu, sv, _ = np.linalg.svd(bw, full_matrices=False)
-        q0 = uu[:, sv > 1e-8 * sv[0]]
-        k0 = q0.shape[1]
-        scan = _StepScan.build(u, tb, grid, phi, kept, whiten(u) / scale[:, None], scale, q0)
-        f = scan.f_stats(yw, q0)[:, 0]
-        i = int(np.argmax(f))
-        with_step = step(grid[i])
-    nw = yw.size
-    # what the AR(2) and the weights leave of the slow correlation, measured on the
-    # residual with the likeliest step in (a step would otherwise inflate it): the variance
-    # of minute means against that of white noise; the F statistics shrink by it
-    q1 = _step_bases(q0, [whiten(with_step) / scale[:, None]])
-    r1 = yw - q0 @ (q0.T @ yw) - q1 @ (q1.T @ yw)
-    m = int(round(vif_window_s / bin_s))
-    nb = r1.size // m
-    if nb >= 10:
-        means = r1[: nb * m].reshape(nb, m).mean(axis=1)
-        vif = max(1.0, float(m * np.var(means) / np.var(r1)))
-    else:
-        vif = 1.0
-    f = f / vif
-    e = np.random.default_rng(seed).standard_normal((nw, SCAN_SIMULATIONS))
-    f_null = scan.f_stats(e, q0).max(axis=0)
+    # the scan twice: the whitening and the weights come from the model's residual, and a
+    # large step left in it both pulls the AR(2) towards a random walk (which whitens a step
+    # into one bin) and raises the local RMS around itself, so the step weighs itself down.
+    # The second scan takes both from the residual with the first scan's likeliest step in.
+    sp = _scan_pass(tb, y, base, u, block, grid, None, scale_window_s / bin_s)
+    with_step = u * (tb > grid[sp.best])[:, None]
+    sp = _scan_pass(tb, y, base, u, block, grid, with_step, scale_window_s / bin_s)
+    with_step = u * (tb > grid[sp.best])[:, None]
+    i = sp.best
+    vif = _slow_correlation(sp, with_step, vif_window_s / bin_s)
+    f = sp.f / vif
+    e = np.random.default_rng(seed).standard_normal((sp.yw.size, SCAN_SIMULATIONS))
+    f_null = sp.scan.f_stats(e, sp.q0).max(axis=0)
     p = (1 + int(np.sum(f_null >= f[i]))) / (SCAN_SIMULATIONS + 1)
     # the size on the unwhitened data at the likeliest change point
-    a = np.column_stack([base, with_step])
-    coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+    coef, *_ = np.linalg.lstsq(np.column_stack([base, with_step]), y, rcond=None)
     dp = coef[-3:]
-    # 95 % profile-likelihood set of the change point: RSS within the chi2(1) bound, from
-    # the deflated F (a set as wide as the left-over slow correlation warrants)
-    rss0 = float(np.sum((yw - q0 @ (q0.T @ yw)) ** 2))
-    dof = nw - k0 - 3
-    rss = rss0 - 3 * f * rss0 / (dof + 3 * f)  # from F = (gain/3) / ((rss0-gain)/dof)
-    s2 = rss[i] / dof
-    inside = rss <= rss[i] + stats.chi2.ppf(0.95, 1) * s2
-    lo, hi = float(grid[inside].min()), float(grid[inside].max())
+    lo, hi = _change_point_set(sp, f, grid)
     # a change between two scanned points is fitted at one of them, and a bin's mean holds
     # either side of one inside it: the span reaches a scan step and half a bin further
     pad = scan_every_s + 0.5 * bin_s
@@ -444,9 +408,81 @@ def scan_vector_reference(
         p,
         float(f[i]),
         float(np.quantile(f_null, 0.95)),
-        tuple(float(x) for x in phi),
+        tuple(float(x) for x in sp.phi),
         vif,
     )
+
+
+@dataclass
+class _ScanPass:
+    """One pass of the change-point scan (:func:`_scan_pass`): the AR coefficients and
+    whitener of the model's residual, each bin's weight, the weighted whitened data ``yw``,
+    an orthonormal basis ``q0`` of the weighted whitened columns, the scan, its F per change
+    point and the likeliest one's index."""
+
+    phi: np.ndarray
+    whiten: object
+    scale: np.ndarray
+    yw: np.ndarray
+    q0: np.ndarray
+    scan: _StepScan
+    f: np.ndarray
+    best: int
+
+
+def _scan_pass(tb, y, base, u, block, grid, with_step, scale_window_bins: float) -> _ScanPass:
+    """The F of a step ``u [tb > t]`` at every change point of ``grid`` against ``base``,
+    whitened by the AR(2) of the residual of ``base`` (and ``with_step``, the last pass's
+    likeliest step, when given) and weighted by that residual's local RMS."""
+    a0 = base if with_step is None else np.column_stack([base, with_step])
+    coef0, *_ = np.linalg.lstsq(a0, y, rcond=None)
+    phi = ar_coefficients(y - a0 @ coef0, block, AR_ORDER)
+    whiten, kept = ar_whitener(phi, block), kept_rows(block, AR_ORDER)
+    yw, bw = whiten(y), whiten(base)
+    # the residual's size varies tenfold over a flight (manoeuvres and turns leave nT of
+    # eddy and lagging-eddy field the columns do not hold, straight lines a few tenths): an
+    # equal-weight F test let a manoeuvre block's misfit pass for a step (a 40 nT "step"
+    # inside a calibration). Each whitened row is weighted by the local RMS of the model's
+    # whitened residual (a centred ``scale_window_s`` mean of its square).
+    aw = bw if with_step is None else np.column_stack([bw, whiten(with_step)])
+    cw, *_ = np.linalg.lstsq(aw, yw, rcond=None)
+    r2 = uniform_filter1d((yw - aw @ cw) ** 2, int(scale_window_bins) | 1, mode="nearest")
+    scale = np.sqrt(np.maximum(r2, 0.25 * np.median(r2)))
+    yw, bw = yw / scale, bw / scale[:, None]
+    # an orthonormal basis of the columns' span: some are (nearly) dependent on the sphere
+    # (sum_i u_i^2 = 1, sum_i u_i du_i/dt = 0), which a QR would keep as noise directions
+    uu, sv, _ = np.linalg.svd(bw, full_matrices=False)
+    q0 = uu[:, sv > 1e-8 * sv[0]]
+    scan = _StepScan.build(u, tb, grid, phi, kept, whiten(u) / scale[:, None], scale, q0)
+    f = scan.f_stats(yw, q0)[:, 0]
+    return _ScanPass(phi, whiten, scale, yw, q0, scan, f, int(np.argmax(f)))
+
+
+def _slow_correlation(sp: _ScanPass, with_step: np.ndarray, window_bins: float) -> float:
+    """What the AR(2) and the weights leave of the slow correlation, measured on the
+    residual with the likeliest step in (a step would otherwise inflate it): the variance of
+    the means over ``window_bins`` bins against that of white noise (at least 1); the F
+    statistics shrink by it."""
+    q1 = _step_bases(sp.q0, [sp.whiten(with_step) / sp.scale[:, None]])
+    r1 = sp.yw - sp.q0 @ (sp.q0.T @ sp.yw) - q1 @ (q1.T @ sp.yw)
+    m = int(round(window_bins))
+    nb = r1.size // m
+    if nb < 10:
+        return 1.0
+    means = r1[: nb * m].reshape(nb, m).mean(axis=1)
+    return max(1.0, float(m * np.var(means) / np.var(r1)))
+
+
+def _change_point_set(sp: _ScanPass, f: np.ndarray, grid: np.ndarray) -> tuple[float, float]:
+    """The 95 % profile-likelihood set of the change point (first and last time, s): the
+    change points whose RSS lies within the chi2(1) bound of the likeliest's, from the
+    deflated F (a set as wide as the left-over slow correlation warrants)."""
+    rss0 = float(np.sum((sp.yw - sp.q0 @ (sp.q0.T @ sp.yw)) ** 2))
+    dof = sp.yw.size - sp.q0.shape[1] - 3
+    rss = rss0 - 3 * f * rss0 / (dof + 3 * f)  # from F = (gain/3) / ((rss0-gain)/dof)
+    s2 = rss[sp.best] / dof
+    inside = rss <= rss[sp.best] + stats.chi2.ppf(0.95, 1) * s2
+    return float(grid[inside].min()), float(grid[inside].max())
 
 
 def vector_reference_step(
