@@ -267,10 +267,10 @@ class AuditEvents:
         gaps = self.pass_gaps()
         nc = self.null_calibration
         out = []
-        for i, ((lo, hi), middle_s) in enumerate(zip(gaps, self.pass_gap_middles(), strict=True)):
+        for i, (lo, hi) in enumerate(gaps):
             if nc is not None and not nc.passes(pass_step_key(i)):
                 continue
-            ext = spec.with_(permanent_step_s=middle_s)
+            ext = spec.with_(permanent_step_s=PassStep.gap_middle_s(lo, hi))
             try:
                 test = self._nested(spec, ext_spec=ext)
                 held = self.heldout(spec, lambda train, k, ext=ext: ext)

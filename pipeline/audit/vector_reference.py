@@ -116,8 +116,9 @@ class VectorStep:
         }
 
 
-def _bin_means(t: np.ndarray, cols: np.ndarray, bin_s: float):
-    """Means of the rows of ``cols`` over ``bin_s`` bins of ``t``; the bins' indices."""
+def bin_means(t: np.ndarray, cols: np.ndarray, bin_s: float):
+    """Means of the rows of ``cols`` (n, k) over ``bin_s`` bins of ``t`` (s); the occupied
+    bins' indices."""
     k = np.floor((t - t[0]) / bin_s).astype(int)
     counts = np.bincount(k)
     ok = counts > 0
@@ -176,7 +177,7 @@ def difference_design(
     u = vec / b[:, None]
     cols = _difference_columns(t, b, u, [v[ok] for v in aux.values()])
     x = np.column_stack([s - b, *cols, u])
-    means, idx = _bin_means(t, x, bin_s)
+    means, idx = bin_means(t, x, bin_s)
     tb = t[0] + (idx + 0.5) * bin_s
     block = np.concatenate([[0], np.cumsum(np.diff(idx) > 2)])
     return tb, means[:, 0], means[:, 1:-3], means[:, -3:], block

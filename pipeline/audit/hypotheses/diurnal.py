@@ -13,6 +13,7 @@ from pipeline.audit.extended import ModelSpec
 from pipeline.audit.legs import leg_block_means
 from pipeline.audit.result import Evaluation
 from pipeline.audit.survey import heading_levels
+from pipeline.audit.vector_reference import bin_means
 
 EFFECT = "diurnal"
 
@@ -130,7 +131,9 @@ def _diurnal_shape(time_s: np.ndarray, base: np.ndarray) -> dict[str, float | No
     """Amplitude and period of the base-station variation (a sinusoid fitted to its means
     over :data:`SHAPE_BIN_S`)."""
     ok = np.isfinite(base)
-    t, b = _bin_means(time_s[ok], base[ok] - np.nanmean(base), SHAPE_BIN_S)
+    t, b = time_s[ok], base[ok] - np.nanmean(base)
+    if t.size:
+        t, b = bin_means(t, np.column_stack([t, b]), SHAPE_BIN_S)[0].T
     span = float(t[-1] - t[0]) if t.size else 0.0
     if t.size < 20 or span <= 0:
         return {"amplitude_nT": None, "period_s": None}
@@ -157,13 +160,3 @@ def _diurnal_shape(time_s: np.ndarray, base: np.ndarray) -> dict[str, float | No
         "amplitude_nT": a if p < 4 * span else float(np.ptp(b) / 2),
         "period_s": p if p < 4 * span else None,
     }
-
-
-def _bin_means(time_s: np.ndarray, x: np.ndarray, bin_s: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mean time (s) and mean of ``x`` in each occupied bin of ``bin_s`` seconds."""
-    if time_s.size == 0:
-        return time_s, x
-    k = np.floor((time_s - time_s[0]) / bin_s).astype(np.int64)
-    n = np.bincount(k)
-    keep = n > 0
-    return (np.bincount(k, time_s)[keep] / n[keep], np.bincount(k, x)[keep] / n[keep])
