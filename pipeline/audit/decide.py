@@ -79,18 +79,25 @@ def select(
 def calibrated_gate(ctx: AuditContext, evals: list[Evaluation], nc: NullCalibration | None) -> None:
     """Hold back a candidate judged on the scalar calibration whose held-out gain beside
     the null model does not reach the gate the null model's bootstrap sets for the whole
-    selection (``nc``, :attr:`pipeline.audit.stage.Auditor.null_calibration`); a candidate
-    its own evidence outside the
-    calibration decides is not judged there."""
+    selection (``nc``, :attr:`pipeline.audit.stage.Auditor.null_calibration`): its
+    threshold, and the least gain worth a term unless evidence outside the calibration
+    confirmed the gain; a candidate its own evidence outside the calibration decides is not
+    judged there."""
     if nc is None:
         return
     for e in evals:
-        if e.decided_outside or e.held_back or not e.passes(ctx.s) or nc.passes(e.key):
+        if (
+            e.decided_outside
+            or e.held_back
+            or not e.passes(ctx.s)
+            or nc.passes(e.key, e.confirmed_gain)
+        ):
             continue
         e.held_back = True
+        gate = nc.threshold_gain if e.confirmed_gain else nc.gate_gain
         e.reason = (
             f"its held-out gain beside the null model, {100 * nc.observed_gain[e.key]:.1f} %,"
-            f" is below the {100 * nc.gate_gain:.1f} % the null model's bootstrap sets for "
+            f" is below the {100 * gate:.1f} % the null model's bootstrap sets for "
             f"the whole selection at a flight-level rate of {nc.alpha:g}"
         )
 

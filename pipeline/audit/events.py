@@ -240,6 +240,7 @@ class AuditEvents:
             d.aux,
             self.s.event_alpha,
             self.s.min_vector_step_nT,
+            self.s.fluxgate_step_margin,
         )
         if step is None:
             return []

@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 from pipeline.audit.crossval import BLOCK_S, N_FOLDS
 from pipeline.audit.extended import BandSettings
+from pipeline.audit.vector_reference import STEP_MARGIN
 from pipeline.defaults import default_field
 
 # the event detectors outside the null bootstrap's maximum, each a test calibrated by its
@@ -47,6 +48,10 @@ class AuditSettings:
     min_vector_step_nT : float
         Smallest change ``|dp|`` of the carrier's permanent field (body frame, nT) that the
         scalar-minus-fluxgate test (:mod:`pipeline.audit.vector_reference`) reports.
+    fluxgate_step_margin : float
+        Ratio of that test's maximum F to the 95 % point of its Gaussian null that a step
+        must reach (dimensionless): the ratio's quantile at :attr:`event_alpha` on simulated
+        flights with no step (``benchmarks/calibrate_fluxgate_step.py``).
     min_leg_ramp_nT : float
         Smallest field change along the calibration legs (RMS, nT) with which a gradient
         seen there confirms a gradient candidate (:mod:`pipeline.audit.legs`).
@@ -87,6 +92,10 @@ class AuditSettings:
     min_event_nT: float = 0.3  # smallest step or drift in the survey worth an event
     # smallest |dp| of a permanent-field step against the fluxgate worth an event (nT)
     min_vector_step_nT: float = 1.0
+    # interference outside the scalar-minus-fluxgate model lifts a step-free flight's F above
+    # the scan's Gaussian null: the margin is that ratio's quantile at the event test's level
+    # over simulated step-free flights (benchmarks/calibrate_fluxgate_step.py, docs/audit.md)
+    fluxgate_step_margin: float = STEP_MARGIN
     # a fluxgate reads the carrier's own field at it too (tens of nT on a UAV), which a
     # calibration absorbs as well; sensor errors worth naming are what a data sheet calls an
     # uncalibrated sensor: 0.05 % of the field (25 nT at 50 000 nT) is 0.03 deg of direction

@@ -49,6 +49,10 @@ from pipeline.audit.prewhiten import ar_coefficients, ar_whitener, kept_rows
 
 AR_ORDER = 2
 SCAN_SIMULATIONS = 500
+# the scan's F over its Gaussian null's 95 % point that a step must reach: that ratio's
+# quantile at the event test's level on simulated step-free flights
+# (benchmarks/calibrate_fluxgate_step.py; AuditSettings.fluxgate_step_margin)
+STEP_MARGIN = 7.4
 
 
 @dataclass
@@ -493,7 +497,7 @@ def vector_reference_step(
     aux: dict[str, np.ndarray] | None = None,
     alpha: float = 0.01,
     min_size_nT: float = 1.0,
-    min_f_ratio: float = 8.0,
+    min_f_ratio: float = STEP_MARGIN,
     **scan,
 ) -> VectorStep | None:
     """A significant step in the carrier's permanent field against the fluxgate
@@ -510,9 +514,10 @@ def vector_reference_step(
     min_f_ratio : float
         Smallest ratio of the scan's F statistic to the 95 % point of its null maximum. The
         null (Gaussian, whitened, weighted) is not the whole truth: interference outside the
-        model (lagging eddy fields in manoeuvres, unrecorded switched currents) lifts a clean
-        flight's F a few times above that point, a step of a few nT lifts it by one to three
-        orders of magnitude: the ratio is a margin between the two.
+        model (lagging eddy fields in manoeuvres, unrecorded switched currents) lifts a
+        step-free flight's F above that point. The audit passes the ratio's quantile at the
+        test's level over simulated step-free flights
+        (``AuditSettings.fluxgate_step_margin``).
     **scan
         Further arguments of :func:`scan_vector_reference`.
 
