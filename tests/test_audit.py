@@ -313,6 +313,31 @@ def test_a_coupling_known_from_outside_the_calibration_is_taken_out_before_the_f
     assert "electrical_current" in ModelSpec(known_aux=(("payload", 2.5),)).label()
 
 
+def test_a_coupling_decided_outside_the_calibration_shares_the_flights_budget():
+    """The crossovers' or the switches' coupling test decides alone at ``event_alpha``,
+    Bonferroni over the electrical channels that vary over the calibration and the two
+    kinds of evidence; the event tests and the bootstrap's maximum spend ``flight_alpha``."""
+    from types import SimpleNamespace
+
+    from pipeline.audit.hypotheses.electrical_current import decides_outside
+    from pipeline.audit.settings import EVENT_TESTS, AuditSettings
+
+    s = AuditSettings()
+    assert s.maximum_alpha > 0
+    assert s.maximum_alpha + EVENT_TESTS * s.event_alpha == pytest.approx(s.flight_alpha)
+    rng = np.random.default_rng(5)
+    aux = {name: rng.normal(size=500) for name in ("load", "bus", "motor", "temperature")}
+    units = {"load": "A", "bus": "V", "motor": "A", "temperature": "degC"}
+    ctx = SimpleNamespace(
+        data=SimpleNamespace(aux=aux, aux_units=units), mask=np.ones(500, bool), s=s
+    )
+    # three electrical channels (the temperature is none): six tests
+    assert decides_outside(ctx, ModelSpec(), 0.9 * s.event_alpha / 6)
+    assert not decides_outside(ctx, ModelSpec(), 1.1 * s.event_alpha / 6)
+    # a channel already in the model is no longer tested
+    assert decides_outside(ctx, ModelSpec(aux=("bus",)), 1.1 * s.event_alpha / 6)
+
+
 def test_evidence_outside_the_calibration_decides_unless_the_calibration_contradicts():
     from pipeline.audit.evidence import HeldOut
     from pipeline.audit.result import Evaluation

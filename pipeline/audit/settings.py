@@ -9,10 +9,11 @@ from pipeline.audit.extended import BandSettings
 from pipeline.audit.vector_reference import STEP_MARGIN
 from pipeline.defaults import default_field
 
-# the event detectors outside the null bootstrap's maximum, each a test calibrated by its
-# own null simulation: the survey's change scan (steps and drift), the calibration legs'
-# step scan and the step against the fluxgate
-EVENT_TESTS = 3
+# the tests outside the null bootstrap's maximum that can name something on a flight: the
+# survey's change scan (steps and drift), the calibration legs' step scan and the step
+# against the fluxgate (each calibrated by its own null simulation), and a current coupling
+# decided by the crossovers or the switches alone (Bonferroni over channels and both kinds)
+EVENT_TESTS = 4
 
 
 @dataclass
@@ -51,7 +52,7 @@ class AuditSettings:
     fluxgate_step_margin : float
         Ratio of that test's maximum F to the 95 % point of its Gaussian null that a step
         must reach (dimensionless): the ratio's quantile at :attr:`event_alpha` on simulated
-        flights with no step (``benchmarks/calibrate_fluxgate_step.py``).
+        flights with no step (``benchmarks/bench_fluxgate_step_margin.py``).
     min_leg_ramp_nT : float
         Smallest field change along the calibration legs (RMS, nT) with which a gradient
         seen there confirms a gradient candidate (:mod:`pipeline.audit.legs`).
@@ -94,7 +95,7 @@ class AuditSettings:
     min_vector_step_nT: float = 1.0
     # interference outside the scalar-minus-fluxgate model lifts a step-free flight's F above
     # the scan's Gaussian null: the margin is that ratio's quantile at the event test's level
-    # over simulated step-free flights (benchmarks/calibrate_fluxgate_step.py, docs/audit.md)
+    # over simulated step-free flights (benchmarks/bench_fluxgate_step_margin.py, docs/audit.md)
     fluxgate_step_margin: float = STEP_MARGIN
     # a fluxgate reads the carrier's own field at it too (tens of nT on a UAV), which a
     # calibration absorbs as well; sensor errors worth naming are what a data sheet calls an

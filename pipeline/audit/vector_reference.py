@@ -51,7 +51,7 @@ AR_ORDER = 2
 SCAN_SIMULATIONS = 500
 # the scan's F over its Gaussian null's 95 % point that a step must reach: that ratio's
 # quantile at the event test's level on simulated step-free flights
-# (benchmarks/calibrate_fluxgate_step.py; AuditSettings.fluxgate_step_margin)
+# (benchmarks/bench_fluxgate_step_margin.py; AuditSettings.fluxgate_step_margin)
 STEP_MARGIN = 7.4
 
 

@@ -19,7 +19,7 @@ from pipeline.audit.extended import FittedModel, ModelSpec
 from pipeline.audit.hypotheses.rival import beyond
 from pipeline.audit.result import Evaluation
 from pipeline.audit.survey import SurveyCoupling
-from pipeline.audit.switching import SwitchCoupling, switch_body_coupling, switch_coupling
+from pipeline.audit.switching import switch_body_coupling, switch_coupling
 from pipeline.compensate.terms import direction_cosines
 
 EFFECT = "electrical_current"
@@ -137,12 +137,17 @@ def _by_the_crossovers(
         # (Fisher), the two together must reach alpha
         if sc.p_value < ctx.s.alpha and sg.reduction >= ctx.s.min_gain:
             ev.confirm_p, ev.confirmed_gain = sg.p_value, True
+            # the crossovers' own test decides alone when it predicts them leave-one-out
+            # (p < alpha): a load that hardly changes during the calibration (one pass, a
+            # fixed-wing's steady legs) leaves the calibration blind to its coupling
+            if decides_outside(ctx, current, sc.p_value) and sg.p_value < ctx.s.alpha:
+                _decide_outside(ctx, ev, current, name, sc.nT_per_unit, "crossovers")
 
 
 def _by_the_switches(ctx: AuditContext, ev: Evaluation, current: ModelSpec, name: str) -> None:
     """The field's steps where the channel switches, over the whole flight: their
     coupling's estimate beside the calibration's, and their own tests, which confirm the
-    calibration's or decide alone (:func:`_decide_by_switches`)."""
+    calibration's or decide alone (:func:`_decide_outside`)."""
     steps = channel_switch_steps(ctx, current, name)
     sw = None if steps is None else switch_coupling(steps)
     body = None if steps is None else switch_body_coupling(steps)
@@ -190,32 +195,51 @@ def _by_the_switches(ctx: AuditContext, ev: Evaluation, current: ModelSpec, name
             # the better of two confirmations, Bonferroni-corrected for the choice
             ev.confirm_p = p if ev.confirm_p is None else min(1.0, 2 * min(ev.confirm_p, p))
             ev.confirmed_gain = True
-            # the steps' own test, Bonferroni over the channels tested, decides alone:
-            # the band-passed calibration is blind to a load it sees switch a few times
-            n_channels = len(keys(ctx, current))
-            if sw.p_value * max(1, n_channels) < ctx.s.alpha:
-                _decide_by_switches(ctx, ev, current, name, sw)
+            # the steps' own test decides alone: the band-passed calibration is blind to a
+            # load it sees switch a few times
+            if not ev.decided_outside and decides_outside(ctx, current, sw.p_value):
+                _decide_outside(ctx, ev, current, name, sw.total_field_nT_per_unit, "switch")
 
 
-def _decide_by_switches(
-    ctx: AuditContext, ev: Evaluation, current: ModelSpec, name: str, sw: SwitchCoupling
+def decides_outside(ctx: AuditContext, current: ModelSpec, p_value: float) -> bool:
+    """Whether a coupling test outside the calibration (the crossovers' or the switches')
+    with ``p_value`` decides alone: Bonferroni over the channels tested and the two kinds of
+    evidence, at ``event_alpha``, one of the tests outside the null bootstrap's maximum
+    that share the flight's false-finding budget
+    (:data:`pipeline.audit.settings.EVENT_TESTS`)."""
+    n_tests = 2 * max(1, len(keys(ctx, current)))
+    return p_value * n_tests < ctx.s.event_alpha
+
+
+def _decide_outside(
+    ctx: AuditContext,
+    ev: Evaluation,
+    current: ModelSpec,
+    name: str,
+    total_field_nT_per_unit: float,
+    evidence: str,
 ) -> None:
-    """Let channel ``name``'s switches decide ``ev`` (``Evaluation.decided_outside``):
-    the calibration's held-out test then only checks that the extension does not make
-    the calibration worse. The extension is the form that lowers the calibration's
-    held-out residual more: the calibration's three body columns (``ev.spec``), or the
-    switches' total-field coupling taken out as known (``ModelSpec.known_aux``), which
-    has nothing to fit. Three free columns of a channel that the band-passed
-    calibration hardly sees fit other residual (ramps along the calibration legs, which
-    a gradient then takes); where the calibration does see the current, its columns
-    also hold the coupling's components across the field, which the known one lacks.
-    The calibration's fit of the coupling stays the reported estimate."""
-    known = current.with_(known_aux=current.known_aux + ((name, sw.total_field_nT_per_unit),))
+    """Let channel ``name``'s evidence outside the calibration (``evidence``: "crossovers"
+    or "switch") decide ``ev`` (``Evaluation.decided_outside``): the calibration's held-out
+    test then only checks that the extension does not make the calibration worse. The
+    extension is the form that lowers the calibration's held-out residual more: the
+    calibration's three body columns (``ev.spec``), or that evidence's total-field coupling
+    (nT per unit) taken out as known (``ModelSpec.known_aux``), which has nothing to fit.
+    Three free columns of a channel that the band-passed calibration hardly sees fit other
+    residual (ramps along the calibration legs, which a gradient then takes); where the
+    calibration does see the current, its columns also hold the coupling's components
+    across the field, which the known one lacks. The calibration's fit of the coupling
+    stays the reported estimate."""
+    known = current.with_(known_aux=current.known_aux + ((name, total_field_nT_per_unit),))
     held_known = ctx.heldout(current, lambda train, k: known)
     ev.decided_outside = True
     form = "calibration_columns"
     if ev.heldout is None or held_known.reduction > ev.heldout.reduction:
         ev.spec, ev.heldout = known, held_known
-        form = "switch_total_field_nT_per_unit"
+        form = (
+            "switch_total_field_nT_per_unit"
+            if evidence == "switch"
+            else "survey_total_field_nT_per_unit"
+        )
     ev.estimate["compensated_with"] = form
     ev.ci95["compensated_with"] = None

@@ -1,6 +1,6 @@
 """The fluxgate step test's margin, set by simulating the null: flights with no step.
 
-    .venv/bin/python benchmarks/calibrate_fluxgate_step.py [--flights 200] [--seed 6262]
+    .venv/bin/python benchmarks/bench_fluxgate_step_margin.py [--flights 200] [--seed 6262]
         [--step-flights 40] [--workers 2] [--json OUT.json]
 
 The scalar-minus-fluxgate scan (:mod:`pipeline.audit.vector_reference`) compares its
