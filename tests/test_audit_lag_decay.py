@@ -37,7 +37,7 @@ from pipeline.simulate.audit_trials import correct, one_flight
             marks=pytest.mark.xfail(
                 strict=True,
                 reason="a 0.1 s first-order lag beside eddy decay is taken by the null "
-                "model's decay (docs/audit.md, Results: lags named on 3 of 5)",
+                "model's decay (docs/audit.md, Results: a lag missed on 1 of 6)",
             ),
         ),
         # a true 0.1 s delay, no decaying eddy currents: the eddy-rate columns take it
