@@ -94,11 +94,10 @@ def calibrated_gate(ctx: AuditContext, evals: list[Evaluation], nc: NullCalibrat
         ):
             continue
         e.held_back = True
-        gate = nc.threshold_gain if e.confirmed_gain else nc.gate_gain
         e.reason = (
             f"its held-out gain beside the null model, {100 * nc.observed_gain[e.key]:.1f} %,"
-            f" is below the {100 * gate:.1f} % the null model's bootstrap sets for "
-            f"the whole selection at a flight-level rate of {nc.alpha:g}"
+            f" is below the {100 * nc.gate(e.confirmed_gain):.1f} % the null model's bootstrap"
+            f" sets for the whole selection at a flight-level rate of {nc.alpha:g}"
         )
 
 

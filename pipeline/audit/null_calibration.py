@@ -93,15 +93,19 @@ class NullCalibration:
     p_value: float = 1.0
     event_tests_alpha: float = 0.0
 
+    def gate(self, confirmed: bool = False) -> float:
+        """The held-out gain a candidate must reach: :attr:`gate_gain`, or, once evidence
+        outside the calibration (the survey's crossovers, the channel's switches) has shown
+        the gain matters (``confirmed``), :attr:`threshold_gain` alone: the least gain worth
+        a term is waived as :meth:`pipeline.audit.result.Evaluation.gain_suffices` waives
+        it, the whole selection's level stays."""
+        return self.threshold_gain if confirmed else self.gate_gain
+
     def passes(self, key: str, confirmed: bool = False) -> bool:
-        """Whether candidate ``key``'s statistic on the recording reaches the gate (True for
-        a candidate outside the bootstrap's scope). ``confirmed``: evidence outside the
-        calibration (the survey's crossovers, the channel's switches) has shown the gain
-        matters, so the least gain worth a term is waived (as
-        :meth:`pipeline.audit.result.Evaluation.gain_suffices` waives it) and the gain need
-        only reach the bootstrap's threshold: still the whole selection's level."""
+        """Whether candidate ``key``'s statistic on the recording reaches :meth:`gate` (True
+        for a candidate outside the bootstrap's scope)."""
         g = self.observed_gain.get(key)
-        return g is None or g >= (self.threshold_gain if confirmed else self.gate_gain)
+        return g is None or g >= self.gate(confirmed)
 
     def to_dict(self) -> dict[str, Any]:
         """``null_calibration``: ``method``, ``draws``, ``flight_alpha`` (the whole flight's:

@@ -141,7 +141,7 @@ def _by_the_crossovers(
             # (p < alpha): a load that hardly changes during the calibration (one pass, a
             # fixed-wing's steady legs) leaves the calibration blind to its coupling
             if decides_outside(ctx, current, sc.p_value) and sg.p_value < ctx.s.alpha:
-                _decide_outside(ctx, ev, current, name, sc.nT_per_unit, "crossovers")
+                _decide_outside(ctx, ev, current, name, "survey_total_field_nT_per_unit")
 
 
 def _by_the_switches(ctx: AuditContext, ev: Evaluation, current: ModelSpec, name: str) -> None:
@@ -198,7 +198,7 @@ def _by_the_switches(ctx: AuditContext, ev: Evaluation, current: ModelSpec, name
             # the steps' own test decides alone: the band-passed calibration is blind to a
             # load it sees switch a few times
             if not ev.decided_outside and decides_outside(ctx, current, sw.p_value):
-                _decide_outside(ctx, ev, current, name, sw.total_field_nT_per_unit, "switch")
+                _decide_outside(ctx, ev, current, name, "switch_total_field_nT_per_unit")
 
 
 def decides_outside(ctx: AuditContext, current: ModelSpec, p_value: float) -> bool:
@@ -212,34 +212,26 @@ def decides_outside(ctx: AuditContext, current: ModelSpec, p_value: float) -> bo
 
 
 def _decide_outside(
-    ctx: AuditContext,
-    ev: Evaluation,
-    current: ModelSpec,
-    name: str,
-    total_field_nT_per_unit: float,
-    evidence: str,
+    ctx: AuditContext, ev: Evaluation, current: ModelSpec, name: str, coupling_key: str
 ) -> None:
-    """Let channel ``name``'s evidence outside the calibration (``evidence``: "crossovers"
-    or "switch") decide ``ev`` (``Evaluation.decided_outside``): the calibration's held-out
-    test then only checks that the extension does not make the calibration worse. The
-    extension is the form that lowers the calibration's held-out residual more: the
-    calibration's three body columns (``ev.spec``), or that evidence's total-field coupling
-    (nT per unit) taken out as known (``ModelSpec.known_aux``), which has nothing to fit.
+    """Let channel ``name``'s evidence outside the calibration decide ``ev``
+    (``Evaluation.decided_outside``): the calibration's held-out test then only checks that
+    the extension does not make the calibration worse. The extension is the form that
+    lowers the calibration's held-out residual more: the calibration's three body columns
+    (``ev.spec``), or that evidence's total-field coupling (``ev.estimate[coupling_key]``,
+    nT per unit) taken out as known (``ModelSpec.known_aux``), which has nothing to fit.
     Three free columns of a channel that the band-passed calibration hardly sees fit other
     residual (ramps along the calibration legs, which a gradient then takes); where the
     calibration does see the current, its columns also hold the coupling's components
     across the field, which the known one lacks. The calibration's fit of the coupling
     stays the reported estimate."""
-    known = current.with_(known_aux=current.known_aux + ((name, total_field_nT_per_unit),))
+    coupling = (name, ev.estimate[coupling_key])
+    known = current.with_(known_aux=current.known_aux + (coupling,))
     held_known = ctx.heldout(current, lambda train, k: known)
     ev.decided_outside = True
     form = "calibration_columns"
     if ev.heldout is None or held_known.reduction > ev.heldout.reduction:
         ev.spec, ev.heldout = known, held_known
-        form = (
-            "switch_total_field_nT_per_unit"
-            if evidence == "switch"
-            else "survey_total_field_nT_per_unit"
-        )
+        form = coupling_key
     ev.estimate["compensated_with"] = form
     ev.ci95["compensated_with"] = None
