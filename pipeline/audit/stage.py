@@ -141,6 +141,20 @@ class Auditor(AuditEvents, AuditContext):
         return select(self, current, progress, lambda: self.null_calibration)
 
 
+def _final_decay(nuisances: list[dict[str, Any]], final_spec: ModelSpec) -> list[dict[str, Any]]:
+    """The nuisances with the eddy decay's time constant the final model holds: a lag named
+    beside the decay profiles it anew (the null's, taken without the lag, as
+    ``tau_s_without_findings``)."""
+    out = []
+    for n in nuisances:
+        tau = n["estimate"].get("tau_s") if n["name"] == "eddy_decay" else None
+        if tau is not None and final_spec.eddy_tau_s > 0 and final_spec.eddy_tau_s != tau:
+            n = {**n, "estimate": {**n["estimate"], "tau_s": final_spec.eddy_tau_s}}
+            n["estimate"]["tau_s_without_findings"] = tau
+        out.append(n)
+    return out
+
+
 def run_audit(
     flight: Flight, seg: Segmentation, settings: AuditSettings | None = None, progress=None
 ) -> AuditResult:
@@ -249,7 +263,7 @@ def _unexplained(
     named = {f.effect for f in findings}
     unexplained: dict[str, Any] = {
         "events": events,
-        "nuisances": aud.nuisances.to_list() + switched,
+        "nuisances": _final_decay(aud.nuisances.to_list(), final_spec) + switched,
         "ambiguities": [a for a in aud.ambiguities if not named.intersection(a["candidates"])],
         "note": None,
         "spectrum": residual_spectrum(r_e, data.rate_hz, s.band),

@@ -34,17 +34,46 @@ def lag_fit(
         costs = lag_cost(ctx.data, current, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s, keep=keep)
     except ValueError:
         return 0.0, np.inf
+    return _least_cost(costs, ctx.s.max_lag_s)
+
+
+def _least_cost(costs, max_lag_s: float) -> tuple[float, float]:
+    """(lag s, cost) at the least of ``costs`` (a function of an array of lags): a grid of
+    0.05 s over +-``max_lag_s``, then a bounded 1-D refinement."""
 
     def cost(tau: float) -> float:
         return float(costs(np.array([tau]))[0])
 
     step = 0.05
-    grid = np.arange(-ctx.s.max_lag_s, ctx.s.max_lag_s + step / 2, step)
+    grid = np.arange(-max_lag_s, max_lag_s + step / 2, step)
     best = float(grid[int(np.argmin(costs(grid)))])
     res = minimize_scalar(
         cost, bounds=(best - step, best + step), method="bounded", options={"xatol": 1e-4}
     )
     return float(res.x), float(res.fun)
+
+
+def decay_profile(ctx: AuditContext, current: ModelSpec) -> tuple[float, float]:
+    """The eddy decay's time constant (s) each hypothesis takes in the audit's model form
+    (decayed eddy columns beside T-L's): without a lag, and beside the lag that fits best
+    with it; on :data:`EDDY_TAU_GRID_S` and ``current``'s own, every candidate on the same
+    calibration rows. The null model's time constant was chosen without a lag, so a late
+    sensor's response is in it; with the lag in the model the decay keeps only the carrier's
+    own (a likelihood ratio profiles the nuisance under each hypothesis)."""
+    taus = sorted(set(EDDY_TAU_GRID_S) | {current.eddy_tau_s})
+    without, beside = {}, {}
+    for tau in taus:
+        spec = current.with_(eddy_tau_s=tau, lag_s=0.0)
+        lam = ctx.fit(spec, None, "all", ridge="auto").lambda_
+        try:
+            costs = lag_cost(ctx.data, spec, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s)
+        except ValueError:
+            continue
+        without[tau] = float(costs(np.array([0.0]))[0])
+        beside[tau] = _least_cost(costs, ctx.s.max_lag_s)[1]
+    if not without:
+        return current.eddy_tau_s, current.eddy_tau_s
+    return min(without, key=without.get), min(beside, key=beside.get)
 
 
 def lag_response(ctx: AuditContext, current: ModelSpec) -> tuple[str, float, dict[str, float]]:

@@ -30,6 +30,7 @@ from pipeline.audit.context import AuditContext
 from pipeline.audit.evidence import HeldOut
 from pipeline.audit.evidence.lag import (
     EDDY_TAU_GRID_S,
+    decay_profile,
     eddy_decay_tau,
     fluxgate_timing,
     lag_estimate,
@@ -227,15 +228,16 @@ def lag_beside_decay_nuisance(
     lines holds it; a tie the timing cannot break is an ambiguity (``ctx.ambiguities``)
     and nothing is named."""
     s = ctx.s
-    lag = float(ev.estimate["lag_s"])
     smallest = s.min_lag_s
-    ev.test = ctx._lag_profile_test(current, lag)
     tl = recorded_fluxgate_timing(ctx, current, ev)
     plain = current.with_(eddy_tau_s=0.0)
     lag_plain = lag_estimate(ctx, plain, None, "all")
+    current, lagged, fold_lags = _profiled_decay(ctx, ev, current, fold_lags)
+    lag = float(ev.estimate["lag_s"])
+    ev.test = ctx._lag_profile_test(lagged, lag)
     decay_alone = ctx.heldout(plain, lambda train, k: current)
     decay_beyond = ctx.heldout(
-        plain.with_(lag_s=lag_plain), lambda train, k: current.with_(lag_s=fold_lags[k])
+        plain.with_(lag_s=lag_plain), lambda train, k: lagged.with_(lag_s=fold_lags[k])
     )
     lag_alone = None
     if not (ev.heldout.p_value < s.alpha and ev.heldout.reduction >= s.min_gain):
@@ -265,23 +267,17 @@ def lag_beside_decay_nuisance(
         _lag_in_place_of_decay(ctx, ev, plain, lag_plain)
     elif verdict == "lag" and lag_alone is not None:  # the tie, broken
         by_physics = significant(vs.lag_over_decay, s.alpha, s.min_gain)
-        ev.estimate.update(
-            lag_s=lag_plain,
-            confirmed_by="the lag model over the decay model"
-            if by_physics
-            else "the timing along the lines"
-            if timing == "holds"
-            else "the lag model over the decay model with the timing along the lines",
-        )
-        ev.heldout, ev.spec, ev.decided_outside = lag_alone, plain.with_(lag_s=lag_plain), True
-        lo, hi = ev.ci95.get("lag_s") or (lag, lag)
-        ev.ci95["lag_s"] = [min(lo, lag_plain), max(hi, lag_plain)]
+        _lag_breaks_the_tie(ev, plain.with_(lag_s=lag_plain), lag_alone, by_physics, timing)
     elif verdict == "lag_beside_decay":
         _lag_timed_beside_decay(ev, sl, tl)
+        _lag_of_the_whole_reading(ev, lagged, lag_plain)
     elif verdict == "lag" and timing_says(ctx, lag, sl, tl) == "holds":
         # the lines' timing (what a late sensor delays and a decay does not) confirms it
         ev.estimate["confirmed_by"] = "the timing along the lines"
         ev.decided_outside = True
+        _lag_of_the_whole_reading(ev, lagged, lag_plain)
+    elif verdict == "lag":
+        _lag_of_the_whole_reading(ev, lagged, lag_plain)
     elif verdict == "ambiguous":
         ev.held_back = True
         ev.reason = (
@@ -300,6 +296,26 @@ def lag_beside_decay_nuisance(
     return ev
 
 
+def _lag_breaks_the_tie(
+    ev: Evaluation, lag_model: ModelSpec, lag_alone: HeldOut, by_physics: bool, timing: str
+) -> None:
+    """Name the lag of ``lag_model`` (no decay) where it and the decay tied: decided by the
+    rivals' held-out comparison (``by_physics``) or the lines' timing; the interval holds
+    the lag without the decay too."""
+    lag, lag_plain = float(ev.estimate["lag_s"]), lag_model.lag_s
+    ev.estimate.update(
+        lag_s=lag_plain,
+        confirmed_by="the lag model over the decay model"
+        if by_physics
+        else "the timing along the lines"
+        if timing == "holds"
+        else "the lag model over the decay model with the timing along the lines",
+    )
+    ev.heldout, ev.spec, ev.decided_outside = lag_alone, lag_model, True
+    lo, hi = ev.ci95.get("lag_s") or (lag, lag)
+    ev.ci95["lag_s"] = [min(lo, lag_plain), max(hi, lag_plain)]
+
+
 def _lag_timed_beside_decay(ev: Evaluation, sl, tl) -> None:
     """Name the lag beside the null's decay on the lines' timing (the verdict
     ``"lag_beside_decay"``): decided outside the calibration, its interval widened to the
@@ -312,6 +328,63 @@ def _lag_timed_beside_decay(ev: Evaluation, sl, tl) -> None:
         lag = float(ev.estimate["lag_s"])
         lo, hi = ev.ci95.get("lag_s") or (lag, lag)
         ev.ci95["lag_s"] = [min(lo, both[1]), max(hi, both[2])]
+
+
+def _profiled_decay(
+    ctx: AuditContext, ev: Evaluation, current: ModelSpec, fold_lags: dict[int, float]
+) -> tuple[ModelSpec, ModelSpec, dict[int, float]]:
+    """The decay's time constant profiled under each hypothesis
+    (:func:`pipeline.audit.evidence.lag.decay_profile`): the null model without a lag (the
+    null's own time constant or the one that fits best without a lag, whichever predicts
+    held-out data better) and the decay beside the lag. When either moves, the lag's
+    held-out test and estimate (``ev.heldout``, ``ev.estimate["lag_s"]``, ``ev.spec``) are
+    those of the lag with its decay against the null with its own. Returns the null model,
+    the decay the lag is judged beside (``lag_s`` 0) and the lag of each training fold."""
+    tau0, tau1 = decay_profile(ctx, current)
+    null = current
+    if tau0 != current.eddy_tau_s:
+        other = current.with_(eddy_tau_s=tau0)
+        if ctx.heldout(current, lambda train, k: other).reduction > 0:
+            null = other
+    lagged = current.with_(eddy_tau_s=tau1)
+    if null is current and tau1 == current.eddy_tau_s:
+        return current, lagged, fold_lags
+    lags: dict[int, float] = {}
+
+    def ext_for(train, k):
+        lags[k] = lag_estimate(ctx, lagged, train, f"decay{tau1:.3g}fold{k}")
+        return lagged.with_(lag_s=lags[k])
+
+    ev.heldout = ctx.heldout(null, ext_for)
+    lag = lag_estimate(ctx, lagged, None, "all")
+    ev.estimate.update(lag_s=lag, lag_by_fold_s=[lags[k] for k in sorted(lags)])
+    ev.estimate["eddy_decay_beside_lag_tau_s"] = tau1
+    ev.ci95["eddy_decay_beside_lag_tau_s"] = None
+    ev.spec = lagged.with_(lag_s=lag)
+    lo, hi = ev.ci95.get("lag_s") or (lag, lag)
+    ev.ci95["lag_s"] = [min(lo, lag), max(hi, lag)]
+    return null, lagged, lags
+
+
+def _lag_of_the_whole_reading(ev: Evaluation, lagged: ModelSpec, lag_plain_s: float) -> None:
+    """A lag named beside a decay, which stays: unless the decay is slower than the whole
+    reading's delay (:func:`slower_than_lag`, not :func:`same_response`), its size is the
+    delay of the whole reading, measured without the decay (``lag_plain_s``), and the
+    decay's coefficients are refitted at that lag.
+    Beside a decay with about the lag's time constant the decayed eddy columns reproduce
+    the lag's effect on the eddy terms and part of it on the induced ones, so the lag left
+    beside them is what the other columns cannot take, drawn toward zero by any
+    interference outside the model; the lag on the lines (the geology's delay) is the
+    whole reading's. A slower decay is the carrier's own and leaves the lag its response.
+    The lag beside the decay is kept as ``lag_beside_decay_s``; the interval holds both."""
+    lag = float(ev.estimate["lag_s"])
+    tau = lagged.eddy_tau_s
+    if slower_than_lag(tau, lag_plain_s) and not same_response(tau, lag_plain_s):
+        return
+    ev.estimate.update(lag_s=lag_plain_s, lag_beside_decay_s=lag)
+    ev.spec = lagged.with_(lag_s=lag_plain_s)
+    lo, hi = ev.ci95.get("lag_s") or (lag, lag)
+    ev.ci95.update(lag_s=[min(lo, lag_plain_s), max(hi, lag_plain_s)], lag_beside_decay_s=None)
 
 
 def _lag_in_place_of_decay(
