@@ -349,6 +349,11 @@ def _profiled_decay(
     lagged = current.with_(eddy_tau_s=tau1)
     if null is current and tau1 == current.eddy_tau_s:
         return current, lagged, fold_lags
+    ev.estimate["eddy_decay_beside_lag_tau_s"] = tau1
+    ev.ci95["eddy_decay_beside_lag_tau_s"] = None
+    if tau1 == current.eddy_tau_s:  # the lag's model as it was: only the null moves
+        ev.heldout = ctx.heldout(null, lambda train, k: lagged.with_(lag_s=fold_lags[k]))
+        return null, lagged, fold_lags
     lags: dict[int, float] = {}
 
     def ext_for(train, k):
@@ -358,8 +363,6 @@ def _profiled_decay(
     ev.heldout = ctx.heldout(null, ext_for)
     lag = lag_estimate(ctx, lagged, None, "all")
     ev.estimate.update(lag_s=lag, lag_by_fold_s=[lags[k] for k in sorted(lags)])
-    ev.estimate["eddy_decay_beside_lag_tau_s"] = tau1
-    ev.ci95["eddy_decay_beside_lag_tau_s"] = None
     ev.spec = lagged.with_(lag_s=lag)
     lo, hi = ev.ci95.get("lag_s") or (lag, lag)
     ev.ci95["lag_s"] = [min(lo, lag), max(hi, lag)]
