@@ -27,14 +27,20 @@ def lag_fit(
     terms absorb part of a lag, so a linearised estimate with the baseline's
     coefficients is biased low), then a bounded 1-D refinement. (0, inf) when the
     calibration is too short to refit."""
+    costs = _lag_costs(ctx, current, keep, key)
+    return (0.0, np.inf) if costs is None else _least_cost(costs, ctx.s.max_lag_s)
+
+
+def _lag_costs(ctx: AuditContext, spec: ModelSpec, keep: np.ndarray | None, key: str):
+    """:func:`pipeline.audit.extended.lag_cost` of ``spec`` on the calibration (``keep``:
+    a fold's training epochs), or None when it is too short to refit."""
     # the L-curve's lambda even in a fold: with cross-validation's (often tiny) lambda
     # the eddy terms absorb part of the lag and bias it low
-    lam = ctx.fit(current, keep, key, ridge="auto").lambda_
+    lam = ctx.fit(spec, keep, key, ridge="auto").lambda_
     try:
-        costs = lag_cost(ctx.data, current, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s, keep=keep)
+        return lag_cost(ctx.data, spec, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s, keep=keep)
     except ValueError:
-        return 0.0, np.inf
-    return _least_cost(costs, ctx.s.max_lag_s)
+        return None
 
 
 def _least_cost(costs, max_lag_s: float) -> tuple[float, float]:
@@ -53,27 +59,25 @@ def _least_cost(costs, max_lag_s: float) -> tuple[float, float]:
     return float(res.x), float(res.fun)
 
 
-def decay_profile(ctx: AuditContext, current: ModelSpec) -> tuple[float, float]:
+def decay_profile(ctx: AuditContext, current: ModelSpec) -> tuple[float, float, float]:
     """The eddy decay's time constant (s) each hypothesis takes in the audit's model form
     (decayed eddy columns beside T-L's): without a lag, and beside the lag that fits best
-    with it; on :data:`EDDY_TAU_GRID_S` and ``current``'s own, every candidate on the same
-    calibration rows. The null model's time constant was chosen without a lag, so a late
-    sensor's response is in it; with the lag in the model the decay keeps only the carrier's
-    own (a likelihood ratio profiles the nuisance under each hypothesis)."""
+    with it, and that lag (s, on all calibration data); on :data:`EDDY_TAU_GRID_S` and
+    ``current``'s own, every candidate on the same calibration rows. The null model's time
+    constant was chosen without a lag, so a late sensor's response is in it; with the lag in
+    the model the decay keeps only the carrier's own (a likelihood ratio profiles the
+    nuisance under each hypothesis). Without a usable candidate: ``current``'s, lag 0."""
     taus = sorted(set(EDDY_TAU_GRID_S) | {current.eddy_tau_s})
     without, beside = {}, {}
     for tau in taus:
-        spec = current.with_(eddy_tau_s=tau, lag_s=0.0)
-        lam = ctx.fit(spec, None, "all", ridge="auto").lambda_
-        try:
-            costs = lag_cost(ctx.data, spec, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s)
-        except ValueError:
-            continue
-        without[tau] = float(costs(np.array([0.0]))[0])
-        beside[tau] = _least_cost(costs, ctx.s.max_lag_s)[1]
+        costs = _lag_costs(ctx, current.with_(eddy_tau_s=tau, lag_s=0.0), None, "all")
+        if costs is not None:
+            without[tau] = float(costs(np.array([0.0]))[0])
+            beside[tau] = _least_cost(costs, ctx.s.max_lag_s)
     if not without:
-        return current.eddy_tau_s, current.eddy_tau_s
-    return min(without, key=without.get), min(beside, key=beside.get)
+        return current.eddy_tau_s, current.eddy_tau_s, 0.0
+    tau1 = min(beside, key=lambda tau: beside[tau][1])
+    return min(without, key=without.get), tau1, beside[tau1][0]
 
 
 def lag_response(ctx: AuditContext, current: ModelSpec) -> tuple[str, float, dict[str, float]]:

@@ -296,6 +296,13 @@ def lag_beside_decay_nuisance(
     return ev
 
 
+def _widen_lag_interval(ev: Evaluation, low_s: float, high_s: float, centre_s: float) -> None:
+    """Widen ``ev``'s lag interval to reach ``low_s`` and ``high_s`` (s); an estimate without
+    one starts from ``centre_s``."""
+    lo, hi = ev.ci95.get("lag_s") or (centre_s, centre_s)
+    ev.ci95["lag_s"] = [min(lo, low_s), max(hi, high_s)]
+
+
 def _lag_breaks_the_tie(
     ev: Evaluation, lag_model: ModelSpec, lag_alone: HeldOut, by_physics: bool, timing: str
 ) -> None:
@@ -312,8 +319,7 @@ def _lag_breaks_the_tie(
         else "the lag model over the decay model with the timing along the lines",
     )
     ev.heldout, ev.spec, ev.decided_outside = lag_alone, lag_model, True
-    lo, hi = ev.ci95.get("lag_s") or (lag, lag)
-    ev.ci95["lag_s"] = [min(lo, lag_plain), max(hi, lag_plain)]
+    _widen_lag_interval(ev, lag_plain, lag_plain, lag)
 
 
 def _lag_timed_beside_decay(ev: Evaluation, sl, tl) -> None:
@@ -325,9 +331,7 @@ def _lag_timed_beside_decay(ev: Evaluation, sl, tl) -> None:
     ev.decided_outside = True
     both = combined_interval([o for o in (sl, tl) if o is not None])
     if both is not None:
-        lag = float(ev.estimate["lag_s"])
-        lo, hi = ev.ci95.get("lag_s") or (lag, lag)
-        ev.ci95["lag_s"] = [min(lo, both[1]), max(hi, both[2])]
+        _widen_lag_interval(ev, both[1], both[2], float(ev.estimate["lag_s"]))
 
 
 def _profiled_decay(
@@ -340,7 +344,7 @@ def _profiled_decay(
     held-out test and estimate (``ev.heldout``, ``ev.estimate["lag_s"]``, ``ev.spec``) are
     those of the lag with its decay against the null with its own. Returns the null model,
     the decay the lag is judged beside (``lag_s`` 0) and the lag of each training fold."""
-    tau0, tau1 = decay_profile(ctx, current)
+    tau0, tau1, lag = decay_profile(ctx, current)
     null = current
     if tau0 != current.eddy_tau_s:
         other = current.with_(eddy_tau_s=tau0)
@@ -361,11 +365,9 @@ def _profiled_decay(
         return lagged.with_(lag_s=lags[k])
 
     ev.heldout = ctx.heldout(null, ext_for)
-    lag = lag_estimate(ctx, lagged, None, "all")
     ev.estimate.update(lag_s=lag, lag_by_fold_s=[lags[k] for k in sorted(lags)])
     ev.spec = lagged.with_(lag_s=lag)
-    lo, hi = ev.ci95.get("lag_s") or (lag, lag)
-    ev.ci95["lag_s"] = [min(lo, lag), max(hi, lag)]
+    _widen_lag_interval(ev, lag, lag, lag)
     return null, lagged, lags
 
 
@@ -386,8 +388,8 @@ def _lag_of_the_whole_reading(ev: Evaluation, lagged: ModelSpec, lag_plain_s: fl
         return
     ev.estimate.update(lag_s=lag_plain_s, lag_beside_decay_s=lag)
     ev.spec = lagged.with_(lag_s=lag_plain_s)
-    lo, hi = ev.ci95.get("lag_s") or (lag, lag)
-    ev.ci95.update(lag_s=[min(lo, lag_plain_s), max(hi, lag_plain_s)], lag_beside_decay_s=None)
+    _widen_lag_interval(ev, lag_plain_s, lag_plain_s, lag)
+    ev.ci95["lag_beside_decay_s"] = None
 
 
 def _lag_in_place_of_decay(
@@ -404,8 +406,7 @@ def _lag_in_place_of_decay(
     ev.spec = plain.with_(lag_s=lag_s)
     ev.estimate.update(lag_s=lag_s, replaces="eddy_decay")
     # the interval was read beside the decay; it must hold the estimate without it too
-    lo, hi = ev.ci95.get("lag_s") or (lag_s, lag_s)
-    ev.ci95["lag_s"] = [min(lo, lag_s), max(hi, lag_s)]
+    _widen_lag_interval(ev, lag_s, lag_s, lag_s)
 
 
 def same_response(tau_s: float, lag_s: float) -> bool:
