@@ -4,15 +4,17 @@
 
 Two sets of short random flights (:func:`pipeline.simulate.random_flight_overrides`:
 multicopter or fixed-wing, one or two calibration passes, headings in any order, scalar
-noise 0.02-0.2 nT): ``outside`` adds 0-1 nT (uniform) of carrier interference outside the
-tl18 basis (eddy decay, second-order induced, an unrecorded switching current, vibration:
-a random subset with random shares); ``none`` adds nothing outside it. Per flight and model,
+noise 0.02-0.2 nT; tie lines inside the block and the calibration box over quiet ground,
+:data:`pipeline.simulate.variety.TIED_SURVEY`, as crews fly a survey): ``outside`` adds
+0-1 nT (uniform) of carrier interference outside the tl18 basis (eddy decay, second-order
+induced, an unrecorded switching current, vibration: a random subset with random shares);
+``none`` adds nothing outside it. Per flight and model,
 through the product's own path (:func:`pipeline.compensate.stage.run_compensation`, its
 held-out and crossover guards included):
 
 - ``heldout_nT``: the held-out calibration residual the model reports;
-- ``crossover_nT``: RMS of the survey-tie crossover differences (NaN: the short flights'
-  segmentation finds no tie line, so this needs longer flights);
+- ``crossover_nT``: RMS of the survey-tie crossover differences (what the product's
+  crossover guard compares);
 - ``truth_nT``: RMS of the compensated field minus the simulator's true field (main field,
   geology and effects, no carrier, no noise) over the survey and tie lines, its mean removed;
 - ``truth_scaled_nT``: the same less the best multiple of the true field too (the carrier's
@@ -56,7 +58,7 @@ from pipeline.io.reader import read_flight
 from pipeline.maps.stage import anomaly_grid
 from pipeline.segment import segment_flight
 from pipeline.simulate import Scenario, simulate, write_simulation
-from pipeline.simulate.variety import random_flight_overrides
+from pipeline.simulate.variety import TIED_SURVEY, random_flight_overrides
 
 MODELS = ("tl18", "tl-plus", "tl-nn")
 SETS = {"outside": (0.0, 1.0), "none": (0.0, 0.0)}
@@ -98,6 +100,7 @@ def one_flight(kind: str, seed: int, folder: Path) -> dict:
     """Every model's figures on one random flight of set ``kind``."""
     rng = np.random.default_rng(seed)
     over = random_flight_overrides(rng, noise_nT=(0.02, 0.2), outside_basis_nT=SETS[kind])
+    over += TIED_SURVEY[next(v.split("=")[1] for v in over if v.startswith("profile="))]
     sc = Scenario.load("uav-small", over)
     sim = simulate(sc, seed)
     flight = read_flight(write_simulation(sim, folder / f"{kind}{seed}.mcap"))
@@ -149,6 +152,7 @@ def one_flight(kind: str, seed: int, folder: Path) -> dict:
             "used": ext.get("used"),
             "groups": getattr(run.model, "groups", []),
             "why": ext.get("reason", ""),
+            "guard": ext.get("guard"),
             "fit_s": fit_s,
         }
     return row

@@ -43,7 +43,7 @@ def one(job: tuple[str, int]) -> dict:
     kind, seed = job
     rng = np.random.default_rng(seed)
     overrides = at.random_flight_overrides(rng) + at.hidden_overrides(kind, rng)
-    overrides += at.SURVEY[at.override_value(overrides, "profile")]
+    overrides += at.TIED_SURVEY[at.override_value(overrides, "profile")]
     sim = at.simulate(at.Scenario.load("uav-small", overrides), int(rng.integers(2**31)))
     step = at.add_permanent_step(sim, rng) if kind == "step" else None
     with tempfile.TemporaryDirectory() as tmp:

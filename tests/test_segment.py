@@ -139,3 +139,37 @@ def test_survey_found_when_transits_and_ties_outlength_the_lines(tmp_path):
     for kind in ("survey", "tie"):
         truth = lab == kind
         assert np.mean(seg.label[truth] == kind) > 0.9, kind
+
+
+def test_survey_found_among_many_longer_transit_directions(tmp_path):
+    """The same short block with the calibration box 2.8 km away: the transits there and
+    back, and the straights between the box's legs, run in four directions other than the
+    lines', each carrying more length than the five 400 m lines. Every direction is tried,
+    so the block is still the one with the most lines on a grid."""
+    from pipeline.simulate import Scenario, simulate
+
+    sc = Scenario.load(
+        "uav-small",
+        [
+            "calibration.passes=2",
+            'calibration.heading_order="ENWS"',
+            "survey.length_m=400.0",
+            "survey.width_m=200.0",
+            "survey.line_spacing_m=50.0",
+            "survey.tie_spacing_m=150.0",
+            "survey.validation=false",
+            "survey.enabled=true",
+            "calibration.centre_east_m=-2000.0",
+            "calibration.centre_north_m=-2000.0",
+            "flight.transit_s=10.0",
+        ],
+    )
+    sim = simulate(sc, 10)
+    flight = read_flight(write_simulation(sim, tmp_path / "far-box.mcap"))
+    lab, _ = truth_labels(sim, flight)
+    seg = segment_flight(flight)
+    for kind in ("survey", "tie"):
+        truth = lab == kind
+        assert np.mean(seg.label[truth] == kind) > 0.9, kind
+    # nothing else is a survey line (a line end's sub-second refinement aside)
+    assert np.mean(~np.isin(lab[seg.mask("survey")], ["survey", "turn"])) < 0.01

@@ -51,6 +51,9 @@ class SegmentParams:
     min_active_s: float = 8.0  # sustained activity that makes a leg a calibration leg
     min_swings: int = 4  # ... and it must alternate: at least two full oscillations
     min_survey_lines: int = 3  # fewer parallel lines are not a survey block
+    # share of a block's line positions (its offsets' span over the spacing) that its lines
+    # fill: a skipped or moved line leaves some empty, scattered legs leave most
+    min_grid_fill: float = 0.5
     parallel_tol_deg: float = 8.0  # survey / tie orientation tolerance
     pass_gap_s: float = 180.0  # calibration legs closer in time than this form one pass
 
@@ -444,10 +447,12 @@ def _classify(
         return
     length = np.array([np.hypot(e[lg.i1] - e[lg.i0], n[lg.i1] - n[lg.i0]) for lg in rest])
     orient = np.array([lg.heading_deg % 180.0 for lg in rest])
-    # Candidate line directions: the 180-deg-periodic directions carrying the most line
-    # length. The longest is not always the survey's: long transits and the tie lines can
-    # out-length short survey lines, so each distinct peak is tried and the direction
-    # giving the most lines on a regular grid inside one block wins (ties: more length).
+    # Candidate line directions: the 180-deg-periodic directions carrying line length. The
+    # longest is not always the survey's: transits, the straights of a distant calibration
+    # box and the tie lines can each out-length short survey lines, so every distinct peak
+    # is tried and the direction giving the most distinct lines (offsets) on a regular grid
+    # inside one block wins (ties: more length): a transit flown out and back, or a box's
+    # straights flown on each pass, repeat one offset; a survey steps across its block.
     cand = np.arange(0.0, 180.0, 1.0)
     score = np.array(
         [
@@ -457,22 +462,20 @@ def _classify(
     )
     peaks: list[float] = []
     for c in cand[np.argsort(-score, kind="stable")]:
-        if score[int(c)] <= 0 or len(peaks) == 3:
+        if score[int(c)] <= 0:
             break
         if all(_angle_diff(c, q, 180.0) > 2 * p.parallel_tol_deg for q in peaks):
             peaks.append(float(c))
     best, best_peak = None, None
     for peak in peaks:
         found = _survey_block(rest, e, n, orient, length, peak, p)
-        if found is not None and (
-            best is None or (len(found[0]), found[-1]) > (len(best[0]), best[-1])
-        ):
+        if found is not None and (best is None or found[-2:] > best[-2:]):
             best, best_peak = found, peak
     if best is None:
         return
     if best_peak != peaks[-1]:  # each try re-projects the legs: project on the winner again
         best = _survey_block(rest, e, n, orient, length, best_peak, p)
-    survey, spacing, main, along, across, _ = best
+    survey, spacing, main, along, across, _, _ = best
     for lg in survey:
         lg.kind = "survey"
     offs = np.array([lg.offset for lg in survey])
@@ -513,7 +516,8 @@ def _survey_block(
     """The survey lines if the lines run along ``peak_deg`` (mod 180): parallel legs that
     share the block's along-track extent and sit on the line-spacing grid. Sets each leg's
     ``along`` extent and cross-track ``offset`` for that direction. Returns ``(lines,
-    spacing_m, direction_deg, along, across, length_m)`` or None (too few lines)."""
+    spacing_m, direction_deg, along, across, distinct_lines, length_m)`` or None (too few
+    lines); a line flown twice at one offset is one of ``distinct_lines``."""
     near = np.array([_angle_diff(o, peak_deg, 180.0) <= p.parallel_tol_deg for o in orient])
     # refine about the length-weighted mean of the legs near the peak, then re-select
     w = length[near]
@@ -561,8 +565,13 @@ def _survey_block(
     )
     if len(distinct) < p.min_survey_lines:
         return None
+    # a block's lines fill its grid: legs whose offsets leave most grid positions between
+    # them empty (a transit out and back and a box's straights, a few metres apart on a
+    # grid of that step) are not one
+    if spacing > 0 and len(distinct) < p.min_grid_fill * (np.ptp(distinct) / 2 + 1):
+        return None
     total = float(sum(np.hypot(e[lg.i1] - e[lg.i0], n[lg.i1] - n[lg.i0]) for lg in survey))
-    return survey, spacing, main, along, across, total
+    return survey, spacing, main, along, across, len(distinct), total
 
 
 def _name_lines(legs: list[_Leg], spacing: float) -> None:

@@ -20,28 +20,9 @@ from pipeline.io.reader import read_flight
 from pipeline.segment import segment_flight
 from pipeline.simulate.scenario import Scenario
 from pipeline.simulate.simulator import simulate, write_simulation
-from pipeline.simulate.variety import override_value, random_flight_overrides
+from pipeline.simulate.variety import TIED_SURVEY, override_value, random_flight_overrides
 
 CLASSES = ("none", *EFFECTS, "step")
-# a survey as crews fly it: tie lines inside the block (the short flights' only ties lie on
-# the line ends, where they are turns), so that crossovers exist for the survey-side tests
-# and the calibration box over quiet ground, as crews choose its site: 2-3 km from the block's
-# sources (with the box 300 m from the block, as the short flights have it, the sources give
-# a real 0.02-0.04 nT/m gradient over the box, which the audit rightly reports)
-SURVEY = {
-    "uav": [
-        "survey.width_m=200.0",
-        "survey.tie_spacing_m=150.0",
-        "calibration.centre_east_m=-2000.0",
-        "calibration.centre_north_m=-2000.0",
-        "anomaly.quiet_calibration_m=1000.0",
-    ],
-    "fixed-wing": [
-        "survey.width_m=1600.0",
-        "survey.tie_spacing_m=1000.0",
-        "anomaly.quiet_calibration_m=1500.0",
-    ],
-}
 # an unexplained event within this of a hidden step counts as finding it
 EVENT_WINDOW_S = 120.0
 
@@ -112,7 +93,7 @@ def one_flight(kind: str, seed: int, folder: Path, **ranges) -> dict:
     rng = np.random.default_rng(seed)
     overrides = random_flight_overrides(rng, **ranges) + hidden_overrides(kind, rng)
     profile = override_value(overrides, "profile")
-    overrides += SURVEY[profile]
+    overrides += TIED_SURVEY[profile]
     sim = simulate(Scenario.load("uav-small", overrides), int(rng.integers(2**31)))
     step = add_permanent_step(sim, rng) if kind == "step" else None
     path = write_simulation(sim, folder / f"{kind}-{seed}.mcap")

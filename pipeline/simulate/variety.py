@@ -52,6 +52,26 @@ _SHORT = {
     ],
 }
 
+# a survey as crews fly it: tie lines inside the block (the short flights' only ties lie on
+# the line ends, where they are turns), so that crossovers exist for the survey-side tests
+# and the calibration box over quiet ground, as crews choose its site: 2-3 km from the block's
+# sources (with the box 300 m from the block, as the short flights have it, the sources give
+# a real 0.02-0.04 nT/m gradient over the box, which the audit rightly reports)
+TIED_SURVEY = {
+    "uav": [
+        "survey.width_m=200.0",
+        "survey.tie_spacing_m=150.0",
+        "calibration.centre_east_m=-2000.0",
+        "calibration.centre_north_m=-2000.0",
+        "anomaly.quiet_calibration_m=1000.0",
+    ],
+    "fixed-wing": [
+        "survey.width_m=1600.0",
+        "survey.tie_spacing_m=1000.0",
+        "anomaly.quiet_calibration_m=1500.0",
+    ],
+}
+
 
 def _fmt(x: float) -> str:
     return repr(float(x))
