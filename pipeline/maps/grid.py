@@ -5,8 +5,10 @@ curvature: verde's splines are dense (O(N^2) memory) and GMT's ``surface`` is no
 package. The method (Briggs 1974, in its least-squares form): block means of the samples are
 bilinear constraints on the grid nodes, and the squared discrete Laplacian over the grid is
 minimised with them, which gives the minimum-curvature (biharmonic) surface between the data.
-The sparse normal equations are solved by SuperLU. Cells farther than ``mask_distance_m``
-from every data block are masked (NaN).
+The sparse normal equations are solved by SuperLU; a grid larger than one tile
+(``TILE_CELLS``) is solved in overlapping tiles blended across their overlaps, because
+SuperLU's fill-in grows faster than the cells (one million cells: 6.8 GB and 150 s in one
+solve). Cells farther than ``mask_distance_m`` from every data block are masked (NaN).
 """
 
 from __future__ import annotations
@@ -77,6 +79,88 @@ class Grid:
         return Grid(values, self.east0_m, self.north0_m, self.cell_m, self.crs)
 
 
+def _solve(
+    fx: np.ndarray,
+    fy: np.ndarray,
+    bv: np.ndarray,
+    nx: int,
+    ny: int,
+    smoothness: float,
+    ridge: float = 0.0,
+) -> np.ndarray:
+    """The minimum-curvature nodes ((nx * ny, fields), row-major from the south-west) of
+    block means ``bv`` at fractional cell coordinates ``fx``, ``fy``; ``ridge`` (relative
+    to the mean diagonal) keeps a tile with few data solvable."""
+    i0, j0 = np.floor(fx).astype(int), np.floor(fy).astype(int)
+    tx, ty = fx - i0, fy - j0
+    rows = np.repeat(np.arange(fx.size), 4)
+    cols = np.stack(
+        [j0 * nx + i0, j0 * nx + i0 + 1, (j0 + 1) * nx + i0, (j0 + 1) * nx + i0 + 1], axis=1
+    ).ravel()
+    w = np.stack([(1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty], axis=1).ravel()
+    keep = cols < nx * ny
+    a = sp.csr_matrix((w[keep], (rows[keep], cols[keep])), shape=(fx.size, nx * ny))
+    lap = _laplacian(ny, nx)
+    lhs = a.T @ a + smoothness * (lap.T @ lap)
+    if ridge > 0:
+        lhs = lhs + ridge * float(lhs.diagonal().mean()) * sp.identity(nx * ny)
+    lhs = lhs.tocsc()
+    # one field: a vector right-hand side (spsolve's 1-D path); several: one factorisation
+    z = spsolve(lhs, a.T @ bv[:, 0]) if bv.shape[1] == 1 else spsolve(lhs, a.T @ bv)
+    return z.reshape(nx * ny, -1)
+
+
+def _solve_tiled(
+    fx: np.ndarray, fy: np.ndarray, bv: np.ndarray, nx: int, ny: int, smoothness: float
+) -> np.ndarray:
+    """:func:`_solve` on overlapping tiles of ``TILE_CORE_CELLS`` cells square, each solved
+    with the data within ``TILE_OVERLAP_CELLS`` of its core and blended with weights that
+    fall from 1 at its core's edge to 0 at its own: SuperLU's fill-in grows faster than the
+    cells (a million-cell grid took 6.8 GB and 150 s in one solve; in tiles, the memory of
+    one tile and a time linear in the cells). Tiles without data stay empty (NaN)."""
+    ov = TILE_OVERLAP_CELLS
+    # tiles of equal size in each direction (a sliver of a tile at the edge would see too
+    # few lines to extrapolate the margin as the whole grid does)
+    cx = int(np.ceil(nx / np.ceil(nx / TILE_CORE_CELLS)))
+    cy = int(np.ceil(ny / np.ceil(ny / TILE_CORE_CELLS)))
+    acc = np.zeros((ny, nx, bv.shape[1]))
+    wsum = np.zeros((ny, nx))
+    for jc in range(0, ny, cy):
+        for ic in range(0, nx, cx):
+            ia, ib = max(0, ic - ov), min(nx, ic + cx + ov)
+            ja, jb = max(0, jc - ov), min(ny, jc + cy + ov)
+            sel = (fx >= ia) & (fx <= ib - 1) & (fy >= ja) & (fy <= jb - 1)
+            if not sel.any():
+                continue
+            zt = _solve(
+                np.minimum(fx[sel] - ia, ib - ia - 1 - 1e-9),
+                np.minimum(fy[sel] - ja, jb - ja - 1 - 1e-9),
+                bv[sel],
+                ib - ia,
+                jb - ja,
+                smoothness,
+                ridge=TILE_RIDGE,
+            ).reshape(jb - ja, ib - ia, -1)
+            wx = _ramp(np.arange(ia, ib), ic, min(nx, ic + cx), ov, nx)
+            wy = _ramp(np.arange(ja, jb), jc, min(ny, jc + cy), ov, ny)
+            w = wy[:, None] * wx[None, :]
+            acc[ja:jb, ia:ib] += w[:, :, None] * zt
+            wsum[ja:jb, ia:ib] += w
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = acc / wsum[:, :, None]
+    return z.reshape(nx * ny, -1)
+
+
+def _ramp(idx: np.ndarray, lo: int, hi: int, ov: int, n: int) -> np.ndarray:
+    """Blending weight of cells ``idx`` for a tile whose core is [lo, hi): 1 inside, falling
+    linearly to 0 over ``ov`` cells outside (not at the grid's own edges, 0 and ``n``)."""
+    below = np.where(lo == 0, 1.0, 1.0 - (lo - idx) / (ov + 1.0))
+    above = np.where(hi == n, 1.0, 1.0 - (idx - (hi - 1)) / (ov + 1.0))
+    return np.clip(
+        np.minimum(np.where(idx < lo, below, 1.0), np.where(idx >= hi, above, 1.0)), 0, 1
+    )
+
+
 def _laplacian(ny: int, nx: int) -> sp.csr_matrix:
     """Operator whose squared norm is the discrete thin-plate energy
     f_xx^2 + 2 f_xy^2 + f_yy^2 (second differences in cell units)."""
@@ -99,7 +183,12 @@ def _laplacian(ny: int, nx: int) -> sp.csr_matrix:
     return sp.vstack([dxx, dyy, np.sqrt(2.0) * dxy]).tocsr()
 
 
-MAX_CELLS = 1_000_000  # 1000 x 1000 grids in ~6 s (benchmarks/bench_maps.py); more would need GBs
+MAX_CELLS = 1_000_000  # a million-cell grid: ~20 tiles, about a minute
+# grids larger than one tile are solved in tiles (the memory of one ~83 000-cell solve)
+TILE_CORE_CELLS = 192
+TILE_OVERLAP_CELLS = 48  # 12 line spacings at the customary cell (32 left 0.4 nT seams)
+TILE_CELLS = (TILE_CORE_CELLS + 2 * TILE_OVERLAP_CELLS) ** 2
+TILE_RIDGE = 1e-10  # relative to the mean diagonal: a tile whose data are few or collinear
 
 
 def minimum_curvature(
@@ -192,20 +281,10 @@ def _minimum_curvature(
     bv = np.column_stack([np.bincount(inv, v) / counts for v in vs.T])
     fx = np.clip((be - east0) / cell_m, 0, nx - 1 - 1e-9)
     fy = np.clip((bn - north0) / cell_m, 0, ny - 1 - 1e-9)
-    i0, j0 = np.floor(fx).astype(int), np.floor(fy).astype(int)
-    tx, ty = fx - i0, fy - j0
-    rows = np.repeat(np.arange(be.size), 4)
-    cols = np.stack(
-        [j0 * nx + i0, j0 * nx + i0 + 1, (j0 + 1) * nx + i0, (j0 + 1) * nx + i0 + 1], axis=1
-    ).ravel()
-    w = np.stack([(1 - tx) * (1 - ty), tx * (1 - ty), (1 - tx) * ty, tx * ty], axis=1).ravel()
-    keep = cols < nx * ny
-    a = sp.csr_matrix((w[keep], (rows[keep], cols[keep])), shape=(be.size, nx * ny))
-    lap = _laplacian(ny, nx)
-    lhs = (a.T @ a + smoothness * (lap.T @ lap)).tocsc()
-    # one field: a vector right-hand side (spsolve's 1-D path); several: one factorisation
-    z = spsolve(lhs, a.T @ bv[:, 0]) if bv.shape[1] == 1 else spsolve(lhs, a.T @ bv)
-    z = z.reshape(nx * ny, -1)
+    if nx * ny <= TILE_CELLS:
+        z = _solve(fx, fy, bv, nx, ny, smoothness)
+    else:
+        z = _solve_tiled(fx, fy, bv, nx, ny, smoothness)
     dist = mask_distance_m if mask_distance_m is not None else 2 * cell_m
     gx, gy = np.meshgrid(east0 + cell_m * np.arange(nx), north0 + cell_m * np.arange(ny))
     d, _ = cKDTree(np.column_stack([be, bn])).query(np.column_stack([gx.ravel(), gy.ravel()]))
