@@ -139,6 +139,7 @@ class Config:
             bt_scale_nT=c["bt_scale_nT"],
             extension_alpha=c["extension_alpha"],
             extension_min_gain=c["extension_min_gain"],
+            level_guard_alpha=c["level_guard_alpha"],
             learner=c["learner"],
         )
 
@@ -270,6 +271,11 @@ class Config:
         if c["poles"] < 1 or c["trim_s"] < 0:
             raise AeromagError(
                 "compensation.poles must be >= 1 and compensation.trim_s >= 0 s", file=self.source
+            )
+        if not 0.0 <= c["level_guard_alpha"] < 1.0:
+            raise AeromagError(
+                "compensation.level_guard_alpha: use a p-value in [0, 1) (0: no level guard)",
+                file=self.source,
             )
         a = self.values["audit"]
         if a["baseline"] not in ("tl16", "tl18"):

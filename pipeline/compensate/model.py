@@ -140,6 +140,8 @@ class FitSettings:
     # below extension_alpha, held-out RMS reduction at least extension_min_gain)
     extension_alpha: float = default_field("compensation", "extension_alpha")
     extension_min_gain: float = default_field("compensation", "extension_min_gain")
+    # the calibration legs' level check of a used extension (one-sided p of a worse level)
+    level_guard_alpha: float = default_field("compensation", "level_guard_alpha")
     # tl-nn's regressor: "hgb" (histogram gradient boosting) or "mlp"
     learner: str = default_field("compensation", "learner")
     seed: int = 0
@@ -157,6 +159,8 @@ class FitSettings:
             raise ValueError(f"unknown learner {self.learner!r} (use hgb or mlp)")
         if not 0.0 < self.extension_alpha < 1.0:
             raise ValueError("extension_alpha: use a p-value between 0 and 1")
+        if not 0.0 <= self.level_guard_alpha < 1.0:
+            raise ValueError("level_guard_alpha: use a p-value in [0, 1) (0: no level guard)")
         problem = ridge_problem(self.ridge)  # the rule Config loading applies
         if problem:
             raise ValueError(problem)

@@ -10,6 +10,7 @@ import numpy as np
 from pipeline.compensate.extension import ExtendedModel
 from pipeline.compensate.fit import fit_compensation
 from pipeline.compensate.guards import CalibrationCheck, check_calibration
+from pipeline.compensate.level_guard import compare_levels
 from pipeline.compensate.model import (
     CompensationModel,
     FigureOfMerit,
@@ -144,6 +145,8 @@ def run_compensation(
             channel = "/ins/attitude"
         raise AeromagError(str(exc), file=flight.source, channel=channel) from None
     if isinstance(model, ExtendedModel) and model.used:
+        model = level_guard(flight, segmentation, meas, mask, model)
+    if isinstance(model, ExtendedModel) and model.used:
         model = crossover_guard(flight, segmentation, meas, mask, model)
     comp, interference = model.compensate(meas)
     heldout = heldout_residual(meas, mask, model)
@@ -238,6 +241,62 @@ def crossover_rms_nT(flight: Flight, seg: Segmentation, field_nT: np.ndarray) ->
         return float("nan"), 0
     dx = np.array([c.difference_nT for c in xs])
     return float(np.sqrt(np.mean(dx**2))), int(dx.size)
+
+
+def level_guard(
+    flight: Flight,
+    seg: Segmentation | None,
+    meas: Measurements,
+    mask: np.ndarray,
+    model: ExtendedModel,
+) -> ExtendedModel:
+    """Keep an extension only if its heading levels on the calibration legs (the field less
+    IGRF and the base station's smoothed reading), which the band-passed fit never saw, do
+    not spread wider than tl18's at p < ``level_guard_alpha``
+    (:mod:`pipeline.compensate.level_guard`); otherwise revert to tl18, saying so. Without
+    headings or positions the guard is recorded as not applied."""
+    from pipeline.geo.heading import CARDINALS
+    from pipeline.maps.reduce import BASE_SMOOTHING_S, igrf_total_nT, time_window_mean
+
+    if model.settings.level_guard_alpha <= 0:
+        model.extension["level_guard"] = "not applied: level_guard_alpha is 0"
+        return model
+    card = np.asarray(seg.cardinal).astype(str) if seg is not None else np.array([])
+    legs = mask & np.isin(card, CARDINALS) if card.size == mask.size else mask & False
+    if not meas.has_position or not legs.any():
+        model.extension["level_guard"] = "not applied: no calibration legs with positions"
+        return model
+    idx = np.flatnonzero(legs)
+    reduction = igrf_total_nT(
+        flight.time_ns[idx], meas.lat_deg[idx], meas.lon_deg[idx], meas.alt_m[idx]
+    )
+    if flight.has("base_nT"):
+        base = flight.data["base_nT"].to_numpy(float)
+        reduction = reduction + time_window_mean(meas.time_s, base, BASE_SMOOTHING_S)[idx]
+    heading = np.array([CARDINALS.index(c) for c in card[idx]])
+    tl18 = model.revert("", "level")
+    check = compare_levels(
+        model.compensate(meas)[0][idx] - reduction,
+        tl18.compensate(meas)[0][idx] - reduction,
+        heading,
+        np.ones(idx.size, bool),
+    )
+    if check is None:
+        model.extension["level_guard"] = "not applied: calibration legs on fewer than 3 headings"
+        return model
+    model.extension["level_guard_p"] = check.p_value
+    model.extension["heading_level_spread_nT"] = check.spread_nT
+    model.extension["tl18_heading_level_spread_nT"] = check.tl18_spread_nT
+    model.extension["level_guard_headings"] = check.headings
+    if check.p_value < model.settings.level_guard_alpha:
+        why = (
+            f"spreads the calibration legs' levels by heading from {check.tl18_spread_nT:.3f} "
+            f"nT (tl18) to {check.spread_nT:.3f} nT over {check.headings} headings (p "
+            f"{check.p_value:.2g}): its terms extrapolate below the fit band; tl18 kept"
+        )
+        return model.revert(why, "level")
+    model.extension["level_guard"] = "passed"
+    return model
 
 
 def crossover_guard(
