@@ -205,7 +205,7 @@ def test_tl_plus_tries_the_audits_groups_first_and_the_report_says_so():
     g = s["term_groups"]["eddy_decay"]
     assert g["selected"] and g["seeded_by_audit"] == {"heldout_gain": 0.6, "estimate": None}
     # the seeded group was tested on its own: its Holm adjustment is over one hypothesis
-    assert g["p_value_folds_holm"] < 0.01
+    assert g["p_value_folds_adjusted"] < 0.01
     assert "crossover_rms_nT" in s and s["heldout_residual_nT"] > 0
     lines = extension_lines({"final": "tl-plus", "tl-plus": s})
     assert any("named by the audit): eddy_decay" in x for x in lines)

@@ -14,9 +14,10 @@ Forward selection: each round fits every remaining group beside the current mode
 held-out folds of :mod:`pipeline.compensate.heldout` (contiguous blocks, buffered by the
 band-pass's support, band-passed within each fold); the group with the smallest held-out
 residual enters when it lowers the held-out RMS by at least ``extension_min_gain`` and two
-paired tests against the current model give Holm-adjusted p (over that round's candidates)
-below ``extension_alpha``: the audit's test over 10-s blocks and the test with the held-out
-fold as the unit (:func:`pipeline.compensate.heldout.fold_test`). The second is the
+paired tests against the current model, adjusted over that round's candidates, give p below
+``extension_alpha``: the audit's test over 10-s blocks (Holm) and the test with the held-out
+fold as the unit (:func:`pipeline.compensate.heldout.fold_test_max`: the sign-flip test's
+maximum statistic over the candidates, which share the folds). The second is the
 calibrated one: the 10-s blocks of a fold share its fit, and on calibrations with nothing
 outside the basis the first alone passes spurious groups far more often than its level.
 Groups the audit named (``unexplained.nuisances``) are tried first, each one hypothesis.
@@ -36,7 +37,8 @@ from pipeline.compensate.heldout import (
     HeldOutResiduals,
     block_folds,
     filter_support_s,
-    fold_test,
+    fold_log_ratios,
+    fold_test_max,
     heldout_gain,
     heldout_residuals,
     linear_predictor,
@@ -172,7 +174,7 @@ class GroupTrial:
             "heldout_after_nT": self.heldout_after_nT,
             "reduction_pct": red,
             "p_value_holm": self.p_value,
-            "p_value_folds_holm": self.p_value_folds,
+            "p_value_folds_adjusted": self.p_value_folds,
             "tau_s": self.tau_s,
             "reason": self.reason,
             "seeded_by_audit": self.audit,
@@ -224,12 +226,14 @@ def _round(setup: HeldOutSetup, current, held, pool, alpha, min_gain, trials):
     t = setup.meas.time_s
     tries = {g: _try(setup, current, g) for g in pool}
     tests, by_fold = {}, {}
+    labels = np.unique(setup.fold[setup.fold >= 0])
     for g, (_, h, _) in tries.items():
         a, b, w = aligned(held, h)
         tests[g] = heldout_gain(a, b, t[w])
-        by_fold[g] = fold_test(a, b, setup.fold[w])
+        by_fold[g] = fold_log_ratios(a, b, setup.fold[w], labels)
     p_adj = dict(zip(tests, holm([v.p_value for v in tests.values()]), strict=True))
-    p_fold = dict(zip(by_fold, holm(list(by_fold.values())), strict=True))
+    # the candidates share the folds: adjusted jointly, by the largest candidate's gain
+    p_fold = fold_test_max(by_fold)
     for g, v in tests.items():
         trials[g] = GroupTrial(
             g,
