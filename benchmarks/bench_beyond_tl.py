@@ -58,7 +58,7 @@ from pipeline.io.reader import read_flight
 from pipeline.maps.stage import anomaly_grid
 from pipeline.segment import segment_flight
 from pipeline.simulate import Scenario, simulate, write_simulation
-from pipeline.simulate.variety import TIED_SURVEY, random_flight_overrides
+from pipeline.simulate.variety import TIED_SURVEY, override_value, random_flight_overrides
 
 MODELS = ("tl18", "tl-plus", "tl-nn")
 SETS = {"outside": (0.0, 1.0), "none": (0.0, 0.0)}
@@ -100,7 +100,8 @@ def one_flight(kind: str, seed: int, folder: Path) -> dict:
     """Every model's figures on one random flight of set ``kind``."""
     rng = np.random.default_rng(seed)
     over = random_flight_overrides(rng, noise_nT=(0.02, 0.2), outside_basis_nT=SETS[kind])
-    over += TIED_SURVEY[next(v.split("=")[1] for v in over if v.startswith("profile="))]
+    profile = override_value(over, "profile")
+    over += TIED_SURVEY[profile]
     sc = Scenario.load("uav-small", over)
     sim = simulate(sc, seed)
     flight = read_flight(write_simulation(sim, folder / f"{kind}{seed}.mcap"))
@@ -121,7 +122,7 @@ def one_flight(kind: str, seed: int, folder: Path) -> dict:
     row = {
         "kind": kind,
         "seed": seed,
-        "profile": next(v.split("=")[1] for v in over if v.startswith("profile=")),
+        "profile": profile,
         "outside_nT": float(np.sqrt(sum(v**2 for v in terms.values()))),
         "recorded_nT": float(np.sqrt(sum(terms.get(k, 0.0) ** 2 for k in RECORDED_TERMS))),
         "terms_nT": terms,

@@ -110,32 +110,39 @@ def test_without_gnss_or_plan_a_clear_error():
         segment_flight(flight)
 
 
-def test_survey_found_when_transits_and_ties_outlength_the_lines(tmp_path):
-    """A short UAV block (five 400 m N-S lines, three 200 m E-W ties) reached by long E-W
-    transits: E-W carries more length than N-S, yet the survey runs N-S (found by the most
-    lines on a grid, not the most length)."""
+def _short_block(tmp_path, heading_order: str, box_centre_m: float, seed: int):
+    """A short UAV block (five 400 m N-S lines, three 200 m E-W ties, two calibration
+    passes, the box centred at ``box_centre_m`` east and north): the simulation, its
+    flight read back and that flight's segmentation."""
     from pipeline.simulate import Scenario, simulate
 
     sc = Scenario.load(
         "uav-small",
         [
             "calibration.passes=2",
-            'calibration.heading_order="ESWN"',
+            f'calibration.heading_order="{heading_order}"',
             "survey.length_m=400.0",
             "survey.width_m=200.0",
             "survey.line_spacing_m=50.0",
             "survey.tie_spacing_m=150.0",
             "survey.validation=false",
             "survey.enabled=true",
-            "calibration.centre_east_m=-250.0",
-            "calibration.centre_north_m=-250.0",
+            f"calibration.centre_east_m={box_centre_m!r}",
+            f"calibration.centre_north_m={box_centre_m!r}",
             "flight.transit_s=10.0",
         ],
     )
-    sim = simulate(sc, 3)
+    sim = simulate(sc, seed)
     flight = read_flight(write_simulation(sim, tmp_path / "block.mcap"))
+    return sim, flight, segment_flight(flight)
+
+
+def test_survey_found_when_transits_and_ties_outlength_the_lines(tmp_path):
+    """A short UAV block (five 400 m N-S lines, three 200 m E-W ties) reached by long E-W
+    transits: E-W carries more length than N-S, yet the survey runs N-S (found by the most
+    lines on a grid, not the most length)."""
+    sim, flight, seg = _short_block(tmp_path, "ESWN", -250.0, 3)
     lab, _ = truth_labels(sim, flight)
-    seg = segment_flight(flight)
     for kind in ("survey", "tie"):
         truth = lab == kind
         assert np.mean(seg.label[truth] == kind) > 0.9, kind
@@ -146,28 +153,8 @@ def test_survey_found_among_many_longer_transit_directions(tmp_path):
     back, and the straights between the box's legs, run in four directions other than the
     lines', each carrying more length than the five 400 m lines. Every direction is tried,
     so the block is still the one with the most lines on a grid."""
-    from pipeline.simulate import Scenario, simulate
-
-    sc = Scenario.load(
-        "uav-small",
-        [
-            "calibration.passes=2",
-            'calibration.heading_order="ENWS"',
-            "survey.length_m=400.0",
-            "survey.width_m=200.0",
-            "survey.line_spacing_m=50.0",
-            "survey.tie_spacing_m=150.0",
-            "survey.validation=false",
-            "survey.enabled=true",
-            "calibration.centre_east_m=-2000.0",
-            "calibration.centre_north_m=-2000.0",
-            "flight.transit_s=10.0",
-        ],
-    )
-    sim = simulate(sc, 10)
-    flight = read_flight(write_simulation(sim, tmp_path / "far-box.mcap"))
+    sim, flight, seg = _short_block(tmp_path, "ENWS", -2000.0, 10)
     lab, _ = truth_labels(sim, flight)
-    seg = segment_flight(flight)
     for kind in ("survey", "tie"):
         truth = lab == kind
         assert np.mean(seg.label[truth] == kind) > 0.9, kind

@@ -103,6 +103,15 @@ def folds_improved(r_before: np.ndarray, r_after: np.ndarray, fold: np.ndarray) 
 EXACT_FOLDS_MAX = 16  # up to 2^16 sign patterns enumerated; beyond, a seeded sample of them
 
 
+def _sign_patterns(k: int, seed: int) -> tuple[np.ndarray, int]:
+    """The sign patterns of a sign-flip test on ``k`` values ((patterns, k) of +-1) and
+    what the observed pattern adds to the count: all 2^k (it is among them, 0) up to
+    :data:`EXACT_FOLDS_MAX`, else 2^16 drawn with ``seed`` (1)."""
+    if k <= EXACT_FOLDS_MAX:
+        return 1.0 - 2.0 * ((np.arange(2**k)[:, None] >> np.arange(k)) & 1), 0
+    return np.random.default_rng(seed).choice([-1.0, 1.0], size=(2**16, k)), 1
+
+
 def sign_flip_p(x: np.ndarray, seed: int = 0) -> float:
     """One-sided p that the mean of ``x`` is above 0, by flipping signs: under the null each
     value is symmetric about 0, so every sign pattern is equally likely. Exact over all 2^K
@@ -112,12 +121,7 @@ def sign_flip_p(x: np.ndarray, seed: int = 0) -> float:
     k = x.size
     if k == 0:
         return 1.0
-    if k <= EXACT_FOLDS_MAX:
-        signs = 1.0 - 2.0 * ((np.arange(2**k)[:, None] >> np.arange(k)) & 1)
-        extra = 0
-    else:
-        signs = np.random.default_rng(seed).choice([-1.0, 1.0], size=(2**16, k))
-        extra = 1
+    signs, extra = _sign_patterns(k, seed)
     total = signs @ x
     tol = 1e-12 * float(np.sum(np.abs(x)))  # the observed pattern and its ties count
     hits = int(np.sum(total >= float(np.sum(x)) - tol))
@@ -178,12 +182,7 @@ def fold_test_max(gains: dict[str, np.ndarray], seed: int = 0) -> dict[str, floa
     k = x.shape[0]
     if k < 3:
         return dict.fromkeys(names, 1.0)
-    if k <= EXACT_FOLDS_MAX:
-        signs = 1.0 - 2.0 * ((np.arange(2**k)[:, None] >> np.arange(k)) & 1)
-        extra = 0
-    else:
-        signs = np.random.default_rng(seed).choice([-1.0, 1.0], size=(2**16, k))
-        extra = 1
+    signs, extra = _sign_patterns(k, seed)
     top = np.max(signs @ x, axis=1) / k
     observed = x.mean(axis=0)
     tol = 1e-12 * float(np.sum(np.abs(x)))

@@ -261,9 +261,9 @@ def level_guard(
     if model.settings.level_guard_alpha <= 0:
         model.extension["level_guard"] = "not applied: level_guard_alpha is 0"
         return model
-    card = np.asarray(seg.cardinal).astype(str) if seg is not None else np.array([])
-    legs = mask & np.isin(card, CARDINALS) if card.size == mask.size else mask & False
-    if not meas.has_position or not legs.any():
+    card = np.asarray(seg.cardinal).astype(str) if seg is not None else None
+    legs = mask & np.isin(card, CARDINALS) if card is not None else None
+    if legs is None or not meas.has_position or not legs.any():
         model.extension["level_guard"] = "not applied: no calibration legs with positions"
         return model
     idx = np.flatnonzero(legs)
