@@ -156,6 +156,15 @@ def one_flight(kind: str, seed: int, folder: Path) -> dict:
             "guard": ext.get("guard"),
             "fit_s": fit_s,
         }
+        heading = getattr(run.model, "heading", None)
+        if "heading_levels" in ext:
+            row["models"][model]["heading_levels"] = ext["heading_levels"]
+        if heading is not None:  # the same field without the heading-level correction
+            v = Measurements.from_flight(flight).vector_nT
+            without = comp + heading.interference_nT(v / np.linalg.norm(v, axis=1, keepdims=True))
+            row["models"][model]["truth_without_heading_nT"] = _rms_centred(
+                np.where(lines, without - truth, np.nan)
+            )
     return row
 
 
@@ -259,6 +268,19 @@ def summarise(rows: list[dict]) -> list[str]:
             f"<= 0.7 on {int(np.sum(best <= 0.7))}/{best.size}, "
             f"> 1.05 on {int(np.sum(best > 1.05))}/{best.size}"
         )
+        hl = [r["models"]["tl-plus"] for r in mine if "heading_levels" in r["models"]["tl-plus"]]
+        on = [m for m in hl if m["heading_levels"].get("used")]
+        if hl:
+            gain = np.array([m["truth_nT"] / m["truth_without_heading_nT"] for m in on])
+            lines.append(
+                f"tl-plus's heading-level correction: used on {len(on)}/{len(hl)}"
+                + (
+                    f", truth with / without it: median {np.median(gain):.3f}, range "
+                    f"{gain.min():.3f}-{gain.max():.3f}"
+                    if on
+                    else ""
+                )
+            )
         if kind != "outside":
             continue
         for label, key in (("outside", "outside_nT"), ("recorded physics outside", "recorded_nT")):

@@ -140,6 +140,7 @@ class Config:
             extension_alpha=c["extension_alpha"],
             extension_min_gain=c["extension_min_gain"],
             level_guard_alpha=c["level_guard_alpha"],
+            heading_levels_alpha=c["heading_levels_alpha"],
             learner=c["learner"],
         )
 
@@ -275,6 +276,11 @@ class Config:
         if not 0.0 <= c["level_guard_alpha"] < 1.0:
             raise AeromagError(
                 "compensation.level_guard_alpha: use a p-value in [0, 1) (0: no level guard)",
+                file=self.source,
+            )
+        if not 0.0 <= c["heading_levels_alpha"] < 1.0:
+            raise AeromagError(
+                "compensation.heading_levels_alpha: use a p-value in [0, 1) (0: no correction)",
                 file=self.source,
             )
         a = self.values["audit"]

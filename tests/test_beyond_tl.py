@@ -210,6 +210,9 @@ def test_tl_plus_tries_the_audits_groups_first_and_the_report_says_so():
     lines = extension_lines({"final": "tl-plus", "tl-plus": s})
     assert any("named by the audit): eddy_decay" in x for x in lines)
     assert any("term groups: eddy_decay" in x for x in lines)
+    # no survey lines: the heading-level correction has no crossovers to confirm it
+    assert not s["extension"]["heading_levels"]["used"]
+    assert any("heading levels of the calibration legs" in x for x in lines)
     nn = {
         "extension": {"used": True, "reason": "held-out residual lower"},
         "feature_importance": {

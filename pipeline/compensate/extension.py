@@ -44,6 +44,9 @@ class ExtendedModel(CompensationModel):
     # tl18 fitted alone (coefficients, their standard deviations, lambda): what a reverted
     # extension applies (the extension's own tl18 part is fitted beside its other terms)
     tl18: tuple[np.ndarray, np.ndarray | None, float] | None = None
+    # tl-plus: the calibration legs' heading levels as a permanent field, kept when the
+    # survey's crossovers confirm it (pipeline.compensate.heading_levels)
+    heading: Any = None
 
     @property
     def used(self) -> bool:
@@ -62,6 +65,9 @@ class ExtendedModel(CompensationModel):
             g = predict(self.learner, features(meas)[0])
             s = self.settings
             out = out + np.nan_to_num(bandpassed(meas.time_s, g, s.band_hz, s.poles))
+        if self.heading is not None:
+            v = meas.vector_nT
+            out = out + self.heading.interference_nT(v / np.linalg.norm(v, axis=1, keepdims=True))
         return out
 
     def revert(self, reason: str, guard: str) -> ExtendedModel:
@@ -80,6 +86,7 @@ class ExtendedModel(CompensationModel):
             tau_s=None,
             learner=None,
             extension=ext,
+            heading=None,
         )
 
     def to_dict(self) -> dict[str, Any]:

@@ -142,6 +142,7 @@ class FitSettings:
     extension_min_gain: float = default_field("compensation", "extension_min_gain")
     # the calibration legs' level check of a used extension (one-sided p of a worse level)
     level_guard_alpha: float = default_field("compensation", "level_guard_alpha")
+    heading_levels_alpha: float = default_field("compensation", "heading_levels_alpha")
     # tl-nn's regressor: "hgb" (histogram gradient boosting) or "mlp"
     learner: str = default_field("compensation", "learner")
     seed: int = 0
@@ -161,6 +162,8 @@ class FitSettings:
             raise ValueError("extension_alpha: use a p-value between 0 and 1")
         if not 0.0 <= self.level_guard_alpha < 1.0:
             raise ValueError("level_guard_alpha: use a p-value in [0, 1) (0: no level guard)")
+        if not 0.0 <= self.heading_levels_alpha < 1.0:
+            raise ValueError("heading_levels_alpha: use a p-value in [0, 1) (0: no correction)")
         problem = ridge_problem(self.ridge)  # the rule Config loading applies
         if problem:
             raise ValueError(problem)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -148,6 +148,8 @@ def run_compensation(
         model = level_guard(flight, segmentation, meas, mask, model)
     if isinstance(model, ExtendedModel) and model.used:
         model = crossover_guard(flight, segmentation, meas, mask, model)
+    if isinstance(model, ExtendedModel) and settings.model == "tl-plus":
+        model = heading_level_step(flight, segmentation, meas, mask, model)
     comp, interference = model.compensate(meas)
     heldout = heldout_residual(meas, mask, model)
     band, _ = fom_band(settings.band_hz)  # unfiltered fit: the FOM in the shipped band
@@ -220,27 +222,128 @@ def heldout_residual(meas: Measurements, mask: np.ndarray, model) -> float | Non
 def crossover_rms_nT(flight: Flight, seg: Segmentation, field_nT: np.ndarray) -> tuple[float, int]:
     """RMS of the survey-tie crossover differences of ``field_nT`` (nT) and their count
     (NaN, 0 without positions or crossings)."""
+    xs = survey_tie_crossovers(flight, seg, field_nT)
+    if not xs:
+        return float("nan"), 0
+    dx = np.array([c.difference_nT for c in xs])
+    return float(np.sqrt(np.mean(dx**2))), int(dx.size)
+
+
+def survey_tie_crossovers(flight: Flight, seg: Segmentation, field_nT: np.ndarray) -> list:
+    """The survey lines' crossings with the tie lines (:class:`pipeline.maps.level.Crossover`,
+    survey line first), ``field_nT`` read at each; empty without positions or crossings."""
     from pipeline.geo.local import LocalFrame
     from pipeline.maps.level import Line, crossovers
     from pipeline.quality.stage import flight_tracks
 
     if not flight.has("lat_deg", "lon_deg"):
-        return float("nan"), 0
+        return []
     d = flight.data
     lat, lon = d["lat_deg"].to_numpy(float), d["lon_deg"].to_numpy(float)
     sel = seg.mask("survey") & np.isfinite(lat)
     if not sel.any():
-        return float("nan"), 0
+        return []
     e, n, _ = LocalFrame(float(np.mean(lat[sel])), float(np.mean(lon[sel]))).to_enu(lat, lon)
     t = d["time_s"].to_numpy(float)
     lines = {"survey": [], "tie": []}
     for tr in flight_tracks(seg, e, n, kinds=("survey", "tie")):
         lines[tr.kind].append(Line.from_track(tr, t, field_nT))
-    xs = crossovers(lines["survey"], lines["tie"])
-    if not xs:
-        return float("nan"), 0
-    dx = np.array([c.difference_nT for c in xs])
-    return float(np.sqrt(np.mean(dx**2))), int(dx.size)
+    return crossovers(lines["survey"], lines["tie"])
+
+
+def leg_reduction(
+    flight: Flight, seg: Segmentation | None, meas: Measurements, mask: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """The calibration legs' epochs (indices), the main field and the day's variation
+    there (IGRF plus the base station's reading smoothed over ``BASE_SMOOTHING_S``, nT) and
+    each epoch's heading class (the box's headings numbered); None without legs on a
+    heading or positions."""
+    from pipeline.geo.heading import CARDINALS
+    from pipeline.maps.reduce import BASE_SMOOTHING_S, igrf_total_nT, time_window_mean
+
+    card = np.asarray(seg.cardinal).astype(str) if seg is not None else None
+    legs = mask & np.isin(card, CARDINALS) if card is not None else None
+    if legs is None or not meas.has_position or not legs.any():
+        return None
+    idx = np.flatnonzero(legs)
+    reduction = igrf_total_nT(
+        flight.time_ns[idx], meas.lat_deg[idx], meas.lon_deg[idx], meas.alt_m[idx]
+    )
+    if flight.has("base_nT"):
+        base = flight.data["base_nT"].to_numpy(float)
+        reduction = reduction + time_window_mean(meas.time_s, base, BASE_SMOOTHING_S)[idx]
+    return idx, reduction, np.array([CARDINALS.index(c) for c in card[idx]])
+
+
+def heading_level_step(
+    flight: Flight,
+    seg: Segmentation | None,
+    meas: Measurements,
+    mask: np.ndarray,
+    model: ExtendedModel,
+) -> ExtendedModel:
+    """tl-plus's heading-level correction (:mod:`pipeline.compensate.heading_levels`):
+    fitted to the calibration legs' levels of ``model``'s field and kept when the survey's
+    crossovers with the ties confirm it at ``heading_levels_alpha``; recorded in
+    ``extension["heading_levels"]`` either way."""
+    from pipeline.audit.legs import leg_ids
+    from pipeline.compensate.heading_levels import crossover_improvement_p, fit_heading_correction
+
+    rec: dict = {"used": False}
+    model.extension["heading_levels"] = rec
+    alpha = model.settings.heading_levels_alpha
+    if alpha <= 0:
+        rec["reason"] = "heading_levels_alpha is 0"
+        return model
+    legs = leg_reduction(flight, seg, meas, mask)
+    if legs is None:
+        rec["reason"] = "no calibration legs with positions"
+        return model
+    idx, reduction, heading = legs
+    comp = model.compensate(meas)[0]
+    n = meas.time_s.size
+    reduced, head = np.full(n, np.nan), np.full(n, -1)
+    reduced[idx], head[idx] = comp[idx] - reduction, heading
+    leg = leg_ids(mask, seg.cardinal, seg.calibration_pass, meas.time_s)
+    v = meas.vector_nT
+    unit = v / np.linalg.norm(v, axis=1, keepdims=True)
+    from pipeline.geo.local import LocalFrame
+
+    frame = LocalFrame(float(np.mean(meas.lat_deg[idx])), float(np.mean(meas.lon_deg[idx])))
+    east, north, _ = frame.to_enu(meas.lat_deg, meas.lon_deg)
+    corr = fit_heading_correction(
+        reduced, unit, np.where(head >= 0, leg, -1), head, meas.time_s, east, north
+    )
+    if corr is None:
+        rec["reason"] = "calibration legs on fewer than 3 headings"
+        return model
+    rec.update(
+        p_nT=[float(x) for x in corr.p_nT],
+        legs=corr.legs,
+        headings=corr.headings,
+        level_spread_nT=corr.level_spread_nT,
+        residual_spread_nT=corr.residual_spread_nT,
+        gradient_nT_per_m=corr.gradient_nT_per_m,
+    )
+    after = comp - corr.interference_nT(unit)
+    xs0, xs1 = (survey_tie_crossovers(flight, seg, f) for f in (comp, after))
+    if not xs0 or len(xs0) != len(xs1):
+        rec["reason"] = "no survey-tie crossovers to confirm it"
+        return model
+    d0 = np.array([c.difference_nT for c in xs0])
+    d1 = np.array([c.difference_nT for c in xs1])
+    p, lines = crossover_improvement_p([c.line_a for c in xs0], d0, d1)
+    rec.update(
+        crossover_rms_before_nT=float(np.sqrt(np.mean(d0**2))),
+        crossover_rms_after_nT=float(np.sqrt(np.mean(d1**2))),
+        crossover_p=p,
+        crossover_lines=lines,
+    )
+    if p >= alpha:
+        rec["reason"] = f"the survey's crossovers do not confirm it (p {p:.2g} over {lines} lines)"
+        return model
+    rec["used"] = True
+    return replace(model, heading=corr)
 
 
 def level_guard(
@@ -255,25 +358,14 @@ def level_guard(
     not spread wider than tl18's at p < ``level_guard_alpha``
     (:mod:`pipeline.compensate.level_guard`); otherwise revert to tl18, saying so. Without
     headings or positions the guard is recorded as not applied."""
-    from pipeline.geo.heading import CARDINALS
-    from pipeline.maps.reduce import BASE_SMOOTHING_S, igrf_total_nT, time_window_mean
-
     if model.settings.level_guard_alpha <= 0:
         model.extension["level_guard"] = "not applied: level_guard_alpha is 0"
         return model
-    card = np.asarray(seg.cardinal).astype(str) if seg is not None else None
-    legs = mask & np.isin(card, CARDINALS) if card is not None else None
-    if legs is None or not meas.has_position or not legs.any():
+    legs = leg_reduction(flight, seg, meas, mask)
+    if legs is None:
         model.extension["level_guard"] = "not applied: no calibration legs with positions"
         return model
-    idx = np.flatnonzero(legs)
-    reduction = igrf_total_nT(
-        flight.time_ns[idx], meas.lat_deg[idx], meas.lon_deg[idx], meas.alt_m[idx]
-    )
-    if flight.has("base_nT"):
-        base = flight.data["base_nT"].to_numpy(float)
-        reduction = reduction + time_window_mean(meas.time_s, base, BASE_SMOOTHING_S)[idx]
-    heading = np.array([CARDINALS.index(c) for c in card[idx]])
+    idx, reduction, heading = legs
     tl18 = model.revert("", "level")
     check = compare_levels(
         model.compensate(meas)[0][idx] - reduction,

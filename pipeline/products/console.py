@@ -202,6 +202,10 @@ def compensate_text(summary: dict) -> list[Block]:
     ext = summary.get("extension")
     if ext:  # tl-plus / tl-nn: used or not, and why
         out.append(f"{summary['model']}: {'used' if ext['used'] else 'not used'}: {ext['reason']}")
+        if isinstance(ext.get("heading_levels"), dict):
+            from pipeline.products.markdown import heading_levels_text
+
+            out.append(f"heading levels: {heading_levels_text(ext['heading_levels'])}")
     out.append(
         f"{summary['model']}: lambda {summary['lambda']:.3g}, {summary['samples']} samples, "
         f"fit residual {summary['fit_residual_nT']:.4f} nT"

@@ -192,6 +192,23 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
     return "\n".join(out)
 
 
+def heading_levels_text(hl: dict) -> str:
+    """tl-plus's heading-level correction in one line: applied or not, its size and the
+    crossovers' verdict."""
+    if "p_nT" not in hl:
+        return f"no correction ({hl.get('reason', '')})"
+    px, py = hl["p_nT"]
+    size = f"permanent field {px:.2f} nT forward, {py:.2f} nT right"
+    if "crossover_p" not in hl:
+        return f"{size}, not applied ({hl.get('reason', '')})"
+    xo = (
+        f"survey-tie crossovers {hl['crossover_rms_before_nT']:.3f} -> "
+        f"{hl['crossover_rms_after_nT']:.3f} nT (p {hl['crossover_p']:.2g} over "
+        f"{hl['crossover_lines']} lines)"
+    )
+    return f"{size}, {'applied' if hl.get('used') else 'not applied'}: {xo}"
+
+
 def extension_lines(comp: dict) -> list[str]:
     """Markdown lines on tl-plus / tl-nn: used or not and why, tl-plus's groups (with the
     audit's seeds), tl-nn's feature-group importance (held-out RMS increase when permuted)."""
@@ -207,6 +224,9 @@ def extension_lines(comp: dict) -> list[str]:
             out.append(f"  - term groups: {', '.join(groups)}")
         if ext.get("seeded_by_audit"):
             out.append(f"  - tried first (named by the audit): {', '.join(ext['seeded_by_audit'])}")
+        hl = ext.get("heading_levels")
+        if isinstance(hl, dict):
+            out.append(f"  - heading levels of the calibration legs: {heading_levels_text(hl)}")
         imp = r.get("feature_importance") or {}
         if imp:
             key = "heldout_rms_increase_nT"
