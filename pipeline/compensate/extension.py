@@ -11,7 +11,7 @@ crossover guard (:func:`pipeline.compensate.stage.crossover_guard`) can revert i
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -25,6 +25,9 @@ from pipeline.compensate.model import (
     tl_terms,
 )
 from pipeline.compensate.plus import HeldOutSetup, aligned, group_columns, select_groups
+
+if TYPE_CHECKING:  # the correction's module reads the audit's legs; imported where applied
+    from pipeline.compensate.heading_levels import HeadingCorrection
 
 
 @dataclass
@@ -46,7 +49,7 @@ class ExtendedModel(CompensationModel):
     tl18: tuple[np.ndarray, np.ndarray | None, float] | None = None
     # tl-plus: the calibration legs' heading levels as a permanent field, kept when the
     # survey's crossovers confirm it (pipeline.compensate.heading_levels)
-    heading: Any = None
+    heading: HeadingCorrection | None = None
 
     @property
     def used(self) -> bool:
