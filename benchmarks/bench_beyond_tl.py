@@ -209,6 +209,55 @@ def magnav_slice() -> dict:
             "used": getattr(m, "extension", {}).get("used"),
             "why": getattr(m, "extension", {}).get("reason", ""),
         }
+    out.update(
+        _slice_groups(
+            meas,
+            fit,
+            FitSettings(
+                model="tl18",
+                band_hz=band,
+                trim_s=p["trim"] / fs,
+                ridge=p["lambda"],
+                bt_scale_nT=p["Bt_scale"],
+            ),
+        )
+    )
+    return out
+
+
+def _slice_groups(meas: Measurements, fit: np.ndarray, s: FitSettings) -> dict:
+    """tl18 with each of tl-plus's physics groups added, no selection (the slice is too
+    short for held-out folds): fitted on the first half with MagNav's band and ridge, the
+    eddy decay's time constant the one of :data:`pipeline.compensate.plus.TAU_GRID_S` with
+    the least first-half residual; the band-passed residual on the second half (nT). What
+    each group would do on real data, beside tl18 through the same path."""
+    from pipeline.compensate.estimator import bandpassed_design
+    from pipeline.compensate.plus import TAU_GRID_S, group_columns
+    from pipeline.compensate.terms import tl18_terms
+
+    k18, _ = tl18_terms(meas.vector_nT, meas.time_s, s.bt_scale_nT)
+    rate = 1.0 / float(np.median(np.diff(meas.time_s)))
+
+    def second_half(cols: np.ndarray) -> tuple[float, float]:
+        k, y, _ = bandpassed_design(
+            cols, meas.scalar_nT, meas.time_s, rate, fit, s.band_hz, s.poles, s.trim_s
+        )
+        theta = np.linalg.solve(k.T @ k + s.ridge * np.eye(k.shape[1]), k.T @ y)
+        first = float(np.sqrt(np.mean((y - k @ theta) ** 2)))
+        comp = meas.scalar_nT - cols @ theta
+        bp = bandpassed(meas.time_s, np.where(~fit, comp, np.nan), s.band_hz, s.poles)
+        return first, float(np.sqrt(np.nanmean(bp[~fit] ** 2)))
+
+    out = {"tl18 (same path)": {"heldout_nT": second_half(k18)[1], "why": ""}}
+    for group in ("eddy_decay", "second_order"):
+        taus = TAU_GRID_S if group == "eddy_decay" else (0.0,)
+        fits = {
+            tau: second_half(np.column_stack([k18, group_columns(group, meas, tau)[0]]))
+            for tau in taus
+        }
+        tau = min(fits, key=lambda t: fits[t][0])
+        label = f"tl18 + {group}" + (f" (tau {tau:.2g} s)" if group == "eddy_decay" else "")
+        out[label] = {"heldout_nT": fits[tau][1], "why": "no selection: every column fitted"}
     return out
 
 
