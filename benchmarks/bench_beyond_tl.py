@@ -46,6 +46,7 @@ import json
 import sys
 import tempfile
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -160,8 +161,9 @@ def one_flight(kind: str, seed: int, folder: Path) -> dict:
         if "heading_levels" in ext:
             row["models"][model]["heading_levels"] = ext["heading_levels"]
         if heading is not None:  # the same field without the heading-level correction
-            v = Measurements.from_flight(flight).vector_nT
-            without = comp + heading.interference_nT(v / np.linalg.norm(v, axis=1, keepdims=True))
+            without = replace(run.model, heading=None).compensate(Measurements.from_flight(flight))[
+                0
+            ]
             row["models"][model]["truth_without_heading_nT"] = _rms_centred(
                 np.where(lines, without - truth, np.nan)
             )

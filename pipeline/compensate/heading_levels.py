@@ -78,7 +78,7 @@ def fit_heading_correction(
     time_s: np.ndarray,
     east_m: np.ndarray | None = None,
     north_m: np.ndarray | None = None,
-) -> HeadingCorrection | None:
+) -> HeadingCorrection:
     """Fit the permanent-field correction to the legs' levels (see the module docstring).
 
     Parameters
@@ -99,22 +99,27 @@ def fit_heading_correction(
 
     Returns
     -------
-    HeadingCorrection or None
-        None with legs on fewer than :data:`MIN_HEADINGS` headings.
+    HeadingCorrection
+
+    Raises
+    ------
+    ValueError
+        Saying why no correction can be fitted: no leg with :data:`MIN_LEG_BLOCKS` blocks,
+        legs on fewer than :data:`MIN_HEADINGS` headings, or no more blocks than unknowns.
     """
     cols = [reduced_nT, unit_field[:, 0], unit_field[:, 1], heading.astype(float)]
     if east_m is not None and north_m is not None:
         cols += [east_m, north_m]
     means, leg_of = leg_block_means(time_s, np.column_stack(cols), leg, BLOCK_S, MIN_LEG_BLOCKS)
     if means.shape[0] == 0:
-        return None
+        raise ValueError(f"no calibration leg with {MIN_LEG_BLOCKS} blocks of {BLOCK_S:g} s")
     headings = np.unique(np.round(means[:, 3]).astype(int))
     if headings.size < MIN_HEADINGS:
-        return None
+        raise ValueError(f"calibration legs on {headings.size} headings, fewer than {MIN_HEADINGS}")
     y = means[:, 0]
     a = np.column_stack([np.ones(y.size), means[:, 1:3], means[:, 4:]])
     if y.size <= a.shape[1]:
-        return None
+        raise ValueError(f"{y.size} leg blocks for {a.shape[1]} unknowns")
     coef, *_ = np.linalg.lstsq(a, y, rcond=None)
     resid = y - a @ coef
     return HeadingCorrection(

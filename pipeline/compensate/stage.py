@@ -309,13 +309,20 @@ def heading_level_step(
     unit = v / np.linalg.norm(v, axis=1, keepdims=True)
     from pipeline.geo.local import LocalFrame
 
-    frame = LocalFrame(float(np.mean(meas.lat_deg[idx])), float(np.mean(meas.lon_deg[idx])))
+    # a gap in the positions leaves NaN there: the frame is centred on the fixes there are
+    lat, lon = meas.lat_deg[idx], meas.lon_deg[idx]
+    fixed = np.isfinite(lat) & np.isfinite(lon)
+    if not fixed.any():
+        rec["reason"] = "no positions on the calibration legs"
+        return model
+    frame = LocalFrame(float(np.mean(lat[fixed])), float(np.mean(lon[fixed])))
     east, north, _ = frame.to_enu(meas.lat_deg, meas.lon_deg)
-    corr = fit_heading_correction(
-        reduced, unit, np.where(head >= 0, leg, -1), head, meas.time_s, east, north
-    )
-    if corr is None:
-        rec["reason"] = "calibration legs on fewer than 3 headings"
+    try:
+        corr = fit_heading_correction(
+            reduced, unit, np.where(head >= 0, leg, -1), head, meas.time_s, east, north
+        )
+    except ValueError as exc:
+        rec["reason"] = str(exc)
         return model
     rec.update(
         p_nT=[float(x) for x in corr.p_nT],
@@ -327,8 +334,11 @@ def heading_level_step(
     )
     after = comp - corr.interference_nT(unit)
     xs0, xs1 = (survey_tie_crossovers(flight, seg, f) for f in (comp, after))
-    if not xs0 or len(xs0) != len(xs1):
+    if not xs0:
         rec["reason"] = "no survey-tie crossovers to confirm it"
+        return model
+    if len(xs0) != len(xs1):  # the crossings are the tracks' own: the same for both fields
+        rec["reason"] = "the survey-tie crossovers differ between the two fields"
         return model
     d0 = np.array([c.difference_nT for c in xs0])
     d1 = np.array([c.difference_nT for c in xs1])
