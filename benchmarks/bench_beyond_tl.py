@@ -233,7 +233,7 @@ def _slice_groups(meas: Measurements, fit: np.ndarray, s: FitSettings) -> dict:
     eddy decay's time constant the one of :data:`pipeline.compensate.plus.TAU_GRID_S` with
     the least first-half residual; the band-passed residual on the second half (nT). What
     each group would do on real data, beside tl18 through the same path."""
-    from pipeline.compensate.estimator import bandpassed_design
+    from pipeline.compensate.estimator import bandpassed_design, fit_ridge
     from pipeline.compensate.plus import TAU_GRID_S, group_columns
     from pipeline.compensate.terms import tl18_terms
 
@@ -244,7 +244,7 @@ def _slice_groups(meas: Measurements, fit: np.ndarray, s: FitSettings) -> dict:
         k, y, _ = bandpassed_design(
             cols, meas.scalar_nT, meas.time_s, rate, fit, s.band_hz, s.poles, s.trim_s
         )
-        theta = np.linalg.solve(k.T @ k + s.ridge * np.eye(k.shape[1]), k.T @ y)
+        theta = fit_ridge(k, y, s.ridge).theta
         first = float(np.sqrt(np.mean((y - k @ theta) ** 2)))
         comp = meas.scalar_nT - cols @ theta
         bp = bandpassed(meas.time_s, np.where(~fit, comp, np.nan), s.band_hz, s.poles)

@@ -25,6 +25,7 @@ from pipeline.compensate.model import (
     tl_terms,
 )
 from pipeline.compensate.plus import HeldOutSetup, aligned, group_columns, select_groups
+from pipeline.compensate.terms import direction_cosines
 
 if TYPE_CHECKING:  # the correction's module reads the audit's legs; imported where applied
     from pipeline.compensate.heading_levels import HeadingCorrection
@@ -69,8 +70,7 @@ class ExtendedModel(CompensationModel):
             s = self.settings
             out = out + np.nan_to_num(bandpassed(meas.time_s, g, s.band_hz, s.poles))
         if self.heading is not None:
-            v = meas.vector_nT
-            out = out + self.heading.interference_nT(v / np.linalg.norm(v, axis=1, keepdims=True))
+            out = out + self.heading.interference_nT(direction_cosines(meas.vector_nT))
         return out
 
     def revert(self, reason: str, guard: str) -> ExtendedModel:

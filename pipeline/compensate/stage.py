@@ -288,6 +288,8 @@ def heading_level_step(
     ``extension["heading_levels"]`` either way."""
     from pipeline.audit.legs import leg_ids
     from pipeline.compensate.heading_levels import crossover_improvement_p, fit_heading_correction
+    from pipeline.compensate.terms import direction_cosines
+    from pipeline.geo.local import LocalFrame
 
     rec: dict = {"used": False}
     model.extension["heading_levels"] = rec
@@ -305,10 +307,7 @@ def heading_level_step(
     reduced, head = np.full(n, np.nan), np.full(n, -1)
     reduced[idx], head[idx] = comp[idx] - reduction, heading
     leg = leg_ids(mask, seg.cardinal, seg.calibration_pass, meas.time_s)
-    v = meas.vector_nT
-    unit = v / np.linalg.norm(v, axis=1, keepdims=True)
-    from pipeline.geo.local import LocalFrame
-
+    unit = direction_cosines(meas.vector_nT)
     # a gap in the positions leaves NaN there: the frame is centred on the fixes there are
     lat, lon = meas.lat_deg[idx], meas.lon_deg[idx]
     fixed = np.isfinite(lat) & np.isfinite(lon)
