@@ -264,8 +264,9 @@ def test_joining_the_evidence_names_a_decay_a_lag_at_most_at_alpha():
 
 def test_a_small_lag_beside_a_needed_decay_is_named_on_the_lines_timing():
     """Both physics there: the lag lowers held-out data beside the decay (p 1e-6, but by
-    under min_gain), and the decay adds beside the lag. The calibration's share does not
-    decide; the lines' timing does, and with no lag it names one at most at alpha."""
+    under min_gain), or the decay took all of it and the lag alone explains the residual,
+    and the decay adds beside the lag. The calibration's share does not decide; the lines'
+    timing does, and with no lag it names one at most at alpha."""
     args = (held(0.03, 1e-6), held(0.7, 1e-9), held(0.75, 1e-9), held(0.12, 1e-6))
     both = LagVersusDecay(*args)
     late = TimingLag(0.085, (0.05, 0.12), 0.001, 5)
@@ -273,18 +274,27 @@ def test_a_small_lag_beside_a_needed_decay_is_named_on_the_lines_timing():
     unsure = TimingLag(0.03, (-0.03, 0.09), 0.3, 5)
     assert both.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(unsure, None)) == "none"
     assert both.verdict(ALPHA, MIN_GAIN, "silent", None) == "none"
-    # the lag's calibration test alone (p above alpha) is not enough, however late the lines
-    weak = LagVersusDecay(held(0.03, 0.2), *args[1:])
-    assert weak.verdict(ALPHA, MIN_GAIN, "holds", timing_p_late(late, None)) == "none"
+    # the decay took the whole of the lag's residual (the lag beside it p above alpha) but
+    # the lag alone explains it: the lines decide
+    absorbed = LagVersusDecay(held(0.03, 0.2), *args[1:])
+    assert absorbed.verdict(ALPHA, MIN_GAIN, "holds", timing_p_late(late, None)) == (
+        "lag_beside_decay"
+    )
+    assert absorbed.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(unsure, None)) == "none"
+    # no lag-like residual in the calibration at all: however late the lines, no lag
+    flat = LagVersusDecay(held(0.03, 0.2), held(0.01, 0.4), *args[2:])
+    assert flat.verdict(ALPHA, MIN_GAIN, "holds", timing_p_late(late, None)) == "none"
     rng = np.random.default_rng(12)
-    draws, named = 4000, 0
+    draws, named = 4000, {"both": 0, "absorbed": 0}
     for _ in range(draws):
         se_a, se_b = rng.uniform(0.02, 0.2, 2)
         a, b = rng.normal(0, se_a), rng.normal(0, se_b)
         sl = TimingLag(a, (a - 1.96 * se_a, a + 1.96 * se_a), 1.0, 5)
         tl = TimingLag(b, (b - 1.96 * se_b, b + 1.96 * se_b), 1.0, 5)
-        named += both.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(sl, tl)) != "none"
-    assert named / draws <= ALPHA + 3 * np.sqrt(ALPHA * (1 - ALPHA) / draws)
+        for name, vs in (("both", both), ("absorbed", absorbed)):
+            named[name] += vs.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(sl, tl)) != "none"
+    for n in named.values():
+        assert n / draws <= ALPHA + 3 * np.sqrt(ALPHA * (1 - ALPHA) / draws)
 
 
 @pytest.fixture(scope="session")

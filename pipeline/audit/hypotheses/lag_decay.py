@@ -91,12 +91,15 @@ class LagVersusDecay:
         )
 
     def both_present(self, alpha: float, min_gain: float) -> bool:
-        """Whether each adds to the other: the lag lowers held-out data beside the decay
-        (p < ``alpha``, however little), and the decay lowers them beside the lag
-        (p < ``alpha``, at least ``min_gain``)."""
-        return self.lag_beyond_null.p_value < alpha and significant(
-            self.decay_beyond_lag, alpha, min_gain
+        """Whether the calibration holds a late sensor's residual beside a decay that adds
+        to it: the lag lowers held-out data beside the decay (p < ``alpha``, however
+        little) or, the decay out, alone (p < ``alpha``, at least ``min_gain``: the decay
+        beside it can take all of a true lag's residual), and the decay lowers them beside
+        the lag (p < ``alpha``, at least ``min_gain``)."""
+        lag_like = self.lag_beyond_null.p_value < alpha or significant(
+            self.lag_alone, alpha, min_gain
         )
+        return lag_like and significant(self.decay_beyond_lag, alpha, min_gain)
 
     def verdict(
         self, alpha: float, min_gain: float, timing: str, timing_p: float | None = None
@@ -105,12 +108,14 @@ class LagVersusDecay:
         (a tie the data cannot break) or ``"none"``.
 
         The lag is named when it lowers held-out data beside the decay. When both are there
-        (:meth:`both_present`) but the lag's share of the calibration's residual is under
-        ``min_gain``, that share does not measure what a late sensor does to a survey (a
-        heading error of twice the lag times the along-track rate of change of the
-        geology); the lines' timing does: the lag is named beside the decay when the
-        timing's one-sided p that the sensor is late (``timing_p``) is under ``alpha``.
-        Both tests must pass, so with no lag the rate stays within ``alpha``. When the two tie
+        (:meth:`both_present`) but the lag's share of the calibration's residual beside
+        the decay is under ``min_gain`` (a decay, fitted freely, takes part or all of a
+        true lag's residual), that share does not measure what a late sensor does to a
+        survey (a heading error of twice the lag times the along-track rate of change of
+        the geology); the lines' timing does, and a decay of the eddy terms does not delay
+        the lines: the lag is named beside the decay when the timing's one-sided p that
+        the sensor is late (``timing_p``) is under ``alpha``. With no lag that p is
+        uniform, so the rate stays within ``alpha``. When the two tie
         (each explains the residual alone, neither adds to the other) the rival that
         predicts held-out data better is the explanation
         (``lag_over_decay``, ``decay_over_lag``); when neither does, the timing along the
