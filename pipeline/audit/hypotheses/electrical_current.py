@@ -10,6 +10,7 @@ import numpy as np
 
 from pipeline.audit.context import AuditContext
 from pipeline.audit.crossval import jackknife_ci95
+from pipeline.audit.evidence import HeldOut
 from pipeline.audit.evidence.survey_side import (
     channel_switch_steps,
     crossover_coupling,
@@ -17,9 +18,10 @@ from pipeline.audit.evidence.survey_side import (
 )
 from pipeline.audit.extended import FittedModel, ModelSpec
 from pipeline.audit.hypotheses.rival import beyond
+from pipeline.audit.legs import fisher_combined
 from pipeline.audit.result import Evaluation
 from pipeline.audit.survey import SurveyCoupling
-from pipeline.audit.switching import switch_body_coupling, switch_coupling
+from pipeline.audit.switching import SwitchCoupling, switch_body_coupling, switch_coupling
 from pipeline.compensate.terms import direction_cosines
 
 EFFECT = "electrical_current"
@@ -67,8 +69,9 @@ def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
     name = key.split(":", 1)[1]
     ext = current.with_(aux=current.aux + (name,))
     ev, sc = _on_the_calibration(ctx, current, key, name, ext)
-    _by_the_crossovers(ctx, ev, current, name, sc)
-    _by_the_switches(ctx, ev, current, name)
+    sg = _by_the_crossovers(ctx, ev, current, name, sc)
+    sw = _by_the_switches(ctx, ev, current, name)
+    _by_both(ctx, ev, current, name, (sc, sg), sw)
     # a current that follows the manoeuvres (a motor's) can stand in for interference
     # that is not linear in the field or in the rates: the coupling is named only when it
     # explains held-out data better than the second-order terms do
@@ -123,10 +126,10 @@ def _on_the_calibration(
 
 def _by_the_crossovers(
     ctx: AuditContext, ev: Evaluation, current: ModelSpec, name: str, sc: SurveyCoupling | None
-) -> None:
+) -> HeldOut | None:
     """The crossovers' leave-one-out gain of the coupling, which confirms the calibration's
     held-out test when the crossovers' coupling ``sc`` is significant and the gain large
-    enough."""
+    enough; returned (None without it)."""
     sg = crossover_coupling_gain(ctx, current, name)
     if sc is not None and sg is not None:
         ev.estimate["survey_heldout"] = sg.to_dict()
@@ -142,12 +145,16 @@ def _by_the_crossovers(
             # fixed-wing's steady legs) leaves the calibration blind to its coupling
             if decides_outside(ctx, current, sc.p_value) and sg.p_value < ctx.s.alpha:
                 _decide_outside(ctx, ev, current, name, "survey_total_field_nT_per_unit")
+    return sg
 
 
-def _by_the_switches(ctx: AuditContext, ev: Evaluation, current: ModelSpec, name: str) -> None:
+def _by_the_switches(
+    ctx: AuditContext, ev: Evaluation, current: ModelSpec, name: str
+) -> SwitchCoupling | None:
     """The field's steps where the channel switches, over the whole flight: their
     coupling's estimate beside the calibration's, and their own tests, which confirm the
-    calibration's or decide alone (:func:`_decide_outside`)."""
+    calibration's or decide alone (:func:`_decide_outside`); returned (None without
+    switches)."""
     steps = channel_switch_steps(ctx, current, name)
     sw = None if steps is None else switch_coupling(steps)
     body = None if steps is None else switch_body_coupling(steps)
@@ -199,6 +206,47 @@ def _by_the_switches(ctx: AuditContext, ev: Evaluation, current: ModelSpec, name
             # load it sees switch a few times
             if not ev.decided_outside and decides_outside(ctx, current, sw.p_value):
                 _decide_outside(ctx, ev, current, name, "switch_total_field_nT_per_unit")
+    return sw
+
+
+def _by_both(
+    ctx: AuditContext,
+    ev: Evaluation,
+    current: ModelSpec,
+    name: str,
+    crossovers: tuple[SurveyCoupling | None, HeldOut | None],
+    sw: SwitchCoupling | None,
+) -> None:
+    """The crossovers and the switches joined, when each shows the coupling (p < ``alpha``,
+    leave-one-out gain >= ``min_gain``) but neither predicts its own data leave-one-out at
+    ``alpha`` alone: the two are different data (the lines' intersections, the field's
+    steps where the channel switches), so with no coupling their leave-one-out p-values
+    are independent and Fisher's combination is uniform. Few switches cannot reach
+    ``alpha`` alone (a sign-flip test over n steps has no p below 2^-n). The joined
+    prediction decides as either would alone (:func:`decides_outside` on the coupling
+    tests' Fisher p, :func:`_decide_outside` with the switches' coupling)."""
+    sc, sg = crossovers
+    if ev.decided_outside or sc is None or sg is None or sw is None:
+        return
+    s = ctx.s
+    shown = (
+        sc.p_value < s.alpha
+        and sg.reduction >= s.min_gain
+        and sw.p_value < s.alpha
+        and sw.heldout.reduction >= s.min_gain
+    )
+    if not shown:
+        return
+    predicted = fisher_combined(sg.p_value, sw.heldout.p_value)
+    ev.estimate["joint_heldout_p_value"] = predicted
+    ev.ci95["joint_heldout_p_value"] = None
+    if predicted >= s.alpha:
+        return
+    ev.confirm_p, ev.confirmed_gain = predicted, True
+    if decides_outside(ctx, current, fisher_combined(sc.p_value, sw.p_value)):
+        ev.estimate["confirmed_by"] = "the survey's crossovers and the channel's switches"
+        ev.ci95["confirmed_by"] = None
+        _decide_outside(ctx, ev, current, name, "switch_total_field_nT_per_unit")
 
 
 def decides_outside(ctx: AuditContext, current: ModelSpec, p_value: float) -> bool:
