@@ -18,9 +18,10 @@ import pytest
 from scipy.signal import lfilter
 
 from pipeline.audit.extended import BandSettings
-from pipeline.audit.hypotheses.lag_decay import LagVersusDecay, timing_p_late
+from pipeline.audit.hypotheses.lag_decay import LagVersusDecay, _unresolved, timing_p_late
 from pipeline.audit.nuisances import select_from
 from pipeline.audit.null_calibration import calibrate_null, monte_carlo_threshold, surrogates
+from pipeline.audit.result import Evaluation
 from pipeline.audit.timing import TimingLag
 from pipeline.compensate.heldout import HeldOut
 from pipeline.compensate.model import Measurements
@@ -295,6 +296,17 @@ def test_a_small_lag_beside_a_needed_decay_is_named_on_the_lines_timing():
             named[name] += vs.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(sl, tl)) != "none"
     for n in named.values():
         assert n / draws <= ALPHA + 3 * np.sqrt(ALPHA * (1 - ALPHA) / draws)
+
+
+def test_a_lag_named_beside_a_slower_decay_must_be_resolvable():
+    """Beside a slower decay the lag named is the one beside it, not the whole reading's
+    delay without the decay; a few milliseconds there is the resampling's error (L9),
+    whatever the delay without the decay read."""
+    for lag_s, held_back in ((0.0033, True), (-0.004, True), (0.05, False)):
+        ev = Evaluation("sensor_lag", "sensor_lag", {"lag_s": lag_s}, None, None, None)
+        _unresolved(ev, 0.02)
+        assert ev.held_back is held_back
+        assert ("min_lag_s" in ev.reason) is held_back
 
 
 @pytest.fixture(scope="session")

@@ -298,7 +298,22 @@ def lag_beside_decay_nuisance(
             f"by {100 * ev.heldout.reduction:.1f} % (p {ev.heldout.p_value:.2g}): not a "
             "late sensor"
         )
+    _unresolved(ev, smallest)
     return ev
+
+
+def _unresolved(ev: Evaluation, smallest_s: float) -> None:
+    """Hold back a lag named beside a slower decay (which keeps the lag beside it, not the
+    whole reading's delay) that is under ``smallest_s`` (``min_lag_s``): within the
+    resampling's own error, whatever the delay without the decay was."""
+    named = float(ev.estimate["lag_s"])
+    if not ev.held_back and abs(named) < smallest_s:
+        ev.held_back = True
+        ev.reason = (
+            f"the lag named beside the decay, {1e3 * named:.1f} ms, is under "
+            f"{1e3 * smallest_s:.0f} ms (min_lag_s): within the resampling's own error, "
+            "not a lag to model"
+        )
 
 
 def _widen_lag_interval(ev: Evaluation, low_s: float, high_s: float, centre_s: float) -> None:
