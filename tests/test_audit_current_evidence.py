@@ -57,6 +57,10 @@ def test_crossovers_and_few_switches_together_decide_what_neither_can_alone():
     assert ev.decided_outside and ev.confirmed_gain
     assert 0.003 < ev.confirm_p < 0.004
     assert ev.estimate["confirmed_by"].startswith("the survey's crossovers")
+    # the crossovers predict their own data alone: their own rules decide, nothing joined
+    ev = _ev()
+    _by_both(ctx, ev, ModelSpec(), "payload", (sc, held(0.45, 0.002)), sw)
+    assert "joint_heldout_p_value" not in ev.estimate
     # one of the two does not predict its own data: nothing joined
     ev = _ev()
     _by_both(ctx, ev, ModelSpec(), "payload", (sc, held(0.45, 0.4)), sw)

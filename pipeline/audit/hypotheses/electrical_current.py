@@ -235,7 +235,8 @@ def _by_both(
         and sw.p_value < s.alpha
         and sw.heldout.reduction >= s.min_gain
     )
-    if not shown:
+    alone = sg.p_value < s.alpha or sw.heldout.p_value < s.alpha
+    if not shown or alone:
         return
     predicted = fisher_combined(sg.p_value, sw.heldout.p_value)
     ev.estimate["joint_heldout_p_value"] = predicted
