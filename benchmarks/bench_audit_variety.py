@@ -2,7 +2,7 @@
 
     .venv/bin/python benchmarks/bench_audit_variety.py [--flights 30] [--seed 2026]
         [--classes none,geomagnetic_gradient,...] [--json OUT.json] [--workers 2]
-        [--qq NULL_QQ.png]
+        [--qq NULL_QQ.png] [--sizes]
 
 Each flight is drawn by :func:`pipeline.simulate.random_flight_overrides` (multicopter or
 fixed-wing, one or two calibration passes, headings in any order, manoeuvre blocks of
@@ -10,8 +10,10 @@ fixed-wing, one or two calibration passes, headings in any order, manoeuvre bloc
 outside the tl18 basis) and hides one catalogue effect, nothing (``none``) or a step in the
 carrier's permanent field mid-survey (``step``, outside the catalogue). The effects do not
 take the audit's functional forms only: a lag is a pure delay or a first-order sensor
-response, a current coupling may drift with temperature. The audit reads only the
-recording. Printed: the confusion matrix (rows: hidden, columns: named), the share of
+response, a current coupling may drift with temperature; with ``--sizes`` the lag (0.02-0.3 s)
+and the current's coupling (0.1-6 nT/A) are drawn log-uniform, and the named share is printed
+by what the effect does to the survey left uncompensated, at or above 0.1 nT RMS and below.
+The audit reads only the recording. Printed: the confusion matrix (rows: hidden, columns: named), the share of
 flights named exactly right per class, the coverage of the 95 % intervals, for ``step``
 the share with an ``unexplained`` event within +-120 s of the step, and the share of flights
 whose ``noise_floor_nT`` lies within 20 % of the simulated sensor noise (with and without
@@ -36,28 +38,37 @@ import numpy as np
 from scipy.stats import binomtest, kstest
 
 from pipeline.audit import EFFECTS
-from pipeline.simulate.audit_trials import CLASSES, EVENT_WINDOW_S, correct, one_flight
+from pipeline.simulate.audit_trials import (
+    CLASSES,
+    EVENT_WINDOW_S,
+    SURVEY_ERROR_MATTERS_NT,
+    correct,
+    one_flight,
+)
 
 NOISE_TOLERANCE = 0.2  # issue 16, item 4: the noise floor within 20 % of the sensor's
 
 
-def _one(job: tuple[str, int, str]) -> dict:
-    kind, seed, tmp = job
-    return one_flight(kind, seed, Path(tmp))
+def _one(job: tuple[str, int, str, bool]) -> dict:
+    kind, seed, tmp, sizes = job
+    return one_flight(kind, seed, Path(tmp), sizes=sizes)
 
 
-def run(classes, flights: int, seed: int, progress=print, workers: int = 1) -> list[dict]:
+def run(
+    classes, flights: int, seed: int, progress=print, workers: int = 1, sizes: bool = False
+) -> list[dict]:
     """Audit ``flights`` flights per class, ``workers`` at a time (each flight its own
-    seed: the rows do not depend on ``workers``)."""
+    seed: the rows do not depend on ``workers``); ``sizes`` draws the lag's and the
+    current's sizes."""
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         jobs = [
-            (kind, seed * 1000 + CLASSES.index(kind) * 100 + i, tmp)
+            (kind, seed * 1000 + CLASSES.index(kind) * 100 + i, tmp, sizes)
             for kind in classes
             for i in range(flights)
         ]
         with ProcessPoolExecutor(max(1, workers)) as pool:
-            for (kind, _, _), row in zip(jobs, pool.map(_one, jobs), strict=True):
+            for (kind, *_), row in zip(jobs, pool.map(_one, jobs), strict=True):
                 rows.append(row)
                 hit = "" if row["hit"] is None else f", step hit {row['hit']}"
                 progress(
@@ -93,6 +104,7 @@ def summarise(rows: list[dict]) -> str:
             + (f"{sum(cov)}/{len(cov)}" if cov else "-")
             + " |"
         )
+    lines += by_size(rows)
     floors = [r for r in rows if "noise_floor_nT" in r]
     if floors:
         lines.append(
@@ -158,6 +170,31 @@ def summarise(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+def by_size(rows: list[dict]) -> list[str]:
+    """Named right by the hidden effect's survey error (``survey_error_nT``: what it does
+    to the survey and tie lines left uncompensated), at and above
+    SURVEY_ERROR_MATTERS_NT and below it (where naming it is not required)."""
+    sized = [r for r in rows if r.get("survey_error_nT") is not None]
+    if not sized:
+        return []
+    cut = SURVEY_ERROR_MATTERS_NT
+    out = [
+        f"\n| hidden | survey error >= {cut} nT: named right | below {cut} nT: named right |"
+        " survey error range nT |",
+        "|---|---|---|---|",
+    ]
+    for c in dict.fromkeys(r["kind"] for r in sized):
+        rr = [r for r in sized if r["kind"] == c]
+        big = [r for r in rr if r["survey_error_nT"] >= cut]
+        small = [r for r in rr if r["survey_error_nT"] < cut]
+        err = [r["survey_error_nT"] for r in rr]
+        out.append(
+            f"| {c} | {sum(correct(r) for r in big)}/{len(big)} | "
+            f"{sum(correct(r) for r in small)}/{len(small)} | {min(err):.3f}-{max(err):.3f} |"
+        )
+    return out
+
+
 def outside_basis_nT(row: dict) -> float:
     """The flight's interference outside the tl18 basis on calibration (nT RMS): the
     terms' overrides added in quadrature (:func:`pipeline.simulate.random_flight_overrides`)."""
@@ -218,6 +255,9 @@ def main() -> int:
     ap.add_argument("--json", type=Path)
     ap.add_argument("--workers", type=int, default=1, help="flights audited at a time")
     ap.add_argument("--qq", type=Path, help="write the null flights' p-value QQ plot (PNG)")
+    ap.add_argument(
+        "--sizes", action="store_true", help="draw the lag's and the current's sizes (log-uniform)"
+    )
     a = ap.parse_args()
     t0 = time.perf_counter()
     rows = run(
@@ -226,6 +266,7 @@ def main() -> int:
         a.seed,
         progress=lambda m: print(m, file=sys.stderr, flush=True),
         workers=a.workers,
+        sizes=a.sizes,
     )
     print(summarise(rows))
     print(f"\n{len(rows)} flights in {time.perf_counter() - t0:.0f} s")

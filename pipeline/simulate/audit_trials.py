@@ -27,8 +27,19 @@ CLASSES = ("none", *EFFECTS, "step")
 EVENT_WINDOW_S = 120.0
 
 
-def hidden_overrides(kind: str, rng: np.random.Generator) -> list[str]:
-    """Scenario overrides hiding ``kind`` (a catalogue effect), with varied forms."""
+# effect sizes drawn with ``sizes``: log-uniform, from under what matters to a survey (a
+# survey error of SURVEY_ERROR_MATTERS_NT, see survey_error_nT) to well above it
+LAG_S = (0.02, 0.3)
+COUPLING_NT_PER_A = (0.1, 6.0)
+# the size of survey error that matters: the 0.1 nT noise envelope high-resolution survey
+# specifications allow
+SURVEY_ERROR_MATTERS_NT = 0.1
+
+
+def hidden_overrides(kind: str, rng: np.random.Generator, sizes: bool = False) -> list[str]:
+    """Scenario overrides hiding ``kind`` (a catalogue effect), with varied forms; with
+    ``sizes`` the lag and the current coupling are drawn log-uniform over :data:`LAG_S` and
+    :data:`COUPLING_NT_PER_A` (after the other draws: without it the flights are unchanged)."""
     if kind in ("none", "step"):
         return []
     out = [f"effects.{kind}.enabled=true"]
@@ -38,7 +49,43 @@ def hidden_overrides(kind: str, rng: np.random.Generator) -> list[str]:
         out.append(
             f"effects.electrical_current.temperature_coefficient_per_K={rng.uniform(0.005, 0.03)!r}"
         )
+    if sizes and kind == "sensor_lag":
+        out.append(f"effects.sensor_lag.lag_s={float(np.exp(rng.uniform(*np.log(LAG_S))))!r}")
+    if sizes and kind == "electrical_current":
+        k = float(np.exp(rng.uniform(*np.log(COUPLING_NT_PER_A))))
+        out.append(f"effects.electrical_current.coupling_nT_per_A={k!r}")
     return out
+
+
+def survey_error_nT(kind: str, sim) -> float | None:
+    """What the hidden effect, left uncompensated, does to the survey and tie lines (nT RMS):
+    a lag of tau reads the field tau late, an error of tau dB/dt with B the true field
+    along the track; a current coupling k along body direction d adds k (u . d) I with u
+    the field's direction, less its mean (a constant is the carrier's permanent field).
+    None for the other classes."""
+    if kind not in ("sensor_lag", "electrical_current"):
+        return None
+    t = (sim.series["time_ns"] - sim.start_ns) / 1e9
+    lines = np.zeros(t.size, bool)
+    for g in sim.truth["segments"]:
+        if g["label"] in ("survey", "tie"):
+            lines |= (t >= float(g["start_s"])) & (t < float(g["end_s"]))
+    if lines.sum() < 10:
+        return None
+    if kind == "sensor_lag":
+        tau = float(sim.scenario.effect("sensor_lag")["lag_s"])
+        err = tau * np.gradient(sim.series["earth_total_nT"], t)
+    else:
+        cur = sim.scenario.effect("electrical_current")
+        aux = sim.streams[f"/aux/{cur['channel']}"]
+        current = np.interp(t, aux["t"], next(iter(aux["cols"].values())))
+        v = sim.streams["/mag/vector"]
+        vec = np.stack([np.interp(t, v["t"], v["cols"][k]) for k in ("x_nT", "y_nT", "z_nT")], -1)
+        d = np.asarray(cur["direction_body"], float)
+        u = vec / np.linalg.norm(vec, axis=1, keepdims=True)
+        err = float(cur["coupling_nT_per_A"]) * (u @ (d / np.linalg.norm(d))) * current
+    e = err[lines]
+    return float(np.sqrt(np.mean((e - e.mean()) ** 2)))
 
 
 def add_permanent_step(sim, rng: np.random.Generator) -> dict:
@@ -87,11 +134,12 @@ def within_ci(effect: str, f: dict, truth: dict) -> list[bool]:
     return out
 
 
-def one_flight(kind: str, seed: int, folder: Path, **ranges) -> dict:
+def one_flight(kind: str, seed: int, folder: Path, sizes: bool = False, **ranges) -> dict:
     """Simulate, audit and score one flight; ``ranges`` narrow
-    :func:`random_flight_overrides`' draws (the CI subset flies milder flights)."""
+    :func:`random_flight_overrides`' draws (the CI subset flies milder flights); ``sizes``
+    draws the lag's and the current's sizes (:func:`hidden_overrides`)."""
     rng = np.random.default_rng(seed)
-    overrides = random_flight_overrides(rng, **ranges) + hidden_overrides(kind, rng)
+    overrides = random_flight_overrides(rng, **ranges) + hidden_overrides(kind, rng, sizes)
     profile = override_value(overrides, "profile")
     overrides += TIED_SURVEY[profile]
     sim = simulate(Scenario.load("uav-small", overrides), int(rng.integers(2**31)))
@@ -135,6 +183,7 @@ def one_flight(kind: str, seed: int, folder: Path, **ranges) -> dict:
         "vibration": override_value(overrides, "interference.outside_basis.vibration_nT")
         is not None,
         "overrides": overrides,
+        "survey_error_nT": survey_error_nT(kind, sim),
         "null_p_values": null_p_values(res),
     }
 
