@@ -5,22 +5,23 @@
         [--qq NULL_QQ.png] [--sizes]
 
 Each flight is drawn by :func:`pipeline.simulate.random_flight_overrides` (multicopter or
-fixed-wing, one or two calibration passes, headings in any order, manoeuvre blocks of
-15-30 s at 3-10 s periods and 3-15 deg, scalar noise 0.02-0.5 nT, 0-1 nT of interference
-outside the tl18 basis) and hides one catalogue effect, nothing (``none``) or a step in the
+fixed-wing, one or two calibration passes, headings in any order, manoeuvre blocks of 15-30
+s at 3-10 s periods and 3-15 deg, scalar noise 0.02-0.5 nT, 0-1 nT of interference outside
+the tl18 basis) and hides one catalogue effect, nothing (``none``) or a step in the
 carrier's permanent field mid-survey (``step``, outside the catalogue). The effects do not
 take the audit's functional forms only: a lag is a pure delay or a first-order sensor
-response, a current coupling may drift with temperature; with ``--sizes`` the lag (0.02-0.3 s)
-and the current's coupling (0.1-6 nT/A) are drawn log-uniform, and the named share is printed
-by what the effect does to the survey left uncompensated, at or above 0.1 nT RMS and below.
-The audit reads only the recording. Printed: the confusion matrix (rows: hidden, columns: named), the share of
-flights named exactly right per class, the coverage of the 95 % intervals, for ``step``
-the share with an ``unexplained`` event within +-120 s of the step, and the share of flights
-whose ``noise_floor_nT`` lies within 20 % of the simulated sensor noise (with and without
-vibration outside the basis). On the flights with nothing hidden: the flight-level false
-rate with its exact interval, and the p-values that should spread uniformly there (the null
-bootstrap's maximum statistic, the first round's tests) with a QQ plot. Targets (issue 16):
-named alone >= 95 %, clean -> no finding >= 95 %, step -> event >= 90 %, coverage >= 90 %.
+response, a current coupling may drift with temperature; with ``--sizes`` the lag (0.02-0.3
+s) and the current's coupling (0.1-6 nT/A) are drawn log-uniform, and the named share is
+printed by what the effect does to the survey left uncompensated, at or above 0.1 nT RMS and
+below. The audit reads only the recording. Printed: the confusion matrix (rows: hidden,
+columns: named), the share of flights named exactly right per class, the coverage of the 95
+% intervals, for ``step`` the share with an ``unexplained`` event within +-120 s of the
+step, and the share of flights whose ``noise_floor_nT`` lies within 20 % of the simulated
+sensor noise (with and without vibration outside the basis). On the flights with nothing
+hidden: the flight-level false rate with its exact interval, and the p-values that should
+spread uniformly there (the null bootstrap's maximum statistic, the first round's tests)
+with a QQ plot. Targets (issue 16): named alone >= 95 %, clean -> no finding >= 95 %, step
+-> event >= 90 %, coverage >= 90 %.
 """
 
 from __future__ import annotations
