@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.audit import EFFECTS, run_audit
+from pipeline.compensate.terms import direction_cosines
 from pipeline.io.reader import read_flight
 from pipeline.segment import segment_flight
 from pipeline.simulate.scenario import Scenario
@@ -79,27 +80,31 @@ def survey_error_nT(kind: str, sim) -> float | None:
         cur = sim.scenario.effect("electrical_current")
         aux = sim.streams[f"/aux/{cur['channel']}"]
         current = np.interp(t, aux["t"], next(iter(aux["cols"].values())))
-        v = sim.streams["/mag/vector"]
-        vec = np.stack([np.interp(t, v["t"], v["cols"][k]) for k in ("x_nT", "y_nT", "z_nT")], -1)
         d = np.asarray(cur["direction_body"], float)
-        u = vec / np.linalg.norm(vec, axis=1, keepdims=True)
+        u = unit_field_at(sim, t)
         err = float(cur["coupling_nT_per_A"]) * (u @ (d / np.linalg.norm(d))) * current
     e = err[lines]
     return float(np.sqrt(np.mean((e - e.mean()) ** 2)))
+
+
+def unit_field_at(sim, t_s: np.ndarray) -> np.ndarray:
+    """The simulated fluxgate's field direction (n, 3), body frame, at times ``t_s`` (s from
+    the start), interpolated from ``/mag/vector``."""
+    v = sim.streams["/mag/vector"]
+    vec = np.stack([np.interp(t_s, v["t"], v["cols"][k]) for k in ("x_nT", "y_nT", "z_nT")], -1)
+    return direction_cosines(vec)
 
 
 def add_permanent_step(sim, rng: np.random.Generator) -> dict:
     """A step of 3-8 nT in the carrier's permanent field (body frame) at a random time in
     the middle of the survey: the scalar reading changes by u . dp afterwards."""
     s = sim.streams["/mag/scalar"]
-    v = sim.streams["/mag/vector"]
     survey = [g for g in sim.truth["segments"] if g["label"] == "survey"]
     t0, t1 = float(survey[0]["start_s"]), float(survey[-1]["end_s"])
     t_step = float(rng.uniform(t0 + 0.3 * (t1 - t0), t0 + 0.7 * (t1 - t0)))
     dp = rng.normal(size=3)
     dp *= rng.uniform(3.0, 8.0) / np.linalg.norm(dp)
-    vec = np.stack([np.interp(s["t"], v["t"], v["cols"][k]) for k in ("x_nT", "y_nT", "z_nT")], -1)
-    u = vec / np.linalg.norm(vec, axis=1, keepdims=True)
+    u = unit_field_at(sim, s["t"])
     after = s["t"] > t_step
     s["cols"]["total_nT"] = s["cols"]["total_nT"] + after * (u @ dp)
     return {"time_s": t_step, "dp_nT": dp.tolist()}
