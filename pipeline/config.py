@@ -234,6 +234,7 @@ class Config:
             null_draws=a["null_draws"],
             null_seed=a["null_seed"],
             min_nuisance_nT=a["min_nuisance_nT"],
+            min_survey_effect_nT=a["min_survey_effect_nT"],
         )
 
     def validate(self) -> None:

@@ -12,7 +12,7 @@ from pipeline.defaults import default_field
 # the tests outside the null bootstrap's maximum that can name something on a flight: the
 # survey's change scan (steps and drift), the calibration legs' step scan and the step
 # against the fluxgate (each calibrated by its own null simulation), and a current coupling
-# decided by the crossovers or the switches alone (Bonferroni over channels and both kinds)
+# decided by the survey's crossovers and switches joined (Bonferroni over channels)
 EVENT_TESTS = 4
 
 
@@ -68,6 +68,9 @@ class AuditSettings:
         measures it (draws, seed).
     min_nuisance_nT : float
         Held-out RMS (nT) a nuisance must remove, with the findings in the model, to stay.
+    min_survey_effect_nT : float
+        What a current coupling decided by the survey's own evidence must do to the survey
+        lines (RMS, nT) to be named.
     fluxgate_tolerance : float
         Largest attitude-dependent disagreement of the vector magnetometer's magnitude with
         the scalar field (held-out RMS, as a fraction of the field) that counts as a
@@ -118,6 +121,8 @@ class AuditSettings:
     null_seed: int = default_field("audit", "null_seed")
     # the interference a nuisance must remove to stay in the model beside the findings
     min_nuisance_nT: float = default_field("audit", "min_nuisance_nT")
+    # what a coupling the survey alone decides must do to the lines to be worth naming
+    min_survey_effect_nT: float = default_field("audit", "min_survey_effect_nT")
     # a lag estimate moves with the resampling and the eddy columns' differences by a few
     # ms; under 20 ms a lag shifts the anomaly by less than 14 cm along track at 7 m/s (0.6 m
     # at 30 m/s), below a survey's positioning error: not worth a model term

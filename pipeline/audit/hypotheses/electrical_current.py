@@ -1,12 +1,14 @@
 """The electrical current candidate: an auxiliary channel's current coupling into the reading
 (three body-frame columns), with the survey's crossovers and the channel's switches as evidence
-outside the calibration (rules C1-C4 of docs/audit.md)."""
+outside the calibration (rules C1-C5 of docs/audit.md)."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
+from scipy import stats
 
 from pipeline.audit.context import AuditContext
 from pipeline.audit.crossval import jackknife_ci95
@@ -72,6 +74,7 @@ def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
     sg = _by_the_crossovers(ctx, ev, current, name, sc)
     sw = _by_the_switches(ctx, ev, current, name)
     _by_both(ctx, ev, current, name, (sc, sg), sw)
+    _by_the_survey(ctx, ev, current, name, sc, sw)
     # a current that follows the manoeuvres (a motor's) can stand in for interference
     # that is not linear in the field or in the rates: the coupling is named only when it
     # explains held-out data better than the second-order terms do
@@ -140,11 +143,6 @@ def _by_the_crossovers(
         # (Fisher), the two together must reach alpha
         if sc.p_value < ctx.s.alpha and sg.reduction >= ctx.s.min_gain:
             ev.confirm_p, ev.confirmed_gain = sg.p_value, True
-            # the crossovers' own test decides alone when it predicts them leave-one-out
-            # (p < alpha): a load that hardly changes during the calibration (one pass, a
-            # fixed-wing's steady legs) leaves the calibration blind to its coupling
-            if decides_outside(ctx, current, sc.p_value) and sg.p_value < ctx.s.alpha:
-                _decide_outside(ctx, ev, current, name, "survey_total_field_nT_per_unit")
     return sg
 
 
@@ -202,10 +200,6 @@ def _by_the_switches(
             # the better of two confirmations, Bonferroni-corrected for the choice
             ev.confirm_p = p if ev.confirm_p is None else min(1.0, 2 * min(ev.confirm_p, p))
             ev.confirmed_gain = True
-            # the steps' own test decides alone: the band-passed calibration is blind to a
-            # load it sees switch a few times
-            if not ev.decided_outside and decides_outside(ctx, current, sw.p_value):
-                _decide_outside(ctx, ev, current, name, "switch_total_field_nT_per_unit")
     return sw
 
 
@@ -222,11 +216,9 @@ def _by_both(
     ``alpha`` alone: the two are different data (the lines' intersections, the field's
     steps where the channel switches), so with no coupling their leave-one-out p-values
     are independent and Fisher's combination is uniform. Few switches cannot reach
-    ``alpha`` alone (a sign-flip test over n steps has no p below 2^-n). The joined
-    prediction decides as either would alone (:func:`decides_outside` on the coupling
-    tests' Fisher p, :func:`_decide_outside` with the switches' coupling)."""
+    ``alpha`` alone (a sign-flip test over n steps has no p below 2^-n)."""
     sc, sg = crossovers
-    if ev.decided_outside or sc is None or sg is None or sw is None:
+    if sc is None or sg is None or sw is None:
         return
     s = ctx.s
     shown = (
@@ -244,19 +236,112 @@ def _by_both(
     if predicted >= s.alpha:
         return
     ev.confirm_p, ev.confirmed_gain = predicted, True
-    if decides_outside(ctx, current, fisher_combined(sc.p_value, sw.p_value)):
-        ev.estimate["confirmed_by"] = "the survey's crossovers and the channel's switches"
+
+
+@dataclass(frozen=True)
+class SurveyCouplingTest:
+    """A channel's coupling as the total field sees it, k nT per unit, from the survey
+    outside the calibration (:func:`joined_coupling`)."""
+
+    total_field_nT_per_unit: float  # the inverse-variance mean of the sources' k
+    se_nT_per_unit: float
+    p_value: float  # two-sided, against no coupling
+    sources: tuple[str, ...]
+
+
+def joined_coupling(
+    sc: SurveyCoupling | None, sw: SwitchCoupling | None
+) -> SurveyCouplingTest | None:
+    """The crossovers' and the switches' estimates of the same k joined: each source's
+    two-sided p as a signed normal score, weighted by its inverse standard error (weighted
+    Stouffer: with no coupling the scores are independent standard normals, different data,
+    and the weights do not depend on them, so the joined score is one too; with a coupling
+    it is the inverse-variance mean's z, the most powerful join of two estimates of one
+    parameter, and a source that sees little weighs little). None without either."""
+    parts = []
+    if sc is not None and np.isfinite(sc.nT_per_unit):
+        # the crossovers' interval is Student's on many differences: near-normal
+        se = (sc.ci95[1] - sc.ci95[0]) / (2 * stats.norm.isf(0.025))
+        parts.append(("survey crossovers", sc.nT_per_unit, se, sc.p_value))
+    if sw is not None and np.isfinite(sw.total_field_nT_per_unit):
+        parts.append(
+            ("channel switches", sw.total_field_nT_per_unit, sw.se_nT_per_unit, sw.p_value)
+        )
+    parts = [p for p in parts if np.isfinite(p[2]) and p[2] > 0]
+    if not parts:
+        return None
+    k = np.array([p[1] for p in parts])
+    w = 1.0 / np.array([p[2] for p in parts])
+    z = np.sign(k) * stats.norm.isf(np.clip([p[3] for p in parts], 1e-300, 1.0) / 2)
+    score = float(w @ z / np.linalg.norm(w))
+    return SurveyCouplingTest(
+        total_field_nT_per_unit=float(w**2 @ k / np.sum(w**2)),
+        se_nT_per_unit=float(1.0 / np.linalg.norm(w)),
+        p_value=float(2 * stats.norm.sf(abs(score))),
+        sources=tuple(p[0] for p in parts),
+    )
+
+
+def _by_the_survey(
+    ctx: AuditContext,
+    ev: Evaluation,
+    current: ModelSpec,
+    name: str,
+    sc: SurveyCoupling | None,
+    sw: SwitchCoupling | None,
+) -> None:
+    """The survey's own evidence decides (C3): the crossovers' and the switches' coupling
+    joined (:func:`joined_coupling`) significant at ``event_alpha`` (Bonferroni over the
+    channels, :func:`decides_outside`), and large enough to matter to the survey: k times
+    the channel's spread along the lines at least ``min_survey_effect_nT``. A load that
+    hardly changes during the calibration (one pass, a fixed-wing's steady legs) or that
+    the calibration sees switch a few times leaves the band-passed calibration blind to its
+    coupling; interference the calibration leaves (an unrecorded current, vibration) hides
+    it there too."""
+    joined = joined_coupling(sc, sw)
+    if joined is None:
+        return
+    effect = survey_effect_nT(ctx, name, joined.total_field_nT_per_unit)
+    ev.estimate.update(
+        survey_joined_total_field_nT_per_unit=joined.total_field_nT_per_unit,
+        survey_joined_p_value=joined.p_value,
+        survey_joined_sources=list(joined.sources),
+        survey_effect_nT=effect,
+    )
+    lo = joined.total_field_nT_per_unit - stats.norm.isf(0.025) * joined.se_nT_per_unit
+    hi = joined.total_field_nT_per_unit + stats.norm.isf(0.025) * joined.se_nT_per_unit
+    ev.ci95.update(
+        survey_joined_total_field_nT_per_unit=[lo, hi],
+        survey_joined_p_value=None,
+        survey_joined_sources=None,
+        survey_effect_nT=None,
+    )
+    if (
+        not ev.decided_outside
+        and decides_outside(ctx, current, joined.p_value)
+        and effect >= ctx.s.min_survey_effect_nT
+    ):
+        ev.estimate["confirmed_by"] = " and ".join(joined.sources)
         ev.ci95["confirmed_by"] = None
-        _decide_outside(ctx, ev, current, name, "switch_total_field_nT_per_unit")
+        ev.confirmed_gain = True
+        _decide_outside(ctx, ev, current, name, "survey_joined_total_field_nT_per_unit")
+
+
+def survey_effect_nT(ctx: AuditContext, name: str, k_nT_per_unit: float) -> float:
+    """What a coupling of ``k_nT_per_unit`` does to the survey lines (nT RMS): k times
+    channel ``name``'s spread about its mean there (a constant is a level the levelling
+    takes)."""
+    x = np.asarray(ctx.data.aux[name], float)[ctx.seg.mask("survey", "tie", "validation")]
+    x = x[np.isfinite(x)]
+    return float(abs(k_nT_per_unit) * np.std(x)) if x.size > 1 else 0.0
 
 
 def decides_outside(ctx: AuditContext, current: ModelSpec, p_value: float) -> bool:
-    """Whether a coupling test outside the calibration (the crossovers' or the switches')
-    with ``p_value`` decides alone: Bonferroni over the channels tested and the two kinds of
-    evidence, at ``event_alpha``, one of the tests outside the null bootstrap's maximum
-    that share the flight's false-finding budget
+    """Whether the survey's joined coupling test (:func:`joined_coupling`) with
+    ``p_value`` decides: Bonferroni over the channels tested, at ``event_alpha``, one of the
+    tests outside the null bootstrap's maximum that share the flight's false-finding budget
     (:data:`pipeline.audit.settings.EVENT_TESTS`)."""
-    n_tests = 2 * max(1, len(keys(ctx, current)))
+    n_tests = max(1, len(keys(ctx, current)))
     return p_value * n_tests < ctx.s.event_alpha
 
 
