@@ -109,3 +109,31 @@ def test_too_short_a_record_gives_nothing():
     t, s, v = flight(6, (3.0, 0.0, 0.0), step_s=100.0)
     keep = t < 300.0
     assert scan_vector_reference(t[keep], s[keep], v[keep]) is None
+
+
+def test_a_step_that_dominates_the_residual_is_found():
+    """A trial flight (:mod:`pipeline.simulate.audit_trials`: a multicopter, one calibration
+    pass far from a 400 m survey) with a 6.4 nT step in the carrier's permanent field two
+    thirds into the survey. The model's residual without the step is mostly the step: a
+    scan whitened and weighted from it puts its likeliest change point elsewhere, at F under
+    its null's 95 % point. The least-squares first scan finds it, and the whitened scans
+    then confirm it far beyond the margin."""
+    from pathlib import Path
+    from tempfile import TemporaryDirectory
+
+    from pipeline.audit.context import AuditData
+    from pipeline.segment import segment_flight
+    from pipeline.simulate import audit_trials as at
+
+    rng = np.random.default_rng(3838603)
+    overrides = at.random_flight_overrides(rng) + at.hidden_overrides("step", rng)
+    overrides += at.TIED_SURVEY[at.override_value(overrides, "profile")]
+    sim = at.simulate(at.Scenario.load("uav-small", overrides), int(rng.integers(2**31)))
+    truth = at.add_permanent_step(sim, rng)
+    with TemporaryDirectory() as tmp:
+        f = at.read_flight(at.write_simulation(sim, Path(tmp) / "step.mcap"))
+    d = AuditData.from_flight(f, segment_flight(f).mask("calibration"))
+    step = vector_reference_step(d.time_s, d.scalar_nT, d.vector_nT, d.aux, alpha=0.01)
+    assert step is not None
+    assert abs(step.time_s - truth["time_s"]) < 10.0
+    assert np.allclose(step.dp_nT, truth["dp_nT"], atol=0.6)

@@ -12,17 +12,18 @@ scale and misalignment: ``|M b + o| ~ |b| + |b| u^T (M - I) u + u . o`` to first
 same basis). A change dp of the carrier's permanent field at t_s adds u . dp afterwards:
 
     d_k = c0 + c1 t_k + a . u_k + |B|_k u_k^T Q u_k + |B|_k^2 C[u_k, u_k, u_k]
-          + l (d|B|/dt)_k + |B|_k u_k^T E du_k/dt + sum_j I_jk (g_j . u_k)
-          + [t_k > t_s] u_k . dp + e_k
+          + l (d|B|/dt)_k + |B|_k u_k^T E du_k/dt + sum_tau h_tau * (|B| u^T E_tau du/dt)_k
+          + sum_j I_jk (g_j . u_k) + [t_k > t_s] u_k . dp + e_k
 
 (``Q`` symmetric, six columns; ``C`` the ten cubic monomials of u, what interference outside
 the T-L basis leaves over a whole flight's attitudes; ``l`` a timing difference of the two
-sensors seen over the ground's gradients; ``E`` the eddy terms, nine columns; ``I_j`` the
-recorded auxiliary channels, a current's coupling projected on u; ``c1 t`` a drift of
-either sensor). Over the whole flight (lines, ties, turns and calibration at every heading) the
-direction-cosine coefficients are pinned on both sides of t_s, so a step shows at its full
-size u . dp, whatever heading the lines before and after it were flown on; the crossovers
-see only the heading levels' change.
+sensors seen over the ground's gradients; ``E`` the eddy terms, nine columns, and ``E_tau``
+the same through a first-order response ``h_tau`` (eddy currents that decay,
+:data:`EDDY_DECAY_TAUS_S`); ``I_j`` the recorded auxiliary channels, a current's coupling
+projected on u; ``c1 t`` a drift of either sensor). Over the whole flight (lines, ties,
+turns and calibration at every heading) the direction-cosine coefficients are pinned on both
+sides of t_s, so a step shows at its full size u . dp, whatever heading the lines before and
+after it were flown on; the crossovers see only the heading levels' change.
 
 The 1 s means are used (the fluxgate's noise, 0.5-1 nT a reading, averages down; the eddy
 terms of manoeuvres largely cancel), the model is prewhitened by an AR(2) of its own
@@ -44,15 +45,21 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 from scipy.ndimage import uniform_filter1d
+from scipy.signal import lfilter
 
 from pipeline.audit.prewhiten import ar_coefficients, ar_whitener, kept_rows
 
 AR_ORDER = 2
+# decay times (s) of the eddy currents the difference's model holds beside the
+# instantaneous eddy terms: a carrier skin's L/R of 0.2-1.5 s (the audit's null model takes
+# such a decay), which two first-order responses span; faster decays are the eddy terms to
+# first order in w tau over 1 s means
+EDDY_DECAY_TAUS_S = (0.3, 1.0)
 SCAN_SIMULATIONS = 500
 # the scan's F over its Gaussian null's 95 % point that a step must reach: that ratio's
 # quantile at the event test's level on simulated step-free flights
 # (benchmarks/bench_fluxgate_step_margin.py; AuditSettings.fluxgate_step_margin)
-STEP_MARGIN = 7.4
+STEP_MARGIN = 5.7
 
 
 @dataclass
@@ -192,8 +199,8 @@ def _difference_columns(
 ) -> list[np.ndarray]:
     """The model's columns of the scalar-minus-vector difference on the epochs (times ``t``,
     s; fluxgate magnitude ``b``, nT, and direction cosines ``u``; the aux channels):
-    level, drift, the carrier's permanent, induced, third-order and eddy terms, the timing
-    term and ``I u`` per channel (the module docstring)."""
+    level, drift, the carrier's permanent, induced, third-order and eddy terms (instantaneous
+    and decaying), the timing term and ``I u`` per channel (the module docstring)."""
     b0 = float(np.median(b))
     # the timing term: d|B|/dt over the ground's gradients (np.gradient on uneven epochs)
     db = np.gradient(b, t) if t.size > 2 else np.zeros_like(b)
@@ -215,9 +222,14 @@ def _difference_columns(
     # the eddy terms (and the scalar's interference read a little earlier or later than
     # the fluxgate): |B| u_i du_j/dt, large only while the attitude changes fast
     du = np.gradient(u, t, axis=0) if t.size > 2 else np.zeros_like(u)
-    for i in range(3):
-        for j in range(3):
-            cols.append(bs * u[:, i] * du[:, j])
+    eddy = [bs * u[:, i] * du[:, j] for i in range(3) for j in range(3)]
+    cols += eddy
+    # eddy currents that decay: the eddy terms through first-order responses (the epochs
+    # taken as evenly spaced at their median step)
+    dt = float(np.median(np.diff(t))) if t.size > 2 else 1.0
+    for tau in EDDY_DECAY_TAUS_S:
+        a = np.exp(-dt / tau)
+        cols += [lfilter([1.0 - a], [1.0, -a], c) for c in eddy]
     for v in aux:
         sd = float(np.std(v))
         if sd > 0:
@@ -383,11 +395,14 @@ def scan_vector_reference(
     if n < 4 * (k0 + 3) or tb[-1] - tb[0] < 4 * guard_s:
         return None
     grid = np.arange(tb[0] + guard_s, tb[-1] - guard_s, scan_every_s)
-    # the scan twice: the whitening and the weights come from the model's residual, and a
-    # large step left in it both pulls the AR(2) towards a random walk (which whitens a step
-    # into one bin) and raises the local RMS around itself, so the step weighs itself down.
-    # The second scan takes both from the residual with the first scan's likeliest step in.
-    sp = _scan_pass(tb, y, base, u, block, grid, None, scale_window_s / bin_s)
+    # the whitening and the weights come from the model's residual, and a large step left
+    # in it both pulls the AR(2) towards a random walk (which whitens a step into one bin)
+    # and raises the local RMS around itself, so the step weighs itself down: a scan
+    # whitened without it can miss it altogether. So the first scan is plain least squares
+    # (nothing estimated from the residual), and each whitened scan takes the AR(2) and the
+    # weights from the residual with the previous scan's likeliest step in.
+    with_step = u * (tb > grid[_least_squares_best(tb, y, base, u, grid)])[:, None]
+    sp = _scan_pass(tb, y, base, u, block, grid, with_step, scale_window_s / bin_s)
     with_step = u * (tb > grid[sp.best])[:, None]
     sp = _scan_pass(tb, y, base, u, block, grid, with_step, scale_window_s / bin_s)
     with_step = u * (tb > grid[sp.best])[:, None]
@@ -433,6 +448,17 @@ class _ScanPass:
     scan: _StepScan
     f: np.ndarray
     best: int
+
+
+def _least_squares_best(tb, y, base, u, grid) -> int:
+    """The index in ``grid`` of the likeliest step ``u [tb > t]`` against ``base`` by
+    ordinary least squares (no whitening, equal weights; :class:`_StepScan` with an AR order
+    of 0): where the step's three columns take the most of the residual."""
+    uu, sv, _ = np.linalg.svd(base, full_matrices=False)
+    q0 = uu[:, sv > 1e-8 * sv[0]]
+    n = y.size
+    scan = _StepScan.build(u, tb, grid, np.zeros(0), np.arange(n), u, np.ones(n), q0)
+    return int(np.argmax(scan.f_stats(y, q0)[:, 0]))
 
 
 def _scan_pass(tb, y, base, u, block, grid, with_step, scale_window_bins: float) -> _ScanPass:
