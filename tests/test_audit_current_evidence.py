@@ -174,3 +174,8 @@ def test_a_significant_coupling_too_small_for_the_survey_is_not_decided():
     ctx, ev = _ctx(amplitude_A=1.0), _ev()  # 0.05 nT on the lines
     _by_the_survey(ctx, ev, ModelSpec(), "payload", sc, sw)
     assert ev.decided_outside
+    # one kind of evidence is not joined: it decides by its own rules (with its
+    # leave-one-out prediction), not by this test
+    ev = _ev()
+    _by_the_survey(ctx, ev, ModelSpec(), "payload", sc, None)
+    assert not ev.decided_outside and "survey_joined_p_value" not in ev.estimate

@@ -12,7 +12,8 @@ from pipeline.defaults import default_field
 # the tests outside the null bootstrap's maximum that can name something on a flight: the
 # survey's change scan (steps and drift), the calibration legs' step scan and the step
 # against the fluxgate (each calibrated by its own null simulation), and a current coupling
-# decided by the survey's crossovers and switches joined (Bonferroni over channels)
+# decided on the survey: crossovers, switches or both joined (Bonferroni over channels and
+# the three)
 EVENT_TESTS = 4
 
 

@@ -143,6 +143,16 @@ def _by_the_crossovers(
         # (Fisher), the two together must reach alpha
         if sc.p_value < ctx.s.alpha and sg.reduction >= ctx.s.min_gain:
             ev.confirm_p, ev.confirmed_gain = sg.p_value, True
+            # the crossovers' own test decides alone when it also predicts them
+            # leave-one-out (p < alpha): one kind of evidence has its own confounds (a
+            # step, line levels, a channel that drifts with time), which its prediction of
+            # crossovers it was not fitted on guards against
+            if (
+                decides_outside(ctx, current, sc.p_value)
+                and sg.p_value < ctx.s.alpha
+                and _matters(ctx, name, sc.nT_per_unit)
+            ):
+                _decide_outside(ctx, ev, current, name, "survey_total_field_nT_per_unit")
     return sg
 
 
@@ -200,6 +210,13 @@ def _by_the_switches(
             # the better of two confirmations, Bonferroni-corrected for the choice
             ev.confirm_p = p if ev.confirm_p is None else min(1.0, 2 * min(ev.confirm_p, p))
             ev.confirmed_gain = True
+            # the steps' own test decides alone, as the crossovers' does
+            if (
+                not ev.decided_outside
+                and decides_outside(ctx, current, sw.p_value)
+                and _matters(ctx, name, sw.total_field_nT_per_unit)
+            ):
+                _decide_outside(ctx, ev, current, name, "switch_total_field_nT_per_unit")
     return sw
 
 
@@ -290,15 +307,16 @@ def _by_the_survey(
     sc: SurveyCoupling | None,
     sw: SwitchCoupling | None,
 ) -> None:
-    """The survey's own evidence decides (C3): the crossovers' and the switches' coupling
-    joined (:func:`joined_coupling`) significant at ``event_alpha`` (Bonferroni over the
-    channels, :func:`decides_outside`), and large enough to matter to the survey: k times
-    the channel's spread along the lines at least ``min_survey_effect_nT``. A load that
-    hardly changes during the calibration (one pass, a fixed-wing's steady legs) or that
-    the calibration sees switch a few times leaves the band-passed calibration blind to its
-    coupling; interference the calibration leaves (an unrecorded current, vibration) hides
-    it there too."""
-    joined = joined_coupling(sc, sw)
+    """The survey's two kinds of evidence decide together (C3): the crossovers' and the
+    switches' coupling joined (:func:`joined_coupling`) significant at ``event_alpha``
+    (:func:`decides_outside`), and large enough to matter (:func:`_matters`). Two
+    independent data sets that agree need no leave-one-out check: a confound of one (a
+    step or line levels at the crossovers) is not in the other. A load that hardly changes
+    during the calibration (one pass, a fixed-wing's steady legs) or that the calibration
+    sees switch a few times leaves the band-passed calibration blind to its coupling;
+    interference the calibration leaves (an unrecorded current, vibration) hides it there
+    too."""
+    joined = joined_coupling(sc, sw) if sc is not None and sw is not None else None
     if joined is None:
         return
     effect = survey_effect_nT(ctx, name, joined.total_field_nT_per_unit)
@@ -319,12 +337,19 @@ def _by_the_survey(
     if (
         not ev.decided_outside
         and decides_outside(ctx, current, joined.p_value)
-        and effect >= ctx.s.min_survey_effect_nT
+        and _matters(ctx, name, joined.total_field_nT_per_unit)
     ):
         ev.estimate["confirmed_by"] = " and ".join(joined.sources)
         ev.ci95["confirmed_by"] = None
         ev.confirmed_gain = True
         _decide_outside(ctx, ev, current, name, "survey_joined_total_field_nT_per_unit")
+
+
+def _matters(ctx: AuditContext, name: str, k_nT_per_unit: float) -> bool:
+    """Whether a coupling of ``k_nT_per_unit`` to channel ``name`` matters to the survey:
+    what it does to the lines (:func:`survey_effect_nT`) at least ``min_survey_effect_nT``
+    (many crossovers or switches make a negligible coupling significant too)."""
+    return survey_effect_nT(ctx, name, k_nT_per_unit) >= ctx.s.min_survey_effect_nT
 
 
 def survey_effect_nT(ctx: AuditContext, name: str, k_nT_per_unit: float) -> float:
@@ -337,11 +362,11 @@ def survey_effect_nT(ctx: AuditContext, name: str, k_nT_per_unit: float) -> floa
 
 
 def decides_outside(ctx: AuditContext, current: ModelSpec, p_value: float) -> bool:
-    """Whether the survey's joined coupling test (:func:`joined_coupling`) with
-    ``p_value`` decides: Bonferroni over the channels tested, at ``event_alpha``, one of the
-    tests outside the null bootstrap's maximum that share the flight's false-finding budget
-    (:data:`pipeline.audit.settings.EVENT_TESTS`)."""
-    n_tests = max(1, len(keys(ctx, current)))
+    """Whether a coupling test on the survey (the crossovers', the switches' or both
+    joined) with ``p_value`` decides: Bonferroni over the channels tested and the three
+    tests, at ``event_alpha``, one of the tests outside the null bootstrap's maximum that
+    share the flight's false-finding budget (:data:`pipeline.audit.settings.EVENT_TESTS`)."""
+    n_tests = 3 * max(1, len(keys(ctx, current)))
     return p_value * n_tests < ctx.s.event_alpha
 
 
