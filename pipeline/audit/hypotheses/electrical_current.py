@@ -66,8 +66,9 @@ def _electrical(unit: str) -> bool:
 def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
     """A current in auxiliary channel ``key`` (``electrical_current:<name>``) coupling into
     the reading: its three body-frame columns on the calibration, confirmed or decided by
-    the survey's crossovers (:func:`_by_the_crossovers`) and the channel's switches
-    (:func:`_by_the_switches`), and weighed against the second-order terms."""
+    the survey's crossovers (:func:`_by_the_crossovers`), the channel's switches
+    (:func:`_by_the_switches`) or both (:func:`_by_both` confirms, :func:`_by_the_survey`
+    decides), and weighed against the second-order terms."""
     name = key.split(":", 1)[1]
     ext = current.with_(aux=current.aux + (name,))
     ev, sc = _on_the_calibration(ctx, current, key, name, ext)
