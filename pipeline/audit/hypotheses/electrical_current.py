@@ -310,7 +310,7 @@ def _by_the_survey(
 ) -> None:
     """The survey's two kinds of evidence decide together (C3): the crossovers' and the
     switches' coupling joined (:func:`joined_coupling`) significant at ``event_alpha``
-    (:func:`decides_outside`), and large enough to matter (:func:`_matters`). Two
+    (:func:`decides_outside`), and large enough to matter (as :func:`_matters`). Two
     independent data sets that agree need no leave-one-out check: a confound of one (a
     step or line levels at the crossovers) is not in the other. A load that hardly changes
     during the calibration (one pass, a fixed-wing's steady legs) or that the calibration
@@ -327,10 +327,9 @@ def _by_the_survey(
         survey_joined_sources=list(joined.sources),
         survey_effect_nT=effect,
     )
-    lo = joined.total_field_nT_per_unit - stats.norm.isf(0.025) * joined.se_nT_per_unit
-    hi = joined.total_field_nT_per_unit + stats.norm.isf(0.025) * joined.se_nT_per_unit
+    k, half = joined.total_field_nT_per_unit, stats.norm.isf(0.025) * joined.se_nT_per_unit
     ev.ci95.update(
-        survey_joined_total_field_nT_per_unit=[lo, hi],
+        survey_joined_total_field_nT_per_unit=[k - half, k + half],
         survey_joined_p_value=None,
         survey_joined_sources=None,
         survey_effect_nT=None,
@@ -338,7 +337,7 @@ def _by_the_survey(
     if (
         not ev.decided_outside
         and decides_outside(ctx, current, joined.p_value)
-        and _matters(ctx, name, joined.total_field_nT_per_unit)
+        and effect >= ctx.s.min_survey_effect_nT
     ):
         ev.estimate["confirmed_by"] = " and ".join(joined.sources)
         ev.ci95["confirmed_by"] = None
