@@ -79,6 +79,38 @@ def test_turns_are_left_out():
     assert half.time_s.size < all_steps.time_s.size
 
 
+def test_only_turns_at_a_steady_bank_take_switches():
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from pipeline.audit.evidence.survey_side import steady_turns
+
+    t = np.arange(0.0, 120.0, 0.1)
+    roll = np.where(t < 40.0, 0.0, 25.0) + np.where((t > 80.0) & (t < 90.0), 5.0 * (t - 80.0), 0.0)
+    turn = t >= 30.0
+
+    class _Flight:
+        data = pd.DataFrame({"roll_deg": roll, "pitch_deg": np.zeros(t.size)})
+
+        def has(self, *cols):
+            return all(c in self.data for c in cols)
+
+    ctx = SimpleNamespace(
+        flight=_Flight(),
+        seg=SimpleNamespace(mask=lambda *labels: turn),
+        s=SimpleNamespace(switch_steady_attitude_deg=2.0),
+        data=SimpleNamespace(rate_hz=10.0),
+    )
+    steady = steady_turns(ctx)
+    assert not steady[t < 30.0].any()  # not a turn
+    assert not steady[(t > 38.0) & (t < 42.0)].any()  # the roll-in within the window
+    assert steady[(t > 45.0) & (t < 75.0)].all()  # the bank held
+    assert not steady[(t > 81.0) & (t < 89.0)].any()  # the bank changing
+    ctx.flight.data = ctx.flight.data.drop(columns="roll_deg")
+    assert steady_turns(ctx) is None
+
+
 def test_a_switch_over_rough_ground_does_not_spoil_the_coupling():
     # a fast carrier crossing an anomaly's flank right at three switches: within their
     # windows the geology is no line; those steps carry large errors and weigh little

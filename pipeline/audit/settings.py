@@ -72,6 +72,9 @@ class AuditSettings:
     min_survey_effect_nT : float
         What a current coupling decided by the survey's own evidence must do to the survey
         lines (RMS, nT) to be named.
+    switch_steady_attitude_deg : float
+        Largest change of roll and pitch (deg) over a switch's window for a switch read in a
+        turn to count as a step of the channel.
     fluxgate_tolerance : float
         Largest attitude-dependent disagreement of the vector magnetometer's magnitude with
         the scalar field (held-out RMS, as a fraction of the field) that counts as a
@@ -124,6 +127,9 @@ class AuditSettings:
     min_nuisance_nT: float = default_field("audit", "min_nuisance_nT")
     # what a coupling the survey alone decides must do to the lines to be worth naming
     min_survey_effect_nT: float = default_field("audit", "min_survey_effect_nT")
+    # a switch in a turn is read only where the bank is held: the interference the model
+    # leaves follows the attitude, and a roll-in beside a switch would pass for its step
+    switch_steady_attitude_deg: float = default_field("audit", "switch_steady_attitude_deg")
     # a lag estimate moves with the resampling and the eddy columns' differences by a few
     # ms; under 20 ms a lag shifts the anomaly by less than 14 cm along track at 7 m/s (0.6 m
     # at 30 m/s), below a survey's positioning error: not worth a model term

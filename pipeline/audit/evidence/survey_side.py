@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import maximum_filter1d, minimum_filter1d
 
 from pipeline.audit.context import AuditContext
 from pipeline.audit.evidence import HeldOut
@@ -17,7 +18,7 @@ from pipeline.audit.survey import (
     survey_heading,
     survey_lag,
 )
-from pipeline.audit.switching import SwitchSteps, switch_steps
+from pipeline.audit.switching import WINDOW_S, SwitchSteps, switch_steps
 from pipeline.compensate.terms import direction_cosines
 from pipeline.maps.reduce import time_window_mean
 
@@ -73,12 +74,41 @@ def channel_switch_steps(ctx: AuditContext, spec: ModelSpec, name: str) -> Switc
         ctx.data.time_s,
         ctx.compensated(spec),
         ctx.data.aux[name],
-        # compensation is weakest in turns, and in the calibration's manoeuvres a load
-        # that follows them (a motor's current, the bus voltage) changes with the
-        # attitude, so a residual there would pass for a coupling
-        usable=~ctx.seg.mask("turn", "calibration"),
+        usable=_switch_usable(ctx),
         direction=direction_cosines(ctx.data.vector_nT),
     )
+
+
+def _switch_usable(ctx: AuditContext) -> np.ndarray:
+    """Where a switch's window may lie: not in the calibration, whose manoeuvres a load can
+    follow (a motor's current, the bus voltage: a residual there would pass for a
+    coupling), and in a turn only at a steady bank (:func:`steady_turns`), where what the
+    compensation leaves changes with the heading only, slowly: the window's line and the
+    steps' scatter take it."""
+    usable = ~ctx.seg.mask("turn", "calibration")
+    steady = steady_turns(ctx)
+    return usable if steady is None else usable | steady
+
+
+def steady_turns(ctx: AuditContext) -> np.ndarray | None:
+    """The turns' epochs whose roll and pitch change by at most
+    ``switch_steady_attitude_deg`` over a switch's window about them (bool per epoch; None
+    without attitude): a bank held steady. A roll-in or roll-out changes the interference
+    the model leaves within a second or two, as a switch changes the field."""
+    d = ctx.flight.data
+    if not ctx.flight.has("roll_deg", "pitch_deg"):
+        return None
+    width = max(3, int(round(2.0 * WINDOW_S * ctx.data.rate_hz)) + 1)
+    steady = ctx.seg.mask("turn")
+    for col in ("roll_deg", "pitch_deg"):
+        a = d[col].to_numpy(float)
+        ok = np.isfinite(a)
+        a = np.where(ok, a, 0.0)
+        spread = maximum_filter1d(a, width) - minimum_filter1d(a, width)
+        # a missing sample anywhere in the window leaves the bank unknown there
+        seen = minimum_filter1d(ok.astype(np.uint8), width).astype(bool)
+        steady = steady & seen & (spread <= ctx.s.switch_steady_attitude_deg)
+    return steady
 
 
 def crossover_coupling_gain(ctx: AuditContext, spec: ModelSpec, name: str) -> HeldOut | None:
