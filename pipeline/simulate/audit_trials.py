@@ -132,10 +132,13 @@ def within_ci(effect: str, f: dict, truth: dict) -> list[bool]:
         # the simulator puts the same variation into the airborne and the base reading
         cover("base_coefficient", 1.0)
     elif effect == "electrical_current":
-        # only a finding on the channel that carries the coupling has a truth to cover
+        # only a finding on the channel that carries the coupling has a truth to cover; one
+        # that drifts with the temperature is covered at its flight mean, what one constant
+        # coupling estimates
         cur = truth["effects"]["electrical_current"]
+        k = truth["effective"].get("current_coupling_nT_per_A", cur["coupling_nT_per_A"])
         if str((f.get("estimate") or {}).get("channel", "")).endswith(cur["channel"]):
-            cover("nT_per_unit", cur["coupling_nT_per_A"])
+            cover("nT_per_unit", k)
     return out
 
 

@@ -478,6 +478,7 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
     t_phys = t_s - delay_s
     b, db, _x = body_field(t_phys)
     b_int = scalar_int.vector_nT(b, db)
+    coupling_mean = None  # a drifting coupling's mean: what a constant coupling estimates
     if cur:
         d = np.asarray(cur["direction_body"], float)
         coupling = cur["coupling_nT_per_A"]
@@ -488,6 +489,8 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
         b_int = b_int + (coupling * aux_funcs[cur["channel"]][0](t_phys))[:, None] * (
             d / np.linalg.norm(d)
         )
+        if k_temp:
+            coupling_mean = float(np.mean(coupling))
     dt_s = 1.0 / float(sens["scalar_rate_hz"])
     outside, outside_info = _outside_basis(sc, seed, traj, t_phys, b, db, dt_s)
     earth_total = np.linalg.norm(b, axis=1)
@@ -666,6 +669,8 @@ def simulate(sc: Scenario, seed: int) -> SimulatedFlight:
         truth["calibration_manoeuvres"] = manoeuvre_truth(traj)
     if outside_truth is not None:
         truth["outside_basis_interference"] = outside_truth
+    if coupling_mean is not None:
+        truth["effective"]["current_coupling_nT_per_A"] = coupling_mean
     return SimulatedFlight(sc, seed, start_ns, streams, truth, traj, scalar_truth)
 
 

@@ -27,6 +27,7 @@ import numpy as np
 from scipy.stats import combine_pvalues, norm
 
 from pipeline.audit.context import AuditContext
+from pipeline.audit.crossval import jackknife_ci95
 from pipeline.audit.evidence import HeldOut
 from pipeline.audit.evidence.lag import (
     EDDY_TAU_GRID_S,
@@ -298,8 +299,24 @@ def lag_beside_decay_nuisance(
             f"by {100 * ev.heldout.reduction:.1f} % (p {ev.heldout.p_value:.2g}): not a "
             "late sensor"
         )
+    if not ev.held_back and float(ev.estimate["lag_s"]) == lag_plain:
+        _with_its_own_spread(ctx, ev, plain, lag_plain)
     _unresolved(ev, smallest)
     return ev
+
+
+def _with_its_own_spread(
+    ctx: AuditContext, ev: Evaluation, plain: ModelSpec, lag_plain_s: float
+) -> None:
+    """Widen the interval of a lag named as the whole reading's delay (``lag_plain_s``,
+    measured without the decay) by that estimate's own sampling error: its delete-a-fold
+    jackknife on the folds' training epochs (the same folds as the other estimates'). The
+    other estimates' points bound where the truth may lie between the model forms; they
+    carry no margin of their own, so the named lag could otherwise sit on the interval's end."""
+    lags = [lag_estimate(ctx, plain, train, f"plain{k}") for k, (train, _) in enumerate(ctx.folds)]
+    ci = jackknife_ci95({"lag_s": lag_plain_s}, [{"lag_s": v} for v in lags]).get("lag_s")
+    if ci is not None:
+        _widen_lag_interval(ev, ci[0], ci[1], lag_plain_s)
 
 
 def _unresolved(ev: Evaluation, smallest_s: float) -> None:
