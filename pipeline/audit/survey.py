@@ -418,9 +418,20 @@ def survey_coupling(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray) -> Su
     """A channel (a current) that couples into the scalar reading by k nT per unit makes two
     crossing lines disagree by k (I_a - I_b) besides their heading levels: regressing the
     crossover differences on the channel's difference estimates k from the survey alone (k
-    as the total field sees it, averaged over the headings)."""
-    fit = _regress_on(x, np.asarray(aux_a, float) - np.asarray(aux_b, float))
+    as the total field sees it, averaged over the headings). The readings' time difference is
+    fitted beside it (:func:`clock_column`)."""
+    g = np.asarray(aux_a, float) - np.asarray(aux_b, float)
+    fit = _regress_on(x, g, clock_column(x))
     return None if fit is None else SurveyCoupling(*fit)
+
+
+def clock_column(x: CrossoverSet) -> np.ndarray:
+    """The time between a crossover's two readings (h), a column (n, 1). Whatever changes
+    the carrier's field with time (a sensor's drift, a step of its permanent field, the part
+    of the day's variation the base station misses) changes the crossovers with it, and a
+    channel that follows the clock (a battery's voltage, a heater's current) would take it
+    for its coupling: the time difference, fitted beside the channel, takes the slow part."""
+    return ((np.asarray(x.time_a_s, float) - np.asarray(x.time_b_s, float)) / 3600.0)[:, None]
 
 
 def survey_coupling_gain(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray) -> HeldOut | None:
@@ -428,10 +439,11 @@ def survey_coupling_gain(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray) 
     prediction errors of the crossover differences from the heading levels alone and from
     the levels plus the coupling (each crossover predicted by the fit to the others: the
     ordinary residual over one minus its leverage), compared pair by pair
-    (:func:`pipeline.audit.evidence.paired_point_gain`). None: too few crossovers."""
+    (:func:`pipeline.audit.evidence.paired_point_gain`); the time difference
+    (:func:`clock_column`) in both. None: too few crossovers."""
     y = np.asarray(x.difference_nT, float)
     g = np.asarray(aux_a, float) - np.asarray(aux_b, float)
-    full = np.column_stack([heading_levels(x), g])
+    full = np.column_stack([heading_levels(x), clock_column(x), g])
     ok = np.all(np.isfinite(full), axis=1) & np.isfinite(y)
     full, y = full[ok], y[ok]
     if full.shape[0] < full.shape[1] + 4 or np.std(full[:, -1]) == 0:
@@ -447,12 +459,13 @@ def survey_coupling_gain(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray) 
 
 
 def _regress_on(
-    x: CrossoverSet, g: np.ndarray
+    x: CrossoverSet, g: np.ndarray, nuisance: np.ndarray | None = None
 ) -> tuple[float, tuple[float, float], float, int] | None:
-    """Coefficient of ``g`` in crossover differences ~ heading levels + c g: estimate,
-    95 % interval, two-sided p against 0, crossovers used."""
+    """Coefficient of ``g`` in crossover differences ~ heading levels (+ ``nuisance``
+    columns) + c g: estimate, 95 % interval, two-sided p against 0, crossovers used."""
     y = np.asarray(x.difference_nT, float)
-    a = np.column_stack([heading_levels(x), g])
+    extra = np.zeros((x.size, 0)) if nuisance is None else nuisance
+    a = np.column_stack([heading_levels(x), extra, g])
     ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
     a, y = a[ok], y[ok]
     n, k = a.shape
