@@ -7,6 +7,7 @@ import pytest
 
 from pipeline.audit.switching import (
     SwitchSteps,
+    placebo_inflation,
     switch_body_coupling,
     switch_coupling,
     switch_instants,
@@ -66,6 +67,39 @@ def test_no_coupling_is_rarely_significant():
         got = None if steps is None else switch_coupling(steps)
         hits += got is not None and got.p_value < 0.01
     assert hits <= 3
+
+
+def _wobbly(rng, t):
+    """Interference the windows' line misreads: noise correlated over ~2.5 s (a Hann window
+    of 25 samples at 10 Hz), about 2.5 nT RMS."""
+    return 0.8 * np.convolve(rng.normal(0.0, 1.0, t.size), np.hanning(25), "same")
+
+
+def test_placebo_switches_widen_the_errors_the_windows_understate():
+    # with no coupling, the field's wobble makes the windows' own errors too small: the
+    # channel moved in time (placebo switches) spreads as the true alignment does, and the
+    # test at the widened errors keeps its level (binomial: 4 of 20 at 5 % has p 0.016)
+    plain, wobbly, false_before, false_after = [], [], 0, 0
+    for seed in range(20):
+        rng = np.random.default_rng(500 + seed)
+        t, field, current = _flight(rng, 0.0, duration_s=1800.0)
+        plain.append(placebo_inflation(t, field, current))
+        field = field + _wobbly(rng, t)
+        wobbly.append(placebo_inflation(t, field, current))
+        steps = switch_steps(t, field, current)
+        false_before += switch_coupling(steps).p_value < 0.05
+        false_after += switch_coupling(steps, inflation=wobbly[-1]).p_value < 0.05
+    assert np.median(plain) < 1.2 < 1.4 < np.median(wobbly)
+    assert false_after <= 3 and false_after < false_before
+
+
+def test_placebo_switches_leave_a_true_coupling_measured():
+    rng = np.random.default_rng(8)
+    t, field, current = _flight(rng, 3.0)
+    wider = placebo_inflation(t, field, current)
+    got = switch_coupling(switch_steps(t, field, current), inflation=wider)
+    assert wider < 1.3
+    assert got.p_value < 1e-4 and got.total_field_nT_per_unit == pytest.approx(3.0, abs=0.3)
 
 
 def test_turns_are_left_out():

@@ -33,6 +33,10 @@ from pipeline.audit.evidence import HeldOut, paired_point_gain
 # fitted on each side of a switch: a load settles within seconds, while over longer windows a
 # fast carrier's geology is no longer a line (6 s: 360 m at 60 m/s)
 WINDOW_S = 3.0
+# placebo alignments of a channel against the field (:func:`placebo_inflation`): enough for a
+# median; each at least a minute from the true one, longer than a load's settling
+PLACEBO_SHIFTS = 60
+PLACEBO_MIN_SHIFT_S = 60.0
 
 
 @dataclass(frozen=True)
@@ -113,6 +117,7 @@ def switch_steps(
     usable: np.ndarray | None = None,
     window_s: float = WINDOW_S,
     direction: np.ndarray | None = None,
+    instants_s: np.ndarray | None = None,
 ) -> SwitchSteps | None:
     """The field's change with the channel around each clean switch of ``channel``.
 
@@ -135,6 +140,8 @@ def switch_steps(
     direction : ndarray, shape (n, 3), optional
         The field's direction cosines (body frame), averaged over each window into
         ``SwitchSteps.direction``.
+    instants_s : ndarray, optional
+        The channel's switch times (s) when already known (:func:`switch_instants`).
 
     Returns
     -------
@@ -146,7 +153,7 @@ def switch_steps(
     y = np.asarray(field_nT, float)
     x = np.asarray(channel, float)
     use = np.ones(t.size, bool) if usable is None else np.asarray(usable, bool)
-    inst = switch_instants(t, x)
+    inst = switch_instants(t, x) if instants_s is None else np.sort(np.asarray(instants_s))
     rows = []
     for j, ts in enumerate(inst):
         lo, hi = ts - window_s, ts + window_s
@@ -157,6 +164,8 @@ def switch_steps(
         if b - a < 10 or not np.all(use[a:b]):
             continue
         tt, yy, xx = t[a:b] - ts, y[a:b], x[a:b]
+        if not (np.any(tt > 0) and np.any(tt < 0)):  # the record's end
+            continue
         if not (np.all(np.isfinite(yy)) and np.all(np.isfinite(xx))):
             continue
         if np.max(np.diff(tt)) > 0.1 * window_s:  # a sampling gap
@@ -193,22 +202,22 @@ def _coefficient_se(a_mat: np.ndarray, resid: np.ndarray) -> float:
     return float(np.sqrt(var * (1.0 + rho) / (1.0 - rho)))
 
 
-def switch_coupling(steps: SwitchSteps) -> SwitchCoupling | None:
+def switch_coupling(steps: SwitchSteps, inflation: float = 1.0) -> SwitchCoupling | None:
     """Coupling as the total field sees it, k nT per unit, from the steps: step = k dI
     (weighted least squares through the origin, weights 1 / se^2; the field's direction
     changes little between switches, so the vector c = k u is not resolved), its t-test
     against no coupling (the standard error scaled by the steps' reduced chi-square when it
-    exceeds 1) and the leave-one-out gain: each step predicted by the fit to the others
-    against predicting 0, as weighted RMS (nT) and a one-sided signed-rank test of the
-    standardised squares (:func:`pipeline.audit.evidence.paired_point_gain`; a t-test
-    suits them badly: a few precise steps dominate the squares). None: fewer than 4
-    switches."""
+    exceeds 1, and by ``inflation``, :func:`placebo_inflation`) and the leave-one-out gain:
+    each step predicted by the fit to the others against predicting 0, as weighted RMS (nT)
+    and a one-sided signed-rank test of the standardised squares
+    (:func:`pipeline.audit.evidence.paired_point_gain`; a t-test suits them badly: a few
+    precise steps dominate the squares). None: fewer than 4 switches."""
     g, y, se_y = steps.change, steps.step_nT, steps.step_se_nT
     n = y.size
     if n < 4 or not np.any(g):
         return None
     coef, cov, r, h = _weighted_fit(g[:, None], y, se_y)
-    k, se = float(coef[0]), float(np.sqrt(cov[0, 0]))
+    k, se = float(coef[0]), float(np.sqrt(cov[0, 0])) * max(inflation, 1.0)
     p = float(2 * stats.t.sf(abs(k) / se, n - 1)) if se > 0 else 0.0
     loo = r / np.clip(1.0 - h, 1e-9, None)
     w = 1.0 / se_y**2
@@ -224,6 +233,45 @@ def switch_coupling(steps: SwitchSteps) -> SwitchCoupling | None:
         switches=int(n),
         heldout=heldout,
     )
+
+
+def placebo_inflation(
+    time_s: np.ndarray,
+    field_nT: np.ndarray,
+    channel: np.ndarray,
+    usable: np.ndarray | None = None,
+    shifts: int = PLACEBO_SHIFTS,
+) -> float:
+    """How much wider the coupling's t statistic spreads on this flight than Student's t
+    says, where no coupling can act: the channel's record moved circularly in time against
+    the field by ``shifts`` offsets spread over the flight (none within
+    ``PLACEBO_MIN_SHIFT_S`` of the true alignment), each shifted record's switches fitted as
+    :func:`switch_steps` and :func:`switch_coupling` do. The step errors come from each
+    window's own residual; a field whose structure the windows' line misreads (interference
+    the model leaves that changes within seconds) makes every step's error too small, the
+    same at placebo switches as at true ones. Returned: the median of |t| / the median |t| of
+    Student's t with each fit's degrees of freedom, at least 1 (1 with fewer than ten
+    placebo fits)."""
+    t = np.asarray(time_s, float)
+    x = np.asarray(channel, float)
+    if t.size < 20:
+        return 1.0
+    span = float(t[-1] - t[0])
+    at = np.searchsorted(t, switch_instants(t, x))  # moved with the record, found once
+    ratios = []
+    for off in np.linspace(PLACEBO_MIN_SHIFT_S, span - PLACEBO_MIN_SHIFT_S, shifts):
+        k = int(np.searchsorted(t, t[0] + off))
+        if k <= 0 or k >= t.size:
+            continue
+        moved = t[(at - k) % t.size]
+        st = switch_steps(t, field_nT, np.roll(x, -k), usable=usable, instants_s=moved)
+        c = None if st is None else switch_coupling(st)
+        if c is not None and c.se_nT_per_unit > 0:
+            t_stat = abs(c.total_field_nT_per_unit) / c.se_nT_per_unit
+            ratios.append(t_stat / float(stats.t.ppf(0.75, c.switches - 1)))
+    if len(ratios) < 10:
+        return 1.0
+    return max(1.0, float(np.median(ratios)))
 
 
 def _weighted_fit(
@@ -254,7 +302,9 @@ class SwitchBodyCoupling:
     ci95: tuple[float, float]  # of |c|
 
 
-def switch_body_coupling(steps: SwitchSteps, min_switches: int = 6) -> SwitchBodyCoupling | None:
+def switch_body_coupling(
+    steps: SwitchSteps, min_switches: int = 6, inflation: float = 1.0
+) -> SwitchBodyCoupling | None:
     """The coupling as a body-frame vector c: each switch's step is dI (u . c), u the field's
     direction then; switches read at different headings (survey lines, ties) resolve c's
     horizontal components, which a calibration whose current hardly varies cannot. Weighted
@@ -262,7 +312,8 @@ def switch_body_coupling(steps: SwitchSteps, min_switches: int = 6) -> SwitchBod
     1); the interval of |c| is the range of |c'| over the ellipsoid (c' - c)' C^-1 (c' - c)
     <= t^2 (Student t, k - 3 degrees of freedom): the profile of the norm, which does not
     carry the upward bias of a noisy vector's length that percentiles of |c'| do. None:
-    fewer than ``min_switches`` switches or no directions."""
+    fewer than ``min_switches`` switches or no directions. ``inflation`` scales the
+    standard errors as in :func:`switch_coupling`."""
     if steps.direction is None or steps.step_nT.size < max(min_switches, 4):
         return None
     u = steps.direction
@@ -274,6 +325,7 @@ def switch_body_coupling(steps: SwitchSteps, min_switches: int = 6) -> SwitchBod
         c, cov, _, _ = _weighted_fit(steps.change[ok, None] * u[ok], y, steps.step_se_nT[ok])
     except np.linalg.LinAlgError:
         return None
+    cov = cov * max(inflation, 1.0) ** 2  # the placebos' spread (:func:`placebo_inflation`)
     n = y.size
     t = float(stats.t.ppf(0.975, n - 3))
     # the ellipsoid's surface: c + t L z for unit z (L L' = C), on a fixed set of directions

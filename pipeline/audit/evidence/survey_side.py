@@ -18,7 +18,7 @@ from pipeline.audit.survey import (
     survey_heading,
     survey_lag,
 )
-from pipeline.audit.switching import WINDOW_S, SwitchSteps, switch_steps
+from pipeline.audit.switching import WINDOW_S, SwitchSteps, placebo_inflation, switch_steps
 from pipeline.compensate.terms import direction_cosines
 from pipeline.maps.reduce import time_window_mean
 
@@ -76,6 +76,15 @@ def channel_switch_steps(ctx: AuditContext, spec: ModelSpec, name: str) -> Switc
         ctx.data.aux[name],
         usable=_switch_usable(ctx),
         direction=direction_cosines(ctx.data.vector_nT),
+    )
+
+
+def channel_switch_inflation(ctx: AuditContext, spec: ModelSpec, name: str) -> float:
+    """How much the switches' t statistic of channel ``name`` spreads beyond Student's on
+    ``spec``'s compensated field with the channel moved in time
+    (:func:`pipeline.audit.switching.placebo_inflation`; at least 1)."""
+    return placebo_inflation(
+        ctx.data.time_s, ctx.compensated(spec), ctx.data.aux[name], usable=_switch_usable(ctx)
     )
 
 

@@ -14,6 +14,7 @@ from pipeline.audit.context import AuditContext
 from pipeline.audit.crossval import jackknife_ci95
 from pipeline.audit.evidence import HeldOut
 from pipeline.audit.evidence.survey_side import (
+    channel_switch_inflation,
     channel_switch_steps,
     crossover_coupling,
     crossover_coupling_gain,
@@ -165,8 +166,10 @@ def _by_the_switches(
     calibration's or decide alone (:func:`_decide_outside`); returned (None without
     switches)."""
     steps = channel_switch_steps(ctx, current, name)
-    sw = None if steps is None else switch_coupling(steps)
-    body = None if steps is None else switch_body_coupling(steps)
+    # the steps' errors as this flight's placebo switches spread, not as each window says
+    wider = 1.0 if steps is None else channel_switch_inflation(ctx, current, name)
+    sw = None if steps is None else switch_coupling(steps, inflation=wider)
+    body = None if steps is None else switch_body_coupling(steps, inflation=wider)
     if body is not None:
         # the calibration's three columns can take up other interference that follows
         # the manoeuvres, and the switches may be read at few headings: the interval of |c|
@@ -184,6 +187,7 @@ def _by_the_switches(
         ev.estimate.update(
             switch_total_field_nT_per_unit=sw.total_field_nT_per_unit,
             switch_p_value=sw.p_value,
+            switch_placebo_inflation=wider,
             switches=sw.switches,
             switch_heldout=sw.heldout.to_dict(),
         )
@@ -193,6 +197,7 @@ def _by_the_switches(
                 for k in (
                     "switch_total_field_nT_per_unit",
                     "switch_p_value",
+                    "switch_placebo_inflation",
                     "switches",
                     "switch_heldout",
                 )
