@@ -67,25 +67,26 @@ def crossover_coupling(ctx: AuditContext, spec: ModelSpec, name: str) -> SurveyC
     return None if got is None else survey_coupling(*got)
 
 
-def channel_switch_steps(ctx: AuditContext, spec: ModelSpec, name: str) -> SwitchSteps | None:
-    """The steps of ``spec``'s compensated field where channel ``name`` switches, with
-    the field's direction at each (:func:`pipeline.audit.switching.switch_steps`)."""
-    return switch_steps(
+def channel_switch_steps(
+    ctx: AuditContext, spec: ModelSpec, name: str
+) -> tuple[SwitchSteps | None, float]:
+    """The steps of ``spec``'s compensated field where channel ``name`` switches, with the
+    field's direction at each (:func:`pipeline.audit.switching.switch_steps`), and how much
+    their t statistic spreads beyond Student's with the channel moved in time
+    (:func:`pipeline.audit.switching.placebo_inflation`; 1 without steps), both on the same
+    epochs."""
+    usable = _switch_usable(ctx)
+    field, channel = ctx.compensated(spec), ctx.data.aux[name]
+    steps = switch_steps(
         ctx.data.time_s,
-        ctx.compensated(spec),
-        ctx.data.aux[name],
-        usable=_switch_usable(ctx),
+        field,
+        channel,
+        usable=usable,
         direction=direction_cosines(ctx.data.vector_nT),
     )
-
-
-def channel_switch_inflation(ctx: AuditContext, spec: ModelSpec, name: str) -> float:
-    """How much the switches' t statistic of channel ``name`` spreads beyond Student's on
-    ``spec``'s compensated field with the channel moved in time
-    (:func:`pipeline.audit.switching.placebo_inflation`; at least 1)."""
-    return placebo_inflation(
-        ctx.data.time_s, ctx.compensated(spec), ctx.data.aux[name], usable=_switch_usable(ctx)
-    )
+    if steps is None:
+        return None, 1.0
+    return steps, placebo_inflation(ctx.data.time_s, field, channel, usable=usable)
 
 
 def _switch_usable(ctx: AuditContext) -> np.ndarray:

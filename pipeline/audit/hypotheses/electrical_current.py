@@ -14,7 +14,6 @@ from pipeline.audit.context import AuditContext
 from pipeline.audit.crossval import jackknife_ci95
 from pipeline.audit.evidence import HeldOut
 from pipeline.audit.evidence.survey_side import (
-    channel_switch_inflation,
     channel_switch_steps,
     crossover_coupling,
     crossover_coupling_gain,
@@ -165,9 +164,8 @@ def _by_the_switches(
     coupling's estimate beside the calibration's, and their own tests, which confirm the
     calibration's or decide alone (:func:`_decide_outside`); returned (None without
     switches)."""
-    steps = channel_switch_steps(ctx, current, name)
     # the steps' errors as this flight's placebo switches spread, not as each window says
-    wider = 1.0 if steps is None else channel_switch_inflation(ctx, current, name)
+    steps, wider = channel_switch_steps(ctx, current, name)
     sw = None if steps is None else switch_coupling(steps, inflation=wider)
     body = None if steps is None else switch_body_coupling(steps, inflation=wider)
     if body is not None:

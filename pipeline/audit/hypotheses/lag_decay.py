@@ -20,6 +20,7 @@ reported as an ambiguity and nothing is named for it.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -238,6 +239,15 @@ def lag_beside_decay_nuisance(
     tl = recorded_fluxgate_timing(ctx, current, ev)
     plain = current.with_(eddy_tau_s=0.0)
     lag_plain = lag_estimate(ctx, plain, None, "all")
+    plain_fold_lags: dict[int, float] = {}
+
+    def lag_model(train, k):
+        """The whole reading delayed, its lag estimated on fold ``k``'s training epochs
+        (once: the held-out tests and the interval below share it)."""
+        if k not in plain_fold_lags:
+            plain_fold_lags[k] = lag_estimate(ctx, plain, train, f"plain{k}")
+        return plain.with_(lag_s=plain_fold_lags[k])
+
     current, lagged, fold_lags = _profiled_decay(ctx, ev, current, fold_lags)
     lag = float(ev.estimate["lag_s"])
     ev.test = ctx._lag_profile_test(lagged, lag)
@@ -247,17 +257,11 @@ def lag_beside_decay_nuisance(
     )
     lag_alone = None
     if not (ev.heldout.p_value < s.alpha and ev.heldout.reduction >= s.min_gain):
-        lag_alone = ctx.heldout(
-            plain,
-            lambda train, k: plain.with_(lag_s=lag_estimate(ctx, plain, train, f"plain{k}")),
-        )
+        lag_alone = ctx.heldout(plain, lag_model)
     vs = LagVersusDecay(ev.heldout, lag_alone, decay_alone, decay_beyond)
     if vs.tie(s.alpha, s.min_gain):
         # the rivals as the null model would take each: the whole reading delayed, or the
         # decayed eddy terms beside T-L's (held-out data weigh their sizes)
-        def lag_model(train, k):
-            return plain.with_(lag_s=lag_estimate(ctx, plain, train, f"plain{k}"))
-
         vs.lag_over_decay = ctx.heldout(current, lag_model)
         vs.decay_over_lag = ctx.heldout(lag_model, lambda train, k: current)
     timing = timing_says(ctx, lag_plain, sl, tl)
@@ -300,20 +304,24 @@ def lag_beside_decay_nuisance(
             "late sensor"
         )
     if not ev.held_back and float(ev.estimate["lag_s"]) == lag_plain:
-        _with_its_own_spread(ctx, ev, plain, lag_plain)
+        _with_its_own_spread(ctx, ev, lag_model, lag_plain)
     _unresolved(ev, smallest)
     return ev
 
 
 def _with_its_own_spread(
-    ctx: AuditContext, ev: Evaluation, plain: ModelSpec, lag_plain_s: float
+    ctx: AuditContext,
+    ev: Evaluation,
+    lag_model: Callable[[np.ndarray, int], ModelSpec],
+    lag_plain_s: float,
 ) -> None:
     """Widen the interval of a lag named as the whole reading's delay (``lag_plain_s``,
     measured without the decay) by that estimate's own sampling error: its delete-a-fold
     jackknife on the folds' training epochs (the same folds as the other estimates'). The
     other estimates' points bound where the truth may lie between the model forms; they
-    carry no margin of their own, so the named lag could otherwise sit on the interval's end."""
-    lags = [lag_estimate(ctx, plain, train, f"plain{k}") for k, (train, _) in enumerate(ctx.folds)]
+    carry no margin of their own, so the named lag could otherwise sit on the interval's end.
+    ``lag_model(train, k)``: the lag's model on fold ``k``'s training epochs."""
+    lags = [lag_model(train, k).lag_s for k, (train, _) in enumerate(ctx.folds)]
     ci = jackknife_ci95({"lag_s": lag_plain_s}, [{"lag_s": v} for v in lags]).get("lag_s")
     if ci is not None:
         _widen_lag_interval(ev, ci[0], ci[1], lag_plain_s)
