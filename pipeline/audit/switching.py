@@ -249,6 +249,7 @@ def placebo_inflation(
     channel: np.ndarray,
     usable: np.ndarray | None = None,
     shifts: int = PLACEBO_SHIFTS,
+    instants_s: np.ndarray | None = None,
 ) -> float:
     """How much wider the coupling's t statistic spreads on this flight than Student's t
     says, where no coupling can act: the channel's record moved circularly in time against
@@ -259,13 +260,15 @@ def placebo_inflation(
     the model leaves that changes within seconds) makes every step's error too small, the
     same at placebo switches as at true ones. Returned: the median of |t| / the median |t| of
     Student's t with each fit's degrees of freedom, at least 1 (1 with fewer than ten
-    placebo fits)."""
+    placebo fits). ``instants_s``: the channel's switch times (s) when already known
+    (:func:`switch_instants`)."""
     t = np.asarray(time_s, float)
     x = np.asarray(channel, float)
     if t.size < 20:
         return 1.0
     span = float(t[-1] - t[0])
-    at = np.searchsorted(t, switch_instants(t, x))  # moved with the record, found once
+    inst = switch_instants(t, x) if instants_s is None else np.asarray(instants_s, float)
+    at = np.searchsorted(t, inst)  # moved with the record, found once
     ratios = []
     for off in np.linspace(PLACEBO_MIN_SHIFT_S, span - PLACEBO_MIN_SHIFT_S, shifts):
         k = int(np.searchsorted(t, t[0] + off))

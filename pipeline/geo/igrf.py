@@ -12,8 +12,8 @@ def igrf_ned_nT(lat_deg, lon_deg, alt_m, when: datetime) -> np.ndarray:
     """IGRF main field at geodetic positions, as (n, 3) NED components in nT.
 
     ``alt_m`` is the height above the WGS-84 ellipsoid. ppigrf costs about 40 us per point;
-    callers with dense tracks evaluate a decimated track and interpolate (the main field
-    changes by a few nT per km).
+    callers with dense tracks evaluate it at :func:`spaced_epochs` and interpolate (the main
+    field changes by a few nT per km).
     """
     lat = np.atleast_1d(np.asarray(lat_deg, float))
     lon = np.atleast_1d(np.asarray(lon_deg, float))
@@ -23,6 +23,16 @@ def igrf_ned_nT(lat_deg, lon_deg, alt_m, when: datetime) -> np.ndarray:
         when = when.astimezone(UTC).replace(tzinfo=None)
     be, bn, bu = ppigrf.igrf(lon.ravel(), lat.ravel(), h_km.ravel(), when)
     return np.stack([np.ravel(bn), np.ravel(be), -np.ravel(bu)], axis=-1)
+
+
+def spaced_epochs(time_s: np.ndarray, ok: np.ndarray, spacing_s: float) -> np.ndarray:
+    """The epochs among ``ok`` (sorted epoch indices) at which to evaluate the main field
+    along a track: the first of every ``spacing_s``-long interval of time from the first,
+    and the last (s; in time, whatever the sample rate)."""
+    t = np.asarray(time_s, float)[ok]
+    interval = np.floor((t - t[0]) / spacing_s)
+    pick = ok[np.r_[True, interval[1:] != interval[:-1]]]
+    return pick if pick[-1] == ok[-1] else np.r_[pick, ok[-1]]
 
 
 def main_field_direction(

@@ -7,7 +7,11 @@ from datetime import UTC, datetime
 
 import numpy as np
 
-from pipeline.geo.igrf import igrf_ned_nT
+from pipeline.geo.igrf import igrf_ned_nT, spaced_epochs
+
+# the main field's gradient changes over hundreds of km: evaluated every 10 s of flight
+# (a few hundred metres) and interpolated, it is exact to far below 1e-6 nT/m
+GRADIENT_SPACING_S = 10.0
 
 
 @dataclass
@@ -37,18 +41,19 @@ def igrf_total_nT(
     lat_deg: np.ndarray,
     lon_deg: np.ndarray,
     alt_m: np.ndarray,
-    every: int = 10,
+    spacing_s: float = 1.0,
 ) -> np.ndarray:
     """IGRF total field at each sample (position, ellipsoidal height, date).
 
-    ppigrf is evaluated on every ``every``-th finite sample and interpolated in time: the main
-    field changes by well under 0.01 nT between them (a few nT per km of flight). The last
+    ppigrf is evaluated every ``spacing_s`` of time (:func:`pipeline.geo.igrf.spaced_epochs`)
+    and interpolated in time: the main field is linear to far below 0.01 nT over the ground a
+    second of flight covers (it changes by a few nT per km). The last
     few results are kept by the inputs' content: the audit, the map, the quality and the
     navigation stages all reduce the same flight (~0.3 s a call at 5 h); a copy is returned.
     """
     import hashlib
 
-    h = hashlib.blake2b(str(every).encode(), digest_size=16)
+    h = hashlib.blake2b(str(spacing_s).encode(), digest_size=16)
     for a in (time_ns, lat_deg, lon_deg, alt_m):
         a = np.ascontiguousarray(a)
         h.update(f"{a.dtype.str}{a.shape}".encode())
@@ -56,7 +61,7 @@ def igrf_total_nT(
     key = h.digest()
     hit = _IGRF_KEPT.get(key)
     if hit is None:
-        hit = _igrf_total_nT(time_ns, lat_deg, lon_deg, alt_m, every)
+        hit = _igrf_total_nT(time_ns, lat_deg, lon_deg, alt_m, spacing_s)
         _IGRF_KEPT[key] = hit
         while len(_IGRF_KEPT) > 2:
             _IGRF_KEPT.pop(next(iter(_IGRF_KEPT)))
@@ -77,7 +82,7 @@ def igrf_total_gradient_nT_per_m(
 
     Central differences over ``step_m`` either side (the main field's curvature changes the
     gradient over hundreds of km, so 1 km steps are exact to far below 1e-3 nT/km), each side
-    evaluated as :func:`igrf_total_nT` (every 10th sample, interpolated in time). The
+    evaluated as :func:`igrf_total_nT` (every ``GRADIENT_SPACING_S``, interpolated in time). The
     navigation filters' core-field Jacobian (MagNav's ``igrf_grad``).
     """
     lat = np.asarray(lat_deg, float)
@@ -88,8 +93,8 @@ def igrf_total_gradient_nT_per_m(
     dlon = np.degrees(step_m / (r * np.cos(np.radians(lat))))
 
     def diff(lat_a, lon_a, alt_a, lat_b, lon_b, alt_b):
-        hi = _igrf_total_nT(time_ns, lat_a, lon_a, alt_a, 10)
-        lo = _igrf_total_nT(time_ns, lat_b, lon_b, alt_b, 10)
+        hi = _igrf_total_nT(time_ns, lat_a, lon_a, alt_a, GRADIENT_SPACING_S)
+        lo = _igrf_total_nT(time_ns, lat_b, lon_b, alt_b, GRADIENT_SPACING_S)
         return (hi - lo) / (2.0 * step_m)
 
     return np.column_stack(
@@ -101,19 +106,17 @@ def igrf_total_gradient_nT_per_m(
     )
 
 
-def _igrf_total_nT(time_ns, lat_deg, lon_deg, alt_m, every: int) -> np.ndarray:
+def _igrf_total_nT(time_ns, lat_deg, lon_deg, alt_m, spacing_s: float) -> np.ndarray:
     """:func:`igrf_total_nT`, computed (nT)."""
     ok = np.flatnonzero(np.isfinite(lat_deg) & np.isfinite(lon_deg) & np.isfinite(alt_m))
     out = np.full(time_ns.size, np.nan)
     if ok.size == 0:
         return out
-    pick = ok[::every]
-    if pick[-1] != ok[-1]:
-        pick = np.r_[pick, ok[-1]]
+    t = (time_ns - time_ns[0]) / 1e9
+    pick = spaced_epochs(t, ok, spacing_s)
     when = datetime.fromtimestamp(int(np.median(time_ns[ok])) / 1e9, tz=UTC)
     b = igrf_ned_nT(lat_deg[pick], lon_deg[pick], alt_m[pick], when)
     tot = np.linalg.norm(b, axis=1)
-    t = (time_ns - time_ns[0]) / 1e9
     out[ok] = np.interp(t[ok], t[pick], tot)
     return out
 

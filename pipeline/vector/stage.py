@@ -23,7 +23,7 @@ import numpy as np
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.geo.frames import ned_to_body
-from pipeline.geo.igrf import igrf_ned_nT
+from pipeline.geo.igrf import igrf_ned_nT, spaced_epochs
 from pipeline.segment import Segmentation
 from pipeline.vector.component import ComponentKF, ComponentParameters, batch_fit
 from pipeline.vector.ellipsoid import Ellipsoid, EllipsoidKF, fit_ellipsoid
@@ -31,8 +31,12 @@ from pipeline.vector.ellipsoid import Ellipsoid, EllipsoidKF, fit_ellipsoid
 METHODS = ("ellipsoid-kf", "component-kf", "batch")
 
 
-def reference_field_body_nT(flight: Flight, every: int = 10) -> tuple[np.ndarray, np.ndarray]:
-    """IGRF in the body frame at every epoch, and its time derivative (nT, nT/s)."""
+def reference_field_body_nT(
+    flight: Flight, spacing_s: float = 1.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """IGRF in the body frame at every epoch, and its time derivative (nT, nT/s): the NED
+    field evaluated every ``spacing_s`` of time and interpolated, rotated by each epoch's
+    attitude."""
     flight.require(
         "lat_deg",
         "lon_deg",
@@ -50,7 +54,7 @@ def reference_field_body_nT(flight: Flight, every: int = 10) -> tuple[np.ndarray
         raise AeromagError(
             "no valid position for the reference field", file=flight.source, channel="/gnss/fix"
         )
-    pick = np.unique(np.r_[ok[::every], ok[-1]])
+    pick = spaced_epochs(t, ok, spacing_s)
     when = datetime.fromtimestamp(int(np.median(flight.time_ns[ok])) / 1e9, tz=UTC)
     ned_p = igrf_ned_nT(lat[pick], lon[pick], alt[pick], when)
     ned = np.column_stack([np.interp(t, t[pick], ned_p[:, i]) for i in range(3)])

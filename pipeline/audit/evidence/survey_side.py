@@ -18,7 +18,13 @@ from pipeline.audit.survey import (
     survey_heading,
     survey_lag,
 )
-from pipeline.audit.switching import WINDOW_S, SwitchSteps, placebo_inflation, switch_steps
+from pipeline.audit.switching import (
+    WINDOW_S,
+    SwitchSteps,
+    placebo_inflation,
+    switch_instants,
+    switch_steps,
+)
 from pipeline.compensate.terms import direction_cosines
 from pipeline.maps.reduce import time_window_mean
 
@@ -76,17 +82,19 @@ def channel_switch_steps(
     (:func:`pipeline.audit.switching.placebo_inflation`; 1 without steps), both on the same
     epochs."""
     usable = _switch_usable(ctx)
-    field, channel = ctx.compensated(spec), ctx.data.aux[name]
+    t, field, channel = ctx.data.time_s, ctx.compensated(spec), ctx.data.aux[name]
+    instants = switch_instants(t, channel)
     steps = switch_steps(
-        ctx.data.time_s,
+        t,
         field,
         channel,
         usable=usable,
         direction=direction_cosines(ctx.data.vector_nT),
+        instants_s=instants,
     )
     if steps is None:
         return None, 1.0
-    return steps, placebo_inflation(ctx.data.time_s, field, channel, usable=usable)
+    return steps, placebo_inflation(t, field, channel, usable=usable, instants_s=instants)
 
 
 def _switch_usable(ctx: AuditContext) -> np.ndarray:

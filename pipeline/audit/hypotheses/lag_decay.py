@@ -273,40 +273,51 @@ def lag_beside_decay_nuisance(
     ctx.ambiguities = [a for a in ctx.ambiguities if "sensor_lag" not in a["candidates"]]
     if abs(lag_plain) < smallest and abs(lag) < smallest:
         verdict = "none"
+    named_plain = False  # whether the lag named is the whole reading's (lag_plain)
     if verdict == "lag" and vs.lag_dominates(s.alpha, s.min_gain):
         _lag_in_place_of_decay(ctx, ev, plain, lag_plain)
+        named_plain = True
     elif verdict == "lag" and lag_alone is not None:  # the tie, broken
         by_physics = significant(vs.lag_over_decay, s.alpha, s.min_gain)
         _lag_breaks_the_tie(ev, plain.with_(lag_s=lag_plain), lag_alone, by_physics, timing)
+        named_plain = True
     elif verdict == "lag_beside_decay":
         _lag_timed_beside_decay(ev, sl, tl)
-        _lag_of_the_whole_reading(ev, lagged, lag_plain)
+        named_plain = _lag_of_the_whole_reading(ev, lagged, lag_plain)
     elif verdict == "lag" and timing_says(ctx, lag, sl, tl) == "holds":
         # the lines' timing (what a late sensor delays and a decay does not) confirms it
         ev.estimate["confirmed_by"] = "the timing along the lines"
         ev.decided_outside = True
-        _lag_of_the_whole_reading(ev, lagged, lag_plain)
+        named_plain = _lag_of_the_whole_reading(ev, lagged, lag_plain)
     elif verdict == "lag":
-        _lag_of_the_whole_reading(ev, lagged, lag_plain)
-    elif verdict == "ambiguous":
-        ev.held_back = True
-        ev.reason = (
-            f"eddy currents decaying over {tau:.3g} s and a lag of {lag_plain:.3f} s each "
-            "explain the calibration's residual and neither adds to the other; the timing "
-            "along the lines does not decide: an ambiguity, nothing named"
-        )
-        ctx.ambiguities.append(vs.ambiguity())
-    elif verdict == "none":
-        ev.held_back = True
-        ev.reason = (
-            f"beside eddy currents decaying over {tau:.3g} s the lag lowers held-out data "
-            f"by {100 * ev.heldout.reduction:.1f} % (p {ev.heldout.p_value:.2g}): not a "
-            "late sensor"
-        )
-    if not ev.held_back and float(ev.estimate["lag_s"]) == lag_plain:
+        named_plain = _lag_of_the_whole_reading(ev, lagged, lag_plain)
+    elif verdict in ("ambiguous", "none"):
+        _held_back(ctx, ev, verdict, vs, tau, lag_plain)
+    if not ev.held_back and named_plain:
         _with_its_own_spread(ctx, ev, lag_model, lag_plain)
     _unresolved(ev, smallest)
     return ev
+
+
+def _held_back(
+    ctx: AuditContext, ev: Evaluation, verdict: str, vs, tau_s: float, lag_plain_s: float
+) -> None:
+    """Hold the lag back on the verdict ``"ambiguous"`` (recorded in ``ctx.ambiguities``)
+    or ``"none"``, saying why."""
+    ev.held_back = True
+    if verdict == "ambiguous":
+        ev.reason = (
+            f"eddy currents decaying over {tau_s:.3g} s and a lag of {lag_plain_s:.3f} s "
+            "each explain the calibration's residual and neither adds to the other; the "
+            "timing along the lines does not decide: an ambiguity, nothing named"
+        )
+        ctx.ambiguities.append(vs.ambiguity())
+    else:
+        ev.reason = (
+            f"beside eddy currents decaying over {tau_s:.3g} s the lag lowers held-out data "
+            f"by {100 * ev.heldout.reduction:.1f} % (p {ev.heldout.p_value:.2g}): not a "
+            "late sensor"
+        )
 
 
 def _with_its_own_spread(
@@ -416,7 +427,7 @@ def _profiled_decay(
     return null, lagged, lags
 
 
-def _lag_of_the_whole_reading(ev: Evaluation, lagged: ModelSpec, lag_plain_s: float) -> None:
+def _lag_of_the_whole_reading(ev: Evaluation, lagged: ModelSpec, lag_plain_s: float) -> bool:
     """A lag named beside a decay, which stays: unless the decay is slower than the whole
     reading's delay (:func:`slower_than_lag`, not :func:`same_response`), its size is the
     delay of the whole reading, measured without the decay (``lag_plain_s``), and the
@@ -426,15 +437,17 @@ def _lag_of_the_whole_reading(ev: Evaluation, lagged: ModelSpec, lag_plain_s: fl
     beside them is what the other columns cannot take, drawn toward zero by any
     interference outside the model; the lag on the lines (the geology's delay) is the
     whole reading's. A slower decay is the carrier's own and leaves the lag its response.
-    The lag beside the decay is kept as ``lag_beside_decay_s``; the interval holds both."""
+    The lag beside the decay is kept as ``lag_beside_decay_s``; the interval holds both.
+    Returns whether the lag named is now the whole reading's."""
     lag = float(ev.estimate["lag_s"])
     tau = lagged.eddy_tau_s
     if slower_than_lag(tau, lag_plain_s) and not same_response(tau, lag_plain_s):
-        return
+        return False
     ev.estimate.update(lag_s=lag_plain_s, lag_beside_decay_s=lag)
     ev.spec = lagged.with_(lag_s=lag_plain_s)
     _widen_lag_interval(ev, lag_plain_s, lag_plain_s, lag)
     ev.ci95["lag_beside_decay_s"] = None
+    return True
 
 
 def _lag_in_place_of_decay(
