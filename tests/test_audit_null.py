@@ -232,8 +232,10 @@ def test_a_tie_goes_to_the_rival_that_predicts_held_out_data_better():
 
 def test_the_calibration_and_the_lines_timing_join_to_break_a_tie():
     """Neither the calibration's comparison (p 0.03) nor the lines' timing alone is
-    significant at 0.01; together (Fisher) they are, when the lag model predicts the
-    held-out calibration no worse than the decay model."""
+    significant at 0.01; together (Fisher) they are. A calibration that leans to the
+    decay (the lag model a little worse held out, p 0.6) is outweighed only by timing
+    far beyond chance: a sensor filter and a decay of about its time constant are one
+    response on the calibration, the lines are delayed by one of them only."""
     args = (held(0.01, 0.3), held(0.2, 1e-6), held(0.19, 1e-6), held(0.005, 0.4))
     vs = LagVersusDecay(*args, lag_over_decay=held(0.08, 0.03), decay_over_lag=held(-0.1, 0.9))
     late = TimingLag(0.2, (0.05, 0.35), 0.01, 5)  # 2.6 standard errors late
@@ -242,6 +244,12 @@ def test_the_calibration_and_the_lines_timing_join_to_break_a_tie():
     assert vs.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(early, None)) == "ambiguous"
     worse = LagVersusDecay(*args, lag_over_decay=held(-0.02, 0.6), decay_over_lag=held(0.02, 0.4))
     assert worse.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(late, None)) == "ambiguous"
+    sure = TimingLag(0.024, (0.0205, 0.0275), 1e-5, 20)  # 13 standard errors late
+    assert worse.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(sure, None)) == "lag"
+    against = LagVersusDecay(
+        *args, lag_over_decay=held(-0.02, 0.999), decay_over_lag=held(0.02, 0.4)
+    )
+    assert against.verdict(ALPHA, MIN_GAIN, "silent", timing_p_late(late, None)) == "ambiguous"
 
 
 def test_joining_the_evidence_names_a_decay_a_lag_at_most_at_alpha():

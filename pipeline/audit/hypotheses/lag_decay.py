@@ -176,11 +176,14 @@ def lag_over_decay_with_timing(vs: LagVersusDecay, timing_p: float, alpha: float
     decay of the eddy terms does not do). With the decay true and no lag, the first p is
     uniform or larger and the timing's one-sided p uniform, so Fisher's combination below
     ``alpha`` names a decay a lag at most at that rate. Both rivals already explain the
-    residual by the least gain worth a term; the lag model must predict the held-out
-    calibration no worse than the decay model.
+    residual by the least gain worth a term. A lag model that predicts the held-out
+    calibration worse brings a p above one half into the combination, which the lines'
+    timing must then outweigh; no further veto: the combination's level holds without one,
+    and the calibration cannot tell a decay from a sensor filter of about its time constant,
+    which the lines can.
     """
     h = vs.lag_over_decay
-    if h is None or h.reduction <= 0.0:
+    if h is None:
         return False
     return float(combine_pvalues([h.p_value, timing_p], method="fisher").pvalue) < alpha
 
