@@ -142,3 +142,34 @@ def test_the_base_stations_amplitude_and_period_are_read_from_its_record(rate_hz
     got = _diurnal_shape(t, base)
     assert got["amplitude_nT"] == pytest.approx(12.0, rel=0.01)
     assert got["period_s"] == pytest.approx(4800.0, rel=0.01)
+
+
+def test_a_base_station_too_quiet_to_matter_to_the_survey_names_no_diurnal():
+    """However significant, a diurnal correction that would change the survey's lines by less
+    than ``min_survey_effect_nT`` (the base station's variation about its mean over the
+    survey, nT RMS) is held back; one of nT is not."""
+    from types import SimpleNamespace
+
+    from pipeline.audit.hypotheses.diurnal import _matters
+    from pipeline.audit.result import Evaluation
+    from pipeline.audit.settings import AuditSettings
+
+    t = np.arange(0.0, 3600.0, 0.1)
+    survey = t > 600.0
+
+    def judged(base_nT):
+        ctx = SimpleNamespace(
+            base_smoothed_nT=base_nT,
+            seg=SimpleNamespace(mask=lambda *kinds: survey),
+            s=AuditSettings(),
+        )
+        ev = Evaluation("diurnal", "diurnal", {"base_coefficient": 1.9}, None, None, None)
+        _matters(ctx, ev)
+        return ev
+
+    quiet = judged(30_000.0 + day(t, 0.3, amplitude=0.005))
+    assert quiet.held_back and "min_survey_effect_nT" in quiet.reason
+    assert quiet.estimate["survey_effect_nT"] < AuditSettings().min_survey_effect_nT
+    storm = judged(30_000.0 + day(t, 0.3, amplitude=5.0))
+    assert not storm.held_back
+    assert storm.estimate["survey_effect_nT"] == pytest.approx(5.0 / np.sqrt(2), rel=0.3)

@@ -70,8 +70,8 @@ class AuditSettings:
     min_nuisance_nT : float
         Held-out RMS (nT) a nuisance must remove, with the findings in the model, to stay.
     min_survey_effect_nT : float
-        What a current coupling decided by the survey's own evidence must do to the survey
-        lines (RMS, nT) to be named.
+        What a current coupling decided by the survey's own evidence, or the diurnal
+        correction, must do to the survey lines (RMS, nT) to be named.
     switch_steady_attitude_deg : float
         Largest change of roll and pitch (deg) over a switch's window for a switch read in a
         turn to count as a step of the channel.

@@ -71,7 +71,28 @@ def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
         ci95={"base_coefficient": list(ev_d.ci95)},
     )
     ev.metric = metric
+    _matters(ctx, ev)
     return ev
+
+
+def _matters(ctx: AuditContext, ev: Evaluation) -> None:
+    """Hold the diurnal back when the correction it names would do less than
+    ``min_survey_effect_nT`` to the survey: the base station's variation about its mean over
+    the survey's epochs (nT RMS; a constant is a level the levelling takes), recorded as
+    ``survey_effect_nT``. Many crossovers and leg blocks make a negligible variation
+    significant too, and the held-out gain is relative to a residual that can be as small."""
+    b = ctx.base_smoothed_nT[ctx.seg.mask("survey", "tie", "validation")]
+    b = b[np.isfinite(b)]
+    size = float(np.std(b)) if b.size > 1 else 0.0
+    ev.estimate["survey_effect_nT"] = size
+    ev.ci95["survey_effect_nT"] = None
+    if size < ctx.s.min_survey_effect_nT:
+        ev.held_back = True
+        ev.reason = (
+            f"the base station varies by {size:.3f} nT RMS over the survey, under "
+            f"{ctx.s.min_survey_effect_nT:g} nT (min_survey_effect_nT): a correction that "
+            "does not matter to the survey"
+        )
 
 
 def _diurnal_crossovers(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None:
