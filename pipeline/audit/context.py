@@ -31,6 +31,7 @@ from pipeline.audit.legs import leg_ids
 from pipeline.audit.nuisances import NuisanceSelection, select_nuisances
 from pipeline.audit.settings import AuditSettings
 from pipeline.audit.survey import CrossoverSet
+from pipeline.audit.vector_reference import VectorStep, vector_reference_step
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.stage import calibration_mask
 from pipeline.flight import Flight
@@ -105,6 +106,22 @@ class AuditContext:
         """The carrier's physics outside the T-L basis the held-out calibration supports
         (:func:`pipeline.audit.nuisances.select_nuisances`): part of the null model."""
         return select_nuisances(self.flight, self.mask, self.s.band, self.s.alpha, self.s.min_gain)
+
+    @cached_property
+    def fluxgate_step(self) -> VectorStep | None:
+        """A step in the carrier's permanent field located by the scalar-minus-fluxgate test
+        (:func:`pipeline.audit.vector_reference.vector_reference_step`; the raw readings
+        only, the recorded channels in its model), or None."""
+        d = self.data
+        return vector_reference_step(
+            d.time_s,
+            d.scalar_nT,
+            d.vector_nT,
+            d.aux,
+            self.s.event_alpha,
+            self.s.min_vector_step_nT,
+            self.s.fluxgate_step_margin,
+        )
 
     def null_spec(self) -> ModelSpec:
         """The null model: the baseline with the nuisances the data support."""

@@ -18,7 +18,6 @@ from pipeline.audit.calibration_events import (
 from pipeline.audit.evidence import HeldOut
 from pipeline.audit.extended import ModelSpec, design
 from pipeline.audit.survey import survey_events
-from pipeline.audit.vector_reference import vector_reference_step
 
 # span (s) over which a crossing reading's course over ground is taken: a few samples at
 # any rate, short against a turn's 10-30 s
@@ -232,16 +231,7 @@ class AuditEvents:
         is no step.
         Independent of the calibration model: the raw readings only.
         """
-        d = self.data
-        step = vector_reference_step(
-            d.time_s,
-            d.scalar_nT,
-            d.vector_nT,
-            d.aux,
-            self.s.event_alpha,
-            self.s.min_vector_step_nT,
-            self.s.fluxgate_step_margin,
-        )
+        step = self.fluxgate_step
         if step is None:
             return []
         return [step.to_dict(int(self.flight.time_ns[0]))]

@@ -414,15 +414,30 @@ class SurveyCoupling:
     crossovers: int
 
 
-def survey_coupling(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray) -> SurveyCoupling | None:
+def survey_coupling(
+    x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray, step_s: float | None = None
+) -> SurveyCoupling | None:
     """A channel (a current) that couples into the scalar reading by k nT per unit makes two
     crossing lines disagree by k (I_a - I_b) besides their heading levels: regressing the
     crossover differences on the channel's difference estimates k from the survey alone (k
-    as the total field sees it, averaged over the headings). The readings' time difference is
-    fitted beside it (:func:`clock_column`)."""
+    as the total field sees it, averaged over the headings). The readings' time difference
+    and a step located elsewhere are fitted beside it (:func:`coupling_nuisance`)."""
     g = np.asarray(aux_a, float) - np.asarray(aux_b, float)
-    fit = _regress_on(x, g, clock_column(x))
+    fit = _regress_on(x, g, coupling_nuisance(x, step_s))
     return None if fit is None else SurveyCoupling(*fit)
+
+
+def coupling_nuisance(x: CrossoverSet, step_s: float | None = None) -> np.ndarray:
+    """What a channel's coupling at the crossovers is fitted beside: the readings' time
+    difference (:func:`clock_column`) and, with ``step_s`` (s: a step of the carrier's
+    permanent field located by other evidence, the fluxgate's), each heading's level change
+    there (:func:`_step_columns`). A channel whose level differs before and after the step (a
+    payload switched on, a battery's voltage) would otherwise take the step for its
+    coupling."""
+    clock = clock_column(x)
+    if step_s is None:
+        return clock
+    return np.column_stack([clock, _step_columns(x, float(step_s))[0]])
 
 
 def clock_column(x: CrossoverSet) -> np.ndarray:
@@ -434,19 +449,21 @@ def clock_column(x: CrossoverSet) -> np.ndarray:
     return ((np.asarray(x.time_a_s, float) - np.asarray(x.time_b_s, float)) / 3600.0)[:, None]
 
 
-def survey_coupling_gain(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray) -> HeldOut | None:
+def survey_coupling_gain(
+    x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray, step_s: float | None = None
+) -> HeldOut | None:
     """Does the channel's coupling predict crossovers it was not fitted on? Leave-one-out
     prediction errors of the crossover differences from the heading levels alone and from
     the levels plus the coupling (each crossover predicted by the fit to the others: the
     ordinary residual over one minus its leverage), compared pair by pair
-    (:func:`pipeline.audit.evidence.paired_point_gain`); the time difference
-    (:func:`clock_column`) in both. None: too few crossovers."""
+    (:func:`pipeline.audit.evidence.paired_point_gain`); :func:`coupling_nuisance` in both.
+    None: too few crossovers."""
     y = np.asarray(x.difference_nT, float)
     g = np.asarray(aux_a, float) - np.asarray(aux_b, float)
-    full = np.column_stack([heading_levels(x), clock_column(x), g])
+    full = np.column_stack([heading_levels(x), coupling_nuisance(x, step_s), g])
     ok = np.all(np.isfinite(full), axis=1) & np.isfinite(y)
     full, y = full[ok], y[ok]
-    if full.shape[0] < full.shape[1] + 4 or np.std(full[:, -1]) == 0:
+    if full.shape[0] < full.shape[1] + 4 or not _identifiable(full):
         return None
 
     def loo_errors(a: np.ndarray) -> np.ndarray:
@@ -456,6 +473,17 @@ def survey_coupling_gain(x: CrossoverSet, aux_a: np.ndarray, aux_b: np.ndarray) 
         return (y - a @ coef) / np.clip(1.0 - h, 1e-9, None)
 
     return paired_point_gain(loo_errors(full[:, :-1]), loo_errors(full))
+
+
+def _identifiable(a: np.ndarray) -> bool:
+    """Whether the last column of ``a`` has a part the other columns do not span (more
+    than 1e-6 of its own size): a channel that only switched at a located step, or not at
+    all, says nothing of its coupling beside the step's columns and the levels."""
+    g, rest = a[:, -1], a[:, :-1]
+    if np.std(g) == 0:
+        return False
+    left = g - rest @ np.linalg.lstsq(rest, g, rcond=None)[0] if rest.shape[1] else g
+    return bool(np.linalg.norm(left) > 1e-6 * np.linalg.norm(g))
 
 
 def _regress_on(
@@ -469,7 +497,7 @@ def _regress_on(
     ok = np.all(np.isfinite(a), axis=1) & np.isfinite(y)
     a, y = a[ok], y[ok]
     n, k = a.shape
-    if n < k + 4 or np.std(a[:, -1]) == 0:
+    if n < k + 4 or not _identifiable(a):
         return None
     coef, *_ = np.linalg.lstsq(a, y, rcond=None)
     r = y - a @ coef

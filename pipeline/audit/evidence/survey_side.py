@@ -70,7 +70,7 @@ def crossover_coupling(ctx: AuditContext, spec: ModelSpec, name: str) -> SurveyC
     """Channel ``name``'s coupling seen at the survey's crossovers
     (:func:`pipeline.audit.survey.survey_coupling`)."""
     got = crossover_channel(ctx, spec, name)
-    return None if got is None else survey_coupling(*got)
+    return None if got is None else survey_coupling(*got, step_s=located_step_s(ctx))
 
 
 def channel_switch_steps(
@@ -133,4 +133,11 @@ def crossover_coupling_gain(ctx: AuditContext, spec: ModelSpec, name: str) -> He
     """Leave-one-out gain of channel ``name``'s coupling at the survey's crossovers
     (:func:`pipeline.audit.survey.survey_coupling_gain`)."""
     got = crossover_channel(ctx, spec, name)
-    return None if got is None else survey_coupling_gain(*got)
+    return None if got is None else survey_coupling_gain(*got, step_s=located_step_s(ctx))
+
+
+def located_step_s(ctx: AuditContext) -> float | None:
+    """The likeliest time (s) of the carrier's permanent-field step the fluxgate locates
+    (:attr:`AuditContext.fluxgate_step`), or None."""
+    step = ctx.fluxgate_step
+    return None if step is None else float(step.time_s)
