@@ -141,3 +141,13 @@ def located_step_s(ctx: AuditContext) -> float | None:
     (:attr:`AuditContext.fluxgate_step`), or None."""
     step = ctx.fluxgate_step
     return None if step is None else float(step.time_s)
+
+
+def survey_spread(ctx: AuditContext, x: np.ndarray) -> float:
+    """Standard deviation of a per-epoch series ``x`` over the survey's epochs (survey, tie
+    and validation lines; non-finite values left out; a constant is a level the levelling
+    takes), in ``x``'s unit; 0 with fewer than two values. What a term proportional to ``x``
+    does to the lines."""
+    v = np.asarray(x, float)[ctx.seg.mask("survey", "tie", "validation")]
+    v = v[np.isfinite(v)]
+    return float(np.std(v)) if v.size > 1 else 0.0

@@ -9,6 +9,7 @@ from scipy.optimize import curve_fit
 from pipeline.audit.context import AuditContext, crossover_set
 from pipeline.audit.diurnal import DiurnalSet, diurnal_evidence
 from pipeline.audit.evidence import paired_point_gain
+from pipeline.audit.evidence.survey_side import survey_spread
 from pipeline.audit.extended import ModelSpec
 from pipeline.audit.legs import leg_block_means
 from pipeline.audit.result import Evaluation
@@ -81,9 +82,7 @@ def _matters(ctx: AuditContext, ev: Evaluation) -> None:
     the survey's epochs (nT RMS; a constant is a level the levelling takes), recorded as
     ``survey_effect_nT``. Many crossovers and leg blocks make a negligible variation
     significant too, and the held-out gain is relative to a residual that can be as small."""
-    b = ctx.base_smoothed_nT[ctx.seg.mask("survey", "tie", "validation")]
-    b = b[np.isfinite(b)]
-    size = float(np.std(b)) if b.size > 1 else 0.0
+    size = survey_spread(ctx, ctx.base_smoothed_nT)
     ev.estimate["survey_effect_nT"] = size
     ev.ci95["survey_effect_nT"] = None
     if size < ctx.s.min_survey_effect_nT:

@@ -17,6 +17,7 @@ from pipeline.audit.evidence.survey_side import (
     channel_switch_steps,
     crossover_coupling,
     crossover_coupling_gain,
+    survey_spread,
 )
 from pipeline.audit.extended import FittedModel, ModelSpec
 from pipeline.audit.hypotheses.rival import beyond
@@ -359,9 +360,7 @@ def survey_effect_nT(ctx: AuditContext, name: str, k_nT_per_unit: float) -> floa
     """What a coupling of ``k_nT_per_unit`` does to the survey lines (nT RMS): k times
     channel ``name``'s spread about its mean there (a constant is a level the levelling
     takes)."""
-    x = np.asarray(ctx.data.aux[name], float)[ctx.seg.mask("survey", "tie", "validation")]
-    x = x[np.isfinite(x)]
-    return float(abs(k_nT_per_unit) * np.std(x)) if x.size > 1 else 0.0
+    return float(abs(k_nT_per_unit)) * survey_spread(ctx, ctx.data.aux[name])
 
 
 def decides_outside(ctx: AuditContext, current: ModelSpec, p_value: float) -> bool:

@@ -303,7 +303,12 @@ def lag_beside_decay_nuisance(
 
 
 def _held_back(
-    ctx: AuditContext, ev: Evaluation, verdict: str, vs, tau_s: float, lag_plain_s: float
+    ctx: AuditContext,
+    ev: Evaluation,
+    verdict: str,
+    vs: LagVersusDecay,
+    tau_s: float,
+    lag_plain_s: float,
 ) -> None:
     """Hold the lag back on the verdict ``"ambiguous"`` (recorded in ``ctx.ambiguities``)
     or ``"none"``, saying why."""
