@@ -169,11 +169,16 @@ def fold_test_max(gains: dict[str, np.ndarray], seed: int = 0) -> dict[str, floa
     ``gains``: per candidate, :func:`fold_log_ratios` on one common list of folds (NaN: no
     evidence there, taken as 0). Each sign pattern flips a fold for every candidate at once
     (under the null each fold's vector of gains is symmetric about 0), and a candidate's p
-    is the share of patterns whose largest candidate mean reaches its own. This controls
-    the chance of any false pass at the level as Holm does, but counts the candidates'
-    dependence (they share folds and most columns): with ten folds and six candidates Holm
-    lets only a gain in every fold pass (6/1024 > 0.005), this does not. Exact over all
-    patterns up to :data:`EXACT_FOLDS_MAX` folds, else 2^16 seeded draws.
+    is the share of patterns whose largest candidate statistic reaches its own. This
+    controls the chance of any false pass at the level as Holm does, but counts the
+    candidates' dependence (they share folds and most columns): with ten folds and six
+    candidates Holm lets only a gain in every fold pass (6/1024 > 0.005), this does not.
+    Each candidate's statistic is its sum over folds scaled by the root of its sum of
+    squares, which no sign pattern changes: on one candidate the plain sign-flip test, and
+    every candidate on one scale, so a candidate whose folds swing widely (one that makes
+    held-out data much worse) does not take the maximum in most patterns and hide another's
+    gain. Exact over all patterns up to :data:`EXACT_FOLDS_MAX` folds, else 2^16 seeded
+    draws.
     """
     names = list(gains)
     if not names:
@@ -183,15 +188,17 @@ def fold_test_max(gains: dict[str, np.ndarray], seed: int = 0) -> dict[str, floa
     if k < 3:
         return dict.fromkeys(names, 1.0)
     signs, extra = _sign_patterns(k, seed)
-    top = np.max(signs @ x, axis=1) / k
-    observed = x.mean(axis=0)
+    scale = np.sqrt(np.sum(x**2, axis=0))
+    x = x / np.where(scale > 0, scale, 1.0)
+    top = np.max(signs @ x, axis=1)
+    observed = x.sum(axis=0)
     tol = 1e-12 * float(np.sum(np.abs(x)))
     out = {}
     for j, n in enumerate(names):
         if not np.any(x[:, j] != 0):
             out[n] = 1.0
             continue
-        hits = int(np.sum(top >= observed[j] - tol / k))
+        hits = int(np.sum(top >= observed[j] - tol))
         out[n] = float((hits + extra) / (signs.shape[0] + extra))
     return out
 
