@@ -46,12 +46,12 @@ def test_one_small_loss_in_ten_folds_passes_among_six_candidates():
 
 def test_a_candidate_that_makes_held_out_data_much_worse_hides_no_gain():
     # the same gain in nine folds of ten beside a candidate that loses a lot in every fold:
-    # flipped, its large losses are large gains, which on a common scale would take the
-    # maximum in most patterns
+    # flipped, its large losses are large gains, which as raw means took the maximum in
+    # most patterns
     gains = {
         "eddy": np.array([0.30, 0.25, 0.35, 0.28, -0.02, 0.22, 0.33, 0.30, 0.26, 0.29]),
         "second_order": np.log(1.0 / np.array([2.4, 2.2, 2.6, 2.3, 2.5, 2.4, 2.1, 2.7, 2.4, 2.3])),
     }
     p = fold_test_max(gains)
     assert p["eddy"] < 0.01, p
-    assert p["second_order"] == 1.0 or p["second_order"] > 0.5, p
+    assert p["second_order"] > 0.5, p
