@@ -57,7 +57,7 @@ def leg_set(rng, phase, follows=True, legs=4, blocks=8, noise=0.2, t0=100.0, alo
     if follows:
         y = y + day(t, phase)
     levels = (leg_of[:, None] == np.arange(legs)[None, :]).astype(float)
-    return DiurnalSet("legs", y, np.column_stack([levels, enu]), base, group=leg_of, drift_s=t)
+    return DiurnalSet("legs", y, np.column_stack([levels, enu]), base, group=leg_of)
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -29,11 +29,11 @@ by a biweight fit of the same model, and the points it gives no weight are left 
 
 The coefficient's interval takes the wider of the least-squares standard error and a
 delete-one-group jackknife's (a group: one leg's blocks, one crossover; the least-squares one
-takes the points as independent, which the blocks of one leg are not) and adds, in
-quadrature, what a slow drift of the airborne level that the base station does not see would
-do to the coefficient (:data:`DRIFT_ALLOWANCE_NT_PER_S`: a sensor's or the carrier's thermal
-drift). A clean flight's crossovers and legs hold fixed structure that projects on a slow
-variation, so the coefficient is off by a fixed size in nT, whatever the variation's.
+takes the points as independent, which the blocks of one leg are not), with Student t on the
+matching degrees of freedom. No allowance is added: a slow drift of the airborne level moves
+the coefficient by its own projection on the variation, which is in the residual the
+jackknife resamples; a drift fitted beside the coefficient leaves it undetermined wherever
+the variation is nearly linear over the flight.
 
 Sizes in nT, times in s.
 """
@@ -49,9 +49,6 @@ from pipeline.audit.evidence import HeldOut, NestedTest, nested_test
 from pipeline.audit.legs import fisher_combined
 
 SHUFFLES = 4999  # random deals of the permutation test: p resolved to 2e-4
-# one-sigma rate of a slow drift of the airborne level that the base station does not share
-# (nT/s; 0.3 nT/h): a Cs sensor's drift, a carrier's magnetisation following its temperature
-DRIFT_ALLOWANCE_NT_PER_S = 0.3 / 3600.0
 
 
 @dataclass
@@ -66,9 +63,6 @@ class DiurnalSet:
     base_nT: np.ndarray
     # the unit of independent error of each row (a leg's id); None: each row its own
     group: np.ndarray | None = None
-    # what a drift of the airborne level at 1 nT/s adds to each row (s: a block's time, a
-    # crossover's time difference); None: no drift allowance
-    drift_s: np.ndarray | None = None
 
     def take(self, rows: np.ndarray) -> DiurnalSet:
         """The set's ``rows`` (a boolean mask)."""
@@ -78,7 +72,6 @@ class DiurnalSet:
             self.nuisance[rows],
             self.base_nT[rows],
             None if self.group is None else self.group[rows],
-            None if self.drift_s is None else self.drift_s[rows],
         )
 
     def groups(self) -> np.ndarray:
@@ -179,8 +172,6 @@ def _usable(s: DiurnalSet) -> tuple[DiurnalSet, float, int] | None:
     its residual standard deviation (nT) and the number of rows screened out. None with too
     few rows for its columns (4 more) or without base-station variation."""
     ok = np.isfinite(s.y) & np.isfinite(s.base_nT) & np.all(np.isfinite(s.nuisance), axis=1)
-    if s.drift_s is not None:
-        ok &= np.isfinite(s.drift_s)
     s = s.take(ok)
     k = s.nuisance.shape[1] + 1
     if s.y.size < k + 4 or np.std(s.base_nT) == 0:
@@ -207,29 +198,28 @@ def _usable(s: DiurnalSet) -> tuple[DiurnalSet, float, int] | None:
 
 def _stacked(
     kept: list[tuple[DiurnalSet, float]],
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The usable sets stacked, each in units of its own residual standard deviation: the
     nuisance columns (block-diagonal: each set has its own levels), the measurements, the
-    base term (shared), each row's standard deviation (nT), the drift column and each row's
+    base term (shared), each row's standard deviation (nT) and each row's
     group (a set's own group: a crossover, a leg)."""
     n_cols = [t.nuisance.shape[1] for t, _ in kept]
     x0 = np.zeros((sum(t.y.size for t, _ in kept), sum(n_cols)))
-    y, g, sig, grp, drift = [], [], [], [], []
+    y, g, sig, grp = [], [], [], []
     row = col = 0
     for i, ((t, sigma), m) in enumerate(zip(kept, n_cols, strict=True)):
         x0[row : row + t.y.size, col : col + m] = t.nuisance / sigma
         y.append(t.y / sigma)
         g.append(t.base_nT / sigma)
         sig.append(np.full(t.y.size, sigma))
-        drift.append((np.zeros(t.y.size) if t.drift_s is None else t.drift_s) / sigma)
         grp.append(
             np.column_stack([np.full(t.y.size, i), np.unique(t.groups(), return_inverse=True)[1]])
         )
         row += t.y.size
         col += m
-    y, g, sig, drift = (np.concatenate(v) for v in (y, g, sig, drift))
+    y, g, sig = (np.concatenate(v) for v in (y, g, sig))
     grp = np.unique(np.concatenate(grp), axis=0, return_inverse=True)[1].ravel()
-    return x0, y, g, sig, drift, grp
+    return x0, y, g, sig, grp
 
 
 def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
@@ -258,7 +248,7 @@ def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
         screened[s.name] = out
     if not kept:
         return None
-    x0, y, g, sig, drift, grp = _stacked(kept)
+    x0, y, g, sig, grp = _stacked(kept)
     x1 = np.column_stack([x0, g])
     test = nested_test(y, x0, x1, 1)
     n, k = x1.shape
@@ -266,14 +256,11 @@ def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
     r = y - x1 @ coef
     cov = float(r @ r) / (n - k) * np.linalg.pinv(x1.T @ x1)
     c, se = float(coef[-1]), float(np.sqrt(max(cov[-1, -1], 0.0)))
-    # a drift at the allowed rate moves the coefficient by the drift column's own
-    # coefficient on the base-station term, times the rate
-    moved = np.linalg.lstsq(x1, drift, rcond=None)[0][-1] * DRIFT_ALLOWANCE_NT_PER_S
     se_jack, df_jack = _jackknife_se(x1, y, grp)
     df = n - k
     if se_jack > se:  # the groups, not the points, are the independent data: their count
         se, df = se_jack, df_jack
-    half = float(stats.t.ppf(0.975, df)) * float(np.hypot(se, moved))
+    half = float(stats.t.ppf(0.975, df)) * se
     # the variation's sign is known (the base station sees the same field): one-sided, from
     # the two-sided F-test of one column (F = t^2)
     test = replace(test, p_value=0.5 * test.p_value if c > 0 else 1.0 - 0.5 * test.p_value)

@@ -43,12 +43,10 @@ MIN_BLOCK_FILL = 0.5  # share of a block's samples that must be present
 # more (see :func:`leg_gradient`'s ``scale_uncertainty``)
 SCALE_UNCERTAINTY = 1e-3
 # the crust's own gradient at the calibration site is part of the field the legs measure, of
-# no carrier's making, and nothing in a recording tells it from a gradient effect over the same
-# box (a truth document states the effect without it); sources a few km away put tenths to a
-# few nT/km over a box. The interval carries 1 nT/km of it as a standard error; the tests of
-# the gradient do not (the crust's own is what min_excess_gradient_nT_per_m keeps from being
-# named)
-CRUST_GRADIENT_SE_NT_PER_M = 1e-3
+# no carrier's making, and nothing in the legs tells it from a gradient effect over the same
+# box (a truth document states the effect without it). Its spread is measured on the survey
+# (:func:`crust_roughness_ratio`): a window needs this share of its length flown
+MIN_WINDOW_COVER = 0.8
 
 
 @dataclass
@@ -62,7 +60,8 @@ class LegGradient:
     se_nT_per_m : ndarray
         Their standard errors (nT/m): the fit's, with the field's relative scale uncertainty
         times the value and the crust's own gradient at the site
-        (:data:`CRUST_GRADIENT_SE_NT_PER_M`) added in quadrature.
+        (:func:`crust_roughness_ratio` times the fit's residual, when measured) added in
+        quadrature.
     p_value : float
         F-test that the horizontal (east, north) components are zero.
     blocks, legs : int
@@ -75,6 +74,8 @@ class LegGradient:
         a gradient at all).
     dof : int
         Residual degrees of freedom of the fit.
+    crust_se_nT_per_m : float or None
+        The crust's gradient spread in :attr:`se_nT_per_m` (nT/m), None when not measured.
     """
 
     gradient_nT_per_m: np.ndarray
@@ -85,6 +86,7 @@ class LegGradient:
     offsets_m: np.ndarray
     horizontal_cov: np.ndarray
     dof: int
+    crust_se_nT_per_m: float | None = None
 
     def excess_p_value(self, main_east_north_nT_per_m) -> float:
         """p of the Wald test (F with 2 and :attr:`dof` degrees of freedom) that the
@@ -198,18 +200,15 @@ def leg_gradient(
     min_leg_blocks: int = 3,
     scale_uncertainty: float = SCALE_UNCERTAINTY,
     nuisance: np.ndarray | None = None,
-    crust_se_nT_per_m: float = CRUST_GRADIENT_SE_NT_PER_M,
+    crust_ratio_per_m: float | None = None,
 ) -> LegGradient | None:
     """Fit the total field's gradient to block means along the calibration legs.
 
     Parameters
     ----------
-    time_s : ndarray
-        Epoch times (s).
-    field_nT : ndarray
-        Compensated total field (nT), day's variation removed where possible; NaN: missing.
-    enu_m : ndarray
-        (n, 3) local east, north, up positions (m).
+    time_s, field_nT, enu_m : ndarray
+        Epoch times (s); compensated total field (nT), day's variation removed where
+        possible, NaN: missing; (n, 3) local east, north, up positions (m).
     legs : ndarray of int
         Leg number per epoch (:func:`leg_ids`), -1 outside.
     block_s, min_leg_blocks : float, int
@@ -224,9 +223,9 @@ def leg_gradient(
         (n, k) columns of interference the compensation may have taken out wrongly, each
         with one coefficient in both models of the test (a fitted channel's ``u I``: a
         coupling wrong by ``dc`` leaves ``dc . u I``, which a switch in a leg makes a ramp).
-    crust_se_nT_per_m : float
-        Standard error (nT/m) the intervals allow for the crust's own gradient at the site
-        (0 where the field is known to hold only the gradient sought).
+    crust_ratio_per_m : float, optional
+        :func:`crust_roughness_ratio` (1/m): times the fit's residual, the standard error
+        of the crust's own gradient at the box. None (no survey): not in the intervals.
 
     Returns
     -------
@@ -255,12 +254,13 @@ def leg_gradient(
     pv = f_test_p(rss_b, k_b, rss_f, k_f, a.shape[0])
     cov = rss_f / dof * np.linalg.pinv(x_full.T @ x_full)
     scale = max(scale_uncertainty, SCALE_UNCERTAINTY)
+    crust = None if crust_ratio_per_m is None else crust_ratio_per_m * float(np.sqrt(rss_f / dof))
     # positions about each leg's level: what a horizontal gradient's ramp is made of
     offsets = a[:, 1:3] - levels @ np.linalg.lstsq(levels, a[:, 1:3], rcond=None)[0]
     return LegGradient(
         gradient_nT_per_m=coef[:3],
         se_nT_per_m=np.sqrt(
-            np.clip(np.diag(cov)[:3], 0.0, None) + (scale * coef[:3]) ** 2 + crust_se_nT_per_m**2
+            np.clip(np.diag(cov)[:3], 0.0, None) + (scale * coef[:3]) ** 2 + (crust or 0.0) ** 2
         ),
         p_value=pv,
         blocks=int(a.shape[0]),
@@ -268,7 +268,117 @@ def leg_gradient(
         offsets_m=offsets,
         horizontal_cov=cov[:2, :2] + np.diag((scale * coef[:2]) ** 2),
         dof=int(dof),
+        crust_se_nT_per_m=crust,
     )
+
+
+def leg_length_m(enu_m: np.ndarray, legs: np.ndarray) -> float | None:
+    """Median horizontal length of the calibration legs (m): the scale over which their fit
+    averages the field's gradient. None without legs."""
+    spans = []
+    for leg in np.unique(legs[legs >= 0]):
+        xy = np.asarray(enu_m, float)[legs == leg, :2]
+        xy = xy[np.all(np.isfinite(xy), axis=1)]
+        if xy.shape[0] >= 2:
+            # extent along the leg's own direction (its first principal axis)
+            c = xy - xy.mean(axis=0)
+            axis = np.linalg.svd(c, full_matrices=False)[2][0]
+            spans.append(float(np.ptp(c @ axis)))
+    return float(np.median(spans)) if spans else None
+
+
+def _window_line(
+    along_m: np.ndarray, time_s: np.ndarray, y: np.ndarray, block_s: float
+) -> tuple[float, float, int] | None:
+    """Slope (nT/m), residual sum of squares (nT^2) and degrees of freedom of a line fitted
+    to ``block_s`` block means of ``y`` along track; None with fewer than 3 blocks."""
+    blk = np.floor((time_s - time_s[0]) / block_s)
+    ids = np.unique(blk)
+    if ids.size < 3:
+        return None
+    x = np.array([along_m[blk == i].mean() for i in ids])
+    v = np.array([y[blk == i].mean() for i in ids])
+    c = np.polyfit(x, v, 1)
+    r = v - np.polyval(c, x)
+    return float(c[0]), float(r @ r), int(ids.size - 2)
+
+
+def crust_roughness_ratio(
+    time_s: np.ndarray,
+    field_nT: np.ndarray,
+    tracks: list,
+    window_m: float,
+    block_s: float = 10.0,
+    min_windows: int = 4,
+) -> tuple[float, int] | None:
+    """How much the crust's mean gradient over a stretch varies, per nT of its departure
+    from a plane there, measured on the survey (1/m).
+
+    The crust's own gradient at the calibration box is part of what the legs measure and
+    nothing in the legs tells it from a gradient effect; what they do show is the crust's
+    departure from a plane over the box (their fit's residual). The survey relates the two:
+    each straight line (survey and tie tracks) is cut into windows of ``window_m`` metres,
+    the field's ``block_s`` block means in each are fitted with a line along track, and the
+    ratio is the RMS of the windows' slopes (nT/m, signed along their line direction, less
+    each direction's mean: the main field's and any regional gradient are the same
+    everywhere) over the RMS of the block means' residuals about their lines (nT). Times
+    the legs' residual, it is the spread of the crust's gradient at the box, where crews
+    fly over quiet ground. A heading error or a lag shifts a line's level or moves it along
+    track, not its slope; noise and compensation errors in the legs' residual make it err
+    wide.
+
+    Parameters
+    ----------
+    time_s : ndarray
+        Epoch times (s).
+    field_nT : ndarray
+        Reduced field per epoch (nT): compensated, main field and day's variation removed.
+    tracks : list of pipeline.quality.overlap.Track
+        The survey's straight lines (local east/north metres).
+    window_m : float
+        Window length (m): the calibration legs' length (:func:`leg_length_m`), at most the
+        lines' median length.
+    block_s : float
+        Block of the means (s), as in :func:`leg_gradient`.
+    min_windows : int
+        Fewest windows beyond one per line direction.
+
+    Returns
+    -------
+    tuple of (float, int) or None
+        The ratio (1/m) and the windows it rests on; None with too few windows or no
+        residual.
+    """
+    from pipeline.geo.heading import heading_class, pattern_direction_deg
+
+    lines = [t for t in tracks if t.kind in ("survey", "tie")]
+    if not lines or not window_m > 0:
+        return None
+    # lines shorter than the legs: whole lines
+    window_m = min(window_m, float(np.median([t.along_m[-1] for t in lines])))
+    ref = pattern_direction_deg(np.array([t.heading_deg for t in lines]))
+    slopes: dict[int, list[float]] = {}
+    rss, dof = 0.0, 0
+    t_all, y_all = np.asarray(time_s, float), np.asarray(field_nT, float)
+    for t in lines:
+        k = int(heading_class(t.heading_deg, ref))
+        y, tt = y_all[t.index], t_all[t.index]
+        win = np.floor(t.along_m / window_m)
+        for w in np.unique(win):
+            sel = (win == w) & np.isfinite(y)
+            if sel.sum() < 5 or np.ptp(t.along_m[sel]) < MIN_WINDOW_COVER * window_m:
+                continue
+            got = _window_line(t.along_m[sel], tt[sel], y[sel], block_s)
+            if got is not None:
+                # one sign per line axis
+                slopes.setdefault(k % 2, []).append(got[0] * (1.0 if k < 2 else -1.0))
+                rss, dof = rss + got[1], dof + got[2]
+    dev = [np.asarray(v) - np.mean(v) for v in slopes.values() if len(v) >= 2]
+    n = sum(v.size for v in dev)
+    if n - len(dev) < min_windows or not dof or not rss > 0:
+        return None
+    spread = np.sqrt(sum(float(v @ v) for v in dev) / (n - len(dev)))
+    return float(spread / np.sqrt(rss / dof)), int(n)
 
 
 def fisher_combined(*p_values: float) -> float:

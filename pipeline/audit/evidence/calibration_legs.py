@@ -8,7 +8,7 @@ import numpy as np
 
 from pipeline.audit.context import AuditContext
 from pipeline.audit.extended import ModelSpec
-from pipeline.audit.legs import LegGradient, leg_gradient
+from pipeline.audit.legs import LegGradient, crust_roughness_ratio, leg_gradient, leg_length_m
 from pipeline.compensate.terms import BT_SCALE_NT, direction_cosines
 
 
@@ -42,7 +42,24 @@ def legs_gradient(ctx: AuditContext, spec: ModelSpec) -> LegGradient | None:
         ctx.legs,
         scale_uncertainty=scale,
         nuisance=nuisance,
+        crust_ratio_per_m=crust_ratio(ctx, comp),
     )
+
+
+def crust_ratio(ctx: AuditContext, comp: np.ndarray) -> float | None:
+    """The crust's gradient spread per nT of departure from a plane over the legs' length
+    (1/m), measured along the survey's lines in ``comp`` (compensated, day's variation
+    removed) less the main field (:func:`pipeline.audit.legs.crust_roughness_ratio`); None
+    without survey lines."""
+    f = ctx.flight
+    if not (f.has("lat_deg", "lon_deg", "alt_m") and ctx.seg.mask("survey").any()):
+        return None
+    window = leg_length_m(ctx.data.enu_m, ctx.legs)
+    if window is None:
+        return None
+    igrf, _, tracks = ctx._survey_geometry()
+    got = crust_roughness_ratio(ctx.data.time_s, comp - igrf, tracks, window)
+    return None if got is None else got[0]
 
 
 def main_field_gradient(ctx: AuditContext) -> np.ndarray | None:

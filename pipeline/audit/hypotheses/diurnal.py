@@ -109,7 +109,6 @@ def _diurnal_crossovers(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None
         dx,
         heading_levels(crossover_set(dx, xs, heading)),
         db,
-        drift_s=np.array([c.time_a_s - c.time_b_s for c in xs]),
     )
 
 
@@ -122,9 +121,7 @@ def _diurnal_legs(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None:
         return None
     a, leg_of = leg_block_means(
         ctx.data.time_s,
-        np.column_stack(
-            [ctx.compensated(spec), ctx.base_smoothed_nT, ctx.data.enu_m, ctx.data.time_s]
-        ),
+        np.column_stack([ctx.compensated(spec), ctx.base_smoothed_nT, ctx.data.enu_m]),
         ctx.legs,
         ctx.s.block_s,
     )
@@ -137,7 +134,6 @@ def _diurnal_legs(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None:
         np.column_stack([levels, a[:, 2:5]]),
         a[:, 1],
         group=leg_of,
-        drift_s=a[:, 5],
     )
 
 

@@ -95,7 +95,9 @@ def _by_the_legs(
         ev.estimate["calibration_legs_p_value"] = legs.p_value
         ev.estimate["calibration_legs_ramp_rms_nT"] = legs.ramp_rms_nT
         ev.estimate["calibration_legs_blocks"] = legs.blocks
-        for k in ("p_value", "ramp_rms_nT", "blocks"):
+        # part of the interval: the crust's own gradient, measured on the survey
+        ev.estimate["calibration_legs_crust_se_nT_per_m"] = legs.crust_se_nT_per_m
+        for k in ("p_value", "ramp_rms_nT", "blocks", "crust_se_nT_per_m"):
             ev.ci95[f"calibration_legs_{k}"] = None
         excess, p_excess, why_not = leg_gradient_verdict(ctx, legs, main)
         ev.estimate["calibration_legs_excess_ramp_rms_nT"] = excess
