@@ -35,6 +35,7 @@ from scipy import stats
 
 from pipeline.audit.evidence import f_test_p, least_squares_rss
 from pipeline.compensate.filters import contiguous_blocks
+from pipeline.geo.heading import heading_class, pattern_direction_deg
 
 MIN_BLOCK_FILL = 0.5  # share of a block's samples that must be present
 # least relative uncertainty of a gradient from positions in a local tangent plane (projection
@@ -349,8 +350,6 @@ def crust_roughness_ratio(
         The ratio (1/m) and the windows it rests on; None with too few windows or no
         residual.
     """
-    from pipeline.geo.heading import heading_class, pattern_direction_deg
-
     lines = [t for t in tracks if t.kind in ("survey", "tie")]
     if not lines or not window_m > 0:
         return None
