@@ -314,10 +314,9 @@ def test_a_coupling_known_from_outside_the_calibration_is_taken_out_before_the_f
 
 
 def test_a_coupling_decided_outside_the_calibration_shares_the_flights_budget():
-    """A coupling test on the survey (crossovers, switches, both joined) decides alone at
-    ``event_alpha``, Bonferroni over the electrical channels that vary over the calibration
-    and the three tests; the event tests and the bootstrap's maximum spend
-    ``flight_alpha``."""
+    """A channel's coupling test on the survey (one per channel) decides alone at
+    ``event_alpha``, Bonferroni over the electrical channels that vary over the
+    calibration; the event tests and the bootstrap's maximum spend ``flight_alpha``."""
     from types import SimpleNamespace
 
     from pipeline.audit.hypotheses.electrical_current import decides_outside
@@ -332,11 +331,11 @@ def test_a_coupling_decided_outside_the_calibration_shares_the_flights_budget():
     ctx = SimpleNamespace(
         data=SimpleNamespace(aux=aux, aux_units=units), mask=np.ones(500, bool), s=s
     )
-    # three electrical channels (the temperature is none): nine tests
-    assert decides_outside(ctx, ModelSpec(), 0.9 * s.event_alpha / 9)
-    assert not decides_outside(ctx, ModelSpec(), 1.1 * s.event_alpha / 9)
+    # three electrical channels (the temperature is none): three tests
+    assert decides_outside(ctx, ModelSpec(), 0.9 * s.event_alpha / 3)
+    assert not decides_outside(ctx, ModelSpec(), 1.1 * s.event_alpha / 3)
     # a channel already in the model is no longer tested
-    assert decides_outside(ctx, ModelSpec(aux=("bus",)), 1.1 * s.event_alpha / 9)
+    assert decides_outside(ctx, ModelSpec(aux=("bus",)), 1.1 * s.event_alpha / 3)
 
 
 def test_evidence_outside_the_calibration_decides_unless_the_calibration_contradicts():

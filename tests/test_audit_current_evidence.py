@@ -61,26 +61,26 @@ def test_crossovers_and_few_switches_together_confirm_what_neither_can_alone():
     ctx, ev = _ctx(), _ev()
     sc = SurveyCoupling(3.2, (2.2, 4.2), 3e-6, 60)
     sw = SwitchCoupling(2.9, 0.3, 7e-5, 6, held(0.78, 1 / 64, 6))
-    _by_both(ctx, ev, ModelSpec(), "payload", (sc, held(0.45, 0.026)), sw)
+    _by_both(ctx, ev, (sc, held(0.45, 0.026)), sw)
     assert ev.confirmed_gain and not ev.decided_outside
     assert 0.003 < ev.confirm_p < 0.004
-    _by_the_survey(ctx, ev, ModelSpec(), "payload", sc, sw)
+    _by_the_survey(ctx, ev, ModelSpec(), "payload", (sc, held(0.45, 0.026)), sw)
     assert ev.decided_outside
     assert ev.estimate["confirmed_by"] == "survey crossovers and channel switches"
     # the joined k lies between the two, nearer the more precise switches
     assert 2.9 < ev.estimate["survey_joined_total_field_nT_per_unit"] < 3.05
     # the crossovers predict their own data alone: their own rules decide, nothing joined
     ev = _ev()
-    _by_both(ctx, ev, ModelSpec(), "payload", (sc, held(0.45, 0.002)), sw)
+    _by_both(ctx, ev, (sc, held(0.45, 0.002)), sw)
     assert "joint_heldout_p_value" not in ev.estimate
     # one of the two does not predict its own data: nothing joined
     ev = _ev()
-    _by_both(ctx, ev, ModelSpec(), "payload", (sc, held(0.45, 0.4)), sw)
+    _by_both(ctx, ev, (sc, held(0.45, 0.4)), sw)
     assert not ev.decided_outside and ev.confirm_p is None
     # the switches do not show a coupling (its t-test): nothing joined
     ev = _ev()
     weak = SwitchCoupling(0.3, 0.3, 0.3, 6, held(0.78, 1 / 64, 6))
-    _by_both(ctx, ev, ModelSpec(), "payload", (sc, held(0.45, 0.026)), weak)
+    _by_both(ctx, ev, (sc, held(0.45, 0.026)), weak)
     assert not ev.decided_outside and "joint_heldout_p_value" not in ev.estimate
 
 
@@ -99,7 +99,7 @@ def test_with_no_coupling_the_joined_evidence_decides_at_most_at_alpha():
         p_loo = np.ceil(rng.uniform() * grid) / grid
         sc = SurveyCoupling(3.0, (2.0, 4.0), 1e-6, 60)
         sw = SwitchCoupling(3.0, 0.3, 1e-6, 6, held(0.3, p_loo, 6))
-        _by_both(ctx, ev, ModelSpec(), "payload", (sc, held(0.3, p_sg)), sw)
+        _by_both(ctx, ev, (sc, held(0.3, p_sg)), sw)
         confirmed += ev.confirmed_gain
     alpha = ctx.s.alpha
     assert confirmed / draws <= alpha + 3 * np.sqrt(alpha * (1 - alpha) / draws)
@@ -168,14 +168,36 @@ def test_a_significant_coupling_too_small_for_the_survey_is_not_decided():
     sc = SurveyCoupling(0.05, (0.04, 0.06), 1e-9, 400)
     sw = SwitchCoupling(0.05, 0.005, 1e-9, 40, held(0.5, 1e-4, 40))
     ctx, ev = _ctx(amplitude_A=0.2), _ev()  # 0.05 nT/A x 0.2 A: 0.01 nT on the lines
-    _by_the_survey(ctx, ev, ModelSpec(), "payload", sc, sw)
+    _by_the_survey(ctx, ev, ModelSpec(), "payload", (sc, held(0.5, 1e-4)), sw)
     assert not ev.decided_outside
     assert ev.estimate["survey_effect_nT"] == pytest.approx(0.01, rel=0.05)
     ctx, ev = _ctx(amplitude_A=1.0), _ev()  # 0.05 nT on the lines
-    _by_the_survey(ctx, ev, ModelSpec(), "payload", sc, sw)
+    _by_the_survey(ctx, ev, ModelSpec(), "payload", (sc, held(0.5, 1e-4)), sw)
     assert ev.decided_outside
-    # one kind of evidence is not joined: it decides by its own rules (with its
-    # leave-one-out prediction), not by this test
+
+
+def test_one_survey_test_per_channel_picked_by_the_evidence_present():
+    """Both kinds of evidence: only their joint test decides (a strong source alone does
+    not when the other contradicts it); one kind: its own test, and only when it also
+    predicts its own data leave-one-out."""
+    ctx = _ctx(amplitude_A=1.0)
+    sc = SurveyCoupling(3.2, (2.2, 4.2), 1e-7, 60)
+    against = SwitchCoupling(-3.0, 0.6, 1e-6, 12, held(0.5, 1e-3, 12))
     ev = _ev()
-    _by_the_survey(ctx, ev, ModelSpec(), "payload", sc, None)
-    assert not ev.decided_outside and "survey_joined_p_value" not in ev.estimate
+    _by_the_survey(ctx, ev, ModelSpec(), "payload", (sc, held(0.45, 1e-4)), against)
+    assert not ev.decided_outside
+    assert ev.estimate["survey_joined_p_value"] > 0.05
+    # the crossovers alone: decided when they predict their own data ...
+    ev = _ev()
+    _by_the_survey(ctx, ev, ModelSpec(), "payload", (sc, held(0.45, 1e-4)), None)
+    assert ev.decided_outside and ev.estimate["confirmed_by"] == "survey crossovers"
+    assert "survey_joined_p_value" not in ev.estimate
+    # ... and not when they do not
+    ev = _ev()
+    _by_the_survey(ctx, ev, ModelSpec(), "payload", (sc, held(0.45, 0.3)), None)
+    assert not ev.decided_outside
+    # the switches alone, which predict each other
+    sw = SwitchCoupling(2.9, 0.3, 7e-8, 12, held(0.78, 1e-3, 12))
+    ev = _ev()
+    _by_the_survey(ctx, ev, ModelSpec(), "payload", (None, None), sw)
+    assert ev.decided_outside and ev.estimate["confirmed_by"] == "channel switches"

@@ -187,6 +187,18 @@ def fold_lag(ctx: AuditContext, spec: ModelSpec):
     return build
 
 
+def still_shown_outside(ctx: AuditContext, accepted: Evaluation, again: Evaluation) -> bool:
+    """Whether a finding that evidence outside the calibration decided (``accepted``) keeps
+    that acceptance when re-evaluated with the other findings in the model (``again``):
+    that evidence still shows it (its test's p < ``alpha``). The acceptance statistics are
+    the accepting round's; its level (Bonferroni over the channels) is not asked twice, and
+    the calibration's rival, which that evidence set aside, does not drop it (a switch's
+    step is no function of the attitude)."""
+    return (
+        accepted.decided_outside and again.outside_p is not None and again.outside_p < ctx.s.alpha
+    )
+
+
 def refine(ctx: AuditContext, spec: ModelSpec, findings: list[Evaluation]) -> ModelSpec:
     """Re-estimate every accepted effect with all the others in the model.
 
@@ -195,14 +207,14 @@ def refine(ctx: AuditContext, spec: ModelSpec, findings: list[Evaluation]) -> Mo
     are these, with the others present, and so are their intervals. The acceptance
     statistics stay those of the round that accepted the effect. An effect that, with the
     others present, a competing explanation or its own direct evidence now rejects
-    (``held_back``) is dropped from ``findings`` (in place) and from the model (a current's
-    steps inside the calibration legs ramp like a gradient until the current is in the
-    model).
+    (``held_back``, unless :func:`still_shown_outside`) is dropped from ``findings`` (in
+    place) and from the model (a current's steps inside the calibration legs ramp like a
+    gradient until the current is in the model).
     """
     order = sorted(findings, key=lambda f: f.effect != "sensor_lag")  # lag first
     for f in order:
         e = evaluate(ctx, without(spec, f), f.effect, f.key)
-        if e.held_back:
+        if e.held_back and not still_shown_outside(ctx, f, e):
             spec = without(spec, f)
             findings.remove(f)
             f.accepted = False

@@ -44,6 +44,10 @@ class Evaluation:
     # calibration that band-passes its steps away, or a gradient seen only through the
     # manoeuvres' small moves, leaves the calibration's tests blind to it
     decided_outside: bool = False
+    # p of the one test by which evidence outside the calibration can decide the candidate
+    # (a current's survey test), None without it: what keeps a finding so decided when the
+    # model around it changes (decide.refine)
+    outside_p: float | None = None
 
     @property
     def heldout_p(self) -> float:

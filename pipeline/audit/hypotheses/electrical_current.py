@@ -66,17 +66,17 @@ def _electrical(unit: str) -> bool:
 
 def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
     """A current in auxiliary channel ``key`` (``electrical_current:<name>``) coupling into
-    the reading: its three body-frame columns on the calibration, confirmed or decided by
-    the survey's crossovers (:func:`_by_the_crossovers`), the channel's switches
-    (:func:`_by_the_switches`) or both (:func:`_by_both` confirms, :func:`_by_the_survey`
-    decides), and weighed against the second-order terms."""
+    the reading: its three body-frame columns on the calibration, confirmed by the survey's
+    crossovers (:func:`_by_the_crossovers`), the channel's switches
+    (:func:`_by_the_switches`) or both (:func:`_by_both`), or decided by the survey
+    (:func:`_by_the_survey`), and weighed against the second-order terms."""
     name = key.split(":", 1)[1]
     ext = current.with_(aux=current.aux + (name,))
     ev, sc = _on_the_calibration(ctx, current, key, name, ext)
     sg = _by_the_crossovers(ctx, ev, current, name, sc)
     sw = _by_the_switches(ctx, ev, current, name)
-    _by_both(ctx, ev, current, name, (sc, sg), sw)
-    _by_the_survey(ctx, ev, current, name, sc, sw)
+    _by_both(ctx, ev, (sc, sg), sw)
+    _by_the_survey(ctx, ev, current, name, (sc, sg), sw)
     # a current that follows the manoeuvres (a motor's) can stand in for interference
     # that is not linear in the field or in the rates: the coupling is named only when it
     # explains held-out data better than the second-order terms do
@@ -145,16 +145,6 @@ def _by_the_crossovers(
         # (Fisher), the two together must reach alpha
         if sc.p_value < ctx.s.alpha and sg.reduction >= ctx.s.min_gain:
             ev.confirm_p, ev.confirmed_gain = sg.p_value, True
-            # the crossovers' own test decides alone when it also predicts them
-            # leave-one-out (p < alpha): one kind of evidence has its own confounds (a
-            # step, line levels, a channel that drifts with time), which its prediction of
-            # crossovers it was not fitted on guards against
-            if (
-                decides_outside(ctx, current, sc.p_value)
-                and sg.p_value < ctx.s.alpha
-                and _matters(ctx, name, sc.nT_per_unit)
-            ):
-                _decide_outside(ctx, ev, current, name, "survey_total_field_nT_per_unit")
     return sg
 
 
@@ -163,8 +153,7 @@ def _by_the_switches(
 ) -> SwitchCoupling | None:
     """The field's steps where the channel switches, over the whole flight: their
     coupling's estimate beside the calibration's, and their own tests, which confirm the
-    calibration's or decide alone (:func:`_decide_outside`); returned (None without
-    switches)."""
+    calibration's; returned (None without switches)."""
     # the steps' errors as this flight's placebo switches spread, not as each window says
     steps, wider = channel_switch_steps(ctx, current, name)
     sw = None if steps is None else switch_coupling(steps, inflation=wider)
@@ -215,21 +204,12 @@ def _by_the_switches(
             # the better of two confirmations, Bonferroni-corrected for the choice
             ev.confirm_p = p if ev.confirm_p is None else min(1.0, 2 * min(ev.confirm_p, p))
             ev.confirmed_gain = True
-            # the steps' own test decides alone, as the crossovers' does
-            if (
-                not ev.decided_outside
-                and decides_outside(ctx, current, sw.p_value)
-                and _matters(ctx, name, sw.total_field_nT_per_unit)
-            ):
-                _decide_outside(ctx, ev, current, name, "switch_total_field_nT_per_unit")
     return sw
 
 
 def _by_both(
     ctx: AuditContext,
     ev: Evaluation,
-    current: ModelSpec,
-    name: str,
     crossovers: tuple[SurveyCoupling | None, HeldOut | None],
     sw: SwitchCoupling | None,
 ) -> None:
@@ -309,27 +289,56 @@ def _by_the_survey(
     ev: Evaluation,
     current: ModelSpec,
     name: str,
-    sc: SurveyCoupling | None,
+    crossovers: tuple[SurveyCoupling | None, HeldOut | None],
     sw: SwitchCoupling | None,
 ) -> None:
-    """The survey's two kinds of evidence decide together (C3): the crossovers' and the
-    switches' coupling joined (:func:`joined_coupling`) significant at ``event_alpha``
-    (:func:`decides_outside`), and large enough to matter (as :func:`_matters`). Two
-    independent data sets that agree need no leave-one-out check: a confound of one (a
-    step or line levels at the crossovers) is not in the other. A load that hardly changes
-    during the calibration (one pass, a fixed-wing's steady legs) or that the calibration
-    sees switch a few times leaves the band-passed calibration blind to its coupling;
-    interference the calibration leaves (an unrecorded current, vibration) hides it there
-    too."""
-    joined = joined_coupling(sc, sw) if sc is not None and sw is not None else None
+    """The survey decides (C3) by one test per channel, which the evidence present picks,
+    not its values: with both kinds, the crossovers' and the switches' coupling joined
+    (:func:`joined_coupling`); with one, that kind's coupling test, which must also predict
+    its own data leave-one-out (p < ``alpha``, by ``min_gain``): one kind of evidence has
+    its own confounds (a step or line levels at the crossovers, a channel that drifts with
+    time), which its prediction of data it was not fitted on guards against; two
+    independent data sets that agree need no such check (a confound of one is not in the
+    other). The test must reach :func:`decides_outside` and the coupling matter to the
+    lines (``min_survey_effect_nT``). A load that hardly changes during the calibration
+    (one pass, a fixed-wing's steady legs) or that the calibration sees switch a few times
+    leaves the band-passed calibration blind to its coupling; interference the calibration
+    leaves (an unrecorded current, vibration) hides it there too."""
+    sc, sg = crossovers
+    joined = joined_coupling(sc, sw)
     if joined is None:
         return
-    effect = survey_effect_nT(ctx, name, joined.total_field_nT_per_unit)
+    if len(joined.sources) == 2:
+        _record_joined(ctx, ev, name, joined)
+        test = (joined.p_value, "survey_joined_total_field_nT_per_unit", True)
+    elif joined.sources == ("survey crossovers",):
+        held = sg is not None and sg.p_value < ctx.s.alpha and sg.reduction >= ctx.s.min_gain
+        test = (sc.p_value, "survey_total_field_nT_per_unit", held)
+    else:
+        held = sw.heldout.p_value < ctx.s.alpha and sw.heldout.reduction >= ctx.s.min_gain
+        test = (sw.p_value, "switch_total_field_nT_per_unit", held)
+    p_value, coupling_key, predicts = test
+    ev.outside_p = p_value if predicts else None
+    if (
+        predicts
+        and decides_outside(ctx, current, p_value)
+        and _matters(ctx, name, ev.estimate[coupling_key])
+    ):
+        ev.estimate["confirmed_by"] = " and ".join(joined.sources)
+        ev.ci95["confirmed_by"] = None
+        ev.confirmed_gain = True
+        _decide_outside(ctx, ev, current, name, coupling_key)
+
+
+def _record_joined(
+    ctx: AuditContext, ev: Evaluation, name: str, joined: SurveyCouplingTest
+) -> None:
+    """The joined coupling, its interval and what it does to the lines, in ``ev``."""
     ev.estimate.update(
         survey_joined_total_field_nT_per_unit=joined.total_field_nT_per_unit,
         survey_joined_p_value=joined.p_value,
         survey_joined_sources=list(joined.sources),
-        survey_effect_nT=effect,
+        survey_effect_nT=survey_effect_nT(ctx, name, joined.total_field_nT_per_unit),
     )
     k, half = joined.total_field_nT_per_unit, stats.norm.isf(0.025) * joined.se_nT_per_unit
     ev.ci95.update(
@@ -338,15 +347,6 @@ def _by_the_survey(
         survey_joined_sources=None,
         survey_effect_nT=None,
     )
-    if (
-        not ev.decided_outside
-        and decides_outside(ctx, current, joined.p_value)
-        and effect >= ctx.s.min_survey_effect_nT
-    ):
-        ev.estimate["confirmed_by"] = " and ".join(joined.sources)
-        ev.ci95["confirmed_by"] = None
-        ev.confirmed_gain = True
-        _decide_outside(ctx, ev, current, name, "survey_joined_total_field_nT_per_unit")
 
 
 def _matters(ctx: AuditContext, name: str, k_nT_per_unit: float) -> bool:
@@ -364,12 +364,11 @@ def survey_effect_nT(ctx: AuditContext, name: str, k_nT_per_unit: float) -> floa
 
 
 def decides_outside(ctx: AuditContext, current: ModelSpec, p_value: float) -> bool:
-    """Whether a coupling test on the survey (the crossovers', the switches' or both
-    joined) with ``p_value`` decides: Bonferroni over the channels tested and the three
-    tests, at ``event_alpha``, one of the tests outside the null bootstrap's maximum that
-    share the flight's false-finding budget (:data:`pipeline.audit.settings.EVENT_TESTS`)."""
-    n_tests = 3 * max(1, len(keys(ctx, current)))
-    return p_value * n_tests < ctx.s.event_alpha
+    """Whether a channel's coupling test on the survey (:func:`_by_the_survey`: one per
+    channel) with ``p_value`` decides: Bonferroni over the channels tested, at
+    ``event_alpha``, one of the tests outside the null bootstrap's maximum that share the
+    flight's false-finding budget (:data:`pipeline.audit.settings.EVENT_TESTS`)."""
+    return p_value * max(1, len(keys(ctx, current))) < ctx.s.event_alpha
 
 
 def _decide_outside(
