@@ -201,3 +201,36 @@ def test_one_survey_test_per_channel_picked_by_the_evidence_present():
     ev = _ev()
     _by_the_survey(ctx, ev, ModelSpec(), "payload", (None, None), sw)
     assert ev.decided_outside and ev.estimate["confirmed_by"] == "channel switches"
+
+
+def test_a_current_the_survey_decided_is_kept_at_refine_while_its_evidence_shows_it():
+    """Refine re-tests a finding with the others in the model: one the survey decided keeps
+    its acceptance while that test still shows it (p < alpha, same sign, mattering), even
+    where the calibration's rival now holds it back; not when the evidence faded, turned or
+    never decided it."""
+    from pipeline.audit.decide import still_shown_outside
+
+    ctx = _ctx()
+    accepted = _ev()
+    accepted.decided_outside, accepted.outside = True, (0.002, 3.0)
+    again = _ev()
+    again.held_back = True
+    for outside, kept in [
+        ((0.004, 2.8), True),  # above the channels' Bonferroni level, still below alpha
+        ((0.2, 2.8), False),  # faded
+        ((0.004, -2.8), False),  # turned
+        (None, False),  # no longer predicts its data or no longer matters
+    ]:
+        again.outside = outside
+        assert still_shown_outside(ctx, accepted, again) is kept
+    accepted.decided_outside = False  # decided on the calibration: the rival stands
+    again.outside = (0.004, 2.8)
+    assert not still_shown_outside(ctx, accepted, again)
+    # the decision records the test's p and estimate only when they can decide
+    sc = SurveyCoupling(3.2, (2.2, 4.2), 1e-7, 60)
+    ev = _ev()
+    _by_the_survey(ctx, ev, ModelSpec(), "payload", (sc, held(0.45, 0.3)), None)
+    assert ev.outside is None
+    ev = _ev()
+    _by_the_survey(ctx, ev, ModelSpec(), "payload", (sc, held(0.45, 1e-4)), None)
+    assert ev.outside == (pytest.approx(1e-7), pytest.approx(3.2))

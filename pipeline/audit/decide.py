@@ -190,13 +190,15 @@ def fold_lag(ctx: AuditContext, spec: ModelSpec):
 def still_shown_outside(ctx: AuditContext, accepted: Evaluation, again: Evaluation) -> bool:
     """Whether a finding that evidence outside the calibration decided (``accepted``) keeps
     that acceptance when re-evaluated with the other findings in the model (``again``):
-    that evidence still shows it (its test's p < ``alpha``). The acceptance statistics are
-    the accepting round's; its level (Bonferroni over the channels) is not asked twice, and
-    the calibration's rival, which that evidence set aside, does not drop it (a switch's
-    step is no function of the attitude)."""
-    return (
-        accepted.decided_outside and again.outside_p is not None and again.outside_p < ctx.s.alpha
-    )
+    that evidence still shows it (its test's p < ``alpha``, predicting its own data, an
+    estimate of the same sign that still matters to the survey: ``Evaluation.outside``).
+    The acceptance statistics are the accepting round's; its level (Bonferroni over the
+    channels) is not asked twice, and the calibration's rival, which that evidence set
+    aside, does not drop it (a switch's step is no function of the attitude)."""
+    if not accepted.decided_outside or accepted.outside is None or again.outside is None:
+        return False
+    p, k = again.outside
+    return bool(p < ctx.s.alpha and np.sign(k) == np.sign(accepted.outside[1]))
 
 
 def refine(ctx: AuditContext, spec: ModelSpec, findings: list[Evaluation]) -> ModelSpec:
@@ -214,7 +216,13 @@ def refine(ctx: AuditContext, spec: ModelSpec, findings: list[Evaluation]) -> Mo
     order = sorted(findings, key=lambda f: f.effect != "sensor_lag")  # lag first
     for f in order:
         e = evaluate(ctx, without(spec, f), f.effect, f.key)
-        if e.held_back and not still_shown_outside(ctx, f, e):
+        if e.held_back and still_shown_outside(ctx, f, e):
+            ctx.notes.append(
+                f"{f.key} kept with the other findings in the model: the evidence outside "
+                f"the calibration that decided it still shows it (p {e.outside[0]:.2g}); "
+                f"set aside: {e.reason}"
+            )
+        elif e.held_back:
             spec = without(spec, f)
             findings.remove(f)
             f.accepted = False

@@ -276,16 +276,14 @@ def _finding_lines(res: AuditResult) -> list[str]:
                     "through the manoeuvres' small moves; its held-out residual above only "
                     "shows it does not contradict them.",
                 ]
-            elif f.decided_outside:
+            elif f.decided_outside and f.effect == "electrical_current":
                 e = f.estimate.get("at_acceptance", f.estimate)
                 lines += [
                     "",
-                    f"`{f.effect}` ({e.get('channel', '')}) was named on the channel's "
-                    f"{e.get('switches')} switches over the whole flight (steps "
-                    f"{e.get('switch_total_field_nT_per_unit', float('nan')):.3g} nT per unit, "
-                    f"p {e.get('switch_p_value', float('nan')):.2g}): the calibration's "
-                    "band-passed tests hardly see a load switched a few times; its held-out "
-                    "residual above only shows it does not contradict them.",
+                    f"`{f.effect}` ({e.get('channel', '')}) was named on the survey's "
+                    f"{e.get('confirmed_by', 'evidence')} over the whole flight: the "
+                    "calibration's band-passed tests hardly see a load switched a few times; "
+                    "its held-out residual above only shows it does not contradict them.",
                 ]
     else:
         lines.append("No finding: no candidate effect improves held-out data beyond noise.")

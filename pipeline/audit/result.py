@@ -44,10 +44,11 @@ class Evaluation:
     # calibration that band-passes its steps away, or a gradient seen only through the
     # manoeuvres' small moves, leaves the calibration's tests blind to it
     decided_outside: bool = False
-    # p of the one test by which evidence outside the calibration can decide the candidate
-    # (a current's survey test), None without it: what keeps a finding so decided when the
-    # model around it changes (decide.refine)
-    outside_p: float | None = None
+    # (p, estimate) of the one test by which evidence outside the calibration can decide the
+    # candidate (a current's survey test and its k), set when that evidence predicts its own
+    # data and the estimate matters to the survey, else None: what keeps a finding so decided
+    # when the model around it changes (decide.refine)
+    outside: tuple[float, float] | None = None
 
     @property
     def heldout_p(self) -> float:
@@ -133,6 +134,7 @@ class Evaluation:
             "heldout": None if self.heldout is None else self.heldout.to_dict(),
             "heldout_p_combined": None if self.confirm_p is None else self.heldout_p,
             "decided_outside_calibration": self.decided_outside,
+            "outside_p_value": None if self.outside is None else self.outside[0],
             "gain": None
             if self.heldout is None
             else {

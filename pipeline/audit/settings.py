@@ -12,8 +12,8 @@ from pipeline.defaults import default_field
 # the tests outside the null bootstrap's maximum that can name something on a flight: the
 # survey's change scan (steps and drift), the calibration legs' step scan and the step
 # against the fluxgate (each calibrated by its own null simulation), and a current coupling
-# decided on the survey: crossovers, switches or both joined (Bonferroni over channels and
-# the three)
+# decided on the survey: one test per channel, the crossovers, the switches or both joined
+# (Bonferroni over the channels)
 EVENT_TESTS = 4
 
 

@@ -257,7 +257,9 @@ def joined_coupling(
     """The crossovers' and the switches' estimates of the same k joined: each source's
     two-sided p as a signed normal score, weighted by its inverse standard error (weighted
     Stouffer: with no coupling the scores are independent standard normals, different data,
-    and the weights do not depend on them, so the joined score is one too; with a coupling
+    and the weights hardly depend on them (the crossovers' se holds their residual spread,
+    which is independent of k's estimate under a normal model), so the joined score is one
+    too to a few % at the levels used; with a coupling
     it is the inverse-variance mean's z, the most powerful join of two estimates of one
     parameter, and a source that sees little weighs little). None without either."""
     parts = []
@@ -318,12 +320,9 @@ def _by_the_survey(
         held = sw.heldout.p_value < ctx.s.alpha and sw.heldout.reduction >= ctx.s.min_gain
         test = (sw.p_value, "switch_total_field_nT_per_unit", held)
     p_value, coupling_key, predicts = test
-    ev.outside_p = p_value if predicts else None
-    if (
-        predicts
-        and decides_outside(ctx, current, p_value)
-        and _matters(ctx, name, ev.estimate[coupling_key])
-    ):
+    k = ev.estimate[coupling_key]
+    ev.outside = (p_value, k) if predicts and _matters(ctx, name, k) else None
+    if ev.outside is not None and decides_outside(ctx, current, p_value):
         ev.estimate["confirmed_by"] = " and ".join(joined.sources)
         ev.ci95["confirmed_by"] = None
         ev.confirmed_gain = True
