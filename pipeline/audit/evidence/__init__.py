@@ -168,6 +168,12 @@ def band_noise_gain(rate_hz: float, band_hz: tuple[float, float], poles: int) ->
     return float(np.std(sosfiltfilt(bandpass_sos(band_hz, rate_hz, poles), x)))
 
 
+def significant(h: HeldOut | None, alpha: float, min_gain: float) -> bool:
+    """Whether a held-out comparison shows a gain: one-sided p below ``alpha`` and at least
+    ``min_gain`` of the held-out RMS removed."""
+    return h is not None and h.p_value < alpha and h.reduction >= min_gain
+
+
 def holm(p_values: list[float]) -> list[float]:
     """Holm-adjusted p-values (statsmodels), for several candidates tested at once."""
     from statsmodels.stats.multitest import multipletests

@@ -12,7 +12,7 @@ from scipy import stats
 
 from pipeline.audit.context import AuditContext
 from pipeline.audit.crossval import jackknife_ci95
-from pipeline.audit.evidence import HeldOut
+from pipeline.audit.evidence import HeldOut, significant
 from pipeline.audit.evidence.survey_side import (
     channel_switch_steps,
     crossover_coupling,
@@ -314,10 +314,10 @@ def _by_the_survey(
         _record_joined(ctx, ev, name, joined)
         test = (joined.p_value, "survey_joined_total_field_nT_per_unit", True)
     elif joined.sources == ("survey crossovers",):
-        held = sg is not None and sg.p_value < ctx.s.alpha and sg.reduction >= ctx.s.min_gain
+        held = significant(sg, ctx.s.alpha, ctx.s.min_gain)
         test = (sc.p_value, "survey_total_field_nT_per_unit", held)
     else:
-        held = sw.heldout.p_value < ctx.s.alpha and sw.heldout.reduction >= ctx.s.min_gain
+        held = significant(sw.heldout, ctx.s.alpha, ctx.s.min_gain)
         test = (sw.p_value, "switch_total_field_nT_per_unit", held)
     p_value, coupling_key, predicts = test
     k = ev.estimate[coupling_key]

@@ -29,7 +29,7 @@ from scipy.stats import combine_pvalues, norm
 
 from pipeline.audit.context import AuditContext
 from pipeline.audit.crossval import jackknife_ci95
-from pipeline.audit.evidence import HeldOut
+from pipeline.audit.evidence import HeldOut, significant
 from pipeline.audit.evidence.lag import (
     EDDY_TAU_GRID_S,
     decay_profile,
@@ -43,12 +43,6 @@ from pipeline.audit.timing import TimingLag, combined_interval
 
 LAG = "sensor_lag"
 DECAY = "eddy_decay"
-
-
-def significant(h: HeldOut | None, alpha: float, min_gain: float) -> bool:
-    """Whether a held-out comparison shows a gain: one-sided p below ``alpha`` and at least
-    ``min_gain`` of the held-out RMS removed."""
-    return h is not None and h.p_value < alpha and h.reduction >= min_gain
 
 
 @dataclass
