@@ -97,6 +97,7 @@ class AuditContext:
         self._crossover_cache: dict[tuple, tuple] = {}
         self._compensated: dict[ModelSpec, np.ndarray] = {}
         self._geometry: tuple | None = None
+        self._validation_crossings = None  # OverlapSet: geometry only, the same for every model
         # each model's permanent-field changes between passes (events.AuditEvents.pass_steps)
         self._pass_steps: dict[ModelSpec, list] = {}
         self.ambiguities: list[dict[str, Any]] = []
@@ -342,9 +343,11 @@ class AuditContext:
         heading = {tr.line_id: int(heading_class(tr.heading_deg, ref)) for tr in tracks}
         dx = np.array([c.difference_nT for c in xs])
         db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base) for c in xs])
-        val = [tr for tr in tracks if tr.kind == "validation"]
-        ov = track_intersections(val, [tr for tr in tracks if tr.kind in ("survey", "tie")])
-        return dx, db, ov, red, base, xs, heading
+        if self._validation_crossings is None:
+            val = [tr for tr in tracks if tr.kind == "validation"]
+            mapped = [tr for tr in tracks if tr.kind in ("survey", "tie")]
+            self._validation_crossings = track_intersections(val, mapped)
+        return dx, db, self._validation_crossings, red, base, xs, heading
 
     def _survey_crossovers(self, spec: ModelSpec) -> tuple[CrossoverSet, np.ndarray] | None:
         """The survey's crossover differences of ``spec``'s compensated field, smoothed over

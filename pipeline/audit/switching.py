@@ -154,60 +154,97 @@ def switch_steps(
     x = np.asarray(channel, float)
     use = np.ones(t.size, bool) if usable is None else np.asarray(usable, bool)
     inst = switch_instants(t, x) if instants_s is None else np.sort(np.asarray(instants_s))
-    rows = []
-    for j, ts in enumerate(inst):
-        lo, hi = ts - window_s, ts + window_s
-        # another switch inside the window would mix two steps
-        if (j > 0 and inst[j - 1] > lo) or (j + 1 < inst.size and inst[j + 1] < hi):
-            continue
-        a, b = np.searchsorted(t, [lo, hi])
-        if b - a < 10 or not np.all(use[a:b]):
-            continue
-        tt, yy, xx = t[a:b] - ts, y[a:b], x[a:b]
-        if not (np.any(tt > 0) and np.any(tt < 0)):  # the record's end
-            continue
-        if not (np.all(np.isfinite(yy)) and np.all(np.isfinite(xx))):
-            continue
-        if np.max(np.diff(tt)) > 0.1 * window_s:  # a sampling gap
-            continue
-        a_mat = np.column_stack([np.ones(tt.size), tt, xx])
-        coef, *_ = np.linalg.lstsq(a_mat, yy, rcond=None)
-        change = float(np.mean(xx[tt > 0]) - np.mean(xx[tt < 0]))
-        se = _coefficient_se(a_mat, yy - a_mat @ coef)
-        if not np.isfinite(se) or se <= 0:
-            continue
-        u = None if direction is None else np.nanmean(np.asarray(direction)[a:b], axis=0)
-        rows.append((ts, change, float(coef[2]) * change, se * abs(change), u))
-    if len(rows) < 4:
+    fits = _window_fits(t, y, x, use, inst, window_s)
+    if fits is None or fits[0].size < 4:
         return None
-    ts, ch, st, se = (np.array(v) for v in list(zip(*rows, strict=True))[:4])
-    u = None if direction is None else np.array([r[4] for r in rows])
-    return SwitchSteps(ts, ch, st, se, u)
+    keep, a, b, change, step, se = fits
+    u = None
+    if direction is not None:
+        dirs = np.asarray(direction, float)
+        u = np.array([np.nanmean(dirs[i:j], axis=0) for i, j in zip(a, b, strict=True)])
+    return SwitchSteps(inst[keep], change, step, se, u)
 
 
-def _coefficient_se(a_mat: np.ndarray, resid: np.ndarray) -> float:
-    """Standard error of the last coefficient of a least-squares fit with residual
-    ``resid``, inflated by (1 + rho) / (1 - rho) for the residual's lag-1 autocorrelation
-    rho (geology left over by the line is smooth, so its samples are not independent)."""
-    dof = resid.size - a_mat.shape[1]
-    if dof < 3:
-        return float("nan")
-    s2 = float(resid @ resid) / dof
-    try:
-        var = s2 * float(np.linalg.inv(a_mat.T @ a_mat)[-1, -1])
-    except np.linalg.LinAlgError:
-        return float("nan")
-    rho = _lag1_correlation(resid)
-    rho = min(max(rho, 0.0), 0.99) if np.isfinite(rho) else 0.0
-    return float(np.sqrt(var * (1.0 + rho) / (1.0 - rho)))
+def _window_fits(
+    t: np.ndarray, y: np.ndarray, x: np.ndarray, use: np.ndarray, inst: np.ndarray, window_s: float
+) -> tuple[np.ndarray, ...] | None:
+    """Every clean switch's window fitted at once (:func:`switch_steps`; the placebo
+    alignments ask for thousands of windows, which one least-squares call each would spend
+    most of their time setting up): (kept switch indices, window starts, ends, the channel's
+    changes, the steps (nT) and their standard errors (nT)); None without a clean window.
+
+    Each window's samples are centred on their means before the normal equations are
+    formed (the field is ~50 000 nT, its steps tenths of a nT): the line's slope and the
+    channel's coefficient do not change with the centring."""
+    if inst.size == 0:
+        return None
+    lo, hi = inst - window_s, inst + window_s
+    # another switch inside the window would mix two steps
+    crowded = np.zeros(inst.size, bool)
+    crowded[1:] |= inst[:-1] > lo[1:]
+    crowded[:-1] |= inst[1:] < hi[:-1]
+    a = np.searchsorted(t, lo)
+    b = np.searchsorted(t, hi)
+    bad = np.r_[0, np.cumsum(~use | ~np.isfinite(y) | ~np.isfinite(x))]
+    ok = ~crowded & (b - a >= 10) & (bad[b] - bad[np.minimum(a, b)] == 0)
+    if not ok.any():
+        return None
+    keep = np.flatnonzero(ok)
+    a, b, ts = a[keep], b[keep], inst[keep]
+    width = b - a
+    col = np.arange(int(width.max()))
+    inside = col[None, :] < width[:, None]
+    idx = np.minimum(a[:, None] + col[None, :], t.size - 1)
+    tt = t[idx] - ts[:, None]
+    # both sides of the switch (not the record's end) and no sampling gap
+    both = np.any(inside & (tt > 0), axis=1) & np.any(inside & (tt < 0), axis=1)
+    gaps = np.where(inside[:, 1:], np.diff(tt, axis=1), 0.0).max(axis=1) <= 0.1 * window_s
+    good = both & gaps
+    keep, a, b, width, inside, idx, tt = (v[good] for v in (keep, a, b, width, inside, idx, tt))
+    if keep.size == 0:
+        return None
+    w = inside.astype(float)
+    after = inside & (tt > 0)
+    before = inside & (tt < 0)
+    xx, yy = x[idx], y[idx]
+    change = (xx * after).sum(1) / after.sum(1) - (xx * before).sum(1) / before.sum(1)
+
+    def centred(v):
+        return (v - (v * w).sum(1, keepdims=True) / width[:, None]) * w
+
+    cols = np.stack([w, centred(tt), centred(xx)], axis=2)  # (windows, samples, 3)
+    yc = centred(yy)
+    gram = np.einsum("wsi,wsj->wij", cols, cols)
+    det = np.linalg.det(gram)
+    solvable = np.isfinite(det) & (np.abs(det) > 0)
+    gram[~solvable] = np.eye(3)
+    inv = np.linalg.inv(gram)
+    coef = np.einsum("wij,wsj,ws->wi", inv, cols, yc)
+    resid = (yc - np.einsum("wsi,wi->ws", cols, coef)) * w
+    dof = width - 3
+    s2 = (resid**2).sum(1) / np.maximum(dof, 1)
+    var = s2 * inv[:, 2, 2]
+    rho = _lag1_correlations(resid, width)
+    rho = np.clip(np.where(np.isfinite(rho), rho, 0.0), 0.0, 0.99)
+    se = np.sqrt(var * (1.0 + rho) / (1.0 - rho))
+    fine = solvable & (dof >= 3) & np.isfinite(se) & (se > 0)
+    step = coef[:, 2] * change
+    se = se * np.abs(change)
+    return keep[fine], a[fine], b[fine], change[fine], step[fine], se[fine]
 
 
-def _lag1_correlation(r: np.ndarray) -> float:
-    """Pearson correlation of ``r[:-1]`` with ``r[1:]`` (0 for a constant ``r``), written out:
-    the placebo alignments ask for it thousands of times and ``np.corrcoef`` costs most."""
-    a, b = r[:-1] - r[:-1].mean(), r[1:] - r[1:].mean()
-    den = float(np.sqrt((a @ a) * (b @ b)))
-    return float(a @ b) / den if den > 0 else 0.0
+def _lag1_correlations(r: np.ndarray, width: np.ndarray) -> np.ndarray:
+    """Pearson correlation of each row's ``r[:m-1]`` with its ``r[1:m]``, m the row's
+    ``width`` (0 for a constant row): the residual's lag-1 autocorrelation per window."""
+    col = np.arange(r.shape[1] - 1)
+    pair = (col[None, :] < (width - 1)[:, None]).astype(float)
+    m = np.maximum(width - 1, 1)[:, None]
+    lead, lag = r[:, :-1], r[:, 1:]
+    da = (lead - (lead * pair).sum(1, keepdims=True) / m) * pair
+    db = (lag - (lag * pair).sum(1, keepdims=True) / m) * pair
+    den = np.sqrt((da**2).sum(1) * (db**2).sum(1))
+    num = (da * db).sum(1)
+    return np.divide(num, den, out=np.zeros_like(num), where=den > 0)
 
 
 def switch_coupling(steps: SwitchSteps, inflation: float = 1.0) -> SwitchCoupling | None:
@@ -276,13 +313,24 @@ def placebo_inflation(
             continue
         moved = t[(at - k) % t.size]
         st = switch_steps(t, field_nT, np.roll(x, -k), usable=usable, instants_s=moved)
-        c = None if st is None else switch_coupling(st)
-        if c is not None and c.se_nT_per_unit > 0:
-            t_stat = abs(c.total_field_nT_per_unit) / c.se_nT_per_unit
-            ratios.append(t_stat / float(stats.t.ppf(0.75, c.switches - 1)))
+        got = None if st is None else _coupling_t(st)
+        if got is not None:
+            t_stat, n = got
+            ratios.append(t_stat / float(stats.t.ppf(0.75, n - 1)))
     if len(ratios) < 10:
         return 1.0
     return max(1.0, float(np.median(ratios)))
+
+
+def _coupling_t(steps: SwitchSteps) -> tuple[float, int] | None:
+    """|t| of the coupling :func:`switch_coupling` fits to ``steps`` and the number of
+    steps, without its held-out test; None where it would give no coupling or no spread."""
+    g, y, se_y = steps.change, steps.step_nT, steps.step_se_nT
+    if y.size < 4 or not np.any(g):
+        return None
+    coef, cov, _, _ = _weighted_fit(g[:, None], y, se_y)
+    se = float(np.sqrt(cov[0, 0]))
+    return (abs(float(coef[0])) / se, int(y.size)) if se > 0 else None
 
 
 def _weighted_fit(
