@@ -76,3 +76,27 @@ def test_turns_and_manoeuvres_are_followed():
     err = smooth_track(t, y, at) - _box_track(at)
     assert np.max(np.sqrt(np.mean(err**2, axis=0))) < 0.02
     assert np.max(np.abs(err)) < 0.1
+
+
+@pytest.mark.parametrize("lam", [1e-4, 1e-1, 10.0, 1e3])
+def test_smoothing_spline_is_scipys_minimiser(lam):
+    """The Reinsch-form spline equals scipy's make_smoothing_spline (same objective) at
+    knots and between them, on uneven sampling."""
+    from scipy.interpolate import make_smoothing_spline
+
+    from pipeline.geo.track import smoothing_spline
+
+    rng = np.random.default_rng(7)
+    x = np.cumsum(rng.uniform(0.05, 0.15, 400))
+    y = 30.0 * np.sin(x / 3.0) + rng.normal(0.0, 0.5, x.size)
+    at = np.sort(np.r_[x[::7], rng.uniform(x[0], x[-1], 500)])
+    want = make_smoothing_spline(x, y, lam=lam)(at)
+    got = smoothing_spline(x, y, lam)(at)
+    assert np.max(np.abs(got - want)) < 1e-6 * np.ptp(y)
+
+
+def test_smoothing_spline_refuses_repeated_abscissae():
+    from pipeline.geo.track import smoothing_spline
+
+    with pytest.raises(ValueError, match="strictly increasing"):
+        smoothing_spline(np.array([0.0, 1.0, 1.0, 2.0, 3.0, 4.0]), np.zeros(6), 1.0)

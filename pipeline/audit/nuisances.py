@@ -90,7 +90,7 @@ def decay_time_constant(setup: HeldOutSetup, others: np.ndarray) -> float:
 
     def cost(log_tau: float) -> float:
         cols, _ = group_columns("eddy_decay", m, float(np.exp(log_tau)))
-        return setup.linear(np.column_stack([others, cols])).rms_nT
+        return setup.linear(cols, beside=others).rms_nT
 
     grid = np.log(np.asarray(TAU_GRID_S))
     costs = [cost(g) for g in grid]

@@ -32,6 +32,12 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.compensate.filters import (
+    bandpass_blocks,
+    bandpass_sos,
+    contiguous_blocks,
+    trim_samples,
+)
 from pipeline.compensate.heldout import (
     Band,
     HeldOutResiduals,
@@ -116,6 +122,11 @@ class HeldOutSetup:
     fold: np.ndarray
     buffer_s: float
     ridge: float | str
+    # band-passed rows of the columns most recently passed as ``beside`` (:meth:`linear`),
+    # per set of epochs: forward selection tries every group beside the same columns
+    _beside: tuple[np.ndarray, dict[bytes, np.ndarray]] | None = field(
+        default=None, repr=False, compare=False
+    )
 
     @classmethod
     def of(cls, meas, mask: np.ndarray, settings) -> HeldOutSetup:
@@ -134,15 +145,52 @@ class HeldOutSetup:
         buffer = filter_support_s(band.band_hz, meas.rate_hz, band.poles)
         return cls(meas, band, block_folds(valid), buffer, settings.ridge)
 
-    def linear(self, columns: np.ndarray) -> HeldOutResiduals:
-        """Held-out residuals of the linear model on ``columns``."""
+    def linear(self, columns: np.ndarray, beside: np.ndarray | None = None) -> HeldOutResiduals:
+        """Held-out residuals of the linear model on ``columns`` (and the columns ``beside``
+        them, when given: band-passed once per fold however many models are tried beside
+        the same array; the band-pass acts on each column alone, so the rows are the same as
+        those of the columns side by side)."""
         m = self.meas
+        if beside is None:
 
-        def fit(k: np.ndarray, y: np.ndarray) -> np.ndarray:
-            return ridge_theta(k, y, self.ridge)
+            def fit(k: np.ndarray, y: np.ndarray) -> np.ndarray:
+                return ridge_theta(k, y, self.ridge)
 
-        pred = linear_predictor(columns, m.scalar_nT, m.time_s, m.rate_hz, self.band, fit)
-        return heldout_residuals(pred, m.time_s, self.fold, self.buffer_s)
+            pred = linear_predictor(columns, m.scalar_nT, m.time_s, m.rate_hz, self.band, fit)
+            return heldout_residuals(pred, m.time_s, self.fold, self.buffer_s)
+
+        def predict(train: np.ndarray, test: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            kf, yf, _ = self._rows(columns, beside, train)
+            theta = ridge_theta(kf, yf, self.ridge)
+            kt, yt, wt = self._rows(columns, beside, test)
+            return yt - kt @ theta, wt
+
+        return heldout_residuals(predict, m.time_s, self.fold, self.buffer_s)
+
+    def _rows(
+        self, columns: np.ndarray, beside: np.ndarray, mask: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:func:`bandpassed_design`'s rows of ``[beside, columns]`` on ``mask``, with
+        ``beside``'s band-passed rows kept for the next call with the same array."""
+        m, b = self.meas, self.band
+        valid = (
+            mask
+            & np.isfinite(m.scalar_nT)
+            & np.all(np.isfinite(columns), axis=1)
+            & np.all(np.isfinite(beside), axis=1)
+        )
+        blocks = contiguous_blocks(valid, m.time_s)
+        sos = bandpass_sos(b.band_hz, m.rate_hz, b.poles)
+        trim = trim_samples(b.trim_s, m.rate_hz)
+        if self._beside is None or self._beside[0] is not beside:
+            self._beside = (beside, {})
+        key = valid.tobytes()
+        kept = self._beside[1].get(key)
+        if kept is None:
+            kept = bandpass_blocks(np.column_stack([beside, m.scalar_nT]), blocks, sos, trim)[0]
+            self._beside[1][key] = kept
+        kc, where = bandpass_blocks(columns, blocks, sos, trim)
+        return np.column_stack([kept[:, :-1], kc]), kept[:, -1], where
 
 
 @dataclass
@@ -200,7 +248,7 @@ def _try(setup: HeldOutSetup, current: np.ndarray, group: str):
     best = None
     for tau in taus:
         cols, _ = group_columns(group, setup.meas, tau)
-        held = setup.linear(np.column_stack([current, cols]))
+        held = setup.linear(cols, beside=current)
         if best is None or held.rms_nT < best[1].rms_nT:
             best = (cols, held, tau if group == "eddy_decay" else None)
     return best
@@ -315,10 +363,13 @@ def refine_tau(
     i = int(np.argmin(np.abs(grid - np.log(tau_s))))
     lo, hi = grid[max(i - 1, 0)], grid[min(i + 1, grid.size - 1)]
     cache: dict[float, HeldOutResiduals] = {}
+    # the columns that do not depend on tau, band-passed once
+    fixed = design(setup, [g for g in groups if g != "eddy_decay"], tau_s)
 
     def rms(log_tau: float) -> float:
         if log_tau not in cache:
-            cache[log_tau] = setup.linear(design(setup, groups, float(np.exp(log_tau))))
+            eddy, _ = group_columns("eddy_decay", setup.meas, float(np.exp(log_tau)))
+            cache[log_tau] = setup.linear(eddy, beside=fixed)
         return cache[log_tau].rms_nT
 
     rms(grid[i])

@@ -28,6 +28,9 @@ CHORD_SAMPLES = 3
 # tracks, are one crossing that noise made wiggle
 MERGE_M = 5.0
 MERGE_SAMPLES = 3
+# samples either side of a crossing searched first for the chord's ends (the whole track
+# only when they are not there): a track's local direction should not cost its length
+_NEAR_SAMPLES = 64
 
 
 @dataclass
@@ -118,14 +121,24 @@ def _local_direction(
     line, m) to the nearer of the track's first and last sample."""
     n = east.size
     k = int(np.clip(np.searchsorted(along, s, side="right") - 1, 0, n - 2))  # segment k, k+1
-    d = np.hypot(east - x, north - y)
-    stop = k + 2 - CHORD_SAMPLES  # samples 0 .. stop-1 are CHORD_SAMPLES or more before
-    back = np.flatnonzero(d[: max(stop, 0)] >= CHORD_M)
-    i = int(back[-1]) if back.size else 0
+
+    def dist(lo: int, hi: int) -> np.ndarray:
+        return np.hypot(east[lo:hi] - x, north[lo:hi] - y)
+
+    stop = max(k + 2 - CHORD_SAMPLES, 0)  # samples 0 .. stop-1 are CHORD_SAMPLES or more before
     start = k + CHORD_SAMPLES
-    ahead = np.flatnonzero(d[start:] >= CHORD_M) if start < n else np.zeros(0, int)
-    j = start + int(ahead[0]) if ahead.size else n - 1
-    to_end = float(min(d[0], d[-1]))
+    # the chord's ends are near the crossing: look there first, the whole track only if not
+    lo = max(stop - _NEAR_SAMPLES, 0)
+    back = np.flatnonzero(dist(lo, stop) >= CHORD_M) + lo
+    if not back.size and lo > 0:
+        back = np.flatnonzero(dist(0, stop) >= CHORD_M)
+    i = int(back[-1]) if back.size else 0
+    hi = min(start + _NEAR_SAMPLES, n)
+    ahead = np.flatnonzero(dist(start, hi) >= CHORD_M) + start if start < n else np.zeros(0, int)
+    if not ahead.size and hi < n:
+        ahead = np.flatnonzero(dist(start, n) >= CHORD_M) + start
+    j = int(ahead[0]) if ahead.size else n - 1
+    to_end = float(min(np.hypot(east[0] - x, north[0] - y), np.hypot(east[-1] - x, north[-1] - y)))
     xy = np.column_stack([east[i : j + 1], north[i : j + 1]])
     xy = xy - xy.mean(axis=0)
     if not np.any(xy):
