@@ -97,3 +97,19 @@ def test_the_reported_decay_is_the_final_models():
     assert null[0]["estimate"] == {"tau_s": 0.1}  # the null's record is not changed
     assert _final_decay(null, ModelSpec(eddy_tau_s=0.1)) == null
     assert _final_decay(null, ModelSpec()) == null
+
+
+def test_a_lag_named_in_place_of_the_decay_gives_it_back_when_taken_out():
+    """Refine re-tests a finding against the model without it: for a lag that took the
+    place of the null model's eddy decay that model is the null with its decay, the one the
+    lag was named against, not a model with neither."""
+    from pipeline.audit.hypotheses import without
+    from pipeline.audit.hypotheses.lag_decay import took_the_place_of
+    from pipeline.audit.result import Evaluation
+
+    named = ModelSpec(lag_s=0.04, lag_response="first_order", second_order=True)
+    ev = Evaluation("sensor_lag", "sensor_lag", {"lag_s": 0.04}, None, None, named)
+    assert without(named, ev) == ModelSpec(second_order=True)
+    took_the_place_of(ev, 0.3)
+    assert without(named, ev) == ModelSpec(second_order=True, eddy_tau_s=0.3)
+    assert ev.ci95["in_place_of_eddy_decay_tau_s"] is None

@@ -18,6 +18,7 @@ from pipeline.audit.hypotheses import (
     diurnal,
     electrical_current,
     geomagnetic_gradient,
+    lag_decay,
     sensor_lag,
     vector_calibration,
 )
@@ -51,5 +52,9 @@ def evaluate(ctx: AuditContext, current: ModelSpec, effect: str, key: str) -> Ev
 
 
 def without(spec: ModelSpec, f: Evaluation) -> ModelSpec:
-    """``spec`` with finding ``f``'s extension taken out."""
-    return BY_EFFECT[f.effect].without(spec, f.key)
+    """``spec`` with finding ``f``'s extension taken out, and the nuisance it took the place
+    of given back (a lag named in place of the null model's eddy decay,
+    :func:`pipeline.audit.hypotheses.lag_decay.took_the_place_of`)."""
+    out = BY_EFFECT[f.effect].without(spec, f.key)
+    tau = f.estimate.get(lag_decay.IN_PLACE_OF_DECAY)
+    return out if tau is None else out.with_(eddy_tau_s=float(tau))

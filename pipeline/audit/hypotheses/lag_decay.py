@@ -273,10 +273,12 @@ def lag_beside_decay_nuisance(
     named_plain = False  # whether the lag named is the whole reading's (lag_plain)
     if verdict == "lag" and vs.lag_dominates(s.alpha, s.min_gain):
         _lag_in_place_of_decay(ctx, ev, plain, lag_plain)
+        took_the_place_of(ev, tau)
         named_plain = True
     elif verdict == "lag" and lag_alone is not None:  # the tie, broken
         by_physics = significant(vs.lag_over_decay, s.alpha, s.min_gain)
         _lag_breaks_the_tie(ev, plain.with_(lag_s=lag_plain), lag_alone, by_physics, timing)
+        took_the_place_of(ev, tau)
         named_plain = True
     elif verdict == "lag_beside_decay":
         _lag_timed_beside_decay(ev, sl, tl)
@@ -294,6 +296,20 @@ def lag_beside_decay_nuisance(
         _with_its_own_spread(ctx, ev, lag_model, lag_plain)
     _unresolved(ev, smallest)
     return ev
+
+
+# the estimate's key of the null model's eddy decay time constant (s) a lag was named in
+# place of (:func:`took_the_place_of`)
+IN_PLACE_OF_DECAY = "in_place_of_eddy_decay_tau_s"
+
+
+def took_the_place_of(ev: Evaluation, tau_s: float) -> None:
+    """Record that the lag named by ``ev`` takes the place of the null model's eddy decay
+    (time constant ``tau_s``, s): its model holds no decay, so the model without the lag
+    is the null model with its decay (:func:`pipeline.audit.hypotheses.without`), and a
+    re-test of the lag (refine) faces the same null model as the test that named it."""
+    ev.estimate[IN_PLACE_OF_DECAY] = float(tau_s)
+    ev.ci95[IN_PLACE_OF_DECAY] = None
 
 
 def _held_back(
