@@ -97,7 +97,6 @@ class AuditContext:
         self._crossover_cache: dict[tuple, tuple] = {}
         self._compensated: dict[ModelSpec, np.ndarray] = {}
         self._geometry: tuple | None = None
-        self._validation_crossings = None  # OverlapSet: geometry only, the same for every model
         # each model's permanent-field changes between passes (events.AuditEvents.pass_steps)
         self._pass_steps: dict[ModelSpec, list] = {}
         self.ambiguities: list[dict[str, Any]] = []
@@ -325,7 +324,6 @@ class AuditContext:
     def _crossover_data_of(self, spec: ModelSpec, smooth_s: float):
         """:meth:`_crossover_data`, computed."""
         from pipeline.maps.level import Line, crossovers
-        from pipeline.quality.overlap import track_intersections
 
         igrf, base, tracks = self._survey_geometry()
         red = self.compensated(spec) - igrf
@@ -343,11 +341,19 @@ class AuditContext:
         heading = {tr.line_id: int(heading_class(tr.heading_deg, ref)) for tr in tracks}
         dx = np.array([c.difference_nT for c in xs])
         db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base) for c in xs])
-        if self._validation_crossings is None:
-            val = [tr for tr in tracks if tr.kind == "validation"]
-            mapped = [tr for tr in tracks if tr.kind in ("survey", "tie")]
-            self._validation_crossings = track_intersections(val, mapped)
         return dx, db, self._validation_crossings, red, base, xs, heading
+
+    @cached_property
+    def _validation_crossings(self):
+        """The validation lines' crossings with the survey and tie lines
+        (:func:`pipeline.quality.overlap.track_intersections`): geometry only, the same for
+        every model."""
+        from pipeline.quality.overlap import track_intersections
+
+        tracks = self._survey_geometry()[2]
+        val = [tr for tr in tracks if tr.kind == "validation"]
+        mapped = [tr for tr in tracks if tr.kind in ("survey", "tie")]
+        return track_intersections(val, mapped)
 
     def _survey_crossovers(self, spec: ModelSpec) -> tuple[CrossoverSet, np.ndarray] | None:
         """The survey's crossover differences of ``spec``'s compensated field, smoothed over

@@ -32,12 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.compensate.filters import (
-    bandpass_blocks,
-    bandpass_sos,
-    contiguous_blocks,
-    trim_samples,
-)
+from pipeline.compensate.estimator import bandpassed_design
 from pipeline.compensate.heldout import (
     Band,
     HeldOutResiduals,
@@ -122,9 +117,9 @@ class HeldOutSetup:
     fold: np.ndarray
     buffer_s: float
     ridge: float | str
-    # band-passed rows of the columns most recently passed as ``beside`` (:meth:`linear`),
-    # per set of epochs: forward selection tries every group beside the same columns
-    _beside: tuple[np.ndarray, dict[bytes, np.ndarray]] | None = field(
+    # band-passed rows (K, y, epochs) of the columns most recently passed as ``beside``
+    # (:meth:`linear`), per set of epochs: forward selection tries every group beside them
+    _beside: tuple[np.ndarray, dict[bytes, tuple]] | None = field(
         default=None, repr=False, compare=False
     )
 
@@ -173,24 +168,16 @@ class HeldOutSetup:
         """:func:`bandpassed_design`'s rows of ``[beside, columns]`` on ``mask``, with
         ``beside``'s band-passed rows kept for the next call with the same array."""
         m, b = self.meas, self.band
-        valid = (
-            mask
-            & np.isfinite(m.scalar_nT)
-            & np.all(np.isfinite(columns), axis=1)
-            & np.all(np.isfinite(beside), axis=1)
-        )
-        blocks = contiguous_blocks(valid, m.time_s)
-        sos = bandpass_sos(b.band_hz, m.rate_hz, b.poles)
-        trim = trim_samples(b.trim_s, m.rate_hz)
+        # the epochs both parts can use, so each is band-passed over the same blocks
+        valid = mask & np.all(np.isfinite(columns), axis=1) & np.all(np.isfinite(beside), axis=1)
+        args = (m.scalar_nT, m.time_s, m.rate_hz, valid, b.band_hz, b.poles, b.trim_s)
         if self._beside is None or self._beside[0] is not beside:
             self._beside = (beside, {})
-        key = valid.tobytes()
-        kept = self._beside[1].get(key)
+        kept = self._beside[1].get(valid.tobytes())
         if kept is None:
-            kept = bandpass_blocks(np.column_stack([beside, m.scalar_nT]), blocks, sos, trim)[0]
-            self._beside[1][key] = kept
-        kc, where = bandpass_blocks(columns, blocks, sos, trim)
-        return np.column_stack([kept[:, :-1], kc]), kept[:, -1], where
+            kept = self._beside[1][valid.tobytes()] = bandpassed_design(beside, *args)
+        kc, _, _ = bandpassed_design(columns, *args)
+        return np.column_stack([kept[0], kc]), kept[1], kept[2]
 
 
 @dataclass
