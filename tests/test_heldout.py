@@ -67,3 +67,18 @@ def test_sign_flip_p_is_exact_on_small_cases_and_sampled_beyond():
     p = sign_flip_p(x)  # sampled patterns: never below 1 / (draws + 1)
     assert 0 < p <= 2.0 / 2**16
     assert sign_flip_p(-x) > 0.99
+
+
+def test_holm_matches_statsmodels_multipletests():
+    """:func:`holm` is statsmodels' Holm step-down adjustment, ties and p near 1 included."""
+    from statsmodels.stats.multitest import multipletests
+
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 5, 12):
+        for _ in range(50):
+            p = rng.uniform(0, 1, n) ** rng.uniform(0.5, 4)
+            if n > 2:
+                p[1] = p[0]  # a tie
+            want = multipletests(p, method="holm")[1]
+            assert np.allclose(holm(list(p)), want, rtol=0, atol=1e-15)
+    assert holm([]) == []

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -19,7 +20,7 @@ from pipeline.maps.arima import (
     reverse_arrangements,
 )
 from pipeline.maps.grid import Grid, minimum_curvature
-from pipeline.maps.level import Line, crossovers, level_lines
+from pipeline.maps.level import Line, crossovers, level_lines, track_crossings
 from pipeline.maps.stage import anomaly_grid, build_map, filter_sequence, serialize
 from pipeline.segment import segment_flight
 from pipeline.simulate import write_simulation
@@ -190,6 +191,13 @@ def test_noisy_grid_has_one_crossover_per_survey_and_tie_line():
     assert len(crossovers(survey, ties + [along])) == 6 * 4
     lev = level_lines(survey + ties + [along])
     assert len(lev.crossovers) == 6 * 4 and lev.rms_after_nT < 0.1
+    # the crossings found once serve every field read along the same tracks; a pair they
+    # lack is intersected anew
+    shared = track_crossings(survey, ties[1:])
+    assert len(shared) == 6 * 3
+    for field in (0.0, 3.0):
+        moved = [replace(ln, value_nT=ln.value_nT + field * k) for k, ln in enumerate(survey)]
+        assert crossovers(moved, ties, crossings=shared) == crossovers(moved, ties)
 
 
 def test_leveling_removes_line_offsets():

@@ -333,7 +333,7 @@ class AuditContext:
 
         survey = [Line.from_track(tr, t, red) for tr in tracks if tr.kind == "survey"]
         ties = [Line.from_track(tr, t, red) for tr in tracks if tr.kind == "tie"]
-        xs = crossovers(survey, ties)
+        xs = crossovers(survey, ties, crossings=self._tie_crossings)
         # heading classes relative to the survey's own line direction, not to north
         ref = pattern_direction_deg(
             np.array([tr.heading_deg for tr in tracks if tr.kind in ("survey", "tie")])
@@ -342,6 +342,17 @@ class AuditContext:
         dx = np.array([c.difference_nT for c in xs])
         db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base) for c in xs])
         return dx, db, self._validation_crossings, red, base, xs, heading
+
+    @cached_property
+    def _tie_crossings(self):
+        """Where the survey lines cross the tie lines
+        (:func:`pipeline.maps.level.track_crossings`): geometry only, the same for every
+        model."""
+        from pipeline.maps.level import track_crossings
+
+        tracks = self._survey_geometry()[2]
+        survey = [tr for tr in tracks if tr.kind == "survey"]
+        return track_crossings(survey, [tr for tr in tracks if tr.kind == "tie"])
 
     @cached_property
     def _validation_crossings(self):

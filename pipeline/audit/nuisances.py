@@ -32,8 +32,8 @@ from pipeline.compensate.plus import (
     TAU_GRID_S,
     HeldOutSetup,
     Selection,
+    forward_selection,
     group_columns,
-    select_groups,
 )
 from pipeline.compensate.terms import tl18_terms
 from pipeline.flight import Flight
@@ -153,9 +153,9 @@ def select_from(
     meas: Measurements, mask: np.ndarray, band, alpha: float, min_gain: float
 ) -> NuisanceSelection:
     """Forward selection of the nuisance groups on the calibration epochs ``mask``
-    (:func:`pipeline.compensate.plus.select_groups`: held-out paired test at ``alpha``, Holm
+    (:func:`pipeline.compensate.plus.forward_selection`: held-out paired test at ``alpha``, Holm
     over each round, at least ``min_gain`` of the held-out RMS, lower in all folds but one),
-    the decay's time constant then refined on held-out data.
+    the decay's time constant then estimated on held-out data (:func:`decay_time_constant`).
 
     Parameters
     ----------
@@ -172,7 +172,7 @@ def select_from(
     settings = _FitSettings(tuple(band.band_hz), band.poles, band.trim_s)
     try:
         setup = HeldOutSetup.of(meas, mask, settings)
-        sel = select_groups(setup, alpha, min_gain)
+        sel = forward_selection(setup, alpha, min_gain)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return NuisanceSelection([], None, f"no nuisance tested: {exc}")
     tl, names = tl18_terms(meas.vector_nT)

@@ -337,8 +337,9 @@ def _gain(
         if boxes
         else None
     )
-    q_b = _quality_figures(flight, seg, comp_b, subtract_base=False)
-    q_e = _quality_figures(flight, seg, comp_e, subtract_base=final_spec.diurnal)
+    geometry = _quality_geometry(flight, seg)
+    q_b = _quality_figures(flight, seg, comp_b, False, geometry)
+    q_e = _quality_figures(flight, seg, comp_e, final_spec.diurnal, geometry)
     gain = {
         "heldout_calibration_residual_rms_nT": {"before": cv_b, "after": cv_e},
         "fom_nT": {
@@ -441,18 +442,29 @@ def _notes(
     return notes
 
 
+def _quality_geometry(flight: Flight, seg: Segmentation):
+    """The survey's quality geometry (:func:`pipeline.quality.stage.survey_geometry`) both
+    models' figures share; None without a mapped block."""
+    from pipeline.quality.stage import survey_geometry
+
+    if not (seg.mask("survey").sum() > 100 and flight.has("lat_deg", "lon_deg", "alt_m")):
+        return None
+    return survey_geometry(flight, seg)
+
+
 def _quality_figures(
-    flight: Flight, seg: Segmentation, comp: np.ndarray, subtract_base: bool
+    flight: Flight, seg: Segmentation, comp: np.ndarray, subtract_base: bool, geometry
 ) -> dict[str, Any] | None:
     from pipeline.quality.stage import QualitySettings, run_quality
 
-    if not (seg.mask("survey").sum() > 100 and flight.has("lat_deg", "alt_m")):
+    if geometry is None:
         return None
     q = run_quality(
         flight,
         seg,
         {"raw": flight.data["scalar_nT"].to_numpy(float), "model": comp},
         settings=QualitySettings(subtract_base=subtract_base),
+        geometry=geometry,
     )
     s = q.summary()
     xo = q.crossover_stats()

@@ -53,14 +53,17 @@ def filtfilt_sos(sos: np.ndarray, x: np.ndarray) -> np.ndarray:
     x = np.asarray(x, float)
     if x.shape[0] <= edge:
         raise ValueError(f"the input must be longer than {edge} samples")
+    # each column a row of a C-ordered array, filtered along its last axis: sosfilt's
+    # working copy is then a plain copy, not a transpose (the same numbers either way)
+    xt = x.reshape(x.shape[0], -1).T
     ext = np.concatenate(
-        (2 * x[:1] - x[edge:0:-1], x, 2 * x[-1:] - x[-2 : -(edge + 2) : -1]), axis=0
+        (2 * xt[:, :1] - xt[:, edge:0:-1], xt, 2 * xt[:, -1:] - xt[:, -2 : -(edge + 2) : -1]),
+        axis=1,
     )
-    zi = _steady_state(np.ascontiguousarray(sos).tobytes(), ns)
-    zi = zi.reshape((ns, 2) + (1,) * (x.ndim - 1))
-    y, _ = sosfilt(sos, ext, axis=0, zi=zi * ext[:1])
-    y, _ = sosfilt(sos, y[::-1], axis=0, zi=zi * y[-1:])
-    return y[::-1][edge:-edge]
+    zi = _steady_state(np.ascontiguousarray(sos).tobytes(), ns)[:, None, :]
+    y, _ = sosfilt(sos, ext, axis=-1, zi=zi * ext[None, :, :1])
+    y, _ = sosfilt(sos, y[:, ::-1], axis=-1, zi=zi * y[None, :, -1:])
+    return np.ascontiguousarray(y[:, ::-1][:, edge:-edge].T).reshape(x.shape)
 
 
 def contiguous_blocks(

@@ -296,7 +296,21 @@ def _round(setup: HeldOutSetup, current, held, pool, alpha, min_gain, trials):
 def select_groups(
     setup: HeldOutSetup, alpha: float, min_gain: float, seeded: dict[str, dict] | None = None
 ) -> Selection:
-    """Forward selection of term groups on the held-out folds (see the module docstring).
+    """:func:`forward_selection`, then the eddy decay's time constant (when taken) refined
+    between its grid neighbours (:func:`refine_tau`): the selection's held-out residuals
+    and the decay trial's ``tau_s`` are the refined model's."""
+    sel = forward_selection(setup, alpha, min_gain, seeded)
+    if sel.tau_s is not None:
+        sel.tau_s, sel.final = refine_tau(setup, sel.groups, sel.tau_s)
+        sel.trials["eddy_decay"].tau_s = sel.tau_s
+    return sel
+
+
+def forward_selection(
+    setup: HeldOutSetup, alpha: float, min_gain: float, seeded: dict[str, dict] | None = None
+) -> Selection:
+    """Forward selection of term groups on the held-out folds (see the module docstring),
+    the eddy decay's time constant on :data:`TAU_GRID_S`.
 
     ``seeded``: groups the audit found (name -> its record, :func:`audit_nuisances`). They
     are tried first, by themselves: a nuisance named before this calibration's held-out
@@ -325,9 +339,6 @@ def select_groups(
             if tau_g is not None:
                 tau = tau_g
             left.remove(g)
-    if tau is not None:
-        tau, held = refine_tau(setup, chosen, tau)
-        trials["eddy_decay"].tau_s = tau
     return Selection(chosen, tau, base, held, trials)
 
 

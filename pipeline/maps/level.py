@@ -225,19 +225,59 @@ def crossing_points(
     return _merge(hits, a.along_m, b.along_m)
 
 
+# where two sets of tracks cross, by (kind, line id) of either track: geometry only
+CrossingMap = dict[tuple[str, str, str, str], list[Crossing]]
+
+
+def _pair_key(a, b) -> tuple[str, str, str, str]:
+    return (a.kind, a.line_id, b.kind, b.line_id)
+
+
+def track_crossings(
+    tracks_a: list, tracks_b: list, min_angle_deg: float = MIN_CROSSING_ANGLE_DEG
+) -> CrossingMap:
+    """:func:`crossing_points` of every track of ``tracks_a`` with every track of
+    ``tracks_b`` (anything with ``kind``, ``line_id``, ``east_m``, ``north_m``, ``along_m``):
+    the geometry every field read along the same tracks shares, so that the crossovers of
+    several fields (:func:`crossovers`' ``crossings``) find it once."""
+    out: CrossingMap = {}
+    geoms_b = [(tb, LineString(np.column_stack([tb.east_m, tb.north_m]))) for tb in tracks_b]
+    for ta in tracks_a:
+        ga = LineString(np.column_stack([ta.east_m, ta.north_m]))
+        for tb, gb in geoms_b:
+            if ta is not tb:
+                out[_pair_key(ta, tb)] = crossing_points(ta, tb, min_angle_deg, ga, gb)
+    return out
+
+
 def crossovers(
-    lines_a: list[Line], lines_b: list[Line], min_angle_deg: float = MIN_CROSSING_ANGLE_DEG
+    lines_a: list[Line],
+    lines_b: list[Line],
+    min_angle_deg: float = MIN_CROSSING_ANGLE_DEG,
+    crossings: CrossingMap | None = None,
 ) -> list[Crossover]:
     """Track crossings (:func:`crossing_points`) of every line of ``lines_a`` with every line
-    of ``lines_b``, both fields interpolated along track to the crossing."""
+    of ``lines_b``, both fields interpolated along track to the crossing.
+
+    ``crossings``: :func:`track_crossings` of the tracks these lines were read along (same
+    positions, same ``min_angle_deg``); a pair of lines it lacks is intersected here.
+    """
     out = []
-    geoms_b = [(lb, lb.geometry()) for lb in lines_b]
+    geoms: dict[int, LineString] = {}
+
+    def geometry(line: Line) -> LineString:
+        if id(line) not in geoms:
+            geoms[id(line)] = line.geometry()
+        return geoms[id(line)]
+
     for la in lines_a:
-        ga = la.geometry()
-        for lb, gb in geoms_b:
+        for lb in lines_b:
             if la is lb:
                 continue
-            for c in crossing_points(la, lb, min_angle_deg, ga, gb):
+            found = None if crossings is None else crossings.get(_pair_key(la, lb))
+            if found is None:
+                found = crossing_points(la, lb, min_angle_deg, geometry(la), geometry(lb))
+            for c in found:
                 va, ta = la.at(c.along_a_m)
                 vb, tb = lb.at(c.along_b_m)
                 if np.isfinite(va) and np.isfinite(vb):
@@ -283,9 +323,13 @@ class Leveling:
 
 
 def level_lines(
-    lines: list[Line], trend: bool = False, min_angle_deg: float = MIN_CROSSING_ANGLE_DEG
+    lines: list[Line],
+    trend: bool = False,
+    min_angle_deg: float = MIN_CROSSING_ANGLE_DEG,
+    crossings: CrossingMap | None = None,
 ) -> Leveling:
-    """Least-squares line corrections from survey-tie crossovers.
+    """Least-squares line corrections from survey-tie crossovers (``crossings``: as
+    :func:`crossovers`').
 
     Every crossover says value_a - corr_a(t_a) = value_b - corr_b(t_b). The corrections are a
     DC per line (plus, with ``trend``, a slope in time about the line's mid-time); the system
@@ -294,7 +338,7 @@ def level_lines(
     """
     survey = [ln for ln in lines if ln.kind == "survey"]
     ties = [ln for ln in lines if ln.kind == "tie"]
-    xs = crossovers(survey, ties, min_angle_deg)
+    xs = crossovers(survey, ties, min_angle_deg, crossings)
     ids = sorted({ln.line_id for ln in survey + ties})
     col = {lid: i for i, lid in enumerate(ids)}
     tref = {ln.line_id: float(np.median(ln.time_s)) for ln in survey + ties}

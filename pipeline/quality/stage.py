@@ -28,7 +28,14 @@ from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.geo.projected import GridFrame, survey_frame
 from pipeline.maps.grid import Grid, minimum_curvature_fields
-from pipeline.maps.level import MIN_CROSSING_ANGLE_DEG, Leveling, Line, level_lines
+from pipeline.maps.level import (
+    MIN_CROSSING_ANGLE_DEG,
+    CrossingMap,
+    Leveling,
+    Line,
+    level_lines,
+    track_crossings,
+)
 from pipeline.maps.reduce import reduce_to_anomaly
 from pipeline.quality import qc
 from pipeline.quality.overlap import (
@@ -312,24 +319,31 @@ def _interpolated(
     return (np.concatenate(diffs) if diffs else np.zeros(0)), per_line
 
 
-def run_quality(
-    flight: Flight,
-    seg: Segmentation,
-    fields: dict[str, np.ndarray],
-    tl_alias: str | None = None,
-    fom: list[dict] | None = None,
-    settings: QualitySettings | None = None,
-) -> QualityRun:
-    """Quality figures of every processing state in ``fields`` (name -> nT per epoch).
+@dataclass
+class SurveyGeometry:
+    """What the quality figures of every field flown along one flight share: the survey's
+    frame and positions (m), its tracks, the validation lines' overlap points with the map
+    lines and where the survey lines cross the ties (:func:`survey_geometry`)."""
 
-    ``fields`` should start with ``raw`` and end with the final model; ``tl_alias`` names the
-    T-L baseline reported under the key ``tl`` (the one with AGG-TL's own term set).
-    """
+    frame: GridFrame
+    east_m: np.ndarray
+    north_m: np.ndarray
+    up_m: np.ndarray
+    tracks: list[Track]
+    intersections: OverlapSet
+    pairs: OverlapSet
+    tie_crossings: CrossingMap
+
+
+def survey_geometry(
+    flight: Flight, seg: Segmentation, settings: QualitySettings | None = None
+) -> SurveyGeometry:
+    """The flight's :class:`SurveyGeometry` in the map stage's frame (same positions, same
+    CRS: crossovers placed as the map's). Raises AeromagError without a mapped block."""
     s = settings or QualitySettings()
     flight.require("lat_deg", "lon_deg", "alt_m", purpose="quality statistics")
     d = flight.data
     lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
-    t = d["time_s"].to_numpy(float)
     surv = seg.mask("survey") & np.isfinite(lat)
     if surv.sum() < 100:
         raise AeromagError(
@@ -337,9 +351,49 @@ def run_quality(
             file=flight.source,
             channel="/gnss/fix",
         )
-    # the map stage's frame (same positions, same CRS): crossovers placed as the map's
     frame = survey_frame(lat[surv], lon[surv], alt[surv], s.crs_epsg)
     east, north, up = frame.to_enu(lat, lon, alt)
+    tracks = flight_tracks(seg, east, north)
+    mapped = [tr for tr in tracks if tr.kind in ("survey", "tie")]
+    validation = [tr for tr in tracks if tr.kind == "validation"]
+    return SurveyGeometry(
+        frame,
+        east,
+        north,
+        up,
+        tracks,
+        track_intersections(validation, mapped, s.min_crossing_angle_deg),
+        overlap_pairs(validation, mapped, s.overlap_m),
+        track_crossings(
+            [tr for tr in tracks if tr.kind == "survey"],
+            [tr for tr in tracks if tr.kind == "tie"],
+            s.min_crossing_angle_deg,
+        ),
+    )
+
+
+def run_quality(
+    flight: Flight,
+    seg: Segmentation,
+    fields: dict[str, np.ndarray],
+    tl_alias: str | None = None,
+    fom: list[dict] | None = None,
+    settings: QualitySettings | None = None,
+    geometry: SurveyGeometry | None = None,
+) -> QualityRun:
+    """Quality figures of every processing state in ``fields`` (name -> nT per epoch).
+
+    ``fields`` should start with ``raw`` and end with the final model; ``tl_alias`` names the
+    T-L baseline reported under the key ``tl`` (the one with AGG-TL's own term set).
+    ``geometry``: :func:`survey_geometry` of this flight with these settings, when several
+    calls share it.
+    """
+    s = settings or QualitySettings()
+    g = geometry if geometry is not None else survey_geometry(flight, seg, s)
+    d = flight.data
+    lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
+    t = d["time_s"].to_numpy(float)
+    frame, east, north, up, tracks = g.frame, g.east_m, g.north_m, g.up_m, g.tracks
     base = d["base_nT"].to_numpy(float) if flight.has("base_nT") else None
     # IGRF and diurnal are the same for every state: reduce a zero field once
     offset = -reduce_to_anomaly(
@@ -347,7 +401,6 @@ def run_quality(
     ).anomaly_nT
     reduced = {name: np.asarray(f, float) - offset for name, f in fields.items()}
 
-    tracks = flight_tracks(seg, east, north)
     mapped = [tr for tr in tracks if tr.kind in ("survey", "tie")]
     survey = [tr for tr in tracks if tr.kind == "survey"]
     validation = [tr for tr in tracks if tr.kind == "validation"]
@@ -357,8 +410,7 @@ def run_quality(
             "no validation lines: heading error at overlap points and the "
             "interpolated comparison need the diagonal X flight"
         )
-    inter = track_intersections(validation, mapped, s.min_crossing_angle_deg)
-    pairs = overlap_pairs(validation, mapped, s.overlap_m)
+    inter, pairs = g.intersections, g.pairs
     diffs = {
         "intersection": {n: inter.differences(v) for n, v in reduced.items()},
         "pair": {n: pairs.differences(v) for n, v in reduced.items()},
@@ -415,7 +467,11 @@ def run_quality(
         for tr in mapped
         if np.isfinite(reduced[final][tr.index]).all()
     ]
-    lev = level_lines(lines, min_angle_deg=s.min_crossing_angle_deg) if lines else None
+    lev = (
+        level_lines(lines, min_angle_deg=s.min_crossing_angle_deg, crossings=g.tie_crossings)
+        if lines
+        else None
+    )
     checks = {
         "field": state_key(final),
         "noise": qc.line_noise(mapped, reduced[final], s.noise_threshold_nT),

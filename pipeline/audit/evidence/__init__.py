@@ -175,9 +175,14 @@ def significant(h: HeldOut | None, alpha: float, min_gain: float) -> bool:
 
 
 def holm(p_values: list[float]) -> list[float]:
-    """Holm-adjusted p-values (statsmodels), for several candidates tested at once."""
-    from statsmodels.stats.multitest import multipletests
-
-    if not p_values:
+    """Holm-adjusted p-values, for several candidates tested at once: the step-down
+    adjustment of statsmodels' ``multipletests(method="holm")``, the same arithmetic written
+    out because that function collects garbage on every call (a tenth of a second each, and
+    an audit makes several)."""
+    p = np.asarray(p_values, float)
+    if p.size == 0:
         return []
-    return [float(v) for v in multipletests(p_values, method="holm")[1]]
+    order = np.argsort(p)
+    adjusted = np.empty(p.size)
+    adjusted[order] = np.minimum(np.maximum.accumulate(p[order] * np.arange(p.size, 0, -1)), 1.0)
+    return [float(v) for v in adjusted]
