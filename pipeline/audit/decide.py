@@ -44,6 +44,7 @@ def select(
     """
     findings: list[Evaluation] = []
     rounds: list[list[Evaluation]] = []
+    against: dict[int, ModelSpec] = {}  # the model each finding was accepted against
     while True:
         cands = candidates(ctx, current)
         if not cands:
@@ -68,12 +69,13 @@ def select(
         # it does not compete: a scalar-field effect goes first when one passes
         best = max(passing, key=lambda e: (e.metric == Evaluation.metric, e.heldout.reduction))
         best.accepted = True
+        against[id(best)] = current
         findings.append(best)
         for e in passing:
             if e is not best:
                 e.reason = "passed; re-tested in the next round with the better one in"
         current = admit_nuisances(ctx, best.spec, best.effect)
-    return refine(ctx, prune_nuisances(ctx, current), findings), findings, rounds
+    return refine(ctx, prune_nuisances(ctx, current), findings, against), findings, rounds
 
 
 def calibrated_gate(ctx: AuditContext, evals: list[Evaluation], nc: NullCalibration | None) -> None:
@@ -201,7 +203,12 @@ def still_shown_outside(ctx: AuditContext, accepted: Evaluation, again: Evaluati
     return bool(p < ctx.s.alpha and np.sign(k) == np.sign(accepted.outside[1]))
 
 
-def refine(ctx: AuditContext, spec: ModelSpec, findings: list[Evaluation]) -> ModelSpec:
+def refine(
+    ctx: AuditContext,
+    spec: ModelSpec,
+    findings: list[Evaluation],
+    against: dict[int, ModelSpec] | None = None,
+) -> ModelSpec:
     """Re-estimate every accepted effect with all the others in the model.
 
     An effect accepted early was estimated while later ones were still unmodelled (a
@@ -212,10 +219,16 @@ def refine(ctx: AuditContext, spec: ModelSpec, findings: list[Evaluation]) -> Mo
     (``held_back``, unless :func:`still_shown_outside`) is dropped from ``findings`` (in
     place) and from the model (a current's steps inside the calibration legs ramp like a
     gradient until the current is in the model).
+
+    ``against``: the model each finding (by ``id``) was accepted against. A finding whose
+    model without it is that model keeps its own evaluation: evaluating it again is
+    deterministic and would give the same record.
     """
+    against = against or {}
     order = sorted(findings, key=lambda f: f.effect != "sensor_lag")  # lag first
     for f in order:
-        e = evaluate(ctx, without(spec, f), f.effect, f.key)
+        rest = without(spec, f)
+        e = f if against.get(id(f)) == rest else evaluate(ctx, rest, f.effect, f.key)
         if e.held_back and still_shown_outside(ctx, f, e):
             ctx.notes.append(
                 f"{f.key} kept with the other findings in the model: the evidence outside "

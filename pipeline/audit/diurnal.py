@@ -112,11 +112,13 @@ class DiurnalEvidence:
 
 def _screen(s: DiurnalSet) -> np.ndarray:
     """Rows of ``s`` a biweight fit of its model (nuisance + base term) gives weight."""
-    import statsmodels.api as sm
+    # the model's own module: statsmodels.api imports the formula machinery too
+    from statsmodels.robust.norms import TukeyBiweight
+    from statsmodels.robust.robust_linear_model import RLM
 
     a = np.column_stack([s.nuisance, s.base_nT])
     try:
-        return sm.RLM(s.y, a, M=sm.robust.norms.TukeyBiweight()).fit().weights > 0
+        return RLM(s.y, a, M=TukeyBiweight()).fit().weights > 0
     except (ValueError, np.linalg.LinAlgError):  # a singular design: no screening
         return np.ones(s.y.size, bool)
 
