@@ -26,9 +26,14 @@ def lag_fit(
     """(lag s, residual RMS nT at it): a coarse grid over +-``max_lag_s`` (the eddy
     terms absorb part of a lag, so a linearised estimate with the baseline's
     coefficients is biased low), then a bounded 1-D refinement. (0, inf) when the
-    calibration is too short to refit."""
-    costs = _lag_costs(ctx, current, keep, key)
-    return (0.0, np.inf) if costs is None else _least_cost(costs, ctx.s.max_lag_s)
+    calibration is too short to refit. Kept per model and ``key`` (which names ``keep``,
+    as for :meth:`AuditContext.fit`): the held-out tests of several hypotheses ask for the
+    same fold's lag."""
+    ck = (current, key)
+    if ck not in ctx._lag_fits:
+        costs = _lag_costs(ctx, current, keep, key)
+        ctx._lag_fits[ck] = (0.0, np.inf) if costs is None else _least_cost(costs, ctx.s.max_lag_s)
+    return ctx._lag_fits[ck]
 
 
 def _lag_costs(ctx: AuditContext, spec: ModelSpec, keep: np.ndarray | None, key: str):
