@@ -91,7 +91,7 @@ class AuditContext:
         self.notes: list[str] = []
         self._fit_cache: dict[tuple, FittedModel] = {}
         # each model's lag and its cost, per key (evidence.lag.lag_fit)
-        self._lag_fits: dict[tuple, tuple[float, float]] = {}
+        self.lag_fits: dict[tuple, tuple[float, float]] = {}
         # each model's band-passed calibration rows, shared by its fits and residuals over
         # the folds (the design spans the whole flight: building it once per fit made the
         # audit grow with the survey); the last few models only

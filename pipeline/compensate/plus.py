@@ -173,9 +173,10 @@ class HeldOutSetup:
         args = (m.scalar_nT, m.time_s, m.rate_hz, valid, b.band_hz, b.poles, b.trim_s)
         if self._beside is None or self._beside[0] is not beside:
             self._beside = (beside, {})
-        kept = self._beside[1].get(valid.tobytes())
+        key = valid.tobytes()
+        kept = self._beside[1].get(key)
         if kept is None:
-            kept = self._beside[1][valid.tobytes()] = bandpassed_design(beside, *args)
+            kept = self._beside[1][key] = bandpassed_design(beside, *args)
         kc, _, _ = bandpassed_design(columns, *args)
         return np.column_stack([kept[0], kc]), kept[1], kept[2]
 

@@ -258,6 +258,31 @@ def survey_frame(lat_deg, lon_deg, alt_m, epsg: int | None = None) -> GridFrame:
     )
 
 
+def survey_positions(
+    lat_deg: np.ndarray,
+    lon_deg: np.ndarray,
+    alt_m: np.ndarray,
+    survey: np.ndarray,
+    epsg: int | None,
+    source,
+    no_survey: str,
+) -> tuple[GridFrame, np.ndarray, np.ndarray, np.ndarray]:
+    """A flight's :func:`survey_frame` (over its survey epochs with a position) and every
+    epoch's east, north and up (m) in it: the frame the map and its quality figures share.
+
+    Raises a one-line AeromagError (``source``'s /gnss/fix) with fewer than 100 such epochs
+    (the message ``no_survey``) or when ``epsg`` (map.crs) cannot project the survey.
+    """
+    surv = survey & np.isfinite(lat_deg)
+    if surv.sum() < 100:
+        raise AeromagError(no_survey, file=source, channel="/gnss/fix")
+    try:
+        frame = survey_frame(lat_deg[surv], lon_deg[surv], alt_m[surv], epsg)
+    except ValueError as exc:
+        raise AeromagError(f"map.crs: {exc}", file=source, channel="/gnss/fix") from None
+    return (frame, *frame.to_enu(lat_deg, lon_deg, alt_m))
+
+
 def _zone_note(zones: tuple[int, ...], code: int) -> str:
     """Which UTM grid was chosen, and whether the survey spans others (then the centroid's
     zone holds it all: one grid, no seam)."""

@@ -12,7 +12,7 @@ from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
 from pipeline.geo.igrf import main_field_direction
-from pipeline.geo.projected import GridFrame, survey_frame
+from pipeline.geo.projected import GridFrame, survey_positions
 from pipeline.maps.arima import (
     ArimaModel,
     KalmanResult,
@@ -405,14 +405,9 @@ def anomaly_grid(
     flight.require("lat_deg", "lon_deg", "alt_m", purpose="mapping")
     d = flight.data
     lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
-    surv = seg.mask("survey") & np.isfinite(lat)
-    if surv.sum() < 100:
-        raise AeromagError("no survey lines found to map", file=flight.source, channel="/gnss/fix")
-    try:
-        frame = survey_frame(lat[surv], lon[surv], alt[surv], s.crs_epsg)
-    except ValueError as exc:
-        raise AeromagError(f"map.crs: {exc}", file=flight.source, channel="/gnss/fix") from None
-    e, n, up = frame.to_enu(lat, lon, alt)
+    frame, e, n, up = survey_positions(
+        lat, lon, alt, seg.mask("survey"), s.crs_epsg, flight.source, "no survey lines found to map"
+    )
     base = d["base_nT"].to_numpy(float) if flight.has("base_nT") else None
     red = reduce_to_anomaly(flight.time_ns, compensated_nT, lat, lon, alt, base, s.lag_s)
     t = d["time_s"].to_numpy(float)

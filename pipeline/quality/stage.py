@@ -24,9 +24,8 @@ from typing import Any
 import numpy as np
 
 from pipeline.defaults import default_field
-from pipeline.errors import AeromagError
 from pipeline.flight import Flight
-from pipeline.geo.projected import GridFrame, survey_frame
+from pipeline.geo.projected import GridFrame, survey_positions
 from pipeline.maps.grid import Grid, minimum_curvature_fields
 from pipeline.maps.level import (
     MIN_CROSSING_ANGLE_DEG,
@@ -344,15 +343,15 @@ def survey_geometry(
     flight.require("lat_deg", "lon_deg", "alt_m", purpose="quality statistics")
     d = flight.data
     lat, lon, alt = (d[c].to_numpy(float) for c in ("lat_deg", "lon_deg", "alt_m"))
-    surv = seg.mask("survey") & np.isfinite(lat)
-    if surv.sum() < 100:
-        raise AeromagError(
-            "no survey lines found: quality statistics need a mapped block",
-            file=flight.source,
-            channel="/gnss/fix",
-        )
-    frame = survey_frame(lat[surv], lon[surv], alt[surv], s.crs_epsg)
-    east, north, up = frame.to_enu(lat, lon, alt)
+    frame, east, north, up = survey_positions(
+        lat,
+        lon,
+        alt,
+        seg.mask("survey"),
+        s.crs_epsg,
+        flight.source,
+        "no survey lines found: quality statistics need a mapped block",
+    )
     tracks = flight_tracks(seg, east, north)
     mapped = [tr for tr in tracks if tr.kind in ("survey", "tie")]
     validation = [tr for tr in tracks if tr.kind == "validation"]

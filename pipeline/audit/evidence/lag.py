@@ -30,10 +30,10 @@ def lag_fit(
     as for :meth:`AuditContext.fit`): the held-out tests of several hypotheses ask for the
     same fold's lag."""
     ck = (current, key)
-    if ck not in ctx._lag_fits:
+    if ck not in ctx.lag_fits:
         costs = _lag_costs(ctx, current, keep, key)
-        ctx._lag_fits[ck] = (0.0, np.inf) if costs is None else _least_cost(costs, ctx.s.max_lag_s)
-    return ctx._lag_fits[ck]
+        ctx.lag_fits[ck] = (0.0, np.inf) if costs is None else _least_cost(costs, ctx.s.max_lag_s)
+    return ctx.lag_fits[ck]
 
 
 def _lag_costs(ctx: AuditContext, spec: ModelSpec, keep: np.ndarray | None, key: str):
