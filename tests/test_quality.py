@@ -408,3 +408,31 @@ def test_quality_command_writes_summary_plots_and_valid_channels(tmp_path):
     assert again["states"] == ["raw", "tl16", "tl18", "agg_tl"]
     for k, v in s["interpolated_rms_nT"].items():  # (pairs: the first run used --overlap-m)
         assert again["interpolated_rms_nT"][k] == pytest.approx(v, rel=1e-9)
+
+
+def _line(start: int, east_m: np.ndarray, north_m: np.ndarray, heading_deg: float) -> Track:
+    return Track(f"L{start}", "x", start + np.arange(east_m.size), east_m, north_m, heading_deg)
+
+
+def test_gradient_removed_pairs_leave_the_heading_error_alone():
+    """A linear field and one level per line: a pair as measured carries gradient x offset,
+    the gradient-removed pair exactly the lines' level difference, on crossing tracks (both
+    components) and on parallel ones (the along-track part; the cross-track part stays)."""
+    from pipeline.quality.overlap import gradient_removed_differences
+
+    s = np.arange(-60.0, 60.0, 0.83)
+    val = _line(0, s, np.full(s.size, 0.31), 90.0)
+    cross = _line(s.size, np.full(s.size, 0.17), s + 0.29, 0.0)
+    par = _line(2 * s.size, s + 0.4, np.full(s.size, 0.02), 90.0)
+    g_e, g_n = 0.43, -0.27  # nT/m
+    east = np.concatenate([val.east_m, cross.east_m, par.east_m])
+    north = np.concatenate([val.north_m, cross.north_m, par.north_m])
+    level = np.repeat([0.12, -0.05, 0.30], s.size)
+    field = g_e * east + g_n * north + level
+    for mapped, want in ((cross, 0.17), (par, -0.18 + g_n * (0.31 - 0.02))):
+        pairs = overlap_pairs([val], [mapped], 0.5)
+        assert pairs.count >= 1
+        measured = pairs.differences(field)
+        removed = gradient_removed_differences(pairs, [val, mapped], field, 10.0)
+        assert np.max(np.abs(measured - want)) > 0.1  # gradient x offset, as measured
+        np.testing.assert_allclose(removed, want, atol=1e-9)

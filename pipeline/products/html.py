@@ -326,10 +326,12 @@ def _quality_section(s: dict, figs: _Figures) -> list[str]:
     if not q:
         return []
     inter = q.get("intersection_rms_nT", q["heading_error_rms_nT"])
+    less = q.get("overlap_pair_gradient_removed_rms_nT", {})  # older summaries: none
     rows = [
         [
             html.escape(st),
             _f(q["overlap_pair_rms_nT"].get(st)),
+            _f(less.get(st)),
             _f(inter.get(st)),
             _f(q["interpolated_rms_nT"].get(st)),
         ]
@@ -342,13 +344,15 @@ def _quality_section(s: dict, figs: _Figures) -> list[str]:
         f"intersections {_f(q.get('heading_error_noise_floor_nT'))} nT. "
         f"T-L = {html.escape(str(q.get('tl_alias')))}. Pairs and the interpolated map are "
         f"paper 002's statistics; the intersections are ours (both fields interpolated "
-        f"along track to the crossing, so the gradient x distance of a pair drops out). "
+        f"along track to the crossing, so the gradient x distance of a pair drops out), as are the "
+        f"pairs less the field's gradient across each pair's offset. "
         f"Headline heading error: "
         f"{html.escape(str(q.get('heading_error_method', 'intersections')))}.</p>",
         _table(
             [
                 "state",
                 "pairs RMS nT (paper's)",
+                "pairs less gradient RMS nT (ours)",
                 "intersections RMS nT (ours)",
                 "interpolated map RMS nT (paper's)",
             ],

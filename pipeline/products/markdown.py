@@ -116,14 +116,15 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             f"{q['overlap_m']} m; headline heading_error_rms_nT = "
             f"{q.get('heading_error_method', 'intersections')}",
             "",
-            "| state | pairs RMS nT (paper 002) | intersections RMS nT (ours) | "
-            "interpolated map RMS nT (paper 002) |",
-            "|---|---|---|---|",
+            "| state | pairs RMS nT (paper 002) | pairs less gradient RMS nT (ours) | "
+            "intersections RMS nT (ours) | interpolated map RMS nT (paper 002) |",
+            "|---|---|---|---|---|",
         ]
         inter = q.get("intersection_rms_nT", q["heading_error_rms_nT"])
+        less = q.get("overlap_pair_gradient_removed_rms_nT", {})  # older summaries: none
         for st in q["states"]:
             out.append(
-                f"| {st} | {f(q['overlap_pair_rms_nT'][st])} | "
+                f"| {st} | {f(q['overlap_pair_rms_nT'][st])} | {f(less.get(st))} | "
                 f"{f(inter[st])} | "
                 f"{f(q['interpolated_rms_nT'][st])} |"
             )

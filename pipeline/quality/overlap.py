@@ -266,3 +266,114 @@ def group_stats(diff: np.ndarray, ov: OverlapSet, confidence: float = 0.95) -> l
             }
         )
     return out
+
+
+def along_track_slopes(track: Track, values: np.ndarray, half_span_m: float) -> np.ndarray:
+    """The field's slope along ``track`` at each of its samples (nT/m), and the track's
+    direction there (unit east/north): least-squares lines of the field and of the
+    positions against the distance along track over the samples within ``half_span_m``.
+
+    Parameters
+    ----------
+    track : Track
+        A straight line (positions in the map frame's east/north metres).
+    values : ndarray
+        The field at the track's samples (nT; NaN: missing).
+    half_span_m : float
+        Half the window along track (m).
+
+    Returns
+    -------
+    ndarray, shape (k, 3)
+        Per sample: the slope (nT/m) and the direction (east, north); NaN where the window
+        holds fewer than 3 finite samples.
+    """
+    s = track.along_m - track.along_m.mean()  # centred: the sums below lose no digits
+    f = np.asarray(values, float)
+    ok = np.isfinite(f)
+    lo = np.searchsorted(s, s - half_span_m, side="left")
+    hi = np.searchsorted(s, s + half_span_m, side="right")
+
+    def window_sum(x: np.ndarray) -> np.ndarray:
+        c = np.r_[0.0, np.cumsum(np.where(ok, x, 0.0))]
+        return c[hi] - c[lo]
+
+    e = track.east_m - track.east_m.mean()
+    n_ = track.north_m - track.north_m.mean()
+    fc = np.where(ok, f - np.nanmean(f) if ok.any() else 0.0, 0.0)
+    count = window_sum(np.ones_like(s))
+    ms = window_sum(s) / np.maximum(count, 1)
+    sxx = window_sum(s * s) - count * ms**2
+    out = np.full((s.size, 3), np.nan)
+    good = (count >= 3) & (sxx > 0)
+    for k, y in enumerate((fc, e, n_)):
+        sxy = window_sum(s * y) - ms * window_sum(y)
+        out[good, k] = sxy[good] / sxx[good]
+    norm = np.hypot(out[:, 1], out[:, 2])
+    out[:, 1:] /= norm[:, None]
+    return out
+
+
+def gradient_removed_differences(
+    pairs: OverlapSet,
+    tracks: list[Track],
+    field: np.ndarray,
+    half_span_m: float,
+    min_angle_deg: float = MIN_CROSSING_ANGLE_DEG,
+) -> np.ndarray:
+    """B_validation - B_map at each pair less the field's own change across the pair's
+    offset, grad F . (p_validation - p_map) (nT).
+
+    A pair compares samples up to ``overlap_m`` apart as measured, so a survey's gradient
+    (a regional 0.5 nT/m over 0.5 m: 0.25 nT) adds to the heading error it is meant to
+    show. The horizontal gradient at a pair comes from the field's slopes along its two
+    tracks (:func:`along_track_slopes`), which fix both components where the tracks meet at
+    ``min_angle_deg`` or more; on nearly parallel tracks only the offset's along-track part is
+    taken out (the cross-track gradient is not seen). NaN where a slope is missing.
+
+    Parameters
+    ----------
+    pairs : OverlapSet
+        The pairs (kind ``"pair"``), epochs into the flight.
+    tracks : list of Track
+        Every track the pairs' epochs lie on.
+    field : ndarray
+        The field at every flight epoch (nT).
+    half_span_m : float
+        Half the window of the along-track slopes (m).
+    min_angle_deg : float
+        Tracks meeting at a shallower angle (deg) give the along-track part only.
+    """
+    if pairs.count == 0:
+        return np.zeros(0)
+    f = np.asarray(field, float)
+    owner = np.full(f.size, -1)
+    place = np.zeros(f.size, int)
+    slopes = []
+    for k, tr in enumerate(tracks):
+        owner[tr.index] = k
+        place[tr.index] = np.arange(tr.index.size)
+        slopes.append(along_track_slopes(tr, f[tr.index], half_span_m))
+
+    def side(epoch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        k, j = owner[epoch], place[epoch]
+        if np.any(k < 0):
+            raise ValueError("a pair's epoch lies on none of the tracks given")
+        pos = np.array(
+            [[tracks[a].east_m[b], tracks[a].north_m[b]] for a, b in zip(k, j, strict=True)]
+        )
+        return pos, np.array([slopes[a][b] for a, b in zip(k, j, strict=True)])
+
+    pv, sv = side(pairs.a0)
+    pm, sm = side(pairs.b0)
+    offset = pv - pm
+    tv, tm = sv[:, 1:], sm[:, 1:]
+    cross = tv[:, 0] * tm[:, 1] - tv[:, 1] * tm[:, 0]
+    crossing = np.abs(cross) >= np.sin(np.radians(min_angle_deg))
+    # two directions, two slopes: solve t_v . g = s_v, t_m . g = s_m for g (east, north)
+    safe = np.where(crossing, cross, 1.0)
+    ge = (sv[:, 0] * tm[:, 1] - sm[:, 0] * tv[:, 1]) / safe
+    gn = (tv[:, 0] * sm[:, 0] - tm[:, 0] * sv[:, 0]) / safe
+    across = ge * offset[:, 0] + gn * offset[:, 1]
+    along = sm[:, 0] * np.einsum("ij,ij->i", offset, tm)
+    return pairs.differences(f) - np.where(crossing, across, along)

@@ -41,6 +41,7 @@ from pipeline.quality.overlap import (
     OverlapSet,
     Track,
     difference_stats,
+    gradient_removed_differences,
     group_stats,
     overlap_pairs,
     track_intersections,
@@ -83,6 +84,9 @@ class QualitySettings:
         Tracks meeting at a shallower angle (deg) form no intersection or crossover.
     min_overlap_pairs : int
         Pairs needed for the headline heading error to use them (else the intersections).
+    pair_slope_half_span_m : float
+        Half the along-track window (m) of the slopes that give a pair's gradient
+        (:func:`~pipeline.quality.overlap.gradient_removed_differences`).
     crs_epsg : int or None
         EPSG code of the projected CRS positions are in (None: the survey's UTM zone), as
         the map stage's (:func:`pipeline.geo.projected.survey_frame`).
@@ -106,6 +110,10 @@ class QualitySettings:
     min_overlap_pairs: int = default_field("quality", "min_overlap_pairs")
     # the map's projected CRS (config: map.crs; None: the survey's UTM zone)
     crs_epsg: int | None = None
+    # half window of the along-track slopes that take a pair's gradient x distance out: a
+    # few samples even on a fixed-wing (6 m apart at 60 m/s, 10 Hz), well under the
+    # wavelengths of geology seen from a survey's height
+    pair_slope_half_span_m: float = 10.0
 
 
 @dataclass
@@ -152,7 +160,8 @@ class QualityRun:
 
     def heading_error_rms_nT(self, kind: str = "intersection") -> dict[str, float | None]:
         """RMS (nT; None without differences) of the validation-minus-map differences of ``kind``
-        (``"intersection"`` or ``"pair"``), per state key (and ``"tl"`` for the T-L alias).
+        (``"intersection"``, ``"pair"`` or ``"pair_gradient_removed"``), per state key (and
+        ``"tl"`` for the T-L alias).
         """
         return self._keyed(
             {s: difference_stats(self.differences[kind][s])["rms_nT"] for s in self.states}
@@ -244,6 +253,9 @@ class QualityRun:
             "intersection_rms_nT": self.heading_error_rms_nT("intersection"),
             "overlap_pairs": self.pairs.count,
             "overlap_pair_rms_nT": self.heading_error_rms_nT("pair"),
+            "overlap_pair_gradient_removed_rms_nT": self.heading_error_rms_nT(
+                "pair_gradient_removed"
+            ),
             "overlap_m": self.settings.overlap_m,
             "intersections": self.intersections.count,
             "min_crossing_angle_deg": self.settings.min_crossing_angle_deg,
@@ -268,6 +280,8 @@ class QualityRun:
 HEADING_ERROR_METHODS = {
     "pairs": "paper 002 §3.2: RMS of B_validation - B_map over sample pairs closer than "
     "overlap_m (paper: 0.5 m), compared as measured (adds gradient x distance)",
+    "pairs_gradient_removed": "the pairs less the field's own change across each pair's "
+    "offset, its gradient from the slopes along both tracks (not the paper's statistic)",
     "intersections": "exact track intersections of the validation lines with the survey and "
     "tie lines, both fields interpolated along track to the crossing (only "
     "heading error and noise remain; not the paper's statistic)",
@@ -413,6 +427,12 @@ def run_quality(
     diffs = {
         "intersection": {n: inter.differences(v) for n, v in reduced.items()},
         "pair": {n: pairs.differences(v) for n, v in reduced.items()},
+        "pair_gradient_removed": {
+            n: gradient_removed_differences(
+                pairs, tracks, v, s.pair_slope_half_span_m, s.min_crossing_angle_deg
+            )
+            for n, v in reduced.items()
+        },
     }
 
     heading = _circmean_deg(np.mod(np.array([tr.heading_deg for tr in survey]), 180.0) * 2) / 2
