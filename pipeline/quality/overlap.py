@@ -280,7 +280,7 @@ def along_track_slopes(track: Track, values: np.ndarray, half_span_m: float) -> 
     values : ndarray
         The field at the track's samples (nT; NaN: missing).
     half_span_m : float
-        Half the window along track (m).
+        Half the window along track (m); at least 2.5 sample spacings (3 samples at an end).
 
     Returns
     -------
@@ -291,6 +291,8 @@ def along_track_slopes(track: Track, values: np.ndarray, half_span_m: float) -> 
     s = track.along_m - track.along_m.mean()  # centred: the sums below lose no digits
     f = np.asarray(values, float)
     ok = np.isfinite(f)
+    if s.size > 1:  # a fast carrier sampled slowly: still three samples at a line's end
+        half_span_m = max(half_span_m, 2.5 * float(np.median(np.diff(s))))
     lo = np.searchsorted(s, s - half_span_m, side="left")
     hi = np.searchsorted(s, s + half_span_m, side="right")
 
