@@ -349,25 +349,15 @@ def gradient_removed_differences(
     if pairs.count == 0:
         return np.zeros(0)
     f = np.asarray(field, float)
-    owner = np.full(f.size, -1)
-    place = np.zeros(f.size, int)
-    slopes = []
-    for k, tr in enumerate(tracks):
-        owner[tr.index] = k
-        place[tr.index] = np.arange(tr.index.size)
-        slopes.append(along_track_slopes(tr, f[tr.index], half_span_m))
-
-    def side(epoch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        k, j = owner[epoch], place[epoch]
-        if np.any(k < 0):
-            raise ValueError("a pair's epoch lies on none of the tracks given")
-        pos = np.array(
-            [[tracks[a].east_m[b], tracks[a].north_m[b]] for a, b in zip(k, j, strict=True)]
-        )
-        return pos, np.array([slopes[a][b] for a, b in zip(k, j, strict=True)])
-
-    pv, sv = side(pairs.a0)
-    pm, sm = side(pairs.b0)
+    # per flight epoch: the position and the slope of the track it lies on (NaN off them)
+    pos = np.full((f.size, 2), np.nan)
+    slope = np.full((f.size, 3), np.nan)
+    for tr in tracks:
+        pos[tr.index] = np.column_stack([tr.east_m, tr.north_m])
+        slope[tr.index] = along_track_slopes(tr, f[tr.index], half_span_m)
+    if np.isnan(pos[pairs.a0]).any() or np.isnan(pos[pairs.b0]).any():
+        raise ValueError("a pair's epoch lies on none of the tracks given")
+    pv, sv, pm, sm = pos[pairs.a0], slope[pairs.a0], pos[pairs.b0], slope[pairs.b0]
     offset = pv - pm
     tv, tm = sv[:, 1:], sm[:, 1:]
     cross = tv[:, 0] * tm[:, 1] - tv[:, 1] * tm[:, 0]
