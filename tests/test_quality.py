@@ -280,9 +280,12 @@ def _demo_quality(tmp_path_factory, gradient: bool):
         flight, seg, fields, tl_alias="tl18", settings=QualitySettings(min_crossing_angle_deg=15.0)
     )
     # the simulated sensor noise (white + drift) as it enters B_val - B_map at the same points
-    noise = sim.series["noise_nT"][np.searchsorted(sim.series["time_ns"], flight.time_ns)]
-    noise_rms = float(np.sqrt(np.nanmean(q.intersections.differences(noise) ** 2)))
-    return q.summary(), noise_rms, sim, q
+    at = np.searchsorted(sim.series["time_ns"], flight.time_ns)
+    noise_rms = float(
+        np.sqrt(np.nanmean(q.intersections.differences(sim.series["noise_nT"][at]) ** 2))
+    )
+    # the noise-free field at the sensor (no carrier) at the flight's epochs
+    return q.summary(), noise_rms, sim, q, sim.series["earth_total_nT"][at]
 
 
 @pytest.fixture(scope="module")
@@ -296,7 +299,7 @@ def demo_without_gradient(tmp_path_factory):
 
 
 def test_agg_tl_removes_the_heading_error_tl_leaves_over_a_gradient(demo_with_gradient):
-    s, noise_rms, sim, _ = demo_with_gradient
+    s, noise_rms, sim, _, _ = demo_with_gradient
     assert sim.truth["noise"]["scalar_nT"] == 0.05
     he = s["intersection_rms_nT"]  # noise_rms is the noise at the intersections
     assert s["intersections"] >= 30 and s["overlap_pairs"] >= 30
@@ -312,7 +315,7 @@ def test_agg_tl_removes_the_heading_error_tl_leaves_over_a_gradient(demo_with_gr
 
 
 def test_without_gradient_tl_and_agg_tl_agree(demo_without_gradient):
-    s, noise_rms, _, _ = demo_without_gradient
+    s, noise_rms, _, _, _ = demo_without_gradient
     he = s["intersection_rms_nT"]
     assert he["agg_tl"] == pytest.approx(he["tl"], rel=0.10), he
     assert he["tl"] <= 1.5 * noise_rms
@@ -321,7 +324,7 @@ def test_without_gradient_tl_and_agg_tl_agree(demo_without_gradient):
 def test_headline_heading_error_is_the_papers_pair_statistic_and_says_so(demo_with_gradient):
     """Paper 002 §3.2's overlap statistic is pairs closer than 0.5 m: the headline uses it
     when there are pairs, names it, and keeps the intersections next to it."""
-    s, _, _, _ = demo_with_gradient
+    s, _, _, _, _ = demo_with_gradient
     assert s["overlap_m"] == pytest.approx(0.5) and s["overlap_pairs"] >= 10
     assert s["heading_error_method"] == "pairs"
     assert "paper 002" in s["heading_error_methods"]["pairs"]
@@ -339,7 +342,7 @@ def test_headline_falls_back_to_intersections_without_enough_pairs(demo_with_gra
     import dataclasses
 
     assert QualitySettings().min_overlap_pairs == 10  # from default_config.toml
-    _, _, _, q = demo_with_gradient
+    _, _, _, q, _ = demo_with_gradient
     few = dataclasses.replace(
         q, settings=dataclasses.replace(q.settings, min_overlap_pairs=q.pairs.count + 1)
     )
@@ -438,3 +441,25 @@ def test_gradient_removed_pairs_leave_the_heading_error_alone():
         for half_span_m in (10.0, 0.3):
             removed = gradient_removed_differences(pairs, [val, mapped], field, half_span_m)
             np.testing.assert_allclose(removed, want, atol=1e-9)
+
+
+@pytest.mark.parametrize("which", ["demo_with_gradient", "demo_without_gradient"])
+def test_gradient_removed_pairs_of_the_true_field_are_near_zero(which, request):
+    """The simulator's noise-free field (dipole geology, and a 0.45 nT/m gradient on one of
+    the flights: neither is linear over the +-10 m slope windows the estimator assumes):
+    its pairs as measured differ by geology and gradient x offset, the gradient-removed ones
+    by about what its own intersections do (interpolation between samples)."""
+    from pipeline.quality.overlap import difference_stats, gradient_removed_differences
+
+    _, _, _, q, truth = request.getfixturevalue(which)
+    s = q.settings
+    measured = difference_stats(q.pairs.differences(truth))["rms_nT"]
+    removed = difference_stats(
+        gradient_removed_differences(
+            q.pairs, q.tracks, truth, s.pair_slope_half_span_m, s.min_crossing_angle_deg
+        )
+    )
+    inter = difference_stats(q.intersections.differences(truth))["rms_nT"]
+    assert removed["count"] == q.pairs.count  # every pair has slopes on both tracks
+    assert removed["rms_nT"] < 0.5 * measured, (removed, measured)
+    assert removed["rms_nT"] < 1.5 * inter + 0.01, (removed, inter)
