@@ -130,6 +130,42 @@ def test_the_interval_holds_when_a_legs_blocks_share_their_errors():
     assert np.mean(covered) >= 0.8
 
 
+def lined_crossovers(rng, phase, grouped=True, lines=6, ties=4, line_nT=0.5, noise=0.2):
+    """Crossovers of ``lines`` survey lines flown one after another (alternate headings)
+    with ``ties`` tie lines flown after them; each line has its own level error (a
+    residual the compensation leaves, slow along it), which all its crossovers share.
+    With ``grouped`` the set says which lines each crossover joins."""
+    la, lb = (v.ravel() for v in np.meshgrid(np.arange(lines), np.arange(ties), indexing="ij"))
+    ta = 1000.0 + la * 120.0 + lb * 25.0 + rng.uniform(0, 5, la.size)
+    tb = 1000.0 + lines * 120.0 + lb * 150.0 + la * 20.0
+    ha, hb = np.where(la % 2 == 0, 0, 2), np.where(lb % 2 == 0, 1, 3)
+    level = np.array([0.0, 3.0, -2.0, 1.0])
+    line_err, tie_err = rng.normal(0, line_nT, lines), rng.normal(0, line_nT, ties)
+    d = level[ha] - level[hb] + line_err[la] - tie_err[lb] + rng.normal(0, noise, la.size)
+    d = d + day(ta, phase) - day(tb, phase)
+    db = day(ta, phase) - day(tb, phase) + rng.normal(0, 0.02, la.size)
+    x = CrossoverSet(d, ta, tb, ha, hb)
+    groups = (la, lb) if grouped else (None, None)
+    return DiurnalSet("crossovers", d, heading_levels(x), db, *groups)
+
+
+def test_the_interval_holds_when_crossovers_share_their_lines_errors():
+    """Each crossover shares its survey line's error and its tie line's with the other
+    crossovers on those lines: taken as independent points the interval covers 1 on
+    about 70 % of such surveys; two-way clustered by line, on about 93 %."""
+
+    def coverage(grouped):
+        hits = []
+        for seed in range(150):
+            rng = np.random.default_rng(900 + seed)
+            ev = diurnal_evidence([lined_crossovers(rng, rng.uniform(0, 2 * np.pi), grouped)])
+            hits.append(ev.ci95[0] <= 1.0 <= ev.ci95[1])
+        return np.mean(hits)
+
+    assert coverage(grouped=True) >= 0.87
+    assert coverage(grouped=False) <= 0.85
+
+
 @pytest.mark.parametrize("rate_hz", [5.0, 10.0, 50.0])
 def test_the_base_stations_amplitude_and_period_are_read_from_its_record(rate_hz):
     """A smoothed base-station record of a 12 nT, 80 min variation over 2 h, with noise, at

@@ -28,9 +28,10 @@ read in a turn) would decide a least-squares fit of a dozen points: each set is 
 by a biweight fit of the same model, and the points it gives no weight are left out.
 
 The coefficient's interval takes the wider of the least-squares standard error and a
-delete-one-group jackknife's (a group: one leg's blocks, one crossover; the least-squares one
-takes the points as independent, which the blocks of one leg are not), with Student t on the
-matching degrees of freedom. No allowance is added: a slow drift of the airborne level moves
+two-way cluster one built from delete-one-group jackknives (the least-squares one takes the
+points as independent, which the blocks of one leg are not, nor the crossovers on one survey
+line or one tie line: they share that line's error), with Student t on the matching degrees
+of freedom. No allowance is added: a slow drift of the airborne level moves
 the coefficient by its own projection on the variation, which is in the residual the
 jackknife resamples; a drift fitted beside the coefficient leaves it undetermined wherever
 the variation is nearly linear over the flight.
@@ -61,8 +62,11 @@ class DiurnalSet:
     y: np.ndarray
     nuisance: np.ndarray
     base_nT: np.ndarray
-    # the unit of independent error of each row (a leg's id); None: each row its own
+    # the unit of independent error of each row (a leg's id, a crossover's survey line);
+    # None: each row its own
     group: np.ndarray | None = None
+    # a second unit whose error the rows share (a crossover's tie line); None: as group
+    cross_group: np.ndarray | None = None
 
     def take(self, rows: np.ndarray) -> DiurnalSet:
         """The set's ``rows`` (a boolean mask)."""
@@ -72,11 +76,16 @@ class DiurnalSet:
             self.nuisance[rows],
             self.base_nT[rows],
             None if self.group is None else self.group[rows],
+            None if self.cross_group is None else self.cross_group[rows],
         )
 
     def groups(self) -> np.ndarray:
         """Group id of each row (:attr:`group`, or one group per row)."""
         return np.arange(self.y.size) if self.group is None else np.asarray(self.group)
+
+    def cross_groups(self) -> np.ndarray:
+        """Second group id of each row (:attr:`cross_group`, or :meth:`groups`)."""
+        return self.groups() if self.cross_group is None else np.asarray(self.cross_group)
 
 
 @dataclass
@@ -153,6 +162,26 @@ def _matched_p(a: np.ndarray, y: np.ndarray, g: np.ndarray, rng: np.random.Gener
     return float((1 + np.sum(shuffled <= observed)) / (SHUFFLES + 1))
 
 
+def _two_way_se(x: np.ndarray, y: np.ndarray, groups: np.ndarray) -> tuple[float, int]:
+    """Standard error of the last coefficient of the least-squares fit of ``y`` on ``x``
+    with errors shared within either of two groupings (``groups``: (n, 2) ids; a
+    crossover shares its survey line's error and its tie line's), and its degrees of
+    freedom: the two-way cluster variance of Cameron, Gelbach and Miller (2011), V_a + V_b
+    - V_ab, each term a delete-one-group jackknife's (V_ab: groups of rows that share both),
+    at least either one-way variance, on the fewer groups less one. With one grouping
+    (both columns equal) it is that grouping's jackknife."""
+    se_a, df_a = _jackknife_se(x, y, groups[:, 0])
+    if np.array_equal(groups[:, 0], groups[:, 1]):
+        return se_a, df_a
+    se_b, df_b = _jackknife_se(x, y, groups[:, 1])
+    both = np.unique(groups, axis=0, return_inverse=True)[1].ravel()
+    se_ab, _ = _jackknife_se(x, y, both)
+    if min(df_a, df_b) == 0:
+        return 0.0, 0
+    var = max(se_a**2 + se_b**2 - se_ab**2, se_a**2, se_b**2)
+    return float(np.sqrt(var)), min(df_a, df_b)
+
+
 def _jackknife_se(x: np.ndarray, y: np.ndarray, group: np.ndarray) -> tuple[float, int]:
     """Delete-one-group jackknife standard error of the last coefficient of the
     least-squares fit of ``y`` on ``x`` and its degrees of freedom (groups less one; 0, 0
@@ -203,8 +232,9 @@ def _stacked(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The usable sets stacked, each in units of its own residual standard deviation: the
     nuisance columns (block-diagonal: each set has its own levels), the measurements, the
-    base term (shared), each row's standard deviation (nT) and each row's
-    group (a set's own group: a crossover, a leg)."""
+    base term (shared), each row's standard deviation (nT) and each row's two groups
+    ((n, 2): a set's own groups, :meth:`DiurnalSet.groups` and
+    :meth:`DiurnalSet.cross_groups`)."""
     n_cols = [t.nuisance.shape[1] for t, _ in kept]
     x0 = np.zeros((sum(t.y.size for t, _ in kept), sum(n_cols)))
     y, g, sig, grp = [], [], [], []
@@ -215,12 +245,21 @@ def _stacked(
         g.append(t.base_nT / sigma)
         sig.append(np.full(t.y.size, sigma))
         grp.append(
-            np.column_stack([np.full(t.y.size, i), np.unique(t.groups(), return_inverse=True)[1]])
+            np.column_stack(
+                [
+                    np.full(t.y.size, i),
+                    np.unique(t.groups(), return_inverse=True)[1],
+                    np.unique(t.cross_groups(), return_inverse=True)[1],
+                ]
+            )
         )
         row += t.y.size
         col += m
     y, g, sig = (np.concatenate(v) for v in (y, g, sig))
-    grp = np.unique(np.concatenate(grp), axis=0, return_inverse=True)[1].ravel()
+    grp = np.concatenate(grp)
+    grp = np.column_stack(
+        [np.unique(grp[:, [0, j]], axis=0, return_inverse=True)[1].ravel() for j in (1, 2)]
+    )
     return x0, y, g, sig, grp
 
 
@@ -258,7 +297,7 @@ def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
     r = y - x1 @ coef
     cov = float(r @ r) / (n - k) * np.linalg.pinv(x1.T @ x1)
     c, se = float(coef[-1]), float(np.sqrt(max(cov[-1, -1], 0.0)))
-    se_jack, df_jack = _jackknife_se(x1, y, grp)
+    se_jack, df_jack = _two_way_se(x1, y, grp)
     df = n - k
     if se_jack > se:  # the groups, not the points, are the independent data: their count
         se, df = se_jack, df_jack

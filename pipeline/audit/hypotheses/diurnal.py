@@ -98,18 +98,16 @@ def _diurnal_crossovers(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None
     """The survey's crossovers as a diurnal data set: ``spec``'s crossover differences
     (smoothed over 1 s along track: a second averages the sensor noise out of each
     reading, the diurnal changes over minutes), a level per heading, the base station's
-    difference between the two readings."""
+    difference between the two readings; grouped by survey line and by tie line."""
     if not (ctx.flight.has("lat_deg", "lon_deg", "alt_m") and ctx.seg.mask("tie").any()):
         return None
     dx, db, _, _, _, xs, heading = ctx._crossover_data(spec, smooth_s=1.0)
     if dx.size == 0:
         return None
-    return DiurnalSet(
-        "crossovers",
-        dx,
-        heading_levels(crossover_set(dx, xs, heading)),
-        db,
-    )
+    x = crossover_set(dx, xs, heading)
+    # a crossover shares its survey line's error with the line's other crossovers, and
+    # its tie line's with the tie's
+    return DiurnalSet("crossovers", dx, heading_levels(x), db, x.line_a, x.line_b)
 
 
 def _diurnal_legs(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None:
