@@ -78,7 +78,8 @@ def heading_errors(seed: int, on: bool, box: str, folder: Path) -> dict:
         ev = run.summary().get("gradient_evidence") or {}
         out[source] = {k: q[v]["agg_tl"] for k, v in STATISTICS.items()}
         out[source]["choice"] = ev.get("choice", source)
-        out["truth"] = {k: q[v]["truth"] for k, v in STATISTICS.items()}
+    # the true field's statistics are the same in every source's run: the last one's
+    out["truth"] = {k: q[v]["truth"] for k, v in STATISTICS.items()}
     return out
 
 

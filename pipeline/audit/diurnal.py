@@ -174,10 +174,10 @@ def _two_way_se(x: np.ndarray, y: np.ndarray, groups: np.ndarray) -> tuple[float
     if np.array_equal(groups[:, 0], groups[:, 1]):
         return se_a, df_a
     se_b, df_b = _jackknife_se(x, y, groups[:, 1])
-    both = np.unique(groups, axis=0, return_inverse=True)[1].ravel()
-    se_ab, _ = _jackknife_se(x, y, both)
     if min(df_a, df_b) == 0:
         return 0.0, 0
+    both = np.unique(groups, axis=0, return_inverse=True)[1].ravel()
+    se_ab, _ = _jackknife_se(x, y, both)
     var = max(se_a**2 + se_b**2 - se_ab**2, se_a**2, se_b**2)
     return float(np.sqrt(var)), min(df_a, df_b)
 
