@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+import atexit
 import os
+import shutil
 import tempfile
 
 # Prefect reads its settings at import: make them hermetic before anything imports it.
 os.environ["PREFECT_HOME"] = tempfile.mkdtemp(prefix="aeromag-test-prefect-")
+# each session (and each xdist worker) has its own home: gone with the process
+atexit.register(shutil.rmtree, os.environ["PREFECT_HOME"], ignore_errors=True)
 os.environ["PREFECT_SERVER_ANALYTICS_ENABLED"] = "false"
 os.environ["DO_NOT_TRACK"] = "1"
 os.environ["PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS"] = "90"

@@ -160,3 +160,39 @@ def test_survey_found_among_many_longer_transit_directions(tmp_path):
         assert np.mean(seg.label[truth] == kind) > 0.9, kind
     # nothing else is a survey line (a line end's sub-second refinement aside)
     assert np.mean(~np.isin(lab[seg.mask("survey")], ["survey", "turn"])) < 0.01
+
+
+def test_a_leg_across_the_block_at_another_height_is_no_tie(tmp_path):
+    """A straight leg that crosses the block like a tie but is flown far above the survey
+    lines (a transit climbing to a calibration box at another height) reads a different
+    field: its crossovers would compare the anomaly at two heights. It is not a tie; the
+    ties flown at the lines' height stay ties, also when every line follows terrain (a
+    drape of +-30 m); a line entered in a descent along its track keeps its level part."""
+    sim, flight, seg = _short_block(tmp_path, "ESWN", -250.0, 3)
+    ties = sorted(set(seg.line_id[seg.mask("tie")]))
+    assert len(ties) >= 3
+    d = flight.data
+    t = d["time_s"].to_numpy()
+    # a drape: the altitude follows a smooth terrain along the whole flight
+    d["alt_m"] = d["alt_m"].to_numpy() + 30.0 * np.sin(2 * np.pi * t / 97.0)
+    assert sorted(set(segment_flight(flight).line_id[seg.mask("tie")])) == ties
+    # one tie flown 600 m higher: no longer a tie, nor any other line of the block (the
+    # lines are named again by position)
+    high = seg.line_id == ties[1]
+    d.loc[high, "alt_m"] = d.loc[high, "alt_m"] + 600.0
+    again = segment_flight(flight)
+    assert np.array_equal(again.mask("tie"), seg.mask("tie") & ~high)
+    assert not np.any(again.mask("survey", "tie", "validation")[high])
+    # the survey lines are untouched
+    assert np.array_equal(again.mask("survey"), seg.mask("survey"))
+    # a descent along a survey line's track into its first 40 %: the line keeps the rest
+    # (to within a second of refinement), the descent is no line
+    lines = sorted(set(seg.line_id[seg.mask("survey")]))
+    ix = np.flatnonzero(seg.line_id == lines[2])
+    cut = ix[: int(0.4 * ix.size)]
+    d.loc[cut, "alt_m"] = d.loc[cut, "alt_m"] + np.linspace(600.0, 300.0, cut.size)
+    third = segment_flight(flight)
+    assert not np.any(third.mask("survey", "tie", "validation")[cut])
+    kept = ix[int(0.4 * ix.size) :]
+    rate = 1.0 / float(np.median(np.diff(t)))
+    assert np.sum(third.mask("survey")[kept]) >= kept.size - rate

@@ -13,7 +13,8 @@ inferred, never read from a simulator:
 3. other legs are grouped by orientation: the orientation with the most line length is the
    **survey** direction, legs within ``parallel_tol_deg`` of it that overlap the survey block
    are survey lines, legs perpendicular to it crossing the block are **tie** lines, and legs
-   crossing it diagonally are **validation** lines; anything else is **transit**;
+   crossing it diagonally are **validation** lines; each keeps only its longest part flown at
+   the block's heights (``block_height_tol_m``); anything else is **transit**;
 4. epochs between legs are a **turn** when both neighbours belong to the same block (survey
    area, or one calibration pass), else **transit**.
 """
@@ -55,6 +56,11 @@ class SegmentParams:
     # fill: a skipped or moved line leaves some empty, scattered legs leave most
     min_grid_fill: float = 0.5
     parallel_tol_deg: float = 8.0  # survey / tie orientation tolerance
+    # a line of the block reads the field the others read only at their height: the part of
+    # a leg farther than this outside the block's heights (a robust 3-sigma range of the
+    # survey lines' altitudes) is a transit climbing to, leaving or crossing the block at
+    # another height; a drape's terrain following widens the range and stays inside it
+    block_height_tol_m: float = 50.0
     pass_gap_s: float = 180.0  # calibration legs closer in time than this form one pass
 
 
@@ -501,7 +507,55 @@ def _classify(
             p.parallel_tol_deg < ang < 90.0 - p.parallel_tol_deg and crosses and (lo <= a_mid <= hi)
         ):
             lg.kind = "validation"
+    _keep_block_heights(flight, legs, e, n, t, p)
     _name_lines(rest, spacing)
+
+
+def _keep_block_heights(
+    flight: Flight, legs: list[_Leg], e: np.ndarray, n: np.ndarray, t: np.ndarray, p: SegmentParams
+) -> None:
+    """Cut each line of the block (survey, tie, validation) to its longest run of epochs at
+    the block's heights: the survey lines' median altitude (m) +- 3 robust standard
+    deviations (1.4826 MAD) of their altitudes + ``block_height_tol_m``. A cut line's ends
+    are refined again on what is left (the line fitted to the whole leg leaned towards the
+    cut part); a run shorter than ``min_leg_s`` leaves a transit. A descent to the first
+    line flown along its track, or a transit crossing the block at cruise height, is so not
+    read as a line; nothing changes without an altitude channel."""
+    if not flight.has("alt_m"):
+        return
+    alt = flight.data["alt_m"].to_numpy(float)
+    h = [alt[lg.i0 : lg.i1 + 1] for lg in legs if lg.kind == "survey"]
+    h = np.concatenate(h) if h else np.empty(0)
+    h = h[np.isfinite(h)]
+    if h.size == 0:
+        return
+    mid = float(np.median(h))
+    half = 3.0 * 1.4826 * float(np.median(np.abs(h - mid))) + p.block_height_tol_m
+
+    def level_run(i0: int, i1: int) -> tuple[int, int] | None:
+        """The longest run of epochs in i0..i1 at the block's heights (a missing altitude
+        does not cut a line)."""
+        ok = ~(np.abs(alt[i0 : i1 + 1] - mid) > half)
+        edges = np.flatnonzero(np.diff(np.r_[0, ok.astype(np.int8), 0]))
+        if edges.size == 0:
+            return None
+        k = int(np.argmax(edges[1::2] - edges[::2]))
+        return i0 + int(edges[2 * k]), i0 + int(edges[2 * k + 1]) - 1
+
+    for k, lg in enumerate(legs):
+        if lg.kind not in SURVEY_BLOCK:
+            continue
+        run = level_run(lg.i0, lg.i1)
+        if run is not None and run != (lg.i0, lg.i1):
+            lo = legs[k - 1].i1 if k > 0 else 0
+            hi = legs[k + 1].i0 if k + 1 < len(legs) else t.size - 1
+            ref = _refine_ends(_Leg(run[0], run[1], lg.heading_deg), e, n, t, lo, hi, p)
+            lg.heading_deg = ref.heading_deg
+            run = level_run(ref.i0, ref.i1)
+        if run is None or t[run[1]] - t[run[0]] < p.min_leg_s:
+            lg.kind, lg.line_id = "transit", ""
+        else:
+            lg.i0, lg.i1 = run
 
 
 def _survey_block(
