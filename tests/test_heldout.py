@@ -69,10 +69,16 @@ def test_sign_flip_p_is_exact_on_small_cases_and_sampled_beyond():
     assert sign_flip_p(-x) > 0.99
 
 
-def test_holm_matches_statsmodels_multipletests():
+def test_holm_matches_statsmodels_multipletests(monkeypatch):
     """:func:`holm` is statsmodels' Holm step-down adjustment, ties and p near 1 included."""
+    import gc
+
     from statsmodels.stats.multitest import multipletests
 
+    # the reference runs a full garbage collection on every call: ~0.3 s each in a test
+    # process holding many simulated flights, a minute for these 200 calls; it changes no
+    # number
+    monkeypatch.setattr(gc, "collect", lambda *args: 0)
     rng = np.random.default_rng(3)
     for n in (1, 2, 5, 12):
         for _ in range(50):
