@@ -546,14 +546,16 @@ def _keep_block_heights(
         if lg.kind not in SURVEY_BLOCK:
             continue
         run = level_run(lg.i0, lg.i1)
-        if run is not None and run != (lg.i0, lg.i1):
+        if run == (lg.i0, lg.i1):
+            continue  # wholly at the block's heights: the line as it was found
+        if run is not None:
             lo = legs[k - 1].i1 if k > 0 else 0
             hi = legs[k + 1].i0 if k + 1 < len(legs) else t.size - 1
             ref = _refine_ends(_Leg(run[0], run[1], lg.heading_deg), e, n, t, lo, hi, p)
             lg.heading_deg = ref.heading_deg
             run = level_run(ref.i0, ref.i1)
         if run is None or t[run[1]] - t[run[0]] < p.min_leg_s:
-            lg.kind, lg.line_id = "transit", ""
+            lg.kind = "transit"  # named lines only come after this (``_name_lines``)
         else:
             lg.i0, lg.i1 = run
 
