@@ -209,3 +209,47 @@ def test_a_base_station_too_quiet_to_matter_to_the_survey_names_no_diurnal():
     storm = judged(30_000.0 + day(t, 0.3, amplitude=5.0))
     assert not storm.held_back
     assert storm.estimate["survey_effect_nT"] == pytest.approx(5.0 / np.sqrt(2), rel=0.3)
+
+
+class _LegsContext:
+    """What :func:`pipeline.audit.hypotheses.diurnal._diurnal_legs` reads of an audit: the
+    epochs, the legs, the base station's record (and the reduction's minute-smoothed one),
+    a compensated field."""
+
+    def __init__(self, t, legs, enu, air, base):
+        import pandas as pd
+
+        from pipeline.audit.settings import AuditSettings
+        from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
+
+        self.data = type("D", (), {"time_s": t, "enu_m": enu})()
+        self.flight = type("F", (), {"data": pd.DataFrame({"base_nT": base})})()
+        self.legs, self.s, self._air = legs, AuditSettings(), air
+        self.base_smoothed_nT = time_window_mean(t, base, BASE_SMOOTHING_S)
+
+    def compensated(self, spec):
+        return self._air
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_legs_regressor_is_averaged_as_the_airborne_field_is(seed):
+    """A day's variation with a random walk (0.02 nT/sqrt(s), as magnetic observatories
+    show) reaches the aircraft and the base station alike; the legs' block means see its
+    short part, so the base station's regressor must be averaged over the same blocks, not
+    smoothed over a minute first: then the coefficient is 1 within its interval."""
+    from pipeline.audit.hypotheses.diurnal import _diurnal_legs
+
+    rng = np.random.default_rng(seed)
+    t = np.arange(0.0, 3600.0, 0.1)
+    walk = np.cumsum(rng.normal(0, 0.02 * np.sqrt(0.1), t.size))
+    d = day(t, rng.uniform(0, 2 * np.pi), amplitude=5.0) + walk
+    legs = np.full(t.size, -1)
+    for k, start in enumerate(np.arange(200.0, 3400.0, 200.0)):  # 16 legs of 40 s
+        legs[(t >= start) & (t < start + 40.0)] = k
+    enu = np.column_stack([np.cos(t / 50), np.sin(t / 50), 1.0 + 0.01 * np.cos(t / 7)]) * 100.0
+    air = 50_000.0 + d + rng.normal(0, 0.02, t.size)
+    base = 50_500.0 + d + rng.normal(0, 0.01, t.size)
+    ctx = _LegsContext(t, legs, enu, air, base)
+    ev = diurnal_evidence([_diurnal_legs(ctx, None)])
+    assert ev.ci95[0] <= 1.0 <= ev.ci95[1]
+    assert abs(ev.coefficient - 1.0) < 0.03

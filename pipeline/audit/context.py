@@ -50,6 +50,12 @@ def _fold_masks(fold: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     return [(inside & (fold != k), fold == k) for k in np.unique(fold[inside])]
 
 
+# crossover readings are averaged over this along track (s) where a test compares their
+# levels: a second averages the sensor noise out of each reading, the diurnal and the
+# carrier's levels change over minutes
+CROSSOVER_SMOOTHING_S = 1.0
+
+
 def crossover_set(difference_nT: np.ndarray, xs: list, heading: dict) -> CrossoverSet:
     """The crossovers ``xs`` with their differences ``difference_nT`` (nT), reading times,
     heading classes (``heading``: line id -> 0..3) and where the lines cross (m)."""
@@ -380,7 +386,7 @@ class AuditContext:
             and self.seg.mask("survey").any()
         ):
             return None
-        dx, db, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=1.0)
+        dx, db, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=CROSSOVER_SMOOTHING_S)
         if dx.size < 8:
             return None
         return crossover_set(dx - db, xs, heading), red

@@ -14,6 +14,7 @@ from pipeline.audit.hypotheses import candidates, evaluate, without
 from pipeline.audit.nuisances import Nuisance
 from pipeline.audit.null_calibration import NullCalibration
 from pipeline.audit.result import Evaluation
+from pipeline.audit.survey_guard import NUISANCE_OFF, guard_nuisances, survey_needs
 
 
 def select(
@@ -27,7 +28,10 @@ def select(
     Starts from ``current`` (the null model, with a permanent-field step where the survey
     shows one). Each round tests every candidate, Holm-adjusts the F-test p-values of the
     tested ones and accepts the passing candidate with the largest held-out reduction; it
-    stops when none passes. The accepted effects are then re-estimated together (:func:`refine`).
+    stops when none passes. The null's nuisances the findings no longer need are then
+    dropped (:func:`prune_nuisances`), so are those the survey's crossovers reject
+    (:func:`pipeline.audit.survey_guard.guard_nuisances`), and the accepted effects are
+    re-estimated together (:func:`refine`).
 
     Parameters
     ----------
@@ -75,7 +79,8 @@ def select(
             if e is not best:
                 e.reason = "passed; re-tested in the next round with the better one in"
         current = admit_nuisances(ctx, best.spec, best.effect)
-    return refine(ctx, prune_nuisances(ctx, current), findings, against), findings, rounds
+    current = guard_nuisances(ctx, prune_nuisances(ctx, current))
+    return refine(ctx, current, findings, against), findings, rounds
 
 
 def calibrated_gate(ctx: AuditContext, evals: list[Evaluation], nc: NullCalibration | None) -> None:
@@ -147,12 +152,12 @@ def prune_nuisances(ctx: AuditContext, spec: ModelSpec) -> ModelSpec:
     findings in the model (p < ``alpha``, by ``min_gain`` and ``min_nuisance_nT`` of
     interference; each model with its own lag): taken before the catalogue
     effects, a nuisance can have followed part of one (a gradient's field moves with the
-    manoeuvres' small displacements). Kept nuisances stay in ``ctx.nuisances``; the
-    dropped ones are noted."""
-    off = {"eddy_decay": {"eddy_tau_s": 0.0}, "second_order": {"second_order": False}}
+    manoeuvres' small displacements). One the survey's crossovers need
+    (:func:`pipeline.audit.survey_guard.survey_needs`) stays. Kept nuisances stay in
+    ``ctx.nuisances``; the dropped ones are noted."""
     kept = []
     for n in ctx.nuisances.nuisances:
-        dropped = spec.with_(**off[n.name])
+        dropped = spec.with_(**NUISANCE_OFF[n.name])
         if dropped == spec:
             continue
         try:
@@ -160,7 +165,7 @@ def prune_nuisances(ctx: AuditContext, spec: ModelSpec) -> ModelSpec:
         except (ValueError, np.linalg.LinAlgError):
             kept.append(n)
             continue
-        if nuisance_matters(ctx, h):
+        if nuisance_matters(ctx, h) or survey_needs(ctx, n, spec, dropped):
             kept.append(n)
             continue
         removed_nT = float(np.sqrt(max(h.rms_before_nT**2 - h.rms_after_nT**2, 0.0)))

@@ -15,6 +15,7 @@ from pipeline.audit.calibration_events import (
     manoeuvre_blocks,
     switching_nuisance,
 )
+from pipeline.audit.context import CROSSOVER_SMOOTHING_S
 from pipeline.audit.evidence import HeldOut
 from pipeline.audit.extended import ModelSpec, design
 from pipeline.audit.survey import survey_events
@@ -87,7 +88,7 @@ class AuditEvents:
         if got is None:
             return []
         x = got[0]
-        _, _, _, _, _, xs, _ = self._crossover_data(spec, smooth_s=1.0)
+        _, _, _, _, _, xs, _ = self._crossover_data(spec, smooth_s=CROSSOVER_SMOOTHING_S)
         keep = self._straight_crossings(xs)
         x = x.subset(keep)
         events = survey_events(x, self.s.event_alpha, self.s.min_event_nT)

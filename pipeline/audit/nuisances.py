@@ -65,15 +65,24 @@ class Nuisance:
         Fraction of the held-out residual RMS it removed (beside the groups taken before it).
     estimate : dict
         Its parameters (``eddy_decay``: ``tau_s``, the decay time constant, s).
+    survey_guard : dict or None
+        The survey crossovers' check of its terms
+        (:meth:`pipeline.audit.survey_guard.CrossoverCheck.to_dict` and
+        ``applied_to_survey``); None when not checked.
     """
 
     name: str
     heldout_gain: float
     estimate: dict[str, Any]
+    survey_guard: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        """The contract's record: ``{"name", "heldout_gain", "estimate"}``."""
-        return {"name": self.name, "heldout_gain": self.heldout_gain, "estimate": self.estimate}
+        """The contract's record: ``{"name", "heldout_gain", "estimate"}``, and
+        ``survey_guard`` when the survey checked it."""
+        out = {"name": self.name, "heldout_gain": self.heldout_gain, "estimate": self.estimate}
+        if self.survey_guard is not None:
+            out["survey_guard"] = self.survey_guard
+        return out
 
 
 def decay_time_constant(setup: HeldOutSetup, others: np.ndarray) -> float:

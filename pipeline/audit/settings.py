@@ -125,6 +125,9 @@ class AuditSettings:
     null_seed: int = default_field("audit", "null_seed")
     # the interference a nuisance must remove to stay in the model beside the findings
     min_nuisance_nT: float = default_field("audit", "min_nuisance_nT")
+    # the test level of the survey crossovers' check of the null model's nuisance groups
+    # (pipeline.audit.survey_guard)
+    survey_guard_alpha: float = default_field("audit", "survey_guard_alpha")
     # what a coupling the survey alone decides must do to the lines to be worth naming
     min_survey_effect_nT: float = default_field("audit", "min_survey_effect_nT")
     # a switch in a turn is read only where the bank is held: the interference the model

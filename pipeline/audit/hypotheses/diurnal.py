@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import curve_fit
 
-from pipeline.audit.context import AuditContext, crossover_set
+from pipeline.audit.context import CROSSOVER_SMOOTHING_S, AuditContext, crossover_set
 from pipeline.audit.diurnal import DiurnalSet, diurnal_evidence
 from pipeline.audit.evidence import paired_point_gain
 from pipeline.audit.evidence.survey_side import survey_spread
@@ -15,6 +15,7 @@ from pipeline.audit.legs import leg_block_means
 from pipeline.audit.result import Evaluation
 from pipeline.audit.survey import heading_levels
 from pipeline.audit.vector_reference import bin_means
+from pipeline.maps.reduce import time_window_mean
 
 EFFECT = "diurnal"
 
@@ -49,7 +50,7 @@ def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
         )
     held, metric = ev_d.heldout, "heldout_crossover_and_leg_rms"
     if ctx.flight.has("lat_deg", "lon_deg", "alt_m") and ctx.seg.mask("validation").any():
-        _, _, ov, red, base, _, _ = ctx._crossover_data(current, smooth_s=1.0)
+        _, _, ov, red, base, _, _ = ctx._crossover_data(current, smooth_s=CROSSOVER_SMOOTHING_S)
         if ov.count >= 8:
             held = paired_point_gain(ov.differences(red), ov.differences(red - base))
             metric = "heldout_validation_overlap_rms"
@@ -96,14 +97,19 @@ def _matters(ctx: AuditContext, ev: Evaluation) -> None:
 
 def _diurnal_crossovers(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None:
     """The survey's crossovers as a diurnal data set: ``spec``'s crossover differences
-    (smoothed over 1 s along track: a second averages the sensor noise out of each
-    reading, the diurnal changes over minutes), a level per heading, the base station's
-    difference between the two readings; grouped by survey line and by tie line."""
+    (smoothed along track over :data:`CROSSOVER_SMOOTHING_S`), a level per heading, the base
+    station's difference between the two readings, averaged over the same seconds;
+    grouped by survey line and by tie line."""
     if not (ctx.flight.has("lat_deg", "lon_deg", "alt_m") and ctx.seg.mask("tie").any()):
         return None
-    dx, db, _, _, _, xs, heading = ctx._crossover_data(spec, smooth_s=1.0)
+    dx, _, _, _, _, xs, heading = ctx._crossover_data(spec, smooth_s=CROSSOVER_SMOOTHING_S)
     if dx.size == 0:
         return None
+    # the regressor averaged as the observation is, not the reduction's minute-smoothed
+    # base: the variation's short part (a random walk) is in the airborne reading, and a
+    # regressor without it biases the coefficient
+    t, base = ctx.data.time_s, _base_smoothed_over(ctx, CROSSOVER_SMOOTHING_S)
+    db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base) for c in xs])
     x = crossover_set(dx, xs, heading)
     # a crossover shares its survey line's error with the line's other crossovers, and
     # its tie line's with the tie's
@@ -114,12 +120,15 @@ def _diurnal_legs(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None:
     """The calibration legs as a diurnal data set: 10 s block means of ``spec``'s
     compensated field along each leg (the manoeuvres' cycles average out), a level per
     leg and the east/north/up position (the ground's gradient), the base station's block
-    mean (:func:`pipeline.audit.legs.leg_block_means`)."""
+    mean over the same blocks (:func:`pipeline.audit.legs.leg_block_means`; the base
+    record as read, not the reduction's minute-smoothed one: the regressor is averaged as
+    the observation is)."""
     if ctx.data.enu_m is None:
         return None
+    base = ctx.flight.data["base_nT"].to_numpy(float)
     a, leg_of = leg_block_means(
         ctx.data.time_s,
-        np.column_stack([ctx.compensated(spec), ctx.base_smoothed_nT, ctx.data.enu_m]),
+        np.column_stack([ctx.compensated(spec), base, ctx.data.enu_m]),
         ctx.legs,
         ctx.s.block_s,
     )
@@ -133,6 +142,13 @@ def _diurnal_legs(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None:
         a[:, 1],
         group=leg_of,
     )
+
+
+def _base_smoothed_over(ctx: AuditContext, window_s: float) -> np.ndarray:
+    """The base station's reading on the scalar epochs, averaged over ``window_s`` (s, a
+    centred running mean; nT)."""
+    base = ctx.flight.data["base_nT"].to_numpy(float)
+    return time_window_mean(ctx.data.time_s, base, window_s)
 
 
 # the base station's record is smoothed over a minute (``BASE_SMOOTHING_S``) and the
