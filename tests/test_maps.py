@@ -458,7 +458,7 @@ def test_order_screening_on_a_long_sequence_keeps_the_full_search_result(monkeyp
     y = x + rng.normal(0, 0.5, s.size)
     screened = fit_arima(y, measurement_var=0.25)
     assert screened.tests["screened"], "a sequence this long is screened"
-    monkeypatch.setattr(arima, "SCREEN_SAMPLES", 10**9)  # every candidate on every cell
+    monkeypatch.setattr(arima, "SCREEN_ABOVE", 10**9)  # every candidate fitted exactly
     full = fit_arima(y, measurement_var=0.25)
     assert not full.tests["screened"]
     a, b = rts_smooth(y, screened, 0.25), rts_smooth(y, full, 0.25)

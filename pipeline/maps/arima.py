@@ -162,12 +162,12 @@ def choose_d(x: np.ndarray, max_d: int = 2, segments: int = 20) -> tuple[int, li
 
 
 ROOT_MARGIN = 0.01  # AR or MA roots closer than this to the unit circle: a degenerate fit
-# order search on a long sequence: every candidate is ranked by BIC on its first
-# SCREEN_SAMPLES samples (a quarter of the map stage's identification stretch), and only the
-# SHORTLIST best are fitted on the whole sequence, where BIC chooses among them; each fit
-# costs in proportion to the samples, and a candidate BIC ranks far down on 5 000 samples
-# does not win on 20 000
-SCREEN_SAMPLES = 5_000
+# order search on a sequence longer than SCREEN_ABOVE samples (the map stage's identification
+# stretch of a survey of ~4 h and more): every candidate is ranked by its BIC under Whittle's
+# likelihood (pipeline.maps.whittle: one FFT, no Kalman filter) on the whole sequence, and
+# only the SHORTLIST best are fitted by the exact likelihood, where BIC chooses among them;
+# an exact fit costs ~100 filter passes over every sample
+SCREEN_ABOVE = 10_000
 SHORTLIST = 3
 
 
@@ -223,9 +223,10 @@ def fit_arima(
 
     ``d`` starts from the reverse-arrangements test (difference until stationary); (p, q) by
     BIC = k ln(n) - 2 ln L over p <= max_p, q <= max_q, by statsmodels' exact likelihood. On
-    a sequence longer than twice SCREEN_SAMPLES the candidates are first ranked by BIC on its
-    first SCREEN_SAMPLES samples and the SHORTLIST best are fitted on the whole sequence;
-    when none of those is usable d goes up (at the largest d the others are fitted too).
+    a sequence longer than SCREEN_ABOVE the candidates are first ranked by BIC under Whittle's
+    likelihood (:func:`pipeline.maps.whittle.whittle_fit`) and the SHORTLIST best are fitted
+    exactly; when none of those is usable d goes up (at the largest d the others are fitted
+    too).
     Candidates that are :func:`degenerate` (impossible likelihood, AR or MA root on the unit
     circle) are rejected; when every candidate at d is, d goes up by one (up to ``max_d``),
     and when none is left at any d the model is the local level ARIMA(0, 1, 0) (a random
@@ -256,14 +257,24 @@ def fit_arima(
     else:
         d0, steps = order[1], []
 
+    starts: dict[tuple[int, int, int], np.ndarray] = {}  # a screening's estimates
+
     def fit_one(p: int, d: int, q: int, z: np.ndarray = x):
-        # no parameter covariance: only the estimates and the likelihood are used
+        # no parameter covariance: only the estimates and the likelihood are used; the
+        # optimiser starts from the screening's estimates where there are some
+        start = starts.get((p, d, q))
         if measurement_var is None:
             y = np.diff(z, n=d) if d else z  # differences across a gap are NaN, not joined
-            return ARIMA(y, order=(p, 0, q), trend="n").fit(cov_type="none")
+            return ARIMA(y, order=(p, 0, q), trend="n").fit(start_params=start, cov_type="none")
         mod = SARIMAX(z, order=(p, d, q), measurement_error=True, trend="n")
+        if start is not None:  # the fixed measurement variance sits before sigma2
+            start = np.r_[start[:-1], float(measurement_var), start[-1]]
         return mod.fit_constrained(
-            {"var.measurement_error": float(measurement_var)}, disp=False, cov_type="none"
+            {"var.measurement_error": float(measurement_var)},
+            start_params=start,
+            includes_fixed=True,
+            disp=False,
+            cov_type="none",
         )
 
     failed: list[str] = []
@@ -279,13 +290,8 @@ def fit_arima(
                 if order
                 else [(p, q) for p in range(max_p + 1) for q in range(max_q + 1) if p + q > 0]
             )
-            if order is None and x.size > 2 * SCREEN_SAMPLES:
-                short = _shortlist(
-                    candidates,
-                    d,
-                    lambda p, d, q: fit_one(p, d, q, x[:SCREEN_SAMPLES]),
-                    measurement_var,
-                )
+            if order is None and x.size > SCREEN_ABOVE:
+                short = _shortlist(candidates, d, x, measurement_var, starts)
                 # none of the shortlist usable: d goes up (at the last d the rest compete)
                 rest = [c for c in candidates if c not in short] if d == d_range[-1] else []
                 candidates = short + rest
@@ -369,18 +375,32 @@ def _best_at(
 
 
 def _shortlist(
-    candidates: list[tuple[int, int]], d: int, fit, measurement_var: float | None
+    candidates: list[tuple[int, int]],
+    d: int,
+    x: np.ndarray,
+    measurement_var: float | None,
+    starts: dict[tuple[int, int, int], np.ndarray],
 ) -> list[tuple[int, int]]:
-    """The SHORTLIST orders (p, q) with the lowest BIC of ``fit(p, d, q)`` (on a screening
-    stretch), degenerate or failed fits left out."""
+    """The SHORTLIST orders (p, q) with the lowest Whittle BIC at ``d`` on ``x``
+    (:func:`pipeline.maps.whittle.whittle_fit`); the estimates (AR, MA, innovation variance)
+    of each with no AR or MA root on the unit circle go into ``starts`` under (p, d, q). A
+    root there is no verdict: the frequency-domain fit reads a signal with no power left at
+    the Nyquist frequency (a smooth map under white noise) as an MA root at -1, where the
+    exact fit can settle inside; :func:`degenerate` judges the exact fits."""
+    from pipeline.maps.whittle import Periodograms, whittle_fit
+
+    try:
+        pg = Periodograms.of(x, d)
+    except ValueError:
+        return []
     scored = []
     for p, q in candidates:
-        try:
-            res = fit(p, d, q)
-        except (np.linalg.LinAlgError, ValueError):
+        fit = whittle_fit(pg, p, d, q, measurement_var)
+        if not np.isfinite(fit.bic):
             continue
-        if degenerate(res, measurement_var) is None:
-            scored.append((float(res.bic), p, q))
+        scored.append((fit.bic, p, q))
+        if min(_min_root_modulus(fit.ar, -1.0), _min_root_modulus(fit.ma, 1.0)) > 1 + ROOT_MARGIN:
+            starts[(p, d, q)] = np.r_[fit.ar, fit.ma, fit.sigma2]
     return [(p, q) for _, p, q in sorted(scored)[:SHORTLIST]]
 
 

@@ -1,0 +1,70 @@
+"""Whittle's likelihood (:mod:`pipeline.maps.whittle`), the map's ARIMA order screening, on
+simulated ARMA signals under white noise whose parameters are known, and against the exact
+likelihood's own choice of order."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.signal import lfilter
+
+from pipeline.maps.arima import SHORTLIST, fit_arima
+from pipeline.maps.whittle import MIN_RUN, Periodograms, whittle_fit
+
+
+def arma(rng, n, ar, ma, sigma=1.0):
+    """An ARMA signal (1 - sum ar B^i) x = (1 + sum ma B^j) e, with a burn-in dropped."""
+    e = rng.normal(0, sigma, n + 500)
+    return lfilter(np.r_[1.0, ma], np.r_[1.0, -np.asarray(ar)], e)[500:]
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_estimates_of_a_signal_under_known_noise(seed):
+    """AR(2) signal, innovation sd 1, under white noise of variance 4: the Whittle estimates
+    land on the truth within a few standard errors (n = 20 000)."""
+    rng = np.random.default_rng(seed)
+    x = arma(rng, 20_000, [1.2, -0.5], []) + rng.normal(0, 2.0, 20_000)
+    fit = whittle_fit(Periodograms.of(x, 0), 2, 0, 0, measurement_var=4.0)
+    assert np.allclose(fit.ar, [1.2, -0.5], atol=0.06)
+    assert fit.sigma2 == pytest.approx(1.0, rel=0.2)
+
+
+def test_differenced_noise_is_modelled_as_such():
+    """A random walk (innovation sd 0.3) under white noise of sd 1, once differenced: white
+    signal plus an MA(1) of the noise; ARIMA(0, 1, 0) under the known noise scores better
+    than ARIMA(0, 1, 1) without a noise term would need, and reads the walk's variance."""
+    rng = np.random.default_rng(9)
+    x = np.cumsum(rng.normal(0, 0.3, 30_000)) + rng.normal(0, 1.0, 30_000)
+    fit = whittle_fit(Periodograms.of(x, 1), 0, 1, 0, measurement_var=1.0)
+    assert fit.sigma2 == pytest.approx(0.09, rel=0.25)
+
+
+def test_runs_between_missing_cells_are_scored_apart():
+    x = np.random.default_rng(1).normal(size=1_000)
+    x[100:110] = np.nan
+    x[150] = np.nan  # a run of 39 samples between: too short to score
+    pg = Periodograms.of(x, 0)
+    assert pg.samples == 100 + (1_000 - 151)
+    with pytest.raises(ValueError):
+        Periodograms.of(np.r_[x[: MIN_RUN - 1], np.nan, x[: MIN_RUN - 1]], 0)
+
+
+@pytest.mark.parametrize(
+    "seed", [0, *(pytest.param(s, marks=pytest.mark.slow) for s in (1, 2))]
+)  # each: eleven exact fits on 12 000 samples
+def test_the_shortlist_holds_the_exact_searchs_choice(seed, monkeypatch):
+    """On lanes with a signal of known order under noise, the exact likelihood's search over
+    every candidate picks an order the Whittle screening puts on its shortlist, and the
+    screened search then chooses the same model or one with a lower exact BIC."""
+    import pipeline.maps.arima as arima
+
+    rng = np.random.default_rng(seed)
+    ar, ma = [[0.9], [1.5, -0.6], [0.6]][seed], [[], [], [0.4]][seed]
+    x = arma(rng, 12_000, ar, ma) + rng.normal(0, 0.5, 12_000)
+    screened = fit_arima(x, measurement_var=0.25)
+    shortlist = screened.tests["screened"][str(screened.d)]
+    assert len(shortlist) == SHORTLIST
+    monkeypatch.setattr(arima, "SCREEN_ABOVE", 10**9)
+    full = fit_arima(x, measurement_var=0.25)
+    assert [full.p, full.q] in shortlist
+    assert screened.bic <= full.bic + 1e-6 * abs(full.bic)
