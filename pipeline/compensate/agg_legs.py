@@ -29,9 +29,6 @@ from pipeline.compensate.model import (
 from pipeline.compensate.terms import BT_SCALE_NT
 from pipeline.geo.local import LocalFrame
 
-# the base station's reading is smoothed over this window before it is taken out (its own
-# noise would otherwise enter every block mean); the diurnal varies over minutes to hours
-BASE_SMOOTHING_S = 60.0
 HORIZONTAL = ("pos_e", "pos_n")
 
 
@@ -43,7 +40,9 @@ def _enu(meas: Measurements, reference: dict[str, float]) -> np.ndarray:
 
 
 def _smoothed(time_s: np.ndarray, x: np.ndarray) -> np.ndarray:
-    from pipeline.maps.reduce import time_window_mean
+    """The base station's reading smoothed as the reduction smooths it
+    (:data:`pipeline.maps.reduce.BASE_SMOOTHING_S`)."""
+    from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
 
     return time_window_mean(time_s, x, BASE_SMOOTHING_S)
 
