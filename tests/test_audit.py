@@ -353,3 +353,14 @@ def test_evidence_outside_the_calibration_decides_unless_the_calibration_contrad
     assert "contradicts" in ev.why_not(s)
     ev.heldout, ev.held_back = HeldOut(1.0, 0.9, 0.01, 50), True
     assert not ev.passes(s)
+
+
+def test_a_flight_without_a_base_station_is_audited(tmp_path):
+    """No base station recorded: the audit runs on the rest (positions, lines, ties) and
+    offers no diurnal candidate; the survey-side evidence reads the crossovers without the
+    day's variation taken out."""
+    _, flight, _, res = audited(tmp_path, extra=["sensors.base_station=false"])
+    assert not flight.has("base_nT")
+    j = res.to_json()
+    assert "diurnal" not in {e["key"] for e in j["rounds"][0]}
+    assert j["findings"] == []

@@ -213,19 +213,21 @@ def test_a_base_station_too_quiet_to_matter_to_the_survey_names_no_diurnal():
 
 class _LegsContext:
     """What :func:`pipeline.audit.hypotheses.diurnal._diurnal_legs` reads of an audit: the
-    epochs, the legs, the base station's record (and the reduction's minute-smoothed one),
-    a compensated field."""
+    epochs, the legs, the base station's record averaged over a window (the reduction's
+    minute-smoothed one too), a compensated field."""
 
     def __init__(self, t, legs, enu, air, base):
-        import pandas as pd
-
         from pipeline.audit.settings import AuditSettings
-        from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
+        from pipeline.maps.reduce import BASE_SMOOTHING_S
 
         self.data = type("D", (), {"time_s": t, "enu_m": enu})()
-        self.flight = type("F", (), {"data": pd.DataFrame({"base_nT": base})})()
-        self.legs, self.s, self._air = legs, AuditSettings(), air
-        self.base_smoothed_nT = time_window_mean(t, base, BASE_SMOOTHING_S)
+        self.legs, self.s, self._air, self._base = legs, AuditSettings(), air, base
+        self.base_smoothed_nT = self.base_over(BASE_SMOOTHING_S)
+
+    def base_over(self, window_s):
+        from pipeline.maps.reduce import time_window_mean
+
+        return time_window_mean(self.data.time_s, self._base, window_s)
 
     def compensated(self, spec):
         return self._air

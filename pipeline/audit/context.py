@@ -72,6 +72,14 @@ def crossover_set(difference_nT: np.ndarray, xs: list, heading: dict) -> Crossov
     )
 
 
+def base_difference(xs: list, time_s: np.ndarray, base_nT: np.ndarray) -> np.ndarray:
+    """The base station's difference between each crossover's two readings (nT; ``base_nT``
+    on the epochs ``time_s``, s)."""
+    ta = np.array([c.time_a_s for c in xs], float)
+    tb = np.array([c.time_b_s for c in xs], float)
+    return np.interp(ta, time_s, base_nT) - np.interp(tb, time_s, base_nT)
+
+
 class AuditContext:
     """One flight under audit: its data, calibration mask, folds and the fits, rows,
     compensated fields and crossovers kept per model."""
@@ -105,6 +113,7 @@ class AuditContext:
         self._crossover_cache: dict[tuple, tuple] = {}
         self._compensated: dict[ModelSpec, np.ndarray] = {}
         self._geometry: tuple | None = None
+        self._base: dict[float, np.ndarray] = {}  # the base station per averaging window (s)
         # each model's permanent-field changes between passes (events.AuditEvents.pass_steps)
         self._pass_steps: dict[ModelSpec, list] = {}
         self.ambiguities: list[dict[str, Any]] = []
@@ -155,12 +164,22 @@ class AuditContext:
     @cached_property
     def base_smoothed_nT(self) -> np.ndarray:
         """The base station's reading on the scalar epochs, smoothed over
-        ``BASE_SMOOTHING_S`` (nT; read-only: shared)."""
-        base = time_window_mean(
-            self.data.time_s, self.flight.data["base_nT"].to_numpy(float), BASE_SMOOTHING_S
-        )
-        base.flags.writeable = False
-        return base
+        ``BASE_SMOOTHING_S`` as the reduction smooths it (:meth:`base_over`)."""
+        return self.base_over(BASE_SMOOTHING_S)
+
+    def base_over(self, window_s: float) -> np.ndarray:
+        """The base station's reading on the scalar epochs, a centred running mean over
+        ``window_s`` (s; 0: as read), nT; all NaN without a base station (crossover
+        differences then keep the day's variation). Kept per window, read-only: shared."""
+        if window_s not in self._base:
+            if self.flight.has("base_nT"):
+                raw = self.flight.data["base_nT"].to_numpy(float)
+                base = time_window_mean(self.data.time_s, raw, window_s)
+            else:
+                base = np.full(self.data.time_s.size, np.nan)
+            base.flags.writeable = False
+            self._base[window_s] = base
+        return self._base[window_s]
 
     def compensated(self, spec: ModelSpec) -> np.ndarray:
         """``spec``'s compensated field (fitted on all of the calibration) at every epoch,
@@ -348,7 +367,7 @@ class AuditContext:
         )
         heading = {tr.line_id: int(heading_class(tr.heading_deg, ref)) for tr in tracks}
         dx = np.array([c.difference_nT for c in xs])
-        db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base) for c in xs])
+        db = base_difference(xs, t, base)
         return dx, db, self._validation_crossings, red, base, xs, heading
 
     @cached_property

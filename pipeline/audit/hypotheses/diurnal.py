@@ -6,7 +6,12 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import curve_fit
 
-from pipeline.audit.context import CROSSOVER_SMOOTHING_S, AuditContext, crossover_set
+from pipeline.audit.context import (
+    CROSSOVER_SMOOTHING_S,
+    AuditContext,
+    base_difference,
+    crossover_set,
+)
 from pipeline.audit.diurnal import DiurnalSet, diurnal_evidence
 from pipeline.audit.evidence import paired_point_gain
 from pipeline.audit.evidence.survey_side import survey_spread
@@ -15,7 +20,6 @@ from pipeline.audit.legs import leg_block_means
 from pipeline.audit.result import Evaluation
 from pipeline.audit.survey import heading_levels
 from pipeline.audit.vector_reference import bin_means
-from pipeline.maps.reduce import time_window_mean
 
 EFFECT = "diurnal"
 
@@ -108,8 +112,7 @@ def _diurnal_crossovers(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None
     # the regressor averaged as the observation is, not the reduction's minute-smoothed
     # base: the variation's short part (a random walk) is in the airborne reading, and a
     # regressor without it biases the coefficient
-    t, base = ctx.data.time_s, _base_smoothed_over(ctx, CROSSOVER_SMOOTHING_S)
-    db = np.array([np.interp(c.time_a_s, t, base) - np.interp(c.time_b_s, t, base) for c in xs])
+    db = base_difference(xs, ctx.data.time_s, ctx.base_over(CROSSOVER_SMOOTHING_S))
     x = crossover_set(dx, xs, heading)
     # a crossover shares its survey line's error with the line's other crossovers, and
     # its tie line's with the tie's
@@ -125,7 +128,7 @@ def _diurnal_legs(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None:
     the observation is)."""
     if ctx.data.enu_m is None:
         return None
-    base = ctx.flight.data["base_nT"].to_numpy(float)
+    base = ctx.base_over(0.0)
     a, leg_of = leg_block_means(
         ctx.data.time_s,
         np.column_stack([ctx.compensated(spec), base, ctx.data.enu_m]),
@@ -142,13 +145,6 @@ def _diurnal_legs(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None:
         a[:, 1],
         group=leg_of,
     )
-
-
-def _base_smoothed_over(ctx: AuditContext, window_s: float) -> np.ndarray:
-    """The base station's reading on the scalar epochs, averaged over ``window_s`` (s, a
-    centred running mean; nT)."""
-    base = ctx.flight.data["base_nT"].to_numpy(float)
-    return time_window_mean(ctx.data.time_s, base, window_s)
 
 
 # the base station's record is smoothed over a minute (``BASE_SMOOTHING_S``) and the
