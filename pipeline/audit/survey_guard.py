@@ -120,14 +120,19 @@ def survey_check(ctx: AuditContext, spec: ModelSpec, dropped: ModelSpec) -> Cros
     return compare_crossovers(x.line_a[ok], heading_levels(x)[ok], dx1[ok], dx0[ok])
 
 
+def _checked(ctx: AuditContext, spec: ModelSpec, dropped: ModelSpec) -> CrossoverCheck | None:
+    """:func:`survey_check`, None where the crossovers cannot be fitted."""
+    try:
+        return survey_check(ctx, spec, dropped)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+
+
 def survey_needs(ctx: AuditContext, n: Nuisance, spec: ModelSpec, dropped: ModelSpec) -> bool:
     """Whether the survey's crossovers are smaller with nuisance ``n`` (in ``spec``) than
     without it (``dropped``; :meth:`CrossoverCheck.better` at ``alpha`` and ``min_gain``):
     recorded with the nuisance, and noted when it needs it."""
-    try:
-        check = survey_check(ctx, spec, dropped)
-    except (ValueError, np.linalg.LinAlgError):
-        return False
+    check = _checked(ctx, spec, dropped)
     if check is None or not check.better(ctx.s.survey_guard_alpha, ctx.s.min_gain):
         return False
     n.survey_guard = {**check.to_dict(), "applied_to_survey": True}
@@ -150,10 +155,7 @@ def guard_nuisances(ctx: AuditContext, spec: ModelSpec) -> ModelSpec:
         dropped = spec.with_(**NUISANCE_OFF[n.name])
         if dropped == spec:
             continue
-        try:
-            check = survey_check(ctx, spec, dropped)
-        except (ValueError, np.linalg.LinAlgError):
-            continue
+        check = _checked(ctx, spec, dropped)
         if check is None:
             continue
         n.survey_guard = check.to_dict()
