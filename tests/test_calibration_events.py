@@ -139,3 +139,28 @@ def test_a_level_change_where_a_manoeuvre_stops_is_no_step():
     ev = calibration_steps(t, stepped, leg, alpha=0.01, min_size_nT=0.3, block=block)
     assert len(ev) == 1
     assert ev[0].start_s - 2.0 <= 130.3 <= ev[0].end_s + 2.0
+
+
+def test_a_level_that_builds_up_as_a_manoeuvre_starts_is_no_step():
+    """The attitude's amplitude builds up over a manoeuvre's first seconds (a fixed-wing's
+    roll-in), and the mean of interference in the attitude with it: a 1 nT level reached
+    2 s after each roll block starts, within guard_s of the edge. Read with only the edge
+    bins left out, the ramp's steep part is a "step" one bin inside the block; with the
+    manoeuvre's edges guarded as a leg's ends are, none is found. A step in the middle of
+    a block is still found."""
+    t, y, leg = legs_with_residual(8)
+    label = np.full(t.size, "steady", dtype=object)
+    ramp = np.zeros(t.size)
+    for k in range(4):  # a 40 s roll block in the middle of each leg, 2 s roll-in
+        start = 90 * k + 20
+        inside = (t >= start) & (t < start + 40)
+        label[inside] = "roll"
+        ramp[inside] = np.clip((t[inside] - start - 1.0) / 1.0, 0.0, 1.0)
+    label[leg < 0] = ""
+    block = manoeuvre_blocks(label)
+    ramped = y + 1.0 * ramp
+    assert calibration_steps(t, ramped, leg, alpha=0.01, min_size_nT=0.3, block=block) == []
+    stepped = y + 1.0 * (t > 130.3)  # inside the second leg's roll block (110-150 s)
+    ev = calibration_steps(t, stepped, leg, alpha=0.01, min_size_nT=0.3, block=block)
+    assert len(ev) == 1
+    assert ev[0].start_s - 2.0 <= 130.3 <= ev[0].end_s + 2.0

@@ -165,10 +165,11 @@ def _leg_means(
         # scaled, for conditioning)
         x = (t_all - t.mean()) / max(float(np.ptp(t)), 1.0)
         base += [m * x**d for d in range(TREND_DEGREE + 1)]
-        idx = np.flatnonzero((t > t[0] + guard_s) & (t < t[-1] - guard_s))
         # interference even in the attitude (second-order terms, rectified eddy decay)
         # has a mean while the carrier manoeuvres, which changes where a manoeuvre starts
-        # or stops: no step of the permanent field is looked for there
+        # or stops and settles as its amplitude builds up or dies away: no step of the
+        # permanent field is looked for within guard_s of a manoeuvre's edge, as of a leg's
+        idx = np.flatnonzero(_clear_of(t, _manoeuvre_edges_s(t, b), guard_s))
         candidates += [
             (i, float(t[a]), float(t[c]))
             for a, c in zip(idx[:-1], idx[1:], strict=True)
@@ -176,6 +177,18 @@ def _leg_means(
         ]
     y_all = np.concatenate([y for _, y, _ in legs])
     return _LegMeans(t_all, y_all, which, np.column_stack(base), candidates)
+
+
+def _manoeuvre_edges_s(t: np.ndarray, block: np.ndarray) -> np.ndarray:
+    """Where a leg's manoeuvres start or stop (s): its first and last bin, every bin that
+    holds two blocks, and the midpoint between two bins of different blocks."""
+    change = np.flatnonzero(block[1:] != block[:-1])
+    return np.concatenate([t[[0, -1]], t[block == -2], 0.5 * (t[change] + t[change + 1])])
+
+
+def _clear_of(t: np.ndarray, edges_s: np.ndarray, guard_s: float) -> np.ndarray:
+    """Whether each time of ``t`` (s) lies more than ``guard_s`` from every edge."""
+    return np.min(np.abs(t[:, None] - edges_s[None, :]), axis=1) > guard_s
 
 
 def _step_column(m: _LegMeans, i: int, lo: float, hi: float) -> np.ndarray:

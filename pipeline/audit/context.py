@@ -38,6 +38,7 @@ from pipeline.flight import Flight
 from pipeline.geo.heading import heading_class, pattern_direction_deg
 from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
 from pipeline.segment import Segmentation
+from pipeline.vector.ellipsoid import calibrate_against_scalar
 
 # models whose band-passed calibration rows the auditor keeps (a fold loop uses two or three
 # at a time; each is the calibration's rows x the model's columns, a few MB)
@@ -127,13 +128,16 @@ class AuditContext:
     @cached_property
     def fluxgate_step(self) -> VectorStep | None:
         """A step in the carrier's permanent field located by the scalar-minus-fluxgate test
-        (:func:`pipeline.audit.vector_reference.vector_reference_step`; the raw readings
-        only, the recorded channels in its model), or None."""
+        (:func:`pipeline.audit.vector_reference.vector_reference_step`; the readings only,
+        the fluxgate calibrated against the scalar, the recorded channels in its model), or
+        None."""
         d = self.data
+        # the fluxgate calibrated against the scalar first: the scan's model holds its
+        # errors to first order only
         return vector_reference_step(
             d.time_s,
             d.scalar_nT,
-            d.vector_nT,
+            calibrate_against_scalar(d.vector_nT, d.scalar_nT),
             d.aux,
             self.s.event_alpha,
             self.s.min_vector_step_nT,
