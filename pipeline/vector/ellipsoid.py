@@ -114,13 +114,16 @@ def calibrate_against_scalar(m: np.ndarray, scalar_nT: np.ndarray) -> np.ndarray
     ok = np.isfinite(s) & np.all(np.isfinite(m), axis=1)
     if ok.sum() < 20:
         return m
-    rows = np.column_stack([quadric_rows(m[ok]), np.ones(int(ok.sum()))])
-    theta = np.linalg.lstsq(rows, s[ok] ** 2, rcond=None)[0]
+    # in units of the field's typical size: in nT the quadric's columns span 1e9 to 1 and
+    # its design's condition number exceeds double precision's range
+    unit = float(np.median(np.linalg.norm(m[ok], axis=1)))
+    rows = np.column_stack([quadric_rows(m[ok] / unit), np.ones(int(ok.sum()))])
+    theta = np.linalg.lstsq(rows, (s[ok] / unit) ** 2, rcond=None)[0]
     e = Ellipsoid(theta[:9], 1.0)
     if not e.valid():
         return m
     w = np.real(sqrtm(e.matrix))
-    return (m - e.centre) @ (0.5 * (w + w.T)).T
+    return (m / unit - e.centre) @ (0.5 * (w + w.T)).T * unit
 
 
 def sphere(field: float) -> Ellipsoid:
