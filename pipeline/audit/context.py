@@ -31,6 +31,7 @@ from pipeline.audit.legs import leg_ids
 from pipeline.audit.nuisances import NuisanceSelection, select_nuisances
 from pipeline.audit.settings import AuditSettings
 from pipeline.audit.survey import CrossoverSet
+from pipeline.audit.vector_cal import fit_vector_calibration
 from pipeline.audit.vector_reference import VectorStep, vector_reference_step
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.stage import calibration_mask
@@ -38,7 +39,6 @@ from pipeline.flight import Flight
 from pipeline.geo.heading import heading_class, pattern_direction_deg
 from pipeline.maps.reduce import BASE_SMOOTHING_S, time_window_mean
 from pipeline.segment import Segmentation
-from pipeline.vector.ellipsoid import calibrate_against_scalar
 
 # models whose band-passed calibration rows the auditor keeps (a fold loop uses two or three
 # at a time; each is the calibration's rows x the model's columns, a few MB)
@@ -132,12 +132,16 @@ class AuditContext:
         the fluxgate calibrated against the scalar, the recorded channels in its model), or
         None."""
         d = self.data
-        # the fluxgate calibrated against the scalar first: the scan's model holds its
-        # errors to first order only
+        # the fluxgate calibrated against the scalar first (exactly, not to first order as
+        # the scan's model holds its errors: their squares reach nT)
+        try:
+            vector = fit_vector_calibration(d.vector_nT, d.scalar_nT).apply(d.vector_nT)
+        except ValueError:  # too few readings to calibrate: the scan's model alone
+            vector = d.vector_nT
         return vector_reference_step(
             d.time_s,
             d.scalar_nT,
-            calibrate_against_scalar(d.vector_nT, d.scalar_nT),
+            vector,
             d.aux,
             self.s.event_alpha,
             self.s.min_vector_step_nT,

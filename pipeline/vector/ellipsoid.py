@@ -98,34 +98,6 @@ def fit_ellipsoid(m: np.ndarray, field: float, noise: float | None = None) -> El
     return Ellipsoid(theta, float(field), 0.5 * (cov + cov.T))
 
 
-def calibrate_against_scalar(m: np.ndarray, scalar_nT: np.ndarray) -> np.ndarray:
-    """Vectors ``m`` (n, 3, body frame, nT) calibrated against a scalar magnetometer's reading
-    of the same field at the same epochs: b = W (m - o) with |b| = the scalar reading in
-    the least-squares sense. The quadric h(m) theta + c = scalar^2 (h as
-    :func:`quadric_rows`) is linear in its ten coefficients whatever the field's size does
-    along the flight (a constant-field :func:`fit_ellipsoid` needs one magnitude); o and
-    the symmetric W follow as in :class:`Ellipsoid`. Exact for a fluxgate's offsets, scale
-    factors and non-orthogonality, where a first-order expansion of ``|m|`` leaves terms of
-    the squared errors (a 2 % scale error: ~10 nT at 50 000 nT). Epochs with a missing
-    value stay NaN; ``m`` itself is returned when the fit is not an ellipsoid or has fewer
-    than 20 complete epochs."""
-    m = np.asarray(m, float)
-    s = np.asarray(scalar_nT, float)
-    ok = np.isfinite(s) & np.all(np.isfinite(m), axis=1)
-    if ok.sum() < 20:
-        return m
-    # in units of the field's typical size: in nT the quadric's columns span 1e9 to 1 and
-    # its design's condition number exceeds double precision's range
-    unit = float(np.median(np.linalg.norm(m[ok], axis=1)))
-    rows = np.column_stack([quadric_rows(m[ok] / unit), np.ones(int(ok.sum()))])
-    theta = np.linalg.lstsq(rows, (s[ok] / unit) ** 2, rcond=None)[0]
-    e = Ellipsoid(theta[:9], 1.0)
-    if not e.valid():
-        return m
-    w = np.real(sqrtm(e.matrix))
-    return (m / unit - e.centre) @ (0.5 * (w + w.T)).T * unit
-
-
 def sphere(field: float) -> Ellipsoid:
     """The naive start: |m| = field, no hard or soft iron."""
     return Ellipsoid(np.r_[np.full(3, 1.0 / field**2), np.zeros(6)], float(field))
