@@ -475,8 +475,11 @@ def test_calibration_guards_pass_a_full_box_and_flag_a_poor_one(box_path):
 def test_audit_baseline_and_postflight_tl18_are_one_estimator(clean_survey):
     """The audit's baseline model is a term set of the post-flight estimator: on the same
     calibration epochs, the same band and the same lambda, ``fit_model`` (audit) and
-    ``fit_compensation`` (process) give the same coefficients."""
-    from pipeline.audit.extended import AuditData, ModelSpec, fit_model
+    ``fit_compensation`` (process) give the same coefficients when the eddy columns take the
+    same derivative. The audit's own (a five-point stencil, ``AUDIT_DIFFERENCE``) moves the
+    eddy coefficients by about the central difference's shortfall, and the others hardly."""
+    import pipeline.audit.extended as ext
+    from pipeline.compensate.terms import per_sample_difference
 
     _sim, flight, seg, run, _idx = clean_survey
     cal = calibration_mask(flight, seg, "auto")
@@ -484,12 +487,21 @@ def test_audit_baseline_and_postflight_tl18_are_one_estimator(clean_survey):
     post = fit_compensation(
         Measurements.from_flight(flight), cal, FitSettings(model="tl18", ridge=lam)
     )
-    audit = fit_model(AuditData.from_flight(flight, cal), ModelSpec("tl18"), cal, ridge=lam)
+    data = ext.AuditData.from_flight(flight, cal)
+    own = ext.fit_model(data, ext.ModelSpec("tl18"), cal, ridge=lam)
+    audit_difference = ext.AUDIT_DIFFERENCE
+    try:
+        ext.AUDIT_DIFFERENCE = per_sample_difference
+        audit = ext.fit_model(data, ext.ModelSpec("tl18"), cal, ridge=lam)
+    finally:
+        ext.AUDIT_DIFFERENCE = audit_difference
     assert audit.names[: len(post.terms)] == post.terms
     scale = np.max(np.abs(post.coefficients))
     np.testing.assert_allclose(
         audit.theta[: post.coefficients.size], post.coefficients, rtol=0, atol=1e-8 * scale
     )
+    moved = np.abs(own.theta[: post.coefficients.size] - post.coefficients)
+    assert 0 < np.max(moved) < 0.05 * scale
 
 
 @pytest.mark.parametrize(

@@ -23,6 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy.interpolate import CubicSpline
 
 from pipeline.audit.vector_cal import VectorCalibration
 from pipeline.compensate.estimator import bandpassed_design, fit_ridge
@@ -44,7 +45,7 @@ from pipeline.compensate.ridge import RidgeSVD
 from pipeline.compensate.terms import (
     BT_SCALE_NT,
     direction_cosines,
-    per_sample_difference,
+    five_point_difference,
     position_terms,
     tl16_terms,
     tl18_terms,
@@ -254,31 +255,42 @@ class Design:
 
 
 LAG_RESPONSES = ("delay", "first_order")
+# the audit's per-sample derivative of the eddy columns: MagNav's central difference (the
+# compensation's, for parity) reads the manoeuvres' dB/dt short by (w dt)^2 / 6, a residual
+# that follows the manoeuvres, which a short eddy decay and a lag then take up
+AUDIT_DIFFERENCE = five_point_difference
 
 
 def scalar_series(data: AuditData, lag_s: float, response: str = "delay") -> np.ndarray:
     """The scalar field (nT) as the sensor would have read it without its lag.
 
-    ``delay``: re-timed, read ``lag_s`` seconds later. ``first_order``: a sensor whose
-    reading follows the field through 1 / (1 + s lag_s) is inverted exactly by
-    y + lag_s dy/dt (per contiguous block; the derivative amplifies noise only above the
-    calibration band).
+    ``delay``: re-timed, read ``lag_s`` seconds later (a cubic spline through each
+    contiguous block; NaN where the re-timed epoch leaves it). ``first_order``: a sensor
+    whose reading follows the field through 1 / (1 + s lag_s) is inverted exactly by
+    y + lag_s dy/dt (per contiguous block, dy by :data:`AUDIT_DIFFERENCE`; the derivative
+    amplifies noise only above the calibration band).
     """
     if not lag_s:
         return data.scalar_nT
-    ok = np.isfinite(data.scalar_nT)
-    if response == "first_order":
-        out = np.full(data.scalar_nT.shape, np.nan)
-        for b in contiguous_blocks(ok, data.time_s):
-            if b.size > 2:
-                y = data.scalar_nT[b]
-                out[b] = y + lag_s * np.gradient(y, data.time_s[b])
-        return out
-    if response != "delay":
+    if response not in LAG_RESPONSES:
         raise ValueError(f"unknown lag response {response!r} ({', '.join(LAG_RESPONSES)})")
-    return np.interp(
-        data.time_s + lag_s, data.time_s[ok], data.scalar_nT[ok], left=np.nan, right=np.nan
-    )
+    ok = np.isfinite(data.scalar_nT)
+    out = np.full(data.scalar_nT.shape, np.nan)
+    for b in contiguous_blocks(ok, data.time_s):
+        if b.size < 5:
+            continue
+        t, y = data.time_s[b], data.scalar_nT[b]
+        if response == "first_order":
+            dt = float(np.median(np.diff(t)))
+            out[b] = y + lag_s * AUDIT_DIFFERENCE(y) / dt
+            continue
+        # a cubic spline, not a straight line, between the samples: a fixed-wing's
+        # interference swings by tens of nT in a manoeuvre, and a line misses its curvature
+        # by up to (w dt)^2 / 8 of the swing, which reads as a decay beside a biased lag
+        tq = t + lag_s
+        inside = (tq >= t[0]) & (tq <= t[-1])
+        out[b[inside]] = CubicSpline(t, y)(tq[inside])
+    return out
 
 
 def design(data: AuditData, spec: ModelSpec) -> Design:
@@ -305,9 +317,12 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
         positions.
     """
     v = data.vector_nT if spec.vector_cal is None else spec.vector_cal.apply(data.vector_nT)
-    k, names = (tl18_terms if spec.base == "tl18" else tl16_terms)(v, data.time_s)
+    if spec.base == "tl18":
+        k, names = tl18_terms(v, data.time_s, difference=AUDIT_DIFFERENCE)
+    else:
+        k, names = tl16_terms(v, data.time_s)
     if spec.eddy_tau_s > 0:
-        kd, dn = eddy_decay_columns(v, data.time_s, spec.eddy_tau_s)
+        kd, dn = eddy_decay_columns(v, data.time_s, spec.eddy_tau_s, difference=AUDIT_DIFFERENCE)
     sub = [True] * k.shape[1]
     cols = [k]
     if spec.eddy_tau_s > 0:
@@ -647,7 +662,7 @@ def simulate_measurement(
     )
     b = u * earth[:, None]
     if fitted.spec.base == "tl18":  # per-sample differences, as the tl18 columns, in nT/s
-        b_in, db = v, per_sample_difference(v) / dt
+        b_in, db = v, AUDIT_DIFFERENCE(v) / dt
     else:  # tl16 columns are built from direction cosines alone
         norm = np.nanmean(np.linalg.norm(v, axis=1))
         b_in, db = u * norm, np.gradient(u, data.time_s, axis=0) * norm

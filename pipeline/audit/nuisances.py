@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
+from pipeline.audit.extended import AUDIT_DIFFERENCE
 from pipeline.compensate.heldout import calibration_window
 from pipeline.compensate.model import Measurements
 from pipeline.compensate.plus import (
@@ -98,7 +99,7 @@ def decay_time_constant(setup: HeldOutSetup, others: np.ndarray) -> float:
     m = setup.meas
 
     def cost(log_tau: float) -> float:
-        cols, _ = group_columns("eddy_decay", m, float(np.exp(log_tau)))
+        cols, _ = group_columns("eddy_decay", m, float(np.exp(log_tau)), setup.difference)
         return setup.linear(cols, beside=others).rms_nT
 
     grid = np.log(np.asarray(TAU_GRID_S))
@@ -180,20 +181,22 @@ def select_from(
     """
     settings = _FitSettings(tuple(band.band_hz), band.poles, band.trim_s)
     try:
-        setup = HeldOutSetup.of(meas, mask, settings)
+        setup = HeldOutSetup.of(meas, mask, settings, difference=AUDIT_DIFFERENCE)
         sel = forward_selection(setup, alpha, min_gain)
     except (ValueError, np.linalg.LinAlgError) as exc:
         return NuisanceSelection([], None, f"no nuisance tested: {exc}")
-    tl, names = tl18_terms(meas.vector_nT)
+    tl, names = tl18_terms(meas.vector_nT, difference=AUDIT_DIFFERENCE)
     out, cols = [], [tl]
     for g in sel.groups:
         trial = sel.trials[g]
         est: dict[str, Any] = {}
         if g == "eddy_decay":
             instant = [i for i, n in enumerate(names) if not n.startswith("eddy_")]
-            others = [tl[:, instant]] + [group_columns(h, meas)[0] for h in sel.groups if h != g]
+            others = [tl[:, instant]] + [
+                group_columns(h, meas, 0.0, AUDIT_DIFFERENCE)[0] for h in sel.groups if h != g
+            ]
             est["tau_s"] = decay_time_constant(setup, np.column_stack(others))
-        cols.append(group_columns(g, meas, est.get("tau_s", 0.0))[0])
+        cols.append(group_columns(g, meas, est.get("tau_s", 0.0), AUDIT_DIFFERENCE)[0])
         gain = 1.0 - trial.heldout_after_nT / trial.heldout_before_nT
         out.append(Nuisance(g, float(gain), est))
     return NuisanceSelection(

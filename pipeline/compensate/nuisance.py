@@ -45,10 +45,14 @@ def eddy_decay(columns: np.ndarray, time_s: np.ndarray, tau_s: float) -> np.ndar
 
 
 def eddy_decay_columns(
-    vector_nT: np.ndarray, time_s: np.ndarray, tau_s: float, bt_scale_nT: float = BT_SCALE_NT
+    vector_nT: np.ndarray,
+    time_s: np.ndarray,
+    tau_s: float,
+    bt_scale_nT: float = BT_SCALE_NT,
+    difference=per_sample_difference,
 ) -> tuple[np.ndarray, list[str]]:
-    """Decaying eddy columns u_i lowpass_tau(dB_j) / Bt_scale (9; dB per sample, as tl18's
-    eddy columns), named ``eddy_u{i}dB{j}_decay``.
+    """Decaying eddy columns u_i lowpass_tau(dB_j) / Bt_scale (9; dB per sample by
+    ``difference``, as tl18's eddy columns), named ``eddy_u{i}dB{j}_decay``.
 
     The eddy current is driven by dB/dt and decays with its circuit's L/R, so the first-order
     response acts on the field's change, and its field at the sensor enters the magnitude
@@ -57,7 +61,7 @@ def eddy_decay_columns(
     """
     v = np.asarray(vector_nT, float)
     u = direction_cosines(v)
-    decayed = eddy_decay(per_sample_difference(v), time_s, tau_s)
+    decayed = eddy_decay(difference(v), time_s, tau_s)
     cols = np.column_stack(
         [u[:, i] * decayed[:, j] / bt_scale_nT for i in range(3) for j in range(3)]
     )

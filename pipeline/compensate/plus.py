@@ -51,7 +51,7 @@ from pipeline.compensate.nuisance import (
     second_order_columns,
 )
 from pipeline.compensate.ridge import RidgeSVD
-from pipeline.compensate.terms import tl18_terms
+from pipeline.compensate.terms import per_sample_difference, tl18_terms
 
 # the units of a current or voltage channel: only those are offered as coupling groups (a
 # temperature or a pressure is not a current, and its slow drift fits calibration noise)
@@ -60,11 +60,14 @@ TAU_GRID_S = tuple(float(t) for t in np.geomspace(0.02, 1.0, 7))
 MIN_HELDOUT_S = 120.0  # least calibration time that gives folds worth testing on
 
 
-def group_columns(group: str, meas, tau_s: float = 0.0) -> tuple[np.ndarray, list[str]]:
+def group_columns(
+    group: str, meas, tau_s: float = 0.0, difference=per_sample_difference
+) -> tuple[np.ndarray, list[str]]:
     """The columns of a term group on every epoch of ``meas`` (a
-    :class:`pipeline.compensate.Measurements`)."""
+    :class:`pipeline.compensate.Measurements`); ``difference``: the eddy decay's per-sample
+    derivative (:func:`pipeline.compensate.terms.tl18_terms`)."""
     if group == "eddy_decay":
-        return eddy_decay_columns(meas.vector_nT, meas.time_s, tau_s)
+        return eddy_decay_columns(meas.vector_nT, meas.time_s, tau_s, difference=difference)
     if group == "second_order":
         return second_order_columns(meas.vector_nT, meas.time_s)
     if group == "attitude_rates":
@@ -117,6 +120,9 @@ class HeldOutSetup:
     fold: np.ndarray
     buffer_s: float
     ridge: float | str
+    # the per-sample derivative of the eddy columns (tl18's and the decay's): MagNav's for
+    # the compensation, the audit's its own (:func:`pipeline.compensate.terms.tl18_terms`)
+    difference: Any = per_sample_difference
     # band-passed rows (K, y, epochs) of the columns most recently passed as ``beside``
     # (:meth:`linear`), per set of epochs: forward selection tries every group beside them
     _beside: tuple[np.ndarray, dict[bytes, tuple]] | None = field(
@@ -124,7 +130,7 @@ class HeldOutSetup:
     )
 
     @classmethod
-    def of(cls, meas, mask: np.ndarray, settings) -> HeldOutSetup:
+    def of(cls, meas, mask: np.ndarray, settings, difference=per_sample_difference) -> HeldOutSetup:
         """Folds over the calibration epochs ``mask`` (raises ValueError when the calibration
         is too short for held-out blocks)."""
         if settings.band_hz is None:
@@ -138,7 +144,7 @@ class HeldOutSetup:
             )
         band = Band(tuple(settings.band_hz), settings.poles, settings.trim_s)
         buffer = filter_support_s(band.band_hz, meas.rate_hz, band.poles)
-        return cls(meas, band, block_folds(valid), buffer, settings.ridge)
+        return cls(meas, band, block_folds(valid), buffer, settings.ridge, difference)
 
     def linear(self, columns: np.ndarray, beside: np.ndarray | None = None) -> HeldOutResiduals:
         """Held-out residuals of the linear model on ``columns`` (and the columns ``beside``
@@ -235,7 +241,7 @@ def _try(setup: HeldOutSetup, current: np.ndarray, group: str):
     taus = TAU_GRID_S if group == "eddy_decay" else (0.0,)
     best = None
     for tau in taus:
-        cols, _ = group_columns(group, setup.meas, tau)
+        cols, _ = group_columns(group, setup.meas, tau, setup.difference)
         held = setup.linear(cols, beside=current)
         if best is None or held.rms_nT < best[1].rms_nT:
             best = (cols, held, tau if group == "eddy_decay" else None)
@@ -318,7 +324,7 @@ def forward_selection(
     test is one hypothesis each, not a pick among all candidates, so the Holm adjustment of
     those rounds runs over the seeded groups only. The other groups follow as usual.
     """
-    current, _ = tl18_terms(setup.meas.vector_nT)
+    current, _ = tl18_terms(setup.meas.vector_nT, difference=setup.difference)
     base = held = setup.linear(current)
     chosen: list[str] = []
     tau = None
@@ -345,8 +351,9 @@ def forward_selection(
 
 def design(setup: HeldOutSetup, groups: list[str], tau_s: float) -> np.ndarray:
     """tl18's columns and those of ``groups`` (eddy decay with ``tau_s``)."""
-    k, _ = tl18_terms(setup.meas.vector_nT)
-    return np.column_stack([k] + [group_columns(g, setup.meas, tau_s)[0] for g in groups])
+    k, _ = tl18_terms(setup.meas.vector_nT, difference=setup.difference)
+    cols = [group_columns(g, setup.meas, tau_s, setup.difference)[0] for g in groups]
+    return np.column_stack([k, *cols])
 
 
 def refine_tau(
@@ -367,7 +374,9 @@ def refine_tau(
 
     def rms(log_tau: float) -> float:
         if log_tau not in cache:
-            eddy, _ = group_columns("eddy_decay", setup.meas, float(np.exp(log_tau)))
+            eddy, _ = group_columns(
+                "eddy_decay", setup.meas, float(np.exp(log_tau)), setup.difference
+            )
             cache[log_tau] = setup.linear(eddy, beside=fixed)
         return cache[log_tau].rms_nT
 

@@ -40,10 +40,19 @@ def _lag_costs(ctx: AuditContext, spec: ModelSpec, keep: np.ndarray | None, key:
     """:func:`pipeline.audit.extended.lag_cost` of ``spec`` on the calibration (``keep``:
     a fold's training epochs), or None when it is too short to refit."""
     # the L-curve's lambda even in a fold: with cross-validation's (often tiny) lambda
-    # the eddy terms absorb part of the lag and bias it low
+    # the eddy terms absorb part of the lag and bias it low. And the lambda of the model at
+    # its own lag: at ``spec``'s, a late sensor's misfit moves the L-curve's corner, and
+    # the coefficients shrunk by it leave a residual at the true lag that other columns
+    # (a decay) take up, moving the lag with them
     lam = ctx.fit(spec, keep, key, ridge="auto").lambda_
     try:
-        return lag_cost(ctx.data, spec, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s, keep=keep)
+        costs = lag_cost(ctx.data, spec, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s, keep=keep)
+        lag = _least_cost(costs, ctx.s.max_lag_s)[0]
+        at_lag = spec.with_(lag_s=lag)
+        if at_lag != spec:
+            lam = ctx.fit(at_lag, keep, key, ridge="auto").lambda_
+            costs = lag_cost(ctx.data, spec, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s, keep=keep)
+        return costs
     except ValueError:
         return None
 
@@ -81,8 +90,34 @@ def decay_profile(ctx: AuditContext, current: ModelSpec) -> tuple[float, float, 
             beside[tau] = _least_cost(costs, ctx.s.max_lag_s)
     if not without:
         return current.eddy_tau_s, current.eddy_tau_s, 0.0
-    tau1 = min(beside, key=lambda tau: beside[tau][1])
+    tau1 = _refined_beside(ctx, current, taus, beside)
     return min(without, key=without.get), tau1, beside[tau1][0]
+
+
+def _refined_beside(
+    ctx: AuditContext, current: ModelSpec, taus: list[float], beside: dict
+) -> float:
+    """The time constant (s) with the least cost beside its best lag: the grid's best,
+    refined by a bounded search in log tau between its neighbours. The grid's steps (up to
+    a factor of two) leave a mismatched decay part of its field, and the lag beside it
+    takes that up. ``beside`` (tau -> (lag, cost)) gains the points searched."""
+    best = min(beside, key=lambda tau: beside[tau][1])
+    i = taus.index(best)
+    lo, hi = taus[max(i - 1, 0)], taus[min(i + 1, len(taus) - 1)]
+    if not 0.0 < lo < hi:
+        return best
+
+    def cost(log_tau: float) -> float:
+        tau = float(np.exp(log_tau))
+        if tau not in beside:
+            costs = _lag_costs(ctx, current.with_(eddy_tau_s=tau, lag_s=0.0), None, "all")
+            beside[tau] = (0.0, np.inf) if costs is None else _least_cost(costs, ctx.s.max_lag_s)
+        return beside[tau][1]
+
+    minimize_scalar(
+        cost, bounds=(np.log(lo), np.log(hi)), method="bounded", options={"xatol": 0.05}
+    )
+    return min(beside, key=lambda tau: beside[tau][1])
 
 
 def lag_response(ctx: AuditContext, current: ModelSpec) -> tuple[str, float, dict[str, float]]:

@@ -583,9 +583,11 @@ def lag_over_eddy_decay(
 ) -> bool:
     """Release a lag held back by the eddy-rate alternative when it predicts held-out data
     better than eddy currents that decay with a time constant, or they better it by less
-    than ``min_gain`` or with the lag's own time constant (:func:`same_response`; a tie
-    goes to the one-parameter lag), and they add nothing beyond the lag. Returns whether
-    the release was such a tie (for the timing along the lines to break, as in
+    than ``min_gain`` or with the lag's own time constant (:func:`same_response`), and they
+    add nothing beyond the lag. Returns whether the release was a tie: the lag does not
+    predict held-out data better than the decay by the audit's test (p < ``alpha``, by
+    ``min_gain``), for the timing along the lines to break or an ambiguity
+    (:func:`pipeline.audit.hypotheses.sensor_lag`'s ``_untimed_tie``, as in
     :func:`decay_explains_lag`).
 
     The eddy-rate columns are the decay's first order in w tau; on a multicopter's brisk
@@ -611,5 +613,8 @@ def lag_over_eddy_decay(
         ev.reason = ""
         ev.estimate["preferred_over"] = "eddy currents that decay with a time constant"
         ev.ci95["preferred_over"] = None
-        return alone.rms_after_nT <= held.rms_after_nT
+        decay = current.with_(eddy_tau_s=ev.estimate["eddy_decay"]["tau_s"])
+        over = ctx.heldout(decay, lambda train, k: current.with_(lag_s=fold_lags[k]))
+        ev.estimate["eddy_decay"]["lag_over_decay"] = over.to_dict()
+        return not significant(over, ctx.s.alpha, ctx.s.min_gain)
     return False

@@ -24,6 +24,7 @@ from pipeline.audit.hypotheses.lag_decay import (
     lag_over_eddy_decay,
     recorded_fluxgate_timing,
     slower_than_lag,
+    timing_says,
 )
 from pipeline.audit.hypotheses.rival import beyond
 from pipeline.audit.result import Evaluation
@@ -54,7 +55,8 @@ def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
     decay_as_well, beside_a_decay = _against_eddy_currents(
         ctx, ev, current, lags, forms, beside_decay
     )
-    _by_the_timing(ctx, ev, current, sl, decay_as_well, beside_a_decay, beside_decay)
+    tl = _by_the_timing(ctx, ev, current, sl, decay_as_well, beside_a_decay, beside_decay)
+    _untimed_tie(ctx, ev, current, sl, tl, decay_as_well)
     return ev
 
 
@@ -182,11 +184,11 @@ def _by_the_timing(
     decay_as_well: bool,
     beside_a_decay: bool,
     beside_decay: dict[str, float],
-) -> None:
+) -> Any:
     """The timing along the lines (survey crossovers ``sl``, the fluxgate's record) on the
     lag: it widens the interval, releases a lag held back when it holds it, holds back a
     tie with a decay when it says the scalar is not late; and a lag under ``min_lag_s`` is
-    held back."""
+    held back. Returns the fluxgate's timing (None without it)."""
     lag, smallest = float(ev.estimate["lag_s"]), ctx.s.min_lag_s
     beside_most = max(beside_decay.values())
     tl = recorded_fluxgate_timing(ctx, current, ev)
@@ -251,4 +253,47 @@ def _by_the_timing(
             f"a lag of {1e3 * lag:.1f} ms is under {1e3 * smallest:.0f} ms (min_lag_s): "
             "within the resampling's own error, not a lag to model"
         )
-    return ev
+    return tl
+
+
+def _untimed_tie(
+    ctx: AuditContext, ev: Evaluation, current: ModelSpec, sl: Any, tl: Any, decay_as_well: bool
+) -> None:
+    """A tie the timing along the lines does not break is an ambiguity, and nothing is
+    named: eddy currents decaying with a time constant explain the calibration as well as
+    the lag (``decay_as_well``), the lag refitted beside them adds nothing on held-out
+    data, and neither timing along the lines (crossovers ``sl``, fluxgate ``tl``) holds the
+    lag. As beside the null model's own decay
+    (:func:`pipeline.audit.hypotheses.lag_decay.lag_beside_decay_nuisance`): the calibration
+    cannot tell the two apart, and a tie given to either is a coin flip."""
+    if ev.held_back or not decay_as_well:
+        return
+    lag = float(ev.estimate["lag_s"])
+    if timing_says(ctx, lag, sl, tl) == "holds":
+        return
+    weighed = ev.estimate.get("eddy_decay", {})
+    if "lag_beyond_decay" not in weighed:
+        decay_explains_lag(ctx, ev, current, ev.heldout)
+        weighed = ev.estimate["eddy_decay"]
+    beyond_decay = weighed["lag_beyond_decay"]
+    if (
+        beyond_decay["p_value"] < ctx.s.alpha
+        and beyond_decay["reduction_pct"] >= 100 * ctx.s.min_gain
+    ):
+        return
+    ev.held_back = True
+    ev.reason = (
+        f"eddy currents decaying over {weighed['tau_s']:g} s explain the calibration's "
+        f"residual as well as a lag of {lag:.3f} s, the lag adds nothing beside them, and "
+        "the timing along the lines does not hold the lag: an ambiguity, nothing named"
+    )
+    ctx.ambiguities = [a for a in ctx.ambiguities if EFFECT not in a["candidates"]]
+    ctx.ambiguities.append(
+        {
+            "candidates": [EFFECT, "eddy_decay"],
+            "heldout_gain": {
+                EFFECT: float(ev.heldout.reduction),
+                "eddy_decay": weighed["alone"]["reduction_pct"] / 100.0,
+            },
+        }
+    )
