@@ -6,7 +6,8 @@ the carrier: both read as a lag. The audit holds a lag back when a decay explain
 calibration as well, leaves the lag nothing beside it, and is clearly slower than the lag
 (`pipeline.audit.hypotheses.lag_decay.slower_than_lag`); a decay as quick as the lag is the
 sensor's own response.
-A lag the eddy-rate columns take up is weighed against the decay when the decay leaves it.
+A lag the eddy-rate columns take up is weighed against the decay when the decay leaves it; a
+tie neither breaks, with the lines' timing silent, is an ambiguity (L10).
 All three flights are multicopters with interference outside the tl18 basis. About 2 minutes, so
 they run with ``-m slow`` (the default suite is at its 15-minute budget); the grid check runs
 by default.
@@ -33,9 +34,6 @@ from pipeline.simulate.audit_trials import correct, one_flight
         # a true 0.1 s first-order sensor lag and eddy currents decaying over 1.5 s: the
         # null model's decay takes the lag; profiled beside the lag it takes the slow one
         ("sensor_lag", 2026206, "a decay profiled beside the lag leaves the lag its own"),
-        # a true 0.1 s delay, no decaying eddy currents: the eddy-rate columns take it
-        # while the best decay leaves part of it, so the lag is weighed against the decay
-        ("sensor_lag", 7213, "the rate columns take a lag the decay leaves"),
     ],
 )
 def test_lag_against_decaying_eddy_currents(kind, seed, why, tmp_path):
@@ -44,6 +42,15 @@ def test_lag_against_decaying_eddy_currents(kind, seed, why, tmp_path):
     if kind == "sensor_lag":
         lag = row["estimates"]["sensor_lag"]["lag_s"]
         assert 0.05 < lag < 0.2
+
+
+@pytest.mark.slow
+def test_a_tie_the_lines_cannot_time_is_an_ambiguity(tmp_path):
+    # a true 0.1 s delay (0.05 nT of survey error) and a 0.3 s decay each remove 21 % of
+    # the held-out calibration residual, neither adds to the other at alpha, and the lines'
+    # timing is silent: nothing is named, the tie is reported (L10), not given to the lag
+    row = one_flight("sensor_lag", 7213, tmp_path)
+    assert row["named"] == [] and row["events"] == 0
 
 
 def test_slower_than_lag_reads_the_time_constant_grid():
@@ -61,14 +68,15 @@ def test_slower_than_lag_reads_the_time_constant_grid():
 @pytest.mark.slow
 def test_a_lag_named_beside_a_decay_is_the_whole_readings_delay(tmp_path):
     # a 0.1 s first-order lag on a fixed-wing flight with interference outside the basis:
-    # the null model takes eddy currents decaying over the lag's own time constant, beside
-    # which the calibration's lag reads about a third of the truth; the decay stays, and the
-    # lag reported (and compensated) is the delay of the whole reading
+    # when the null model takes eddy currents decaying over the lag's own time constant (it
+    # did while the eddy columns' derivative fell short), the calibration's lag beside them
+    # reads about a third of the truth; the lag reported (and compensated) is the delay of
+    # the whole reading either way
     row = one_flight("sensor_lag", 6363201, tmp_path)
     assert row["named"] == ["sensor_lag"]
     est = row["estimates"]["sensor_lag"]
     assert est["lag_s"] == pytest.approx(row["truth"]["effective"]["sensor_lag_s"], abs=0.01)
-    assert est["lag_beside_decay_s"] < 0.06
+    assert est.get("lag_beside_decay_s", 0.0) < 0.06
     assert row["covered"] == [True]
 
 
