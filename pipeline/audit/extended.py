@@ -558,8 +558,8 @@ def lag_cost(
     max_lag_s: float,
     keep: np.ndarray | None = None,
 ):
-    """costs(taus): fit residual RMS (nT) of ``spec`` refitted with the scalar re-timed by
-    each tau of the array ``taus`` (s).
+    """costs(taus, ridge_lambda=lam): fit residual RMS (nT) of ``spec`` refitted with the
+    scalar re-timed by each tau of the array ``taus`` (s).
 
     Only the scalar moves with the lag, so the design matrix and its SVD are built once for
     every candidate |tau| <= ``max_lag_s`` (the flight's first and last ``max_lag_s`` seconds
@@ -587,13 +587,13 @@ def lag_cost(
     # record before the fit at every candidate lag, as in design()
     known = data.scalar_nT - des.y
 
-    def costs(taus: np.ndarray) -> np.ndarray:
+    def costs(taus: np.ndarray, ridge_lambda: float = lam) -> np.ndarray:
         # every candidate's re-timed record band-passed in one call (the filter runs along
         # the rows, the candidates are columns): the same numbers as one call each
         y = np.column_stack([scalar_series(data, float(tau), spec.lag_response) for tau in taus])
         yf, _ = bandpass_blocks(y - known[:, None], blocks, sos, bs.trim_at(data.rate_hz))
         yf = yf[rows]
-        r = yf - kf @ solver.solve_for(yf, lam)
+        r = yf - kf @ solver.solve_for(yf, ridge_lambda)
         out = np.sqrt(np.mean(r**2, axis=0))
         return np.where(np.all(np.isfinite(yf), axis=0), out, np.inf)
 

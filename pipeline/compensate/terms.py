@@ -103,15 +103,8 @@ def five_point_difference(x: np.ndarray) -> np.ndarray:
     MagNav's ``fdm`` reads a sinusoid of angular frequency w sampled every dt short by
     1 - sin(w dt) / (w dt), about (w dt)^2 / 6: 0.4 % at 0.25 Hz and 10 Hz, which a
     fixed-wing's eddy terms of tens of nT turn into a residual above the sensor's noise that
-    follows the manoeuvres. This stencil's shortfall is about (w dt)^4 / 30.
-
-    Parameters
-    ----------
-    x : (n, ...) array, any unit; n >= 2.
-
-    Returns
-    -------
-    (n, ...) array in x's unit per sample (not per second).
+    follows the manoeuvres. This stencil's shortfall is about (w dt)^4 / 30. Argument and
+    result as :func:`per_sample_difference`'s.
     """
     x = np.asarray(x, float)
     out = per_sample_difference(x)

@@ -3,6 +3,8 @@ form and beside eddy currents that decay; and the fluxgate's timing along the li
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 from scipy.optimize import minimize_scalar
 
@@ -49,10 +51,10 @@ def _lag_costs(ctx: AuditContext, spec: ModelSpec, keep: np.ndarray | None, key:
         costs = lag_cost(ctx.data, spec, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s, keep=keep)
         lag = _least_cost(costs, ctx.s.max_lag_s)[0]
         at_lag = spec.with_(lag_s=lag)
-        if at_lag != spec:
-            lam = ctx.fit(at_lag, keep, key, ridge="auto").lambda_
-            costs = lag_cost(ctx.data, spec, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s, keep=keep)
-        return costs
+        if at_lag == spec:
+            return costs
+        # the same rows and decomposition, solved at the other lambda
+        return partial(costs, ridge_lambda=ctx.fit(at_lag, keep, key, ridge="auto").lambda_)
     except ValueError:
         return None
 
