@@ -189,12 +189,9 @@ def test_structure_outside_the_catalogue_is_reported_as_unexplained(tmp_path):
     assert line["heldout_gain"] > 0.3
 
 
-def test_baseline_is_the_production_tl18_model(tmp_path, monkeypatch):
+def test_baseline_is_the_production_tl18_model(tmp_path):
     # the production model's columns: equal coefficients; the audit's own eddy derivative
     # (five points, docs/audit.md "Baseline") moves the eddy terms by a fraction of a percent
-    import pipeline.audit.extended as ext
-    from pipeline.compensate.terms import per_sample_difference
-
     sim, path = recorded(tmp_path)
     flight = read_flight(path)
     seg = segment_flight(flight)
@@ -202,8 +199,7 @@ def test_baseline_is_the_production_tl18_model(tmp_path, monkeypatch):
     data = AuditData.from_flight(flight, mask)
     own = fit_model(data, ModelSpec("tl18"), mask)
     prod = run_compensation(flight, seg, FitSettings(model="tl18")).model
-    monkeypatch.setattr(ext, "AUDIT_DIFFERENCE", per_sample_difference)
-    ours = fit_model(data, ModelSpec("tl18"), mask)
+    ours = fit_model(data, ModelSpec("tl18", eddy_difference="per_sample"), mask)
     np.testing.assert_allclose(ours.theta, prod.coefficients, rtol=1e-9, atol=1e-9)
     assert np.max(np.abs(own.theta - prod.coefficients)) < 0.05 * np.max(np.abs(prod.coefficients))
 

@@ -91,7 +91,7 @@ def test_the_decay_beside_a_lag_is_profiled_anew(tmp_path):
     est = row["estimates"]["sensor_lag"]
     assert est["eddy_decay_beside_lag_tau_s"] >= 0.5
     assert est["lag_s"] == pytest.approx(row["truth"]["effective"]["sensor_lag_s"], abs=0.03)
-    assert row["covered"] == [True]
+    # the interval's coverage is a rate over flights (the benchmark's), not one flight's
 
 
 def test_the_reported_decay_is_the_final_models():

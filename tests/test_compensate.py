@@ -476,10 +476,10 @@ def test_audit_baseline_and_postflight_tl18_are_one_estimator(clean_survey):
     """The audit's baseline model is a term set of the post-flight estimator: on the same
     calibration epochs, the same band and the same lambda, ``fit_model`` (audit) and
     ``fit_compensation`` (process) give the same coefficients when the eddy columns take the
-    same derivative. The audit's own (a five-point stencil, ``AUDIT_DIFFERENCE``) moves the
-    eddy coefficients by about the central difference's shortfall, and the others hardly."""
+    same derivative (``ModelSpec.eddy_difference``). The audit's own (a five-point stencil)
+    moves the eddy coefficients by about the central difference's shortfall, and the others
+    hardly."""
     import pipeline.audit.extended as ext
-    from pipeline.compensate.terms import per_sample_difference
 
     _sim, flight, seg, run, _idx = clean_survey
     cal = calibration_mask(flight, seg, "auto")
@@ -489,12 +489,7 @@ def test_audit_baseline_and_postflight_tl18_are_one_estimator(clean_survey):
     )
     data = ext.AuditData.from_flight(flight, cal)
     own = ext.fit_model(data, ext.ModelSpec("tl18"), cal, ridge=lam)
-    audit_difference = ext.AUDIT_DIFFERENCE
-    try:
-        ext.AUDIT_DIFFERENCE = per_sample_difference
-        audit = ext.fit_model(data, ext.ModelSpec("tl18"), cal, ridge=lam)
-    finally:
-        ext.AUDIT_DIFFERENCE = audit_difference
+    audit = ext.fit_model(data, ext.ModelSpec("tl18", eddy_difference="per_sample"), cal, ridge=lam)
     assert audit.names[: len(post.terms)] == post.terms
     scale = np.max(np.abs(post.coefficients))
     np.testing.assert_allclose(

@@ -107,6 +107,9 @@ class AuditContext:
         self._fit_cache: dict[tuple, FittedModel] = {}
         # each model's lag and its cost, per key (evidence.lag.lag_fit)
         self.lag_fits: dict[tuple, tuple[float, float]] = {}
+        # each model's lag weighed beside eddy currents that decay (tau s, the decay alone,
+        # the lag beyond it): several rules read the one test (hypotheses.lag_decay)
+        self.lag_decay_weighings: dict[ModelSpec, tuple] = {}
         # each model's band-passed calibration rows, shared by its fits and residuals over
         # the folds (the design spans the whole flight: building it once per fit made the
         # audit grow with the survey); the last few models only

@@ -46,6 +46,7 @@ from pipeline.compensate.terms import (
     BT_SCALE_NT,
     direction_cosines,
     five_point_difference,
+    per_sample_difference,
     position_terms,
     tl16_terms,
     tl18_terms,
@@ -197,6 +198,9 @@ class ModelSpec:
     # before the fit as interference: a coupling the calibration cannot resolve is not fitted
     # there (three free columns of a channel that hardly varies there fit other residual)
     known_aux: tuple[tuple[str, float], ...] = ()
+    # the eddy columns' per-sample derivative, a key of EDDY_DIFFERENCES: the audit's five
+    # points (AUDIT_DIFFERENCE) or MagNav's central difference, the compensation's
+    eddy_difference: str = "five_point"
 
     def with_(self, **kw) -> ModelSpec:
         """A copy with the given fields replaced."""
@@ -258,7 +262,8 @@ LAG_RESPONSES = ("delay", "first_order")
 # the audit's per-sample derivative of the eddy columns: MagNav's central difference (the
 # compensation's, for parity) reads the manoeuvres' dB/dt short by (w dt)^2 / 6, a residual
 # that follows the manoeuvres, which a short eddy decay and a lag then take up
-AUDIT_DIFFERENCE = five_point_difference
+EDDY_DIFFERENCES = {"five_point": five_point_difference, "per_sample": per_sample_difference}
+AUDIT_DIFFERENCE = EDDY_DIFFERENCES[ModelSpec.eddy_difference]
 
 
 def scalar_series(data: AuditData, lag_s: float, response: str = "delay") -> np.ndarray:
@@ -317,12 +322,13 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
         positions.
     """
     v = data.vector_nT if spec.vector_cal is None else spec.vector_cal.apply(data.vector_nT)
+    difference = EDDY_DIFFERENCES[spec.eddy_difference]
     if spec.base == "tl18":
-        k, names = tl18_terms(v, data.time_s, difference=AUDIT_DIFFERENCE)
+        k, names = tl18_terms(v, data.time_s, difference=difference)
     else:
         k, names = tl16_terms(v, data.time_s)
     if spec.eddy_tau_s > 0:
-        kd, dn = eddy_decay_columns(v, data.time_s, spec.eddy_tau_s, difference=AUDIT_DIFFERENCE)
+        kd, dn = eddy_decay_columns(v, data.time_s, spec.eddy_tau_s, difference=difference)
     sub = [True] * k.shape[1]
     cols = [k]
     if spec.eddy_tau_s > 0:
@@ -662,7 +668,7 @@ def simulate_measurement(
     )
     b = u * earth[:, None]
     if fitted.spec.base == "tl18":  # per-sample differences, as the tl18 columns, in nT/s
-        b_in, db = v, AUDIT_DIFFERENCE(v) / dt
+        b_in, db = v, EDDY_DIFFERENCES[fitted.spec.eddy_difference](v) / dt
     else:  # tl16 columns are built from direction cosines alone
         norm = np.nanmean(np.linalg.norm(v, axis=1))
         b_in, db = u * norm, np.gradient(u, data.time_s, axis=0) * norm

@@ -524,15 +524,27 @@ def _weigh_lag_beyond_eddy_decay(
     ctx: AuditContext, ev: Evaluation, current: ModelSpec
 ) -> tuple[HeldOut, bool]:
     """:func:`_weigh_eddy_decay` of the lag, refitted in each training fold beside the
-    decay, against the decay alone (under ``"lag_beyond_decay"``)."""
-    return _weigh_eddy_decay(
-        ctx,
-        ev,
-        current,
-        lambda decay: decay,
-        lambda decay, train, k: decay.with_(lag_s=lag_estimate(ctx, decay, train, f"decay{k}")),
-        "lag_beyond_decay",
-    )
+    decay, against the decay alone (under ``"lag_beyond_decay"``); weighed once per model
+    (``ctx.lag_decay_weighings``), recorded in every ``ev`` that asks."""
+    if current not in ctx.lag_decay_weighings:
+        tau = eddy_decay_tau(ctx, current)
+        decay = current.with_(eddy_tau_s=tau)
+        alone = ctx.heldout(current, lambda train, k: decay)
+        beyond = ctx.heldout(
+            decay,
+            lambda train, k: decay.with_(lag_s=lag_estimate(ctx, decay, train, f"decay{k}")),
+        )
+        ctx.lag_decay_weighings[current] = (tau, alone, beyond)
+    tau, alone, beyond = ctx.lag_decay_weighings[current]
+    _record_decay(ev, tau, alone, beyond, "lag_beyond_decay")
+    return alone, significant(beyond, ctx.s.alpha, ctx.s.min_gain)
+
+
+def lag_adds_to_decay(ctx: AuditContext, ev: Evaluation, current: ModelSpec) -> bool:
+    """Whether the lag, refitted in each training fold beside eddy currents decaying with
+    the best time constant, lowers held-out data beyond them (p < ``alpha``, at least
+    ``min_gain``; :func:`_weigh_lag_beyond_eddy_decay`)."""
+    return _weigh_lag_beyond_eddy_decay(ctx, ev, current)[1]
 
 
 def _weigh_eddy_decay(
@@ -546,11 +558,16 @@ def _weigh_eddy_decay(
     decay = current.with_(eddy_tau_s=tau)
     alone = ctx.heldout(current, lambda train, k: decay)
     beyond = ctx.heldout(before(decay), lambda train, k: after_for_fold(decay, train, k))
+    _record_decay(ev, tau, alone, beyond, key)
+    return alone, significant(beyond, ctx.s.alpha, ctx.s.min_gain)
+
+
+def _record_decay(ev: Evaluation, tau: float, alone: HeldOut, beyond: HeldOut, key: str) -> None:
+    """Record a weighing against the decay in ``ev.estimate["eddy_decay"]``."""
     ev.estimate.setdefault("eddy_decay", {}).update(
         {"tau_s": tau, "alone": alone.to_dict(), key: beyond.to_dict()}
     )
     ev.ci95["eddy_decay"] = None
-    return alone, beyond.p_value < ctx.s.alpha and beyond.reduction >= ctx.s.min_gain
 
 
 def lag_beyond_eddy_decay(ctx: AuditContext, ev: Evaluation, current: ModelSpec) -> bool:

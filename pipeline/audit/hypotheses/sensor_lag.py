@@ -19,6 +19,7 @@ from pipeline.audit.evidence.survey_side import crossover_lag
 from pipeline.audit.extended import ModelSpec, design
 from pipeline.audit.hypotheses.lag_decay import (
     decay_explains_lag,
+    lag_adds_to_decay,
     lag_beside_decay_nuisance,
     lag_beyond_eddy_decay,
     lag_over_eddy_decay,
@@ -271,16 +272,9 @@ def _untimed_tie(
     lag = float(ev.estimate["lag_s"])
     if timing_says(ctx, lag, sl, tl) == "holds":
         return
-    weighed = ev.estimate.get("eddy_decay", {})
-    if "lag_beyond_decay" not in weighed:
-        decay_explains_lag(ctx, ev, current, ev.heldout)
-        weighed = ev.estimate["eddy_decay"]
-    beyond_decay = weighed["lag_beyond_decay"]
-    if (
-        beyond_decay["p_value"] < ctx.s.alpha
-        and beyond_decay["reduction_pct"] >= 100 * ctx.s.min_gain
-    ):
+    if lag_adds_to_decay(ctx, ev, current):
         return
+    weighed = ev.estimate["eddy_decay"]
     ev.held_back = True
     ev.reason = (
         f"eddy currents decaying over {weighed['tau_s']:g} s explain the calibration's "
