@@ -19,13 +19,17 @@ __all__ = ["campaign", "run_plain"]
 install_one_line_errors()
 
 
+# each task installs the filter where it runs: a Dask worker process unpickles the task
+# without importing this module, and logs a failing task with its traceback otherwise
 @task(name="campaign-read-sortie")
 def _read_task(index: int, info, origin):
+    install_one_line_errors()
     return read(index, info, origin)
 
 
 @task(name="campaign-crossovers")
 def _crossovers_task(a, b, min_angle_deg: float):
+    install_one_line_errors()
     return crossovers(a, b, min_angle_deg)
 
 
