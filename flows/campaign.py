@@ -19,8 +19,8 @@ __all__ = ["campaign", "run_plain"]
 install_one_line_errors()
 
 
-# each task installs the filter where it runs: a Dask worker process unpickles the task
-# without importing this module, and logs a failing task with its traceback otherwise
+# each task installs the filter where it runs: on a Dask worker the import-time install
+# above has not run, and the worker logs a failing task with its traceback
 @task(name="campaign-read-sortie")
 def _read_task(index: int, info, origin):
     install_one_line_errors()

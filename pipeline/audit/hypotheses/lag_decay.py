@@ -527,14 +527,12 @@ def _weigh_lag_beyond_eddy_decay(
     decay, against the decay alone (under ``"lag_beyond_decay"``); weighed once per model
     (``ctx.lag_decay_weighings``), recorded in every ``ev`` that asks."""
     if current not in ctx.lag_decay_weighings:
-        tau = eddy_decay_tau(ctx, current)
-        decay = current.with_(eddy_tau_s=tau)
-        alone = ctx.heldout(current, lambda train, k: decay)
-        beyond = ctx.heldout(
-            decay,
-            lambda train, k: decay.with_(lag_s=lag_estimate(ctx, decay, train, f"decay{k}")),
+        ctx.lag_decay_weighings[current] = _decay_weighing(
+            ctx,
+            current,
+            lambda decay: decay,
+            lambda decay, train, k: decay.with_(lag_s=lag_estimate(ctx, decay, train, f"decay{k}")),
         )
-        ctx.lag_decay_weighings[current] = (tau, alone, beyond)
     tau, alone, beyond = ctx.lag_decay_weighings[current]
     _record_decay(ev, tau, alone, beyond, "lag_beyond_decay")
     return alone, significant(beyond, ctx.s.alpha, ctx.s.min_gain)
@@ -554,12 +552,21 @@ def _weigh_eddy_decay(
     held-out gain alone, and whether ``after_for_fold(decay, train, k)`` adds to
     ``before(decay)`` (p < alpha, by ``min_gain``); both go into
     ``ev.estimate["eddy_decay"]`` (the second under ``key``)."""
+    tau, alone, beyond = _decay_weighing(ctx, current, before, after_for_fold)
+    _record_decay(ev, tau, alone, beyond, key)
+    return alone, significant(beyond, ctx.s.alpha, ctx.s.min_gain)
+
+
+def _decay_weighing(
+    ctx: AuditContext, current: ModelSpec, before, after_for_fold
+) -> tuple[float, HeldOut, HeldOut]:
+    """(tau s, the decay alone beside ``current``, ``after_for_fold(decay, train, k)``
+    beside ``before(decay)``) for eddy currents decaying with the best time constant."""
     tau = eddy_decay_tau(ctx, current)
     decay = current.with_(eddy_tau_s=tau)
     alone = ctx.heldout(current, lambda train, k: decay)
     beyond = ctx.heldout(before(decay), lambda train, k: after_for_fold(decay, train, k))
-    _record_decay(ev, tau, alone, beyond, key)
-    return alone, significant(beyond, ctx.s.alpha, ctx.s.min_gain)
+    return tau, alone, beyond
 
 
 def _record_decay(ev: Evaluation, tau: float, alone: HeldOut, beyond: HeldOut, key: str) -> None:
