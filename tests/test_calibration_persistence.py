@@ -15,20 +15,27 @@ from pipeline.segment import segment_flight
 from pipeline.simulate import Scenario, simulate, write_simulation
 
 
-def _audit_with_step(tmp_path: Path, seed: int, transient: bool, leg: int = 1) -> dict:
-    """A 2 nT change u . dp from the middle of calibration leg ``leg`` (in time order): to
-    the end of the flight, or (``transient``) only to the end of the turn after that leg."""
+def _audit_with_step(
+    tmp_path: Path, seed: int, transient: bool, leg: int = 1, mid_block: bool = False
+) -> dict:
+    """A 2 nT change u . dp from the middle of calibration leg ``leg`` (in time order; with
+    ``mid_block``, of the manoeuvre block nearest it, clear of the scan's guard at the
+    blocks' edges): to the end of the flight, or (``transient``) only to the end of the
+    turn after that leg."""
     sim = simulate(Scenario.load("uav-small", ["calibration.passes=1"]), seed)
-    legs = {}
+    legs: dict = {}
     for g in sim.truth["segments"]:
         if g["label"] == "calibration":
-            a, b = legs.get(g["line_id"], (g["start_s"], g["end_s"]))
-            legs[g["line_id"]] = (min(a, g["start_s"]), max(b, g["end_s"]))
+            legs.setdefault(g["line_id"], []).append((g["start_s"], g["end_s"]))
     ordered = sorted(legs.values())
     i = leg % len(ordered)
-    a, b = ordered[i]
-    c = ordered[i + 1][0] if i + 1 < len(ordered) else b + 12.0  # the transit after the last
-    on, off = 0.5 * (a + b) + 0.37, (c - 2.0) if transient else np.inf
+    a, b = ordered[i][0][0], ordered[i][-1][1]
+    c = ordered[i + 1][0][0] if i + 1 < len(ordered) else b + 12.0  # the transit after the last
+    on = 0.5 * (a + b)
+    if mid_block:
+        block = min(ordered[i], key=lambda blk: abs(0.5 * (blk[0] + blk[1]) - on))
+        on = 0.5 * (block[0] + block[1])
+    on, off = on + 0.37, (c - 2.0) if transient else np.inf
     s, v = sim.streams["/mag/scalar"], sim.streams["/mag/vector"]
     vec = np.stack([np.interp(s["t"], v["t"], v["cols"][f"{k}_nT"]) for k in "xyz"], -1)
     u = vec / np.linalg.norm(vec, axis=1, keepdims=True)
@@ -56,6 +63,17 @@ def test_a_load_switched_off_again_is_a_nuisance_not_an_event(tmp_path, seed):
     assert leg_events == []
     forms = [n["estimate"].get("form") for n in res["unexplained"]["nuisances"]]
     assert "switching" in forms
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [3, 4])
+def test_a_load_switched_off_in_the_turn_is_no_event_where_the_scan_sees_it(tmp_path, seed):
+    """Switched on mid-block, where the legs' scan finds it, and off in the turn after the
+    leg: the scalar-minus-fluxgate record shows it off again, so no change of the
+    permanent field is reported from the calibration."""
+    res = _audit_with_step(tmp_path, seed, transient=True, mid_block=True)
+    events = res["unexplained"]["events"]
+    assert [e for e in events if e["evidence"] == "calibration residual"] == []
 
 
 @pytest.mark.slow

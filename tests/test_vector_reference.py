@@ -8,18 +8,22 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from pipeline.audit.vector_reference import scan_vector_reference, vector_reference_step
+from pipeline.audit.vector_reference import (
+    persists_against_fluxgate,
+    scan_vector_reference,
+    vector_reference_step,
+)
 
 RATE_HZ = 10.0
 DURATION_S = 2400.0
 
 
-def flight(seed: int, dp_nT=(0.0, 0.0, 0.0), step_s: float = 1300.0):
+def flight(seed: int, dp_nT=(0.0, 0.0, 0.0), step_s: float = 1300.0, off_s: float = np.inf):
     """A flight of straight legs on headings turning by 70 deg every 100 s (every heading
     flown before and after any time), with 3 deg roll and pitch oscillations, in a 50 000 nT
     field inclined 60 deg with a geology of tens of nT along track. The scalar sensor reads
-    ``|b + p + A b|`` with white noise and a 3 s AR(1) residual, plus ``u . dp`` after
-    ``step_s``; the fluxgate ``b + p_v`` with 0.5 nT of noise.
+    ``|b + p + A b|`` with white noise and a 3 s AR(1) residual, plus ``u . dp`` from
+    ``step_s`` (to ``off_s``); the fluxgate ``b + p_v`` with 0.5 nT of noise.
 
     Returns time (s), scalar (nT), fluxgate (n, 3; body frame x forward, y right, z down, nT).
     """
@@ -53,7 +57,7 @@ def flight(seed: int, dp_nT=(0.0, 0.0, 0.0), step_s: float = 1300.0):
     a = np.exp(-1 / (3.0 * RATE_HZ))
     scalar += lfilter([np.sqrt(1 - a**2)], [1, -a], rng.normal(0, 0.2, t.size))
     scalar += rng.normal(0, 0.05, t.size)
-    scalar += (t > step_s) * (u @ np.asarray(dp_nT, float))
+    scalar += ((t > step_s) & (t < off_s)) * (u @ np.asarray(dp_nT, float))
     vector = b + np.array([10.0, -8.0, 15.0]) + rng.normal(0, 0.5, b.shape)
     return t, scalar, vector
 
@@ -137,3 +141,21 @@ def test_a_step_that_dominates_the_residual_is_found():
     assert step is not None
     assert abs(step.time_s - truth["time_s"]) < 10.0
     assert np.allclose(step.dp_nT, truth["dp_nT"], atol=0.6)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_change_that_persists_is_told_from_a_load_switched_off_again(seed):
+    """A load on from 1313 s and off at 1391 s, inside the turn after its leg (1390-1400 s),
+    fits the difference as a pulse; a change left on fits as a step to the end; a load
+    switched off after the window (a later leg) is read as persisting there."""
+    dp = np.array([1.0, -1.2, 0.5])
+    window = (1390.0, 1400.0)
+    t, s, v = flight(seed, dp, step_s=1313.0, off_s=1391.0)
+    assert persists_against_fluxgate(t, s, v, 1313.0, window) is False
+    t, s, v = flight(seed, dp, step_s=1313.0)
+    assert persists_against_fluxgate(t, s, v, 1313.0, window) is True
+    t, s, v = flight(seed, dp, step_s=1313.0, off_s=1900.0)
+    assert persists_against_fluxgate(t, s, v, 1313.0, window) is True
+    # a record ending in the window holds nothing after it
+    keep = t < 1401.0
+    assert persists_against_fluxgate(t[keep], s[keep], v[keep], 1313.0, window) is None

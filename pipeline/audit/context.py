@@ -129,22 +129,27 @@ class AuditContext:
         return select_nuisances(self.flight, self.mask, self.s.band, self.s.alpha, self.s.min_gain)
 
     @cached_property
+    def fluxgate_calibrated(self) -> np.ndarray:
+        """The fluxgate reading (n, 3; body frame, nT) calibrated against the scalar, for the
+        scalar-minus-fluxgate tests (exactly, not to first order as their model holds its
+        errors: their squares reach nT); as recorded when too few readings calibrate it."""
+        d = self.data
+        try:
+            return fit_vector_calibration(d.vector_nT, d.scalar_nT).apply(d.vector_nT)
+        except ValueError:
+            return d.vector_nT
+
+    @cached_property
     def fluxgate_step(self) -> VectorStep | None:
         """A step in the carrier's permanent field located by the scalar-minus-fluxgate test
         (:func:`pipeline.audit.vector_reference.vector_reference_step`; the readings only,
         the fluxgate calibrated against the scalar, the recorded channels in its model), or
         None."""
         d = self.data
-        # the fluxgate calibrated against the scalar first (exactly, not to first order as
-        # the scan's model holds its errors: their squares reach nT)
-        try:
-            vector = fit_vector_calibration(d.vector_nT, d.scalar_nT).apply(d.vector_nT)
-        except ValueError:  # too few readings to calibrate: the scan's model alone
-            vector = d.vector_nT
         return vector_reference_step(
             d.time_s,
             d.scalar_nT,
-            vector,
+            self.fluxgate_calibrated,
             d.aux,
             self.s.event_alpha,
             self.s.min_vector_step_nT,

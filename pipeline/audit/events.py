@@ -19,6 +19,7 @@ from pipeline.audit.context import CROSSOVER_SMOOTHING_S
 from pipeline.audit.evidence import HeldOut
 from pipeline.audit.extended import ModelSpec, design
 from pipeline.audit.survey import survey_events
+from pipeline.audit.vector_reference import persists_against_fluxgate
 
 # span (s) over which a crossing reading's course over ground is taken: a few samples at
 # any rate, short against a turn's 10-30 s
@@ -179,6 +180,8 @@ class AuditEvents:
         calibration on either side of the leg nothing tells them apart; the step stays an
         event."""
         t_s = 0.5 * (step.start_s + step.end_s)
+        if self._switched_off_after_its_leg(t_s):
+            return False
         after = self._after_leg(t_s)
         if after is None:
             return True
@@ -195,6 +198,28 @@ class AuditEvents:
             if gain.reduction >= held.reduction:
                 return False
         return True
+
+    def _switched_off_after_its_leg(self, t_s: float) -> bool:
+        """Whether the scalar-minus-fluxgate record shows the step at ``t_s`` switched off
+        again before the next leg or line flown after its leg: a load on for the rest of
+        its leg fits it better than a change to the record's end
+        (:func:`pipeline.audit.vector_reference.persists_against_fluxgate`). The
+        difference holds no Earth field, so the later readings weigh in on any heading; the
+        held-out legs below cannot tell this case, for a step's transient inside its own
+        leg pulls a fit without it wherever it is. It only ever makes a step a switched
+        load: a load switched off later, or a change, is for the tests below."""
+        t = self.data.time_s
+        leg = self._leg_at(t_s)
+        if leg < 0:
+            return False
+        end = float(t[self.legs == leg].max())
+        flown = (self.legs >= 0) | self.seg.mask("survey", "tie", "validation")
+        nxt = t[flown & (t > end)]
+        window = (end, float(nxt.min()) if nxt.size else end)
+        persists = persists_against_fluxgate(
+            t, self.data.scalar_nT, self.fluxgate_calibrated, t_s, window, self.data.aux
+        )
+        return persists is False
 
     def _after_leg(self, t_s: float) -> np.ndarray | None:
         """The calibration after the leg holding ``t_s`` (bool per epoch), or else before it:

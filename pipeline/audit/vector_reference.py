@@ -516,6 +516,58 @@ def _change_point_set(sp: _ScanPass, f: np.ndarray, grid: np.ndarray) -> tuple[f
     return float(grid[inside].min()), float(grid[inside].max())
 
 
+def persists_against_fluxgate(
+    time_s: np.ndarray,
+    scalar_nT: np.ndarray,
+    vector_nT: np.ndarray,
+    t_s: float,
+    off_window_s: tuple[float, float],
+    aux: dict[str, np.ndarray] | None = None,
+    bin_s: float = 1.0,
+) -> bool | None:
+    """Whether a change of the carrier's field at ``t_s`` persists, read in the
+    scalar-minus-vector difference: ``u . dp`` from ``t_s`` to the record's end fits the
+    difference's 1 s means better than the same three columns switched off again at the
+    best time inside ``off_window_s`` (a load switched off where no step is looked for, in
+    the turn after its leg, say).
+
+    The two models have the same columns and differ only after the switch-off, so the
+    smaller residual sum of squares is the likelier; a change that persists leaves ``u .
+    dp`` on every later reading (hours of survey), which no early switch-off fits.
+
+    Parameters
+    ----------
+    time_s, scalar_nT, vector_nT, aux
+        As :func:`scan_vector_reference` (s from the flight's first epoch, nT, body-frame nT;
+        the fluxgate calibrated against the scalar).
+    t_s : float
+        The change's time, s.
+    off_window_s : tuple of float
+        Earliest and latest switch-off times tried, s.
+    bin_s : float
+        Averaging bin, s.
+
+    Returns
+    -------
+    bool or None
+        None when the record holds too few bins after the window for the model.
+    """
+    tb, y, base, u, _ = difference_design(time_s, scalar_nT, vector_nT, aux, bin_s)
+    after = tb > max(off_window_s[1], t_s)
+    if tb.size < 4 * (base.shape[1] + 3) or after.sum() < 2 * (base.shape[1] + 3):
+        return None
+
+    def rss(on: np.ndarray) -> float:
+        a = np.column_stack([base, u * on[:, None]])
+        coef, *_ = np.linalg.lstsq(a, y, rcond=None)
+        return float(np.sum((y - a @ coef) ** 2))
+
+    offs = tb[(tb >= off_window_s[0]) & (tb <= off_window_s[1])]
+    offs = offs if offs.size else np.array([off_window_s[0]])
+    pulse = min(rss((tb > t_s) & (tb < t_off)) for t_off in offs)
+    return rss(tb > t_s) < pulse
+
+
 def vector_reference_step(
     time_s: np.ndarray,
     scalar_nT: np.ndarray,
