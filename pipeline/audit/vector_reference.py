@@ -557,10 +557,15 @@ def persists_against_fluxgate(
     if tb.size < 4 * (base.shape[1] + 3) or after.sum() < 2 * (base.shape[1] + 3):
         return None
 
+    # the base's span once (as the scan's: some of its columns are dependent on the sphere);
+    # each model then only adds its three step columns' part outside it
+    uu, sv, _ = np.linalg.svd(base, full_matrices=False)
+    q0 = uu[:, sv > 1e-8 * sv[0]]
+    r0 = y - q0 @ (q0.T @ y)
+
     def rss(on: np.ndarray) -> float:
-        a = np.column_stack([base, u * on[:, None]])
-        coef, *_ = np.linalg.lstsq(a, y, rcond=None)
-        return float(np.sum((y - a @ coef) ** 2))
+        q1 = _step_bases(q0, [u * on[:, None]])
+        return float(np.sum((r0 - q1 @ (q1.T @ r0)) ** 2))
 
     offs = tb[(tb >= off_window_s[0]) & (tb <= off_window_s[1])]
     offs = offs if offs.size else np.array([off_window_s[0]])
