@@ -4,7 +4,7 @@ flights of the full benchmark (benchmarks/bench_audit_variety.py, whose seeds th
 The calibration cannot tell a first-order sensor response from decaying eddy currents of
 the carrier: both read as a lag. The audit holds a lag back when a decay explains the
 calibration as well, leaves the lag nothing beside it, and is clearly slower than the lag
-(`pipeline.audit.hypotheses.lag_decay.slower_than_lag`); a decay as quick as the lag is the
+(`pipeline.audit.hypotheses.decay_rival.slower_than_lag`); a decay as quick as the lag is the
 sensor's own response.
 A lag the eddy-rate columns take up is weighed against the decay when the decay leaves it; a
 tie neither breaks, with the lines' timing silent, is an ambiguity (L10).
@@ -19,7 +19,7 @@ import pytest
 
 from pipeline.audit.evidence.lag import EDDY_TAU_GRID_S
 from pipeline.audit.extended import ModelSpec
-from pipeline.audit.hypotheses.lag_decay import slower_than_lag
+from pipeline.audit.hypotheses.decay_rival import slower_than_lag
 from pipeline.audit.stage import _final_decay
 from pipeline.simulate.audit_trials import correct, one_flight
 

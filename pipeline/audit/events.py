@@ -209,10 +209,10 @@ class AuditEvents:
         leg pulls a fit without it wherever it is. It only ever makes a step a switched
         load: a load switched off later, or a change, is for the tests below."""
         t = self.data.time_s
-        leg = self._leg_at(t_s)
-        if leg < 0:
+        span = self._leg_span(t_s)
+        if span is None:
             return False
-        end = float(t[self.legs == leg].max())
+        end = span[1]
         flown = (self.legs >= 0) | self.seg.mask("survey", "tie", "validation")
         nxt = t[flown & (t > end)]
         window = (end, float(nxt.min()) if nxt.size else end)
@@ -227,14 +227,21 @@ class AuditEvents:
         ``u . dp`` differs between them); None when neither does. The step's model is the
         same either way (permanent terms free on each side), so either side tests it."""
         t = self.data.time_s
-        leg = self._leg_at(t_s)
-        inside = self.legs == leg if leg >= 0 else np.zeros(t.size, bool)
-        lo, hi = (float(t[inside].min()), float(t[inside].max())) if inside.any() else (t_s, t_s)
+        lo, hi = self._leg_span(t_s) or (t_s, t_s)
         for side in (self.mask & (t > hi), self.mask & (t < lo)):
             legs = np.unique(self.legs[side & (self.legs >= 0)])
             if side.sum() >= PERSIST_MIN_S * self.data.rate_hz and legs.size >= 2:
                 return side
         return None
+
+    def _leg_span(self, t_s: float) -> tuple[float, float] | None:
+        """The first and last epoch (s) of the calibration leg holding ``t_s`` (None: the
+        epoch nearest ``t_s`` is on no leg)."""
+        leg = self._leg_at(t_s)
+        if leg < 0:
+            return None
+        t = self.data.time_s[self.legs == leg]
+        return float(t.min()), float(t.max())
 
     def _leg_at(self, t_s: float) -> int:
         """The calibration leg of the epoch nearest ``t_s`` (-1: none)."""

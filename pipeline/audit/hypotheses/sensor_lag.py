@@ -17,14 +17,16 @@ from pipeline.audit.evidence.lag import (
 )
 from pipeline.audit.evidence.survey_side import crossover_lag
 from pipeline.audit.extended import ModelSpec, design
-from pipeline.audit.hypotheses.lag_decay import (
+from pipeline.audit.hypotheses.decay_rival import (
     decay_explains_lag,
     lag_adds_to_decay,
-    lag_beside_decay_nuisance,
     lag_beyond_eddy_decay,
     lag_over_eddy_decay,
-    recorded_fluxgate_timing,
     slower_than_lag,
+)
+from pipeline.audit.hypotheses.lag_decay import (
+    lag_beside_decay_nuisance,
+    recorded_fluxgate_timing,
     timing_says,
 )
 from pipeline.audit.hypotheses.rival import beyond
