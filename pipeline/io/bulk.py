@@ -16,6 +16,7 @@ from __future__ import annotations
 import struct
 import zlib
 from collections.abc import Iterable, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from itertools import islice
 from typing import BinaryIO
 
@@ -81,6 +82,10 @@ class BulkWriter:
         self.stream = stream
         self.chunk_size = chunk_size
         self._zstd = zstandard.ZstdCompressor(level=level)
+        # a chunk being compressed on the second thread (add_messages): its future and the
+        # rest of what writing it needs
+        self._pool: ThreadPoolExecutor | None = None
+        self._pending: tuple[Future, np.ndarray, np.ndarray, np.ndarray] | None = None
         self._crc = 0
         self._pos = 0
         self.schemas: dict[int, Schema] = {}
@@ -177,27 +182,35 @@ class BulkWriter:
 
         # records are taken a block at a time and a chunk's boundary found from their lengths'
         # running sum (a record joins while the chunk stays within ``limit``; one larger than a
-        # chunk gets its own): the same chunks as a record-by-record loop, without its calls
-        it = iter(records)
-        while part := list(islice(it, 1 << 13)):
-            lens = np.fromiter(map(len, part), np.int64, len(part))
-            j = 0
-            while j < len(part):
-                fill = size + np.cumsum(lens[j:])
-                fit = int(np.searchsorted(fill, limit, side="right"))
-                if fit == 0 and not batch:
-                    fit = 1
-                if fit:
-                    batch.extend(part[j : j + fit])
-                    size = int(fill[fit - 1])
-                    j += fit
-                if j < len(part):  # the next record does not fit: close the chunk
-                    flush()
-                    start += len(batch)
-                    batch, size = [], 0
-        if start + len(batch) != n:
-            raise ValueError(f"{start + len(batch)} records for {n} channel ids and times")
-        flush()
+        # chunk gets its own): the same chunks as a record-by-record loop, without its calls;
+        # each chunk is compressed on a second thread while the next one is packed (zstd and
+        # crc32 release the GIL); chunks are written in their order: the same bytes
+        self._pool = ThreadPoolExecutor(1, thread_name_prefix="mcap-chunk")
+        try:
+            it = iter(records)
+            while part := list(islice(it, 1 << 13)):
+                lens = np.fromiter(map(len, part), np.int64, len(part))
+                j = 0
+                while j < len(part):
+                    fill = size + np.cumsum(lens[j:])
+                    fit = int(np.searchsorted(fill, limit, side="right"))
+                    if fit == 0 and not batch:
+                        fit = 1
+                    if fit:
+                        batch.extend(part[j : j + fit])
+                        size = int(fill[fit - 1])
+                        j += fit
+                    if j < len(part):  # the next record does not fit: close the chunk
+                        flush()
+                        start += len(batch)
+                        batch, size = [], 0
+            if start + len(batch) != n:
+                raise ValueError(f"{start + len(batch)} records for {n} channel ids and times")
+            flush()
+        finally:
+            self._write_pending()
+            self._pool.shutdown()
+            self._pool = None
         counts = np.bincount(channel_id.astype(np.int64))
         for cid in np.flatnonzero(counts):
             self.stats.channel_message_counts[int(cid)] = self.stats.channel_message_counts.get(
@@ -214,15 +227,31 @@ class BulkWriter:
     def _chunk(
         self, records: Sequence[bytes], cids: np.ndarray, times: np.ndarray, offsets: np.ndarray
     ) -> None:
+        """Compress a chunk of ``records`` on the pool's thread (:meth:`add_messages`) and
+        write the one before it."""
         data = b"".join(records)
-        compressed = self._zstd.compress(data)
+        job = self._pool.submit(self._compressed, data)
+        self._write_pending()
+        self._pending = (job, cids, times, offsets)
+
+    def _compressed(self, data: bytes) -> tuple[bytes, int, int]:
+        """(zstd bytes, crc32, size) of a chunk's content."""
+        return self._zstd.compress(data), zlib.crc32(data), len(data)
+
+    def _write_pending(self) -> None:
+        """Write the chunk waiting for its compression, if any (and its message indexes)."""
+        if self._pending is None:
+            return
+        job, cids, times, offsets = self._pending
+        self._pending = None
+        compressed, crc, usize = job.result()
         chunk = Chunk(
             compression="zstd",
             data=compressed,
             message_start_time=int(times.min()),
             message_end_time=int(times.max()),
-            uncompressed_crc=zlib.crc32(data),
-            uncompressed_size=len(data),
+            uncompressed_crc=crc,
+            uncompressed_size=usize,
         )
         rec = serialise(chunk)
         at = self._write(rec)
@@ -235,7 +264,7 @@ class BulkWriter:
             message_index_length=0,
             compression="zstd",
             compressed_size=len(compressed),
-            uncompressed_size=len(data),
+            uncompressed_size=usize,
         )
         parts = []
         pos = self._pos
