@@ -218,3 +218,30 @@ def test_column_channels_write_the_bytes_of_their_payloads(tmp_path):
     b = write_with_new_channels(src, tmp_path / "columns.mcap", [as_columns])
     assert sha256(a) == sha256(b)
     assert as_columns.messages[5] == as_rows.messages[5]  # read one at a time: the same
+
+
+def test_bulk_writer_failing_records_leave_no_thread(tmp_path):
+    """Chunks are compressed on a second thread while the next is packed: a record source that
+    fails part-way raises its own error and leaves no compression thread behind; chunks packed
+    before the failure were written whole, in order (the file's atomic writer discards them)."""
+    import io
+    import threading
+
+    from pipeline.io.bulk import BulkWriter
+
+    def records(n_ok: int):
+        for i in range(n_ok):
+            yield b"\x05" + (40).to_bytes(8, "little") + bytes(40) + bytes([i % 256])
+        raise RuntimeError("source failed")
+
+    before = threading.active_count()
+    w = BulkWriter(io.BytesIO(), chunk_size=500)
+    n = 10_000
+    with pytest.raises(RuntimeError, match="source failed"):
+        w.add_messages(records(9_000), np.zeros(n, np.uint16), np.arange(n, dtype=np.uint64))
+    assert threading.active_count() == before
+    # records are taken 8 192 at a time: the first block's 819 full chunks of ten 50-byte
+    # records were written (the last one from the failure's cleanup), in order
+    assert [c.uncompressed_size for c in w.chunk_indexes] == [500] * 819
+    starts = [c.chunk_start_offset for c in w.chunk_indexes]
+    assert starts == sorted(starts)

@@ -208,9 +208,11 @@ class BulkWriter:
                 raise ValueError(f"{start + len(batch)} records for {n} channel ids and times")
             flush()
         finally:
-            self._write_pending()
-            self._pool.shutdown()
-            self._pool = None
+            try:
+                self._write_pending()
+            finally:
+                self._pool.shutdown()
+                self._pool = None
         counts = np.bincount(channel_id.astype(np.int64))
         for cid in np.flatnonzero(counts):
             self.stats.channel_message_counts[int(cid)] = self.stats.channel_message_counts.get(
