@@ -65,3 +65,36 @@ def test_tiles_without_data_stay_masked(monkeypatch, core):
     good = np.isfinite(fit)
     assert good.mean() > 0.95
     assert np.sqrt(np.mean((fit[good] - v[good]) ** 2)) < 0.05
+
+
+def test_symmetric_solve_equals_the_general_one():
+    """Minimum curvature's normal equations are solved by SuperLU in its symmetric mode
+    (``grid._solve_spd``): the same solution as the general factorisation on a positive
+    definite system, one column or several; a singular system falls back to the general
+    one (its warning and non-finite solution, not an exception)."""
+    import warnings
+
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import MatrixRankWarning, spsolve
+
+    from pipeline.maps.grid import _laplacian, _solve_spd
+
+    rng = np.random.default_rng(5)
+    nx, ny, m = 23, 31, 300
+    rows = np.repeat(np.arange(m), 1)
+    cols = rng.integers(0, nx * ny, m)
+    a = sp.csr_matrix((np.ones(m), (rows, cols)), shape=(m, nx * ny))
+    lap = _laplacian(ny, nx)
+    lhs = (a.T @ a + 1e-3 * (lap.T @ lap)).tocsc()
+    rhs = np.asarray(a.T @ rng.normal(size=(m, 2)))
+    want = spsolve(lhs, rhs)
+    got = _solve_spd(lhs, rhs)
+    assert np.max(np.abs(got - want)) <= 1e-9 * np.max(np.abs(want))
+    one = _solve_spd(lhs, rhs[:, :1])
+    assert one.shape == (nx * ny, 1)
+    assert np.allclose(one[:, 0], want[:, 0], rtol=0, atol=1e-9 * np.max(np.abs(want)))
+    singular = sp.csc_matrix(np.ones((2, 2)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", MatrixRankWarning)
+        out = _solve_spd(singular, np.ones((2, 1)))
+    assert out.shape == (2, 1) and not np.isfinite(out).all()

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.sparse.linalg import splu
+from scipy.sparse.linalg import splu, spsolve
 from scipy.spatial import cKDTree
 
 
@@ -115,12 +115,15 @@ def _solve_spd(lhs: sp.csc_matrix, rhs: np.ndarray) -> np.ndarray:
     diagonal, which a positive definite matrix needs no others than. Its default (a column
     ordering and partial pivoting, for any matrix) fills the grid's banded system about
     twice as much and takes about twice the time; scipy has no sparse Cholesky."""
-    lu = splu(
-        lhs,
-        permc_spec="MMD_AT_PLUS_A",
-        diag_pivot_thresh=0.0,
-        options={"SymmetricMode": True},
-    )
+    try:
+        lu = splu(
+            lhs,
+            permc_spec="MMD_AT_PLUS_A",
+            diag_pivot_thresh=0.0,
+            options={"SymmetricMode": True},
+        )
+    except RuntimeError:  # a zero pivot (a singular system): the general factorisation
+        return np.asarray(spsolve(lhs, rhs[:, 0] if rhs.shape[1] == 1 else rhs)).reshape(rhs.shape)
     return lu.solve(rhs)
 
 
