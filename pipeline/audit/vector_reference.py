@@ -238,6 +238,15 @@ def _difference_columns(
     return cols
 
 
+def _span_basis(a: np.ndarray) -> np.ndarray:
+    """An orthonormal basis (n, r) of the span of the columns of ``a`` (n, k): its left
+    singular vectors above 1e-8 of the largest singular value. Some of the difference's
+    columns are (nearly) dependent on the sphere (sum_i u_i^2 = 1, sum_i u_i du_i/dt = 0),
+    which a QR would keep as noise directions."""
+    uu, sv, _ = np.linalg.svd(a, full_matrices=False)
+    return uu[:, sv > 1e-8 * sv[0]]
+
+
 def _step_bases(q0: np.ndarray, steps_w: list[np.ndarray]) -> np.ndarray:
     """(n, 3 m) orthonormal bases of the m whitened step designs' parts orthogonal to the
     base's columns (``q0``, orthonormal); zeros for a design the base already spans."""
@@ -454,8 +463,7 @@ def _least_squares_best(tb, y, base, u, grid) -> int:
     """The index in ``grid`` of the likeliest step ``u [tb > t]`` against ``base`` by
     ordinary least squares (no whitening, equal weights; :class:`_StepScan` with an AR order
     of 0): where the step's three columns take the most of the residual."""
-    uu, sv, _ = np.linalg.svd(base, full_matrices=False)
-    q0 = uu[:, sv > 1e-8 * sv[0]]
+    q0 = _span_basis(base)
     n = y.size
     scan = _StepScan.build(u, tb, grid, np.zeros(0), np.arange(n), u, np.ones(n), q0)
     return int(np.argmax(scan.f_stats(y, q0)[:, 0]))
@@ -480,10 +488,7 @@ def _scan_pass(tb, y, base, u, block, grid, with_step, scale_window_bins: float)
     r2 = uniform_filter1d((yw - aw @ cw) ** 2, int(scale_window_bins) | 1, mode="nearest")
     scale = np.sqrt(np.maximum(r2, 0.25 * np.median(r2)))
     yw, bw = yw / scale, bw / scale[:, None]
-    # an orthonormal basis of the columns' span: some are (nearly) dependent on the sphere
-    # (sum_i u_i^2 = 1, sum_i u_i du_i/dt = 0), which a QR would keep as noise directions
-    uu, sv, _ = np.linalg.svd(bw, full_matrices=False)
-    q0 = uu[:, sv > 1e-8 * sv[0]]
+    q0 = _span_basis(bw)
     scan = _StepScan.build(u, tb, grid, phi, kept, whiten(u) / scale[:, None], scale, q0)
     f = scan.f_stats(yw, q0)[:, 0]
     return _ScanPass(phi, whiten, scale, yw, q0, scan, f, int(np.argmax(f)))
@@ -557,10 +562,8 @@ def persists_against_fluxgate(
     if tb.size < 4 * (base.shape[1] + 3) or after.sum() < 2 * (base.shape[1] + 3):
         return None
 
-    # the base's span once (as the scan's: some of its columns are dependent on the sphere);
-    # each model then only adds its three step columns' part outside it
-    uu, sv, _ = np.linalg.svd(base, full_matrices=False)
-    q0 = uu[:, sv > 1e-8 * sv[0]]
+    # the base's span once; each model then only adds its three step columns' part outside it
+    q0 = _span_basis(base)
     r0 = y - q0 @ (q0.T @ y)
 
     def rss(on: np.ndarray) -> float:
