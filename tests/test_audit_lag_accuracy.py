@@ -15,7 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.audit.extended import AuditData, scalar_series
+from pipeline.audit.extended import AuditData, scalar_retimer, scalar_series
 from pipeline.compensate.terms import five_point_difference, per_sample_difference
 
 RATE_HZ = 10.0
@@ -50,6 +50,32 @@ def test_the_scalar_is_re_timed_between_its_samples_without_bias(lag_s):
     inner = ok & (t > 1.0) & (t < t[-1] - 1.0)
     # a straight line between samples misses 30 nT's curvature by up to 0.07 nT here
     assert np.max(np.abs(got[inner] - truth[inner])) < 0.002
+
+
+def test_one_retimer_re_times_a_gapped_record_at_every_lag():
+    # a lag search asks one record for many lags: the splines and derivatives are built
+    # once, and each lag still re-times each contiguous block on its own (NaN where the
+    # re-timed epoch leaves its block, the gap never bridged)
+    t, x, w = _sinusoid(0.3)
+    x = x.copy()
+    x[1000] = np.nan  # splits the record into two blocks
+    data = AuditData(t, x, np.zeros((t.size, 3)), None)
+    delay, first = scalar_retimer(data, "delay"), scalar_retimer(data, "first_order")
+    for lag_s in (0.3, -0.05, 0.124):
+        got = delay(lag_s)
+        truth = 30.0 * np.sin(w * (t + lag_s) + 0.3)
+        ok = np.isfinite(got)
+        assert not ok[1000]
+        if lag_s > 0:  # read later than the first block's last sample: not bridged
+            assert not np.any(ok[:1000] & (t[:1000] + lag_s > t[999]))
+        inner = ok & (np.abs(t - t[1000]) > 1.0) & (t > 1.0) & (t < t[-1] - 1.0)
+        assert np.max(np.abs(got[inner] - truth[inner])) < 0.002
+        # the first-order inversion: y + lag dy/dt, the derivative per block
+        rate = 30.0 * w * np.cos(w * t + 0.3)
+        got1 = first(lag_s)
+        inner1 = np.isfinite(got1) & (np.abs(t - t[1000]) > 1.0) & (t > 1.0) & (t < t[-1] - 1.0)
+        assert np.max(np.abs(got1[inner1] - (x + lag_s * rate)[inner1])) < 1e-3
+    assert delay(0.0) is data.scalar_nT
 
 
 def test_a_lag_between_samples_is_estimated_within_a_few_ms(tmp_path):

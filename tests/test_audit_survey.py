@@ -319,3 +319,28 @@ def test_a_crossing_read_in_a_turns_roll_out_is_left_out():
     ]
     keep = AuditEvents._straight_crossings(fake, xs)
     assert keep.tolist() == [True, False, False, False]
+
+
+def test_the_scans_batched_bases_take_what_each_candidates_own_basis_takes():
+    # each candidate's columns beyond the null design, stacked with the others of its size:
+    # the same sums of squares as scipy's orth of each one alone, candidates partly and
+    # wholly in the null design's span and an empty candidate included
+    from scipy.linalg import orth
+
+    from pipeline.audit.line_levels import _explained
+
+    rng = np.random.default_rng(7)
+    n = 60
+    base = rng.normal(size=(n, 4))
+    qb = orth(base)
+    res = rng.normal(size=(n, 5))
+    res -= qb @ (qb.T @ res)
+    cands = [rng.normal(size=(n, 2)) for _ in range(6)]
+    cands.append(np.column_stack([base[:, 0] * 2.0 - base[:, 3], rng.normal(size=n)]))
+    cands.append(np.column_stack([base[:, 1], base[:, 2]]))
+    got = _explained(np.stack(cands), qb, res)
+    for c, e in enumerate(cands):
+        r = e - qb @ (qb.T @ e)
+        qc = orth(r, rcond=1e-10)
+        assert got[c] == pytest.approx(np.sum((qc.T @ res) ** 2, axis=0), rel=1e-9, abs=1e-9)
+    assert _explained(np.zeros((3, n, 0)), qb, res).shape == (3, 5)

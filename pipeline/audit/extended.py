@@ -20,6 +20,7 @@ also uses: band-pass per contiguous block, trim, ridge.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -273,29 +274,50 @@ def scalar_series(data: AuditData, lag_s: float, response: str = "delay") -> np.
     contiguous block; NaN where the re-timed epoch leaves it). ``first_order``: a sensor
     whose reading follows the field through 1 / (1 + s lag_s) is inverted exactly by
     y + lag_s dy/dt (per contiguous block, dy by :data:`AUDIT_DIFFERENCE`; the derivative
-    amplifies noise only above the calibration band).
+    amplifies noise only above the calibration band). See :func:`scalar_retimer`, which
+    builds the splines or derivatives once for many lags.
     """
     if not lag_s:
         return data.scalar_nT
+    return scalar_retimer(data, response)(lag_s)
+
+
+def scalar_retimer(data: AuditData, response: str = "delay") -> Callable[[float], np.ndarray]:
+    """``retime(lag_s)``: :func:`scalar_series` of ``data`` at any lag (s), the cubic splines
+    (``delay``) or the derivatives (``first_order``) of each contiguous block built once: a
+    lag search evaluates hundreds of lags on the same record."""
     if response not in LAG_RESPONSES:
         raise ValueError(f"unknown lag response {response!r} ({', '.join(LAG_RESPONSES)})")
     ok = np.isfinite(data.scalar_nT)
-    out = np.full(data.scalar_nT.shape, np.nan)
+    parts = []
     for b in contiguous_blocks(ok, data.time_s):
         if b.size < 5:
             continue
         t, y = data.time_s[b], data.scalar_nT[b]
         if response == "first_order":
             dt = float(np.median(np.diff(t)))
-            out[b] = y + lag_s * AUDIT_DIFFERENCE(y) / dt
-            continue
-        # a cubic spline, not a straight line, between the samples: a fixed-wing's
-        # interference swings by tens of nT in a manoeuvre, and a line misses its curvature
-        # by up to (w dt)^2 / 8 of the swing, which reads as a decay beside a biased lag
-        tq = t + lag_s
-        inside = (tq >= t[0]) & (tq <= t[-1])
-        out[b[inside]] = CubicSpline(t, y)(tq[inside])
-    return out
+            parts.append((b, t, y, AUDIT_DIFFERENCE(y) / dt))
+        else:
+            # a cubic spline, not a straight line, between the samples: a fixed-wing's
+            # interference swings by tens of nT in a manoeuvre, and a line misses its
+            # curvature by up to (w dt)^2 / 8 of the swing, which reads as a decay beside
+            # a biased lag
+            parts.append((b, t, y, CubicSpline(t, y)))
+
+    def retime(lag_s: float) -> np.ndarray:
+        if not lag_s:
+            return data.scalar_nT
+        out = np.full(data.scalar_nT.shape, np.nan)
+        for b, t, y, f in parts:
+            if response == "first_order":
+                out[b] = y + lag_s * f
+                continue
+            tq = t + lag_s
+            inside = (tq >= t[0]) & (tq <= t[-1])
+            out[b[inside]] = f(tq[inside])
+        return out
+
+    return retime
 
 
 def design(data: AuditData, spec: ModelSpec) -> Design:
@@ -592,11 +614,12 @@ def lag_cost(
     # what the spec takes as known (a measured gradient's field, known couplings) leaves the
     # record before the fit at every candidate lag, as in design()
     known = data.scalar_nT - des.y
+    retime = scalar_retimer(data, spec.lag_response)
 
     def costs(taus: np.ndarray, ridge_lambda: float = lam) -> np.ndarray:
         # every candidate's re-timed record band-passed in one call (the filter runs along
         # the rows, the candidates are columns): the same numbers as one call each
-        y = np.column_stack([scalar_series(data, float(tau), spec.lag_response) for tau in taus])
+        y = np.column_stack([retime(float(tau)) for tau in taus])
         yf, _ = bandpass_blocks(y - known[:, None], blocks, sos, bs.trim_at(data.rate_hz))
         yf = yf[rows]
         r = yf - kf @ solver.solve_for(yf, ridge_lambda)

@@ -82,6 +82,19 @@ def _orth(a: np.ndarray) -> np.ndarray:
     return orth(a, rcond=1e-10) if a.shape[1] else np.zeros((a.shape[0], 0))
 
 
+def _explained(e: np.ndarray, qb: np.ndarray, res: np.ndarray) -> np.ndarray:
+    """(m, draws) sum of squares of ``res`` (n, draws) each of the m stacked designs ``e``
+    (m, n, k) takes beyond the orthonormal basis ``qb``: its residual columns' orthonormal
+    basis as :func:`_orth` finds it (singular values under 1e-10 of the largest dropped)."""
+    if e.shape[2] == 0:
+        return np.zeros((e.shape[0], res.shape[1]))
+    r = e - qb @ np.matmul(qb.T, e)
+    u, sv, _ = np.linalg.svd(r, full_matrices=False)
+    kept = sv > 1e-10 * sv.max(axis=1, keepdims=True)
+    proj = np.matmul(np.swapaxes(u, 1, 2), res) * kept[:, :, None]
+    return np.sum(proj**2, axis=1)
+
+
 def scan_statistics(
     model: LineLevelModel, base: np.ndarray, extras: list[np.ndarray], y: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -113,14 +126,18 @@ def scan_statistics(
     sd = model.scale()
     rss0 = np.empty((sd.shape[0], y.shape[1]))
     rss1 = np.empty((len(extras), sd.shape[0], y.shape[1]))
+    # candidates with as many columns are stacked: one batched SVD per size and rho
+    # instead of one per candidate (a survey's scan has a candidate per gap)
+    groups: dict[int, list[int]] = {}
+    for c, e in enumerate(er):
+        groups.setdefault(e.shape[1], []).append(c)
+    stacked = {k: np.stack([er[c] for c in cs]) for k, cs in groups.items()}
     for g, s in enumerate(sd):
         yw, qb = yr / s[:, None], _orth(br / s[:, None])
         res = yw - qb @ (qb.T @ yw)
         rss0[g] = np.sum(res**2, axis=0)
-        for c, e in enumerate(er):
-            ew = e / s[:, None]
-            qc = _orth(ew - qb @ (qb.T @ ew))
-            rss1[c, g] = rss0[g] - np.sum((qc.T @ res) ** 2, axis=0)
+        for k, cs in groups.items():
+            rss1[cs, g] = rss0[g] - _explained(stacked[k] / s[None, :, None], qb, res)
     tiny = 1e-300
     l0 = model.loglik(np.maximum(rss0, tiny), n)
     l1 = model.loglik(np.maximum(rss1.transpose(1, 0, 2), tiny), n)  # (grid, cand, draws)
