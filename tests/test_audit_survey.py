@@ -323,8 +323,8 @@ def test_a_crossing_read_in_a_turns_roll_out_is_left_out():
 
 def test_the_scans_batched_bases_take_what_each_candidates_own_basis_takes():
     # each candidate's columns beyond the null design, stacked with the others of its size:
-    # the same sums of squares as scipy's orth of each one alone, candidates partly and
-    # wholly in the null design's span and an empty candidate included
+    # the same sums of squares as scipy's orth of each one alone (one candidate partly in
+    # the null design's span), none for a candidate wholly in it, none for an empty one
     from scipy.linalg import orth
 
     from pipeline.audit.line_levels import _explained
@@ -339,8 +339,10 @@ def test_the_scans_batched_bases_take_what_each_candidates_own_basis_takes():
     cands.append(np.column_stack([base[:, 0] * 2.0 - base[:, 3], rng.normal(size=n)]))
     cands.append(np.column_stack([base[:, 1], base[:, 2]]))
     got = _explained(np.stack(cands), qb, res)
-    for c, e in enumerate(cands):
+    for c, e in enumerate(cands[:-1]):
         r = e - qb @ (qb.T @ e)
         qc = orth(r, rcond=1e-10)
         assert got[c] == pytest.approx(np.sum((qc.T @ res) ** 2, axis=0), rel=1e-9, abs=1e-9)
+    # wholly inside the span: nothing (its projection's rounding noise is no direction)
+    assert np.allclose(got[-1], 0.0, atol=1e-12)
     assert _explained(np.zeros((3, n, 0)), qb, res).shape == (3, 5)

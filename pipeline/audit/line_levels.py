@@ -84,13 +84,16 @@ def _orth(a: np.ndarray) -> np.ndarray:
 
 def _explained(e: np.ndarray, qb: np.ndarray, res: np.ndarray) -> np.ndarray:
     """(m, draws) sum of squares of ``res`` (n, draws) each of the m stacked designs ``e``
-    (m, n, k) takes beyond the orthonormal basis ``qb``: its residual columns' orthonormal
-    basis as :func:`_orth` finds it (singular values under 1e-10 of the largest dropped)."""
+    (m, n, k) takes beyond the orthonormal basis ``qb``: an orthonormal basis of its columns'
+    part outside ``qb``'s span. Directions under 1e-10 of the candidate's own largest
+    column are dropped: a candidate inside the null design's span adds nothing (relative to
+    what is left after the projection, its rounding noise would pass for a direction)."""
     if e.shape[2] == 0:
         return np.zeros((e.shape[0], res.shape[1]))
     r = e - qb @ np.matmul(qb.T, e)
     u, sv, _ = np.linalg.svd(r, full_matrices=False)
-    kept = sv > 1e-10 * sv.max(axis=1, keepdims=True)
+    own = np.max(np.linalg.norm(e, axis=1), axis=1, keepdims=True)
+    kept = sv > 1e-10 * own
     proj = np.matmul(np.swapaxes(u, 1, 2), res) * kept[:, :, None]
     return np.sum(proj**2, axis=1)
 
