@@ -159,3 +159,23 @@ def test_a_change_that_persists_is_told_from_a_load_switched_off_again(seed):
     # a record ending in the window holds nothing after it
     keep = t < 1401.0
     assert persists_against_fluxgate(t[keep], s[keep], v[keep], 1313.0, window) is None
+
+
+def test_a_step_design_the_base_spans_adds_no_direction():
+    # a recorded current switched on once and left on is a step u . dp the base's current
+    # columns already hold: its part outside the base is rounding noise, not three new
+    # directions; a design outside the base keeps an orthonormal basis
+    from pipeline.audit.vector_reference import _span_basis, _step_bases
+
+    rng = np.random.default_rng(5)
+    n = 400
+    u = rng.normal(size=(n, 3))
+    on = (np.arange(n) > 150).astype(float)
+    spanned = u * on[:, None]
+    base = np.column_stack([np.ones(n), u, spanned @ rng.normal(size=(3, 3))])
+    q0 = _span_basis(base)
+    free = u * (np.arange(n) > 260)[:, None]
+    b = _step_bases(q0, [spanned * 1e3, free])
+    assert np.all(b[:, :3] == 0.0)
+    assert np.allclose(b[:, 3:].T @ b[:, 3:], np.eye(3), atol=1e-9)
+    assert np.allclose(q0.T @ b[:, 3:], 0.0, atol=1e-9)

@@ -249,13 +249,15 @@ def _span_basis(a: np.ndarray) -> np.ndarray:
 
 def _step_bases(q0: np.ndarray, steps_w: list[np.ndarray]) -> np.ndarray:
     """(n, 3 m) orthonormal bases of the m whitened step designs' parts orthogonal to the
-    base's columns (``q0``, orthonormal); zeros for a design the base already spans."""
+    base's columns (``q0``, orthonormal); zeros for a design the base already spans, even in
+    part (a direction under 1e-9 of the design's own largest column: relative to what is
+    left after the projection, a wholly spanned design's rounding noise would pass)."""
     out = np.zeros((q0.shape[0], 3 * len(steps_w)))
     for i, sw in enumerate(steps_w):
         s = sw - q0 @ (q0.T @ sw)
         qs, rs = np.linalg.qr(s)
         d = np.abs(np.diag(rs))
-        if d.min() > 1e-9 * d.max():
+        if d.min() > 1e-9 * np.linalg.norm(sw, axis=0).max():
             out[:, 3 * i : 3 * i + 3] = qs
     return out
 
