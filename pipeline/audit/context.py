@@ -32,7 +32,11 @@ from pipeline.audit.nuisances import NuisanceSelection, select_nuisances
 from pipeline.audit.settings import AuditSettings
 from pipeline.audit.survey import CrossoverSet
 from pipeline.audit.vector_cal import fit_vector_calibration
-from pipeline.audit.vector_reference import VectorStep, vector_reference_step
+from pipeline.audit.vector_reference import (
+    VectorStep,
+    difference_design,
+    vector_reference_step,
+)
 from pipeline.compensate.filters import bandpass_blocks, bandpass_sos, contiguous_blocks
 from pipeline.compensate.stage import calibration_mask
 from pipeline.flight import Flight
@@ -140,6 +144,15 @@ class AuditContext:
             return d.vector_nT
 
     @cached_property
+    def fluxgate_difference(self) -> tuple:
+        """The scalar-minus-fluxgate 1 s means and their model's columns
+        (:func:`pipeline.audit.vector_reference.difference_design` of the calibrated
+        fluxgate and the recorded channels): the step scan and the persistence check share
+        them."""
+        d = self.data
+        return difference_design(d.time_s, d.scalar_nT, self.fluxgate_calibrated, d.aux)
+
+    @cached_property
     def fluxgate_step(self) -> VectorStep | None:
         """A step in the carrier's permanent field located by the scalar-minus-fluxgate test
         (:func:`pipeline.audit.vector_reference.vector_reference_step`; the readings only,
@@ -154,6 +167,7 @@ class AuditContext:
             self.s.event_alpha,
             self.s.min_vector_step_nT,
             self.s.fluxgate_step_margin,
+            design=self.fluxgate_difference,
         )
 
     def null_spec(self) -> ModelSpec:

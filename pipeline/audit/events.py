@@ -217,7 +217,13 @@ class AuditEvents:
         nxt = t[flown & (t > end)]
         window = (end, float(nxt.min()) if nxt.size else end)
         persists = persists_against_fluxgate(
-            t, self.data.scalar_nT, self.fluxgate_calibrated, t_s, window, self.data.aux
+            t,
+            self.data.scalar_nT,
+            self.fluxgate_calibrated,
+            t_s,
+            window,
+            self.data.aux,
+            design=self.fluxgate_difference,
         )
         return persists is False
 

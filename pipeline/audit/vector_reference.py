@@ -370,6 +370,7 @@ def scan_vector_reference(
     scale_window_s: float = 31.0,
     vif_window_s: float = 60.0,
     seed: int = 0,
+    design: tuple | None = None,
 ) -> VectorStep | None:
     """The likeliest step in the carrier's permanent field against the fluxgate, with its
     scan-corrected p (significant or not; :func:`vector_reference_step` keeps it or not).
@@ -394,6 +395,8 @@ def scan_vector_reference(
         Averaging bin, s.
     seed : int
         Seed of the null simulations (fixed: the same answer every run).
+    design : tuple, optional
+        :func:`difference_design` of these arguments at ``bin_s``, when the caller has it.
 
     Returns
     -------
@@ -401,7 +404,7 @@ def scan_vector_reference(
         The likeliest step; None when the record is too short for the model (fewer than
         four bins a column, or shorter than four guards).
     """
-    tb, y, base, u, block = difference_design(time_s, scalar_nT, vector_nT, aux, bin_s)
+    tb, y, base, u, block = design or difference_design(time_s, scalar_nT, vector_nT, aux, bin_s)
     n, k0 = base.shape
     if n < 4 * (k0 + 3) or tb[-1] - tb[0] < 4 * guard_s:
         return None
@@ -531,6 +534,7 @@ def persists_against_fluxgate(
     off_window_s: tuple[float, float],
     aux: dict[str, np.ndarray] | None = None,
     bin_s: float = 1.0,
+    design: tuple | None = None,
 ) -> bool | None:
     """Whether a change of the carrier's field at ``t_s`` persists, read in the
     scalar-minus-vector difference: ``u . dp`` from ``t_s`` to the record's end fits the
@@ -553,13 +557,15 @@ def persists_against_fluxgate(
         Earliest and latest switch-off times tried, s.
     bin_s : float
         Averaging bin, s.
+    design : tuple, optional
+        :func:`difference_design` of these arguments at ``bin_s``, when the caller has it.
 
     Returns
     -------
     bool or None
         None when the record holds too few bins after the window for the model.
     """
-    tb, y, base, u, _ = difference_design(time_s, scalar_nT, vector_nT, aux, bin_s)
+    tb, y, base, u, _ = design or difference_design(time_s, scalar_nT, vector_nT, aux, bin_s)
     after = tb > max(off_window_s[1], t_s)
     if tb.size < 4 * (base.shape[1] + 3) or after.sum() < 2 * (base.shape[1] + 3):
         return None
