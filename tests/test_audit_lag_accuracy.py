@@ -61,19 +61,24 @@ def test_one_retimer_re_times_a_gapped_record_at_every_lag():
     x[1000] = np.nan  # splits the record into two blocks
     data = AuditData(t, x, np.zeros((t.size, 3)), None)
     delay, first = scalar_retimer(data, "delay"), scalar_retimer(data, "first_order")
-    for lag_s in (0.3, -0.05, 0.124):
+    for lag_s in (0.27, -0.05, 0.124):
         got = delay(lag_s)
         truth = 30.0 * np.sin(w * (t + lag_s) + 0.3)
         ok = np.isfinite(got)
         assert not ok[1000]
-        if lag_s > 0:  # read later than the first block's last sample: not bridged
+        # re-timed outside its own block: not bridged across the gap, not read before a start
+        if lag_s > 0:
             assert not np.any(ok[:1000] & (t[:1000] + lag_s > t[999]))
+        else:
+            assert not ok[0] and not ok[1001] and ok[1002]
         inner = ok & (np.abs(t - t[1000]) > 1.0) & (t > 1.0) & (t < t[-1] - 1.0)
         assert np.max(np.abs(got[inner] - truth[inner])) < 0.002
         # the first-order inversion: y + lag dy/dt, the derivative per block
         rate = 30.0 * w * np.cos(w * t + 0.3)
         got1 = first(lag_s)
         inner1 = np.isfinite(got1) & (np.abs(t - t[1000]) > 1.0) & (t > 1.0) & (t < t[-1] - 1.0)
+        # each block's own derivative: defined up to the gap on both sides
+        assert np.all(np.isfinite(np.delete(got1, 1000)))
         assert np.max(np.abs(got1[inner1] - (x + lag_s * rate)[inner1])) < 1e-3
     assert delay(0.0) is data.scalar_nT
 

@@ -346,3 +346,26 @@ def test_the_scans_batched_bases_take_what_each_candidates_own_basis_takes():
     # wholly inside the span: nothing (its projection's rounding noise is no direction)
     assert np.allclose(got[-1], 0.0, atol=1e-12)
     assert _explained(np.zeros((3, n, 0)), qb, res).shape == (3, 5)
+
+
+def test_the_scan_in_batches_is_the_scan_one_candidate_at_a_time(monkeypatch):
+    # candidates of one to four columns, batched by size across a batch boundary, give each
+    # candidate the likelihood ratio and rho of its own fit (a per-candidate loop)
+    from pipeline.audit import line_levels
+    from pipeline.audit.line_levels import LineLevelModel, scan_statistics
+
+    rng = np.random.default_rng(11)
+    n = 80
+    z = np.zeros((n, 6))
+    z[np.arange(n), rng.integers(0, 6, n)] = 1.0
+    z[np.arange(n), rng.integers(0, 6, n)] -= 1.0
+    model = LineLevelModel.of(z, n)
+    base = np.column_stack([np.ones(n), rng.normal(size=n)])
+    cands = [rng.normal(size=(n, int(k))) for k in rng.integers(1, 5, 11)]
+    y = rng.normal(size=(n, 3)) + cands[4] @ np.full(cands[4].shape[1], 0.8)[:, None]
+    monkeypatch.setattr(line_levels, "BATCH", 2)
+    lr, rho0, rho1 = scan_statistics(model, base, cands, y)
+    for c, e in enumerate(cands):
+        lr_c, rho0_c, rho1_c = scan_statistics(model, base, [e], y)
+        assert lr[c] == pytest.approx(lr_c[0], rel=1e-9, abs=1e-9)
+        assert np.array_equal(rho1[c], rho1_c[0]) and np.array_equal(rho0, rho0_c)

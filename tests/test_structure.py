@@ -248,7 +248,6 @@ def test_test_modules_share_helpers_not_each_other():
 # detectors, being reworked on their own; a function not listed stays within the limit, a
 # listed one must not grow
 AUDIT_LONG_FUNCTIONS = {
-    "pipeline/audit/vector_reference.py:scan_vector_reference": 127,
     "pipeline/audit/vector_reference.py:difference_design": 83,
 }
 MAX_CLASS_LINES, MAX_FUNCTION_LINES = 400, 80

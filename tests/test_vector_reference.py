@@ -9,6 +9,7 @@ import pytest
 from scipy.signal import lfilter
 
 from pipeline.audit.vector_reference import (
+    difference_design,
     persists_against_fluxgate,
     scan_vector_reference,
     vector_reference_step,
@@ -179,3 +180,17 @@ def test_a_step_design_the_base_spans_adds_no_direction():
     assert np.all(b[:, :3] == 0.0)
     assert np.allclose(b[:, 3:].T @ b[:, 3:], np.eye(3), atol=1e-9)
     assert np.allclose(q0.T @ b[:, 3:], 0.0, atol=1e-9)
+
+
+def test_a_design_built_once_gives_what_each_test_builds_itself():
+    # the audit builds the difference's design once for the step scan and the persistence
+    # check: given it, each gives the same answer as from the readings
+    t, s, v = flight(6, np.array([2.0, -3.0, 1.5]), step_s=1313.0, off_s=1500.0)
+    design = difference_design(t, s, v)
+    own, given = scan_vector_reference(t, s, v), scan_vector_reference(t, s, v, design=design)
+    assert (given.time_s, given.p_value) == (own.time_s, own.p_value)
+    assert np.array_equal(given.dp_nT, own.dp_nT)
+    for window in ((1310.0, 1320.0), (1450.0, 1600.0)):
+        assert persists_against_fluxgate(t, s, v, 1313.0, window) is persists_against_fluxgate(
+            t, s, v, 1313.0, window, design=design
+        )

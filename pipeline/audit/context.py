@@ -144,7 +144,7 @@ class AuditContext:
             return d.vector_nT
 
     @cached_property
-    def fluxgate_difference(self) -> tuple:
+    def fluxgate_difference(self) -> tuple[np.ndarray, ...]:
         """The scalar-minus-fluxgate 1 s means and their model's columns
         (:func:`pipeline.audit.vector_reference.difference_design` of the calibrated
         fluxgate and the recorded channels): the step scan and the persistence check share

@@ -283,9 +283,23 @@ def scalar_series(data: AuditData, lag_s: float, response: str = "delay") -> np.
 
 
 def scalar_retimer(data: AuditData, response: str = "delay") -> Callable[[float], np.ndarray]:
-    """``retime(lag_s)``: :func:`scalar_series` of ``data`` at any lag (s), the cubic splines
-    (``delay``) or the derivatives (``first_order``) of each contiguous block built once: a
-    lag search evaluates hundreds of lags on the same record."""
+    """:func:`scalar_series` of ``data`` at any lag, the cubic splines (``delay``) or the
+    derivatives (``first_order``) of each contiguous block built once: a lag search
+    evaluates hundreds of lags on the same record.
+
+    Parameters
+    ----------
+    data : AuditData
+        The record (times s, scalar nT).
+    response : str
+        ``delay`` or ``first_order`` (:data:`LAG_RESPONSES`).
+
+    Returns
+    -------
+    callable
+        ``retime(lag_s)``: the scalar (nT) the sensor would have read without a lag of
+        ``lag_s`` seconds, the same numbers as :func:`scalar_series`.
+    """
     if response not in LAG_RESPONSES:
         raise ValueError(f"unknown lag response {response!r} ({', '.join(LAG_RESPONSES)})")
     ok = np.isfinite(data.scalar_nT)
@@ -296,7 +310,7 @@ def scalar_retimer(data: AuditData, response: str = "delay") -> Callable[[float]
         t, y = data.time_s[b], data.scalar_nT[b]
         if response == "first_order":
             dt = float(np.median(np.diff(t)))
-            parts.append((b, t, y, AUDIT_DIFFERENCE(y) / dt))
+            parts.append((b, t, y, (AUDIT_DIFFERENCE(y), dt)))
         else:
             # a cubic spline, not a straight line, between the samples: a fixed-wing's
             # interference swings by tens of nT in a manoeuvre, and a line misses its
@@ -310,7 +324,8 @@ def scalar_retimer(data: AuditData, response: str = "delay") -> Callable[[float]
         out = np.full(data.scalar_nT.shape, np.nan)
         for b, t, y, f in parts:
             if response == "first_order":
-                out[b] = y + lag_s * f
+                rate, dt = f
+                out[b] = y + lag_s * rate / dt
                 continue
             tq = t + lag_s
             inside = (tq >= t[0]) & (tq <= t[-1])

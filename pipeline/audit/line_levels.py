@@ -32,6 +32,8 @@ from scipy.linalg import orth
 # rho = line-level variance / per-reading variance: 0, then 1e-2 .. 3e2 (levels from a
 # hundredth of the reading noise to 17 times its size)
 RHO_GRID = np.r_[0.0, np.logspace(-2.0, 2.5, 15)]
+# candidates of :func:`scan_statistics` stacked into one batched SVD
+BATCH = 128
 
 
 def line_incidence(line_a: np.ndarray, line_b: np.ndarray) -> np.ndarray:
@@ -129,18 +131,20 @@ def scan_statistics(
     sd = model.scale()
     rss0 = np.empty((sd.shape[0], y.shape[1]))
     rss1 = np.empty((len(extras), sd.shape[0], y.shape[1]))
-    # candidates with as many columns are stacked: one batched SVD per size and rho
-    # instead of one per candidate (a survey's scan has a candidate per gap)
+    # candidates with as many columns are stacked, BATCH at a time: one batched SVD per
+    # batch and rho instead of one per candidate (a survey's scan has a candidate per gap
+    # between readings, so all of them at once would grow with the readings squared)
     groups: dict[int, list[int]] = {}
     for c, e in enumerate(er):
         groups.setdefault(e.shape[1], []).append(c)
-    stacked = {k: np.stack([er[c] for c in cs]) for k, cs in groups.items()}
+    batches = [cs[i : i + BATCH] for cs in groups.values() for i in range(0, len(cs), BATCH)]
     for g, s in enumerate(sd):
         yw, qb = yr / s[:, None], _orth(br / s[:, None])
         res = yw - qb @ (qb.T @ yw)
         rss0[g] = np.sum(res**2, axis=0)
-        for k, cs in groups.items():
-            rss1[cs, g] = rss0[g] - _explained(stacked[k] / s[None, :, None], qb, res)
+        for cs in batches:
+            e = np.stack([er[c] for c in cs]) / s[None, :, None]
+            rss1[cs, g] = rss0[g] - _explained(e, qb, res)
     tiny = 1e-300
     l0 = model.loglik(np.maximum(rss0, tiny), n)
     l1 = model.loglik(np.maximum(rss1.transpose(1, 0, 2), tiny), n)  # (grid, cand, draws)

@@ -370,7 +370,7 @@ def scan_vector_reference(
     scale_window_s: float = 31.0,
     vif_window_s: float = 60.0,
     seed: int = 0,
-    design: tuple | None = None,
+    design: tuple[np.ndarray, ...] | None = None,
 ) -> VectorStep | None:
     """The likeliest step in the carrier's permanent field against the fluxgate, with its
     scan-corrected p (significant or not; :func:`vector_reference_step` keeps it or not).
@@ -404,22 +404,14 @@ def scan_vector_reference(
         The likeliest step; None when the record is too short for the model (fewer than
         four bins a column, or shorter than four guards).
     """
-    tb, y, base, u, block = design or difference_design(time_s, scalar_nT, vector_nT, aux, bin_s)
+    if design is None:
+        design = difference_design(time_s, scalar_nT, vector_nT, aux, bin_s)
+    tb, y, base, u, block = design
     n, k0 = base.shape
     if n < 4 * (k0 + 3) or tb[-1] - tb[0] < 4 * guard_s:
         return None
     grid = np.arange(tb[0] + guard_s, tb[-1] - guard_s, scan_every_s)
-    # the whitening and the weights come from the model's residual, and a large step left
-    # in it both pulls the AR(2) towards a random walk (which whitens a step into one bin)
-    # and raises the local RMS around itself, so the step weighs itself down: a scan
-    # whitened without it can miss it altogether. So the first scan is plain least squares
-    # (nothing estimated from the residual), and each whitened scan takes the AR(2) and the
-    # weights from the residual with the previous scan's likeliest step in.
-    with_step = u * (tb > grid[_least_squares_best(tb, y, base, u, grid)])[:, None]
-    sp = _scan_pass(tb, y, base, u, block, grid, with_step, scale_window_s / bin_s)
-    with_step = u * (tb > grid[sp.best])[:, None]
-    sp = _scan_pass(tb, y, base, u, block, grid, with_step, scale_window_s / bin_s)
-    with_step = u * (tb > grid[sp.best])[:, None]
+    sp, with_step = _located_scan(tb, y, base, u, block, grid, scale_window_s / bin_s)
     i = sp.best
     vif = _slow_correlation(sp, with_step, vif_window_s / bin_s)
     f = sp.f / vif
@@ -462,6 +454,22 @@ class _ScanPass:
     scan: _StepScan
     f: np.ndarray
     best: int
+
+
+def _located_scan(tb, y, base, u, block, grid, window_bins: float) -> tuple[_ScanPass, np.ndarray]:
+    """The whitened, weighted scan (:func:`_scan_pass`) and its likeliest step's columns.
+
+    The whitening and the weights come from the model's residual, and a large step left in
+    it both pulls the AR(2) towards a random walk (which whitens a step into one bin) and
+    raises the local RMS around itself, so the step weighs itself down: a scan whitened
+    without it can miss it altogether. So the first scan is plain least squares (nothing
+    estimated from the residual), and each of two whitened scans takes the AR(2) and the
+    weights from the residual with the previous scan's likeliest step in."""
+    with_step = u * (tb > grid[_least_squares_best(tb, y, base, u, grid)])[:, None]
+    for _ in range(2):
+        sp = _scan_pass(tb, y, base, u, block, grid, with_step, window_bins)
+        with_step = u * (tb > grid[sp.best])[:, None]
+    return sp, with_step
 
 
 def _least_squares_best(tb, y, base, u, grid) -> int:
@@ -534,7 +542,7 @@ def persists_against_fluxgate(
     off_window_s: tuple[float, float],
     aux: dict[str, np.ndarray] | None = None,
     bin_s: float = 1.0,
-    design: tuple | None = None,
+    design: tuple[np.ndarray, ...] | None = None,
 ) -> bool | None:
     """Whether a change of the carrier's field at ``t_s`` persists, read in the
     scalar-minus-vector difference: ``u . dp`` from ``t_s`` to the record's end fits the
@@ -565,7 +573,9 @@ def persists_against_fluxgate(
     bool or None
         None when the record holds too few bins after the window for the model.
     """
-    tb, y, base, u, _ = design or difference_design(time_s, scalar_nT, vector_nT, aux, bin_s)
+    if design is None:
+        design = difference_design(time_s, scalar_nT, vector_nT, aux, bin_s)
+    tb, y, base, u, _ = design
     after = tb > max(off_window_s[1], t_s)
     if tb.size < 4 * (base.shape[1] + 3) or after.sum() < 2 * (base.shape[1] + 3):
         return None
