@@ -302,34 +302,32 @@ def scalar_retimer(data: AuditData, response: str = "delay") -> Callable[[float]
     """
     if response not in LAG_RESPONSES:
         raise ValueError(f"unknown lag response {response!r} ({', '.join(LAG_RESPONSES)})")
-    ok = np.isfinite(data.scalar_nT)
-    parts = []
-    for b in contiguous_blocks(ok, data.time_s):
-        if b.size < 5:
-            continue
-        t, y = data.time_s[b], data.scalar_nT[b]
-        if response == "first_order":
-            dt = float(np.median(np.diff(t)))
-            parts.append((b, t, y, (AUDIT_DIFFERENCE(y), dt)))
-        else:
-            # a cubic spline, not a straight line, between the samples: a fixed-wing's
-            # interference swings by tens of nT in a manoeuvre, and a line misses its
-            # curvature by up to (w dt)^2 / 8 of the swing, which reads as a decay beside
-            # a biased lag
-            parts.append((b, t, y, CubicSpline(t, y)))
+    t, y = data.time_s, data.scalar_nT
+    blocks = [b for b in contiguous_blocks(np.isfinite(y), t) if b.size >= 5]
+    if response == "first_order":
+        rates = [(b, y[b], AUDIT_DIFFERENCE(y[b]), float(np.median(np.diff(t[b])))) for b in blocks]
+
+        def fill(out: np.ndarray, lag_s: float) -> None:
+            for b, yb, rate, dt in rates:
+                out[b] = yb + lag_s * rate / dt
+
+    else:
+        # a cubic spline, not a straight line, between the samples: a fixed-wing's
+        # interference swings by tens of nT in a manoeuvre, and a line misses its curvature
+        # by up to (w dt)^2 / 8 of the swing, which reads as a decay beside a biased lag
+        splines = [(b, t[b], CubicSpline(t[b], y[b])) for b in blocks]
+
+        def fill(out: np.ndarray, lag_s: float) -> None:
+            for b, tb, spline in splines:
+                tq = tb + lag_s
+                inside = (tq >= tb[0]) & (tq <= tb[-1])
+                out[b[inside]] = spline(tq[inside])
 
     def retime(lag_s: float) -> np.ndarray:
         if not lag_s:
-            return data.scalar_nT
-        out = np.full(data.scalar_nT.shape, np.nan)
-        for b, t, y, f in parts:
-            if response == "first_order":
-                rate, dt = f
-                out[b] = y + lag_s * rate / dt
-                continue
-            tq = t + lag_s
-            inside = (tq >= t[0]) & (tq <= t[-1])
-            out[b[inside]] = f(tq[inside])
+            return y
+        out = np.full(y.shape, np.nan)
+        fill(out, lag_s)
         return out
 
     return retime
