@@ -255,3 +255,20 @@ def test_the_legs_regressor_is_averaged_as_the_airborne_field_is(seed):
     ev = diurnal_evidence([_diurnal_legs(ctx, None)])
     assert ev.ci95[0] <= 1.0 <= ev.ci95[1]
     assert abs(ev.coefficient - 1.0) < 0.03
+
+
+def test_the_held_out_gain_weighs_each_set_by_its_own_noise():
+    """Crossovers read to a nanotesla beside calibration-leg blocks read to a tenth: the
+    held-out gain is that of the likelihood each set's noise gives (the fit's weighting),
+    not of the plain nT RMS the noisy crossovers would decide."""
+    rng = np.random.default_rng(21)
+    # a short survey across the variation's turning point: its crossovers see little of it
+    phase = np.pi / 2 - 2 * np.pi * 1450.0 / PERIOD_S
+    xo = crossover_set(rng, phase, noise=2.0, n=20)
+    legs = leg_set(rng, phase, noise=0.1, t0=100.0)
+    ev = diurnal_evidence([xo, legs])
+    alone = diurnal_evidence([legs])
+    assert ev.test.p_value < 1e-4
+    assert alone.heldout.reduction > 0.5
+    # the noisy set adds little information and so moves the gain little
+    assert ev.heldout.reduction > 0.5 * alone.heldout.reduction

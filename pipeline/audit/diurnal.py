@@ -20,10 +20,12 @@ standard deviation; a level, position or heading column belongs to one set, the 
 coefficient is shared): a one-sided F-test of the coefficient (the variation's sign is known),
 and a held-out check of the correction itself, which fits nothing: each crossover and each
 leg block predicted from the others (leave-one-out) without and with the base station
-subtracted at coefficient 1; the p is a permutation test within each set (does the
-correction lower the held-out sum of squares more than the same corrections dealt to the
-points at random, i.e. does the base station's reading belong to the times it was taken
-at?), the sets' p-values combined (Fisher: independent data). Gross errors (a crossing
+subtracted at coefficient 1, each error weighted by its prediction's precision (its set's
+variance, as in the fit, over one minus its leverage: the gain is the held-out
+likelihood's); the p is a permutation test within each set (does the correction lower the
+held-out sum of squares more than the same corrections dealt to the points at random, i.e.
+does the base station's reading belong to the times it was taken at?), the sets' p-values
+combined (Fisher: independent data). Gross errors (a crossing
 read in a turn) would decide a least-squares fit of a dozen points: each set is screened first
 by a biweight fit of the same model, and the points it gives no weight are left out.
 
@@ -103,8 +105,10 @@ class DiurnalEvidence:
         The sets' nuisance columns plus the base-station term against the nuisance columns
         alone (weighted); p one-sided (a positive coefficient).
     heldout : HeldOut
-        Leave-one-out errors (nT) without and with the correction at coefficient 1, over all
-        points; its p each set's permutation test, combined over the sets (Fisher).
+        Leave-one-out errors without and with the correction at coefficient 1, over all
+        points, as precision-weighted RMS (nT; each error weighted by its set's residual
+        variance, as in the fit, over one minus its leverage); its p each set's permutation
+        test, combined over the sets (Fisher).
     used : dict
         Points used per set.
     screened_out : dict
@@ -133,32 +137,38 @@ def _screen(s: DiurnalSet) -> np.ndarray:
 
 
 def _loo(a: np.ndarray):
-    """The leave-one-out error map of least squares on ``a``: a function of ``v`` ((n,) or
-    (n, m)) returning each row's error predicted by the fit to the other rows (the ordinary
-    residual over one minus its leverage)."""
+    """The leave-one-out error map of least squares on ``a`` and each row's predictive weight.
+
+    Returns a function of ``v`` ((n,) or (n, m)) giving each row's error predicted by the fit
+    to the other rows (the ordinary residual over one minus its leverage h), and 1 - h: the
+    prediction's variance is the noise's over 1 - h, so a row the others barely determine
+    (a leg's lone block, h near 1) has an error of no weight in the held-out likelihood
+    rather than one amplified a thousandfold."""
     u, sv, _ = np.linalg.svd(a, full_matrices=False)
     q = u[:, sv > (sv.max() if sv.size else 0.0) * 1e-10]  # a basis of the column space
-    w = 1.0 / np.clip(1.0 - np.sum(q**2, axis=1), 1e-9, None)  # 1 / (1 - leverage)
+    keep = np.clip(1.0 - np.sum(q**2, axis=1), 1e-9, None)  # 1 - leverage
+    w = 1.0 / keep
 
     def errors(v: np.ndarray) -> np.ndarray:
         r = v - q @ (q.T @ v)
         return r * (w if r.ndim == 1 else w[:, None])
 
-    return errors
+    return errors, keep
 
 
 def _matched_p(a: np.ndarray, y: np.ndarray, g: np.ndarray, rng: np.random.Generator) -> float:
     """One-sided p that the correction ``g`` lowers the leave-one-out misfit of ``y`` (levels
-    ``a`` refitted) more than the same corrections dealt to the points at random: a
-    permutation test of the held-out sum of squares (:data:`SHUFFLES` deals). It asks whether
-    the base station's reading belongs to the times it was taken at, at the size the
-    correction applies; unlike a point-by-point sign or rank test it is not diluted by the
-    points the correction barely changes."""
-    loo = _loo(a)
+    ``a`` refitted; each error weighted by its prediction's precision, :func:`_loo`) more
+    than the same corrections dealt to the points at random: a permutation test of the
+    held-out sum of squares (:data:`SHUFFLES` deals). It asks whether the base station's
+    reading belongs to the times it was taken at, at the size the correction applies; unlike
+    a point-by-point sign or rank test it is not diluted by the points the correction barely
+    changes."""
+    loo, weight = _loo(a)
     e_y = loo(y)
-    observed = float(np.sum((e_y - loo(g)) ** 2))
+    observed = float(np.sum(weight * (e_y - loo(g)) ** 2))
     dealt = loo(np.stack([rng.permutation(g) for _ in range(SHUFFLES)], axis=1))
-    shuffled = np.sum((e_y[:, None] - dealt) ** 2, axis=0)
+    shuffled = np.sum(weight[:, None] * (e_y[:, None] - dealt) ** 2, axis=0)
     return float((1 + np.sum(shuffled <= observed)) / (SHUFFLES + 1))
 
 
@@ -225,6 +235,14 @@ def _usable(s: DiurnalSet) -> tuple[DiurnalSet, float, int] | None:
     if not sigma > 0:
         return None
     return t, sigma, int(s.y.size - t.y.size)
+
+
+def _weighted_rms(standardised: np.ndarray, sigma_nT: np.ndarray, weight: np.ndarray) -> float:
+    """The precision-weighted RMS (nT) of leave-one-out errors given in units of their rows'
+    standard deviations ``sigma_nT``, each with its prediction's weight ``weight`` (1 -
+    leverage, :func:`_loo`): sqrt(sum w (e / s)^2 / sum w / s^2); the plain RMS when every
+    row has the same s and w."""
+    return float(np.sqrt(np.sum(weight * standardised**2) / np.sum(weight / sigma_nT**2)))
 
 
 def _stacked(
@@ -309,13 +327,16 @@ def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
     # set's own; each set gets its own permutation test (deals within a set only) and the
     # sets' p-values, from independent data, are combined (Fisher); a fixed seed keeps the
     # audit reproducible
-    loo = _loo(x0)
-    before, after = loo(y) * sig, loo(y - g) * sig
+    # the held-out errors weighted by their predictions' precision (a Gaussian held-out
+    # likelihood: each set's own variance, over 1 - leverage): in plain nT a set of
+    # crossovers read to a nanotesla would drown calibration-leg blocks read to a tenth
+    loo, weight = _loo(x0)
+    before, after = loo(y), loo(y - g)
     rng = np.random.default_rng(0)
     ps = [_matched_p(t.nuisance, t.y, t.base_nT, rng) for t, _ in kept]
     held = HeldOut(
-        float(np.sqrt(np.mean(before**2))),
-        float(np.sqrt(np.mean(after**2))),
+        _weighted_rms(before, sig, weight),
+        _weighted_rms(after, sig, weight),
         fisher_combined(*ps),
         int(before.size),
     )
