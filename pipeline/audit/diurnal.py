@@ -20,14 +20,15 @@ standard deviation; a level, position or heading column belongs to one set, the 
 coefficient is shared): a one-sided F-test of the coefficient (the variation's sign is known),
 and a held-out check of the correction itself, which fits nothing: each crossover and each
 leg block predicted from the others (leave-one-out) without and with the base station
-subtracted at coefficient 1, each error weighted by its prediction's precision (its set's
-variance, as in the fit, over one minus its leverage: the gain is the held-out
-likelihood's); the p is a permutation test within each set (does the correction lower the
-held-out sum of squares more than the same corrections dealt to the points at random, i.e.
-does the base station's reading belong to the times it was taken at?), the sets' p-values
-combined (Fisher: independent data). Gross errors (a crossing
-read in a turn) would decide a least-squares fit of a dozen points: each set is screened first
-by a biweight fit of the same model, and the points it gives no weight are left out.
+subtracted at coefficient 1, each error weighted by its prediction's precision (1 - h) /
+sigma^2: the prediction's variance is its set's residual variance sigma^2, as in the fit,
+over one minus its leverage h, so the gain is the held-out likelihood's; the p is a
+permutation test within each set (does the correction lower the weighted held-out sum of
+squares more than the same corrections dealt to the points at random, i.e. does the base
+station's reading belong to the times it was taken at?), the sets' p-values combined
+(Fisher: independent data). Gross errors (a crossing read in a turn) would decide a
+least-squares fit of a dozen points: each set is screened first by a biweight fit of the
+same model, and the points it gives no weight are left out.
 
 The coefficient's interval takes the wider of the least-squares standard error and a
 two-way cluster one built from delete-one-group jackknives (the least-squares one takes the
@@ -106,9 +107,9 @@ class DiurnalEvidence:
         alone (weighted); p one-sided (a positive coefficient).
     heldout : HeldOut
         Leave-one-out errors without and with the correction at coefficient 1, over all
-        points, as precision-weighted RMS (nT; each error weighted by its set's residual
-        variance, as in the fit, over one minus its leverage); its p each set's permutation
-        test, combined over the sets (Fisher).
+        points, as precision-weighted RMS (nT; each error weighted by (1 - h) / sigma^2, its
+        set's residual variance sigma^2 as in the fit and its leverage h); its p each set's
+        permutation test, combined over the sets (Fisher).
     used : dict
         Points used per set.
     screened_out : dict
@@ -142,8 +143,8 @@ def _loo(a: np.ndarray):
     Returns a function of ``v`` ((n,) or (n, m)) giving each row's error predicted by the fit
     to the other rows (the ordinary residual over one minus its leverage h), and 1 - h: the
     prediction's variance is the noise's over 1 - h, so a row the others barely determine
-    (a leg's lone block, h near 1) has an error of no weight in the held-out likelihood
-    rather than one amplified a thousandfold."""
+    (a leg's lone block, h near 1) has an error of almost no weight in the held-out
+    likelihood rather than one amplified by 1 / (1 - h)."""
     u, sv, _ = np.linalg.svd(a, full_matrices=False)
     q = u[:, sv > (sv.max() if sv.size else 0.0) * 1e-10]  # a basis of the column space
     keep = np.clip(1.0 - np.sum(q**2, axis=1), 1e-9, None)  # 1 - leverage
@@ -327,9 +328,9 @@ def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
     # set's own; each set gets its own permutation test (deals within a set only) and the
     # sets' p-values, from independent data, are combined (Fisher); a fixed seed keeps the
     # audit reproducible
-    # the held-out errors weighted by their predictions' precision (a Gaussian held-out
-    # likelihood: each set's own variance, over 1 - leverage): in plain nT a set of
-    # crossovers read to a nanotesla would drown calibration-leg blocks read to a tenth
+    # the held-out errors weighted by their predictions' precision, (1 - leverage) over the
+    # set's variance (a Gaussian held-out likelihood): in plain nT a set of crossovers read
+    # to a nanotesla would drown calibration-leg blocks read to a tenth
     loo, weight = _loo(x0)
     before, after = loo(y), loo(y - g)
     rng = np.random.default_rng(0)
