@@ -147,14 +147,14 @@ def _loo(a: np.ndarray):
     likelihood rather than one amplified by 1 / (1 - h)."""
     u, sv, _ = np.linalg.svd(a, full_matrices=False)
     q = u[:, sv > (sv.max() if sv.size else 0.0) * 1e-10]  # a basis of the column space
-    keep = np.clip(1.0 - np.sum(q**2, axis=1), 1e-9, None)  # 1 - leverage
-    w = 1.0 / keep
+    one_less_h = np.clip(1.0 - np.sum(q**2, axis=1), 1e-9, None)
+    w = 1.0 / one_less_h
 
     def errors(v: np.ndarray) -> np.ndarray:
         r = v - q @ (q.T @ v)
         return r * (w if r.ndim == 1 else w[:, None])
 
-    return errors, keep
+    return errors, one_less_h
 
 
 def _matched_p(a: np.ndarray, y: np.ndarray, g: np.ndarray, rng: np.random.Generator) -> float:
@@ -165,11 +165,11 @@ def _matched_p(a: np.ndarray, y: np.ndarray, g: np.ndarray, rng: np.random.Gener
     reading belongs to the times it was taken at, at the size the correction applies; unlike
     a point-by-point sign or rank test it is not diluted by the points the correction barely
     changes."""
-    loo, weight = _loo(a)
+    loo, one_less_h = _loo(a)
     e_y = loo(y)
-    observed = float(np.sum(weight * (e_y - loo(g)) ** 2))
+    observed = float(np.sum(one_less_h * (e_y - loo(g)) ** 2))
     dealt = loo(np.stack([rng.permutation(g) for _ in range(SHUFFLES)], axis=1))
-    shuffled = np.sum(weight[:, None] * (e_y[:, None] - dealt) ** 2, axis=0)
+    shuffled = np.sum(one_less_h[:, None] * (e_y[:, None] - dealt) ** 2, axis=0)
     return float((1 + np.sum(shuffled <= observed)) / (SHUFFLES + 1))
 
 
@@ -238,12 +238,10 @@ def _usable(s: DiurnalSet) -> tuple[DiurnalSet, float, int] | None:
     return t, sigma, int(s.y.size - t.y.size)
 
 
-def _weighted_rms(standardised: np.ndarray, sigma_nT: np.ndarray, weight: np.ndarray) -> float:
-    """The precision-weighted RMS (nT) of leave-one-out errors given in units of their rows'
-    standard deviations ``sigma_nT``, each with its prediction's weight ``weight`` (1 -
-    leverage, :func:`_loo`): sqrt(sum w (e / s)^2 / sum w / s^2); the plain RMS when every
-    row has the same s and w."""
-    return float(np.sqrt(np.sum(weight * standardised**2) / np.sum(weight / sigma_nT**2)))
+def _weighted_rms(errors_nT: np.ndarray, precision: np.ndarray) -> float:
+    """The RMS (nT) of ``errors_nT`` weighted by each one's ``precision`` (1 / nT^2):
+    sqrt(sum p e^2 / sum p); the plain RMS when every p is the same."""
+    return float(np.sqrt(np.sum(precision * errors_nT**2) / np.sum(precision)))
 
 
 def _stacked(
@@ -331,13 +329,14 @@ def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
     # the held-out errors weighted by their predictions' precision, (1 - leverage) over the
     # set's variance (a Gaussian held-out likelihood): in plain nT a set of crossovers read
     # to a nanotesla would drown calibration-leg blocks read to a tenth
-    loo, weight = _loo(x0)
-    before, after = loo(y), loo(y - g)
+    loo, one_less_h = _loo(x0)
+    before, after = loo(y) * sig, loo(y - g) * sig
+    precision = one_less_h / sig**2
     rng = np.random.default_rng(0)
     ps = [_matched_p(t.nuisance, t.y, t.base_nT, rng) for t, _ in kept]
     held = HeldOut(
-        _weighted_rms(before, sig, weight),
-        _weighted_rms(after, sig, weight),
+        _weighted_rms(before, precision),
+        _weighted_rms(after, precision),
         fisher_combined(*ps),
         int(before.size),
     )
