@@ -49,7 +49,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy import stats
 
-from pipeline.audit.evidence import HeldOut, NestedTest, nested_test
+from pipeline.audit.evidence import HeldOut, NestedTest, nested_test, weighted_rms
 from pipeline.audit.legs import fisher_combined
 
 SHUFFLES = 4999  # random deals of the permutation test: p resolved to 2e-4
@@ -238,12 +238,6 @@ def _usable(s: DiurnalSet) -> tuple[DiurnalSet, float, int] | None:
     return t, sigma, int(s.y.size - t.y.size)
 
 
-def _weighted_rms(errors_nT: np.ndarray, precision: np.ndarray) -> float:
-    """The RMS (nT) of ``errors_nT`` weighted by each one's ``precision`` (1 / nT^2):
-    sqrt(sum p e^2 / sum p); the plain RMS when every p is the same."""
-    return float(np.sqrt(np.sum(precision * errors_nT**2) / np.sum(precision)))
-
-
 def _stacked(
     kept: list[tuple[DiurnalSet, float]],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -335,8 +329,8 @@ def diurnal_evidence(sets: list[DiurnalSet]) -> DiurnalEvidence | None:
     rng = np.random.default_rng(0)
     ps = [_matched_p(t.nuisance, t.y, t.base_nT, rng) for t, _ in kept]
     held = HeldOut(
-        _weighted_rms(before, precision),
-        _weighted_rms(after, precision),
+        weighted_rms(before, precision),
+        weighted_rms(after, precision),
         fisher_combined(*ps),
         int(before.size),
     )

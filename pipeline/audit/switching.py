@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from pipeline.audit.evidence import HeldOut, paired_point_gain
+from pipeline.audit.evidence import HeldOut, paired_point_gain, weighted_rms
 
 # fitted on each side of a switch: a load settles within seconds, while over longer windows a
 # fast carrier's geology is no longer a line (6 s: 360 m at 60 m/s)
@@ -266,11 +266,9 @@ def switch_coupling(steps: SwitchSteps, inflation: float = 1.0) -> SwitchCouplin
     p = float(2 * stats.t.sf(abs(k) / se, n - 1)) if se > 0 else 0.0
     loo = r / np.clip(1.0 - h, 1e-9, None)
     w = 1.0 / se_y**2
-    z, wn = np.sqrt(w), w / np.sum(w)
+    z = np.sqrt(w)
     test = paired_point_gain(y * z, loo * z, rank=True)
-    heldout = HeldOut(
-        float(np.sqrt(np.sum(wn * y**2))), float(np.sqrt(np.sum(wn * loo**2))), test.p_value, n
-    )
+    heldout = HeldOut(weighted_rms(y, w), weighted_rms(loo, w), test.p_value, n)
     return SwitchCoupling(
         total_field_nT_per_unit=k,
         se_nT_per_unit=se,

@@ -37,10 +37,14 @@ class HeldOut:
     Attributes
     ----------
     rms_before_nT, rms_after_nT : float
-        Held-out residual RMS of the base and the extended model, nT.
+        RMS of the base and the extended model's held-out errors, nT (each error weighted
+        by its precision where the points are read to different accuracy: crossovers and
+        leg blocks, switch steps; :func:`pipeline.audit.evidence.weighted_rms`).
     p_value : float
-        One-sided p that the extended model's residual is smaller (Wilcoxon signed-rank over
-        the paired blocks or points); 1 when too few.
+        One-sided p that the extended model predicts the held-out data better, by the test
+        its producer names (:func:`heldout_gain`: Wilcoxon signed-rank over paired blocks;
+        points: a t-test or signed-rank test of the paired squares, or a permutation test);
+        1 when too few.
     blocks : int
         Blocks (or points) in the paired test.
     """

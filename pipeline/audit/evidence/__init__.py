@@ -162,6 +162,14 @@ def paired_point_gain(d_before: np.ndarray, d_after: np.ndarray, rank: bool = Fa
     return HeldOut(float(np.sqrt(np.mean(a**2))), float(np.sqrt(np.mean(b**2))), p, int(a.size))
 
 
+def weighted_rms(errors_nT: np.ndarray, precision: np.ndarray) -> float:
+    """The RMS (nT) of ``errors_nT`` weighted by each one's ``precision`` (1 / nT^2; any
+    common factor cancels): sqrt(sum p e^2 / sum p), the plain RMS when every p is the same.
+    Held-out errors of unequal precision (sets read to different accuracy, predictions of
+    different leverage) are summed so, as a Gaussian held-out likelihood sums them."""
+    return float(np.sqrt(np.sum(precision * errors_nT**2) / np.sum(precision)))
+
+
 def band_noise_gain(rate_hz: float, band_hz: tuple[float, float], poles: int) -> float:
     """RMS of unit white noise after the zero-phase band-pass (deterministic, seeded)."""
     x = np.random.default_rng(0).normal(size=200_000)
