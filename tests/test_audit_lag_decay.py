@@ -15,6 +15,7 @@ by default.
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from pipeline.audit.evidence.lag import EDDY_TAU_GRID_S
@@ -121,3 +122,29 @@ def test_a_lag_named_in_place_of_the_decay_gives_it_back_when_taken_out():
     took_the_place_of(ev, 0.3)
     assert without(named, ev) == ModelSpec(second_order=True, eddy_tau_s=0.3)
     assert ev.ci95["in_place_of_eddy_decay_tau_s"] is None
+
+
+def test_a_ties_survey_difference_is_the_lines_rms_without_their_levels():
+    # two explanations' fields differ along each line by a level (levelling takes it out)
+    # and a 0.3 nT sinusoid (RMS 0.3 / sqrt 2); off the lines they differ by 50 nT (turns,
+    # calibration), which is not the survey's concern
+    from types import SimpleNamespace
+
+    from pipeline.audit.evidence.survey_side import lines_difference_nT
+
+    t = np.arange(0.0, 400.0, 0.1)
+    on = ((t >= 50) & (t < 150)) | ((t >= 200) & (t < 300))
+    wiggle = 0.3 * np.sin(2 * np.pi * t / 10.0)
+    other = np.where(t < 175, 4.0, -7.0) + wiggle
+    other[~on] = 50.0
+    fields = {"a": np.zeros(t.size), "b": other}
+    ctx = SimpleNamespace(
+        compensated=lambda spec: fields[spec],
+        seg=SimpleNamespace(mask=lambda *labels: on),
+        data=SimpleNamespace(time_s=t),
+    )
+    assert lines_difference_nT(ctx, "a", "b") == pytest.approx(0.3 / np.sqrt(2), rel=1e-3)
+    fields["b"] = np.where(on, 3.0, 50.0)  # levels only: the map does not depend on the choice
+    assert lines_difference_nT(ctx, "a", "b") == pytest.approx(0.0, abs=1e-12)
+    ctx.seg = SimpleNamespace(mask=lambda *labels: np.zeros(t.size, bool))
+    assert lines_difference_nT(ctx, "a", "b") is None

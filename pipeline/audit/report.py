@@ -314,6 +314,16 @@ def _round_lines(res: AuditResult) -> list[str]:
     return lines
 
 
+# what data would tell a tie's explanations apart (the physics that separates them)
+SEPARATED_BY = {
+    frozenset({"sensor_lag", "eddy_decay"}): (
+        "A late sensor delays the geology along the lines and decaying eddy currents do "
+        "not: straight lines flown both ways over ground with gradients (or the sensor's "
+        "filter setting) decide"
+    ),
+}
+
+
 def _null_model_lines(res) -> list[str]:
     """The report's null-model section: the nuisances it took, the ties left unnamed and the
     bootstrap's flight-level false-finding rate."""
@@ -331,7 +341,15 @@ def _null_model_lines(res) -> list[str]:
         out.append("- no nuisance beyond the baseline: T-L's basis holds the carrier's field")
     for a in amb:
         gains = ", ".join(f"`{k}` {100 * v:.1f} %" for k, v in a["heldout_gain"].items())
-        out.append(f"- ambiguity, nothing named: {gains} of the held-out residual each")
+        line = f"- ambiguity, nothing named: {gains} of the held-out residual each"
+        diff = a.get("survey_difference_nT")
+        if diff is not None:
+            line += (
+                f"; their compensated fields differ by {diff:.3g} nT RMS along the lines "
+                "(each line's level removed)"
+            )
+        why = SEPARATED_BY.get(frozenset(a["candidates"]))
+        out.append(line + (f". {why}" if why else ""))
     if nc:
         out.append(
             f"- {nc['method']} of the null model, {nc['draws']} draws: gate "

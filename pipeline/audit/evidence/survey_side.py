@@ -25,8 +25,24 @@ from pipeline.audit.switching import (
     switch_instants,
     switch_steps,
 )
+from pipeline.compensate.filters import contiguous_blocks
 from pipeline.compensate.terms import direction_cosines
 from pipeline.maps.reduce import time_window_mean
+
+
+def lines_difference_nT(ctx: AuditContext, a: ModelSpec, b: ModelSpec) -> float | None:
+    """How much the survey depends on which of two explanations holds: the RMS (nT) of the
+    difference of their compensated fields (:meth:`AuditContext.compensated`) along the
+    survey, tie and validation lines, each straight run's mean removed (a level that
+    tie-line levelling takes out). A tie whose explanations differ by less than the
+    survey's noise does not matter to the map; one that differs by more is the user's to
+    resolve. None without lines."""
+    d = ctx.compensated(a) - ctx.compensated(b)
+    ok = ctx.seg.mask("survey", "tie", "validation") & np.isfinite(d)
+    parts = [d[i] - d[i].mean() for i in contiguous_blocks(ok, ctx.data.time_s) if i.size > 1]
+    if not parts:
+        return None
+    return float(np.sqrt(np.mean(np.concatenate(parts) ** 2)))
 
 
 def crossover_lag(ctx: AuditContext, spec: ModelSpec) -> SurveyLag | None:

@@ -35,6 +35,7 @@ from pipeline.audit.evidence.lag import (
     fluxgate_timing,
     lag_estimate,
 )
+from pipeline.audit.evidence.survey_side import lines_difference_nT
 from pipeline.audit.extended import ModelSpec
 from pipeline.audit.hypotheses.decay_rival import same_response, slower_than_lag
 from pipeline.audit.result import Evaluation
@@ -286,7 +287,7 @@ def lag_beside_decay_nuisance(
     elif verdict == "lag":
         named_plain = _lag_of_the_whole_reading(ev, lagged, lag_plain)
     elif verdict in ("ambiguous", "none"):
-        _held_back(ctx, ev, verdict, vs, tau, lag_plain)
+        _held_back(ctx, ev, verdict, vs, tau, lag_plain, (current, plain.with_(lag_s=lag_plain)))
     if not ev.held_back and named_plain:
         _with_its_own_spread(ctx, ev, lag_model, lag_plain)
     _unresolved(ev, smallest)
@@ -314,9 +315,11 @@ def _held_back(
     vs: LagVersusDecay,
     tau_s: float,
     lag_plain_s: float,
+    rivals: tuple[ModelSpec, ModelSpec],
 ) -> None:
-    """Hold the lag back on the verdict ``"ambiguous"`` (recorded in ``ctx.ambiguities``)
-    or ``"none"``, saying why."""
+    """Hold the lag back on the verdict ``"ambiguous"`` (recorded in ``ctx.ambiguities``,
+    with how much the lines' field depends on which of the ``rivals`` holds: the decay's
+    model and the lag's) or ``"none"``, saying why."""
     ev.held_back = True
     if verdict == "ambiguous":
         ev.reason = (
@@ -324,7 +327,9 @@ def _held_back(
             "each explain the calibration's residual and neither adds to the other; the "
             "timing along the lines does not decide: an ambiguity, nothing named"
         )
-        ctx.ambiguities.append(vs.ambiguity())
+        ctx.ambiguities.append(
+            {**vs.ambiguity(), "survey_difference_nT": lines_difference_nT(ctx, *rivals)}
+        )
     else:
         ev.reason = (
             f"beside eddy currents decaying over {tau_s:.3g} s the lag lowers held-out data "

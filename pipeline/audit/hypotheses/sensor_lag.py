@@ -15,7 +15,7 @@ from pipeline.audit.evidence.lag import (
     lag_estimate,
     lag_response,
 )
-from pipeline.audit.evidence.survey_side import crossover_lag
+from pipeline.audit.evidence.survey_side import crossover_lag, lines_difference_nT
 from pipeline.audit.extended import ModelSpec, design
 from pipeline.audit.hypotheses.decay_rival import (
     decay_explains_lag,
@@ -291,5 +291,8 @@ def _untimed_tie(
                 EFFECT: float(ev.heldout.reduction),
                 "eddy_decay": weighed["alone"]["reduction_pct"] / 100.0,
             },
+            "survey_difference_nT": lines_difference_nT(
+                ctx, current.with_(lag_s=lag), current.with_(eddy_tau_s=weighed["tau_s"])
+            ),
         }
     )
