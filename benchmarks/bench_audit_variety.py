@@ -162,6 +162,7 @@ def summarise(rows: list[dict]) -> str:
                 )
                 shares.append(f"{np.mean(p < 0.05):.2f} of {p.size}" if p.size else "-")
             lines.append(f"| {effect} | {shares[0]} | {shares[1]} |")
+    lines += ties(rows)
     steps = [r for r in rows if r["kind"] == "step"]
     if steps:
         lines.append(
@@ -169,6 +170,30 @@ def summarise(rows: list[dict]) -> str:
             f"{sum(bool(r['hit']) for r in steps)}/{len(steps)}"
         )
     return "\n".join(lines)
+
+
+def ties(rows: list[dict]) -> list[str]:
+    """Flights left with a tie (``unexplained.ambiguities``): how far apart the rivals put
+    the lines (``survey_difference_nT``) beside what the hidden effect does to the survey
+    (``survey_error_nT``, for the lag and current classes)."""
+    tied = [r for r in rows if r.get("ambiguities")]
+    if not tied:
+        return []
+    out = [
+        "\n| tied flight | hidden | candidates | rivals apart on the lines nT | hidden effect's "
+        "survey error nT |",
+        "|---|---|---|---|---|",
+    ]
+    for r in tied:
+        for a in r["ambiguities"]:
+            diff = a.get("survey_difference_nT")
+            err = r.get("survey_error_nT")
+            out.append(
+                f"| {r['seed']} | {r['kind']} | {', '.join(a['candidates'])} | "
+                f"{'-' if diff is None else f'{diff:.3f}'} | "
+                f"{'-' if err is None else f'{err:.3f}'} |"
+            )
+    return out
 
 
 def by_size(rows: list[dict]) -> list[str]:

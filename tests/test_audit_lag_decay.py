@@ -148,3 +148,19 @@ def test_a_ties_survey_difference_is_the_lines_rms_without_their_levels():
     assert lines_difference_nT(ctx, "a", "b") == pytest.approx(0.0, abs=1e-12)
     ctx.seg = SimpleNamespace(mask=lambda *labels: np.zeros(t.size, bool))
     assert lines_difference_nT(ctx, "a", "b") is None
+
+
+def test_a_tie_is_said_with_what_it_does_to_the_lines_and_what_separates_it():
+    from pipeline.audit.report import ambiguity_text
+
+    a = {
+        "candidates": ["sensor_lag", "eddy_decay"],
+        "heldout_gain": {"sensor_lag": 0.933, "eddy_decay": 0.912},
+        "survey_difference_nT": 0.769,
+    }
+    text = ambiguity_text(a)
+    assert "`sensor_lag` 93.3 %" in text and "`eddy_decay` 91.2 %" in text
+    assert "differ by 0.769 nT RMS along the lines" in text
+    assert "delays the geology" in text
+    del a["survey_difference_nT"]  # an audit without lines
+    assert "along the lines (" not in ambiguity_text(a)

@@ -113,6 +113,8 @@ def log_lines(res: AuditResult) -> list[tuple[int, str]]:
     )
     if res.unexplained.get("note"):
         out.append((LOG_WARNING, f"audit: unexplained: {res.unexplained['note']}"))
+    for a in res.unexplained.get("ambiguities", []):
+        out.append((LOG_WARNING, f"audit: {ambiguity_text(a).replace('`', '')}"))
     for k, v in res.gain.items():
         if v["before"] is not None:
             out.append((LOG_INFO, f"audit: gain {k}: {v['before']:.4f} -> {v['after']:.4f}"))
@@ -324,6 +326,21 @@ SEPARATED_BY = {
 }
 
 
+def ambiguity_text(a: dict) -> str:
+    """One ``unexplained.ambiguities`` entry in words: the rivals' held-out gains, how far
+    apart they put the lines and what data would separate them."""
+    gains = ", ".join(f"`{k}` {100 * v:.1f} %" for k, v in a["heldout_gain"].items())
+    text = f"ambiguity, nothing named: {gains} of the held-out residual each"
+    diff = a.get("survey_difference_nT")
+    if diff is not None:
+        text += (
+            f"; their compensated fields differ by {diff:.3g} nT RMS along the lines "
+            "(each line's level removed)"
+        )
+    why = SEPARATED_BY.get(frozenset(a["candidates"]))
+    return text + (f". {why}" if why else "")
+
+
 def _null_model_lines(res) -> list[str]:
     """The report's null-model section: the nuisances it took, the ties left unnamed and the
     bootstrap's flight-level false-finding rate."""
@@ -339,17 +356,7 @@ def _null_model_lines(res) -> list[str]:
         ]
     else:
         out.append("- no nuisance beyond the baseline: T-L's basis holds the carrier's field")
-    for a in amb:
-        gains = ", ".join(f"`{k}` {100 * v:.1f} %" for k, v in a["heldout_gain"].items())
-        line = f"- ambiguity, nothing named: {gains} of the held-out residual each"
-        diff = a.get("survey_difference_nT")
-        if diff is not None:
-            line += (
-                f"; their compensated fields differ by {diff:.3g} nT RMS along the lines "
-                "(each line's level removed)"
-            )
-        why = SEPARATED_BY.get(frozenset(a["candidates"]))
-        out.append(line + (f". {why}" if why else ""))
+    out += [f"- {ambiguity_text(a)}" for a in amb]
     if nc:
         out.append(
             f"- {nc['method']} of the null model, {nc['draws']} draws: gate "

@@ -127,6 +127,10 @@ def audit_text(j: dict) -> list[Block]:
     )
     if (j.get("unexplained") or {}).get("note"):
         out.append(f"unexplained: {j['unexplained']['note']}")
+    if (j.get("unexplained") or {}).get("ambiguities"):
+        from pipeline.audit.report import ambiguity_text
+
+        out += [ambiguity_text(a).replace("`", "") for a in j["unexplained"]["ambiguities"]]
     for k, v in j["gain"].items():
         if v["before"] is not None:
             out.append(f"gain {k}: {v['before']:.4f} -> {v['after']:.4f}")

@@ -192,6 +192,7 @@ def one_flight(kind: str, seed: int, folder: Path, sizes: bool = False, **ranges
         is not None,
         "overrides": overrides,
         "survey_error_nT": survey_error_nT(kind, sim),
+        "ambiguities": res["unexplained"].get("ambiguities", []),
         "null_p_values": null_p_values(res),
     }
 
