@@ -164,3 +164,37 @@ def test_a_tie_is_said_with_what_it_does_to_the_lines_and_what_separates_it():
     assert "delays the geology" in text
     del a["survey_difference_nT"]  # an audit without lines
     assert "along the lines (" not in ambiguity_text(a)
+
+
+def test_a_sensor_filter_reads_the_induced_rate_as_the_eddy_columns_do():
+    # why a first-order sensor response and decaying eddy currents tie on a calibration:
+    # the rate of T-L's induced terms, d/dt (B u_i u_j), lies in the eddy columns
+    # B u_i du_j/dt (B nearly constant), while the permanent terms' rate, du_i/dt, leaves a
+    # part outside them once the box turns the field through several headings
+    from scipy.spatial.transform import Rotation
+
+    from pipeline.compensate.terms import tl18_rate_terms
+
+    t = np.arange(0.0, 400.0, 0.1)
+    roll = 0.3 * np.sin(2 * np.pi * t / 6.0)
+    pitch = 0.2 * np.sin(2 * np.pi * t / 5.0 + 1.0)
+    yaw = np.radians(90.0) * np.floor(t / 100.0) + 0.02 * np.sin(2 * np.pi * t / 40.0)
+    earth_ned = np.array([15000.0, 2000.0, 45000.0])
+    b = Rotation.from_euler("xyz", np.c_[roll, pitch, yaw]).inv().apply(earth_ned)
+    cols, names = tl18_rate_terms(b, t)
+    steady = np.ones(t.size, bool)
+    for k in range(1, 4):  # the legs' joins (a jump in heading) are not a rate
+        steady[(t > 100 * k - 1) & (t < 100 * k + 1)] = False
+    eddy = cols[steady][:, [n.startswith("eddy") for n in names]]
+    rng = np.random.default_rng(5)
+
+    def outside(group: str) -> float:
+        x = cols[:, [n.startswith(group) for n in names]] @ rng.normal(
+            size=sum(n.startswith(group) for n in names)
+        )
+        rate = np.gradient(x, t)[steady]
+        left = rate - eddy @ np.linalg.lstsq(eddy, rate, rcond=None)[0]
+        return float(np.linalg.norm(left) / np.linalg.norm(rate))
+
+    assert outside("ind") < 0.01
+    assert outside("perm") > 0.02
