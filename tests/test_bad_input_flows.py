@@ -5,6 +5,7 @@ the input untouched, no half-written output."""
 from __future__ import annotations
 
 import csv
+import json
 import logging
 import os
 import subprocess
@@ -85,6 +86,14 @@ def _check_process(case, src, out, code, stdout, stderr):
     else:
         assert code == 0, stdout + stderr
         assert (out / f"{src.stem}.summary.json").is_file()
+        # what the summary says the recording lost, the Markdown report (the flow's Prefect
+        # artifact) says too, as the HTML report does
+        inp = json.loads((out / f"{src.stem}.summary.json").read_text())["input"]
+        said = [x["description"] for x in inp["losses"]] + inp["notes"]
+        said += [f"gap on {g['topic']}" for g in inp["gaps"]]
+        md = (out / f"{src.stem}.report.md").read_text()
+        if any(channel in n for n in said):
+            assert channel in md, md[:2000]
 
 
 @pytest.mark.parametrize("case", [_case_param(c) for c in CORPUS])

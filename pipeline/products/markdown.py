@@ -33,6 +33,20 @@ def navigability_text(nb: dict) -> str:
     )
 
 
+def _input_warnings(inp: dict) -> list[str]:
+    """What the recording lacked, as the HTML report says it: data a damaged file lost, gaps
+    in a channel, the reader's notes (the Markdown is also the flow's Prefect artifact)."""
+    lines = [f"- **data lost**: {x['description']}" for x in inp.get("losses", [])]
+    lines += [
+        f"- gap on {g['topic']} at {g['start_s']:.1f} s for {g['duration_s']:.1f} s"
+        for g in inp.get("gaps", [])
+    ]
+    lost = [x["description"] for x in inp.get("losses", [])]
+    notes = dict.fromkeys(n for n in inp.get("notes", []) if not any(d in n for d in lost))
+    lines += [f"- {n}" for n in notes]
+    return [*lines, ""] if lines else []
+
+
 def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
     """The post-flight report: the tables people look at, and the figures."""
 
@@ -50,6 +64,7 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
         f"{s['input'].get('sha256', '')[:16]}",
         "",
     ]
+    out += _input_warnings(s["input"])
     d = s.get("despike")
     if d:
         out += [
