@@ -58,3 +58,50 @@ def test_sections_in_flow_order_and_plain_json(tmp_path):
 def test_jsonable_handles_numpy_nan_and_paths():
     v = jsonable({"a": [np.float32(1.5), np.nan], 2: (Path("/x"), True, None)})
     assert v == {"a": [1.5, None], "2": ["/x", True, None]}
+
+
+def test_post_flight_reports_say_what_the_audit_left_unexplained(tmp_path):
+    # the events, the null model's nuisances and the ties appear in both post-flight reports
+    # (the Markdown one is also the flow's Prefect artifact), not in the audit's JSON only
+    from pipeline.products.html import render_html
+    from pipeline.products.markdown import report_markdown
+
+    src = tmp_path / "f.mcap"
+    src.write_bytes(b"x")
+    s = build_summary(_Flight(src))
+    s["config"] = {"hash": "0" * 64, "version": 1, "source": "defaults"}
+    t0 = s["input"]["start_ns"]
+    s["audit"] = {
+        "baseline": {"model": "tl18", "residual_rms_nT": 0.09},
+        "extended_model": ["tl18"],
+        "unexplained_rms_nT": 0.08,
+        "band_noise_floor_nT": 0.03,
+        "noise_floor_nT": 0.08,
+        "findings": [],
+        "unexplained": {
+            "events": [
+                {
+                    "kind": "step",
+                    "start_ns": t0 + 370 * 10**9,
+                    "end_ns": t0 + 381 * 10**9,
+                    "size_nT": 1.77,
+                    "evidence": "vector reference",
+                }
+            ],
+            "nuisances": [
+                {"name": "eddy_decay", "heldout_gain": 0.249, "estimate": {"tau_s": 0.1056}}
+            ],
+            "ambiguities": [
+                {
+                    "candidates": ["sensor_lag", "eddy_decay"],
+                    "heldout_gain": {"sensor_lag": 0.133, "eddy_decay": 0.154},
+                    "survey_difference_nT": 0.181,
+                }
+            ],
+        },
+    }
+    md, page = report_markdown("f", s, {}), render_html("f", s, {})
+    for text in (md, page):
+        assert "step: 1.77 nT, from 370.0 s to 381.0 s (vector reference)" in text
+        assert "eddy_decay" in text and "held-out gain 24.9 %" in text
+        assert "differ by 0.181 nT RMS along the lines" in text

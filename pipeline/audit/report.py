@@ -223,13 +223,7 @@ def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
     ]
     if res.unexplained.get("note"):
         lines += ["## Unexplained", "", res.unexplained["note"] + ".", ""]
-        for e in res.unexplained["events"]:
-            lines.append(
-                f"- {e['kind']}: {e['size_nT']:.2f} nT, from "
-                f"{(e['start_ns'] - int(res.t0_ns)) / 1e9:.1f} s to "
-                f"{(e['end_ns'] - int(res.t0_ns)) / 1e9:.1f} s "
-                f"({e['evidence']})"
-            )
+        lines += [f"- {event_text(e, int(res.t0_ns))}" for e in res.unexplained["events"]]
         lines.append("")
     lines += _null_model_lines(res)
     lines += ["## Gain", "", "| metric | baseline | extended |", "|---|---|---|"]
@@ -326,6 +320,33 @@ SEPARATED_BY = {
 }
 
 
+def event_text(e: dict, t0_ns: int) -> str:
+    """One ``unexplained.events`` entry in words; times in s from ``t0_ns`` (the flight's
+    first epoch, ns)."""
+    return (
+        f"{e['kind']}: {e['size_nT']:.2f} nT, from {(e['start_ns'] - t0_ns) / 1e9:.1f} s to "
+        f"{(e['end_ns'] - t0_ns) / 1e9:.1f} s ({e['evidence']})"
+    )
+
+
+def nuisance_text(n: dict) -> str:
+    """One ``unexplained.nuisances`` entry in words: the null model's group, its held-out
+    gain and estimate."""
+    return f"nuisance `{n['name']}`: held-out gain {100 * n['heldout_gain']:.1f} %" + "".join(
+        f", {k} {_fmt(v)}" for k, v in n["estimate"].items()
+    )
+
+
+def unexplained_items(unexplained: dict, t0_ns: int) -> list[str]:
+    """What the audit left unexplained, one sentence each (for the post-flight reports): the
+    events, the null model's nuisances and the ties."""
+    return (
+        [event_text(e, t0_ns) for e in unexplained.get("events", [])]
+        + [nuisance_text(n) for n in unexplained.get("nuisances", [])]
+        + [ambiguity_text(a) for a in unexplained.get("ambiguities", [])]
+    )
+
+
 def ambiguity_text(a: dict) -> str:
     """One ``unexplained.ambiguities`` entry in words: the rivals' held-out gains, how far
     apart they put the lines and what data would separate them."""
@@ -349,11 +370,7 @@ def _null_model_lines(res) -> list[str]:
     nc = res.null_calibration
     out = ["## Null model", ""]
     if nuis:
-        out += [
-            f"- nuisance `{n['name']}`: held-out gain {100 * n['heldout_gain']:.1f} %"
-            + "".join(f", {k} {_fmt(v)}" for k, v in n["estimate"].items())
-            for n in nuis
-        ]
+        out += [f"- {nuisance_text(n)}" for n in nuis]
     else:
         out.append("- no nuisance beyond the baseline: T-L's basis holds the carrier's field")
     out += [f"- {ambiguity_text(a)}" for a in amb]

@@ -432,6 +432,15 @@ def _audit_section(s: dict, figs: _Figures) -> list[str]:
     )
     if (a.get("unexplained") or {}).get("note"):
         out.append(f'<p class="note">unexplained: {html.escape(a["unexplained"]["note"])}</p>')
+    from pipeline.audit.report import unexplained_items
+
+    items = unexplained_items(a.get("unexplained") or {}, int(s["input"].get("start_ns", 0)))
+    if items:
+        out.append(
+            "<ul>"
+            + "".join(f'<li class="note">{html.escape(x.replace("`", ""))}</li>' for x in items)
+            + "</ul>"
+        )
     gain = a.get("gain") or {}
     if gain:
         out += [
