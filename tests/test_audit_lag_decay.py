@@ -198,3 +198,29 @@ def test_a_sensor_filter_reads_the_induced_rate_as_the_eddy_columns_do():
 
     assert outside("ind") < 0.01
     assert outside("perm") > 0.02
+
+
+def test_a_tie_is_a_message_on_the_audit_channel():
+    # a viewer of the processed recording sees the tie too, also with no unexplained note
+    import json
+    from pathlib import Path
+    from types import SimpleNamespace
+
+    import jsonschema
+
+    from pipeline.audit.report import finding_channel
+
+    tie = {
+        "candidates": ["sensor_lag", "eddy_decay"],
+        "heldout_gain": {"sensor_lag": 0.133, "eddy_decay": 0.154},
+        "survey_difference_nT": 0.181,
+    }
+    res = SimpleNamespace(findings=[], unexplained={"events": [], "ambiguities": [tie]})
+    ch = finding_channel(SimpleNamespace(time_ns=np.array([10**18])), res)
+    assert len(ch.messages) == 1
+    t, payload = ch.messages[0]
+    assert payload["effect"] == "unexplained" and not payload["accepted"]
+    assert payload["estimate"] == tie and "0.181 nT" in payload["message"]
+    schema = Path(__file__).parents[1] / "schemas" / "aeromag.AuditFinding.json"
+    stamped = {**payload, "timestamp": {"sec": t // 10**9, "nsec": t % 10**9}}
+    jsonschema.Draft202012Validator(json.loads(schema.read_text())).validate(stamped)

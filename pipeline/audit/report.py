@@ -162,6 +162,25 @@ def finding_channel(flight: Flight, res: AuditResult) -> OutputChannel:
                 "message": u["note"],
             },
         )
+    # each tie, beside the note: a viewer of the recording sees what was left unnamed and
+    # what it does to the lines, also when the residual is at the noise floor (no note)
+    for k, a in enumerate(res.unexplained.get("ambiguities", [])):
+        ch.add(
+            t0 + len(res.findings) + 1 + k,
+            {
+                "effect": "unexplained",
+                "accepted": False,
+                "estimate": jsonable(a),
+                "delta_bic": None,
+                "p_value": None,
+                "p_value_holm": None,
+                "heldout_p_value": None,
+                "gain_metric": "heldout_calibration_residual_rms",
+                "before_nT": None,
+                "after_nT": None,
+                "message": ambiguity_text(a).replace("`", ""),
+            },
+        )
     events = sorted(res.unexplained["events"], key=lambda e: e["start_ns"])
     for k, e in enumerate(events):  # on the timeline where they happen
         ch.add(
