@@ -592,7 +592,7 @@ def process(
     config: ConfigOption = None,
 ) -> None:
     """Run the post-flight flow on one recording."""
-    emit("outputs", _run_postflight(recording, out_dir, config))
+    emit("postflight", _run_postflight(recording, out_dir, config))
 
 
 @app.command()
@@ -733,7 +733,7 @@ def demo(
             "demo", seed, [], out_dir / "demo_flight.mcap", out_dir / "demo_truth.json"
         )
     say(f"simulated flight: {sim['out']} ({sim['duration_s'] / 60:.1f} min), truth: {sim['truth']}")
-    emit("demo", _run_postflight(Path(sim["out"]), out_dir))
+    emit("postflight", _run_postflight(Path(sim["out"]), out_dir))
     say(f"done in {time.perf_counter() - t0:.1f} s")
 
 

@@ -105,3 +105,43 @@ def test_post_flight_reports_say_what_the_audit_left_unexplained(tmp_path):
         assert "step: 1.77 nT, from 370.0 s to 381.0 s (vector reference)" in text
         assert "eddy_decay" in text and "held-out gain 24.9 %" in text
         assert "differ by 0.181 nT RMS along the lines" in text
+
+
+def test_the_post_flight_console_text_holds_on_a_damaged_or_partial_flight(tmp_path):
+    # aeromag process prints the summary in brief: a damaged recording says what it lost,
+    # a tie is said, and skipped stages or missing figures (no crossovers) print as such
+    from pipeline.products.console import postflight_text
+
+    src = tmp_path / "f.mcap"
+    src.write_bytes(b"x")
+    s = build_summary(_Flight(src))
+    s["input"]["losses"] = [{"description": "file truncated at byte 10 (5 bytes lost)"}]
+    s["map"] = {
+        "grid_shape": [3, 4],
+        "cell_m": 12.5,
+        "crossover_rms_nT": {"before": None, "after": None},
+        "arima_order": [1, 1, 1],
+    }
+    s["quality"] = {"skipped": "no validation lines"}
+    s["audit"] = {
+        "findings": [],
+        "extended_model": ["tl18"],
+        "unexplained": {
+            "ambiguities": [
+                {
+                    "candidates": ["sensor_lag", "eddy_decay"],
+                    "heldout_gain": {"sensor_lag": 0.1, "eddy_decay": 0.2},
+                    "survey_difference_nT": 0.3,
+                }
+            ]
+        },
+    }
+    s["outputs"] = {k: str(tmp_path / k) for k in ("mcap", "summary", "report", "report_html")}
+    s["outputs"]["layout"] = str(tmp_path / "layout")
+    lines = [b for b in postflight_text(s) if isinstance(b, str)]
+    assert any(x.startswith("warning: data lost: file truncated") for x in lines)
+    assert any("crossover RMS - -> - nT" in x for x in lines)
+    assert any(x.startswith("audit: ambiguity, nothing named") and "0.3 nT" in x for x in lines)
+    assert not any(x.startswith("heading error") for x in lines)
+    s["map"] = {"skipped": "no survey lines"}
+    assert not any(str(b).startswith("map:") for b in postflight_text(s))

@@ -141,7 +141,7 @@ def compensation_text(result: dict) -> list[Block]:
     """The post-flight summary's compensation table (one row per model) and warnings."""
     out: list[Block] = []
     comp = result.get("compensation")
-    if not comp:
+    if not comp or not any(m in comp for m in ("tl16", "tl18", "agg-tl")):
         return out
     table = TextTable(
         title="compensation (calibration FOM: sum of 12 box peak-to-peaks)", title_justify="left"
@@ -281,30 +281,37 @@ def campaign_text(doc: dict) -> list[Block]:
     ]
 
 
-def demo_text(result: dict) -> list[Block]:
-    """``aeromag demo``: the post-flight summary in brief, then where its outputs are."""
+def postflight_text(result: dict) -> list[Block]:
+    """``aeromag process`` and ``aeromag demo``: the post-flight summary in brief (what the
+    recording lost, compensation, map, audit with its ties, quality), then where its
+    outputs are."""
     inp = result["input"]
     out: list[Block] = [
         f"ingested {inp['epochs']} epochs, {len(inp['topics'])} channels, "
         f"{inp['duration_s']:.0f} s",
+        *(f"warning: data lost: {x['description']}" for x in inp.get("losses", [])),
         *compensation_text(result),
     ]
     m = result.get("map")
-    if m:
+    if m and "grid_shape" in m:  # a skipped stage's summary holds only why
         out.append(
             f"map: {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.1f} m; "
-            f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
-            f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])} + "
+            f"crossover RMS {_f3(m['crossover_rms_nT']['before'])} -> "
+            f"{_f3(m['crossover_rms_nT']['after'])} nT; ARIMA{tuple(m['arima_order'])} + "
             f"Kalman; figures in {PurePath(result['outputs']['mcap']).parent}"
         )
-    if result.get("audit"):
+    if (result.get("audit") or {}).get("findings") is not None:
         a = result["audit"]
         out.append(
             "audit: "
             + ("; ".join(f"{f['effect']} found" for f in a["findings"]) or "no finding")
             + f"; extended model {' + '.join(a['extended_model'])}"
         )
-    if result.get("quality"):
+        from pipeline.audit.report import ambiguity_text
+
+        for amb in (a.get("unexplained") or {}).get("ambiguities", []):
+            out.append("audit: " + ambiguity_text(amb).replace("`", ""))
+    if "states" in (result.get("quality") or {}):
         out += quality_text(result["quality"])
     return out + outputs_text(result)
 
