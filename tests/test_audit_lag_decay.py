@@ -151,7 +151,7 @@ def test_a_ties_survey_difference_is_the_lines_rms_without_their_levels():
 
 
 def test_a_tie_is_said_with_what_it_does_to_the_lines_and_what_separates_it():
-    from pipeline.audit.report import ambiguity_text
+    from pipeline.audit.words import ambiguity_text
 
     a = {
         "candidates": ["sensor_lag", "eddy_decay"],

@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from pipeline.audit.result import AuditResult
+from pipeline.audit.words import ambiguity_text, event_text, fmt_value, nuisance_text
 from pipeline.flight import Flight
 from pipeline.io.writer import OutputChannel
 from pipeline.products.summary import jsonable
@@ -55,19 +56,9 @@ def figures(res: AuditResult, flight: Flight) -> dict[str, Any]:
     return out
 
 
-def _fmt(v: Any) -> str:
-    if v is None:
-        return "-"
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    if isinstance(v, list):
-        return "[" + ", ".join(_fmt(x) for x in v) + "]"
-    return str(v)
-
-
 def _estimate(est: dict) -> str:
     return ", ".join(
-        f"{k} {_fmt(v)}"
+        f"{k} {fmt_value(v)}"
         for k, v in est.items()
         if k != "at_acceptance" and not k.endswith("_by_fold_s")
     )
@@ -247,7 +238,7 @@ def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:
     lines += _null_model_lines(res)
     lines += ["## Gain", "", "| metric | baseline | extended |", "|---|---|---|"]
     for k, v in res.gain.items():
-        lines.append(f"| {k} | {_fmt(v['before'])} | {_fmt(v['after'])} |")
+        lines.append(f"| {k} | {fmt_value(v['before'])} | {fmt_value(v['after'])} |")
     lines += _round_lines(res)
     lines += ["", "## Measured vs simulated", ""]
     captions = {
@@ -320,65 +311,13 @@ def _round_lines(res: AuditResult) -> list[str]:
         for e in rnd:
             h = e.heldout
             lines.append(
-                f"| {r} | `{e.key}` | {_fmt(e.p_adjusted) if e.test else '-'} | "
-                f"{_fmt(e.test.delta_bic) if e.test else '-'} | "
+                f"| {r} | `{e.key}` | {fmt_value(e.p_adjusted) if e.test else '-'} | "
+                f"{fmt_value(e.test.delta_bic) if e.test else '-'} | "
                 f"{'-' if h is None else f'{h.rms_before_nT:.4f} / {h.rms_after_nT:.4f}'} | "
-                f"{'-' if h is None else _fmt(h.p_value)} | "
+                f"{'-' if h is None else fmt_value(h.p_value)} | "
                 f"{'accepted' if e.accepted else e.reason} |"
             )
     return lines
-
-
-# what data would tell a tie's explanations apart (the physics that separates them)
-SEPARATED_BY = {
-    frozenset({"sensor_lag", "eddy_decay"}): (
-        "A late sensor delays the geology along the lines and decaying eddy currents do "
-        "not: straight lines flown both ways over ground with gradients (or the sensor's "
-        "filter setting) decide"
-    ),
-}
-
-
-def event_text(e: dict, t0_ns: int) -> str:
-    """One ``unexplained.events`` entry in words; times in s from ``t0_ns`` (the flight's
-    first epoch, ns)."""
-    return (
-        f"{e['kind']}: {e['size_nT']:.2f} nT, from {(e['start_ns'] - t0_ns) / 1e9:.1f} s to "
-        f"{(e['end_ns'] - t0_ns) / 1e9:.1f} s ({e['evidence']})"
-    )
-
-
-def nuisance_text(n: dict) -> str:
-    """One ``unexplained.nuisances`` entry in words: the null model's group, its held-out
-    gain and estimate."""
-    return f"nuisance `{n['name']}`: held-out gain {100 * n['heldout_gain']:.1f} %" + "".join(
-        f", {k} {_fmt(v)}" for k, v in n["estimate"].items()
-    )
-
-
-def unexplained_items(unexplained: dict, t0_ns: int) -> list[str]:
-    """What the audit left unexplained, one sentence each (for the post-flight reports): the
-    events, the null model's nuisances and the ties."""
-    return (
-        [event_text(e, t0_ns) for e in unexplained.get("events", [])]
-        + [nuisance_text(n) for n in unexplained.get("nuisances", [])]
-        + [ambiguity_text(a) for a in unexplained.get("ambiguities", [])]
-    )
-
-
-def ambiguity_text(a: dict) -> str:
-    """One ``unexplained.ambiguities`` entry in words: the rivals' held-out gains, how far
-    apart they put the lines and what data would separate them."""
-    gains = ", ".join(f"`{k}` {100 * v:.1f} %" for k, v in a["heldout_gain"].items())
-    text = f"ambiguity, nothing named: {gains} of the held-out residual each"
-    diff = a.get("survey_difference_nT")
-    if diff is not None:
-        text += (
-            f"; their compensated fields differ by {diff:.3g} nT RMS along the lines "
-            "(each line's level removed)"
-        )
-    why = SEPARATED_BY.get(frozenset(a["candidates"]))
-    return text + (f". {why}" if why else "")
 
 
 def _null_model_lines(res) -> list[str]:

@@ -128,7 +128,7 @@ def audit_text(j: dict) -> list[Block]:
     if (j.get("unexplained") or {}).get("note"):
         out.append(f"unexplained: {j['unexplained']['note']}")
     if (j.get("unexplained") or {}).get("ambiguities"):
-        from pipeline.audit.report import ambiguity_text
+        from pipeline.audit.words import ambiguity_text
 
         out += [ambiguity_text(a).replace("`", "") for a in j["unexplained"]["ambiguities"]]
     for k, v in j["gain"].items():
@@ -307,7 +307,7 @@ def postflight_text(result: dict) -> list[Block]:
             + ("; ".join(f"{f['effect']} found" for f in a["findings"]) or "no finding")
             + f"; extended model {' + '.join(a['extended_model'])}"
         )
-        from pipeline.audit.report import ambiguity_text
+        from pipeline.audit.words import ambiguity_text
 
         for amb in (a.get("unexplained") or {}).get("ambiguities", []):
             out.append("audit: " + ambiguity_text(amb).replace("`", ""))

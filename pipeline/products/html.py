@@ -432,7 +432,7 @@ def _audit_section(s: dict, figs: _Figures) -> list[str]:
     )
     if (a.get("unexplained") or {}).get("note"):
         out.append(f'<p class="note">unexplained: {html.escape(a["unexplained"]["note"])}</p>')
-    from pipeline.audit.report import unexplained_items
+    from pipeline.audit.words import unexplained_items
 
     items = unexplained_items(a.get("unexplained") or {}, int(s["input"].get("start_ns", 0)))
     if items:

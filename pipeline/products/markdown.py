@@ -121,7 +121,7 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             )
         if (a.get("unexplained") or {}).get("note"):
             out.append(f"- unexplained: {a['unexplained']['note']}")
-        from pipeline.audit.report import unexplained_items
+        from pipeline.audit.words import unexplained_items
 
         t0 = int(s["input"].get("start_ns", 0))
         out += [f"- {x}" for x in unexplained_items(a.get("unexplained") or {}, t0)]
