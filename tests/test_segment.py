@@ -196,3 +196,54 @@ def test_a_leg_across_the_block_at_another_height_is_no_tie(tmp_path):
     kept = ix[int(0.4 * ix.size) :]
     rate = 1.0 / float(np.median(np.diff(t)))
     assert np.sum(third.mask("survey")[kept]) >= kept.size - rate
+
+
+def _leg_with_turns(heading_deg: float, lead_turn: bool, trail_turn: bool):
+    """A 100 s leg at 10 Hz flown at ``heading_deg`` with 5 deg yaw swings in its last
+    third, optionally entered and left by an 80 deg turn in place (a hovering multicopter:
+    the position stays on the line, only the heading swings)."""
+    from types import SimpleNamespace
+
+    import pandas as pd
+
+    from pipeline.segment.segmenter import _Leg
+
+    t = np.arange(0.0, 100.0, 0.1)
+    dev = np.where((t > 60) & (t < 90), 5.0 * np.sin(2 * np.pi * (t - 60) / 5.0), 0.0)
+    if trail_turn:
+        dev = np.where(t >= 95.0, 80.0 * np.clip((t - 95.0) / 4.0, 0, 1), dev)
+    if lead_turn:
+        dev = np.where(t < 5.0, -80.0 * np.clip((5.0 - t) / 4.0, 0, 1), dev)
+    yaw = (heading_deg + dev) % 360.0
+    flight = SimpleNamespace(data=pd.DataFrame({"yaw_deg": yaw}))
+    return flight, _Leg(0, t.size - 1, heading_deg), t
+
+
+@pytest.mark.parametrize("heading_deg", [0.0, 270.0, 128.0])
+def test_a_turn_in_place_at_a_legs_end_is_not_part_of_the_leg(heading_deg):
+    # the track cannot end the leg (the position does not move), the heading does: cut back
+    # to where the turn began; the yaw swings of the box stay in the leg, and a heading near
+    # north (0/360) is no turn
+    from pipeline.segment.segmenter import SegmentParams, _without_turns_in_place
+
+    p = SegmentParams()
+    flight, leg, t = _leg_with_turns(heading_deg, lead_turn=True, trail_turn=True)
+    cut = _without_turns_in_place(flight, leg, t, p)
+    assert 94.0 <= t[cut.i1] <= 95.0 and 5.0 <= t[cut.i0] <= 6.0
+    flight, leg, t = _leg_with_turns(heading_deg, lead_turn=False, trail_turn=False)
+    kept = _without_turns_in_place(flight, leg, t, p)
+    assert (kept.i0, kept.i1) == (leg.i0, leg.i1)
+
+
+def test_a_box_ended_by_a_hover_turn_keeps_its_yaw_manoeuvre():
+    # an independent generator's multicopter box: its last leg runs on into a deceleration
+    # and a turn in place; the turn's 80 deg ramp had set the yaw axis' scale and the leg's
+    # 5 deg yaw block was labelled steady ("manoeuvre(s) not flown: W-yaw")
+    from tests.recordings import INDEPENDENT
+
+    path = INDEPENDENT / "realism_none.mcap"
+    if not path.exists():
+        pytest.skip(f"{path} absent")
+    seg = segment_flight(read_flight(path))
+    found = {(b.cardinal, b.manoeuvre) for b in seg.boxes()}
+    assert found == {(c, m) for c in "NESW" for m in ("roll", "pitch", "yaw")}

@@ -62,6 +62,9 @@ class SegmentParams:
     # another height; a drape's terrain following widens the range and stays inside it
     block_height_tol_m: float = 50.0
     pass_gap_s: float = 180.0  # calibration legs closer in time than this form one pass
+    # a heading this far from the leg's own is a turn, not a manoeuvre of the leg: far above
+    # a calibration box's yaw swings (5-10 deg), far below a turn between legs (90-180 deg)
+    turn_deg: float = 30.0
 
 
 @dataclass
@@ -241,6 +244,36 @@ def _refine_ends(
     return _Leg(start, end, float(np.degrees(np.arctan2(d[0], d[1])) % 360))
 
 
+def _without_turns_in_place(flight: Flight, leg: _Leg, t: np.ndarray, p: SegmentParams) -> _Leg:
+    """``leg`` less a turn at either end that the track does not show: a multicopter turns
+    in place (hovering) between legs, so its position stays on the leg's line while its
+    heading swings by the turn. Such an end, where the heading leaves the leg's own by more
+    than ``turn_deg`` up to the leg's end, is cut back to where that swing began (the last
+    passage of the heading through the leg's own before it). Legs that would fall under
+    ``min_leg_s`` are kept whole."""
+    yaw = flight.data["yaw_deg"].to_numpy()[leg.i0 : leg.i1 + 1].astype(float)
+    if yaw.size < 3 or not np.all(np.isfinite(yaw)):
+        return leg
+    dev = (yaw - _circmean_deg(yaw) + 180.0) % 360.0 - 180.0
+    dev = dev - np.median(dev)  # the leg's own heading, robust to the turn's share
+    lo, hi = 0, dev.size - 1
+    far = np.abs(dev) > p.turn_deg
+    if far[-1]:  # the leg ends in a turn: back to its start
+        first = hi - int(np.argmin(far[::-1]))  # first epoch of the trailing far run
+        side = np.sign(dev[first])
+        back = np.flatnonzero(np.sign(dev[:first]) != side)
+        hi = int(back[-1]) if back.size else hi
+    if far[0]:  # it begins in one: forward to its end
+        last = int(np.argmin(far))  # first epoch past the leading far run
+        side = np.sign(dev[last - 1])
+        ahead = np.flatnonzero(np.sign(dev[last:]) != side)
+        lo = last + int(ahead[0]) if ahead.size else lo
+    i0, i1 = leg.i0 + lo, leg.i0 + hi
+    if (i0, i1) == (leg.i0, leg.i1) or t[i1] - t[i0] < p.min_leg_s:
+        return leg
+    return _Leg(i0, i1, leg.heading_deg, kind=leg.kind, line_id=leg.line_id)
+
+
 def _deviation(flight: Flight, leg: _Leg, axis: str) -> np.ndarray:
     """Attitude deviation from the leg's own level (yaw: from its mean heading), degrees."""
     col = {"roll": "roll_deg", "pitch": "pitch_deg", "yaw": "yaw_deg"}[axis]
@@ -371,7 +404,8 @@ def segment_flight(
         for k, run in enumerate(runs):
             lo = runs[k - 1].i1 if k > 0 else 0
             hi = runs[k + 1].i0 if k + 1 < len(runs) else nep - 1
-            legs.append(_refine_ends(run, e, n, t, lo, hi, p))
+            leg = _refine_ends(run, e, n, t, lo, hi, p)
+            legs.append(_without_turns_in_place(flight, leg, t, p) if has_att else leg)
         _classify(flight, legs, e, n, t, p, rate, has_att)
         if not has_att:
             notes.append("no /ins/attitude: calibration legs cannot be recognised")
