@@ -248,30 +248,31 @@ def _without_turns_in_place(flight: Flight, leg: _Leg, t: np.ndarray, p: Segment
     """``leg`` less a turn at either end that the track does not show: a multicopter turns
     in place (hovering) between legs, so its position stays on the leg's line while its
     heading swings by the turn. Such an end, where the heading leaves the leg's own by more
-    than ``turn_deg`` up to the leg's end, is cut back to where that swing began (the last
-    passage of the heading through the leg's own before it). Legs that would fall under
-    ``min_leg_s`` are kept whole."""
-    yaw = flight.data["yaw_deg"].to_numpy()[leg.i0 : leg.i1 + 1].astype(float)
+    than ``turn_deg`` up to the leg's end, is cut back to where that swing began
+    (:func:`_turn_start`). Legs that would fall under ``min_leg_s`` are kept whole."""
+    yaw = flight.data["yaw_deg"].to_numpy()[leg.i0 : leg.i1 + 1]
     if yaw.size < 3 or not np.all(np.isfinite(yaw)):
         return leg
-    dev = (yaw - _circmean_deg(yaw) + 180.0) % 360.0 - 180.0
+    dev = _deviation(flight, leg, "yaw")
     dev = dev - np.median(dev)  # the leg's own heading, robust to the turn's share
-    lo, hi = 0, dev.size - 1
-    far = np.abs(dev) > p.turn_deg
-    if far[-1]:  # the leg ends in a turn: back to its start
-        first = hi - int(np.argmin(far[::-1]))  # first epoch of the trailing far run
-        side = np.sign(dev[first])
-        back = np.flatnonzero(np.sign(dev[:first]) != side)
-        hi = int(back[-1]) if back.size else hi
-    if far[0]:  # it begins in one: forward to its end
-        last = int(np.argmin(far))  # first epoch past the leading far run
-        side = np.sign(dev[last - 1])
-        ahead = np.flatnonzero(np.sign(dev[last:]) != side)
-        lo = last + int(ahead[0]) if ahead.size else lo
+    hi = _turn_start(dev, p.turn_deg)
+    lo = dev.size - 1 - _turn_start(dev[::-1], p.turn_deg)  # the same, read backwards
     i0, i1 = leg.i0 + lo, leg.i0 + hi
     if (i0, i1) == (leg.i0, leg.i1) or t[i1] - t[i0] < p.min_leg_s:
         return leg
     return _Leg(i0, i1, leg.heading_deg, kind=leg.kind, line_id=leg.line_id)
+
+
+def _turn_start(dev: np.ndarray, turn_deg: float) -> int:
+    """Index of the last epoch before a turn that ends the series ``dev`` (heading from the
+    leg's own, deg): the last passage through the leg's heading before the run of epochs
+    beyond ``turn_deg`` that reaches the end. The last index when it ends in no turn."""
+    far = np.abs(dev) > turn_deg
+    if not far[-1]:
+        return dev.size - 1
+    first = dev.size - 1 - int(np.argmin(far[::-1]))  # first epoch of the trailing far run
+    back = np.flatnonzero(np.sign(dev[:first]) != np.sign(dev[first]))
+    return int(back[-1]) if back.size else dev.size - 1
 
 
 def _deviation(flight: Flight, leg: _Leg, axis: str) -> np.ndarray:
