@@ -165,8 +165,9 @@ ROOT_MARGIN = 0.01  # AR or MA roots closer than this to the unit circle: a dege
 # order search on a sequence longer than SCREEN_ABOVE samples (the map stage's identification
 # stretch of a survey of ~4 h and more): every candidate is ranked by its BIC under Whittle's
 # likelihood (pipeline.maps.whittle: one FFT, no Kalman filter) on the whole sequence, and
-# only the SHORTLIST best are fitted by the exact likelihood, where BIC chooses among them;
-# an exact fit costs ~100 filter passes over every sample
+# the best whose Whittle estimates pass the exact likelihood's checks (one filter pass) is
+# the model; only when none of the SHORTLIST best does are they fitted exactly (an exact
+# fit costs ~100 filter passes)
 SCREEN_ABOVE = 10_000
 SHORTLIST = 3
 
@@ -224,9 +225,11 @@ def fit_arima(
     ``d`` starts from the reverse-arrangements test (difference until stationary); (p, q) by
     BIC = k ln(n) - 2 ln L over p <= max_p, q <= max_q, by statsmodels' exact likelihood. On
     a sequence longer than SCREEN_ABOVE the candidates are first ranked by BIC under Whittle's
-    likelihood (:func:`pipeline.maps.whittle.whittle_fit`) and the SHORTLIST best are fitted
-    exactly; when none of those is usable d goes up (at the largest d the others are fitted
-    too).
+    likelihood (:func:`pipeline.maps.whittle.whittle_fit`); the first of the SHORTLIST best
+    whose Whittle estimates make a usable model under the exact likelihood is the model,
+    without optimising the exact likelihood (``tests["estimated_by"]``: ``whittle``). When
+    none is, the shortlist is fitted exactly and BIC chooses, and when none of those is
+    usable either d goes up (at the largest d the others are fitted too).
     Candidates that are :func:`degenerate` (impossible likelihood, AR or MA root on the unit
     circle) are rejected; when every candidate at d is, d goes up by one (up to ``max_d``),
     and when none is left at any d the model is the local level ARIMA(0, 1, 0) (a random
@@ -242,9 +245,6 @@ def fit_arima(
     An explicit ``order`` is fitted as given; if it is degenerate the reason is kept in the
     model's ``tests["degenerate"]``.
     """
-    from statsmodels.tsa.arima.model import ARIMA
-    from statsmodels.tsa.statespace.sarimax import SARIMAX
-
     x = np.asarray(x, float)
     # masked cells stay in as missing values (NaN): the likelihood predicts through a gap of
     # its true length instead of joining the cells on either side as neighbours
@@ -259,26 +259,18 @@ def fit_arima(
 
     starts: dict[tuple[int, int, int], np.ndarray] = {}  # a screening's estimates
 
-    def fit_one(p: int, d: int, q: int, z: np.ndarray = x):
-        # no parameter covariance: only the estimates and the likelihood are used; the
-        # optimiser starts from the screening's estimates where there are some
-        start = starts.get((p, d, q))
-        if measurement_var is None:
-            y = np.diff(z, n=d) if d else z  # differences across a gap are NaN, not joined
-            return ARIMA(y, order=(p, 0, q), trend="n").fit(start_params=start, cov_type="none")
-        mod = SARIMAX(z, order=(p, d, q), measurement_error=True, trend="n")
-        if start is not None:  # the fixed measurement variance sits before sigma2
-            start = np.r_[start[:-1], float(measurement_var), start[-1]]
-        return mod.fit_constrained(
-            {"var.measurement_error": float(measurement_var)},
-            start_params=start,
-            includes_fixed=True,
-            disp=False,
-            cov_type="none",
-        )
+    def fit_one(p: int, d: int, q: int):
+        return _likelihood(x, (p, d, q), measurement_var, starts.get((p, d, q)), optimise=True)
+
+    def at_whittle(p: int, d: int, q: int):
+        # the exact likelihood at the screening's estimates, without optimising: Whittle's
+        # estimator is asymptotically as efficient as the exact likelihood's, and the
+        # filter's output with either differs by a small share of the noise
+        return _likelihood(x, (p, d, q), measurement_var, starts[(p, d, q)], optimise=False)
 
     failed: list[str] = []
     screened: dict[str, list] = {}  # d -> the shortlist [[p, q], ...] a screening kept
+    estimated_by = "exact likelihood"
     best = None
     bad_explicit = None
     d_range = [d0] if order else list(range(d0, max(max_d, d0) + 1))
@@ -297,6 +289,10 @@ def fit_arima(
                 candidates = short + rest
                 screened[str(d)] = [list(c) for c in short]
                 ranked: int | None = len(short)
+                best = _first_usable(at_whittle, d, short, starts, measurement_var)
+                if best is not None:
+                    estimated_by = "whittle"
+                    break
             else:
                 ranked = None
             best, why = _best_at(
@@ -321,10 +317,44 @@ def fit_arima(
         "failed_candidates": failed,
         "d_from_test": d0,
         "screened": screened,
+        "estimated_by": estimated_by,
     }
     if bad_explicit is not None:
         tests["degenerate"] = bad_explicit
     return _model_of(best, x, tests)
+
+
+def _likelihood(
+    z: np.ndarray,
+    order: tuple[int, int, int],
+    measurement_var: float | None,
+    start: np.ndarray | None,
+    optimise: bool,
+):
+    """statsmodels' exact-likelihood result of ARIMA ``order`` on ``z`` (plus white noise of
+    the known ``measurement_var``, None: none): fitted from ``start`` (AR, MA, innovation
+    variance; None: statsmodels' own) when ``optimise``, else filtered once at ``start``.
+    No parameter covariance: only the estimates and the likelihood are used."""
+    from statsmodels.tsa.arima.model import ARIMA
+    from statsmodels.tsa.statespace.sarimax import SARIMAX
+
+    p, d, q = order
+    if measurement_var is None:
+        y = np.diff(z, n=d) if d else z  # differences across a gap are NaN, not joined
+        mod = ARIMA(y, order=(p, 0, q), trend="n")
+        if not optimise:
+            return mod.filter(start, cov_type="none")
+        return mod.fit(start_params=start, cov_type="none")
+    mod = SARIMAX(z, order=(p, d, q), measurement_error=True, trend="n")
+    fixed = {"var.measurement_error": float(measurement_var)}
+    if not optimise:
+        with mod.fix_params(fixed):
+            return mod.filter(start, cov_type="none")
+    if start is not None:  # the fixed measurement variance sits before sigma2
+        start = np.r_[start[:-1], float(measurement_var), start[-1]]
+    return mod.fit_constrained(
+        fixed, start_params=start, includes_fixed=True, disp=False, cov_type="none"
+    )
 
 
 def _model_of(best, x: np.ndarray, tests: dict) -> ArimaModel:
@@ -372,6 +402,23 @@ def _best_at(
         if best is None or res.bic < best[0].bic:
             best = (res, p, d, q)
     return best, bad
+
+
+def _first_usable(at_whittle, d: int, short: list[tuple[int, int]], starts: dict, measurement_var):
+    """The first of the shortlist ``short`` (in Whittle BIC order) whose Whittle estimates
+    (``starts``) give a usable model under the exact likelihood (:func:`degenerate`), as
+    ``(result, p, d, q)``, or None: the Whittle likelihood both estimates and chooses, the
+    exact one only vets the choice and gives its BIC."""
+    for p, q in short:
+        if (p, d, q) not in starts:
+            continue
+        try:
+            res = at_whittle(p, d, q)
+        except (np.linalg.LinAlgError, ValueError):
+            continue
+        if degenerate(res, measurement_var) is None:
+            return res, p, d, q
+    return None
 
 
 def _shortlist(
