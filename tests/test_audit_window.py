@@ -88,6 +88,42 @@ def test_the_lag_costs_equal_the_whole_flights():
     assert np.all(np.isfinite(got))
 
 
+def test_a_lag_twins_rows_reuse_its_columns_and_equal_a_fresh_build():
+    """The rows of a model at another lag, built from its twin's band-passed columns, are
+    the rows built afresh; so are the lag costs from them; and a twin whose record is finite
+    on other epochs (the flight's start cut) is not reused."""
+    data, mask = _flight()
+    # the calibration 5 s from the flight's ends: a lag cannot empty its epochs
+    mask &= (data.time_s > 5.0) & (data.time_s < data.time_s[-1] - 5.0)
+    bs = BandSettings()
+    twin = calibration_rows(data, SPEC.with_(lag_s=0.0), mask, bs)
+    for lag in (0.2, -0.35):
+        spec = SPEC.with_(lag_s=lag)
+        fresh = calibration_rows(data, spec, mask, bs)
+        reused = calibration_rows(data, spec, mask, bs, like=twin)
+        assert reused.kf is twin.kf  # not rebuilt
+        assert np.array_equal(reused.where, fresh.where)
+        assert np.array_equal(reused.kf, fresh.kf)
+        assert np.allclose(reused.yf, fresh.yf, rtol=0, atol=1e-12 * np.std(fresh.yf))
+        assert not np.allclose(reused.yf, twin.yf)  # the record moved with the lag
+    taus = np.array([-0.3, 0.0, 0.15, 0.4])
+    want = lag_cost(data, SPEC.with_(lag_s=0.0), mask, bs, 1e-3, 1.0)(taus)
+    got = lag_cost(data, SPEC.with_(lag_s=0.0), mask, bs, 1e-3, 1.0, like=twin)(taus)
+    assert np.allclose(got, want, rtol=1e-12)
+    # the calibration's first epochs with no scalar: the twin's blocks are not these
+    cut = AuditData(
+        data.time_s,
+        np.where(data.time_s < 7.0, np.nan, data.scalar_nT),
+        data.vector_nT,
+        data.enu_m,
+        data.aux,
+        data.aux_units,
+    )
+    fresh = calibration_rows(cut, SPEC, mask, bs)
+    reused = calibration_rows(cut, SPEC, mask, bs, like=twin)
+    assert reused.kf is not twin.kf and np.array_equal(reused.where, fresh.where)
+
+
 def test_the_nested_test_does_not_let_rounding_set_the_rank():
     rng = np.random.default_rng(7)
     n = 2000

@@ -118,6 +118,9 @@ class AuditContext:
         # the folds (the design spans the whole flight: building it once per fit made the
         # audit grow with the survey); the last few models only
         self._rows_cache: OrderedDict[ModelSpec, CalibrationRows] = OrderedDict()
+        # the last rows built per model without its lag: a lag search builds the rows of
+        # one model at many lags, whose columns are the same (only the scalar moves)
+        self._columns_cache: OrderedDict[ModelSpec, CalibrationRows] = OrderedDict()
         self._crossover_cache: dict[tuple, tuple] = {}
         self._compensated: dict[ModelSpec, np.ndarray] = {}
         self._geometry: tuple | None = None
@@ -226,10 +229,15 @@ class AuditContext:
         most recently used models."""
         got = self._rows_cache.get(spec)
         if got is None:
-            got = calibration_rows(self.data, spec, self.mask, self.s.band)
-            self._rows_cache[spec] = got
-            while len(self._rows_cache) > ROWS_CACHED:
-                self._rows_cache.popitem(last=False)
+            twin = spec.with_(lag_s=0.0, lag_response="delay")
+            got = calibration_rows(
+                self.data, spec, self.mask, self.s.band, like=self._columns_cache.get(twin)
+            )
+            for cache, key in ((self._rows_cache, spec), (self._columns_cache, twin)):
+                cache[key] = got
+                cache.move_to_end(key)
+                while len(cache) > ROWS_CACHED:
+                    cache.popitem(last=False)
         else:
             self._rows_cache.move_to_end(spec)
         return got

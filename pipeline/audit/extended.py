@@ -403,6 +403,14 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
         cols.append(kp)
         names = names + pn
         sub += [False] * kp.shape[1]
+    y, known = design_record(data, spec)
+    return Design(np.column_stack(cols), names, np.array(sub), y, known)
+
+
+def design_record(data: AuditData, spec: ModelSpec) -> tuple[np.ndarray, np.ndarray | None]:
+    """The record :func:`design` regresses on its columns: the scalar (nT) re-timed by
+    ``spec``'s lag, less what ``spec`` takes as known (a measured gradient's field, known
+    couplings); and the known gradient's field (nT; None without one)."""
     y = scalar_series(data, spec.lag_s, spec.lag_response)
     known = None
     if spec.known_gradient_nT_per_m is not None:
@@ -412,7 +420,7 @@ def design(data: AuditData, spec: ModelSpec) -> Design:
         y = y - known
     for name, k in spec.known_aux:
         y = y - k * data.aux[name]
-    return Design(np.column_stack(cols), names, np.array(sub), y, known)
+    return y, known
 
 
 @dataclass
@@ -456,6 +464,10 @@ class CalibrationRows:
         Band-passed (lag-corrected) scalar field, nT, read-only.
     where : ndarray of int, shape (m,)
         Epoch index of each row.
+    columns_ok, valid : ndarray of bool, optional
+        Over the epochs of the calibration part the rows were built on: those of the mask
+        where every column is finite, and of those where the record is too (the blocks'
+        epochs); None when not kept.
     """
 
     names: list[str]
@@ -463,6 +475,8 @@ class CalibrationRows:
     kf: np.ndarray
     yf: np.ndarray
     where: np.ndarray
+    columns_ok: np.ndarray | None = None
+    valid: np.ndarray | None = None
 
     def select(self, keep: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(K_bp, y_bp, epoch indices) of the rows of ``keep`` (epoch mask; all when None),
@@ -474,7 +488,11 @@ class CalibrationRows:
 
 
 def calibration_rows(
-    data: AuditData, spec: ModelSpec, mask: np.ndarray, bs: BandSettings
+    data: AuditData,
+    spec: ModelSpec,
+    mask: np.ndarray,
+    bs: BandSettings,
+    like: CalibrationRows | None = None,
 ) -> CalibrationRows:
     """``spec``'s design on ``data``, band-passed over the blocks of ``mask`` (arrays made
     read-only: they are shared by every fit that selects rows from them).
@@ -486,18 +504,43 @@ def calibration_rows(
     mask : ndarray of bool
         The calibration epochs.
     bs : BandSettings
+    like : CalibrationRows, optional
+        The rows of a model that differs from ``spec`` in its lag only, on the same
+        ``data``, ``mask`` and ``bs``: its band-passed columns are reused (the same numbers)
+        when the re-timed record is finite on the same epochs.
 
     Returns
     -------
     CalibrationRows
     """
     sub, sub_mask, idx = data.calibration_part(mask)
+    if like is not None and like.columns_ok is not None:
+        # only the scalar moves with the lag: the columns' band-passed rows are the twin's
+        # when the record is finite on the same epochs (then the blocks are the same)
+        y, _ = design_record(sub, spec)
+        valid = like.columns_ok & np.isfinite(y)
+        if np.array_equal(valid, like.valid):
+            _, yf, _ = bandpassed_design(
+                np.zeros((y.size, 1)),  # the record beside a zero column (the filter takes one)
+                y,
+                sub.time_s,
+                sub.rate_hz,
+                valid,
+                bs.band_hz,
+                bs.poles,
+                bs.trim_s,
+            )
+            yf.flags.writeable = False
+            return replace(like, yf=yf)
     des = design(sub, spec)
     kf, yf, where = bandpassed_rows(sub, des, sub_mask, bs)
     where = idx[where]
     for a in (kf, yf, where):
         a.flags.writeable = False
-    return CalibrationRows(des.names, des.subtract, kf, yf, where)
+    columns_ok = sub_mask & np.all(np.isfinite(des.columns), axis=1)
+    return CalibrationRows(
+        des.names, des.subtract, kf, yf, where, columns_ok, columns_ok & np.isfinite(des.y)
+    )
 
 
 @dataclass
@@ -598,6 +641,7 @@ def lag_cost(
     lam: float,
     max_lag_s: float,
     keep: np.ndarray | None = None,
+    like: CalibrationRows | None = None,
 ):
     """costs(taus, ridge_lambda=lam): fit residual RMS (nT) of ``spec`` refitted with the
     scalar re-timed by each tau of the array ``taus`` (s).
@@ -605,20 +649,31 @@ def lag_cost(
     Only the scalar moves with the lag, so the design matrix and its SVD are built once for
     every candidate |tau| <= ``max_lag_s`` (the flight's first and last ``max_lag_s`` seconds
     are left out, so that every candidate uses the same rows). With ``keep``, only the rows
-    of kept epochs count (band-passed with all of ``mask``).
+    of kept epochs count (band-passed with all of ``mask``). ``like``: ``spec``'s rows at any
+    lag (:func:`calibration_rows`), whose band-passed columns are these when they were built
+    on the same epochs.
     """
     # the flight's first and last max_lag_s seconds: the window's own ends when the
     # calibration reaches them, else pad (>= max_lag_s) outside the calibration
     flight_start, flight_end = data.time_s[0], data.time_s[-1]
-    data, mask, idx = data.calibration_part(mask, max(CALIBRATION_PAD_S, 2.0 * max_lag_s))
+    pad_s = max(CALIBRATION_PAD_S, 2.0 * max_lag_s)
+    data, mask, idx = data.calibration_part(mask, pad_s)
     keep = None if keep is None else keep[idx]
     t = data.time_s
     inner = mask & (t >= flight_start + max_lag_s) & (t <= flight_end - max_lag_s)
-    des = design(data, spec.with_(lag_s=0.0))
-    valid = inner & np.isfinite(des.y) & np.all(np.isfinite(des.columns), axis=1)
+    y0, _ = design_record(data, spec.with_(lag_s=0.0))
+    kf = where = None
+    if like is not None and like.columns_ok is not None and pad_s == CALIBRATION_PAD_S:
+        valid = inner & np.isfinite(y0) & like.columns_ok
+        if np.array_equal(valid, like.valid):  # the same blocks: the same filtered columns
+            kf, where = like.kf, np.searchsorted(idx, like.where)
+    if kf is None:
+        des = design(data, spec.with_(lag_s=0.0))
+        valid = inner & np.isfinite(des.y) & np.all(np.isfinite(des.columns), axis=1)
     blocks = contiguous_blocks(valid, t)
     sos = bandpass_sos(bs.band_hz, data.rate_hz, bs.poles)
-    kf, where = bandpass_blocks(des.columns, blocks, sos, bs.trim_at(data.rate_hz))
+    if kf is None:
+        kf, where = bandpass_blocks(des.columns, blocks, sos, bs.trim_at(data.rate_hz))
     rows = np.ones(where.size, bool) if keep is None else keep[where]
     kf = kf[rows]
     if kf.shape[0] < 2 * kf.shape[1]:
@@ -626,7 +681,7 @@ def lag_cost(
     solver = RidgeSVD(kf, np.zeros(kf.shape[0]))
     # what the spec takes as known (a measured gradient's field, known couplings) leaves the
     # record before the fit at every candidate lag, as in design()
-    known = data.scalar_nT - des.y
+    known = data.scalar_nT - y0
     retime = scalar_retimer(data, spec.lag_response)
 
     def costs(taus: np.ndarray, ridge_lambda: float = lam) -> np.ndarray:

@@ -48,7 +48,16 @@ def _lag_costs(ctx: AuditContext, spec: ModelSpec, keep: np.ndarray | None, key:
     # (a decay) take up, moving the lag with them
     lam = ctx.fit(spec, keep, key, ridge="auto").lambda_
     try:
-        costs = lag_cost(ctx.data, spec, ctx.mask, ctx.s.band, lam, ctx.s.max_lag_s, keep=keep)
+        costs = lag_cost(
+            ctx.data,
+            spec,
+            ctx.mask,
+            ctx.s.band,
+            lam,
+            ctx.s.max_lag_s,
+            keep=keep,
+            like=ctx.rows(spec),
+        )
         lag = _least_cost(costs, ctx.s.max_lag_s)[0]
         at_lag = spec.with_(lag_s=lag)
         if at_lag == spec:
