@@ -71,3 +71,18 @@ def test_the_shortlist_holds_the_exact_searchs_choice(seed, monkeypatch):
     assert screened.tests["estimated_by"] == "whittle"
     assert (screened.p, screened.d, screened.q) == (full.p, full.d, full.q)
     assert full.bic <= screened.bic < full.bic + 2 * (full.p + full.q + 1)
+
+
+def test_a_serpentine_random_walk_falls_back_to_exact_fits_then_differences():
+    """A random walk read back and forth (a serpentine map's lanes: its segment means do not
+    trend, so the stationarity test keeps d = 0) under noise: every shortlisted Whittle
+    estimate at d = 0 has an AR root on the unit circle, so the shortlist is fitted exactly;
+    those fits are degenerate too, and one more difference gives a model from Whittle's
+    estimates."""
+    rng = np.random.default_rng(0)
+    walk = np.cumsum(rng.normal(size=1_500))
+    x = np.concatenate([walk, walk[::-1]] * 4) + rng.normal(0, 0.5, 12_000)
+    model = fit_arima(x, measurement_var=0.25)
+    assert model.tests["d_from_test"] == 0 and set(model.tests["screened"]) == {"0", "1"}
+    assert model.d == 1 and model.tests["estimated_by"] == "whittle"
+    assert any(",0," in f and "unit circle" in f for f in model.tests["failed_candidates"])
