@@ -5,7 +5,7 @@ from __future__ import annotations
 from typing import Any
 
 from pipeline.audit.result import AuditResult
-from pipeline.audit.words import ambiguity_text, event_text, fmt_value, nuisance_text
+from pipeline.audit.words import ambiguity_text, event_text, fmt_value, nuisance_text, plain
 from pipeline.flight import Flight
 from pipeline.io.writer import OutputChannel
 from pipeline.products.summary import jsonable
@@ -105,7 +105,7 @@ def log_lines(res: AuditResult) -> list[tuple[int, str]]:
     if res.unexplained.get("note"):
         out.append((LOG_WARNING, f"audit: unexplained: {res.unexplained['note']}"))
     for a in res.unexplained.get("ambiguities", []):
-        out.append((LOG_WARNING, f"audit: {ambiguity_text(a).replace('`', '')}"))
+        out.append((LOG_WARNING, f"audit: {plain(ambiguity_text(a))}"))
     for k, v in res.gain.items():
         if v["before"] is not None:
             out.append((LOG_INFO, f"audit: gain {k}: {v['before']:.4f} -> {v['after']:.4f}"))
@@ -139,59 +139,61 @@ def finding_channel(flight: Flight, res: AuditResult) -> OutputChannel:
         u = res.unexplained
         ch.add(
             t0 + len(res.findings),
-            {
-                "effect": "unexplained",
-                "accepted": False,
-                "estimate": jsonable(u),
-                "delta_bic": None,
-                "p_value": None,
-                "p_value_holm": None,
-                "heldout_p_value": None,
-                "gain_metric": "heldout_calibration_residual_rms",
-                "before_nT": u.get("band_noise_floor_nT", res.band_noise_floor_nT),
-                "after_nT": u.get("rms_nT", res.heldout_extended_nT),
-                "message": u["note"],
-            },
+            _unexplained(
+                u,
+                u["note"],
+                before_nT=u.get("band_noise_floor_nT", res.band_noise_floor_nT),
+                after_nT=u.get("rms_nT", res.heldout_extended_nT),
+            ),
         )
     # each tie, beside the note: a viewer of the recording sees what was left unnamed and
     # what it does to the lines, also when the residual is at the noise floor (no note)
     for k, a in enumerate(res.unexplained.get("ambiguities", [])):
-        ch.add(
-            t0 + len(res.findings) + 1 + k,
-            {
-                "effect": "unexplained",
-                "accepted": False,
-                "estimate": jsonable(a),
-                "delta_bic": None,
-                "p_value": None,
-                "p_value_holm": None,
-                "heldout_p_value": None,
-                "gain_metric": "heldout_calibration_residual_rms",
-                "before_nT": None,
-                "after_nT": None,
-                "message": ambiguity_text(a).replace("`", ""),
-            },
-        )
+        ch.add(t0 + len(res.findings) + 1 + k, _unexplained(a, plain(ambiguity_text(a))))
     events = sorted(res.unexplained["events"], key=lambda e: e["start_ns"])
     for k, e in enumerate(events):  # on the timeline where they happen
         ch.add(
             int(e["start_ns"]) + len(res.findings) + 1 + k,
-            {
-                "effect": "unexplained",
-                "accepted": False,
-                "estimate": jsonable(e),
-                "estimate_ci95": None,
-                "delta_bic": None,
-                "p_value": e.get("p_value"),
-                "p_value_holm": None,
-                "heldout_p_value": None,
-                "gain_metric": e["evidence"],
-                "before_nT": None,
-                "after_nT": None,
-                "message": f"unexplained {e['kind']} of {e['size_nT']:.2f} nT ({e['evidence']})",
-            },
+            _unexplained(
+                e,
+                f"unexplained {e['kind']} of {e['size_nT']:.2f} nT ({e['evidence']})",
+                gain_metric=e["evidence"],
+                p_value=e.get("p_value"),
+                with_ci95=True,
+            ),
         )
     return ch
+
+
+def _unexplained(
+    estimate: dict,
+    message: str,
+    gain_metric: str = "heldout_calibration_residual_rms",
+    p_value: float | None = None,
+    before_nT: float | None = None,
+    after_nT: float | None = None,
+    with_ci95: bool = False,
+) -> dict[str, Any]:
+    """An ``/audit/finding`` message of what the audit left unexplained (its note, a tie, an
+    event): nothing accepted, no model test, the keys in the findings' order."""
+    msg: dict[str, Any] = {
+        "effect": "unexplained",
+        "accepted": False,
+        "estimate": jsonable(estimate),
+    }
+    if with_ci95:
+        msg["estimate_ci95"] = None
+    msg.update(
+        delta_bic=None,
+        p_value=p_value,
+        p_value_holm=None,
+        heldout_p_value=None,
+        gain_metric=gain_metric,
+        before_nT=before_nT,
+        after_nT=after_nT,
+        message=message,
+    )
+    return msg
 
 
 def markdown(res: AuditResult, source: str, images: dict[str, str]) -> str:

@@ -16,6 +16,12 @@ SEPARATED_BY = {
 }
 
 
+def plain(text: str) -> str:
+    """A sentence of this module without its Markdown code marks, for the run log, the
+    console, ``/audit/finding`` and HTML."""
+    return text.replace("`", "")
+
+
 def fmt_value(v: Any) -> str:
     """A JSON value in short: floats to 4 significant digits, None as ``-``."""
     if v is None:

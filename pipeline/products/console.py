@@ -128,9 +128,9 @@ def audit_text(j: dict) -> list[Block]:
     if (j.get("unexplained") or {}).get("note"):
         out.append(f"unexplained: {j['unexplained']['note']}")
     if (j.get("unexplained") or {}).get("ambiguities"):
-        from pipeline.audit.words import ambiguity_text
+        from pipeline.audit.words import ambiguity_text, plain
 
-        out += [ambiguity_text(a).replace("`", "") for a in j["unexplained"]["ambiguities"]]
+        out += [plain(ambiguity_text(a)) for a in j["unexplained"]["ambiguities"]]
     for k, v in j["gain"].items():
         if v["before"] is not None:
             out.append(f"gain {k}: {v['before']:.4f} -> {v['after']:.4f}")
@@ -307,10 +307,10 @@ def postflight_text(result: dict) -> list[Block]:
             + ("; ".join(f"{f['effect']} found" for f in a["findings"]) or "no finding")
             + f"; extended model {' + '.join(a['extended_model'])}"
         )
-        from pipeline.audit.words import ambiguity_text
+        from pipeline.audit.words import ambiguity_text, plain
 
         for amb in (a.get("unexplained") or {}).get("ambiguities", []):
-            out.append("audit: " + ambiguity_text(amb).replace("`", ""))
+            out.append("audit: " + plain(ambiguity_text(amb)))
     if "states" in (result.get("quality") or {}):
         out += quality_text(result["quality"])
     return out + outputs_text(result)

@@ -432,13 +432,13 @@ def _audit_section(s: dict, figs: _Figures) -> list[str]:
     )
     if (a.get("unexplained") or {}).get("note"):
         out.append(f'<p class="note">unexplained: {html.escape(a["unexplained"]["note"])}</p>')
-    from pipeline.audit.words import unexplained_items
+    from pipeline.audit.words import plain, unexplained_items
 
     items = unexplained_items(a.get("unexplained") or {}, int(s["input"].get("start_ns", 0)))
     if items:
         out.append(
             "<ul>"
-            + "".join(f'<li class="note">{html.escape(x.replace("`", ""))}</li>' for x in items)
+            + "".join(f'<li class="note">{html.escape(plain(x))}</li>' for x in items)
             + "</ul>"
         )
     gain = a.get("gain") or {}
