@@ -85,4 +85,10 @@ def test_a_serpentine_random_walk_falls_back_to_exact_fits_then_differences():
     model = fit_arima(x, measurement_var=0.25)
     assert model.tests["d_from_test"] == 0 and set(model.tests["screened"]) == {"0", "1"}
     assert model.d == 1 and model.tests["estimated_by"] == "whittle"
-    assert any(",0," in f and "unit circle" in f for f in model.tests["failed_candidates"])
+    failed = model.tests["failed_candidates"]
+    assert any(",0," in f and "unit circle" in f for f in failed)
+    # the shortlist's Whittle estimates at d = 0 are listed as passed over, then their exact
+    # fits as rejected
+    passed_over = [f for f in failed if ",0," in f and "Whittle's estimates" in f]
+    assert len(passed_over) == len(model.tests["screened"]["0"])
+    assert any(",0," in f and "Whittle" not in f for f in failed)

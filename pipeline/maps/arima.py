@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.polynomial import polynomial as P
@@ -257,7 +258,49 @@ def fit_arima(
     else:
         d0, steps = order[1], []
 
+    found = _search(x, order, d0, (max_p, max_q, max_d), measurement_var)
+    if found.best is None:
+        raise ValueError("no ARIMA candidate could be fitted: " + "; ".join(found.failed))
+    tests = {
+        "stationarity": steps,
+        "samples": int(np.isfinite(x).sum()),
+        "missing_inside": int((~np.isfinite(x)).sum()),
+        "measurement_var": measurement_var,
+        "failed_candidates": found.failed,
+        "d_from_test": d0,
+        "screened": found.screened,
+        "estimated_by": found.estimated_by,
+    }
+    if found.bad_explicit is not None:
+        tests["degenerate"] = found.bad_explicit
+    return _model_of(found.best, x, tests)
+
+
+@dataclass
+class _Search:
+    """What the order search found: the chosen fit ``(result, p, d, q)`` (or None), the
+    candidates rejected and why, the shortlists Whittle's likelihood kept (d -> [[p, q]]),
+    which likelihood estimated the model, and why an explicit order is degenerate."""
+
+    best: Any = None
+    failed: list[str] = field(default_factory=list)
+    screened: dict[str, list] = field(default_factory=dict)
+    estimated_by: str = "exact likelihood"
+    bad_explicit: str | None = None
+
+
+def _search(
+    x: np.ndarray,
+    order: tuple[int, int, int] | None,
+    d0: int,
+    limits: tuple[int, int, int],
+    measurement_var: float | None,
+) -> _Search:
+    """The order search of :func:`fit_arima` on ``x`` from ``d0`` (``limits``: max p, q,
+    d); an explicit ``order`` is fitted as given."""
+    max_p, max_q, max_d = limits
     starts: dict[tuple[int, int, int], np.ndarray] = {}  # a screening's estimates
+    out = _Search()
 
     def fit_one(p: int, d: int, q: int):
         return _likelihood(x, (p, d, q), measurement_var, starts.get((p, d, q)), optimise=True)
@@ -268,11 +311,6 @@ def fit_arima(
         # filter's output with either differs by a small share of the noise
         return _likelihood(x, (p, d, q), measurement_var, starts[(p, d, q)], optimise=False)
 
-    failed: list[str] = []
-    screened: dict[str, list] = {}  # d -> the shortlist [[p, q], ...] a screening kept
-    estimated_by = "exact likelihood"
-    best = None
-    bad_explicit = None
     d_range = [d0] if order else list(range(d0, max(max_d, d0) + 1))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # convergence chatter on poor candidates
@@ -282,46 +320,31 @@ def fit_arima(
                 if order
                 else [(p, q) for p in range(max_p + 1) for q in range(max_q + 1) if p + q > 0]
             )
+            ranked: int | None = None
             if order is None and x.size > SCREEN_ABOVE:
                 short = _shortlist(candidates, d, x, measurement_var, starts)
                 # none of the shortlist usable: d goes up (at the last d the rest compete)
                 rest = [c for c in candidates if c not in short] if d == d_range[-1] else []
                 candidates = short + rest
-                screened[str(d)] = [list(c) for c in short]
-                ranked: int | None = len(short)
-                best = _first_usable(at_whittle, d, short, starts, measurement_var)
-                if best is not None:
-                    estimated_by = "whittle"
+                out.screened[str(d)] = [list(c) for c in short]
+                ranked = len(short)
+                out.best = _first_usable(at_whittle, d, short, starts, measurement_var, out.failed)
+                if out.best is not None:
+                    out.estimated_by = "whittle"
                     break
-            else:
-                ranked = None
-            best, why = _best_at(
-                fit_one, d, candidates, ranked, order is not None, measurement_var, failed
+            out.best, why = _best_at(
+                fit_one, d, candidates, ranked, order is not None, measurement_var, out.failed
             )
-            bad_explicit = bad_explicit or why
-            if best is not None:
+            out.bad_explicit = out.bad_explicit or why
+            if out.best is not None:
                 break
-        if best is None and order is None and measurement_var is not None:
+        if out.best is None and order is None and measurement_var is not None:
             # every candidate degenerate: the local level model (random walk + noise)
             res = fit_one(0, max(d0, 1), 0)
             if np.isfinite(res.llf):
-                best = (res, 0, max(d0, 1), 0)
-                failed.append("fell back to ARIMA(0,1,0): local level")
-    if best is None:
-        raise ValueError("no ARIMA candidate could be fitted: " + "; ".join(failed))
-    tests = {
-        "stationarity": steps,
-        "samples": int(np.isfinite(x).sum()),
-        "missing_inside": int((~np.isfinite(x)).sum()),
-        "measurement_var": measurement_var,
-        "failed_candidates": failed,
-        "d_from_test": d0,
-        "screened": screened,
-        "estimated_by": estimated_by,
-    }
-    if bad_explicit is not None:
-        tests["degenerate"] = bad_explicit
-    return _model_of(best, x, tests)
+                out.best = (res, 0, max(d0, 1), 0)
+                out.failed.append("fell back to ARIMA(0,1,0): local level")
+    return out
 
 
 def _likelihood(
@@ -404,20 +427,33 @@ def _best_at(
     return best, bad
 
 
-def _first_usable(at_whittle, d: int, short: list[tuple[int, int]], starts: dict, measurement_var):
+def _first_usable(
+    at_whittle,
+    d: int,
+    short: list[tuple[int, int]],
+    starts: dict,
+    measurement_var: float | None,
+    failed: list[str],
+):
     """The first of the shortlist ``short`` (in Whittle BIC order) whose Whittle estimates
     (``starts``) give a usable model under the exact likelihood (:func:`degenerate`), as
     ``(result, p, d, q)``, or None: the Whittle likelihood both estimates and chooses, the
-    exact one only vets the choice and gives its BIC."""
+    exact one only vets the choice and gives its BIC. Those passed over are noted in
+    ``failed`` (their exact fits may still be usable, and are tried when none is)."""
     for p, q in short:
+        name = f"ARIMA({p},{d},{q}) at Whittle's estimates"
         if (p, d, q) not in starts:
+            failed.append(f"{name}: AR or MA root on the unit circle")
             continue
         try:
             res = at_whittle(p, d, q)
-        except (np.linalg.LinAlgError, ValueError):
+        except (np.linalg.LinAlgError, ValueError) as exc:
+            failed.append(f"{name}: {type(exc).__name__}")
             continue
-        if degenerate(res, measurement_var) is None:
+        why = degenerate(res, measurement_var)
+        if why is None:
             return res, p, d, q
+        failed.append(f"{name}: {why}")
     return None
 
 
