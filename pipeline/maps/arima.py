@@ -312,6 +312,11 @@ def _search(
         return _likelihood(x, (p, d, q), measurement_var, starts[(p, d, q)], optimise=False)
 
     d_range = [d0] if order else list(range(d0, max(max_d, d0) + 1))
+    # imported before the filter: statsmodels' import puts "always" filters for its own
+    # warnings in front of any set earlier
+    import statsmodels.tsa.arima.model  # noqa: F401
+    import statsmodels.tsa.statespace.sarimax  # noqa: F401
+
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # convergence chatter on poor candidates
         for d in d_range:
