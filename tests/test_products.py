@@ -145,3 +145,28 @@ def test_the_post_flight_console_text_holds_on_a_damaged_or_partial_flight(tmp_p
     assert not any(x.startswith("heading error") for x in lines)
     s["map"] = {"skipped": "no survey lines"}
     assert not any(str(b).startswith("map:") for b in postflight_text(s))
+
+
+def test_a_map_without_crossovers_is_reported_not_a_crash():
+    """A survey whose lines never cross (tie lines along the block's ends, or none) levels on
+    no crossovers: its summary holds None there, and the console and log say so."""
+    from types import SimpleNamespace
+
+    from pipeline.products.console import map_text
+    from pipeline.products.log import map_lines
+
+    s = {
+        "grid_shape": [3, 4],
+        "cell_m": 25.0,
+        "line_spacing_m": 100.0,
+        "crossover_rms_nT": {"before": None, "after": None},
+        "leveling": {"crossovers": 0},
+        "arima_order": [1, 1, 0],
+        "arima_coefficients": {"ar": [0.5], "ma": []},
+        "kalman": {"measurement_noise_nT": 0.1},
+        "microlevel": {"enabled": False},
+        "origin": {"crs_choice": "UTM zone 49N", "utm_zones_spanned": [49]},
+    }
+    assert "no crossovers" in str(map_text(s)[0])
+    texts = [t for _, t in map_lines(SimpleNamespace(summary=lambda: s))]
+    assert any("no crossovers" in t for t in texts)

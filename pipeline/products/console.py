@@ -223,10 +223,15 @@ def compensate_text(summary: dict) -> list[Block]:
 
 def map_text(m: dict) -> list[Block]:
     """``aeromag map`` (``m``: the summary's ``map``): the grid, the levelling, the ARIMA."""
+    xo = m["crossover_rms_nT"]  # None without crossing lines
     return [
         f"grid {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.2f} m; "
-        f"crossover RMS {m['crossover_rms_nT']['before']:.3f} -> "
-        f"{m['crossover_rms_nT']['after']:.3f} nT; ARIMA{tuple(m['arima_order'])}"
+        + (
+            "no crossovers"
+            if xo["before"] is None
+            else f"crossover RMS {_f3(xo['before'])} -> {_f3(xo['after'])} nT"
+        )
+        + f"; ARIMA{tuple(m['arima_order'])}"
     ]
 
 

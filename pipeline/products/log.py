@@ -108,6 +108,17 @@ def despike_lines(res: DespikeResult | None) -> list[tuple[int, str]]:
     return [(LOG_WARNING if s["fraction"] > 0.01 else LOG_INFO, text)]
 
 
+def _map_crossovers(s: dict) -> str:
+    """The map summary's crossover line; a survey without crossing lines has none."""
+    xo = s["crossover_rms_nT"]
+    if xo["before"] is None or xo["after"] is None:
+        return "map: no crossovers (no lines cross): not levelled on crossovers"
+    return (
+        f"map: crossover RMS {xo['before']:.3f} -> {xo['after']:.3f} nT "
+        f"({s['leveling']['crossovers']} crossovers)"
+    )
+
+
 def map_lines(mr) -> list[tuple[int, str]]:
     """Log lines of a map run: grid size and cell (m), crossover RMS before and after
     leveling (nT), ARIMA order and coefficients, Kalman measurement noise (nT).
@@ -127,12 +138,7 @@ def map_lines(mr) -> list[tuple[int, str]]:
             f"map: grid {s['grid_shape'][0]} x {s['grid_shape'][1]} cells of "
             f"{s['cell_m']:.2f} m, line spacing {s['line_spacing_m']:.1f} m",
         ),
-        (
-            LOG_INFO,
-            f"map: crossover RMS {s['crossover_rms_nT']['before']:.3f} -> "
-            f"{s['crossover_rms_nT']['after']:.3f} nT "
-            f"({s['leveling']['crossovers']} crossovers)",
-        ),
+        (LOG_INFO, _map_crossovers(s)),
         (
             LOG_INFO,
             f"map: ARIMA{tuple(s['arima_order'])} "
