@@ -223,6 +223,10 @@ def prefect_api(timeout_s: float = 90.0, meanwhile=None) -> Iterator[Any]:
             with temporary_settings(updates={PREFECT_API_URL: url}):
                 yield got if meanwhile else url
     finally:
+        from prefect.logging.handlers import APILogWorker
+
+        # a failed run's logs reach the server before it stops (no "Error logging to API")
+        APILogWorker.drain_all(timeout=5)
         os.environ.pop("PREFECT_API_URL", None)
         proc.terminate()
         try:

@@ -525,15 +525,9 @@ def navigate(
 
     cfg = _stage_config(config, navigate, locals(), recording, map_path)
     with console.status(f"navigating {recording.name} on {map_path.name}"):
+        options = {"segments": segments, "map_sigma_nT": map_sigma}
         summary = navigate_recording(
-            recording,
-            map_path,
-            json_out,
-            cfg,
-            out_path,
-            map_channel,
-            segments=segments,
-            map_sigma_nT=map_sigma,
+            recording, map_path, json_out, cfg, out_path, map_channel, **options
         )
     emit("navigate", summary["navigation"])
     _written(out_path, json_out)
@@ -656,14 +650,9 @@ def campaign(
         _on_dask(workers, dask_address) as runner,
         console.status(f"campaign of {len(infos)} flights (Prefect flow 'campaign' on Dask)"),
     ):
-        try:
-            doc = campaign_flow.with_options(task_runner=runner)(
-                str(folder), str(out_dir), str(config) if config else None
-            )
-        finally:  # a failed run's logs reach the server before it stops (no "Error logging")
-            from prefect.logging.handlers import APILogWorker
-
-            APILogWorker.drain_all(timeout=5)
+        doc = campaign_flow.with_options(task_runner=runner)(
+            str(folder), str(out_dir), str(config) if config else None
+        )
     emit("campaign", doc)
 
 

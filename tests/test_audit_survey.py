@@ -369,3 +369,41 @@ def test_the_scan_in_batches_is_the_scan_one_candidate_at_a_time(monkeypatch):
         lr_c, rho0_c, rho1_c = scan_statistics(model, base, [e], y)
         assert lr[c] == pytest.approx(lr_c[0], rel=1e-9, abs=1e-9)
         assert np.array_equal(rho1[c], rho1_c[0]) and np.array_equal(rho0, rho0_c)
+
+
+def test_a_crossover_without_a_difference_is_left_out_of_the_scan():
+    """A reading beside a gap in the recording has no difference (NaN): the scan leaves it
+    out (a NaN likelihood ratio would otherwise be the scan's largest, with the smallest p)."""
+    rng, ha, hb, ta, tb, d = crossings(3)
+    d = d.copy()
+    d[[5, 17]] = np.nan
+    assert survey_events(CrossoverSet(d, ta, tb, ha, hb), 0.01, 0.3) == []
+
+
+def test_the_audit_of_a_recording_with_a_gap_across_the_survey(tmp_path):
+    """An independent recording with a minute missing from every topic in the middle of the
+    survey (the base station's too): the crossovers read beside the gap have no base
+    difference; the audit leaves them out and names nothing on a flight with nothing
+    hidden."""
+    from mcap.reader import make_reader
+
+    from pipeline.audit import run_audit
+    from pipeline.io.reader import read_flight
+    from pipeline.segment import segment_flight
+    from tests.mcap_builder import build
+    from tests.recordings import INDEPENDENT
+
+    src = INDEPENDENT / "independent_none.mcap"
+    if not src.exists():
+        pytest.skip(f"{src} not present")
+    with src.open("rb") as f:
+        msgs = [
+            (ch.topic, m.log_time, m.data)
+            for _, ch, m in make_reader(f).iter_messages(log_time_order=True)
+        ]
+    t0 = msgs[0][1]
+    lo, hi = t0 + 1_200 * 10**9, t0 + 1_260 * 10**9
+    gapped = build(tmp_path / "gap.mcap", [m for m in msgs if not lo <= m[1] < hi])
+    flight = read_flight(gapped)
+    result = run_audit(flight, segment_flight(flight)).to_json()
+    assert result["findings"] == [] and result["unexplained"]["events"] == []

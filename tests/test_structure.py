@@ -277,3 +277,10 @@ def test_the_audit_has_no_class_over_400_lines_nor_function_over_80():
     ]
     assert not wrong, "\n".join(wrong)
     assert set(AUDIT_LONG_FUNCTIONS) <= {name for name, _, _ in sizes}  # the list is current
+
+
+def test_flows_only_wire():
+    """``flows/`` holds the Prefect flows and the CLI, which parse, make one pipeline call
+    and write; everything that decides lives in ``pipeline/`` (issue 37: <= 1 200 lines)."""
+    lines = sum(len(p.read_text().splitlines()) for p in (REPO / "flows").glob("*.py"))
+    assert lines <= 1200, f"flows/ holds {lines} lines"

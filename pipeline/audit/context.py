@@ -444,6 +444,8 @@ class AuditContext:
         ):
             return None
         dx, db, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=CROSSOVER_SMOOTHING_S)
-        if dx.size < 8:
+        d = dx - db
+        ok = np.isfinite(d)  # a reading beside a gap in the recording (or the base's) has none
+        if ok.sum() < 8:
             return None
-        return crossover_set(dx - db, xs, heading), red
+        return crossover_set(d[ok], [c for c, k in zip(xs, ok, strict=True) if k], heading), red

@@ -89,7 +89,8 @@ class AuditEvents:
         if got is None:
             return []
         x = got[0]
-        _, _, _, _, _, xs, _ = self._crossover_data(spec, smooth_s=CROSSOVER_SMOOTHING_S)
+        dx, db, _, _, _, xs, _ = self._crossover_data(spec, smooth_s=CROSSOVER_SMOOTHING_S)
+        xs = [c for c, d in zip(xs, dx - db, strict=True) if np.isfinite(d)]  # as x keeps them
         keep = self._straight_crossings(xs)
         x = x.subset(keep)
         events = survey_events(x, self.s.event_alpha, self.s.min_event_nT)

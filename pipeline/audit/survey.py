@@ -297,6 +297,7 @@ def survey_events(
     alone can lie a line away from the step. The event is the scan's likeliest change (on
     the pointwise scale): a step, or a drift.
     """
+    x = x.subset(np.isfinite(np.asarray(x.difference_nT, float)))  # a NaN would win the scan
     y = np.asarray(x.difference_nT, float)
     base = heading_levels(x)
     if y.size < base.shape[1] + 6:

@@ -113,6 +113,10 @@ def _diurnal_crossovers(ctx: AuditContext, spec: ModelSpec) -> DiurnalSet | None
     # base: the variation's short part (a random walk) is in the airborne reading, and a
     # regressor without it biases the coefficient
     db = base_difference(xs, ctx.data.time_s, ctx.base_over(CROSSOVER_SMOOTHING_S))
+    ok = np.isfinite(dx) & np.isfinite(db)  # none beside a gap in the recording
+    if not ok.any():
+        return None
+    dx, db, xs = dx[ok], db[ok], [c for c, k in zip(xs, ok, strict=True) if k]
     x = crossover_set(dx, xs, heading)
     # a crossover shares its survey line's error with the line's other crossovers, and
     # its tie line's with the tie's
