@@ -218,6 +218,9 @@ class MapRun:
     uncertainty: Grid | None = None
     uncertainty_model: MapUncertainty | None = None
     uncertainty_note: str = ""
+    # the field mapped: a compensation model's name, "extended" (the audit's), or "raw" (the
+    # despiked scalar, uncompensated: no model could be fitted)
+    field: str = "compensated"
 
     @property
     def error_length_m(self) -> float:
@@ -238,6 +241,7 @@ class MapRun:
         gridder, ARIMA model, Kalman settings, anomaly range)."""
         ny, nx = self.grid.shape
         return {
+            "field": self.field,
             "grid_shape": [ny, nx],
             "cell_m": self.grid.cell_m,
             "origin": {
@@ -467,9 +471,11 @@ def build_map(
     seg: Segmentation,
     compensated_nT: np.ndarray,
     settings: MapSettings | None = None,
+    field: str = "compensated",
 ) -> MapRun:
     """Anomaly grid (:func:`anomaly_grid`) and its ARIMA-Kalman-filtered version from a
-    compensated flight, with the grid's uncertainty."""
+    compensated flight, with the grid's uncertainty; ``field`` names what
+    ``compensated_nT`` is (:attr:`MapRun.field`)."""
     s = settings or MapSettings()
     gm = anomaly_grid(flight, seg, compensated_nT, s)
     frame, red, lines, lev, spacing, grid, data = (
@@ -517,6 +523,7 @@ def build_map(
         sigma,
         sigma_model,
         sigma_note,
+        field,
     )
 
 

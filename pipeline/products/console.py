@@ -224,8 +224,9 @@ def compensate_text(summary: dict) -> list[Block]:
 def map_text(m: dict) -> list[Block]:
     """``aeromag map`` (``m``: the summary's ``map``): the grid, the levelling, the ARIMA."""
     xo = m["crossover_rms_nT"]  # None without crossing lines
+    raw = "uncompensated field (no model could be fitted): " if m.get("field") == "raw" else ""
     return [
-        f"grid {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.2f} m; "
+        f"{raw}grid {m['grid_shape'][0]} x {m['grid_shape'][1]} cells of {m['cell_m']:.2f} m; "
         + (
             "no crossovers"
             if xo["before"] is None

@@ -13,7 +13,11 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
-from pipeline.products.markdown import extension_lines, navigability_text
+from pipeline.products.markdown import (
+    extension_lines,
+    navigability_text,
+    uncompensated_map_note,
+)
 
 # figure name -> caption; the report places figures by name, unknown ones go to "Other figures"
 CAPTIONS = {
@@ -489,6 +493,7 @@ def _map_section(s: dict, figs: _Figures) -> list[str]:
             ],
         ),
         _microlevel_row(m.get("microlevel") or {}),
+        f"<p><b>{html.escape(uncompensated_map_note())}</b></p>" if m.get("field") == "raw" else "",
         "<h3>Before and after ARIMA-Kalman filtering</h3>",
         figs.take("anomaly", "anomaly_filtered", pair=True),
         figs.take("crossovers"),

@@ -8,6 +8,7 @@ import numpy as np
 
 from pipeline.flight import Flight
 from pipeline.io.writer import OutputChannel
+from pipeline.products.markdown import uncompensated_map_note
 
 if TYPE_CHECKING:
     from pipeline.compensate.stage import CompensationRun
@@ -131,7 +132,8 @@ def map_lines(mr) -> list[tuple[int, str]]:
     s = mr.summary()
     o = s["origin"]  # a survey across UTM zones gridded in one of them: said as a warning
     spans = len(o["utm_zones_spanned"]) > 1 and not o["crs_choice"].endswith("map.crs")
-    return [
+    out = [(LOG_WARNING, f"map: {uncompensated_map_note()}")] if s.get("field") == "raw" else []
+    out += [
         (LOG_WARNING if spans else LOG_INFO, f"map: gridded in {s['origin']['crs_choice']}"),
         (
             LOG_INFO,
@@ -146,7 +148,8 @@ def map_lines(mr) -> list[tuple[int, str]]:
             f"ma {np.round(s['arima_coefficients']['ma'], 4).tolist()}; "
             f"Kalman measurement noise {s['kalman']['measurement_noise_nT']:.3f} nT",
         ),
-    ] + microlevel_lines(s["microlevel"])
+    ]
+    return out + microlevel_lines(s["microlevel"])
 
 
 def microlevel_lines(m: dict[str, Any]) -> list[tuple[int, str]]:

@@ -5,6 +5,14 @@
 from __future__ import annotations
 
 
+def uncompensated_map_note() -> str:
+    """What a map of the uncompensated scalar field (``map.field`` "raw") is, in words."""
+    return (
+        "The map is of the uncompensated scalar field: no compensation model could be fitted "
+        "(no vector magnetometer or no calibration pass); the carrier's interference is in it."
+    )
+
+
 def _window(d: dict) -> str:
     """The despike window: seconds and its samples (summaries before ``window_s``: samples)."""
     n = f"{d['window_samples']} samples"
@@ -163,6 +171,8 @@ def report_markdown(stem: str, s: dict, images: dict[str, str]) -> str:
             f"{m['cell_m']:.2f} m; ARIMA{tuple(m['arima_order'])} + Kalman",
             "",
         ]
+        if m.get("field") == "raw":
+            out += [f"**{uncompensated_map_note()}**", ""]
         crs = (m.get("origin") or {}).get("crs_choice")
         if crs:
             out += [f"Gridded in {crs}; the exported GeoTIFF and netCDF hold these cells.", ""]

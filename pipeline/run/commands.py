@@ -53,6 +53,7 @@ from pipeline.products.summary import build_summary, run_metadata
 from pipeline.run.fields import (
     assess_quality,
     configured_models,
+    existing_compensated,
     final_compensation,
     quality_fields,
     try_segment,
@@ -226,13 +227,18 @@ def map_recording(
         raise AeromagError(f"mapping needs the flight lines: {why}", file=src, channel="/gnss/fix")
     present = set(flight.all_topics)
     lines = ingest_lines(flight)
-    comp, more, channels, comp_summary = final_compensation(flight, seg, cfg, "map")
-    if comp_summary is not None:  # compensated here, from the despiked record
+    field = "compensated"
+    if existing_compensated(flight) or (flight.has("vector_x_nT") and seg.passes()):
+        comp, more, channels, comp_summary = final_compensation(flight, seg, cfg, "map")
+    else:  # nothing to fit a model with: the despiked scalar, said in the log
+        comp, more, channels, comp_summary = flight.data["scalar_nT"].to_numpy(float), [], [], None
+        field = "raw"
+    if comp_summary is not None or field == "raw":  # from the despiked record
         lines += dlines
     else:
         despiked = None  # the recording's own /mag/compensated was used
     lines += more
-    mr = build_map(flight, seg, comp, replace(cfg.map_settings(), lag_s=lag_s))
+    mr = build_map(flight, seg, comp, replace(cfg.map_settings(), lag_s=lag_s), field)
     lines += map_lines(mr)
     channels += [segment_channel(flight, seg), *map_channels(flight, seg, mr)]
     channels.insert(0, log_channel(flight, lines, "map"))

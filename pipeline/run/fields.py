@@ -123,6 +123,15 @@ def final_field(runs: dict[str, CompensationRun], audit) -> tuple[str, np.ndarra
     return None
 
 
+def mapped_field(flight: Flight, runs: dict[str, CompensationRun], audit) -> tuple[str, np.ndarray]:
+    """The field the map is made from: :func:`final_field`, else the (despiked) scalar as
+    recorded, ``"raw"``: a survey flown without a vector magnetometer or a calibration pass
+    (a towed bird, a stinger on a quiet carrier) still gets its map, said to be
+    uncompensated."""
+    final = final_field(runs, audit)
+    return final if final is not None else ("raw", flight.data["scalar_nT"].to_numpy(float))
+
+
 def quality_fields(
     flight: Flight,
     seg: Segmentation,

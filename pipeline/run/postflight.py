@@ -33,7 +33,7 @@ from pipeline.flight import Flight
 from pipeline.io.reader import read_flight
 from pipeline.products.summary import sha256_file
 from pipeline.run import steps
-from pipeline.run.fields import configured_models, final_field, try_segment
+from pipeline.run.fields import configured_models, mapped_field, try_segment
 from pipeline.run.outputs import write_outputs
 
 
@@ -118,14 +118,9 @@ def postflight_steps(
                 res.runs["tl-plus"] = call(COMPENSATE, flight, seg, "tl-plus", cfg, audit_json)
     if cfg["vector"]["enabled"] and flight.has("vector_x_nT", "roll_deg"):
         res.vector = call(VECTOR, flight, seg, cfg)
-    final = final_field(res.runs, res.audit)
-    if (
-        final is not None
-        and seg is not None
-        and seg.mask("survey").sum() > 100
-        and flight.has("lat_deg", "alt_m")
-    ):
-        res.map_run = call(MAP, flight, seg, final[1], cfg)
+    final = mapped_field(flight, res.runs, res.audit)  # the raw scalar without a model
+    if seg is not None and seg.mask("survey").sum() > 100 and flight.has("lat_deg", "alt_m"):
+        res.map_run = call(MAP, flight, seg, final[1], cfg, final[0])
         res.quality = call(QUALITY, flight, seg, res.runs, res.audit, cfg)
     if cfg["navigate"]["enabled"]:  # skipped (one log line) without validation lines or map
         res.nav = (

@@ -131,14 +131,15 @@ def enhancement_grids(map_run, cfg) -> dict[str, Grid]:
         raise AeromagError(f"enhance: {exc}", channel=f"/map/{st.source}") from None
 
 
-def map_stage(flight: Flight, seg: Segmentation, comp: np.ndarray, cfg):
-    """Map: reduce, level, grid and filter ``comp`` (compensated field, nT, one per epoch).
+def map_stage(flight: Flight, seg: Segmentation, comp: np.ndarray, cfg, field: str = "compensated"):
+    """Map: reduce, level, grid and filter ``comp`` (compensated field, nT, one per epoch;
+    ``field``: which, :attr:`pipeline.maps.stage.MapRun.field`).
 
     Returns
     -------
     MapRun
     """
-    return build_map(flight, seg, comp, cfg.map_settings())
+    return build_map(flight, seg, comp, cfg.map_settings(), field)
 
 
 def navigate_stage(flight: Flight, seg: Segmentation | None, comp: np.ndarray, map_run, cfg):
