@@ -242,3 +242,26 @@ def test_the_crust_ratio_ignores_a_regional_gradient_and_the_flying_direction():
     # every line flown the other way round: the same ground, the same ratio
     _, y2, flipped = survey_tracks(field, np.zeros(3), speed_m_s=5.0, flip=True)
     assert np.isclose(crust_roughness_ratio(t, y2, flipped, 500.0)[0], base[0], rtol=0.05)
+
+
+def test_a_box_over_rough_ground_shows_no_gradient_effect():
+    """No gradient effect, the box over a crust with gradients of its own: the legs read
+    the ground's gradient at p ~ 0, and the excess test that counts the crust's spread
+    measured on the survey as a random effect rejects at about its level, not on most
+    boxes."""
+    from pipeline.audit.legs import crust_roughness_ratio, leg_length_m
+
+    zero = np.zeros(2)
+    rejected = {"measured": 0, "none": 0}
+    for seed in range(30):
+        field = crust_field(seed)
+        t, y, enu, cls = box_flight(np.zeros(3), seed, noise_nT=0.02)
+        y = y + field(enu[:, 0], enu[:, 1])
+        legs = leg_ids(np.ones(t.size, bool), cls, np.ones(t.size, int), t)
+        ts, ys, tracks = survey_tracks(field, np.zeros(3))
+        ratio = crust_roughness_ratio(ts, ys, tracks, leg_length_m(enu, legs))
+        for name, r in (("measured", ratio[0]), ("none", None)):
+            est = leg_gradient(t, y, enu, legs, crust_ratio_per_m=r)
+            rejected[name] += int(est.excess_p_value(zero) < 0.05)
+    assert rejected["measured"] <= 5, rejected
+    assert rejected["none"] >= 20, rejected

@@ -71,8 +71,7 @@ class LegGradient:
         (blocks, 2) east/north block positions about their leg's mean (m).
     horizontal_cov : ndarray
         (2, 2) covariance of the east and north components ((nT/m)^2), the scale
-        uncertainty included, the crust's gradient not (the tests ask whether the field has
-        a gradient at all).
+        uncertainty included, the crust's gradient not (:meth:`excess_p_value` adds it).
     dof : int
         Residual degrees of freedom of the fit.
     crust_se_nT_per_m : float or None
@@ -92,10 +91,14 @@ class LegGradient:
     def excess_p_value(self, main_east_north_nT_per_m) -> float:
         """p of the Wald test (F with 2 and :attr:`dof` degrees of freedom) that the
         horizontal gradient equals ``main_east_north_nT_per_m`` (nT/m; the main field's
-        own, which long legs measure at p ~ 0 on any flight): whether the legs see a
-        gradient beyond it at all, the estimate's own uncertainty counted."""
+        own, which long legs measure at p ~ 0 on any flight) give or take the crust's own
+        gradient at the box (:attr:`crust_se_nT_per_m`, a random effect of that spread in
+        each component; none when not measured): whether the legs see a gradient beyond
+        the main field's and the ground's, the estimate's own uncertainty counted. A box
+        flown over geology shows the ground's gradient, which is no effect to model."""
         d = self.gradient_nT_per_m[:2] - np.asarray(main_east_north_nT_per_m, float)
-        w = float(d @ np.linalg.pinv(self.horizontal_cov) @ d)
+        cov = self.horizontal_cov + np.eye(2) * (self.crust_se_nT_per_m or 0.0) ** 2
+        w = float(d @ np.linalg.pinv(cov) @ d)
         return float(stats.f.sf(w / 2.0, 2, max(self.dof, 1)))
 
     @property

@@ -131,7 +131,8 @@ def leg_gradient_verdict(
     A gradient that is the main field's own (IGRF: ~0.005 nT/m, 0.7 nT along a 500 m
     leg) is no effect to model; a recording made without it (a flat main field) shows
     none, so both the gradient and its excess over IGRF must be large and ramp, and the
-    excess must be significant (:meth:`LegGradient.excess_p_value` < alpha).
+    excess must be significant beside the crust's own gradient at the box
+    (:meth:`LegGradient.excess_p_value` < alpha), which the survey must measure.
     """
     igrf = main[:2] if main is not None else np.zeros(2)
     horizontal = legs.gradient_nT_per_m[:2]
@@ -140,7 +141,14 @@ def leg_gradient_verdict(
     ramp = min(legs.ramp_rms_nT, excess)
     p_excess = legs.excess_p_value(igrf)
     why_not = None
-    if p_excess >= ctx.s.alpha:
+    if legs.crust_se_nT_per_m is None:
+        # nothing on the legs tells a gradient effect from the ground's own gradient at
+        # the box; the survey measures how much that varies (too few line windows here)
+        why_not = (
+            "the crust's own gradient cannot be measured on this survey (too few windows "
+            "along its lines): the calibration legs' gradient may be the ground's"
+        )
+    elif p_excess >= ctx.s.alpha:
         # the size below is a point estimate: with a few blocks per leg, or nuisance
         # columns that share the ramps, it can exceed the threshold by its error alone
         why_not = (
