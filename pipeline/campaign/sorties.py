@@ -18,6 +18,7 @@ import orjson
 
 from pipeline.errors import AeromagError
 from pipeline.export.source import FRAME_TOPIC, LINES_TOPIC, MAKE_MAPS, MapFrame, decode_grid
+from pipeline.geo.heading import pattern_direction_deg
 from pipeline.geo.projected import GridFrame, survey_frame
 from pipeline.maps.level import Line
 
@@ -249,8 +250,8 @@ def _direction(east: np.ndarray, north: np.ndarray) -> np.ndarray:
 
 
 def line_spacing_m(lines: list[Line], kinds: dict[str, str]) -> tuple[float, float]:
-    """(heading deg 0..180, median spacing m) of the survey lines: the median direction of
-    their principal axes, and the median gap between their cross-track positions (as the map
+    """(heading deg 0..180, median spacing m) of the survey lines: the mean axis of their
+    principal axes, and the median gap between their cross-track positions (as the map
     stage measures it)."""
     survey = [ln for ln in lines if kinds[ln.line_id] == "survey"]
     if not survey:
@@ -259,7 +260,8 @@ def line_spacing_m(lines: list[Line], kinds: dict[str, str]) -> tuple[float, flo
     for ln in survey:
         d = _direction(ln.east_m, ln.north_m)
         heads.append(np.degrees(np.arctan2(d[0], d[1])) % 180.0)
-    heading = float(np.median(heads))
+    # their axis (a median of angles mod 180 straddles 0/180 on north-south lines)
+    heading = float(np.mod(pattern_direction_deg(np.array(heads), fold=2), 180.0))
     along = np.array([np.sin(np.radians(heading)), np.cos(np.radians(heading))])
     across = np.array([along[1], -along[0]])
     offs = np.sort([np.median(ln.east_m * across[0] + ln.north_m * across[1]) for ln in survey])

@@ -11,6 +11,7 @@ import numpy as np
 from pipeline.defaults import default_field
 from pipeline.errors import AeromagError
 from pipeline.flight import Flight
+from pipeline.geo.heading import pattern_direction_deg
 from pipeline.geo.igrf import main_field_direction
 from pipeline.geo.projected import GridFrame, survey_positions
 from pipeline.maps.arima import (
@@ -421,7 +422,9 @@ def anomaly_grid(
         ln.value_nT = ln.value_nT - lev.correction(ln.line_id, ln.time_s)
     # line spacing: cross-track offsets of the survey lines; the heading from grid north
     # (true heading less the meridian convergence: degrees at a zone's edge)
-    true_heading = np.nanmedian(np.mod(seg.heading_deg[seg.mask("survey")], 180.0))
+    # as an axis (lines and their reciprocals): a median of headings mod 180 straddles
+    # 0/180 on north-south lines and can come out east-west
+    true_heading = pattern_direction_deg(seg.heading_deg[seg.mask("survey")], fold=2)
     heading = float(np.mod(true_heading - frame.convergence_deg(), 180.0))
     along = np.array([np.sin(np.radians(heading)), np.cos(np.radians(heading))])
     across = np.array([along[1], -along[0]])
