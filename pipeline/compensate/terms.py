@@ -96,6 +96,26 @@ def per_sample_difference(x: np.ndarray) -> np.ndarray:
     return np.gradient(np.asarray(x, float), axis=0)
 
 
+def per_nominal_sample_difference(x: np.ndarray, time_s: np.ndarray) -> np.ndarray:
+    """:func:`per_sample_difference` on unevenly spaced samples: the derivative in time
+    (central, one-sided at the ends) times the median sample interval, so that a recorder's
+    uneven timing (jitter, a dropped sample) does not scale single differences. Equal to
+    :func:`per_sample_difference` on even sampling, to rounding.
+
+    Parameters
+    ----------
+    x : (n, ...) array, any unit; n >= 2.
+    time_s : (n,) increasing sample times, s.
+
+    Returns
+    -------
+    (n, ...) array in x's unit per median sample interval.
+    """
+    t = np.asarray(time_s, float)
+    dt = float(np.median(np.diff(t)))
+    return np.gradient(np.asarray(x, float), t, axis=0) * dt
+
+
 def five_point_difference(x: np.ndarray) -> np.ndarray:
     """The per-sample derivative to fourth order along axis 0: (x[k-2] - 8 x[k-1] +
     8 x[k+1] - x[k+2]) / 12; :func:`per_sample_difference` within two samples of the ends.
@@ -156,9 +176,11 @@ def tl18_terms(
     Parameters
     ----------
     b_nT : (n, 3) vector magnetometer, body frame (x forward, y right, z down), nT.
-    time_s : (n,) sample times, s. Not used: the eddy columns are per-sample differences
-        (MagNav's ``fdm``), so the eddy coefficients depend on the sample rate. Accepted so
-        that every term set has the signature ``(b_nT, time_s)``.
+    time_s : (n,) sample times, s, or None. The eddy columns are per-sample differences
+        (MagNav's ``fdm``), so the eddy coefficients depend on the sample rate; with the
+        times, MagNav's difference is taken per median sample interval
+        (:func:`per_nominal_sample_difference`): the same columns on even sampling, and
+        no noise from a recorder's uneven one.
     bt_scale_nT : MagNav's ``Bt_scale``, nT.
     terms : MagNav's term groups, with or without the leading colon: ``permanent`` (``p``),
         ``induced`` (``i``), ``eddy`` (``e``), ``bias`` (``b``). Columns come in MagNav's
@@ -173,9 +195,12 @@ def tl18_terms(
         (dimensionless), eddy in nT per sample / Bt_scale, bias 1.
     names : the p column names (``perm_ux``, ``ind_uxBy``, ``eddy_uxdBy``, ``bias``).
     """
-    del time_s  # per-sample differences, as MagNav
     b = np.asarray(b_nT, float)
-    return _tl18(b, difference(b), tuple(terms), bt_scale_nT, "")
+    if time_s is not None and difference is per_sample_difference:
+        db = per_nominal_sample_difference(b, time_s)
+    else:
+        db = difference(b)
+    return _tl18(b, db, tuple(terms), bt_scale_nT, "")
 
 
 def tl18_rate_terms(
