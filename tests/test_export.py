@@ -374,3 +374,32 @@ def test_the_channels_just_written_export_as_the_file_reads_back(tmp_path, kind)
         )
         np.testing.assert_array_equal(a.grid.values, b.grid.values)
     assert handed.lines == read.lines and len(read.lines) == len(samples)
+
+
+def test_a_magnav_map_across_the_antimeridian_spans_the_survey(tmp_path, monkeypatch):
+    """A survey straddling 180 deg longitude: the MagNav map's longitudes run on past 180
+    over the survey's few cells (not round the globe, 2.6 million columns), and the grid
+    reads back there."""
+    import h5py
+
+    import tests.mapfile as mf
+
+    monkeypatch.setattr(mf, "LAT0", -17.0)
+    monkeypatch.setattr(mf, "LON0", 179.999)
+    src, _ = write_processed(tmp_path / "flight.processed.mcap")
+    export_recording(src, tmp_path / "out", ("magnav",))
+    with h5py.File(tmp_path / "out" / "flight.anomaly.magnav.h5") as f:
+        lon = np.asarray(f["xx"])  # deg, as MagNav's map files hold them
+        mask = np.asarray(f["mask"])
+    assert lon.size < 200 and np.all(np.diff(lon) > 0)
+    assert lon[0] < 180.0 < lon[-1] < 180.1
+    assert mask.mean() > 0.5
+    from pipeline.navigation.map_io import read_map
+
+    m = read_map(tmp_path / "out" / "flight.anomaly.magnav.h5")
+    gx, gy = np.meshgrid(*m.grid.coordinates())
+    lat, lon = m.to_geodetic(gx, gy)
+    e, n, _ = mf.map_frame().to_enu(lat, lon)
+    ok = np.isfinite(m.grid.values) & (m.grid.values != 0)
+    assert ok.sum() > 100
+    np.testing.assert_allclose(m.grid.values[ok], field_nT(e[ok], n[ok]), atol=0.3)

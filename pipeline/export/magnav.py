@@ -53,6 +53,9 @@ def to_lonlat(mg: MapGrid, frame: MapFrame):
         [np.full(east.size, north[0]), np.full(east.size, north[-1]), north, north]
     )
     lat_b, lon_b, _ = gf.to_geodetic(edge_e, edge_n)
+    # about the frame's longitude: a survey across the antimeridian spans a few cells, not
+    # the globe (longitudes past 180 deg then run on, as MagNav's interpolation needs)
+    lon_b = frame.longitude_deg + np.mod(lon_b - frame.longitude_deg + 180.0, 360.0) - 180.0
     dlat = g.cell_m / M_PER_DEG_LAT
     dlon = dlat / max(np.cos(np.radians(frame.latitude_deg)), 1e-6)
     lon = lon_b.min() + dlon * np.arange(int(np.floor(np.ptp(lon_b) / dlon)) + 1)
