@@ -109,6 +109,9 @@ def test_uneven_sampling_does_not_scale_the_eddy_columns():
     rms = np.sqrt(np.mean(want**2))
     assert np.sqrt(np.mean(err_nominal**2)) < 0.01 * rms
     assert np.sqrt(np.mean(err_sample**2)) > 0.1 * rms
+    # repeated times (no derivative in time): MagNav's difference
+    repeated = per_nominal_sample_difference(x, np.r_[t[:10], t[9], t[11:]])
+    np.testing.assert_allclose(repeated, per_sample_difference(x), rtol=1e-12)
     # on even sampling the two are the same columns
     even = np.arange(600) * 0.1
     np.testing.assert_allclose(

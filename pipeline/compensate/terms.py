@@ -112,8 +112,10 @@ def per_nominal_sample_difference(x: np.ndarray, time_s: np.ndarray) -> np.ndarr
     (n, ...) array in x's unit per median sample interval.
     """
     t = np.asarray(time_s, float)
-    dt = float(np.median(np.diff(t)))
-    return np.gradient(np.asarray(x, float), t, axis=0) * dt
+    step = np.diff(t)
+    if not np.all(step > 0):  # repeated or unordered times: no derivative in time
+        return per_sample_difference(x)
+    return np.gradient(np.asarray(x, float), t, axis=0) * float(np.median(step))
 
 
 def five_point_difference(x: np.ndarray) -> np.ndarray:
