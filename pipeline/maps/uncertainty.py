@@ -25,7 +25,9 @@ Three parts, added in quadrature (the first alone when tie lines measure it):
   distance to the nearest knot, and scaled by every n-th interior survey line left out of
   the grid and predicted by the map's own gridder, against the same along-line measurement
   at the held-out lines' gap (two spacings). That assumes isotropy (the field varies across
-  the lines as along them), which fails where the geology is elongated.
+  the lines as along them), which fails where the geology is elongated. Either way, a cell
+  a whole spacing from the data (a line missing over a stretch, a gap in the recording, a
+  block's edge) takes the held-out lines' own error: a held-out line is a line missing.
 * **levelling** (survey-line method only): the crossover differences left after levelling,
   over sqrt(2) (each holds two lines' level errors).
 * **noise** (survey-line method only): the sensor's white noise, which the grid carries on the
@@ -71,9 +73,9 @@ class MapUncertainty:
     Attributes
     ----------
     distance_m, shape_nT2
-        Along-line interpolation error between knots one line spacing apart: distance to the
-        nearest knot (m, bin centres from 0 to half a spacing) and mean squared error (nT^2,
-        the sensor's noise removed).
+        Interpolation error against the distance to the nearest line (m, bin centres from 0
+        to half a spacing, then a spacing: :func:`_with_missing_line`) and mean squared
+        error (nT^2, the sensor's noise removed), before ``scale``.
     scale
         Held-out squared error over the along-line one at the held-out lines' gap.
     level_nT, noise_nT
@@ -103,8 +105,8 @@ class MapUncertainty:
     correlation_length_m: float = float("nan")
 
     def interpolation_nT(self, distance_m: np.ndarray) -> np.ndarray:
-        """Interpolation error (nT, 1 sigma) at ``distance_m`` from the nearest line; beyond
-        half a spacing (outside the block) the largest value holds."""
+        """Interpolation error (nT, 1 sigma) at ``distance_m`` from the nearest line; past a
+        spacing (outside the block) the largest value holds."""
         e2 = np.interp(np.asarray(distance_m, float), self.distance_m, self.shape_nT2)
         return np.sqrt(np.maximum(self.scale * e2, 0.0))
 
@@ -200,6 +202,20 @@ def _shape(data: LineData, gap_m: float, noise_nT: float) -> tuple[np.ndarray, n
     return d[have], np.maximum.accumulate(e2)
 
 
+def _with_missing_line(
+    d: np.ndarray, e2: np.ndarray, missing_nT2: float, scale: float, spacing_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """The error curve ``(d, e2)``, measured to half a line spacing, continued to a full
+    spacing by the held-out survey lines' own squared error ``missing_nT2`` (nT^2, noise
+    removed): a held-out line is a line missing, its samples a spacing from the nearest
+    data, as a cell is in a hole (a line not flown over a stretch, a gap in the recording)
+    or a spacing beyond a block's edge. Divided by ``scale``, which the model multiplies
+    back; linear in between, never falling with distance."""
+    if not (spacing_m > float(d[-1]) and scale > 0):
+        return d, e2
+    return np.r_[d, spacing_m], np.maximum.accumulate(np.r_[e2, missing_nT2 / scale])
+
+
 def fit_uncertainty(
     data: LineData,
     make_gridder: Callable[[], object],
@@ -240,9 +256,11 @@ def fit_uncertainty(
     # the ties at the same place, the ties crossed quieter geology and sigma rises with the
     # ratio; where by less, it stays (a sigma told too small makes a navigation filter read
     # map error as position, one told too large only slows it)
+    scale = max(1.0, ratio)
+    missing = max(e2 - noise_nT**2, 0.0)
     return MapUncertainty(
-        *tie,
-        max(1.0, ratio),
+        *_with_missing_line(*tie, missing, scale, spacing_m),
+        scale,
         float(level_nT),
         float(noise_nT),
         float(np.sqrt(e2)),
@@ -470,8 +488,7 @@ def _survey_model(
     signal = max(float(np.mean(e2)) - noise_nT**2, 0.0)
     scale = signal / float(np.mean(r2)) if np.mean(r2) > 0 else 0.0
     return MapUncertainty(
-        d1,
-        shape1,
+        *_with_missing_line(d1, shape1, signal, scale, spacing_m),
         scale,
         float(level_nT),
         float(noise_nT),
