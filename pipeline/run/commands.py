@@ -52,11 +52,13 @@ from pipeline.products.log import (
 from pipeline.products.summary import build_summary, run_metadata
 from pipeline.run.fields import (
     assess_quality,
+    compensable,
     configured_models,
     existing_compensated,
     final_compensation,
     quality_fields,
     try_segment,
+    uncompensated,
 )
 from pipeline.run.outputs import model_channels, refuse_existing, save_figure
 from pipeline.run.steps import despike_stage, vector_run
@@ -228,11 +230,10 @@ def map_recording(
     present = set(flight.all_topics)
     lines = ingest_lines(flight)
     field = "compensated"
-    if existing_compensated(flight) or (flight.has("vector_x_nT") and seg.passes()):
+    if existing_compensated(flight) or compensable(flight, seg):
         comp, more, channels, comp_summary = final_compensation(flight, seg, cfg, "map")
     else:  # nothing to fit a model with: the despiked scalar, said in the log
-        comp, more, channels, comp_summary = flight.data["scalar_nT"].to_numpy(float), [], [], None
-        field = "raw"
+        (field, comp), more, channels, comp_summary = uncompensated(flight), [], [], None
     if comp_summary is not None or field == "raw":  # from the despiked record
         lines += dlines
     else:

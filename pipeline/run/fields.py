@@ -123,13 +123,24 @@ def final_field(runs: dict[str, CompensationRun], audit) -> tuple[str, np.ndarra
     return None
 
 
+def compensable(flight: Flight, seg: Segmentation | None) -> bool:
+    """Whether a compensation model can be fitted: a vector magnetometer and a calibration
+    pass."""
+    return seg is not None and flight.has("vector_x_nT") and seg.passes()
+
+
+def uncompensated(flight: Flight) -> tuple[str, np.ndarray]:
+    """``("raw", the scalar as recorded (despiked when the flight was), nT)``: what is mapped
+    where nothing is :func:`compensable` (a towed bird, a stinger on a quiet carrier)."""
+    return "raw", flight.data["scalar_nT"].to_numpy(float)
+
+
 def mapped_field(flight: Flight, runs: dict[str, CompensationRun], audit) -> tuple[str, np.ndarray]:
-    """The field the map is made from: :func:`final_field`, else the (despiked) scalar as
-    recorded, ``"raw"``: a survey flown without a vector magnetometer or a calibration pass
-    (a towed bird, a stinger on a quiet carrier) still gets its map, said to be
-    uncompensated."""
+    """The field the map is made from: :func:`final_field`, else :func:`uncompensated`: a
+    survey flown without a vector magnetometer or a calibration pass still gets its map,
+    said to be uncompensated."""
     final = final_field(runs, audit)
-    return final if final is not None else ("raw", flight.data["scalar_nT"].to_numpy(float))
+    return final if final is not None else uncompensated(flight)
 
 
 def quality_fields(
@@ -156,7 +167,7 @@ def quality_fields(
         )
         fields.update(earlier)
         return fields, lines, {}
-    if not flight.has("vector_x_nT") or not seg.passes():
+    if not compensable(flight, seg):
         lines.append(
             (
                 LOG_WARNING,

@@ -33,7 +33,7 @@ from pipeline.flight import Flight
 from pipeline.io.reader import read_flight
 from pipeline.products.summary import sha256_file
 from pipeline.run import steps
-from pipeline.run.fields import configured_models, mapped_field, try_segment
+from pipeline.run.fields import compensable, configured_models, mapped_field, try_segment
 from pipeline.run.outputs import write_outputs
 
 
@@ -106,7 +106,7 @@ def postflight_steps(
         flight = repaired_flight(flight, despiked)
     seg, why = call(SEGMENT, flight)
     res = steps.FlightResults(flight, seg, why, despiked=despiked)
-    if seg is not None and flight.has("vector_x_nT") and seg.passes():
+    if compensable(flight, seg):
         for m in configured_models(flight, cfg):
             res.runs[m] = call(COMPENSATE, flight, seg, m, cfg)
         if cfg["audit"]["enabled"]:
