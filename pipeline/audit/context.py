@@ -443,9 +443,17 @@ class AuditContext:
             and self.seg.mask("survey").any()
         ):
             return None
+        d, xs, heading, red = self._finite_crossovers(spec)
+        if d.size < 8:
+            return None
+        return crossover_set(d, xs, heading), red
+
+    def _finite_crossovers(self, spec: ModelSpec) -> tuple[np.ndarray, list, dict, np.ndarray]:
+        """``spec``'s survey crossovers (1 s along track, :meth:`_crossover_data`) whose
+        difference less the base station's is finite, a reading beside a gap in the
+        recording (or the base's) having none: those differences (nT), the crossovers, the
+        lines' heading classes and the reduced field along the flight."""
         dx, db, _, red, _, xs, heading = self._crossover_data(spec, smooth_s=CROSSOVER_SMOOTHING_S)
         d = dx - db
-        ok = np.isfinite(d)  # a reading beside a gap in the recording (or the base's) has none
-        if ok.sum() < 8:
-            return None
-        return crossover_set(d[ok], [c for c, k in zip(xs, ok, strict=True) if k], heading), red
+        ok = np.isfinite(d)
+        return d[ok], [c for c, k in zip(xs, ok, strict=True) if k], heading, red

@@ -15,7 +15,6 @@ from pipeline.audit.calibration_events import (
     manoeuvre_blocks,
     switching_nuisance,
 )
-from pipeline.audit.context import CROSSOVER_SMOOTHING_S
 from pipeline.audit.evidence import HeldOut
 from pipeline.audit.extended import ModelSpec, design
 from pipeline.audit.survey import survey_events
@@ -89,9 +88,7 @@ class AuditEvents:
         if got is None:
             return []
         x = got[0]
-        dx, db, _, _, _, xs, _ = self._crossover_data(spec, smooth_s=CROSSOVER_SMOOTHING_S)
-        xs = [c for c, d in zip(xs, dx - db, strict=True) if np.isfinite(d)]  # as x keeps them
-        keep = self._straight_crossings(xs)
+        keep = self._straight_crossings(self._finite_crossovers(spec)[1])
         x = x.subset(keep)
         events = survey_events(x, self.s.event_alpha, self.s.min_event_nT)
         t0 = int(self.flight.time_ns[0])
