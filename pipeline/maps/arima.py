@@ -414,12 +414,8 @@ def _best_at(
     for k, (p, q) in enumerate(candidates):
         if n_short is not None and k == n_short and best is not None:
             break  # a shortlisted candidate is usable: the rest are not fitted
-        try:
-            res = fit_one(p, d, q)
-        except (np.linalg.LinAlgError, ValueError) as exc:
-            # the optimiser can step onto a (near) unit root where the stationary
-            # initialisation is singular: that candidate is out, the others compete
-            failed.append(f"ARIMA({p},{d},{q}): {type(exc).__name__}")
+        res = _tried(fit_one, (p, d, q), failed)
+        if res is None:
             continue
         why = degenerate(res, measurement_var)
         if why is not None and not explicit:
@@ -430,6 +426,22 @@ def _best_at(
         if best is None or res.bic < best[0].bic:
             best = (res, p, d, q)
     return best, bad
+
+
+# how a shortlisted order judged at Whittle's estimates is named in ``failed_candidates``
+WHITTLE_LABEL = " at Whittle's estimates"
+
+
+def _tried(fit, order: tuple[int, int, int], failed: list[str], label: str = ""):
+    """``fit(p, d, q)``'s statsmodels result, or None with why noted in ``failed`` (the
+    order's name, then ``label``): an optimiser or a filter can step onto a (near) unit root
+    where the stationary initialisation is singular; that candidate is out, the others
+    compete."""
+    try:
+        return fit(*order)
+    except (np.linalg.LinAlgError, ValueError) as exc:
+        failed.append(f"ARIMA({order[0]},{order[1]},{order[2]}){label}: {type(exc).__name__}")
+        return None
 
 
 def _first_usable(
@@ -446,14 +458,12 @@ def _first_usable(
     exact one only vets the choice and gives its BIC. Those passed over are noted in
     ``failed`` (their exact fits may still be usable, and are tried when none is)."""
     for p, q in short:
-        name = f"ARIMA({p},{d},{q}) at Whittle's estimates"
+        name = f"ARIMA({p},{d},{q}){WHITTLE_LABEL}"
         if (p, d, q) not in starts:
             failed.append(f"{name}: AR or MA root on the unit circle")
             continue
-        try:
-            res = at_whittle(p, d, q)
-        except (np.linalg.LinAlgError, ValueError) as exc:
-            failed.append(f"{name}: {type(exc).__name__}")
+        res = _tried(at_whittle, (p, d, q), failed, WHITTLE_LABEL)
+        if res is None:
             continue
         why = degenerate(res, measurement_var)
         if why is None:
