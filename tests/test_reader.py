@@ -80,6 +80,25 @@ def test_yaw_is_interpolated_across_north(tmp_path):
     assert abs(fl.data.yaw_deg.iloc[0] - 0.0) < 1e-9 or abs(fl.data.yaw_deg.iloc[0] - 360) < 1e-9
 
 
+def test_longitude_is_interpolated_across_the_antimeridian(tmp_path):
+    """A fix at 179.9999 deg then one at -179.9999 deg: the scalar epoch between them lies
+    beside the antimeridian, not on the other side of the globe (0 deg)."""
+
+    def fix(t, lon):
+        return {"timestamp": ts(t), "latitude": -17.0, "longitude": lon, "altitude": 100.0}
+
+    msgs = [
+        ("/gnss/fix", T0, fix(T0, 179.9999)),
+        ("/gnss/fix", T0 + NS // 10, fix(T0 + NS // 10, -179.9999)),
+        ("/mag/scalar", T0 + NS // 40, scalar(T0 + NS // 40, 5e4)),
+        ("/mag/scalar", T0 + NS // 20, scalar(T0 + NS // 20, 5e4)),
+        ("/mag/scalar", T0 + 3 * NS // 40, scalar(T0 + 3 * NS // 40, 5e4)),
+    ]
+    lon = read_flight(build(tmp_path / "lon.mcap", msgs)).data.lon_deg.to_numpy()
+    assert np.all((np.abs(lon) > 179.9998) & (np.abs(lon) <= 180.0))
+    assert lon[0] > 0 > lon[-1]
+
+
 def test_gap_in_a_stream_is_reported_and_left_empty(tmp_path):
     sim = run_sim(
         "calibration-only",

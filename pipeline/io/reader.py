@@ -360,8 +360,12 @@ def _interp_onto(
     gaps: list[Gap],
     *,
     angle: bool = False,
+    signed: bool = False,
 ) -> tuple[np.ndarray, int]:
     """Linear interpolation of ``values`` (at ``series.time_ns``) onto ``t_dst``.
+
+    ``angle``: degrees, interpolated the short way round and returned in [0, 360), or in
+    [-180, 180) when ``signed`` (longitude).
 
     Returns the interpolated array (NaN outside the span and inside gaps) and the number of
     destination epochs left without data.
@@ -386,6 +390,8 @@ def _interp_onto(
     out[~inside] = np.nan
     if angle:
         out = np.mod(out, 360.0)
+        if signed:
+            out = np.where(out >= 180.0, out - 360.0, out)
     return out, int((~inside).sum())
 
 
@@ -514,10 +520,11 @@ def read_flight(
             values: np.ndarray,
             unit: str,
             angle: bool = False,
+            signed: bool = False,
             _s: TopicSeries = s,
             _g: list[Gap] = gaps,
         ) -> None:
-            arr, missing = _interp_onto(t, _s, values, _g, angle=angle)
+            arr, missing = _interp_onto(t, _s, values, _g, angle=angle, signed=signed)
             cols[name] = arr
             units[name] = unit
             if missing:
@@ -547,7 +554,9 @@ def read_flight(
         elif role == "position":
             topic_of["position"] = topic
             put("lat_deg", s.values["latitude"], "deg")
-            put("lon_deg", s.values["longitude"], "deg")
+            # an angle: a track across the antimeridian is interpolated across it, not
+            # through the other 359 degrees
+            put("lon_deg", s.values["longitude"], "deg", angle=True, signed=True)
             put("alt_m", s.values["altitude"], "m")
         elif role == "base":
             topic_of["base"] = topic
