@@ -19,7 +19,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-from pipeline.errors import AeromagError
+from pipeline.errors import AeromagError, user_error
 
 app = typer.Typer(
     add_completion=False,
@@ -565,7 +565,7 @@ def _run_postflight(recording: Path, out_dir: Path, config: Path | None = None) 
     # starts while the recording is read, and the flow takes over the flight read
     with (
         console.status(f"checking {recording.name}") as status,
-        arch.prefect_api(meanwhile=lambda: pf.checked(recording)),
+        arch.prefect_api(meanwhile=lambda: pf.checked(recording, out_dir)),
     ):
         status.update(f"processing {recording.name} (Prefect flow 'postflight')")
         return pf.postflight(str(recording), str(out_dir), str(config) if config else None)
@@ -740,7 +740,7 @@ def main() -> None:
     except Exception as exc:  # noqa: BLE001 - an internal bug still gets one line
         if os.environ.get("AEROMAG_DEBUG"):
             raise
-        if isinstance(exc, AeromagError):
+        if isinstance(exc := user_error(exc), AeromagError):
             _exit(f"aeromag: error: {exc}", 2)
         text = " ".join(str(exc).split())
         why = f"{type(exc).__name__}: {text} (set AEROMAG_DEBUG=1 for the traceback)"

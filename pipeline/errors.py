@@ -7,6 +7,7 @@ problem. The CLI prints that line and exits non-zero; it never shows a traceback
 
 from __future__ import annotations
 
+import errno
 import logging
 from collections import OrderedDict
 from pathlib import Path
@@ -24,6 +25,30 @@ class AeromagError(Exception):
     def __str__(self) -> str:
         parts = [p for p in (self.file, self.channel) if p]
         return ": ".join([*parts, self.problem])
+
+
+# what a user's output path can do to a write: a file where a folder should be, a folder
+# where the file should be, no permission, a read-only or full disk
+_OUTPUT_ERRNOS = frozenset(
+    {
+        errno.ENOTDIR,
+        errno.EEXIST,
+        errno.EISDIR,
+        errno.EACCES,
+        errno.EPERM,
+        errno.EROFS,
+        errno.ENOSPC,
+    }
+)
+
+
+def user_error(exc: BaseException) -> BaseException:
+    """``exc`` as the user's problem when it is one: an :class:`OSError` writing to a path
+    the user chose (a file where a folder should be, no permission, a full disk) becomes
+    an :class:`AeromagError` naming that path; anything else is returned unchanged."""
+    if isinstance(exc, OSError) and exc.errno in _OUTPUT_ERRNOS and exc.filename:
+        return AeromagError(f"cannot write here: {exc.strerror}", file=exc.filename)
+    return exc
 
 
 class OneLineErrors(logging.Filter):

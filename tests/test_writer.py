@@ -245,3 +245,33 @@ def test_bulk_writer_failing_records_leave_no_thread(tmp_path):
     assert [c.uncompressed_size for c in w.chunk_indexes] == [500] * 819
     starts = [c.chunk_start_offset for c in w.chunk_indexes]
     assert starts == sorted(starts)
+
+
+def test_an_output_under_a_file_is_one_line_before_the_work(tmp_path, box_path):
+    """An output path whose folder is a regular file: exit 2 and one line naming the path,
+    no traceback; ``process`` refuses before any flow starts."""
+    import tests.cli
+    from pipeline.run.outputs import require_writable
+    from pipeline.run.postflight import checked
+
+    blocker = tmp_path / "afile"
+    blocker.write_text("")
+    res = tests.cli.run(
+        "compensate",
+        str(box_path),
+        "--out",
+        str(blocker / "o.mcap"),
+        "--json",
+        str(blocker / "s.json"),
+    )
+    assert res.returncode == 2, res.stdout + res.stderr
+    lines = [ln for ln in (res.stdout + res.stderr).splitlines() if ln.strip()]
+    assert lines[-1].startswith("aeromag: error:") and str(blocker) in lines[-1]
+    assert "Traceback" not in res.stdout + res.stderr
+    with pytest.raises(AeromagError, match="a file, not a folder"):
+        with checked(box_path, blocker / "sub"):
+            pass
+    with pytest.raises(AeromagError, match="a folder, not a file"):
+        require_writable(tmp_path)
+    require_writable(tmp_path / "new" / "deeper", folder=True)  # made when written
+    assert list(tmp_path.iterdir()) == [blocker]

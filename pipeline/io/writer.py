@@ -42,16 +42,34 @@ def encode(payload: dict[str, Any]) -> bytes:
     return orjson.dumps(payload, option=orjson.OPT_SERIALIZE_NUMPY)
 
 
+def _output_folder(path: str | Path) -> Path:
+    """``path`` with its folder created; a folder that cannot be (a file in the way, no
+    permission) is the user's problem, said in one line."""
+    path = Path(path)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise AeromagError(f"cannot create the output folder: {exc.strerror}", file=path) from exc
+    return path
+
+
+def _opened(tmp: Path, path: Path) -> BinaryIO:
+    """``tmp`` opened for writing; a refusal names the output ``path``."""
+    try:
+        return tmp.open("wb")
+    except OSError as exc:
+        raise AeromagError(f"cannot write the output: {exc.strerror}", file=path) from exc
+
+
 @contextmanager
 def atomic_output(path: str | Path) -> Iterator[BinaryIO]:
     """A binary stream to a temporary file beside ``path`` (``.NAME.partial-PID``), flushed,
     fsynced and renamed onto ``path`` when the block ends normally, deleted when it raises:
     a reader never sees a half-written file and the destination is left as it was."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = _output_folder(path)
     tmp = path.with_name(f".{path.name}.partial-{os.getpid()}")
     try:
-        with tmp.open("wb") as stream:
+        with _opened(tmp, path) as stream:
             yield stream
             stream.flush()
             os.fsync(stream.fileno())
@@ -66,8 +84,7 @@ def atomic_path(path: str | Path) -> Iterator[Path]:
     """A temporary file name beside ``path`` for libraries that write by name (GDAL, HDF5):
     renamed onto ``path`` when the block ends normally, deleted when it raises. The name keeps
     the suffix (``.NAME.partial-PID.tif``) so format drivers chosen by extension still work."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
+    path = _output_folder(path)
     tmp = path.with_name(f".{path.stem}.partial-{os.getpid()}{path.suffix}")
     try:
         yield tmp

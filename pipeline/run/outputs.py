@@ -9,6 +9,7 @@ presence marks a recording as done).
 
 from __future__ import annotations
 
+import os
 import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -87,6 +88,24 @@ def require_readable(path: Path) -> None:
     """Raise a one-line AeromagError when ``path`` is not a file."""
     if not path.is_file():
         raise AeromagError("file not found", file=path)
+
+
+def require_writable(path: Path, folder: bool = False) -> None:
+    """Raise a one-line AeromagError when ``path`` (a file to write; a folder with
+    ``folder``) cannot be made: something in the way is a file, not a folder, or the
+    nearest existing folder cannot be written. Checked before the work, not after it."""
+    path = Path(path)
+    if folder and path.exists() and not path.is_dir():
+        raise AeromagError("cannot write here: a file, not a folder", file=path)
+    if not folder and path.is_dir():
+        raise AeromagError("cannot write here: a folder, not a file", file=path)
+    near = path if folder else path.parent
+    while not near.exists() and near != near.parent:
+        near = near.parent
+    if not near.is_dir():
+        raise AeromagError(f"cannot write here: {near} is a file, not a folder", file=path)
+    if not os.access(near, os.W_OK | os.X_OK):
+        raise AeromagError(f"cannot write here: {near} is not writable", file=path)
 
 
 def refuse_existing(

@@ -34,7 +34,7 @@ from pipeline.io.reader import read_flight
 from pipeline.products.summary import sha256_file
 from pipeline.run import steps
 from pipeline.run.fields import compensable, configured_models, mapped_field, try_segment
-from pipeline.run.outputs import write_outputs
+from pipeline.run.outputs import require_writable, write_outputs
 
 
 @dataclass(frozen=True)
@@ -166,18 +166,22 @@ def _stat_key(recording: str | Path) -> tuple:
 
 
 @contextmanager
-def checked(recording: str | Path) -> Iterator[Flight]:
-    """Read and check a recording (scan, channel contract, units) before any flow starts,
-    so that bad input fails with one line and no Prefect run at all; a :func:`postflight`
-    run on the same, unchanged file inside the block takes this flight over.
+def checked(recording: str | Path, out_dir: str | Path | None = None) -> Iterator[Flight]:
+    """Read and check a recording (scan, channel contract, units) and that ``out_dir`` can
+    be written before any flow starts, so that bad input fails with one line and no Prefect
+    run at all; a :func:`postflight` run on the same, unchanged file inside the block takes
+    this flight over.
 
     Raises
     ------
     AeromagError
-        Missing, empty or unreadable file, no scalar magnetometer, wrong units.
+        Missing, empty or unreadable file, no scalar magnetometer, wrong units; an output
+        folder that cannot be made or written.
     """
     if not Path(recording).is_file():
         raise AeromagError("file not found", file=recording)
+    if out_dir is not None:
+        require_writable(Path(out_dir), folder=True)
     t0 = time.perf_counter()
     flight = read_flight(recording)
     token = _CHECKED.set((_stat_key(recording), flight, time.perf_counter() - t0))
