@@ -40,6 +40,22 @@ def test_fourth_difference_does_not_join_across_a_gap():
     assert white_noise_nT(x) == pytest.approx(0.1, rel=0.1)
 
 
+def test_a_grid_of_short_lanes_takes_the_lines_noise():
+    """Lanes of 12 cells (lines of 150 m at 12.5 m cells) are too short for the grid's own
+    white-noise level: the survey lines' sensor noise stands in, and the grid is filtered
+    instead of the map stage failing."""
+    sv = line_survey(3, sensor_nT=0.5)
+    short = sv.grid.with_values(
+        np.where(np.arange(sv.grid.shape[0])[:, None] < 12, sv.grid.values, np.nan)
+    )
+    assert not np.isfinite(grid_noise_nT(short, along_north=True)).any()
+    with pytest.raises(ValueError):
+        filter_grid(short, True, (1, 1, 0))
+    filt, _, _, noise, source, _ = filter_grid(short, True, (1, 1, 0), sensor_noise_nT=0.5)
+    assert noise == pytest.approx(0.5) and "sensor noise" in source
+    assert np.isfinite(filt.values).sum() == np.isfinite(short.values).sum()
+
+
 def test_identification_keeps_masked_gaps_missing():
     """A random walk whose far side (after a masked stretch) sits 30 nT higher: joining the
     cells across the gap would add a 30 nT step to the innovations."""

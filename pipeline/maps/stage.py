@@ -144,6 +144,7 @@ def filter_grid(
     sample_limit: int = ARIMA_SAMPLE_LIMIT,
     max_p: int = 3,
     max_q: int = 2,
+    sensor_noise_nT: float | None = None,
 ) -> tuple[Grid, ArimaModel, KalmanResult, float, str, dict[str, Any]]:
     """ARIMA identification and Kalman filtering/smoothing of a grid along its lines.
 
@@ -151,7 +152,10 @@ def filter_grid(
     contiguous stretch holding ``sample_limit`` cells with masked cells kept as missing (the
     likelihood never joins the cells on either side of a gap) as an ARIMA signal plus white
     noise of the grid's own level (per lane, :func:`grid_noise_nT`, unless ``noise_nT`` is
-    given); then ``direction`` = smooth runs the Rauch-Tung-Striebel smoother.
+    given); then ``direction`` = smooth runs the Rauch-Tung-Striebel smoother. Where no lane
+    is long enough to read the grid's own level (lines of a few cells), the survey lines'
+    white noise ``sensor_noise_nT`` stands in: an upper bound, the cells being means of
+    several samples.
 
     Returns the filtered grid, the model, the forward filter, the median measurement noise
     (nT), where the noise came from, and the sequence tests.
@@ -176,6 +180,11 @@ def filter_grid(
         # interpolation between lines make it several times smaller, and lane-dependent)
         noise_cells = grid_noise_nT(grid, along_north).ravel()[order]
         source = "4th difference of the grid, per lane"
+        if not np.isfinite(noise_cells[finite]).any() and sensor_noise_nT is not None:
+            noise_cells = np.full(seq.size, float(sensor_noise_nT))
+            source = "the survey lines' sensor noise (lanes too short for the grid's own)"
+        if not np.isfinite(noise_cells[finite]).any():
+            raise ValueError("no lane is long enough to read the grid's noise: set [map] noise_nT")
     var_cells = noise_cells**2
     noise = float(np.sqrt(np.nanmedian(var_cells[finite])))
     tests["grid_noise_nT_range"] = [
@@ -496,7 +505,7 @@ def build_map(
     sensor = lines_noise_nT(lines)
     try:
         filtered, model, kf, noise, source, tests = filter_grid(
-            grid, along_north, s.arima, s.noise_nT, s.direction
+            grid, along_north, s.arima, s.noise_nT, s.direction, sensor_noise_nT=sensor
         )
     except ValueError as exc:
         raise AeromagError(
