@@ -49,6 +49,19 @@ def test_rtp_of_an_inclined_dipole_peaks_over_the_source(dipole):
     assert np.hypot(e0 - SOURCE[0], n0 - SOURCE[1]) > 2 * CELL
 
 
+def test_no_rtp_where_the_inclination_would_amplify_the_errors(dipole):
+    """Near the magnetic equator the reduction to the pole multiplies the map's errors by up
+    to 1 / sin^2(I) (2e6 at 0.04 deg): it is left out and the reason said; the other
+    products are computed; at 20 deg (8.5x) it is made."""
+    from pipeline.maps.enhance import rtp_refusal
+
+    assert rtp_refusal(20.0) is None and rtp_refusal(-20.0) is None
+    assert "skipped" in rtp_refusal(0.04) and "skipped" in rtp_refusal(-12.0)
+    out = enhance(dipole, parse_products(["rtp", "dz"]), 0.04, DEC)
+    assert set(out) == {"/map/vertical_derivative"}
+    assert "/map/rtp" in enhance(dipole, parse_products(["rtp"]), 20.0, DEC)
+
+
 def test_upward_continuation_matches_the_field_at_the_new_height(dipole):
     truth = total_field_anomaly(100.0)
     # on the dipole alone, and under a regional gradient (900 nT across the grid), which is

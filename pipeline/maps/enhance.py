@@ -180,6 +180,27 @@ def _prepare(grid: Grid, pad: int) -> _Prepared:
     return _Prepared(da, plane, float(a), float(b))
 
 
+# the reduction to the pole multiplies a map's errors by up to 1 / sin^2(I) (wavenumbers across
+# the declination): beyond ten times (|I| under 18.4 deg) the map's errors, not its geology,
+# fill the product
+MAX_RTP_GAIN = 10.0
+
+
+def rtp_refusal(inclination_deg: float) -> str | None:
+    """Why the reduction to the pole is not computed at ``inclination_deg`` (degrees), or
+    None: its largest gain 1 / sin^2(I) above :data:`MAX_RTP_GAIN`."""
+    s2 = float(np.sin(np.radians(inclination_deg)) ** 2)
+    if s2 * MAX_RTP_GAIN >= 1.0:
+        return None
+    least = float(np.degrees(np.arcsin(np.sqrt(1.0 / MAX_RTP_GAIN))))
+    gain = f"{1.0 / s2:.3g}x" if s2 > 0 else "without bound"
+    return (
+        f"reduction to the pole skipped: at inclination {inclination_deg:.1f} deg it multiplies "
+        f"the map's errors up to {gain} (at most {MAX_RTP_GAIN:.0f}x: |inclination| >= "
+        f"{least:.1f} deg)"
+    )
+
+
 def enhance(
     grid: Grid,
     products: list[Product],
@@ -204,7 +225,8 @@ def enhance(
     Returns
     -------
     dict
-        Channel topic -> the product on the same grid geometry.
+        Channel topic -> the product on the same grid geometry; without ``/map/rtp`` where
+        :func:`rtp_refusal` refuses it.
     """
     import warnings
 
@@ -241,6 +263,8 @@ def _enhance(hm, grid, products, inclination_deg, declination_deg, pad_fraction)
 
     out: dict[str, Grid] = {}
     for p in products:
+        if p.kind == "rtp" and rtp_refusal(inclination_deg):
+            continue
         if p.kind == "rtp":  # the plane (k ~ 0, where the operator is undefined) kept as is
             v = crop(hm.reduction_to_pole(da, inclination_deg, declination_deg)) + prep.plane
         elif p.kind == "dz":

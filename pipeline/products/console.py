@@ -240,8 +240,9 @@ def enhance_text(result: dict) -> list[Block]:
     """``aeromag enhance``: the channels written and the main-field direction of the RTP."""
     return [
         *result["channels"],
-        f"from /map/{result['source']}; RTP with IGRF inclination "
+        f"from /map/{result['source']}; IGRF inclination "
         f"{result['inclination_deg']:.2f} deg, declination {result['declination_deg']:.2f} deg",
+        *result.get("skipped", []),
     ]
 
 

@@ -67,7 +67,7 @@ from pipeline.products.log import (
 from pipeline.products.markdown import report_markdown
 from pipeline.products.summary import build_summary, jsonable, run_metadata
 from pipeline.run.fields import final_field, fom_settings
-from pipeline.run.steps import FlightResults, enhancement_grids
+from pipeline.run.steps import FlightResults, enhancement_grids, enhancement_skipped
 
 
 def save_figure(fig, path: Path) -> Path:
@@ -241,6 +241,8 @@ def flight_products(r: FlightResults, cfg: Config) -> dict[str, Any]:
             channels += enhancement_channels(grids, cfg.enhance_settings(), int(flight.time_ns[0]))
             figures.update(enhancement_figures(grids, cfg.enhance_settings(), r.map_run.lines))
             lines.append((LOG_INFO, f"enhance: {', '.join(grids)}"))
+            if skipped := enhancement_skipped(r.map_run, cfg):
+                lines.append((LOG_WARNING, f"enhance: {skipped}"))
     if r.nav is not None:
         lines += navigation_lines(r.nav)
         if not isinstance(r.nav, str):

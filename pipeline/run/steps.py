@@ -131,6 +131,16 @@ def enhancement_grids(map_run, cfg) -> dict[str, Grid]:
         raise AeromagError(f"enhance: {exc}", channel=f"/map/{st.source}") from None
 
 
+def enhancement_skipped(map_run, cfg) -> str | None:
+    """Why a configured enhancement of the map run is not computed (the reduction to the
+    pole at a low inclination, :func:`pipeline.maps.enhance.rtp_refusal`), or None."""
+    from pipeline.maps.enhance import rtp_refusal
+
+    if not any(p.kind == "rtp" for p in cfg.enhance_settings().products):
+        return None
+    return rtp_refusal(map_run.main_field[1])
+
+
 def map_stage(flight: Flight, seg: Segmentation, comp: np.ndarray, cfg, field: str = "compensated"):
     """Map: reduce, level, grid and filter ``comp`` (compensated field, nT, one per epoch;
     ``field``: which, :attr:`pipeline.maps.stage.MapRun.field`).
