@@ -232,10 +232,11 @@ def test_process_command_runs_the_flow_without_a_server(box_path, tmp_path):
     assert f"output recording: {out}" in res.stdout
     insp = tests.cli.run("inspect", str(out))  # in-process: the process above was the script
     assert insp.returncode == 0 and "/mag/compensated" in insp.stdout
-    # a calibration box alone: no map, so navigation is skipped in one log line, no error
+    # a calibration box alone: no map, so navigation is skipped in one log line, no error,
+    # and the reason there is no map is said
     summary = json.loads((tmp_path / "out" / "box_uav.summary.json").read_text())
-    assert summary["navigation"] == {"skipped": "no map"}
-    assert summary["navigability"] == {"skipped": "no map"}
+    assert summary["navigation"]["skipped"].startswith("no map (0 survey epochs: no block")
+    assert summary["navigability"] == summary["navigation"]
     assert not any(t.startswith("/nav/") for t in summary["channels_written"])
 
 

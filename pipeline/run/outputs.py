@@ -232,6 +232,8 @@ def flight_products(r: FlightResults, cfg: Config) -> dict[str, Any]:
         channels.append(vector_channel(flight, v.output_topic, v.vectors_nT, v.method))
         lines.append((LOG_INFO, f"vector: {v.method} -> {v.output_topic}"))
     out["grids"] = {}
+    if r.map_skipped:
+        lines.append((LOG_WARNING, f"map: skipped: {r.map_skipped}"))
     if r.map_run is not None:
         lines += map_lines(r.map_run)
         channels += map_channels(flight, seg, r.map_run)

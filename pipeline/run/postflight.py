@@ -119,20 +119,22 @@ def postflight_steps(
     if cfg["vector"]["enabled"] and flight.has("vector_x_nT", "roll_deg"):
         res.vector = call(VECTOR, flight, seg, cfg)
     final = mapped_field(flight, res.runs, res.audit)  # the raw scalar without a model
-    if seg is not None and seg.mask("survey").sum() > 100 and flight.has("lat_deg", "alt_m"):
+    res.map_skipped = steps.map_refusal(flight, seg) or ""
+    if not res.map_skipped:
         res.map_run = call(MAP, flight, seg, final[1], cfg, final[0])
         res.quality = call(QUALITY, flight, seg, res.runs, res.audit, cfg)
+    no_map = f"no map ({res.map_skipped})"
     if cfg["navigate"]["enabled"]:  # skipped (one log line) without validation lines or map
         res.nav = (
             call(NAVIGATE, flight, seg, final[1], res.map_run, cfg)
             if res.map_run is not None
-            else "no map"
+            else no_map
         )
     if cfg["navigate"]["navigability"]:  # needs the map only, not validation lines
         res.navigability = (
             call(NAVIGABILITY, flight, final[1], res.map_run, cfg)
             if res.map_run is not None
-            else "no map"
+            else no_map
         )
     return call(WRITE, recording, out_dir, cfg, res, timings)
 
