@@ -26,6 +26,7 @@ from pipeline.audit.extended import (
     calibration_rows,
     design,
     fit_model,
+    sensor_filtered,
 )
 from pipeline.audit.legs import leg_ids
 from pipeline.audit.nuisances import NuisanceSelection, select_nuisances
@@ -332,10 +333,14 @@ class AuditContext:
         blocks = contiguous_blocks(valid, data.time_s)
         sos = bandpass_sos(self.s.band.band_hz, data.rate_hz, self.s.band.poles)
         trim = self.s.band.trim_at(data.rate_hz)
-        kb, _ = bandpass_blocks(d0.columns, blocks, sos, trim)
+        kb, at = bandpass_blocks(d0.columns, blocks, sos, trim)
         y0, _ = bandpass_blocks(d0.y, blocks, sos, trim)
         y1, _ = bandpass_blocks(d1.y, blocks, sos, trim)
-        return profile_f_test(y0, y1, kb, self.step)
+        if spec.lag_response != "first_order":
+            return profile_f_test(y0, y1, kb, self.step)
+        dt = 1.0 / data.rate_hz  # the lagged model's rows through the sensor's filter
+        k1, y1 = (sensor_filtered(a, at, dt, lag_s) for a in (kb, y1))
+        return profile_f_test(y0, y1, kb, self.step, k1)
 
     def cv_residual(
         self, spec: ModelSpec, fold: np.ndarray | None = None, tag: str = "fold"

@@ -127,13 +127,17 @@ def nested_test(y: np.ndarray, x_base: np.ndarray, x_ext: np.ndarray, step: int)
     return NestedTest(float(f), float(stats.f.sf(f, df, n - k1)), int(df), float(bic), int(n))
 
 
-def profile_f_test(y0: np.ndarray, y1: np.ndarray, x: np.ndarray, step: int) -> NestedTest:
+def profile_f_test(
+    y0: np.ndarray, y1: np.ndarray, x: np.ndarray, step: int, x1: np.ndarray | None = None
+) -> NestedTest:
     """F-test and BIC of one estimated non-linear parameter (a lag) by its profile
     likelihood: ``y0`` and ``y1`` are the record without and with the parameter at its
-    estimate, both fitted by the same columns ``x``."""
+    estimate, fitted by the columns ``x`` (``x1`` with the parameter, when it moves the
+    columns too: a sensor filter's rows)."""
     xb = np.asarray(x, float)[::step]
+    xb1 = xb if x1 is None else np.asarray(x1, float)[::step]
     rss0, _, _ = least_squares_rss(xb, np.asarray(y0, float)[::step])
-    rss1, k, _ = least_squares_rss(xb, np.asarray(y1, float)[::step])
+    rss1, k, _ = least_squares_rss(xb1, np.asarray(y1, float)[::step])
     n = xb.shape[0]
     dof = n - k - 1
     if dof <= 0 or not rss1 > 0:

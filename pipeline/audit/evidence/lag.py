@@ -34,7 +34,9 @@ def lag_fit(
     ck = (current, key)
     if ck not in ctx.lag_fits:
         costs = _lag_costs(ctx, current, keep, key)
-        ctx.lag_fits[ck] = (0.0, np.inf) if costs is None else _least_cost(costs, ctx.s.max_lag_s)
+        ctx.lag_fits[ck] = (
+            (0.0, np.inf) if costs is None else _least_cost(costs, _span(ctx, current))
+        )
     return ctx.lag_fits[ck]
 
 
@@ -58,7 +60,7 @@ def _lag_costs(ctx: AuditContext, spec: ModelSpec, keep: np.ndarray | None, key:
             keep=keep,
             like=ctx.rows(spec),
         )
-        lag = _least_cost(costs, ctx.s.max_lag_s)[0]
+        lag = _least_cost(costs, _span(ctx, spec))[0]
         at_lag = spec.with_(lag_s=lag)
         if at_lag == spec:
             return costs
@@ -68,18 +70,34 @@ def _lag_costs(ctx: AuditContext, spec: ModelSpec, keep: np.ndarray | None, key:
         return None
 
 
-def _least_cost(costs, max_lag_s: float) -> tuple[float, float]:
-    """(lag s, cost) at the least of ``costs`` (a function of an array of lags): a grid of
-    0.05 s over +-``max_lag_s``, then a bounded 1-D refinement."""
+def _span(ctx: AuditContext, spec: ModelSpec) -> tuple[float, float, float, float]:
+    """How the lag of ``spec`` is searched: (low s, high s, grid step s, tolerance s).
+    A delay: +-``max_lag_s`` every 0.05 s (a clock may run early; a re-timed record's cost
+    has a minimum per manoeuvre period) to 0.1 ms. A sensor filter: 0 to ``max_lag_s``
+    every 0.1 s (its time constant is positive; its cost, a filter's gain and phase, varies
+    slowly with it) to 0.5 ms, a tenth of the smallest lag that matters (``min_lag_s``):
+    each of its costs refits the model on filtered rows."""
+    if spec.lag_response == "first_order":
+        return 0.0, ctx.s.max_lag_s, 0.1, 5e-4
+    return -ctx.s.max_lag_s, ctx.s.max_lag_s, 0.05, 1e-4
+
+
+def _least_cost(costs, span: tuple[float, float, float, float]) -> tuple[float, float]:
+    """(lag s, cost) at the least of ``costs`` (a function of an array of lags): a grid
+    over ``span`` (low s, high s, step s), then a bounded 1-D refinement to its tolerance
+    (s)."""
 
     def cost(tau: float) -> float:
         return float(costs(np.array([tau]))[0])
 
-    step = 0.05
-    grid = np.arange(-max_lag_s, max_lag_s + step / 2, step)
+    low, high, step, tolerance = span
+    grid = np.arange(low, high + step / 2, step)
     best = float(grid[int(np.argmin(costs(grid)))])
     res = minimize_scalar(
-        cost, bounds=(best - step, best + step), method="bounded", options={"xatol": 1e-4}
+        cost,
+        bounds=(max(best - step, low), best + step),
+        method="bounded",
+        options={"xatol": tolerance},
     )
     return float(res.x), float(res.fun)
 
@@ -98,7 +116,7 @@ def decay_profile(ctx: AuditContext, current: ModelSpec) -> tuple[float, float, 
         costs = _lag_costs(ctx, current.with_(eddy_tau_s=tau, lag_s=0.0), None, "all")
         if costs is not None:
             without[tau] = float(costs(np.array([0.0]))[0])
-            beside[tau] = _least_cost(costs, ctx.s.max_lag_s)
+            beside[tau] = _least_cost(costs, _span(ctx, current))
     if not without:
         return current.eddy_tau_s, current.eddy_tau_s, 0.0
     tau1 = _refined_beside(ctx, current, taus, beside)
@@ -122,7 +140,9 @@ def _refined_beside(
         tau = float(np.exp(log_tau))
         if tau not in beside:
             costs = _lag_costs(ctx, current.with_(eddy_tau_s=tau, lag_s=0.0), None, "all")
-            beside[tau] = (0.0, np.inf) if costs is None else _least_cost(costs, ctx.s.max_lag_s)
+            beside[tau] = (
+                (0.0, np.inf) if costs is None else _least_cost(costs, _span(ctx, current))
+            )
         return beside[tau][1]
 
     minimize_scalar(

@@ -34,6 +34,7 @@ from pipeline.audit.evidence.lag import (
     decay_profile,
     fluxgate_timing,
     lag_estimate,
+    lag_response,
 )
 from pipeline.audit.evidence.survey_side import lines_difference_nT
 from pipeline.audit.extended import ModelSpec
@@ -230,7 +231,12 @@ def lag_beside_decay_nuisance(
     s = ctx.s
     smallest = s.min_lag_s
     tl = recorded_fluxgate_timing(ctx, current, ev)
+    # the lag's rival model holds no decay, and its response form is a nuisance of that
+    # model: chosen beside the decay, a sensor filter of about the decay's time constant
+    # reads as a delay (the decay took its shape) and the lag alone is judged in the
+    # wrong form
     plain = current.with_(eddy_tau_s=0.0)
+    plain = plain.with_(lag_response=lag_response(ctx, plain)[0])
     lag_plain = lag_estimate(ctx, plain, None, "all")
     plain_fold_lags: dict[int, float] = {}
 
