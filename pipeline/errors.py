@@ -27,6 +27,14 @@ class AeromagError(Exception):
         return ": ".join([*parts, self.problem])
 
 
+def missing_file(path: str | Path) -> AeromagError:
+    """The one line for an input ``path`` that is not a readable file: a folder given where
+    a file is wanted, or nothing there."""
+    if Path(path).is_dir():
+        return AeromagError("a folder, not a file", file=path)
+    return AeromagError("file not found", file=path)
+
+
 # what a user's output path can do to a write: a file where a folder should be, a folder
 # where the file should be, no permission, a read-only or full disk
 _OUTPUT_ERRNOS = frozenset(

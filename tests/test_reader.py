@@ -194,6 +194,8 @@ def test_unreadable_files_give_one_line_errors(tmp_path, content, expected):
 def test_missing_file_and_missing_scalar(tmp_path):
     with pytest.raises(AeromagError, match="file not found"):
         read_flight(tmp_path / "nope.mcap")
+    with pytest.raises(AeromagError, match="a folder, not a file"):
+        read_flight(tmp_path)
     p = build(tmp_path / "novec.mcap", [("/mag/vector", T0, vector(T0, 1, 2, 3))])
     with pytest.raises(AeromagError, match="/mag/scalar: no scalar magnetometer"):
         read_flight(p)

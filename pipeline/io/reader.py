@@ -23,7 +23,7 @@ import numpy as np
 import orjson
 import pandas as pd
 
-from pipeline.errors import AeromagError
+from pipeline.errors import AeromagError, missing_file
 from pipeline.flight import Flight  # moved to pipeline.flight; re-exported here
 from pipeline.io.contract import (
     INS_FIELDS,
@@ -106,7 +106,7 @@ def read_topics(path: str | Path, topics: Iterable[str] | None = None) -> RawRec
     """
     path = Path(path)
     if not path.is_file():
-        raise AeromagError("file not found", file=path)
+        raise missing_file(path)
     wanted = set(topics) if topics is not None else None
     try:
         sc = scan_mcap(path, wanted)

@@ -19,7 +19,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from pipeline.config import Config
-from pipeline.errors import AeromagError
+from pipeline.errors import AeromagError, missing_file
 from pipeline.flight import Flight
 from pipeline.io.writer import (
     OutputChannel,
@@ -87,7 +87,7 @@ def save_figure(fig, path: Path) -> Path:
 def require_readable(path: Path) -> None:
     """Raise a one-line AeromagError when ``path`` is not a file."""
     if not path.is_file():
-        raise AeromagError("file not found", file=path)
+        raise missing_file(path)
 
 
 def require_writable(path: Path, folder: bool = False) -> None:

@@ -28,7 +28,7 @@ from typing import Any
 from pipeline.compensate.plus import audit_nuisances
 from pipeline.config import Config
 from pipeline.despike import repaired_flight
-from pipeline.errors import AeromagError
+from pipeline.errors import missing_file
 from pipeline.flight import Flight
 from pipeline.io.reader import read_flight
 from pipeline.products.summary import sha256_file
@@ -181,7 +181,7 @@ def checked(recording: str | Path, out_dir: str | Path | None = None) -> Iterato
         folder that cannot be made or written.
     """
     if not Path(recording).is_file():
-        raise AeromagError("file not found", file=recording)
+        raise missing_file(recording)
     if out_dir is not None:
         require_writable(Path(out_dir), folder=True)
     t0 = time.perf_counter()
