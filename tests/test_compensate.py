@@ -546,3 +546,28 @@ def test_the_zero_phase_filter_is_scipys(rate_hz, band_hz, poles, shape):
     assert bandpass_sos(band_hz, rate_hz, poles)[0, 0] != 99.0
     with pytest.raises(ValueError):
         filtfilt_sos(sos, x[:10])
+
+
+def test_fom_compares_the_boxes_both_fields_cover():
+    """A fluxgate that starts late leaves the first legs uncompensated: the pass's FOM sums
+    the boxes where both fields exist (like with like), says how many, and is not called
+    complete; a box without data reads None, not NaN."""
+    from pipeline.compensate.model import figure_of_merit
+    from pipeline.segment.segmenter import Box
+
+    rng = np.random.default_rng(4)
+    t = np.arange(12 * 300) / 10.0
+    raw = 5.0 * np.sin(2 * np.pi * 0.2 * t) + rng.normal(0, 0.05, t.size)
+    comp = raw / 10.0
+    comp[: 4 * 300] = np.nan  # the first four boxes without a compensated field
+    boxes = [
+        Box(1, "NESW"[k // 3], ("roll", "pitch", "yaw")[k % 3], np.arange(k * 300, (k + 1) * 300))
+        for k in range(12)
+    ]
+    fom = figure_of_merit(t, raw, comp, boxes)
+    (p,) = fom.passes
+    assert (p["boxes"], p["boxes_compared"], p["complete"]) == (12, 8, False)
+    assert fom.boxes[0]["compensated_nT"] is None
+    assert p["compensated_nT"] == pytest.approx(p["uncompensated_nT"] / 10.0, rel=0.05)
+    full = figure_of_merit(t, raw, raw / 10.0, boxes).passes[0]
+    assert full["complete"] and full["boxes_compared"] == 12

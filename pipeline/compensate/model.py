@@ -378,27 +378,36 @@ def figure_of_merit(
     comp_bp = bandpassed(time_s, compensated_nT, band_hz, poles)
     rows = []
     for b in boxes:
-        r, c = raw_bp[b.index], comp_bp[b.index]
         rows.append(
             {
                 "pass": b.calibration_pass,
                 "cardinal": b.cardinal,
                 "manoeuvre": b.manoeuvre,
                 "samples": int(b.index.size),
-                "uncompensated_nT": float(np.nanmax(r) - np.nanmin(r)),
-                "compensated_nT": float(np.nanmax(c) - np.nanmin(c)),
+                "uncompensated_nT": _peak_to_peak(raw_bp[b.index]),
+                "compensated_nT": _peak_to_peak(comp_bp[b.index]),
             }
         )
     passes = []
     for p in sorted({r["pass"] for r in rows}):
         mine = [r for r in rows if r["pass"] == p]
+        # like with like: the boxes where both fields exist (a fluxgate that starts late
+        # leaves the first legs uncompensated); complete when all 12 are such boxes
+        both = [r for r in mine if None not in (r["uncompensated_nT"], r["compensated_nT"])]
         passes.append(
             {
                 "pass": p,
                 "boxes": len(mine),
-                "complete": len(mine) == 12,
-                "uncompensated_nT": float(sum(r["uncompensated_nT"] for r in mine)),
-                "compensated_nT": float(sum(r["compensated_nT"] for r in mine)),
+                "boxes_compared": len(both),
+                "complete": len(both) == 12,
+                "uncompensated_nT": float(sum(r["uncompensated_nT"] for r in both)),
+                "compensated_nT": float(sum(r["compensated_nT"] for r in both)),
             }
         )
     return FigureOfMerit(rows, passes)
+
+
+def _peak_to_peak(x: np.ndarray) -> float | None:
+    """Peak-to-peak (nT) of the finite samples, None with fewer than two."""
+    x = x[np.isfinite(x)]
+    return float(x.max() - x.min()) if x.size >= 2 else None
