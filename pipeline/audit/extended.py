@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.interpolate import CubicSpline
-from scipy.signal import lfilter, lfilter_zi
+from scipy.signal import lfilter
 
 from pipeline.audit.vector_cal import VectorCalibration
 from pipeline.compensate.estimator import bandpassed_design, fit_ridge
@@ -59,6 +59,7 @@ from pipeline.geo.local import LocalFrame
 from pipeline.geo.track import smooth_track
 from pipeline.io.series import NS
 from pipeline.physics.interference import CarrierInterference, scalar_reading_nT
+from pipeline.physics.outside_basis import first_order_filter
 
 
 @dataclass
@@ -349,12 +350,8 @@ def sensor_filtered(rows: np.ndarray, where: np.ndarray, dt_s: float, tau_s: flo
     x = np.asarray(rows, float)
     if not tau_s or x.shape[0] == 0:
         return x.copy()
-    # first_order_lowpass's filter (first-order hold, steady state on each run's first
-    # sample), its coefficients found once for every run
-    a = float(np.exp(-dt_s / abs(tau_s)))
-    k = abs(tau_s) / dt_s * (1.0 - a)
-    num, den = np.array([1.0 - k, k - a]), np.array([1.0, -a])
-    zi = lfilter_zi(num, den)[0]
+    # first_order_lowpass's filter on each run, its coefficients found once for all runs
+    num, den, zi = first_order_filter(dt_s, abs(tau_s))
     out = np.empty_like(x)
     starts = np.r_[0, np.flatnonzero(np.diff(where) != 1) + 1, where.size]
     for i, j in zip(starts[:-1], starts[1:], strict=True):

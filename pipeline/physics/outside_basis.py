@@ -35,12 +35,19 @@ def first_order_lowpass(x: np.ndarray, dt_s: float, tau_s: float, axis: int = 0)
     x = np.asarray(x, float)
     if tau_s <= 0:
         return x.copy()
+    num, den, zi = first_order_filter(dt_s, tau_s)
+    y, _ = lfilter(num, den, x, axis=axis, zi=zi * np.take(x, [0], axis=axis))
+    return y
+
+
+def first_order_filter(dt_s: float, tau_s: float) -> tuple[np.ndarray, np.ndarray, float]:
+    """:func:`first_order_lowpass`'s discrete filter at sample interval ``dt_s`` and time
+    constant ``tau_s`` (s, > 0): ``(b, a, zi)`` for :func:`scipy.signal.lfilter`, ``zi``
+    the state of unit steady state (times the first sample)."""
     a = float(np.exp(-dt_s / tau_s))
     k = tau_s / dt_s * (1.0 - a)
     num, den = np.array([1.0 - k, k - a]), np.array([1.0, -a])
-    zi = lfilter_zi(num, den)[0] * np.take(x, [0], axis=axis)  # steady state on x[0]
-    y, _ = lfilter(num, den, x, axis=axis, zi=zi)
-    return y
+    return num, den, float(lfilter_zi(num, den)[0])
 
 
 def tl18_basis(b_nT: np.ndarray, db_dt_nT_s: np.ndarray) -> np.ndarray:
