@@ -201,6 +201,13 @@ def rtp_refusal(inclination_deg: float) -> str | None:
     )
 
 
+def refused(products: list[Product], inclination_deg: float) -> list[str]:
+    """Why each of ``products`` that is not computed at ``inclination_deg`` is left out (the
+    reduction to the pole, :func:`rtp_refusal`); empty when every one is made."""
+    why = rtp_refusal(inclination_deg)
+    return [why] if why and any(p.kind == "rtp" for p in products) else []
+
+
 def enhance(
     grid: Grid,
     products: list[Product],

@@ -169,7 +169,7 @@ def enhance_recording(src: Path, dst: Path, cfg: Config) -> dict[str, Any]:
     grid, added as ``/map/*`` grid channels to a copy of it (RTP with the IGRF direction of
     its ``/map/frame``)."""
     from pipeline.export.source import MAKE_MAPS, read_map_products
-    from pipeline.maps.enhance import enhance, rtp_refusal
+    from pipeline.maps.enhance import enhance, refused
 
     settings = cfg.enhance_settings()
     mp = read_map_products(src)
@@ -197,11 +197,10 @@ def enhance_recording(src: Path, dst: Path, cfg: Config) -> dict[str, Any]:
         )
     except ValueError as exc:
         raise AeromagError(f"enhance: {exc}", file=src, channel=source.topic) from None
+    skipped = refused(settings.products, f.igrf_inclination_deg)
     if not grids:
         raise AeromagError(
-            rtp_refusal(f.igrf_inclination_deg) or "no enhancement to write",
-            file=src,
-            channel=source.topic,
+            "; ".join(skipped) or "no enhancement to write", file=src, channel=source.topic
         )
     channels = enhancement_channels(grids, settings, source.time_ns)
     meta = {
@@ -214,10 +213,9 @@ def enhance_recording(src: Path, dst: Path, cfg: Config) -> dict[str, Any]:
         }
     }
     write_with_new_channels(src, dst, channels, metadata=meta)
-    skipped = rtp_refusal(f.igrf_inclination_deg)
     return {
         "channels": list(grids),
-        "skipped": [skipped] if skipped and any(p.kind == "rtp" for p in settings.products) else [],
+        "skipped": skipped,
         "source": source.name,
         "inclination_deg": f.igrf_inclination_deg,
         "declination_deg": f.igrf_declination_deg,

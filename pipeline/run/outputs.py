@@ -243,8 +243,9 @@ def flight_products(r: FlightResults, cfg: Config) -> dict[str, Any]:
             channels += enhancement_channels(grids, cfg.enhance_settings(), int(flight.time_ns[0]))
             figures.update(enhancement_figures(grids, cfg.enhance_settings(), r.map_run.lines))
             lines.append((LOG_INFO, f"enhance: {', '.join(grids)}"))
-            if skipped := enhancement_skipped(r.map_run, cfg):
-                lines.append((LOG_WARNING, f"enhance: {skipped}"))
+            lines += [
+                (LOG_WARNING, f"enhance: {why}") for why in enhancement_skipped(r.map_run, cfg)
+            ]
     if r.nav is not None:
         lines += navigation_lines(r.nav)
         if not isinstance(r.nav, str):

@@ -131,14 +131,12 @@ def enhancement_grids(map_run, cfg) -> dict[str, Grid]:
         raise AeromagError(f"enhance: {exc}", channel=f"/map/{st.source}") from None
 
 
-def enhancement_skipped(map_run, cfg) -> str | None:
-    """Why a configured enhancement of the map run is not computed (the reduction to the
-    pole at a low inclination, :func:`pipeline.maps.enhance.rtp_refusal`), or None."""
-    from pipeline.maps.enhance import rtp_refusal
+def enhancement_skipped(map_run, cfg) -> list[str]:
+    """Why configured enhancements of the map run are not computed
+    (:func:`pipeline.maps.enhance.refused`)."""
+    from pipeline.maps.enhance import refused
 
-    if not any(p.kind == "rtp" for p in cfg.enhance_settings().products):
-        return None
-    return rtp_refusal(map_run.main_field[1])
+    return refused(cfg.enhance_settings().products, map_run.main_field[1])
 
 
 # the fewest survey epochs worth a map: a few seconds of line do not make a grid
