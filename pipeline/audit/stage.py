@@ -445,9 +445,10 @@ def _notes(
 def _quality_geometry(flight: Flight, seg: Segmentation):
     """The survey's quality geometry (:func:`pipeline.quality.stage.survey_geometry`) both
     models' figures share; None without a mapped block."""
+    from pipeline.maps.stage import map_refusal
     from pipeline.quality.stage import survey_geometry
 
-    if not (seg.mask("survey").sum() > 100 and flight.has("lat_deg", "lon_deg", "alt_m")):
+    if map_refusal(flight, seg) is not None:
         return None
     return survey_geometry(flight, seg)
 

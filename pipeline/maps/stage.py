@@ -478,6 +478,27 @@ def anomaly_grid(
     return GriddedMap(frame, red, lines, lev, heading, spacing, grid, data, gridder, micro)
 
 
+# the fewest survey epochs worth a map: a few seconds of line do not make a grid
+MIN_SURVEY_EPOCHS = 100
+
+
+def map_refusal(flight: Flight, seg: Segmentation | None) -> str | None:
+    """Why the flight gets no map (one line, said in the log and the reports), or None."""
+    if seg is None:
+        return "no segmentation"
+    n = int(seg.mask("survey").sum())
+    if n <= MIN_SURVEY_EPOCHS:
+        return (
+            f"{n} survey epochs: no block of straight, parallel survey lines was found in the "
+            "track (segments: "
+            + ", ".join(f"{k} {int(seg.mask(k).sum())}" for k in ("tie", "validation", "transit"))
+            + " epochs)"
+        )
+    if not flight.has("lat_deg", "lon_deg", "alt_m"):
+        return "no positions (/gnss/fix)"
+    return None
+
+
 def build_map(
     flight: Flight,
     seg: Segmentation,

@@ -31,6 +31,7 @@ from pipeline.despike import repaired_flight
 from pipeline.errors import missing_file
 from pipeline.flight import Flight
 from pipeline.io.reader import read_flight
+from pipeline.maps.stage import map_refusal
 from pipeline.products.summary import sha256_file
 from pipeline.run import steps
 from pipeline.run.fields import compensable, configured_models, mapped_field, try_segment
@@ -119,7 +120,7 @@ def postflight_steps(
     if cfg["vector"]["enabled"] and flight.has("vector_x_nT", "roll_deg"):
         res.vector = call(VECTOR, flight, seg, cfg)
     final = mapped_field(flight, res.runs, res.audit)  # the raw scalar without a model
-    res.map_skipped = steps.map_refusal(flight, seg) or ""
+    res.map_skipped = map_refusal(flight, seg) or ""
     if not res.map_skipped:
         res.map_run = call(MAP, flight, seg, final[1], cfg, final[0])
         res.quality = call(QUALITY, flight, seg, res.runs, res.audit, cfg)

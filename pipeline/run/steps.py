@@ -139,27 +139,6 @@ def enhancement_skipped(map_run, cfg) -> list[str]:
     return refused(cfg.enhance_settings().products, map_run.main_field[1])
 
 
-# the fewest survey epochs worth a map: a few seconds of line do not make a grid
-MIN_SURVEY_EPOCHS = 100
-
-
-def map_refusal(flight: Flight, seg: Segmentation | None) -> str | None:
-    """Why the flight gets no map (one line, said in the log and the reports), or None."""
-    if seg is None:
-        return "no segmentation"
-    n = int(seg.mask("survey").sum())
-    if n <= MIN_SURVEY_EPOCHS:
-        return (
-            f"{n} survey epochs: no block of straight, parallel survey lines was found in the "
-            "track (segments: "
-            + ", ".join(f"{k} {int(seg.mask(k).sum())}" for k in ("tie", "validation", "transit"))
-            + " epochs)"
-        )
-    if not flight.has("lat_deg", "alt_m"):
-        return "no positions (/gnss/fix)"
-    return None
-
-
 def map_stage(flight: Flight, seg: Segmentation, comp: np.ndarray, cfg, field: str = "compensated"):
     """Map: reduce, level, grid and filter ``comp`` (compensated field, nT, one per epoch;
     ``field``: which, :attr:`pipeline.maps.stage.MapRun.field`).
@@ -271,4 +250,4 @@ class FlightResults:
     despiked: DespikeResult | None = None
     nav: Any = None  # pipeline.navigation.stage.NavigationRun | str
     navigability: Any = None  # (Grid, summary dict) | str
-    map_skipped: str = ""  # why there is no map (:func:`map_refusal`)
+    map_skipped: str = ""  # why there is no map (pipeline.maps.stage.map_refusal)
