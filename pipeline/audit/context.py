@@ -102,6 +102,11 @@ class AuditContext:
             if flight.has("yaw_deg")
             else np.zeros(self.mask.size),
         )
+        # each calibration epoch's heading (N, E, S, W; turns) and kind of manoeuvre (roll,
+        # pitch, yaw, steady; turns)
+        head, _, tail = np.char.partition(strata.astype(str), ":").T
+        self.leg_heading = head
+        self.manoeuvre_kind = np.where(head == "turn", "turn", tail)
         self.fold = stratified_block_folds(
             self.data.time_s, self.mask, strata, settings.n_folds, settings.block_s_cv
         )

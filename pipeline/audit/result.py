@@ -28,6 +28,9 @@ class Evaluation:
     reason: str = ""
     metric: str = "heldout_calibration_residual_rms"
     ci95: dict[str, Any] = field(default_factory=dict)  # same keys as estimate: [lo, hi]
+    # the model whose refit gives the estimate (a lag's, lag 0): its interval re-estimates
+    # it there
+    estimated_in: ModelSpec | None = None
     held_back: bool = False  # a competing explanation fits as well: never accepted
     # p of independent evidence below the fit band (the calibration legs' gradient), combined
     # with the held-out p (Fisher) when present

@@ -20,15 +20,12 @@ reported as an ambiguity and nothing is named for it.
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-import numpy as np
 from scipy.stats import combine_pvalues, norm
 
 from pipeline.audit.context import AuditContext
-from pipeline.audit.crossval import jackknife_ci95
 from pipeline.audit.evidence import HeldOut, significant
 from pipeline.audit.evidence.lag import (
     decay_profile,
@@ -283,7 +280,7 @@ def lag_beside_decay_nuisance(
         took_the_place_of(ev, tau)
         named_plain = True
     elif verdict == "lag_beside_decay":
-        _lag_timed_beside_decay(ev, sl, tl)
+        _lag_timed_beside_decay(ev)
         named_plain = _lag_of_the_whole_reading(ev, lagged, lag_plain)
     elif verdict == "lag" and timing_says(ctx, lag, sl, tl) == "holds":
         # the lines' timing (what a late sensor delays and a decay does not) confirms it
@@ -294,8 +291,8 @@ def lag_beside_decay_nuisance(
         named_plain = _lag_of_the_whole_reading(ev, lagged, lag_plain)
     elif verdict in ("ambiguous", "none"):
         _held_back(ctx, ev, verdict, vs, tau, lag_plain, (current, plain.with_(lag_s=lag_plain)))
-    if not ev.held_back and named_plain:
-        _with_its_own_spread(ctx, ev, lag_model, lag_plain)
+    if named_plain:  # the whole reading's delay, estimated without the decay
+        ev.estimated_in = plain
     _unresolved(ev, smallest)
     return ev
 
@@ -344,24 +341,6 @@ def _held_back(
         )
 
 
-def _with_its_own_spread(
-    ctx: AuditContext,
-    ev: Evaluation,
-    lag_model: Callable[[np.ndarray, int], ModelSpec],
-    lag_plain_s: float,
-) -> None:
-    """Widen the interval of a lag named as the whole reading's delay (``lag_plain_s``,
-    measured without the decay) by that estimate's own sampling error: its delete-a-fold
-    jackknife on the folds' training epochs (the same folds as the other estimates'). The
-    other estimates' points bound where the truth may lie between the model forms; they
-    carry no margin of their own, so the named lag could otherwise sit on the interval's end.
-    ``lag_model(train, k)``: the lag's model on fold ``k``'s training epochs."""
-    lags = [lag_model(train, k).lag_s for k, (train, _) in enumerate(ctx.folds)]
-    ci = jackknife_ci95({"lag_s": lag_plain_s}, [{"lag_s": v} for v in lags]).get("lag_s")
-    if ci is not None:
-        _widen_lag_interval(ev, ci[0], ci[1], lag_plain_s)
-
-
 def _unresolved(ev: Evaluation, smallest_s: float) -> None:
     """Hold back a lag named beside a slower decay (which keeps the lag beside it, not the
     whole reading's delay) that is under ``smallest_s`` (``min_lag_s``): within the
@@ -376,20 +355,12 @@ def _unresolved(ev: Evaluation, smallest_s: float) -> None:
         )
 
 
-def _widen_lag_interval(ev: Evaluation, low_s: float, high_s: float, centre_s: float) -> None:
-    """Widen ``ev``'s lag interval to reach ``low_s`` and ``high_s`` (s); an estimate without
-    one starts from ``centre_s``."""
-    lo, hi = ev.ci95.get("lag_s") or (centre_s, centre_s)
-    ev.ci95["lag_s"] = [min(lo, low_s), max(hi, high_s)]
-
-
 def _lag_breaks_the_tie(
     ev: Evaluation, lag_model: ModelSpec, lag_alone: HeldOut, by_physics: bool, timing: str
 ) -> None:
     """Name the lag of ``lag_model`` (no decay) where it and the decay tied: decided by the
-    rivals' held-out comparison (``by_physics``) or the lines' timing; the interval holds
-    the lag without the decay too."""
-    lag, lag_plain = float(ev.estimate["lag_s"]), lag_model.lag_s
+    rivals' held-out comparison (``by_physics``) or the lines' timing."""
+    lag_plain = lag_model.lag_s
     ev.estimate.update(
         lag_s=lag_plain,
         confirmed_by="the lag model over the decay model"
@@ -399,19 +370,13 @@ def _lag_breaks_the_tie(
         else "the lag model over the decay model with the timing along the lines",
     )
     ev.heldout, ev.spec, ev.decided_outside = lag_alone, lag_model, True
-    _widen_lag_interval(ev, lag_plain, lag_plain, lag)
 
 
-def _lag_timed_beside_decay(ev: Evaluation, sl, tl) -> None:
+def _lag_timed_beside_decay(ev: Evaluation) -> None:
     """Name the lag beside the null's decay on the lines' timing (the verdict
-    ``"lag_beside_decay"``): decided outside the calibration, its interval widened to the
-    lines' combined timing interval (beside a decay the calibration's lag reads short: the
-    decay takes part of the late response)."""
+    ``"lag_beside_decay"``): decided outside the calibration."""
     ev.estimate["confirmed_by"] = "the timing along the lines, beside the eddy decay"
     ev.decided_outside = True
-    both = combined_interval([o for o in (sl, tl) if o is not None])
-    if both is not None:
-        _widen_lag_interval(ev, both[1], both[2], float(ev.estimate["lag_s"]))
 
 
 def _profiled_decay(
@@ -446,8 +411,7 @@ def _profiled_decay(
 
     ev.heldout = ctx.heldout(null, ext_for)
     ev.estimate.update(lag_s=lag, lag_by_fold_s=[lags[k] for k in sorted(lags)])
-    ev.spec = lagged.with_(lag_s=lag)
-    _widen_lag_interval(ev, lag, lag, lag)
+    ev.spec, ev.estimated_in = lagged.with_(lag_s=lag), lagged
     return null, lagged, lags
 
 
@@ -461,7 +425,7 @@ def _lag_of_the_whole_reading(ev: Evaluation, lagged: ModelSpec, lag_plain_s: fl
     beside them is what the other columns cannot take, drawn toward zero by any
     interference outside the model; the lag on the lines (the geology's delay) is the
     whole reading's. A slower decay is the carrier's own and leaves the lag its response.
-    The lag beside the decay is kept as ``lag_beside_decay_s``; the interval holds both.
+    The lag beside the decay is kept as ``lag_beside_decay_s``.
     Returns whether the lag named is now the whole reading's."""
     lag = float(ev.estimate["lag_s"])
     tau = lagged.eddy_tau_s
@@ -469,7 +433,6 @@ def _lag_of_the_whole_reading(ev: Evaluation, lagged: ModelSpec, lag_plain_s: fl
         return False
     ev.estimate.update(lag_s=lag_plain_s, lag_beside_decay_s=lag)
     ev.spec = lagged.with_(lag_s=lag_plain_s)
-    _widen_lag_interval(ev, lag_plain_s, lag_plain_s, lag)
     ev.ci95["lag_beside_decay_s"] = None
     return True
 
@@ -487,5 +450,3 @@ def _lag_in_place_of_decay(
     )
     ev.spec = plain.with_(lag_s=lag_s)
     ev.estimate.update(lag_s=lag_s, replaces="eddy_decay")
-    # the interval was read beside the decay; it must hold the estimate without it too
-    _widen_lag_interval(ev, lag_s, lag_s, lag_s)

@@ -9,10 +9,10 @@ from typing import Any
 import numpy as np
 
 from pipeline.audit.context import AuditContext
-from pipeline.audit.crossval import jackknife_ci95
 from pipeline.audit.evidence.lag import (
     lag_beside_eddy_decay,
     lag_estimate,
+    lag_interval,
     lag_response,
 )
 from pipeline.audit.evidence.survey_side import crossover_lag, lines_difference_nT
@@ -54,12 +54,15 @@ def evaluate(ctx: AuditContext, current: ModelSpec, key: str) -> Evaluation:
     along the lines (:func:`_by_the_timing`)."""
     ev, current, lags, sl, forms, beside_decay = _on_the_calibration(ctx, current, key)
     if current.eddy_tau_s > 0:  # the null model holds eddy currents that decay
-        return lag_beside_decay_nuisance(ctx, ev, current, lags, sl)
-    decay_as_well, beside_a_decay = _against_eddy_currents(
-        ctx, ev, current, lags, forms, beside_decay
-    )
-    tl = _by_the_timing(ctx, ev, current, sl, decay_as_well, beside_a_decay, beside_decay)
-    _untimed_tie(ctx, ev, current, sl, tl, decay_as_well)
+        ev = lag_beside_decay_nuisance(ctx, ev, current, lags, sl)
+    else:
+        decay_as_well, beside_a_decay = _against_eddy_currents(
+            ctx, ev, current, lags, forms, beside_decay
+        )
+        tl = _by_the_timing(ctx, ev, current, sl, decay_as_well, beside_a_decay, beside_decay)
+        _untimed_tie(ctx, ev, current, sl, tl, decay_as_well)
+    if not ev.held_back and ev.estimated_in is not None:
+        ev.ci95["lag_s"] = lag_interval(ctx, ev.estimated_in, float(ev.estimate["lag_s"]))
     return ev
 
 
@@ -99,19 +102,11 @@ def _on_the_calibration(
             survey_lag_ci95_s=list(sl.ci95_s),
             survey_lag_p_value=sl.p_value,
         )
-    ci = jackknife_ci95({"lag_s": lag}, [{"lag_s": lags[k]} for k in sorted(lags)])
-    # the folds' spread is the statistical error only. The calibration cannot tell the
-    # model forms apart (a delay or a sensor filter; eddy currents that decay or not) and
-    # each reads a lag-like residual as a different lag, so the interval spans the lags
-    # of every form (their spread far exceeds the folds')
+    # what every model form reads (a delay or a sensor filter; eddy currents that decay or
+    # not), and the lag beside eddy currents that decay with their best time constant
     est["lag_by_model_form_s"] = forms
-    # and beside eddy currents that decay with their best time constant, which take part
-    # of a lag-like residual: the truth can lie between that lag and the forms' above
     beside_decay = lag_beside_eddy_decay(ctx, current)
     est["lag_beside_eddy_decay_s"] = beside_decay
-    if ci.get("lag_s") is not None:
-        every = [*forms.values(), *beside_decay.values()]
-        ci["lag_s"] = [min(ci["lag_s"][0], *every), max(ci["lag_s"][1], *every)]
     ev = Evaluation(
         "sensor_lag",
         key,
@@ -119,7 +114,8 @@ def _on_the_calibration(
         test,
         held,
         current.with_(lag_s=lag),
-        ci95={**ci, **{k: None for k in est if k not in ci}},
+        ci95={k: None for k in est},
+        estimated_in=current,
     )
     return ev, current, lags, sl, forms, beside_decay
 
@@ -189,18 +185,12 @@ def _by_the_timing(
     beside_decay: dict[str, float],
 ) -> Any:
     """The timing along the lines (survey crossovers ``sl``, the fluxgate's record) on the
-    lag: it widens the interval, releases a lag held back when it holds it, holds back a
+    lag: it releases a lag held back when it holds it, holds back a
     tie with a decay when it says the scalar is not late; and a lag under ``min_lag_s`` is
     held back. Returns the fluxgate's timing (None without it)."""
     lag, smallest = float(ev.estimate["lag_s"]), ctx.s.min_lag_s
     beside_most = max(beside_decay.values())
     tl = recorded_fluxgate_timing(ctx, current, ev)
-    if tl is not None:  # independent evidence: the fluxgate along the lines
-        # independent timing that disagrees with every calibration form: the truth may lie
-        # with either, so the interval spans both
-        lo, hi = ev.ci95["lag_s"] or (lag, lag)
-        if not lo <= tl.lag_s <= hi:
-            ev.ci95["lag_s"] = [min(lo, tl.ci95_s[0]), max(hi, tl.ci95_s[1])]
     # the calibration cannot tell the two apart, the survey can: eddy currents do not
     # move anomalies along track, a late sensor does (against the crossovers, and
     # against the fluxgate's record of the same anomalies)
