@@ -1,6 +1,7 @@
 """The lag's interval (``pipeline.audit.evidence.lag.lag_interval``): delete-a-group
-jackknives over the calibration's kinds of manoeuvre and its headings, the wider, checked
-against the jackknife's closed form with the refits replaced by costs of known least."""
+jackknives over the calibration's kinds of manoeuvre and its headings
+(``AuditContext.jackknife_groups``), the wider, checked against the jackknife's closed form
+with the refits replaced by costs of known least."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import pytest
 from scipy import stats
 
 import pipeline.audit.evidence.lag as lag_module
+from pipeline.audit.context import AuditContext
 from pipeline.audit.extended import ModelSpec
 
 LAG_S = 0.12
@@ -23,13 +25,15 @@ def _ctx(kinds: list[str], headings: list[str]):
     heading = np.repeat([h for _, h in pairs], 40)
     fold = np.arange(kind.size) % 5
     mask = np.ones(kind.size, bool)
-    return SimpleNamespace(
+    ctx = SimpleNamespace(
         mask=mask,
         manoeuvre_kind=kind,
         leg_heading=heading,
         folds=[(fold != k, fold == k) for k in range(5)],
         s=SimpleNamespace(max_lag_s=1.0),
     )
+    ctx.jackknife_groups = lambda: AuditContext.jackknife_groups(ctx)
+    return ctx
 
 
 def _with_shifts(monkeypatch, ctx, shift_s: dict[str, float]):
@@ -99,3 +103,14 @@ def test_a_calibration_of_one_kind_on_one_heading_uses_the_folds(monkeypatch):
     monkeypatch.setattr(lag_module, "_lag_costs", costs_for)
     assert lag_module.lag_interval(ctx, ModelSpec(), LAG_S) is not None
     assert seen == [f"fold{k}" for k in range(5)]
+
+
+def test_the_widest_interval_is_taken_per_key_and_per_entry():
+    from pipeline.audit.crossval import widest_ci95
+
+    a = {"k": [1.0, 2.0], "v": [[0.0, 1.0], [0.0, 3.0]], "name": None}
+    b = {"k": [0.5, 2.1], "v": [[0.0, 2.0], None], "name": None}
+    got = widest_ci95([a, b])
+    assert got["k"] == pytest.approx([0.5, 2.1])
+    assert got["v"][0] == pytest.approx([0.0, 2.0]) and got["v"][1] == pytest.approx([0.0, 3.0])
+    assert got["name"] is None

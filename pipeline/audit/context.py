@@ -188,6 +188,21 @@ class AuditContext:
             second_order=nz.second_order,
         )
 
+    def jackknife_groups(self) -> list[list[tuple[np.ndarray, str]]]:
+        """The calibration's groupings for a delete-a-group jackknife of an estimate: by
+        kind of manoeuvre (roll, pitch, yaw, steady, turns) and by heading, each a list of
+        (training epochs: the calibration without one group, a key naming them for
+        :meth:`fit`). A constant of the carrier is the same in every manoeuvre on every
+        heading; a misfit outside the model moves it differently in each, a spread the
+        stratified folds (each holding every group) hide. A grouping with fewer than two
+        groups is left out; with neither, the folds are the groups."""
+        groupings = []
+        for labels in (self.manoeuvre_kind, self.leg_heading):
+            present = sorted(set(labels[self.mask].tolist()))
+            if len(present) >= 2:
+                groupings.append([(self.mask & (labels != g), f"without-{g}") for g in present])
+        return groupings or [[(train, f"fold{k}") for k, (train, _) in enumerate(self.folds)]]
+
     @cached_property
     def calibration_part(self) -> tuple[AuditData, np.ndarray, np.ndarray]:
         """(data, mask, epoch indices) near the calibration

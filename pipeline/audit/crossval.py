@@ -204,3 +204,24 @@ def jackknife_ci95(estimate: dict, by_fold: list[dict]) -> dict:
         else:
             out[key] = None
     return out
+
+
+def widest_ci95(cis: list[dict]) -> dict:
+    """Per key of several :func:`jackknife_ci95` results (one per grouping of the same
+    data), the widest interval: for a list, entry by entry; None where every one is None."""
+
+    def width(iv):
+        return -1.0 if iv is None else iv[1] - iv[0]
+
+    out: dict = {}
+    for key in cis[0] if cis else {}:
+        vals = [c.get(key) for c in cis]
+        if any(isinstance(v, list) and v and isinstance(v[0], list | type(None)) for v in vals):
+            n = max(len(v) for v in vals if isinstance(v, list))
+            out[key] = [
+                max((v[i] for v in vals if isinstance(v, list) and len(v) > i), key=width)
+                for i in range(n)
+            ]
+        else:
+            out[key] = max(vals, key=width)
+    return out

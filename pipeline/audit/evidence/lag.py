@@ -9,7 +9,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from pipeline.audit.context import AuditContext
-from pipeline.audit.crossval import jackknife_ci95
+from pipeline.audit.crossval import jackknife_ci95, widest_ci95
 from pipeline.audit.extended import LAG_RESPONSES, ModelSpec, lag_cost
 from pipeline.audit.timing import TimingLag, timing_lag
 
@@ -85,37 +85,25 @@ def _span(ctx: AuditContext, spec: ModelSpec) -> tuple[float, float, float, floa
 
 def lag_interval(ctx: AuditContext, spec: ModelSpec, lag_s: float) -> list[float] | None:
     """The 95 % interval (s) of the lag ``lag_s`` estimated in ``spec`` (its lag 0): the
-    wider of two delete-a-group jackknives (:func:`pipeline.audit.crossval.jackknife_ci95`),
-    one whose groups are the calibration's kinds of manoeuvre (roll, pitch, yaw, steady
-    flight, turns), one whose groups are its headings.
-
-    A late sensor delays its response to every manoeuvre on every heading alike;
-    interference the model does not hold (eddy currents that decay, second-order induced
-    terms, an unrecorded current) reads as a different lag in each, since each excites
-    other terms. So the lag re-estimated without each group spreads as far as that misfit
-    moves it, which the stratified folds (each holding every group) do not show. A grouping
-    with fewer than two groups is left out; with neither, the folds are the groups. None
-    when a group's refit fails."""
-    groupings = [
-        [(ctx.mask & (labels != g), f"without-{g}") for g in present]
-        for labels in (ctx.manoeuvre_kind, ctx.leg_heading)
-        if len(present := sorted(set(labels[ctx.mask].tolist()))) >= 2
-    ] or [[(train, f"fold{k}") for k, (train, _) in enumerate(ctx.folds)]]
+    widest of the delete-a-group jackknives (:func:`pipeline.audit.crossval.jackknife_ci95`)
+    over :meth:`AuditContext.jackknife_groups`, the lag re-estimated without each kind of
+    manoeuvre and without each heading: a late sensor delays its response to every one
+    alike, interference the model does not hold (eddy currents that decay, second-order
+    induced terms, an unrecorded current) reads as a different lag in each. None when a
+    group's refit fails."""
     low, high, step, tolerance = _span(ctx, spec)
     near = (max(low, lag_s - 2 * step), min(high, lag_s + 2 * step), step, tolerance)
-    widest = None
-    for groups in groupings:
+    cis = []
+    for groups in ctx.jackknife_groups():
         lags = []
         for keep, key in groups:
             costs = _lag_costs(ctx, spec, keep, key)
             if costs is None:
                 return None
             # each group's lag lies near the whole calibration's: searched around it
-            lags.append(_least_cost(costs, near)[0])
-        ci = jackknife_ci95({"lag_s": lag_s}, [{"lag_s": v} for v in lags])["lag_s"]
-        if ci is not None and (widest is None or ci[1] - ci[0] > widest[1] - widest[0]):
-            widest = ci
-    return widest
+            lags.append({"lag_s": _least_cost(costs, near)[0]})
+        cis.append(jackknife_ci95({"lag_s": lag_s}, lags))
+    return widest_ci95(cis)["lag_s"]
 
 
 def _least_cost(costs, span: tuple[float, float, float, float]) -> tuple[float, float]:

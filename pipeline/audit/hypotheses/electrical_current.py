@@ -11,7 +11,7 @@ import numpy as np
 from scipy import stats
 
 from pipeline.audit.context import AuditContext
-from pipeline.audit.crossval import jackknife_ci95
+from pipeline.audit.crossval import jackknife_ci95, widest_ci95
 from pipeline.audit.evidence import HeldOut, significant
 from pipeline.audit.evidence.survey_side import (
     channel_switch_steps,
@@ -114,8 +114,14 @@ def _on_the_calibration(
         }
 
     est = coupling(ctx.fit(ext, None, "all"))
-    folds = [coupling(ctx.fit(ext, tr, f"fold{k}")) for k, (tr, _) in enumerate(ctx.folds)]
-    ci = jackknife_ci95(est, folds)
+    # refitted without each kind of manoeuvre and each heading: a coupling that takes up
+    # interference outside the model moves between them
+    ci = widest_ci95(
+        [
+            jackknife_ci95(est, [coupling(ctx.fit(ext, keep, k)) for keep, k in groups])
+            for groups in ctx.jackknife_groups()
+        ]
+    )
     sc = crossover_coupling(ctx, current, name)
     if sc is not None:  # independent evidence: the survey's crossovers
         est.update(
@@ -159,18 +165,12 @@ def _by_the_switches(
     sw = None if steps is None else switch_coupling(steps, inflation=wider)
     body = None if steps is None else switch_body_coupling(steps, inflation=wider)
     if body is not None:
-        # the calibration's three columns can take up other interference that follows
-        # the manoeuvres, and the switches may be read at few headings: the interval of |c|
-        # spans both estimates'
         ev.estimate.update(
             switch_nT_per_unit=body.nT_per_unit,
             switch_vector_body_nT_per_unit=[float(v) for v in body.vector_nT_per_unit],
         )
         ev.ci95["switch_nT_per_unit"] = list(body.ci95)
         ev.ci95["switch_vector_body_nT_per_unit"] = None
-        cal = ev.ci95.get("nT_per_unit")
-        if cal is not None:
-            ev.ci95["nT_per_unit"] = [min(cal[0], body.ci95[0]), max(cal[1], body.ci95[1])]
     if sw is not None:
         ev.estimate.update(
             switch_total_field_nT_per_unit=sw.total_field_nT_per_unit,
