@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import AeromagError
+from pipeline.errors import AeromagError, missing_file
 from pipeline.io.plausibility import check_degrees, check_units
 from pipeline.io.writer import McapOutput, encode, stamp
 
@@ -195,7 +195,7 @@ def read_sgl(path: str | Path) -> dict[str, np.ndarray]:
     """The fields of an SGL file, by their HDF5 names (lower case)."""
     p = Path(path)
     if not p.is_file():
-        raise AeromagError("file not found", file=p)
+        raise missing_file(p)
     head = p.read_bytes()[:8]
     fields = read_h5(p) if head.startswith(b"\x89HDF") else read_xyz(p)
     missing = [k for k in ("tt", "year", "doy") if k not in fields]

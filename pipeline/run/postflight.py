@@ -28,14 +28,13 @@ from typing import Any
 from pipeline.compensate.plus import audit_nuisances
 from pipeline.config import Config
 from pipeline.despike import repaired_flight
-from pipeline.errors import missing_file
 from pipeline.flight import Flight
 from pipeline.io.reader import read_flight
 from pipeline.maps.stage import map_refusal
 from pipeline.products.summary import sha256_file
 from pipeline.run import steps
 from pipeline.run.fields import compensable, configured_models, mapped_field, try_segment
-from pipeline.run.outputs import require_writable, write_outputs
+from pipeline.run.outputs import require_readable, require_writable, write_outputs
 
 
 @dataclass(frozen=True)
@@ -181,8 +180,7 @@ def checked(recording: str | Path, out_dir: str | Path | None = None) -> Iterato
         Missing, empty or unreadable file, no scalar magnetometer, wrong units; an output
         folder that cannot be made or written.
     """
-    if not Path(recording).is_file():
-        raise missing_file(recording)
+    require_readable(Path(recording))
     if out_dir is not None:
         require_writable(Path(out_dir), folder=True)
     t0 = time.perf_counter()
